@@ -1,0 +1,1 @@
+"""octo-harness: closed-loop Octo evaluation in robosuite with per-step attention capture."""

@@ -1,0 +1,40 @@
+"""Records that flow down the pipeline: what a rollout hands to analysis and writers per step.
+
+The rollout fills a `StepRecord` per control step and a `EpisodeMeta` per episode; the writers only
+read them. All arrays are numpy (batch index 0 already taken).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class StepRecord:
+    step: int  # control step index t (0-based)
+    frames: dict[str, np.ndarray]  # observation key -> (height, width, 3) uint8, upright camera frame the model saw
+    readout_attention: np.ndarray  # (layers, heads, readouts, keys) float32, post-softmax rows of the last timestep's readouts
+    actions_predicted: np.ndarray  # (action_horizon, action_dim) float32, unnormalised chunk predicted at this step
+    action_executed: np.ndarray  # (action_dim,) float32, the action sent to the env at this step
+    reward: float
+    success: bool
+    masks: dict[str, dict[str, np.ndarray]] | None = None  # obs key -> {"target": (h, w) bool, "robot": (h, w) bool}
+    full_attention: np.ndarray | None = None  # (layers, heads, queries, keys) float32 when requested (attention rollout)
+    timings: dict[str, float] = field(default_factory=dict)  # seconds: "simulation", "inference", "enqueue"
+
+
+@dataclass(frozen=True)
+class EpisodeMeta:
+    run: str
+    task: str
+    episode: int
+    seed: int
+    instruction: str
+    model: str  # model source (uri), e.g. "random:octo-small-1.5", "hf://rail-berkeley/octo-small-1.5"
+    model_is_random: bool
+    dataset_key: str | None
+    text_tokenizer: str  # e.g. "t5-base" or "fallback (deterministic hash, NOT t5)"
+    execution: str  # e.g. "temporal_ensemble" or "receding_horizon:4"
+    extra: dict = field(default_factory=dict)

@@ -1,0 +1,33 @@
+# Sourced by scripts/demo.sh and scripts/test.sh: installs system libraries (as root) and the .venv.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+
+APT_PACKAGES="libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libgl1 libglib2.0-0 libosmesa6 ffmpeg"
+missing=""
+for p in $APT_PACKAGES; do
+    dpkg -s "$p" >/dev/null 2>&1 || missing="$missing $p"
+done
+if [ -n "$missing" ]; then
+    if [ "$(id -u)" = "0" ]; then
+        echo "[setup] installing system libraries:$missing"
+        DEBIAN_FRONTEND=noninteractive apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $missing >/dev/null
+    else
+        echo "[setup] missing system libraries; run: sudo apt-get install -y$missing" >&2
+        exit 1
+    fi
+fi
+
+STAMP=".venv/.installed-$(sha1sum pyproject.toml | cut -c1-12)"
+if [ ! -f "$STAMP" ]; then
+    echo "[setup] creating .venv and installing octo-harness (first run takes a few minutes)"
+    python3 -m venv .venv
+    .venv/bin/pip install -q --upgrade pip
+    .venv/bin/pip install -q -e ".[test]"
+    rm -f .venv/.installed-*
+    touch "$STAMP"
+fi
+
+export MUJOCO_GL="${MUJOCO_GL:-egl}"
+export PYOPENGL_PLATFORM="${PYOPENGL_PLATFORM:-$MUJOCO_GL}"
