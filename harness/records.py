@@ -23,6 +23,7 @@ class StepRecord:
     masks: dict[str, dict[str, np.ndarray]] | None = None  # obs key -> {"target": (h, w) bool, "robot": (h, w) bool}
     full_attention: np.ndarray | None = None  # (layers, heads, queries, keys) float32 when requested (attention rollout)
     timings: dict[str, float] = field(default_factory=dict)  # seconds: "simulation", "inference", "enqueue"
+    inferred: bool = True  # False when this step executed a stored chunk action (receding horizon): attention is that chunk's
 
 
 @dataclass(frozen=True)
