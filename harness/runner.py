@@ -1,0 +1,209 @@
+"""Evaluation runs: many episodes over tasks; a straight pipeline make env -> policy -> rollout -> writers -> results.
+
+`run(config)` returns a `RunSummary` and writes `results/runs/<run>/<task>/episode_<k>/...` plus
+`results/runs/<run>/results.json` (manifest + one row per episode). A failing episode is recorded
+as failed (with its error) and the run goes on; Ctrl-C aborts the current episode's writer (no
+half-written files) and re-raises.
+"""
+
+from __future__ import annotations
+
+import logging
+import platform
+import subprocess
+import time
+import traceback
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+import envs
+from harness.files import atomic_write_json
+from harness.octo import load_pretrained
+from harness.policy import OctoPolicy, PolicyConfig
+from harness.records import EpisodeMeta, StepRecord
+from harness.rollout import rollout
+from harness.writers import EpisodeWriter, OutputOptions
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    tasks: tuple[str, ...]
+    model: str
+    episodes: int = 1
+    seed: int = 0  # episode k of every task uses seed + k
+    max_steps: int | None = None  # None = the task's own limit
+    out_dir: Path = Path("results/runs")
+    run_name: str | None = None  # default: <UTC time>_<model short name>
+    instruction: str | None = None  # override the task's default instruction
+    masks: bool = True  # ask the env for target/robot masks (attention mass on the target)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    outputs: OutputOptions = field(default_factory=OutputOptions)
+
+
+@dataclass(frozen=True)
+class EpisodeRow:
+    task: str
+    episode: int
+    seed: int
+    status: str  # "ok" | "failed"
+    success: bool
+    steps: int
+    seconds_per_step: float
+    simulation_per_step: float
+    inference_per_step: float
+    overhead_fraction: float  # (step - simulation - inference) / step
+    directory: str
+    error: str | None = None
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    run_dir: Path
+    rows: tuple[EpisodeRow, ...]
+    manifest: dict
+
+    def table(self) -> str:
+        """Per-task summary table (plain text)."""
+        header = f"{'task':<20} {'episodes':>8} {'failed':>6} {'success':>8} {'steps':>6} {'s/step':>7} {'sim':>6} {'infer':>6} {'overhead':>8}"
+        lines = [header, "-" * len(header)]
+        for task in dict.fromkeys(r.task for r in self.rows):
+            rows = [r for r in self.rows if r.task == task]
+            ok = [r for r in rows if r.status == "ok"]
+            mean = (lambda xs: float(np.mean(xs)) if xs else float("nan"))
+            lines.append(
+                f"{task:<20} {len(rows):>8} {len(rows) - len(ok):>6} "
+                f"{sum(r.success for r in ok)}/{len(rows):<6} {mean([r.steps for r in ok]):>6.1f} "
+                f"{mean([r.seconds_per_step for r in ok]):>7.3f} {mean([r.simulation_per_step for r in ok]):>6.3f} "
+                f"{mean([r.inference_per_step for r in ok]):>6.3f} {mean([r.overhead_fraction for r in ok]):>8.1%}"
+            )
+        return "\n".join(lines)
+
+
+def _git_commit() -> str | None:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5
+        )
+        return out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def _manifest(config: RunConfig, model, policy: OctoPolicy) -> dict:
+    import jax
+    import robosuite
+
+    tokenizer = getattr(model, "text_tokenizer", None)
+    return {
+        "model": model.source,
+        "model_is_random": bool(model.is_random),
+        "model_note": "RANDOM WEIGHTS - actions and attention are not Octo's" if model.is_random else "",
+        "text_tokenizer": _tokenizer_label(tokenizer),
+        "dataset_key": policy.dataset_key,
+        "execution": config.policy.describe(),
+        "tasks": list(config.tasks),
+        "episodes": config.episodes,
+        "seed": config.seed,
+        "max_steps": config.max_steps,
+        "outputs": asdict(config.outputs),
+        "git_commit": _git_commit(),
+        "versions": {"jax": jax.__version__, "robosuite": robosuite.__version__, "python": platform.python_version()},
+    }
+
+
+def _tokenizer_label(tokenizer) -> str:
+    if tokenizer is None:
+        return "none (goal-conditioned model)"
+    if getattr(tokenizer, "is_fallback", False):
+        return f"{tokenizer.name} (FALLBACK, not the T5 tokenizer)"
+    return tokenizer.name
+
+
+def run(
+    config: RunConfig,
+    *,
+    model=None,
+    on_step: Callable[[str, int, int, StepRecord], None] | None = None,
+) -> RunSummary:
+    """Run every episode of every task. `model` may be passed in to reuse an already loaded one."""
+    for task in config.tasks:
+        envs.get_task(task)  # unknown task -> clear error before anything is loaded or written
+    if model is None:
+        model = load_pretrained(config.model)
+    if model.is_random:
+        log.warning("model %s has RANDOM weights: actions and attention are not Octo's", model.source)
+    policy = OctoPolicy(model, config.policy)
+    run_name = config.run_name or f"{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}_{_short(model.source)}"
+    run_dir = Path(config.out_dir) / run_name
+    manifest = _manifest(config, model, policy)
+    rows: list[EpisodeRow] = []
+    tokens = model.token_map()
+    for task in config.tasks:
+        env = envs.make(task, masks=config.masks, instruction=config.instruction)
+        try:
+            for k in range(config.episodes):
+                rows.append(_run_episode(config, env, policy, tokens, task, k, run_dir, manifest, on_step))
+                atomic_write_json(run_dir / "results.json", {"manifest": manifest, "episodes": [asdict(r) for r in rows]})
+        finally:
+            env.close()
+    return RunSummary(run_dir=run_dir, rows=tuple(rows), manifest=manifest)
+
+
+def _short(source: str) -> str:
+    return source.rstrip("/").replace("hf://", "").replace("random:", "random-").split("/")[-1].replace(":", "-")
+
+
+def _run_episode(config, env, policy, tokens, task, k, run_dir, manifest, on_step) -> EpisodeRow:
+    seed = config.seed + k
+    episode_dir = run_dir / task / f"episode_{k}"
+    instruction = config.instruction or envs.get_task(task).instruction
+    meta = EpisodeMeta(
+        run=run_dir.name,
+        task=task,
+        episode=k,
+        seed=seed,
+        instruction=instruction,
+        model=manifest["model"],
+        model_is_random=manifest["model_is_random"],
+        dataset_key=manifest["dataset_key"],
+        text_tokenizer=manifest["text_tokenizer"],
+        execution=manifest["execution"],
+    )
+    writer = EpisodeWriter(episode_dir, tokens, meta, config.outputs)
+    step_cb = (lambda t, rec: on_step(task, k, t, rec)) if on_step else None
+    try:
+        result = rollout(env, policy, writer.add_step, seed=seed, instruction=instruction, max_steps=config.max_steps, on_step=step_cb)
+        writer.finish(
+            {
+                "success": result.success,
+                "steps": result.steps,
+                "total_reward": result.total_reward,
+                "actions_clipped": result.actions_clipped,
+                "timings": result.timings,
+            }
+        )
+    except KeyboardInterrupt:
+        writer.abort()
+        raise
+    except Exception as exc:  # a failing episode is recorded and the run goes on
+        writer.abort()
+        log.error("episode %s/%d failed: %s", task, k, exc)
+        atomic_write_json(
+            episode_dir / "episode.json",
+            {**asdict(meta), "status": "failed", "success": False, "error": f"{type(exc).__name__}: {exc}",
+             "traceback": traceback.format_exc()},
+        )
+        return EpisodeRow(task, k, seed, "failed", False, 0, float("nan"), float("nan"), float("nan"), float("nan"),
+                          str(episode_dir), f"{type(exc).__name__}: {exc}")
+    n = max(result.steps, 1)
+    step = result.timings["step"] / n
+    sim = result.timings["simulation"] / n
+    inf = result.timings["inference"] / n
+    return EpisodeRow(task, k, seed, "ok", result.success, result.steps, step, sim, inf,
+                      (step - sim - inf) / step if step > 0 else 0.0, str(episode_dir))
+
