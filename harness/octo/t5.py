@@ -213,7 +213,8 @@ class T5Sublayers(nn.Module):
 
     @nn.compact
     def __call__(self, x, key_mask, position_bias):
-        x, position_bias = T5AttentionSublayer(self.config, self.has_relative_bias, name="0")(x, key_mask, position_bias)
+        attention = T5AttentionSublayer(self.config, self.has_relative_bias, name="0")
+        x, position_bias = attention(x, key_mask, position_bias)
         return T5FeedForwardSublayer(self.config, name="1")(x), position_bias
 
 
