@@ -1,0 +1,332 @@
+"""Overlays: attention maps drawn over camera frames, as (H, W, 3) uint8 numpy images.
+
+Fast enough to run every control step: colours come from a 256-entry lookup table built once per
+colormap from matplotlib's colormaps (no figures), blending is integer numpy, text and boxes are
+drawn with Pillow's ImageDraw. Maps are patch-constant (`harness.attention.upsample_map`), so a
+patch of the model's grid lights exactly the block of pixels it was cut from, in the frame's own
+orientation.
+
+- `heatmap_overlay`: one map over one frame.
+- `layer_panel`: one step and layer, every head and the fused head per camera, captions, colour bars.
+- `video_frame`: camera frame | attention overlay | captions, over a strip of per-layer overlays.
+"""
+
+from __future__ import annotations
+
+import textwrap
+from functools import lru_cache
+from typing import Sequence
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from harness.attention import fuse_heads, upsample_map
+
+BACKGROUND = 255
+TEXT = (0, 0, 0)
+BOX = (0, 255, 0)
+PAD = 4
+COLORBAR_WIDTH = 12
+
+
+@lru_cache(maxsize=8)
+def colormap_lut(name: str) -> np.ndarray:
+    """(256, 3) uint8 lookup table of a matplotlib colormap (computed once per name)."""
+    import matplotlib
+
+    try:
+        cmap = matplotlib.colormaps[name]
+    except KeyError:
+        raise ValueError(f"unknown colormap {name!r}; use a matplotlib colormap name such as 'jet' or 'inferno'") from None
+    lut = np.round(cmap(np.linspace(0.0, 1.0, 256))[:, :3] * 255).astype(np.uint8)
+    lut.setflags(write=False)
+    return lut
+
+
+@lru_cache(maxsize=8)
+def _font(size: int) -> ImageFont.ImageFont:
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # Pillow without FreeType: fixed-size bitmap font
+        return ImageFont.load_default()
+
+
+def colorize(values: np.ndarray, vmin: float, vmax: float, cmap: str = "jet") -> np.ndarray:
+    """values (...) -> (..., 3) uint8: (v - vmin) / (vmax - vmin) clipped to [0, 1] through the colormap.
+
+    A degenerate range (vmax <= vmin) maps everything to the coldest colour.
+    """
+    values = np.asarray(values, dtype=np.float32)
+    span = float(vmax) - float(vmin)
+    if span > 0:
+        index = np.clip(np.rint((values - vmin) * (255.0 / span)), 0, 255).astype(np.uint8)
+    else:
+        index = np.zeros(values.shape, np.uint8)
+    return colormap_lut(cmap)[index]
+
+
+def resize_nearest(image: np.ndarray, height: int, width: int) -> np.ndarray:
+    """image (h, w, ...) -> (height, width, ...) by nearest neighbour (integer scales repeat pixels exactly)."""
+    h, w = image.shape[:2]
+    if (h, w) == (height, width):
+        return image
+    ry = (np.arange(height) * h) // height
+    cx = (np.arange(width) * w) // width
+    return image[ry[:, None], cx[None, :]]
+
+
+def _check_frame(frame: np.ndarray) -> np.ndarray:
+    frame = np.asarray(frame)
+    if frame.ndim != 3 or frame.shape[2] != 3 or frame.dtype != np.uint8:
+        raise ValueError(f"frames must be (height, width, 3) uint8; got {frame.shape} {frame.dtype}")
+    return frame
+
+
+def _upsample_colours(colours: np.ndarray, height: int, width: int) -> np.ndarray:
+    """colours (rows, cols, C) -> (height, width, C) patch-constant (same pixels as attention.upsample_map)."""
+    rows, cols = colours.shape[:2]
+    if height % rows == 0 and width % cols == 0:  # fast path: whole blocks
+        return np.repeat(np.repeat(colours, height // rows, axis=0), width // cols, axis=1)
+    return np.moveaxis(upsample_map(np.moveaxis(colours, -1, 0), height, width), 0, -1)
+
+
+def heatmap_overlays(
+    frame: np.ndarray,
+    maps: np.ndarray,
+    vmin: float | np.ndarray | None = None,
+    vmax: float | np.ndarray | None = None,
+    alpha: float = 0.5,
+    cmap: str = "jet",
+) -> np.ndarray:
+    """frame (H, W, 3) uint8, maps (n, rows, cols) -> (n, H, W, 3) uint8 overlays of each map on the frame.
+
+    vmin / vmax: scalars or (n,) per map; None = each map's own min / max. Each map is coloured per
+    patch, upsampled patch-constant to the frame, and blended as (1 - alpha) * frame + alpha * colour
+    in integer arithmetic (the frame part is computed once for all maps).
+    """
+    frame = _check_frame(frame)
+    maps = np.asarray(maps, dtype=np.float32)
+    n = maps.shape[0]
+    lo = maps.min(axis=(1, 2)) if vmin is None else np.broadcast_to(np.asarray(vmin, np.float32), (n,))
+    hi = maps.max(axis=(1, 2)) if vmax is None else np.broadcast_to(np.asarray(vmax, np.float32), (n,))
+    span = (hi - lo)[:, None, None]
+    scaled = np.divide((maps - lo[:, None, None]) * 255.0, span, out=np.zeros_like(maps), where=span > 0)
+    index = np.clip(np.rint(scaled), 0, 255).astype(np.uint8)  # (n, rows, cols)
+    a = int(round(float(np.clip(alpha, 0.0, 1.0)) * 256))
+    lut = colormap_lut(cmap).astype(np.uint16) * a  # (256, 3) colour weighted by alpha
+    base = frame.astype(np.uint16) * (256 - a) + 128  # (H, W, 3); max total 255 * 256 + 128 fits uint16
+    height, width = frame.shape[:2]
+    out = np.empty((n, height, width, 3), np.uint8)
+    for i in range(n):
+        out[i] = (base + _upsample_colours(lut[index[i]], height, width)) >> 8
+    return out
+
+
+def heatmap_overlay(
+    frame: np.ndarray,
+    attn_map: np.ndarray,
+    vmin: float | None = None,
+    vmax: float | None = None,
+    alpha: float = 0.5,
+    cmap: str = "jet",
+) -> np.ndarray:
+    """frame (H, W, 3) uint8, attn_map (rows, cols) -> (H, W, 3) uint8 overlay in the frame's orientation.
+
+    The map is coloured per patch with [vmin, vmax] (default: the map's own range), upsampled
+    patch-constant to the frame and alpha-blended over it (alpha = weight of the heatmap).
+    """
+    return heatmap_overlays(frame, np.asarray(attn_map)[None], vmin, vmax, alpha, cmap)[0]
+
+
+def mask_bbox(mask: np.ndarray | None) -> tuple[int, int, int, int] | None:
+    """mask (H, W) bool -> (top, left, bottom, right) pixel box around its True pixels (bottom/right exclusive), or None."""
+    if mask is None:
+        return None
+    mask = np.asarray(mask, dtype=bool)
+    ys = np.flatnonzero(mask.any(axis=1))
+    if ys.size == 0:
+        return None
+    xs = np.flatnonzero(mask.any(axis=0))
+    return int(ys[0]), int(xs[0]), int(ys[-1]) + 1, int(xs[-1]) + 1
+
+
+def _colorbar(height: int, cmap: str) -> np.ndarray:
+    """(height, COLORBAR_WIDTH, 3) uint8 vertical colour bar, hottest at the top."""
+    ramp = np.linspace(255, 0, height).round().astype(np.uint8)
+    return np.repeat(colormap_lut(cmap)[ramp][:, None, :], COLORBAR_WIDTH, axis=1)
+
+
+def _fmt(value: float) -> str:
+    return f"{value:.3g}"
+
+
+def _draw_box(draw: ImageDraw.ImageDraw, box, top: int, left: int, sy: float, sx: float) -> None:
+    y0, x0, y1, x1 = box
+    draw.rectangle(
+        [left + int(x0 * sx), top + int(y0 * sy), left + int(np.ceil(x1 * sx)) - 1, top + int(np.ceil(y1 * sy)) - 1],
+        outline=BOX,
+        width=2,
+    )
+
+
+def layer_panel(
+    frames: dict[str, np.ndarray],
+    maps: dict[str, np.ndarray],
+    caption: dict,
+    ranges: dict[str, tuple[float, float]] | None = None,
+    boxes: dict[str, tuple[int, int, int, int] | None] | None = None,
+    head_fusion: str = "mean",
+    cmap: str = "jet",
+    alpha: float = 0.5,
+    min_cell: int = 128,
+) -> np.ndarray:
+    """One step and layer: rows = cameras, columns = head 0..H-1 then the fused head.
+
+    frames: observation key -> (h, w, 3) uint8 frame the model saw.
+    maps: observation key -> (heads, rows, cols) attention of this layer over that camera's patches.
+    caption: {"task", "step", "layer"} and optionally "note" (e.g. a random-model warning).
+    ranges: observation key -> (vmin, vmax) colour range (per-episode normalisation); default is
+      this step's min / max over the row's heads and fused map (per-frame normalisation).
+    boxes: observation key -> (top, left, bottom, right) in that frame's pixels (target bounding box).
+    min_cell: frames are shown at their own size, enlarged by an integer factor (pixel repetition)
+      until at least `min_cell` pixels high, so small model inputs stay legible and patches stay sharp.
+    Returns (H, W, 3) uint8.
+    """
+    cameras = list(maps)
+    if not cameras:
+        raise ValueError("layer_panel needs at least one camera map")
+    missing = [c for c in cameras if c not in frames]
+    if missing:
+        raise ValueError(f"no frame for camera(s) {missing}; pass a frame for every camera with a map")
+    heads = int(np.asarray(maps[cameras[0]]).shape[0])
+    columns = [f"head {h}" for h in range(heads)] + [head_fusion]
+    font = _font(13)
+    small = _font(11)
+    line = 17
+
+    sizes = {}
+    for c in cameras:
+        h, w = frames[c].shape[:2]
+        k = max(1, -(-min_cell // h))
+        sizes[c] = (h * k, w * k)
+    column_width = max(w for _, w in sizes.values()) + PAD  # common pitch; narrower frames are centred
+    grid_width = len(columns) * column_width
+    left = PAD
+    bar_left = left + grid_width + PAD
+    width = bar_left + COLORBAR_WIDTH + 60
+    title_h = 3 * line + PAD
+    row_tops = np.cumsum([0] + [line + sizes[c][0] + PAD for c in cameras])
+    height = title_h + int(row_tops[-1]) + PAD
+    canvas = np.full((height, width, 3), BACKGROUND, np.uint8)
+
+    labels = []  # (xy, text, font)
+    rects = []  # (box, top, left, sy, sx)
+    title = f"{caption.get('task', '')} | step {caption.get('step', '?')} | layer {caption.get('layer', '?')}"
+    labels.append(((left, 2), title, font))
+    if caption.get("note"):
+        labels.append(((left, 2 + line), str(caption["note"]), font))
+    for k, name in enumerate(columns):  # column titles, under the caption
+        labels.append(((left + k * column_width, 2 + 2 * line), name, font))
+    for r, cam in enumerate(cameras):
+        frame = _check_frame(frames[cam])
+        cam_maps = np.asarray(maps[cam], dtype=np.float32)  # (heads, rows, cols)
+        if cam_maps.ndim != 3 or cam_maps.shape[0] != heads:
+            raise ValueError(f"maps[{cam!r}] must be (heads={heads}, rows, cols); got {cam_maps.shape}")
+        stack = np.concatenate([cam_maps, fuse_heads(cam_maps, head_fusion, axis=0)[None]])  # (heads + 1, rows, cols)
+        if ranges is not None and cam in ranges:
+            vmin, vmax = ranges[cam]
+        else:
+            vmin, vmax = float(stack.min()), float(stack.max())
+        ch, cw = sizes[cam]
+        shown = resize_nearest(frame, ch, cw)
+        top = title_h + int(row_tops[r]) + line
+        labels.append(((left, top - line + 2), f"{cam}   range [{_fmt(vmin)}, {_fmt(vmax)}]", small))
+        box = (boxes or {}).get(cam)
+        overlays = heatmap_overlays(shown, stack, vmin, vmax, alpha, cmap)  # (heads + 1, ch, cw, 3)
+        for k in range(len(stack)):
+            x = left + k * column_width + (column_width - PAD - cw) // 2
+            canvas[top : top + ch, x : x + cw] = overlays[k]
+            if box is not None:
+                rects.append((box, top, x, ch / frame.shape[0], cw / frame.shape[1]))
+        canvas[top : top + ch, bar_left : bar_left + COLORBAR_WIDTH] = _colorbar(ch, cmap)
+        labels.append(((bar_left + COLORBAR_WIDTH + 3, top), _fmt(vmax), small))
+        labels.append(((bar_left + COLORBAR_WIDTH + 3, top + ch - 13), _fmt(vmin), small))
+
+    image = Image.fromarray(canvas)
+    draw = ImageDraw.Draw(image)
+    for rect in rects:
+        _draw_box(draw, *rect)
+    for xy, text, f in labels:
+        draw.text(xy, text, fill=TEXT, font=f)
+    return np.asarray(image)
+
+
+def _round_up(n: int, multiple: int) -> int:
+    return -(-n // multiple) * multiple
+
+
+def video_frame(
+    frame: np.ndarray,
+    overlay: np.ndarray,
+    layer_strip_maps: np.ndarray,
+    captions: Sequence[str],
+    cmap: str = "jet",
+    alpha: float = 0.5,
+    display: int = 256,
+    strip_columns: int = 6,
+    box: tuple[int, int, int, int] | None = None,
+) -> np.ndarray:
+    """One video frame: [camera frame | attention overlay | captions] above a strip of per-layer overlays.
+
+    frame, overlay: (h, w, 3) uint8 (overlay e.g. from heatmap_overlay on this frame); shown at
+      `display` pixels high (nearest neighbour).
+    layer_strip_maps: (layers, rows, cols) one (fused-head) map per layer, each coloured with its own range.
+    captions: text lines (step, action, success, ...), wrapped to the caption panel.
+    box: optional (top, left, bottom, right) target box in frame pixels, drawn on the overlay.
+    The size depends only on the frame size and the number of layers (constant for an episode) and
+    is padded to multiples of 16 so video encoders need no resampling. Returns (H, W, 3) uint8.
+    """
+    frame = _check_frame(frame)
+    overlay = _check_frame(overlay)
+    layer_strip_maps = np.asarray(layer_strip_maps, dtype=np.float32)
+    h, w = frame.shape[:2]
+    dh, dw = display, max(1, int(round(display * w / h)))
+    layers = layer_strip_maps.shape[0]
+    ncol = max(1, min(layers, strip_columns))
+    nrow = -(-layers // ncol)
+    top_width = 3 * dw + 2 * PAD
+    thumb_w = (top_width - (ncol - 1) * PAD) // ncol
+    thumb_h = max(1, int(round(thumb_w * h / w)))
+    width = _round_up(top_width, 16)
+    height = _round_up(dh + PAD + nrow * (thumb_h + PAD), 16)
+    canvas = np.full((height, width, 3), BACKGROUND, np.uint8)
+
+    canvas[:dh, :dw] = resize_nearest(frame, dh, dw)
+    canvas[:dh, dw + PAD : 2 * dw + PAD] = resize_nearest(overlay, dh, dw)
+    small_frame = resize_nearest(frame, thumb_h, thumb_w)
+    thumbs_top = dh + PAD
+    positions = []
+    thumbs = heatmap_overlays(small_frame, layer_strip_maps, alpha=alpha, cmap=cmap)  # (layers, th, tw, 3)
+    for i in range(layers):
+        y = thumbs_top + (i // ncol) * (thumb_h + PAD)
+        x = (i % ncol) * (thumb_w + PAD)
+        canvas[y : y + thumb_h, x : x + thumb_w] = thumbs[i]
+        positions.append((x, y))
+
+    image = Image.fromarray(canvas)
+    draw = ImageDraw.Draw(image)
+    if box is not None:
+        _draw_box(draw, box, 0, dw + PAD, dh / h, dw / w)
+    font = _font(13)
+    small = _font(11)
+    for i, (x, y) in enumerate(positions):
+        draw.text((x + 3, y + 2), f"layer {i}", fill=(255, 255, 255), font=small, stroke_width=2, stroke_fill=(0, 0, 0))
+    chars = max(8, int((dw - 2 * PAD) / 7))
+    y = PAD
+    for text in captions:
+        for piece in textwrap.wrap(str(text), chars) or [""]:
+            if y + 16 > dh:
+                break
+            draw.text((2 * dw + 2 * PAD + PAD, y), piece, fill=TEXT, font=font)
+            y += 16
+    return np.asarray(image)
