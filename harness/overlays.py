@@ -295,7 +295,7 @@ def video_frame(
     ncol = max(1, min(layers, strip_columns))
     nrow = -(-layers // ncol)
     top_width = 3 * dw + 2 * PAD
-    thumb_w = (top_width - (ncol - 1) * PAD) // ncol
+    thumb_w = min((top_width - (ncol - 1) * PAD) // ncol, dw // 2)
     thumb_h = max(1, int(round(thumb_w * h / w)))
     width = _round_up(top_width, 16)
     height = _round_up(dh + PAD + nrow * (thumb_h + PAD), 16)

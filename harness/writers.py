@@ -1,0 +1,522 @@
+"""Episode outputs: the sinks that turn per-step records into files, in a background thread.
+
+`EpisodeWriter` receives `StepRecord`s from the control loop (`add_step` only enqueues) and, in its
+own thread, computes the step's attention metrics, renders per-layer PNG panels and appends a frame
+to the rollout video. `finish()` writes the arrays and JSON. Files in `episode_dir`:
+
+  step_<tttt>_layer_<ll>.png  one panel per selected step and layer (step zero-padded to 4 digits,
+                              layer to 2, e.g. step_0003_layer_11.png): rows = cameras, columns =
+                              heads and the fused head, colour bars, optional target box
+  rollout.mp4 (rollout.gif)   camera | attention overlay | captions, over a per-layer strip
+  attention.npz               readout_attention (steps, layers, heads, readouts, keys) float16,
+                              tokens/* (TokenMap.to_arrays), metrics/<name> (steps, ...) float32,
+                              step (steps,), rollout_readout (steps, readouts, keys) float16 if used
+  actions.npz                 predicted (steps, horizon, dim), executed (steps, dim), reward, success, step
+  metrics.jsonl               one JSON object per step: shares, entropy, mask mass per layer, timings
+  episode.json                metadata and summary; written LAST, so a directory holding it is complete
+
+Every file is written to `<name>.tmp.<ext>` in the same directory and moved into place with
+os.replace; `abort()` (or an exception inside `with EpisodeWriter(...)`) deletes temporaries and
+never writes episode.json. Starting a writer removes a stale episode.json from the directory.
+
+Normalisation: "frame" colours each PNG row with that step's range; "episode" uses the range of
+the whole episode per (layer, camera), which is known only at the end, so in that mode the PNGs
+are rendered during `finish()`. The video always uses per-frame ranges. Exceptions raised in the
+background thread are re-raised (as WriterError) by the next `add_step` or `finish`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, IO
+
+import numpy as np
+from PIL import Image
+
+from harness.attention import HEAD_FUSIONS, camera_maps, fuse_heads, rollout_readout_rows, step_metrics
+from harness.octo.tokens import TokenMap
+from harness.overlays import colormap_lut, heatmap_overlay, layer_panel, mask_bbox, video_frame
+from harness.records import EpisodeMeta, StepRecord
+from harness.video import GifWriter, Mp4Writer, temp_path
+
+PNG_NAME = "step_{step:04d}_layer_{layer:02d}.png"
+_STOP = object()
+
+
+class WriterError(RuntimeError):
+    """The background writer failed; the cause is chained."""
+
+
+@dataclass(frozen=True)
+class OutputOptions:
+    png_every: int = 1  # PNG panels every n-th step; 0 = none
+    layers: tuple[int, ...] | None = None  # layers to render as PNG (negative counts from the end); None = all
+    video: bool = True  # write rollout.mp4
+    video_attention: str | int = -1  # overlay in the video: "rollout" (needs full attention) or a layer index
+    video_camera: str | None = None  # observation key shown in the video; None = the first image group's camera
+    gif: bool = False  # also write rollout.gif (every gif_every-th frame, half size)
+    gif_every: int = 2
+    normalisation: str = "frame"  # PNG colour range: "frame" (this step) or "episode" (rendered at finish)
+    bbox: bool = True  # draw the target mask's bounding box
+    fps: float = 10.0
+    head_fusion: str = "mean"  # the fused-head column / video map: "mean", "max" or "min"
+    cmap: str = "jet"
+    alpha: float = 0.5  # heatmap weight in overlays
+    queue_size: int = 4  # steps waiting for the writer before add_step blocks
+    png_compress_level: int = 1  # zlib level 0-9 (1: fast, larger files)
+
+    def __post_init__(self) -> None:
+        if self.png_every < 0:
+            raise ValueError(f"png_every must be >= 0 (0 = no PNGs); got {self.png_every}")
+        if self.layers is not None:
+            object.__setattr__(self, "layers", tuple(int(layer) for layer in self.layers))
+        if not (self.video_attention == "rollout" or isinstance(self.video_attention, int)):
+            raise ValueError(f"video_attention must be 'rollout' or a layer index; got {self.video_attention!r}")
+        if self.normalisation not in ("frame", "episode"):
+            raise ValueError(f"normalisation must be 'frame' or 'episode'; got {self.normalisation!r}")
+        if self.head_fusion not in HEAD_FUSIONS:
+            raise ValueError(f"head_fusion must be one of {HEAD_FUSIONS}; got {self.head_fusion!r}")
+        if self.fps <= 0 or self.gif_every < 1 or self.queue_size < 1:
+            raise ValueError("fps must be > 0, gif_every >= 1 and queue_size >= 1")
+        if not 0.0 <= self.alpha <= 1.0:
+            raise ValueError(f"alpha must be in [0, 1]; got {self.alpha}")
+        if not 0 <= self.png_compress_level <= 9:
+            raise ValueError(f"png_compress_level must be 0..9; got {self.png_compress_level}")
+        colormap_lut(self.cmap)  # unknown colormap: clear error now, not in the thread
+
+
+def write_atomic(path: Path, write: Callable[[IO[bytes]], None]) -> Path:
+    """Write `path` through `<name>.tmp.<ext>` in the same directory and os.replace it into place."""
+    tmp = temp_path(path)
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _json_value(x: Any) -> Any:
+    """JSON-safe copy: numpy scalars/arrays to Python, NaN/inf to None, rounded floats."""
+    if isinstance(x, dict):
+        return {str(k): _json_value(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_value(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _json_value(x.tolist())
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        x = float(x)
+        return round(x, 6) if math.isfinite(x) else None
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
+def _nest(flat: dict[str, Any]) -> dict[str, Any]:
+    """{"a/b/c": v} -> {"a": {"b": {"c": v}}}."""
+    out: dict[str, Any] = {}
+    for key, value in flat.items():
+        *parents, leaf = key.split("/")
+        node = out
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+    return out
+
+
+def _scaled_box(mask: np.ndarray | None, frame: np.ndarray) -> tuple[int, int, int, int] | None:
+    """Bounding box of a mask, in the pixels of `frame` (the mask may be at camera resolution)."""
+    box = mask_bbox(mask)
+    if box is None:
+        return None
+    sy = frame.shape[0] / mask.shape[0]
+    sx = frame.shape[1] / mask.shape[1]
+    y0, x0, y1, x1 = box
+    return int(y0 * sy), int(x0 * sx), max(int(y0 * sy) + 1, round(y1 * sy)), max(int(x0 * sx) + 1, round(x1 * sx))
+
+
+@dataclass
+class _Layout:
+    """What the first step fixes for the whole episode."""
+
+    layers: int
+    heads: int
+    png_layers: tuple[int, ...]
+    cameras: tuple[str, ...]  # observation keys with an image group and a frame
+    video_camera: str | None
+    video_layer: int | None  # None when the video shows the rollout
+
+
+class EpisodeWriter:
+    """Writes one episode's outputs from `StepRecord`s in a background thread (see the module docstring).
+
+    Use as a context manager, or call `finish(summary)` on success and `abort()` on failure.
+    """
+
+    def __init__(self, episode_dir: str | os.PathLike, tokens: TokenMap, meta: EpisodeMeta, options: OutputOptions | None = None):
+        self.dir = Path(episode_dir)
+        self.tokens = tokens
+        self.meta = meta
+        self.options = options or OutputOptions()
+        self.dir.mkdir(parents=True, exist_ok=True)
+        (self.dir / "episode.json").unlink(missing_ok=True)  # the directory is incomplete until finish()
+
+        self._queue: queue.Queue = queue.Queue(maxsize=self.options.queue_size)
+        self._error: BaseException | None = None
+        self._error_step: int | None = None
+        self._aborting = threading.Event()
+        self._done = False
+        self._layout: _Layout | None = None
+        self._mp4 = Mp4Writer(self.dir / "rollout.mp4", fps=self.options.fps) if self.options.video else None
+        self._gif = (
+            GifWriter(self.dir / "rollout.gif", fps=self.options.fps, every=self.options.gif_every) if self.options.gif else None
+        )
+        # accumulated per step (background thread only, read after join)
+        self._steps: list[int] = []
+        self._attention: list[np.ndarray] = []  # (layers, heads, readouts, keys) float16
+        self._rollout: list[np.ndarray] = []  # (readouts, keys) float16
+        self._predicted: list[np.ndarray] = []
+        self._executed: list[np.ndarray] = []
+        self._rewards: list[float] = []
+        self._success: list[bool] = []
+        self._metrics: list[dict[str, np.ndarray]] = []
+        self._timings: list[dict[str, float]] = []
+        self._pngs: list[str] = []
+        self._deferred: list[tuple] = []  # episode normalisation: (step, frames, maps, boxes) rendered at finish
+        self._ranges: dict[tuple[int, str], list[float]] = {}  # (layer, camera) -> [min, max] over the episode
+        self._blocked: list[float] = []  # caller side: seconds each add_step waited for queue space
+
+        self._thread = threading.Thread(target=self._run, name=f"episode-writer-{meta.task}-{meta.episode}", daemon=True)
+        self._thread.start()
+
+    # ---- caller side -------------------------------------------------------------------------
+
+    def add_step(self, record: StepRecord) -> float:
+        """Enqueue a step for writing; blocks only while the queue is full. Returns the seconds blocked."""
+        self._raise_if_failed()
+        if self._done:
+            raise RuntimeError("this episode writer is finished or aborted; create a new one for the next episode")
+        start = time.perf_counter()
+        self._put(record)
+        blocked = time.perf_counter() - start
+        self._blocked.append(blocked)
+        return blocked
+
+    def finish(self, summary: dict | None = None) -> dict:
+        """Wait for the queue, write video, arrays, metrics and finally episode.json. Returns the summary written
+        (with `episode_dir` and absolute `paths` added). `summary` entries override the computed ones."""
+        if self._done:
+            raise RuntimeError("this episode writer is already finished or aborted")
+        start = time.perf_counter()
+        try:
+            self._put(_STOP)
+            self._thread.join()
+            self._raise_if_failed()
+            files = self._write_files()
+            result = self._summary(files, summary or {}, time.perf_counter() - start)
+            write_atomic(self.dir / "episode.json", lambda f: f.write(json.dumps(_json_value(result), indent=2).encode()))
+        except BaseException:
+            self._abort_outputs()
+            raise
+        finally:
+            self._done = True
+        result["episode_dir"] = str(self.dir)
+        result["paths"] = {name: str(self.dir / rel) for name, rel in files.items() if isinstance(rel, str)}
+        return result
+
+    def abort(self) -> None:
+        """Stop the thread, drop queued steps and delete temporary files; episode.json is not written."""
+        if self._done:
+            return
+        self._done = True
+        self._aborting.set()
+        while True:  # drop what is queued so the thread sees the stop marker promptly
+            try:
+                self._queue.get_nowait()
+            except queue.Empty:
+                break
+        try:
+            self._queue.put(_STOP, timeout=1.0)
+        except queue.Full:
+            pass
+        self._thread.join(timeout=60)
+        self._abort_outputs()
+
+    def __enter__(self) -> "EpisodeWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.abort()
+        elif not self._done:
+            self.finish()
+
+    @property
+    def blocked_seconds(self) -> list[float]:
+        """Seconds each add_step call waited for queue space (the writer falling behind)."""
+        return list(self._blocked)
+
+    def _put(self, item) -> None:
+        while True:
+            try:
+                self._queue.put(item, timeout=0.1)
+                return
+            except queue.Full:
+                self._raise_if_failed()
+
+    def _raise_if_failed(self) -> None:
+        if self._error is not None:
+            where = f" at step {self._error_step}" if self._error_step is not None else ""
+            raise WriterError(f"background writer failed{where}: {self._error!r}") from self._error
+
+    def _abort_outputs(self) -> None:
+        for sink in (self._mp4, self._gif):
+            if sink is not None:
+                sink.abort()
+        for tmp in self.dir.glob("*.tmp.*"):
+            tmp.unlink(missing_ok=True)
+
+    # ---- background thread -------------------------------------------------------------------
+
+    def _run(self) -> None:
+        step = None
+        try:
+            while True:
+                item = self._queue.get()
+                if item is _STOP:
+                    break
+                if self._aborting.is_set():  # abort(): drop remaining steps
+                    continue
+                step = item.step
+                start = time.perf_counter()
+                self._process(item)
+                self._timings[-1]["write"] = time.perf_counter() - start
+            step = None
+            if not self._aborting.is_set():
+                self._render_deferred()
+                for sink in (self._mp4, self._gif):
+                    if sink is not None:
+                        sink.close()
+        except BaseException as err:  # surfaced in the caller by add_step / finish
+            self._error, self._error_step = err, step
+
+    def _resolve_layout(self, record: StepRecord, attn: np.ndarray) -> _Layout:
+        layers, heads = attn.shape[:2]
+        opts = self.options
+
+        def layer_index(i: int) -> int:
+            if not -layers <= i < layers:
+                raise ValueError(f"layer {i} is out of range for a model with {layers} layers; choose 0..{layers - 1}")
+            return i % layers
+
+        png_layers = tuple(range(layers)) if opts.layers is None else tuple(sorted({layer_index(i) for i in opts.layers}))
+        cameras = tuple(key for _, key, _, _ in self.tokens.image_groups if key in record.frames)
+        if not cameras and (opts.png_every or opts.video or opts.gif):
+            raise ValueError(f"no frame for any camera of the model {[k for _, k, _, _ in self.tokens.image_groups]}; "
+                             "put the frames the model saw in StepRecord.frames")
+        video_camera = opts.video_camera or (cameras[0] if cameras else None)
+        if (opts.video or opts.gif) and video_camera not in cameras:
+            raise ValueError(f"video camera {video_camera!r} has no frame or image group; choose one of {list(cameras)}")
+        video_layer = None if opts.video_attention == "rollout" else layer_index(int(opts.video_attention))
+        return _Layout(layers, heads, png_layers, cameras, video_camera, video_layer)
+
+    def _process(self, record: StepRecord) -> None:
+        tokens, opts = self.tokens, self.options
+        attn = np.asarray(record.readout_attention, dtype=np.float32)  # (layers, heads, readouts, keys)
+        if attn.ndim != 4 or attn.shape[-1] != tokens.num_keys:
+            raise ValueError(f"readout_attention must be (layers, heads, readouts, keys={tokens.num_keys}); got {attn.shape}")
+        if self._layout is None:
+            self._layout = self._resolve_layout(record, attn)
+        layout = self._layout
+        if attn.shape[:2] != (layout.layers, layout.heads):
+            raise ValueError(f"step {record.step}: attention has shape {attn.shape}, the episode started with "
+                             f"{layout.layers} layers and {layout.heads} heads")
+
+        self._steps.append(int(record.step))
+        self._attention.append(attn.astype(np.float16))
+        self._predicted.append(np.asarray(record.actions_predicted, np.float32))
+        self._executed.append(np.asarray(record.action_executed, np.float32))
+        self._rewards.append(float(record.reward))
+        self._success.append(bool(record.success))
+        self._metrics.append(step_metrics(attn, tokens, record.masks))
+        self._timings.append({k: float(v) for k, v in record.timings.items()})
+
+        frames = {cam: record.frames[cam] for cam in layout.cameras}
+        # cam -> (layers, heads, rows, cols): readouts averaged
+        maps = {cam: camera_maps(attn, tokens, cam).mean(axis=2) for cam in layout.cameras}
+        boxes = {}
+        if opts.bbox and record.masks:
+            for cam in layout.cameras:
+                target = (record.masks.get(cam) or {}).get("target")
+                if target is not None:
+                    boxes[cam] = _scaled_box(np.asarray(target, bool), frames[cam])
+
+        if opts.png_every and record.step % opts.png_every == 0:
+            if opts.normalisation == "frame":
+                for layer in layout.png_layers:
+                    self._save_panel(record.step, layer, frames, {c: m[layer] for c, m in maps.items()}, boxes, None)
+            else:
+                selected = {c: m[list(layout.png_layers)] for c, m in maps.items()}
+                self._deferred.append((record.step, frames, selected, boxes))
+        if opts.normalisation == "episode":
+            for cam, m in maps.items():
+                for layer in layout.png_layers:
+                    stack = np.concatenate([m[layer], fuse_heads(m[layer], opts.head_fusion, axis=0)[None]])
+                    lo, hi = self._ranges.setdefault((layer, cam), [np.inf, -np.inf])
+                    self._ranges[(layer, cam)] = [min(lo, float(stack.min())), max(hi, float(stack.max()))]
+
+        rollout = None
+        if opts.video_attention == "rollout":
+            if record.full_attention is None:
+                raise ValueError("video_attention='rollout' needs full attention matrices; "
+                                 "request full attention from the policy or choose a layer index")
+            rollout = rollout_readout_rows(record.full_attention, tokens, head_fusion=opts.head_fusion)  # (readouts, keys)
+            self._rollout.append(rollout.astype(np.float16))
+        if self._mp4 is not None or self._gif is not None:
+            frame = self._video_frame(record, frames, maps, boxes, rollout)
+            for sink in (self._mp4, self._gif):
+                if sink is not None:
+                    sink.append(frame)
+
+    def _caption(self, step: int, layer: int) -> dict:
+        note = f"RANDOM WEIGHTS ({self.meta.model})" if self.meta.model_is_random else self.meta.model
+        return {"task": f"{self.meta.task} ep {self.meta.episode}", "step": step, "layer": layer, "note": note}
+
+    def _save_panel(self, step, layer, frames, maps, boxes, ranges) -> None:
+        opts = self.options
+        panel = layer_panel(
+            frames, maps, self._caption(step, layer), ranges=ranges, boxes=boxes,
+            head_fusion=opts.head_fusion, cmap=opts.cmap, alpha=opts.alpha,
+        )
+        name = PNG_NAME.format(step=step, layer=layer)
+        image = Image.fromarray(panel)
+        write_atomic(self.dir / name, lambda f: image.save(f, format="PNG", compress_level=opts.png_compress_level))
+        self._pngs.append(name)
+
+    def _render_deferred(self) -> None:
+        layers = self._layout.png_layers if self._layout else ()
+        for step, frames, selected, boxes in self._deferred:
+            for i, layer in enumerate(layers):
+                ranges = {cam: tuple(self._ranges[(layer, cam)]) for cam in selected}
+                self._save_panel(step, layer, frames, {c: m[i] for c, m in selected.items()}, boxes, ranges)
+        self._deferred = []
+
+    def _video_frame(self, record, frames, maps, boxes, rollout) -> np.ndarray:
+        opts, layout = self.options, self._layout
+        cam = layout.video_camera
+        frame = frames[cam]
+        fused = fuse_heads(maps[cam], opts.head_fusion, axis=1)  # (layers, rows, cols)
+        if rollout is not None:
+            shown = camera_maps(rollout.mean(axis=0), self.tokens, cam)
+            what = "attention rollout"
+        else:
+            shown = fused[layout.video_layer]
+            what = f"layer {layout.video_layer} ({opts.head_fusion} of heads)"
+        overlay = heatmap_overlay(frame, shown, alpha=opts.alpha, cmap=opts.cmap)
+        action = np.asarray(record.action_executed, np.float32)
+        captions = [
+            f"{self.meta.task} | episode {self.meta.episode} | step {record.step}",
+            f"{cam}: {what}",
+            "action: " + " ".join(f"{a:+.3f}" for a in action),
+            f"reward {float(record.reward):.3f} | success {'YES' if record.success else 'no'}",
+            f'"{self.meta.instruction}"',
+            f"RANDOM WEIGHTS: {self.meta.model}" if self.meta.model_is_random else f"model: {self.meta.model}",
+        ]
+        return video_frame(frame, overlay, fused, captions, cmap=opts.cmap, alpha=opts.alpha, box=boxes.get(cam))
+
+    # ---- files at finish ---------------------------------------------------------------------
+
+    def _metric_arrays(self) -> dict[str, np.ndarray]:
+        """metrics/<name> -> (steps, ...) float32; steps that lack a metric (e.g. no mask) hold nan."""
+        names: dict[str, tuple] = {}
+        for m in self._metrics:
+            for k, v in m.items():
+                names.setdefault(k, np.shape(v))
+        out = {}
+        for name, shape in names.items():
+            rows = [np.asarray(m[name], np.float32) if name in m else np.full(shape, np.nan, np.float32) for m in self._metrics]
+            out[f"metrics/{name}"] = np.stack(rows)
+        return out
+
+    def _write_files(self) -> dict[str, Any]:
+        steps = np.asarray(self._steps, np.int32)
+        files: dict[str, Any] = {}
+        arrays = {"step": steps, **self.tokens.to_arrays(), **self._metric_arrays()}
+        if self._attention:
+            arrays["readout_attention"] = np.stack(self._attention)
+        if self._rollout:
+            arrays["rollout_readout"] = np.stack(self._rollout)
+        write_atomic(self.dir / "attention.npz", lambda f: np.savez(f, **arrays))
+        files["attention"] = "attention.npz"
+
+        actions = {
+            "step": steps,
+            "predicted": np.stack(self._predicted) if self._predicted else np.zeros((0, 0, 0), np.float32),
+            "executed": np.stack(self._executed) if self._executed else np.zeros((0, 0), np.float32),
+            "reward": np.asarray(self._rewards, np.float32),
+            "success": np.asarray(self._success, bool),
+        }
+        write_atomic(self.dir / "actions.npz", lambda f: np.savez(f, **actions))
+        files["actions"] = "actions.npz"
+
+        lines = []
+        for i, step in enumerate(self._steps):
+            timings = dict(self._timings[i])
+            if i < len(self._blocked):
+                timings["blocked"] = self._blocked[i]
+            entry = {"step": step, "reward": self._rewards[i], "success": self._success[i], **_nest(self._metrics[i]),
+                     "timings": timings}
+            lines.append(json.dumps(_json_value(entry)))
+        write_atomic(self.dir / "metrics.jsonl", lambda f: f.write(("\n".join(lines) + "\n" if lines else "").encode()))
+        files["metrics"] = "metrics.jsonl"
+
+        if self._mp4 is not None and self._mp4.frames:
+            files["video"] = "rollout.mp4"
+        if self._gif is not None and self._gif.seen:
+            files["gif"] = "rollout.gif"
+        files["png_count"] = len(self._pngs)
+        files["png_pattern"] = PNG_NAME
+        return files
+
+    def _summary(self, files: dict, summary: dict, finish_s: float) -> dict:
+        n = len(self._steps)
+        per_step: dict[str, list[float]] = {}
+        for i, t in enumerate(self._timings):
+            for k, v in t.items():
+                per_step.setdefault(k, []).append(v)
+            if i < len(self._blocked):
+                per_step.setdefault("blocked", []).append(self._blocked[i])
+        timings = {
+            "total": {k: float(np.sum(v)) for k, v in per_step.items()},
+            "mean": {k: float(np.mean(v)) for k, v in per_step.items()},
+            "finish": finish_s,
+        }
+        layout = self._layout
+        result = {
+            **dataclasses.asdict(self.meta),
+            "success": any(self._success),
+            "steps": n,
+            "return": float(np.sum(self._rewards)) if n else 0.0,
+            "layers": layout.layers if layout else None,
+            "heads": layout.heads if layout else None,
+            "keys": self.tokens.num_keys,
+            "timings": timings,
+            "files": files,
+            "options": dataclasses.asdict(self.options),
+        }
+        result.update(summary)
+        return result
