@@ -1,0 +1,119 @@
+"""Headless OpenGL: choose EGL or OSMesa before MuJoCo loads, and fail with one actionable line.
+
+MuJoCo and PyOpenGL read `MUJOCO_GL` / `PYOPENGL_PLATFORM` when they are first imported, so the choice
+has to be made before `robosuite` is imported: `configure()` runs when `envs` is imported and only fills
+in variables the user left unset (EGL when an EGL display initialises, else OSMesa when its library is
+present). `ensure_context()` then creates and frees one real GL context the first time an environment
+needs rendering, turning a missing driver into a `HeadlessGLError` that names the apt packages.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+from collections.abc import Callable, MutableMapping
+
+APT_EGL = "apt-get install -y libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libgl1 libglib2.0-0"
+APT_OSMESA = "apt-get install -y libosmesa6"
+_EGL_PLATFORM_DEVICE_EXT = 0x313F
+
+
+class HeadlessGLError(RuntimeError):
+    """No headless OpenGL backend works on this machine."""
+
+
+def egl_display_works() -> bool:
+    """True when libEGL loads and a device display initialises (probed through ctypes, no PyOpenGL)."""
+    try:
+        lib = ctypes.CDLL(ctypes.util.find_library("EGL") or "libEGL.so.1")
+    except OSError:
+        return False
+    get_proc = lib.eglGetProcAddress
+    get_proc.restype = ctypes.c_void_p
+    get_proc.argtypes = [ctypes.c_char_p]
+    query_ptr = get_proc(b"eglQueryDevicesEXT")
+    display_ptr = get_proc(b"eglGetPlatformDisplayEXT")
+    if not query_ptr or not display_ptr:
+        return False
+    query_devices = ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_int, ctypes.POINTER(ctypes.c_void_p), ctypes.POINTER(ctypes.c_int))(
+        query_ptr
+    )
+    platform_display = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_uint, ctypes.c_void_p, ctypes.c_void_p)(display_ptr)
+    devices = (ctypes.c_void_p * 16)()
+    count = ctypes.c_int(0)
+    if not query_devices(16, devices, ctypes.byref(count)):
+        return False
+    lib.eglInitialize.restype = ctypes.c_uint
+    lib.eglInitialize.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_int)]
+    for device in devices[: count.value]:
+        display = platform_display(_EGL_PLATFORM_DEVICE_EXT, device, None)
+        major, minor = ctypes.c_int(0), ctypes.c_int(0)
+        if display and lib.eglInitialize(display, ctypes.byref(major), ctypes.byref(minor)):
+            return True
+    return False
+
+
+def osmesa_library_found() -> bool:
+    """True when libOSMesa can be loaded."""
+    name = ctypes.util.find_library("OSMesa")
+    if name is None:
+        return False
+    try:
+        ctypes.CDLL(name)
+    except OSError:
+        return False
+    return True
+
+
+def choose_backend(
+    environ: MutableMapping[str, str],
+    egl_works: Callable[[], bool] = egl_display_works,
+    osmesa_found: Callable[[], bool] = osmesa_library_found,
+) -> str:
+    """The backend to use: the user's `MUJOCO_GL` if set, else "egl" if it works, else "osmesa" if present, else "egl"."""
+    chosen = environ.get("MUJOCO_GL", "").strip().lower()
+    if chosen:
+        return chosen
+    if egl_works():
+        return "egl"
+    if osmesa_found():
+        return "osmesa"
+    return "egl"  # nothing works; `ensure_context` will raise the actionable error
+
+
+def configure(environ: MutableMapping[str, str] | None = None) -> str:
+    """Fill in `MUJOCO_GL` and `PYOPENGL_PLATFORM` where unset; returns the backend in use."""
+    environ = os.environ if environ is None else environ
+    backend = choose_backend(environ)
+    environ.setdefault("MUJOCO_GL", backend)
+    if backend in ("egl", "osmesa"):
+        environ.setdefault("PYOPENGL_PLATFORM", backend)
+    return backend
+
+
+def error_message(backend: str, cause: BaseException | str) -> str:
+    """One line: what failed and the apt line (or environment variables) that fix it."""
+    return (
+        f"headless OpenGL unavailable (MUJOCO_GL={backend}: {str(cause).splitlines()[0] if str(cause) else type(cause).__name__}); "
+        f"fix: `{APT_EGL}` for EGL, or `{APT_OSMESA}` and set MUJOCO_GL=osmesa PYOPENGL_PLATFORM=osmesa"
+    )
+
+
+def ensure_context(backend: str | None = None) -> None:
+    """Create and free one GL context with the configured backend; raise `HeadlessGLError` when that fails."""
+    backend = (backend or os.environ.get("MUJOCO_GL", "egl")).strip().lower()
+    try:
+        if backend == "egl":
+            from robosuite.renderers.context.egl_context import EGLGLContext as GLContext
+        elif backend == "osmesa":
+            from robosuite.renderers.context.osmesa_context import OSMesaGLContext as GLContext
+        else:
+            from robosuite.renderers.context.glfw_context import GLFWGLContext as GLContext
+        context = GLContext(max_width=64, max_height=64, device_id=-1)
+        context.make_current()
+        context.free()
+    except HeadlessGLError:
+        raise
+    except Exception as exc:  # any driver/library failure becomes the one actionable line
+        raise HeadlessGLError(error_message(backend, exc)) from exc

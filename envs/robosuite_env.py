@@ -1,0 +1,267 @@
+"""One robosuite task as a plain gymnasium environment, seen and driven the way Octo expects.
+
+Observations (dict):
+  image_<key>: (size, size, 3) uint8 upright camera frames (default: image_primary = agentview 256 px
+               (sideview for Door), image_wrist = robot0_eye_in_hand 128 px);
+  proprio:     (8,) float32 = end-effector site position (3, metres, world frame = robot base frame
+               axes), its orientation as extrinsic "xyz" Euler angles (3, radians: roll, pitch, yaw),
+               and the two finger joint positions (2, metres; ~0.04 open, ~0 closed).
+Actions: (7,) float32 in Octo's convention (see `envs.actions`), mapped to robosuite OSC_POSE.
+info: success (robosuite's own check), instruction, task, step, action_clipped (steps clipped so far
+this episode), target_pixels {image key: (n_targets, 2) float32 (row, col)}, and masks
+{image key: {"target", "robot": (h, w) bool}} when masks are on.
+
+Seeding: every reset draws the episode's robosuite seed from the gymnasium `np_random` stream, so
+`reset(seed=s)` gives the same episode whatever ran before; randomised model properties (e.g. cube
+size) are fixed at construction by `model_seed`, identical for all environments with the same value.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+import gymnasium as gym
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from envs import gl
+from envs.actions import ActionAdapterConfig, adapt_action
+from envs.camera import project_points
+from envs.render import CameraSpec, SceneRenderer
+from envs.segmentation import geom_categories, masks_from_segmentation, scene_lookup
+from envs.tasks import TaskSpec
+
+ROBOT_BODY_PREFIXES = ("robot0_", "gripper0_", "fixed_mount0_", "mount0_")
+CONTROL_FREQUENCY_HZ = 20
+# proprio bounds: position within 10 m of the origin, Euler angles in [-pi, pi], finger joints within 0.1 m
+_PROPRIO_HIGH = np.array([10.0] * 3 + [np.pi] * 3 + [0.1] * 2, dtype=np.float32)
+PROPRIO_SPACE = gym.spaces.Box(-_PROPRIO_HIGH, _PROPRIO_HIGH, (8,), np.float32)
+
+
+class EnvConfigError(ValueError):
+    """Invalid environment options."""
+
+
+class WrongThreadError(RuntimeError):
+    """The environment was used from a thread other than the one that created it."""
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    cameras: tuple[CameraSpec, ...] = ()  # no cameras: no rendering; `make` fills in the task's defaults
+    masks: bool = False
+    terminate_on_success: bool = True
+    max_episode_steps: int | None = None  # None: the task's default
+    instruction: str | None = None  # None: the task's default instruction
+    action_adapter: ActionAdapterConfig | None = None  # None: scales read from the controller's output limits
+    fast_render: bool = False  # no shadows, reflections or skybox
+    model_seed: int = 0  # seeds randomised model properties at construction (object sizes, table height)
+    render_mode: str | None = None  # None or "rgb_array" (returns the first camera's latest frame)
+    robosuite_options: tuple[tuple[str, object], ...] = field(default_factory=tuple)  # extra robosuite.make kwargs
+
+
+def default_cameras(task: TaskSpec) -> tuple[CameraSpec, ...]:
+    """image_primary = the task's primary camera (agentview except Door) at 256 px, image_wrist = eye-in-hand at 128 px."""
+    return (CameraSpec("image_primary", task.primary_camera, 256), CameraSpec("image_wrist", "robot0_eye_in_hand", 128))
+
+
+def parse_cameras(cameras: dict[str, tuple[str, int]] | None, task: TaskSpec) -> tuple[CameraSpec, ...]:
+    """{obs key: (robosuite camera, size)} -> camera specs; None gives the task's defaults."""
+    if cameras is None:
+        return default_cameras(task)
+    specs = []
+    for key, value in cameras.items():
+        if not (isinstance(value, (tuple, list)) and len(value) == 2 and isinstance(value[1], (int, np.integer)) and value[1] > 0):
+            raise EnvConfigError(f"camera {key!r}: expected (robosuite camera name, positive size), got {value!r}")
+        if key == "proprio":
+            raise EnvConfigError("camera key 'proprio' is reserved for the proprioceptive state; choose another key")
+        specs.append(CameraSpec(key, str(value[0]), int(value[1])))
+    return tuple(specs)
+
+
+def _import_robosuite():
+    """robosuite, imported after GL configuration, with its INFO chatter silenced."""
+    import logging
+
+    import robosuite
+
+    logging.getLogger("robosuite_logs").setLevel(logging.WARNING)
+    return robosuite
+
+
+class RobosuiteEnv(gym.Env):
+    """A robosuite task with Octo-style observations and actions; see the module docstring."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FREQUENCY_HZ}
+
+    def __init__(self, task: TaskSpec, config: EnvConfig = EnvConfig()) -> None:
+        if config.masks and not config.cameras:
+            raise EnvConfigError("masks=True needs at least one camera")
+        if config.render_mode not in (None, "rgb_array"):
+            raise EnvConfigError(f"render_mode {config.render_mode!r} unsupported; use None or 'rgb_array'")
+        if config.render_mode == "rgb_array" and not config.cameras:
+            raise EnvConfigError("render_mode='rgb_array' needs at least one camera")
+        self.task = task
+        self.config = config
+        self.render_mode = config.render_mode
+        self.instruction = config.instruction if config.instruction is not None else task.instruction
+        self.max_episode_steps = config.max_episode_steps if config.max_episode_steps is not None else task.max_episode_steps
+        self._thread = threading.get_ident()
+
+        if config.cameras:
+            gl.ensure_context()
+        robosuite = _import_robosuite()
+        from robosuite.controllers import load_composite_controller_config
+
+        controller = load_composite_controller_config(robot="Panda")
+        options = dict(
+            robots="Panda",
+            controller_configs=controller,
+            has_renderer=False,
+            has_offscreen_renderer=bool(config.cameras),
+            use_camera_obs=False,
+            use_object_obs=True,
+            hard_reset=False,
+            ignore_done=True,
+            horizon=self.max_episode_steps,
+            control_freq=CONTROL_FREQUENCY_HZ,
+            seed=config.model_seed,
+        )
+        options.update(dict(task.robosuite_options))
+        options.update(dict(config.robosuite_options))
+        self._env = robosuite.make(task.robosuite_env, **options)
+        arm = controller["body_parts"]["right"]
+        self.adapter = config.action_adapter or ActionAdapterConfig(
+            position_max=float(arm["output_max"][0]), rotation_max=float(arm["output_max"][3])
+        )
+        sim = self._env.sim
+        self._renderer = SceneRenderer(sim, config.cameras, fast=config.fast_render) if config.cameras else None
+
+        model = sim.model
+        body_names = [model.body_id2name(i) or "" for i in range(model.nbody)]
+        self._geom_category = geom_categories(model.geom_bodyid, body_names, model.body_parentid, task.targets, ROBOT_BODY_PREFIXES)
+        # per target prefix: visual geoms (group 1) whose centres average to the target's centre
+        target_geoms = []
+        for prefix in task.targets:
+            one = geom_categories(model.geom_bodyid, body_names, model.body_parentid, (prefix,), ())
+            ids = np.flatnonzero((one == 1) & (np.asarray(model.geom_group) == 1))
+            if len(ids) == 0:
+                raise EnvConfigError(f"task {task.name}: no visual geom under target prefix {prefix!r}")
+            target_geoms.append(ids)
+        self._target_geoms = tuple(target_geoms)
+        self._camera_fovy = {spec.key: float(model.cam_fovy[self._renderer.camera_id(spec.key)]) for spec in config.cameras}
+        self._camera_sizes = {spec.key: spec.size for spec in config.cameras}
+
+        images = {spec.key: gym.spaces.Box(0, 255, (spec.size, spec.size, 3), np.uint8) for spec in config.cameras}
+        self.observation_space = gym.spaces.Dict({**images, "proprio": PROPRIO_SPACE})
+        low = np.array([-self.adapter.position_max] * 3 + [-self.adapter.rotation_max] * 3 + [0.0], dtype=np.float32)
+        self.action_space = gym.spaces.Box(low, -low + np.array([0] * 6 + [1], dtype=np.float32), dtype=np.float32)
+
+        self._step_index = 0
+        self._clipped = 0
+        self._last_obs: dict[str, np.ndarray] | None = None
+
+    # ---------------------------------------------------------------- gymnasium API
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        self._check_thread()
+        super().reset(seed=seed)
+        episode_seed = int(self.np_random.integers(0, 2**63 - 1))
+        self._env.rng.bit_generator.state = np.random.default_rng(episode_seed).bit_generator.state
+        raw = self._env.reset()
+        self._step_index = 0
+        self._clipped = 0
+        success = bool(self._env._check_success())
+        obs = self._observe(raw)
+        return obs, self._info(success)
+
+    def step(self, action):
+        self._check_thread()
+        if self._last_obs is None:
+            raise gym.error.ResetNeeded("call reset() before step()")
+        osc, clipped = adapt_action(np.asarray(action), self.adapter)
+        raw, reward, _, _ = self._env.step(osc[: self._env.action_dim])  # Wipe's gripper-less arm takes 6 values
+        self._step_index += 1
+        self._clipped += int(clipped)
+        success = bool(self._env._check_success())
+        obs = self._observe(raw)
+        terminated = success and self.config.terminate_on_success
+        truncated = self._step_index >= self.max_episode_steps
+        return obs, float(reward), terminated, truncated, self._info(success)
+
+    def render(self):
+        if self.render_mode != "rgb_array" or self._last_obs is None:
+            return None
+        return self._last_obs[self.config.cameras[0].key].copy()
+
+    def close(self) -> None:
+        env, self._env = getattr(self, "_env", None), None
+        renderer, self._renderer = getattr(self, "_renderer", None), None
+        if renderer is not None:
+            renderer.free()
+        if env is not None:
+            env.close()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: GL libraries may already be gone
+            pass
+
+    # ---------------------------------------------------------------- internals
+
+    def _check_thread(self) -> None:
+        if threading.get_ident() != self._thread:
+            raise WrongThreadError("step/reset this environment only from the thread that created it (its GL context lives there)")
+
+    def _observe(self, raw: dict) -> dict[str, np.ndarray]:
+        obs = {spec.key: self._renderer.rgb(spec.key) for spec in self.config.cameras}
+        euler = Rotation.from_quat(raw["robot0_eef_quat_site"]).as_euler("xyz")  # robosuite quats are (x, y, z, w)
+        fingers = raw.get("robot0_gripper_qpos", np.zeros(2))  # (2,); Wipe's wiping tool has no finger joints
+        obs["proprio"] = np.concatenate([raw["robot0_eef_pos"], euler, fingers]).astype(np.float32)
+        self._last_obs = obs
+        return obs
+
+    def target_centres(self) -> np.ndarray:
+        """(n_targets, 3) world positions: mean centre of each target's visual geoms."""
+        xpos = self._env.sim.data.geom_xpos
+        return np.stack([xpos[ids].mean(axis=0) for ids in self._target_geoms])
+
+    def target_pixels(self) -> dict[str, np.ndarray]:
+        """{image key: (n_targets, 2) float32 (row, col)} projected target centres in each upright image."""
+        data = self._env.sim.data
+        centres = self.target_centres()
+        pixels = {}
+        for key, size in self._camera_sizes.items():
+            cam = self._renderer.camera_id(key)
+            pixels[key] = project_points(centres, data.cam_xpos[cam], data.cam_xmat[cam], self._camera_fovy[key], size, size).astype(
+                np.float32
+            )
+        return pixels
+
+    def masks(self) -> dict[str, dict[str, np.ndarray]]:
+        """{image key: {"target": (h, w) bool, "robot": (h, w) bool}} for the current state."""
+        out = {}
+        for spec in self.config.cameras:
+            image, segids, objtypes, objids = self._renderer.segmentation(spec.key)
+            out[spec.key] = masks_from_segmentation(image, scene_lookup(segids, objtypes, objids, self._geom_category))
+        return out
+
+    def _info(self, success: bool) -> dict:
+        info = {
+            "success": success,
+            "instruction": self.instruction,
+            "task": self.task.name,
+            "step": self._step_index,
+            "action_clipped": self._clipped,
+            "target_pixels": self.target_pixels(),
+        }
+        if self.config.masks:
+            info["masks"] = self.masks()
+        return info
+
+    @property
+    def robosuite_env(self):
+        """The wrapped robosuite environment (for tests and diagnostics; policies should not need it)."""
+        return self._env

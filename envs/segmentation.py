@@ -1,0 +1,67 @@
+"""Target and robot masks from MuJoCo segmentation renders, through lookup tables (pure numpy).
+
+A segmentation render (mjRND_SEGMENT + mjRND_IDCOLOR) paints every pixel with `segid + 1` of the scene
+geom that covers it, encoded as r + 256 g + 65536 b (0 = background). Each scene geom names the model
+object it came from (objtype, objid). `geom_categories` labels every model geom once per model
+(target / robot / other); `scene_lookup` turns one render's scene into a `segid + 1 -> category` table;
+`masks_from_segmentation` is then a single numpy gather per image, with no per-pixel Python.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+OTHER, TARGET, ROBOT = 0, 1, 2
+MJOBJ_GEOM = 5  # mujoco.mjtObj.mjOBJ_GEOM
+
+
+def body_ancestry_matches(body_names: Sequence[str], body_parentid: np.ndarray, prefixes: Sequence[str]) -> np.ndarray:
+    """(nbody,) bool: the body or one of its ancestors (world excluded) has a name starting with a prefix."""
+    prefixes = tuple(prefixes)
+    own = np.array([bool(prefixes) and (name or "").startswith(prefixes) for name in body_names], dtype=bool)
+    result = own.copy()
+    for body in range(len(body_names)):  # bodies are stored parents-first, so one pass suffices
+        parent = int(body_parentid[body])
+        if body != 0 and parent != 0:
+            result[body] |= result[parent]
+    return result
+
+
+def geom_categories(
+    geom_bodyid: np.ndarray, body_names: Sequence[str], body_parentid: np.ndarray, target_prefixes: Sequence[str], robot_prefixes: Sequence[str]
+) -> np.ndarray:
+    """(ngeom,) uint8 category of every model geom: TARGET, ROBOT or OTHER (target wins over robot)."""
+    target_bodies = body_ancestry_matches(body_names, body_parentid, target_prefixes)
+    robot_bodies = body_ancestry_matches(body_names, body_parentid, robot_prefixes)
+    body_category = np.where(target_bodies, TARGET, np.where(robot_bodies, ROBOT, OTHER)).astype(np.uint8)  # (nbody,)
+    return body_category[np.asarray(geom_bodyid)]
+
+
+def scene_lookup(segids: np.ndarray, objtypes: np.ndarray, objids: np.ndarray, geom_category: np.ndarray) -> np.ndarray:
+    """(max segid + 2,) uint8 table from decoded pixel id (segid + 1) to category, for one rendered scene.
+
+    segids, objtypes, objids: (scene_geoms,) of the scene that was rendered; non-geom scene objects
+    (sites, decorations) and hidden geoms (segid -1) map to OTHER.
+    """
+    segids = np.asarray(segids)
+    size = int(segids.max()) + 2 if len(segids) else 1
+    table = np.zeros(size, dtype=np.uint8)
+    shown = (segids >= 0) & (np.asarray(objtypes) == MJOBJ_GEOM)
+    table[segids[shown] + 1] = np.asarray(geom_category)[np.asarray(objids)[shown]]
+    return table
+
+
+def decode_ids(segmentation_rgb: np.ndarray) -> np.ndarray:
+    """(h, w, 3) uint8 id-colour render -> (h, w) int64 pixel ids (segid + 1; 0 = background)."""
+    rgb = segmentation_rgb.astype(np.int64)
+    return rgb[..., 0] + (rgb[..., 1] << 8) + (rgb[..., 2] << 16)
+
+
+def masks_from_segmentation(segmentation_rgb: np.ndarray, table: np.ndarray) -> dict[str, np.ndarray]:
+    """(h, w, 3) id-colour render + lookup table -> {"target": (h, w) bool, "robot": (h, w) bool}."""
+    ids = decode_ids(segmentation_rgb)
+    ids = np.where(ids < len(table), ids, 0)
+    category = table[ids]  # (h, w) uint8
+    return {"target": category == TARGET, "robot": category == ROBOT}

@@ -1,0 +1,160 @@
+"""Task registry: which robosuite environments the harness offers, with instruction, targets and episode length.
+
+Every single-arm robosuite 1.5 manipulation task that loads with a Panda is listed. `targets` are
+body-name prefixes: a MuJoCo geom belongs to a target when its body or one of the body's ancestors has
+a name starting with one of them (robosuite names an object's bodies `<object>_...`). Targets are the
+object(s) the robot has to grasp, push or move, so that attention on them can be measured.
+"""
+
+from __future__ import annotations
+
+import difflib
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    name: str  # registry name, also the gymnasium id "octo_harness/<name>-v0"
+    robosuite_env: str  # robosuite environment class name
+    instruction: str  # default language instruction
+    paraphrases: tuple[str, ...]  # alternative phrasings of the same instruction
+    targets: tuple[str, ...]  # body-name prefixes of the target object(s)
+    max_episode_steps: int  # truncation limit at 20 Hz control
+    primary_camera: str = "agentview"  # robosuite camera behind the default image_primary
+    robosuite_options: tuple[tuple[str, object], ...] = ()  # fixed extra kwargs for robosuite.make
+
+    @property
+    def gym_id(self) -> str:
+        return f"octo_harness/{self.name}-v0"
+
+
+class UnknownTaskError(ValueError):
+    """A task name that is not in the registry."""
+
+
+_TASKS: tuple[TaskSpec, ...] = (
+    TaskSpec(
+        "Lift",
+        "Lift",
+        "pick up the red cube",
+        ("lift the red cube", "grasp the red block and raise it", "pick the red block up off the table"),
+        ("cube_",),
+        300,
+    ),
+    TaskSpec(
+        "Stack",
+        "Stack",
+        "stack the red cube on the green cube",
+        ("put the red block on top of the green block", "place the red cube onto the green cube", "stack red on green"),
+        ("cubeA_",),
+        400,
+    ),
+    TaskSpec(
+        "PickPlaceCan",
+        "PickPlaceCan",
+        "put the can in its bin",
+        ("pick up the can and place it in the bin", "move the soda can into the right bin", "place the can in the bin"),
+        ("Can_",),
+        400,
+    ),
+    TaskSpec(
+        "PickPlaceMilk",
+        "PickPlaceMilk",
+        "put the milk carton in its bin",
+        ("pick up the milk and place it in the bin", "move the milk carton into the right bin", "place the milk in the bin"),
+        ("Milk_",),
+        400,
+    ),
+    TaskSpec(
+        "PickPlaceBread",
+        "PickPlaceBread",
+        "put the bread in its bin",
+        ("pick up the bread and place it in the bin", "move the loaf of bread into the right bin", "place the bread in the bin"),
+        ("Bread_",),
+        400,
+    ),
+    TaskSpec(
+        "PickPlaceCereal",
+        "PickPlaceCereal",
+        "put the cereal box in its bin",
+        ("pick up the cereal box and place it in the bin", "move the cereal into the right bin", "place the cereal in the bin"),
+        ("Cereal_",),
+        400,
+    ),
+    TaskSpec(
+        "PickPlace",
+        "PickPlace",
+        "put each object in its bin",
+        ("sort the milk, bread, cereal and can into the bins", "place every object in its bin", "move all four objects into the bins"),
+        ("Milk_", "Bread_", "Cereal_", "Can_"),
+        1000,
+    ),
+    TaskSpec(
+        "NutAssemblySquare",
+        "NutAssemblySquare",
+        "put the square nut on the square peg",
+        ("place the square nut onto the square peg", "fit the square nut over the square peg", "move the square nut to its peg"),
+        ("SquareNut_",),
+        500,
+    ),
+    TaskSpec(
+        "NutAssemblyRound",
+        "NutAssemblyRound",
+        "put the round nut on the round peg",
+        ("place the round nut onto the round peg", "fit the round nut over the round peg", "move the round nut to its peg"),
+        ("RoundNut_",),
+        500,
+    ),
+    TaskSpec(
+        "NutAssembly",
+        "NutAssembly",
+        "put each nut on its matching peg",
+        ("place the square nut and the round nut on their pegs", "fit both nuts over their pegs", "assemble the nuts onto the pegs"),
+        ("SquareNut_", "RoundNut_"),
+        800,
+    ),
+    TaskSpec(
+        "Door",
+        "Door",
+        "open the door",
+        ("turn the handle and pull the door open", "open the door by its handle", "pull the door open"),
+        ("Door_latch",),
+        400,
+        primary_camera="sideview",  # robosuite's agentview sits behind the robot base in this arena
+    ),
+    TaskSpec(
+        "Wipe",
+        "Wipe",
+        "wipe the dirt off the table",
+        ("clean the markings on the table", "wipe the table clean", "scrub away the dirt on the table"),
+        ("contact",),
+        500,
+    ),
+    TaskSpec(
+        "ToolHang",
+        "ToolHang",
+        "insert the hook into the stand and hang the tool on it",
+        ("put the frame into the stand, then hang the tool on the hook", "assemble the hook and hang the wrench on it", "hang the tool"),
+        ("frame_", "tool_"),
+        700,
+    ),
+)
+
+_BY_NAME: dict[str, TaskSpec] = {task.name: task for task in _TASKS}
+
+
+def list_tasks() -> list[TaskSpec]:
+    """Every registered task, in registry order."""
+    return list(_TASKS)
+
+
+def get_task(name: str) -> TaskSpec:
+    """The task called `name`; an unknown name raises `UnknownTaskError` listing the known ones and the closest."""
+    if name in _BY_NAME:
+        return _BY_NAME[name]
+    lowered = {task.lower(): task for task in _BY_NAME}
+    if name.lower() in lowered:
+        return _BY_NAME[lowered[name.lower()]]
+    close = difflib.get_close_matches(name.lower(), list(lowered), n=1, cutoff=0.4)
+    hint = f"did you mean {lowered[close[0]]!r}? " if close else ""
+    raise UnknownTaskError(f"unknown task {name!r}; {hint}known tasks: {', '.join(_BY_NAME)}")
