@@ -43,7 +43,7 @@ class Mp4Writer:
 
     MACRO_BLOCK = 16
 
-    def __init__(self, path: str | os.PathLike, fps: float = 10, quality: float = 7):
+    def __init__(self, path: str | os.PathLike, fps: float = 10, quality: float = 7, preset: str = "veryfast"):
         self.path = Path(path)
         if self.path.suffix != ".mp4":
             raise ValueError(f"MP4 path must end in .mp4: {self.path}")
@@ -51,6 +51,7 @@ class Mp4Writer:
             raise ValueError(f"fps must be positive; got {fps}")
         self.fps = fps
         self.quality = quality
+        self.preset = preset  # x264 speed/size trade-off; veryfast costs a few ms per frame at 784x528
         self.temp = temp_path(self.path)
         self.frames = 0
         self._size: tuple[int, int] | None = None
@@ -74,6 +75,7 @@ class Mp4Writer:
                 quality=self.quality,
                 macro_block_size=self.MACRO_BLOCK,
                 ffmpeg_log_level="error",
+                output_params=["-preset", self.preset],
             )
         elif frame.shape[:2] != self._size:
             raise ValueError(f"video frame size changed from {self._size} to {frame.shape[:2]}; keep frames one size")

@@ -19,6 +19,9 @@ Every file is written to `<name>.tmp.<ext>` in the same directory and moved into
 os.replace; `abort()` (or an exception inside `with EpisodeWriter(...)`) deletes temporaries and
 never writes episode.json. Starting a writer removes a stale episode.json from the directory.
 
+PNGs are encoded by `encode_png` (numpy + zlib, which releases the GIL) in a small thread pool
+(`png_workers`), so the control loop's Python code keeps running while panels compress.
+
 Normalisation: "frame" colours each PNG row with that step's range; "episode" uses the range of
 the whole episode per (layer, camera), which is known only at the end, so in that mode the PNGs
 are rendered during `finish()`. The video always uses per-frame ranges. Exceptions raised in the
@@ -32,14 +35,16 @@ import json
 import math
 import os
 import queue
+import struct
 import threading
 import time
+import zlib
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, IO
 
 import numpy as np
-from PIL import Image
 
 from harness.attention import HEAD_FUSIONS, camera_maps, fuse_heads, rollout_readout_rows, step_metrics
 from harness.octo.tokens import TokenMap
@@ -71,7 +76,8 @@ class OutputOptions:
     cmap: str = "jet"
     alpha: float = 0.5  # heatmap weight in overlays
     queue_size: int = 4  # steps waiting for the writer before add_step blocks
-    png_compress_level: int = 1  # zlib level 0-9 (1: fast, larger files)
+    png_compress_level: int = 2  # zlib level 0-9 (low: fast, larger files)
+    png_workers: int = 2  # threads compressing PNGs in parallel (zlib releases the GIL); 0 = in the writer thread
 
     def __post_init__(self) -> None:
         if self.png_every < 0:
@@ -84,8 +90,8 @@ class OutputOptions:
             raise ValueError(f"normalisation must be 'frame' or 'episode'; got {self.normalisation!r}")
         if self.head_fusion not in HEAD_FUSIONS:
             raise ValueError(f"head_fusion must be one of {HEAD_FUSIONS}; got {self.head_fusion!r}")
-        if self.fps <= 0 or self.gif_every < 1 or self.queue_size < 1:
-            raise ValueError("fps must be > 0, gif_every >= 1 and queue_size >= 1")
+        if self.fps <= 0 or self.gif_every < 1 or self.queue_size < 1 or self.png_workers < 0:
+            raise ValueError("fps must be > 0, gif_every >= 1, queue_size >= 1 and png_workers >= 0")
         if not 0.0 <= self.alpha <= 1.0:
             raise ValueError(f"alpha must be in [0, 1]; got {self.alpha}")
         if not 0 <= self.png_compress_level <= 9:
@@ -104,6 +110,31 @@ def write_atomic(path: Path, write: Callable[[IO[bytes]], None]) -> Path:
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def encode_png(image: np.ndarray, level: int = 2) -> bytes:
+    """image (H, W, 3) uint8 -> PNG file bytes (8-bit RGB, 'Up' filter on every row, zlib `level`).
+
+    Plain numpy + zlib rather than Pillow: zlib releases the GIL while compressing (Pillow's PNG
+    encoder holds it), so encoding in the background does not stall the control loop and several
+    PNGs compress in parallel. The Up filter (row minus the row above, mod 256) is one vectorised
+    subtraction and compresses rendered frames and heatmaps well.
+    """
+    image = np.ascontiguousarray(image)
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f"PNG images must be (height, width, 3) uint8; got {image.shape} {image.dtype}")
+    height, width = image.shape[:2]
+    rows = image.reshape(height, width * 3)
+    filtered = np.empty((height, width * 3 + 1), np.uint8)  # each row: filter byte, then filtered bytes
+    filtered[:, 0] = 2  # filter type Up
+    filtered[0, 1:] = rows[0]  # the row above the first is zero
+    np.subtract(rows[1:], rows[:-1], out=filtered[1:, 1:])  # uint8 arithmetic wraps mod 256
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)  # 8 bits, truecolour, deflate, no interlace
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(filtered.tobytes(), level)) + chunk(b"IEND", b"")
 
 
 def _json_value(x: Any) -> Any:
@@ -199,6 +230,10 @@ class EpisodeWriter:
         self._deferred: list[tuple] = []  # episode normalisation: (step, frames, maps, boxes) rendered at finish
         self._ranges: dict[tuple[int, str], list[float]] = {}  # (layer, camera) -> [min, max] over the episode
         self._blocked: list[float] = []  # caller side: seconds each add_step waited for queue space
+        workers = self.options.png_workers
+        self._png_pool = ThreadPoolExecutor(workers, thread_name_prefix="png") if workers else None
+        self._png_pending: list[Future] = []  # oldest first; bounded so rendered panels do not pile up
+        self._png_seconds: list[float] = []  # encode + write time of each PNG (in the pool)
 
         self._thread = threading.Thread(target=self._run, name=f"episode-writer-{meta.task}-{meta.episode}", daemon=True)
         self._thread.start()
@@ -284,6 +319,8 @@ class EpisodeWriter:
             raise WriterError(f"background writer failed{where}: {self._error!r}") from self._error
 
     def _abort_outputs(self) -> None:
+        if self._png_pool is not None:
+            self._png_pool.shutdown(wait=True, cancel_futures=True)
         for sink in (self._mp4, self._gif):
             if sink is not None:
                 sink.abort()
@@ -308,6 +345,9 @@ class EpisodeWriter:
             step = None
             if not self._aborting.is_set():
                 self._render_deferred()
+                self._drain_png(0)
+                if self._png_pool is not None:
+                    self._png_pool.shutdown(wait=True)
                 for sink in (self._mp4, self._gif):
                     if sink is not None:
                         sink.close()
@@ -403,9 +443,24 @@ class EpisodeWriter:
             head_fusion=opts.head_fusion, cmap=opts.cmap, alpha=opts.alpha,
         )
         name = PNG_NAME.format(step=step, layer=layer)
-        image = Image.fromarray(panel)
-        write_atomic(self.dir / name, lambda f: image.save(f, format="PNG", compress_level=opts.png_compress_level))
+        path, level = self.dir / name, opts.png_compress_level
+
+        def save() -> None:
+            start = time.perf_counter()
+            write_atomic(path, lambda f: f.write(encode_png(panel, level)))
+            self._png_seconds.append(time.perf_counter() - start)
+
+        if self._png_pool is None:
+            save()
+        else:
+            self._png_pending.append(self._png_pool.submit(save))
+            self._drain_png(4 * opts.png_workers)
         self._pngs.append(name)
+
+    def _drain_png(self, keep: int) -> None:
+        """Wait for the oldest PNG jobs until at most `keep` are pending; re-raises their errors."""
+        while len(self._png_pending) > keep:
+            self._png_pending.pop(0).result()
 
     def _render_deferred(self) -> None:
         layers = self._layout.png_layers if self._layout else ()
@@ -504,6 +559,7 @@ class EpisodeWriter:
             "total": {k: float(np.sum(v)) for k, v in per_step.items()},
             "mean": {k: float(np.mean(v)) for k, v in per_step.items()},
             "finish": finish_s,
+            "png_encode": {"total": float(np.sum(self._png_seconds)), "count": len(self._png_seconds)},
         }
         layout = self._layout
         result = {
