@@ -77,6 +77,17 @@ def _normalise_rows(a: np.ndarray) -> np.ndarray:
     return np.divide(a, total, out=np.zeros_like(a), where=total > 0)
 
 
+def _rollout_layers(full: np.ndarray, residual: bool, head_fusion: str) -> np.ndarray:
+    """full (..., layers, heads, q, k) -> (..., layers, q, k) float64: fused heads, residual identity, rows renormalised."""
+    full = np.asarray(full)
+    if full.ndim < 4 or full.shape[-1] != full.shape[-2]:
+        raise ValueError(f"attention rollout needs full square matrices (layers, heads, q, k); got shape {full.shape}")
+    layers = fuse_heads(full, head_fusion, axis=-3).astype(np.float64)  # fuse first: heads x smaller in float64
+    if residual:
+        layers = 0.5 * layers + 0.5 * np.eye(layers.shape[-1])
+    return _normalise_rows(layers)
+
+
 def attention_rollout(full: np.ndarray, residual: bool = True, head_fusion: str = "mean") -> np.ndarray:
     """full (..., layers, heads, q, k) with q == k -> rollout (..., q, k).
 
@@ -84,13 +95,7 @@ def attention_rollout(full: np.ndarray, residual: bool = True, head_fusion: str 
     `residual`), rows are renormalised, and layers are composed in order:
     rollout = A_L @ ... @ A_2 @ A_1, so row i says how much token i at the output depends on each input token.
     """
-    full = np.asarray(full, dtype=np.float64)
-    if full.ndim < 4 or full.shape[-1] != full.shape[-2]:
-        raise ValueError(f"attention rollout needs full square matrices (layers, heads, q, k); got shape {full.shape}")
-    layers = fuse_heads(full, head_fusion, axis=-3)  # (..., layers, q, k)
-    if residual:
-        layers = 0.5 * layers + 0.5 * np.eye(layers.shape[-1])
-    layers = _normalise_rows(layers)
+    layers = _rollout_layers(full, residual, head_fusion)
     result = layers[..., 0, :, :]
     for i in range(1, layers.shape[-3]):
         result = layers[..., i, :, :] @ result
@@ -100,8 +105,16 @@ def attention_rollout(full: np.ndarray, residual: bool = True, head_fusion: str 
 def rollout_readout_rows(
     full: np.ndarray, tokens: TokenMap, residual: bool = True, head_fusion: str = "mean"
 ) -> np.ndarray:
-    """full (..., layers, heads, keys, keys) -> (..., readouts, keys): the rollout rows of the last timestep's readouts."""
-    return attention_rollout(full, residual, head_fusion)[..., tokens.readout_index, :]
+    """full (..., layers, heads, keys, keys) -> (..., readouts, keys): the rollout rows of the last timestep's readouts.
+
+    Equal to attention_rollout(full)[..., readout_index, :], computed as row vectors times matrices
+    from the last layer down (readouts x keys x keys per layer instead of keys^3).
+    """
+    layers = _rollout_layers(full, residual, head_fusion)
+    rows = layers[..., -1, tokens.readout_index, :]  # (..., readouts, keys)
+    for i in range(layers.shape[-3] - 2, -1, -1):
+        rows = rows @ layers[..., i, :, :]
+    return rows
 
 
 def modality_categories(tokens: TokenMap) -> dict[str, np.ndarray]:
@@ -136,26 +149,34 @@ def _shares(rows: np.ndarray, selectors: dict[str, np.ndarray]) -> dict[str, np.
     return out
 
 
-def modality_shares(rows: np.ndarray, tokens: TokenMap) -> dict[str, np.ndarray]:
+def modality_shares(rows: np.ndarray, tokens: TokenMap, per_timestep: bool = False) -> dict[str, np.ndarray]:
     """rows (..., keys) -> {category: (...)} fraction of each row's mass per category (see modality_categories).
 
-    Categories partition the keys, so the shares of a row with positive mass sum to 1.
+    With `per_timestep`, each category is split by timestep part into "<category>/prefix",
+    "<category>/earlier" and "<category>/current" (only the combinations that have keys).
+    Categories (and their splits) partition the keys, so the shares of a row with mass sum to 1.
     """
-    return _shares(rows, modality_categories(tokens))
+    cats = modality_categories(tokens)
+    if per_timestep:
+        parts = _timestep_parts(tokens)
+        cats = {f"{c}/{p}": sel & psel for c, sel in cats.items() for p, psel in parts.items() if (sel & psel).any()}
+    return _shares(rows, cats)
+
+
+def _timestep_parts(tokens: TokenMap) -> dict[str, np.ndarray]:
+    """{"prefix", "earlier", "current"} -> (keys,) bool: task prefix, earlier window steps, last window step."""
+    last = tokens.window - 1
+    return {
+        "prefix": tokens.timestep < 0,
+        "earlier": (tokens.timestep >= 0) & (tokens.timestep < last),
+        "current": tokens.timestep == last,
+    }
 
 
 def timestep_shares(rows: np.ndarray, tokens: TokenMap) -> dict[str, np.ndarray]:
     """rows (..., keys) -> {"prefix", "earlier", "current"}: (...) fractions of mass on task prefix tokens,
     on earlier timesteps of the window, and on the last (current) timestep. They sum to 1."""
-    last = tokens.window - 1
-    return _shares(
-        rows,
-        {
-            "prefix": tokens.timestep < 0,
-            "earlier": (tokens.timestep >= 0) & (tokens.timestep < last),
-            "current": tokens.timestep == last,
-        },
-    )
+    return _shares(rows, _timestep_parts(tokens))
 
 
 def _patch_index(size: int, cells: int) -> np.ndarray:

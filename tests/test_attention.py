@@ -97,6 +97,14 @@ def test_rollout_readout_rows_tiny_layout():
     np.testing.assert_array_equal(rows[0], np.eye(90)[89])
 
 
+def test_rollout_readout_rows_equal_full_rollout_rows():
+    tokens = tiny_tokens()
+    full = np.random.default_rng(5).dirichlet(np.ones(90), size=(3, 4, 90))  # (layers, heads, q, k)
+    for residual in (True, False):
+        expected = A.attention_rollout(full, residual=residual)[tokens.readout_index]
+        np.testing.assert_allclose(A.rollout_readout_rows(full, tokens, residual=residual), expected, atol=1e-12)
+
+
 def test_modality_and_timestep_shares():
     tokens = tiny_tokens()
     row = np.zeros(90)
@@ -110,6 +118,12 @@ def test_modality_and_timestep_shares():
     np.testing.assert_allclose([shares[k] for k in ("primary", "wrist", "language", "readout")], [0.5, 0.2, 0.2, 0.1])
     steps = A.timestep_shares(row, tokens)
     np.testing.assert_allclose([steps["prefix"], steps["earlier"], steps["current"]], [0.15, 0.6, 0.25])
+    split = A.modality_shares(row, tokens, per_timestep=True)
+    assert set(split) == {"primary/earlier", "primary/current", "wrist/earlier", "wrist/current", "language/prefix",
+                          "language/earlier", "language/current", "readout/earlier", "readout/current"}
+    np.testing.assert_allclose([split["primary/earlier"], split["wrist/current"], split["language/prefix"],
+                                split["language/current"], split["readout/earlier"]], [0.5, 0.2, 0.15, 0.05, 0.1])
+    np.testing.assert_allclose(sum(split.values()), 1.0)
     # unnormalised rows give the same fractions; batches keep their shape
     np.testing.assert_allclose(A.modality_shares(row * 3, tokens)["primary"], 0.5)
     rows = np.random.default_rng(1).dirichlet(np.ones(90), size=(2, 3))
