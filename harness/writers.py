@@ -84,6 +84,8 @@ class OutputOptions:
             raise ValueError(f"png_every must be >= 0 (0 = no PNGs); got {self.png_every}")
         if self.layers is not None:
             object.__setattr__(self, "layers", tuple(int(layer) for layer in self.layers))
+        if isinstance(self.video_attention, str) and self.video_attention.lstrip("-").isdigit():
+            object.__setattr__(self, "video_attention", int(self.video_attention))  # "11" from a command line
         if not (self.video_attention == "rollout" or isinstance(self.video_attention, int)):
             raise ValueError(f"video_attention must be 'rollout' or a layer index; got {self.video_attention!r}")
         if self.normalisation not in ("frame", "episode"):
