@@ -15,6 +15,12 @@ from harness.writers import EpisodeWriter, OutputOptions, WriterError
 
 LAYERS, HEADS, KEYS = 2, 4, 90
 
+# imageio's ffmpeg *reader* (used here to decode and count frames) leaves its pipes to the garbage collector
+pytestmark = [
+    pytest.mark.filterwarnings("ignore::ResourceWarning"),
+    pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning"),
+]
+
 
 def tiny_tokens():
     return build_token_map(
