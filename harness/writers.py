@@ -255,7 +255,8 @@ class EpisodeWriter:
 
     def finish(self, summary: dict | None = None) -> dict:
         """Wait for the queue, write video, arrays, metrics and finally episode.json. Returns the summary written
-        (with `episode_dir` and absolute `paths` added). `summary` entries override the computed ones."""
+        (with `episode_dir` and absolute `paths` added). `summary` entries override the computed ones
+        (dict entries such as "timings" are merged key by key)."""
         if self._done:
             raise RuntimeError("this episode writer is already finished or aborted")
         start = time.perf_counter()
@@ -576,5 +577,9 @@ class EpisodeWriter:
             "files": files,
             "options": dataclasses.asdict(self.options),
         }
-        result.update(summary)
+        for key, value in summary.items():  # the caller's entries win; dicts (e.g. timings) are merged one level
+            if isinstance(value, dict) and isinstance(result.get(key), dict):
+                result[key] = {**result[key], **value}
+            else:
+                result[key] = value
         return result

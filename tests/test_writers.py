@@ -75,7 +75,7 @@ def test_episode_writer_writes_all_outputs(tmp_path):
     writer = EpisodeWriter(tmp_path / "ep", tokens, meta(), OutputOptions(fps=5))
     for r in recs:
         assert writer.add_step(r) >= 0.0
-    summary = writer.finish({"note": "from the runner"})
+    summary = writer.finish({"note": "from the runner", "timings": {"step": 0.5}})
     ep = tmp_path / "ep"
 
     pngs = sorted(p.name for p in ep.glob("*.png"))
@@ -118,7 +118,7 @@ def test_episode_writer_writes_all_outputs(tmp_path):
                            model_is_random=True, success=True, steps=3, note="from the runner").items():
         assert info[key] == value, key
     assert info["files"]["video"] == "rollout.mp4" and info["files"]["png_count"] == 6
-    assert info["timings"]["total"]["inference"] == pytest.approx(0.06)
+    assert info["timings"]["total"]["inference"] == pytest.approx(0.06) and info["timings"]["step"] == 0.5
     assert summary["paths"]["attention"] == str(ep / "attention.npz")
     assert no_temps(ep)
     assert len(writer.blocked_seconds) == 3
