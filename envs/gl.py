@@ -3,8 +3,8 @@
 MuJoCo and PyOpenGL read `MUJOCO_GL` / `PYOPENGL_PLATFORM` when they are first imported, so the choice
 has to be made before `robosuite` is imported: `configure()` runs when `envs` is imported and only fills
 in variables the user left unset (EGL when an EGL display initialises, else OSMesa when its library is
-present). `ensure_context()` then creates and frees one real GL context the first time an environment
-needs rendering, turning a missing driver into a `HeadlessGLError` that names the apt packages.
+present). `ensure_context()` then imports MuJoCo and creates and frees one real GL context whenever an
+environment is made, turning a missing driver into a `HeadlessGLError` that names the apt packages.
 """
 
 from __future__ import annotations
@@ -100,10 +100,17 @@ def error_message(backend: str, cause: BaseException | str) -> str:
     )
 
 
-def ensure_context(backend: str | None = None) -> None:
-    """Create and free one GL context with the configured backend; raise `HeadlessGLError` when that fails."""
+def ensure_context(backend: str | None = None, create: bool = True) -> None:
+    """Import MuJoCo and (when `create`) create and free one GL context; raise `HeadlessGLError` on failure.
+
+    MuJoCo loads the `MUJOCO_GL` backend at import time, so a missing library already fails there.
+    """
     backend = (backend or os.environ.get("MUJOCO_GL", "egl")).strip().lower()
     try:
+        import mujoco  # noqa: F401
+
+        if not create:
+            return
         if backend == "egl":
             from robosuite.renderers.context.egl_context import EGLGLContext as GLContext
         elif backend == "osmesa":
@@ -113,7 +120,5 @@ def ensure_context(backend: str | None = None) -> None:
         context = GLContext(max_width=64, max_height=64, device_id=-1)
         context.make_current()
         context.free()
-    except HeadlessGLError:
-        raise
     except Exception as exc:  # any driver/library failure becomes the one actionable line
         raise HeadlessGLError(error_message(backend, exc)) from exc

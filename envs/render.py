@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import mujoco
 import numpy as np
 
 
@@ -43,6 +42,8 @@ class SceneRenderer:
         self._camera_ids = {spec.key: names.index(spec.camera) for spec in cameras}
         self._sizes = {spec.key: spec.size for spec in cameras}
         if fast:
+            import mujoco  # deferred: importing mujoco loads the GL backend (see envs.gl)
+
             flags = self._context.scn.flags
             flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
             flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
@@ -62,6 +63,8 @@ class SceneRenderer:
 
     def _render(self, key: str, segmentation: bool) -> np.ndarray:
         """(size, size, 3) uint8 upright pixels of camera `key`: colours, or id colours when `segmentation`."""
+        import mujoco  # deferred: importing mujoco loads the GL backend (see envs.gl)
+
         size = self._sizes[key]
         context = self._context
         context.gl_ctx.make_current()
