@@ -236,6 +236,16 @@ def test_mp4_writer_frame_count_and_size(tmp_path):
     assert not list(tmp_path.glob("gone*"))
 
 
+def test_mp4_writer_reports_ffmpeg_failure(tmp_path):
+    writer = Mp4Writer(tmp_path / "bad.mp4", preset="no-such-preset")
+    with pytest.raises(RuntimeError, match="ffmpeg"):
+        for _ in range(50):  # ffmpeg exits at start-up; a write or close notices
+            writer.append(np.zeros((64, 64, 3), np.uint8))
+        writer.close()
+    writer.abort()
+    assert not list(tmp_path.iterdir())
+
+
 def test_gif_writer_thins_and_shrinks(tmp_path):
     gif = GifWriter(tmp_path / "a.gif", fps=10, every=2, shrink=2)
     for i in range(5):
