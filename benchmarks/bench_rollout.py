@@ -1,0 +1,63 @@
+"""Per-control-step time split of a closed-loop rollout: simulation, inference, enqueue, and the harness's overhead.
+
+Runs one real episode (robosuite Lift, real JAX model) with writing in the background and prints the mean
+seconds per step of each part and the overhead fraction (total - simulation - inference) / total.
+Target: overhead <= 10% of the step with writing in the background.
+
+    .venv/bin/python benchmarks/bench_rollout.py [--model random:octo-small-1.5] [--steps 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--model", default="random:octo-small-1.5")
+    parser.add_argument("--task", default="Lift")
+    parser.add_argument("--steps", type=int, default=30)
+    parser.add_argument("--png-every", type=int, default=1)
+    args = parser.parse_args()
+
+    from harness.octo import load_pretrained
+    from harness.policy import PolicyConfig
+    from harness.runner import RunConfig, run
+    from harness.writers import OutputOptions
+
+    model = load_pretrained(args.model)
+    rows = []
+    with tempfile.TemporaryDirectory() as out:
+        # warm-up: compiles sample_actions so the measured episodes show steady-state steps
+        run(RunConfig(tasks=(args.task,), model=args.model, max_steps=2, out_dir=Path(out), run_name="warmup"), model=model)
+        for label, outputs in [
+            ("png every step + mp4", OutputOptions(png_every=args.png_every)),
+            ("mp4 only", OutputOptions(png_every=0)),
+        ]:
+            config = RunConfig(tasks=(args.task,), model=args.model, episodes=1, max_steps=args.steps,
+                               out_dir=Path(out), run_name=label.replace(" ", "_").replace("+", ""),
+                               policy=PolicyConfig(), outputs=outputs)
+            start = time.perf_counter()
+            summary = run(config, model=model)
+            wall = time.perf_counter() - start
+            r = summary.rows[0]
+            rows.append((label, r, wall))
+
+    print(f"\nmodel {args.model}, task {args.task}, {args.steps} steps, after a warm-up episode (compiled)")
+    print(f"{'outputs':<24} {'s/step':>7} {'sim':>7} {'infer':>7} {'overhead':>9} {'episode wall s':>15}")
+    for label, r, wall in rows:
+        print(f"{label:<24} {r.seconds_per_step:>7.3f} {r.simulation_per_step:>7.3f} {r.inference_per_step:>7.3f} "
+              f"{r.overhead_fraction:>9.1%} {wall:>15.1f}")
+    print("target: overhead <= 10% of the step (writing in the background)")
+
+
+if __name__ == "__main__":
+    main()
