@@ -3,8 +3,9 @@
 Renders through the simulation's own offscreen context (one GL context per environment), making that
 context current before every render so that several environments in one process never draw each
 other's scene. MuJoCo reads pixels bottom-up; every image returned here is flipped to upright
-(row 0 = top), the orientation Octo was trained on. `fast` turns off shadows, reflections and the
-skybox, which roughly halves render time on CPU (software) rasterisers.
+(row 0 = top), the orientation Octo was trained on. `fast` turns off reflections, shadows, the skybox
+and 4x multisample anti-aliasing (robosuite's defaults), the expensive parts on a CPU (software)
+rasteriser: about 4x faster frames, with no table reflections and harder edges.
 """
 
 from __future__ import annotations
@@ -48,6 +49,11 @@ class SceneRenderer:
             flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
             flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
             flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = 0
+            # no multisample anti-aliasing: the offscreen buffer is made at context creation, so remake it
+            self._context.gl_ctx.make_current()
+            self._context.con.free()
+            sim.model.vis.quality.offsamples = 0
+            self._context._set_mujoco_context_and_buffers()
 
     def free(self) -> None:
         """Release this simulation's GL resources with its own context current (never another environment's)."""

@@ -324,3 +324,17 @@ def test_osmesa_fallback_renders_or_names_the_apt_fix():
     else:
         assert not report["ok"] and "\n" not in report["error"]
         assert envs.gl.APT_OSMESA in report["error"] and envs.gl.APT_EGL in report["error"]
+
+
+def test_fast_render_looks_like_default_render(lift):
+    """fast_render drops reflections and anti-aliasing only: the same scene, nearly the same pixels, same masks."""
+    fast = envs.make("Lift", masks=True, fast_render=True)
+    try:
+        fast_obs, fast_info = fast.reset(seed=0)
+        obs, info = lift.reset(seed=0)
+        for key in ("image_primary", "image_wrist"):
+            difference = np.abs(fast_obs[key].astype(int) - obs[key].astype(int)).mean()
+            assert 0.0 < difference < 4.0, (key, difference)
+            np.testing.assert_array_equal(fast_info["masks"][key]["target"], info["masks"][key]["target"])
+    finally:
+        fast.close()
