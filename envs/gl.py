@@ -2,8 +2,8 @@
 
 MuJoCo and PyOpenGL read `MUJOCO_GL` / `PYOPENGL_PLATFORM` when they are first imported, so the choice
 has to be made before `robosuite` is imported: `configure()` runs when `envs` is imported and only fills
-in variables the user left unset (EGL when an EGL display initialises, else OSMesa when its library is
-present). `ensure_context()` then imports MuJoCo and creates and frees one real GL context whenever an
+in variables the user left unset (EGL when an EGL display initialises in a short-lived child process,
+else OSMesa when its library is present). `ensure_context()` then imports MuJoCo and creates and frees one real GL context whenever an
 environment is made, turning a missing driver into a `HeadlessGLError` that names the apt packages.
 """
 
@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import inspect
 import os
+import subprocess
+import sys
 from collections.abc import Callable, MutableMapping
 
 APT_EGL = "apt-get install -y libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libgl1 libglib2.0-0"
@@ -54,6 +57,20 @@ def egl_display_works() -> bool:
     return False
 
 
+def egl_display_works_isolated(timeout_s: float = 20.0) -> bool:
+    """`egl_display_works` run in a child interpreter, so this process never initialises EGL before a fork."""
+    code = (
+        "import ctypes, ctypes.util\n"
+        f"_EGL_PLATFORM_DEVICE_EXT = {_EGL_PLATFORM_DEVICE_EXT}\n"
+        + inspect.getsource(egl_display_works)
+        + "\nraise SystemExit(0 if egl_display_works() else 1)\n"
+    )
+    try:
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=timeout_s).returncode == 0
+    except (OSError, subprocess.SubprocessError):
+        return False
+
+
 def osmesa_library_found() -> bool:
     """True when libOSMesa can be loaded."""
     name = ctypes.util.find_library("OSMesa")
@@ -68,7 +85,7 @@ def osmesa_library_found() -> bool:
 
 def choose_backend(
     environ: MutableMapping[str, str],
-    egl_works: Callable[[], bool] = egl_display_works,
+    egl_works: Callable[[], bool] = egl_display_works_isolated,
     osmesa_found: Callable[[], bool] = osmesa_library_found,
 ) -> str:
     """The backend to use: the user's `MUJOCO_GL` if set, else "egl" if it works, else "osmesa" if present, else "egl"."""
