@@ -1,0 +1,487 @@
+"""The public Octo model: load a checkpoint (or a random architecture), build tasks, sample actions
+and return the transformer's attention from the same jitted call.
+
+    model = load_pretrained("hf://rail-berkeley/octo-small-1.5")       # or a local folder, or random:<preset>
+    task = model.create_task(texts=["pick up the cube"])                # T5 runs here, once per task
+    actions, attention = model.sample_actions(observations, task, jax.random.PRNGKey(0),
+                                              model.unnormalization_statistics("bridge_dataset"))
+
+`observations` follow Octo: `image_<cam>` (batch, window, H, W, 3) uint8 at `model.image_sizes`,
+`timestep_pad_mask` (batch, window) bool, optional `pad_mask_dict` {image_<cam>: (batch, window)} and
+low-dim keys (e.g. `proprio`) if the model tokenizes them.
+`attention.readout` (batch, layers, heads, readouts, keys) holds the post-softmax attention rows of the
+last timestep's readout tokens over every key; `attention.tokens` says what each key is.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from harness.octo import checkpoint, presets
+from harness.octo.config import DiffusionHeadConfig, ImageTokenizerConfig, LowdimTokenizerConfig, OctoConfig
+from harness.octo.diffusion import make_schedule, sample
+from harness.octo.errors import ConfigError, HubUnavailableError, InputError, OctoError, UnknownDatasetKeyError
+from harness.octo.heads import ContinuousHead, ScoreNetwork, pool_readouts
+from harness.octo.network import LanguageTokenizer, OctoTransformer, init_params, sequence_layout
+from harness.octo.stem import image_stack_keys, lowdim_stack_keys
+from harness.octo.tokens import TokenMap
+
+log = logging.getLogger(__name__)
+
+RANDOM_PREFIX = "random:"
+RANDOM_SEED = 0  # random models are initialised from PRNGKey(RANDOM_SEED)
+_NON_DATA_KEYS = ("pad_mask_dict", "timestep_pad_mask", "pad_mask")
+
+
+@dataclass(frozen=True, eq=False)
+class Attention:
+    """Attention captured during one `sample_actions` call."""
+
+    readout: jax.Array  # (batch, layers, heads, readouts, keys) float32, last timestep's readout rows
+    full: jax.Array | None  # (batch, layers, heads, queries, keys) float32 when full_attention=True
+    tokens: TokenMap  # what each key is (group, timestep, patch row/col)
+
+
+class OctoModel:
+    """A loaded Octo policy. Build with `load_pretrained`; read-only after construction."""
+
+    def __init__(self, *, config: OctoConfig, params: dict, example_batch: dict, dataset_statistics: dict,
+                 text_tokenizer, t5_config, source: str, is_random: bool):
+        self.config = config
+        self.params = params
+        self.example_batch = example_batch
+        self.dataset_statistics = dataset_statistics
+        self.text_tokenizer = text_tokenizer
+        self.t5_config = t5_config
+        self.source = source
+        self.is_random = is_random
+        obs = example_batch["observation"]
+        self.window_size = int(np.shape(obs["timestep_pad_mask"])[1]) if "timestep_pad_mask" in obs else config.window_size
+        self.image_sizes = {k: tuple(int(s) for s in np.shape(v)[2:4]) for k, v in obs.items()
+                            if k.startswith("image_") and np.ndim(v) == 5}
+        self.goal_image_sizes = {k: tuple(int(s) for s in np.shape(v)[1:3]) for k, v in example_batch.get("task", {}).items()
+                                 if k.startswith("image_") and np.ndim(v) == 4}
+        head = config.action_head
+        self.action_horizon = head.action_horizon
+        self.action_dim = head.action_dim
+        self._schedule = make_schedule(head.diffusion_steps) if isinstance(head, DiffusionHeadConfig) else None
+        self._sample_jit = jax.jit(self._sample, static_argnames=("full_attention", "normalization_type"))
+        self._encode_jit = jax.jit(self._encode)
+        self._seen_signatures: set = set()
+
+    # ------------------------------------------------------------------ statistics
+
+    def unnormalization_statistics(self, dataset_key: str | None) -> dict | None:
+        """Action statistics {mean, std, p01, p99, mask, ...} of a dataset; None -> None (normalised actions)."""
+        if dataset_key is None:
+            return None
+        if dataset_key not in self.dataset_statistics:
+            available = sorted(self.dataset_statistics) or "none (this model has no dataset statistics)"
+            raise UnknownDatasetKeyError(f"unknown dataset key {dataset_key!r}; available: {available}")
+        stats = self.dataset_statistics[dataset_key]
+        return dict(stats["action"]) if "action" in stats else dict(stats)
+
+    # ------------------------------------------------------------------ tasks
+
+    def create_task(self, texts: Sequence[str] | None = None, goals: Mapping[str, np.ndarray] | None = None) -> dict:
+        """Octo task dict for a batch of instructions and/or goal images, with the language encoded once.
+
+        Missing goal images are zeros with pad_mask False (as Octo's create_tasks). The T5 encoding is
+        stored under "language_encoding" (batch, tokens, d_model) and reused by `sample_actions`.
+        """
+        if texts is None and goals is None:
+            raise InputError("create_task needs texts=[...] or goals={'image_primary': ...}")
+        if texts is not None and isinstance(texts, str):
+            texts = [texts]
+        goals = dict(goals or {})
+        unknown = sorted(set(goals) - set(self.goal_image_sizes))
+        if unknown:
+            raise InputError(f"unknown goal key(s) {unknown}; this model takes goals {sorted(self.goal_image_sizes)}")
+        batch = len(texts) if texts is not None else int(np.shape(next(iter(goals.values())))[0])
+        task: dict[str, Any] = {"pad_mask_dict": {}}
+        for key, (h, w) in self.goal_image_sizes.items():
+            if key in goals:
+                img = np.asarray(goals[key])
+                if img.shape != (batch, h, w, 3) or img.dtype != np.uint8:
+                    raise InputError(f"goals[{key!r}] is {img.shape} {img.dtype}; expected ({batch}, {h}, {w}, 3) uint8")
+                task[key] = img
+            else:
+                task[key] = np.zeros((batch, h, w, 3), np.uint8)
+            task["pad_mask_dict"][key] = np.full((batch,), key in goals)
+        if self.config.language is not None:
+            words = list(texts) if texts is not None else [""] * batch
+            encoded = self.text_tokenizer.encode(words)
+            task["language_instruction"] = {k: np.asarray(v, np.int32) for k, v in encoded.items()}
+            task["pad_mask_dict"]["language_instruction"] = np.full((batch,), texts is not None)
+            task["language_encoding"] = self.encode_language(task["language_instruction"])
+        elif texts is not None:
+            raise InputError("this model is goal-conditioned (no language tokenizer); pass goals= instead of texts=")
+        return task
+
+    def encode_language(self, language_instruction: Mapping[str, np.ndarray]) -> jax.Array:
+        """T5 encoding (batch, tokens, d_model) of {input_ids, attention_mask} (batch, tokens) int32."""
+        ids = jnp.asarray(language_instruction["input_ids"], jnp.int32)
+        mask = jnp.asarray(language_instruction["attention_mask"], jnp.int32)
+        return self._encode_jit(self.params["octo_transformer"][f"task_tokenizers_{self.config.language.name}"], ids, mask)
+
+    def _encode(self, params, ids, mask):
+        return LanguageTokenizer(self.t5_config).apply({"params": params}, ids, mask)
+
+    # ------------------------------------------------------------------ inference
+
+    def sample_actions(self, observations: Mapping, task: Mapping, rng: jax.Array,
+                       unnormalization_statistics: Mapping | None = None, *, full_attention: bool = False,
+                       normalization_type: str = "normal") -> tuple[jax.Array, Attention]:
+        """Sample an action chunk (batch, action_horizon, action_dim) and capture attention.
+
+        Actions are normalised when `unnormalization_statistics` is None, else unnormalised with
+        normalization_type "normal" (a*std+mean) or "bounds" (from p01/p99), honouring the statistics'
+        mask. One jitted function; it compiles once per input structure and shape.
+        """
+        if normalization_type not in ("normal", "bounds"):
+            raise InputError(f"normalization_type must be 'normal' or 'bounds', got {normalization_type!r}")
+        obs, pad = self._prepare_observations(observations)
+        task_in, encoding = self._prepare_task(task, pad.shape[0])
+        stats = _prepare_statistics(unnormalization_statistics, normalization_type, self.action_dim)
+        layout = self._layout(obs, encoding)
+        leaves, treedef = jax.tree.flatten((obs, task_in, encoding, pad, stats))
+        signature = (str(treedef), tuple((np.shape(x), str(x.dtype)) for x in leaves), full_attention, normalization_type)
+        first = signature not in self._seen_signatures
+        start = time.perf_counter()
+        actions, captured = self._sample_jit(self._inference_params, obs, task_in, encoding, pad, rng, stats,
+                                             full_attention=full_attention, normalization_type=normalization_type)
+        if first:
+            jax.block_until_ready(actions)
+            self._seen_signatures.add(signature)
+            log.info("sample_actions compiled and ran in %.2f s (batch %d, window %d, %d keys, full_attention=%s)",
+                     time.perf_counter() - start, pad.shape[0], pad.shape[1], layout.num_tokens, full_attention)
+        tokens = layout.token_map()
+        if full_attention:
+            readout = captured[:, :, :, tokens.readout_index, :]
+            return actions, Attention(readout=readout, full=captured, tokens=tokens)
+        return actions, Attention(readout=captured, full=None, tokens=tokens)
+
+    @property
+    def sample_cache_size(self) -> int:
+        """Number of compiled variants of the jitted sampler (1 after any number of same-shape calls)."""
+        return self._sample_jit._cache_size()
+
+    @property
+    def _inference_params(self) -> dict:
+        backbone = {k: v for k, v in self.params["octo_transformer"].items() if not k.startswith("task_tokenizers_")}
+        return {**self.params, "octo_transformer": backbone}
+
+    def _sample(self, params, obs, task, encoding, pad, rng, stats, *, full_attention, normalization_type):
+        cfg = self.config
+        head = cfg.action_head
+        layout = self._layout(obs, encoding)
+        rows = None if full_attention else tuple(int(i) for i in layout.token_map().readout_index)
+        out = OctoTransformer(cfg, capture_rows=rows).apply({"params": params["octo_transformer"]}, obs, task, encoding, pad)
+        tokens, mask = out["groups"][head.readout_key]
+        head_params = params["heads_action"]
+        embedding = pool_readouts(head_params, head, tokens, mask)  # (batch, window, D)
+        batch, window = embedding.shape[:2]
+        if isinstance(head, DiffusionHeadConfig):
+            flat = head.action_horizon * head.action_dim
+            action_mask = None
+            if not head.legacy_sampler:
+                dims = head.action_dim if stats is None else stats["mask"].shape[0]
+                action_mask = jnp.broadcast_to(
+                    jnp.tile(jnp.arange(head.action_dim) < dims, head.action_horizon), (batch, window, flat)
+                )
+            net = ScoreNetwork(head)
+
+            def score(x, t):
+                time_in = jnp.broadcast_to(t, (*x.shape[:-1], 1))
+                return net.apply({"params": head_params["diffusion_model"]}, embedding, x, time_in)
+
+            x = sample(score, rng, (batch, window, flat), self._schedule, head.max_action, action_mask, head.legacy_sampler)
+            actions = x.reshape(batch, window, head.action_horizon, head.action_dim)[:, -1]
+        else:
+            actions = ContinuousHead(head).apply({"params": {"mean_proj": head_params["mean_proj"]}}, embedding)[:, -1]
+        if stats is not None:
+            actions = _unnormalize(actions, stats, normalization_type)
+        return actions, out["attention"]
+
+    # ------------------------------------------------------------------ inspection (tests, analysis)
+
+    def token_map(self, observations: Mapping | None = None, task: Mapping | None = None) -> TokenMap:
+        """Token map of the sequence for these inputs (default: the example batch's full inputs)."""
+        if observations is None:
+            obs = {k: v for k, v in self.example_batch["observation"].items() if k in self._used_observation_keys(self.example_batch["observation"])}
+        else:
+            obs, _ = self._prepare_observations(observations)
+        n_lang = None
+        if self.config.language is not None and (task is None or "language_instruction" in task or "language_encoding" in task):
+            n_lang = self.text_tokenizer.max_length if self.text_tokenizer is not None else presets.LANGUAGE_TOKENS
+            if task is not None and "language_encoding" in task:
+                n_lang = int(np.shape(task["language_encoding"])[1])
+        shapes = {k: np.shape(v) for k, v in obs.items() if k != "pad_mask_dict"}
+        return sequence_layout(self.config, shapes, n_lang).token_map()
+
+    def run_transformer(self, observations: Mapping, task: Mapping, *, intermediates: bool = False) -> dict:
+        """Un-jitted forward of the backbone with full attention: {"groups", "attention", ...intermediates}."""
+        obs, pad = self._prepare_observations(observations)
+        task_in, encoding = self._prepare_task(task, pad.shape[0])
+        module = OctoTransformer(self.config, capture_rows=None, keep_intermediates=intermediates)
+        return module.apply({"params": self._inference_params["octo_transformer"]}, obs, task_in, encoding, pad)
+
+    def predict_eps(self, readout_embedding: jax.Array, noisy_actions: jax.Array, time: jax.Array) -> jax.Array:
+        """Diffusion score network: (batch, window, D), (batch, window, horizon*dim), (batch, window, 1) -> eps."""
+        head = self.config.action_head
+        if not isinstance(head, DiffusionHeadConfig):
+            raise OctoError("predict_eps needs a diffusion action head")
+        return ScoreNetwork(head).apply({"params": self.params["heads_action"]["diffusion_model"]},
+                                        readout_embedding, noisy_actions, time)
+
+    # ------------------------------------------------------------------ input preparation
+
+    def _used_observation_keys(self, observations: Mapping) -> list[str]:
+        keys = [k for k in observations if k not in _NON_DATA_KEYS]
+        used = set()
+        for tok in self.config.observation_tokenizers:
+            if isinstance(tok, ImageTokenizerConfig):
+                used.update(image_stack_keys(tok, keys))
+            else:
+                used.update(lowdim_stack_keys(tok, keys))
+        return [k for k in keys if k in used]
+
+    def _prepare_observations(self, observations: Mapping) -> tuple[dict, jax.Array]:
+        if not isinstance(observations, Mapping):
+            raise InputError("observations must be a dict of arrays (image_*, timestep_pad_mask, ...)")
+        keys = self._used_observation_keys(observations)
+        if not keys:
+            raise InputError(f"observations {sorted(observations)} contain none of the model's inputs {sorted(self.image_sizes)}")
+        obs: dict[str, Any] = {}
+        batch_window = None
+        for k in keys:
+            value = observations[k]
+            if k in self.image_sizes or k.startswith("image_"):
+                h, w = self.image_sizes.get(k, (None, None))
+                shape, dtype = np.shape(value), np.asarray(value).dtype if not isinstance(value, jax.Array) else value.dtype
+                if len(shape) != 5 or shape[-1] != 3 or dtype != np.uint8 or (h is not None and shape[2:4] != (h, w)):
+                    raise InputError(f"observations[{k!r}] is {shape} {dtype}; expected (batch, window, {h}, {w}, 3) uint8 "
+                                     "(resize frames to model.image_sizes)")
+                obs[k] = value
+            else:
+                if np.ndim(value) != 3:
+                    raise InputError(f"observations[{k!r}] is {np.shape(value)}; expected (batch, window, dims)")
+                obs[k] = jnp.asarray(value, jnp.float32)
+            if batch_window is None:
+                batch_window = tuple(np.shape(value)[:2])
+            elif tuple(np.shape(value)[:2]) != batch_window:
+                raise InputError(f"observations[{k!r}] has (batch, window) {np.shape(value)[:2]}, others {batch_window}")
+        if batch_window[1] > self.config.max_horizon:
+            raise InputError(f"window {batch_window[1]} exceeds the model's max_horizon {self.config.max_horizon}")
+        pad = observations.get("timestep_pad_mask", observations.get("pad_mask"))
+        pad = jnp.ones(batch_window, bool) if pad is None else jnp.asarray(pad, bool)
+        if pad.shape != batch_window:
+            raise InputError(f"timestep_pad_mask is {pad.shape}; expected (batch, window) = {batch_window}")
+        if "pad_mask_dict" in observations:
+            masks = {k: jnp.asarray(v, bool) for k, v in observations["pad_mask_dict"].items() if k in keys}
+            if masks:
+                obs["pad_mask_dict"] = masks
+        return obs, pad
+
+    def _prepare_task(self, task: Mapping, batch: int) -> tuple[dict, jax.Array | None]:
+        if not isinstance(task, Mapping):
+            raise InputError("task must be a dict from model.create_task(...)")
+        task_in: dict[str, Any] = {}
+        for k, (h, w) in self.goal_image_sizes.items():
+            if k in task:
+                value = task[k]
+                if np.shape(value) != (batch, h, w, 3):
+                    raise InputError(f"task[{k!r}] is {np.shape(value)}; expected ({batch}, {h}, {w}, 3) uint8")
+                task_in[k] = jnp.asarray(value, jnp.uint8)
+        encoding = None
+        lang = self.config.language
+        if lang is not None and ("language_encoding" in task or "language_instruction" in task):
+            encoding = task.get("language_encoding")
+            if encoding is None:
+                encoding = self.encode_language(task["language_instruction"])
+            encoding = jnp.asarray(encoding, jnp.float32)
+            pad = task.get("pad_mask_dict", {}).get("language_instruction")
+            if pad is not None:
+                task_in["pad_mask_dict"] = {"language_instruction": jnp.asarray(pad, bool)}
+        return task_in, encoding
+
+    def _layout(self, obs: Mapping, encoding):
+        shapes = {k: np.shape(v) for k, v in obs.items() if k != "pad_mask_dict"}
+        return sequence_layout(self.config, shapes, None if encoding is None else int(encoding.shape[1]))
+
+
+def _prepare_statistics(stats: Mapping | None, normalization_type: str, action_dim: int) -> dict | None:
+    """Action statistics as float32/bool arrays in a fixed structure, or None."""
+    if stats is None:
+        return None
+    if "action" in stats and isinstance(stats["action"], Mapping):
+        stats = stats["action"]
+    needed = ("mean", "std") if normalization_type == "normal" else ("p01", "p99")
+    missing = [k for k in needed if k not in stats]
+    if missing:
+        raise InputError(f"unnormalization statistics lack {missing} needed for normalization_type={normalization_type!r}")
+    a, b = (np.asarray(stats[k], np.float32) for k in needed)
+    mask = np.asarray(stats.get("mask", np.ones(a.shape, bool)), bool)
+    if a.shape != b.shape or mask.shape != a.shape or a.ndim != 1 or a.shape[0] > action_dim:
+        raise InputError(f"unnormalization statistics have shapes {a.shape}/{b.shape}/mask {mask.shape}; expected ({action_dim},)")
+    return {"a": jnp.asarray(a), "b": jnp.asarray(b), "mask": jnp.asarray(mask)}
+
+
+def _unnormalize(actions: jax.Array, stats: dict, normalization_type: str) -> jax.Array:
+    """As Octo: keep the statistics' dims, then mean/std or p01/p99 scaling where mask is True."""
+    actions = actions[..., : stats["mask"].shape[0]]
+    if normalization_type == "normal":  # a = mean, b = std
+        scaled = actions * stats["b"] + stats["a"]
+    else:  # a = p01, b = p99
+        scaled = (actions + 1) * (stats["b"] - stats["a"]) / 2 + stats["a"]
+    return jnp.where(stats["mask"], scaled, actions)
+
+
+# ---------------------------------------------------------------------------------------------- loading
+
+
+def load_pretrained(uri: str, step: int | None = None, *, text_tokenizer: str | None = None,
+                    cache_dir: str | Path | None = None) -> OctoModel:
+    """Load an Octo model.
+
+    uri: a local checkpoint folder, "hf://owner/name" (Hugging Face cache; honours HF_HUB_OFFLINE),
+    "random:octo-small-1.5" / "random:octo-base-1.5", or "random:<config.json or checkpoint folder>"
+    (that architecture, randomly initialised from PRNGKey(0)).
+    step: parameter step to load (default: the latest). text_tokenizer: override the tokenizer named by
+    the config (a hub name, a tokenizer.json path, or "fallback"). cache_dir: Hugging Face cache folder.
+    """
+    if uri.startswith(RANDOM_PREFIX):
+        return _random_model(uri, text_tokenizer, cache_dir)
+    ckpt = checkpoint.resolve_checkpoint_dir(uri, cache_dir)
+    config = OctoConfig.from_json(checkpoint.require_file(ckpt, "config.json"))
+    example = checkpoint.read_example_batch(ckpt)
+    statistics = checkpoint.read_dataset_statistics(ckpt)
+    step = checkpoint.select_step(ckpt, step)
+    t5 = _t5_config(config, ckpt)
+    shapes = _input_shapes(config, example)
+    start = time.perf_counter()
+    expected = jax.eval_shape(lambda key: init_params(key, config, t5_config=t5, **shapes), jax.random.PRNGKey(0))
+    raw = checkpoint.read_params(ckpt, step)
+    checkpoint.check_param_tree(expected, raw)
+    params = jax.tree.map(lambda e, r: jnp.asarray(r, dtype=e.dtype), expected, raw)
+    del raw
+    log.info("loaded %s step %d (%d parameters) in %.1f s", uri, step,
+             sum(int(np.prod(x.shape)) for x in jax.tree.leaves(params)), time.perf_counter() - start)
+    return OctoModel(config=config, params=params, example_batch=example, dataset_statistics=statistics,
+                     text_tokenizer=_text_tokenizer(config, text_tokenizer, t5, False, cache_dir), t5_config=t5,
+                     source=uri, is_random=False)
+
+
+def _random_model(uri: str, text_tokenizer: str | None, cache_dir) -> OctoModel:
+    spec = uri[len(RANDOM_PREFIX):]
+    ckpt: Path | None = None
+    statistics: dict = {}
+    if spec in presets.preset_names():
+        config = OctoConfig.from_dict(presets.preset_config(spec))
+        example = _synthetic_example_batch(config, presets.IMAGE_SIZES, presets.WINDOW_SIZE)
+    else:
+        path = Path(spec).expanduser()
+        if path.is_dir():
+            ckpt = path
+            config = OctoConfig.from_json(checkpoint.require_file(path, "config.json"))
+        elif path.is_file():
+            ckpt = path.parent
+            config = OctoConfig.from_json(path)
+        else:
+            raise checkpoint.CheckpointNotFoundError(
+                f"{uri}: no such preset or path; use random:{' | random:'.join(presets.preset_names())} "
+                "or random:<config.json or checkpoint folder>"
+            )
+        if (ckpt / "example_batch.msgpack").is_file():
+            example = checkpoint.read_example_batch(ckpt)
+        else:
+            example = _synthetic_example_batch(config, _default_image_sizes(config), config.window_size)
+        if (ckpt / "dataset_statistics.json").is_file():
+            statistics = checkpoint.read_dataset_statistics(ckpt)
+    t5 = _t5_config(config, ckpt)
+    shapes = _input_shapes(config, example)
+    params = jax.jit(lambda key: init_params(key, config, t5_config=t5, **shapes))(jax.random.PRNGKey(RANDOM_SEED))
+    log.warning("RANDOM MODEL %s: weights are randomly initialised (PRNGKey(%d)); its actions and attention are meaningless",
+                uri, RANDOM_SEED)
+    return OctoModel(config=config, params=params, example_batch=example, dataset_statistics=statistics,
+                     text_tokenizer=_text_tokenizer(config, text_tokenizer, t5, True, cache_dir), t5_config=t5,
+                     source=uri, is_random=True)
+
+
+def _t5_config(config: OctoConfig, ckpt: Path | None):
+    if config.language is None:
+        return None
+    from harness.octo.t5 import t5_config_for
+
+    try:
+        return t5_config_for(config.language.encoder, ckpt)
+    except (ValueError, FileNotFoundError) as e:
+        raise ConfigError(f"language encoder {config.language.encoder!r}: {e}") from None
+
+
+def _text_tokenizer(config: OctoConfig, override: str | None, t5, allow_fallback: bool, cache_dir):
+    if config.language is None:
+        return None
+    from harness.octo.text import fallback_tokenizer, load_text_tokenizer
+
+    max_length = config.text_processor.max_length if config.text_processor else presets.LANGUAGE_TOKENS
+    name = override or (config.text_processor.tokenizer_name if config.text_processor else None)
+    if name is None or name == "fallback":
+        log.warning("using the deterministic fallback text tokenizer (NOT T5) over %d ids%s", t5.vocab_size,
+                    "" if name else " because config.json has no text_processor")
+        return fallback_tokenizer(t5.vocab_size, max_length)
+    try:
+        return load_text_tokenizer(name, max_length, allow_fallback=allow_fallback, vocab_size=t5.vocab_size,
+                                   cache_dir=cache_dir)
+    except FileNotFoundError as e:
+        raise HubUnavailableError(f"{e} (or pass text_tokenizer='fallback' to run without it)") from None
+
+
+def _input_shapes(config: OctoConfig, example: dict) -> dict:
+    """Image sizes, low-dim sizes, window and language length that fix the parameter shapes."""
+    obs = example["observation"]
+    images = {k: tuple(int(s) for s in np.shape(v)[2:4]) for k, v in obs.items() if k.startswith("image_") and np.ndim(v) == 5}
+    lowdim = {}
+    for tok in config.observation_tokenizers:
+        if isinstance(tok, LowdimTokenizerConfig):
+            for k in lowdim_stack_keys(tok, [k for k in obs if k not in _NON_DATA_KEYS]):
+                lowdim[k] = int(np.shape(obs[k])[-1])
+    window = int(np.shape(obs["timestep_pad_mask"])[1]) if "timestep_pad_mask" in obs else config.window_size
+    language = example.get("task", {}).get("language_instruction")
+    n_lang = int(np.shape(language["input_ids"])[1]) if isinstance(language, Mapping) else (
+        config.text_processor.max_length if config.text_processor else presets.LANGUAGE_TOKENS)
+    return {"image_sizes": images, "window": window, "lowdim_sizes": lowdim, "language_tokens": n_lang}
+
+
+def _default_image_sizes(config: OctoConfig) -> dict[str, tuple[int, int]]:
+    sizes = {}
+    for tok in config.observation_tokenizers:
+        if isinstance(tok, LowdimTokenizerConfig):
+            raise ConfigError("random init of a config with a LowdimObsTokenizer needs example_batch.msgpack next to config.json")
+        for key in tok.obs_stack_keys:
+            if not key.isidentifier():
+                raise ConfigError(f"cannot infer an image key from pattern {key!r}; put example_batch.msgpack next to config.json")
+            side = presets.IMAGE_SIZES.get(key, (256, 256))
+            sizes[key] = side
+    log.info("no example_batch.msgpack: assuming image sizes %s", sizes)
+    return sizes
+
+
+def _synthetic_example_batch(config: OctoConfig, image_sizes: Mapping[str, tuple[int, int]], window: int) -> dict:
+    obs = {k: np.zeros((1, window, h, w, 3), np.uint8) for k, (h, w) in image_sizes.items()}
+    obs["timestep_pad_mask"] = np.ones((1, window), bool)
+    task: dict[str, Any] = {k: np.zeros((1, h, w, 3), np.uint8) for k, (h, w) in image_sizes.items()}
+    task["pad_mask_dict"] = {k: np.zeros((1,), bool) for k in image_sizes}
+    if config.language is not None:
+        n = config.text_processor.max_length if config.text_processor else presets.LANGUAGE_TOKENS
+        task["language_instruction"] = {"input_ids": np.zeros((1, n), np.int32), "attention_mask": np.zeros((1, n), np.int32)}
+        task["pad_mask_dict"]["language_instruction"] = np.ones((1,), bool)
+    return {"observation": obs, "task": task}
