@@ -4,7 +4,8 @@ Observations (dict):
   image_<key>: (size, size, 3) uint8 upright camera frames (default: image_primary = agentview 256 px
                (sideview for Door), image_wrist = robot0_eye_in_hand 128 px);
   proprio:     (8,) float32 = end-effector site position (3, metres, world frame = robot base frame
-               axes), its orientation as extrinsic "xyz" Euler angles (3, radians: roll, pitch, yaw),
+               axes), its orientation as extrinsic "xyz" Euler angles (3, radians: roll, pitch, yaw;
+               the roll of a downward gripper sits near +-pi and can wrap),
                and the two finger joint positions (2, metres; (+0.04, -0.04) open, ~0 closed; zeros
                for Wipe, whose wiping tool has no fingers).
 Actions: (7,) float32 in Octo's convention (see `envs.actions`), mapped to robosuite OSC_POSE (Wipe
@@ -33,7 +34,7 @@ from envs import gl
 from envs.actions import ActionAdapterConfig, adapt_action
 from envs.camera import project_points
 from envs.render import CameraSpec, SceneRenderer
-from envs.segmentation import geom_categories, masks_from_segmentation, scene_lookup
+from envs.segmentation import TARGET, geom_categories, masks_from_segmentation, scene_lookup
 from envs.tasks import TaskSpec
 
 ROBOT_BODY_PREFIXES = ("robot0_", "gripper0_", "fixed_mount0_", "mount0_")
@@ -134,7 +135,7 @@ class RobosuiteEnv(gym.Env):
         options.update(dict(task.robosuite_options))
         options.update(dict(config.robosuite_options))
         self._env = robosuite.make(task.robosuite_env, **options)
-        arm = controller["body_parts"]["right"]
+        arm = options["controller_configs"]["body_parts"]["right"]  # the user's controller if one was passed
         self.adapter = config.action_adapter or ActionAdapterConfig(
             position_max=float(arm["output_max"][0]), rotation_max=float(arm["output_max"][3])
         )
@@ -148,7 +149,7 @@ class RobosuiteEnv(gym.Env):
         target_geoms = []
         for prefix in task.targets:
             one = geom_categories(model.geom_bodyid, body_names, model.body_parentid, (prefix,), ())
-            ids = np.flatnonzero((one == 1) & (np.asarray(model.geom_group) == 1))
+            ids = np.flatnonzero((one == TARGET) & (np.asarray(model.geom_group) == 1))
             if len(ids) == 0:
                 raise EnvConfigError(f"task {task.name}: no visual geom under target prefix {prefix!r}")
             target_geoms.append(ids)
@@ -158,8 +159,10 @@ class RobosuiteEnv(gym.Env):
 
         images = {spec.key: gym.spaces.Box(0, 255, (spec.size, spec.size, 3), np.uint8) for spec in config.cameras}
         self.observation_space = gym.spaces.Dict({**images, "proprio": PROPRIO_SPACE})
-        low = np.array([-self.adapter.position_max] * 3 + [-self.adapter.rotation_max] * 3 + [0.0], dtype=np.float32)
-        self.action_space = gym.spaces.Box(low, -low + np.array([0] * 6 + [1], dtype=np.float32), dtype=np.float32)
+        # the range the adapter passes unclipped: +-position_max metres, about +-rotation_max radians, gripper [0, 1]
+        high = np.array([self.adapter.position_max] * 3 + [self.adapter.rotation_max] * 3 + [1.0], dtype=np.float32)
+        low = np.concatenate([-high[:6], [0.0]]).astype(np.float32)
+        self.action_space = gym.spaces.Box(low, high, dtype=np.float32)
 
         self._step_index = 0
         self._clipped = 0
