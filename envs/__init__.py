@@ -23,7 +23,7 @@ from envs.actions import ActionAdapterConfig, ActionAdapterError, adapt_action  
 from envs.gl import HeadlessGLError  # noqa: E402
 from envs.render import UnknownCameraError  # noqa: E402
 from envs.robosuite_env import EnvConfig, EnvConfigError, RobosuiteEnv, WrongThreadError, parse_cameras  # noqa: E402
-from envs.tasks import TaskSpec, UnknownTaskError, get_task, list_tasks  # noqa: E402
+from envs.tasks import TaskSpec, UnknownTaskError, get_task, list_tasks, task_table  # noqa: E402
 
 __all__ = [
     "ActionAdapterConfig",
@@ -41,6 +41,7 @@ __all__ = [
     "list_tasks",
     "make",
     "make_vector",
+    "task_table",
 ]
 
 

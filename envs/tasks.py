@@ -158,3 +158,12 @@ def get_task(name: str) -> TaskSpec:
     close = difflib.get_close_matches(name.lower(), list(lowered), n=1, cutoff=0.4)
     hint = f"did you mean {lowered[close[0]]!r}? " if close else ""
     raise UnknownTaskError(f"unknown task {name!r}; {hint}known tasks: {', '.join(_BY_NAME)}")
+
+
+def task_table(tasks: list[TaskSpec] | None = None) -> str:
+    """A plain-text table of tasks (name, max steps, targets, instruction) for `octo-harness tasks`."""
+    tasks = list_tasks() if tasks is None else tasks
+    rows = [("task", "max steps", "targets", "instruction")]
+    rows += [(t.name, str(t.max_episode_steps), ", ".join(t.targets), t.instruction) for t in tasks]
+    widths = [max(len(row[i]) for row in rows) for i in range(3)]
+    return "\n".join(f"{r[0]:{widths[0]}}  {r[1]:>{widths[1]}}  {r[2]:{widths[2]}}  {r[3]}" for r in rows)

@@ -190,3 +190,9 @@ def test_every_task_registered_with_gymnasium():
 
     for task in envs.list_tasks():
         assert task.gym_id in gymnasium.registry
+
+
+def test_task_table_has_a_row_per_task():
+    lines = envs.task_table().splitlines()
+    assert len(lines) == len(envs.list_tasks()) + 1
+    assert lines[1].startswith("Lift") and "pick up the red cube" in lines[1]
