@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 import platform
-import subprocess
 import time
 import traceback
 from dataclasses import asdict, dataclass, field
@@ -53,10 +52,10 @@ class EpisodeRow:
     status: str  # "ok" | "failed"
     success: bool
     steps: int
-    seconds_per_step: float
-    simulation_per_step: float
-    inference_per_step: float
-    overhead_fraction: float  # (step - simulation - inference) / step
+    seconds_per_step: float | None  # None for failed episodes
+    simulation_per_step: float | None
+    inference_per_step: float | None
+    overhead_fraction: float | None  # (step - simulation - inference) / step
     directory: str
     error: str | None = None
 
@@ -85,13 +84,21 @@ class RunSummary:
 
 
 def _git_commit() -> str | None:
+    """Commit of the harness checkout, read from .git without starting a process (no fork next to JAX threads)."""
+    git = Path(__file__).resolve().parents[1] / ".git"
     try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=5
-        )
-        return out.stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        return None
+        head = (git / "HEAD").read_text().strip()
+        if not head.startswith("ref: "):
+            return head
+        ref = head[5:]
+        if (git / ref).exists():
+            return (git / ref).read_text().strip()
+        for line in (git / "packed-refs").read_text().splitlines():
+            if line.endswith(" " + ref):
+                return line.split()[0]
+    except OSError:
+        pass
+    return None
 
 
 def _manifest(config: RunConfig, model, policy: OctoPolicy) -> dict:
@@ -120,7 +127,7 @@ def _tokenizer_label(tokenizer) -> str:
     if tokenizer is None:
         return "none (goal-conditioned model)"
     if getattr(tokenizer, "is_fallback", False):
-        return f"{tokenizer.name} (FALLBACK, not the T5 tokenizer)"
+        return f"{tokenizer.name} [fallback tokenizer]"
     return tokenizer.name
 
 
@@ -174,10 +181,12 @@ def _run_episode(config, env, policy, tokens, task, k, run_dir, manifest, on_ste
         text_tokenizer=manifest["text_tokenizer"],
         execution=manifest["execution"],
     )
-    writer = EpisodeWriter(episode_dir, tokens, meta, config.outputs)
+    writer = None
     step_cb = (lambda t, rec: on_step(task, k, t, rec)) if on_step else None
     try:
-        result = rollout(env, policy, writer.add_step, seed=seed, instruction=instruction, max_steps=config.max_steps, on_step=step_cb)
+        writer = EpisodeWriter(episode_dir, tokens, meta, config.outputs)
+        result = rollout(env, policy, writer.add_step, seed=seed, instruction=instruction, max_steps=config.max_steps,
+                         on_step=step_cb)
         writer.finish(
             {
                 "success": result.success,
@@ -188,18 +197,20 @@ def _run_episode(config, env, policy, tokens, task, k, run_dir, manifest, on_ste
             }
         )
     except KeyboardInterrupt:
-        writer.abort()
+        if writer is not None:
+            writer.abort()
         raise
     except Exception as exc:  # a failing episode is recorded and the run goes on
-        writer.abort()
-        log.error("episode %s/%d failed: %s", task, k, exc)
-        atomic_write_json(
-            episode_dir / "episode.json",
-            {**asdict(meta), "status": "failed", "success": False, "error": f"{type(exc).__name__}: {exc}",
-             "traceback": traceback.format_exc()},
-        )
-        return EpisodeRow(task, k, seed, "failed", False, 0, float("nan"), float("nan"), float("nan"), float("nan"),
-                          str(episode_dir), f"{type(exc).__name__}: {exc}")
+        if writer is not None:
+            writer.abort()
+        error = f"{type(exc).__name__}: {exc}"
+        log.error("episode %s/%d failed: %s", task, k, error)
+        try:
+            atomic_write_json(episode_dir / "episode.json", {**asdict(meta), "status": "failed", "success": False,
+                                                             "error": error, "traceback": traceback.format_exc()})
+        except OSError as write_error:  # the episode folder itself may be what failed; results.json still has it
+            log.error("could not write %s: %s", episode_dir / "episode.json", write_error)
+        return EpisodeRow(task, k, seed, "failed", False, 0, None, None, None, None, str(episode_dir), error)
     n = max(result.steps, 1)
     step = result.timings["step"] / n
     sim = result.timings["simulation"] / n

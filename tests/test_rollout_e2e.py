@@ -1,0 +1,125 @@
+"""End to end with the real simulator and the real JAX model (the reference fixture checkpoint, 64/32 px inputs):
+closed-loop episodes write overlays, MP4, arrays and results; same seed -> same actions, attention and images."""
+
+import json
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+import envs
+from harness import cli
+from harness.octo import load_pretrained
+from harness.policy import OctoPolicy, PolicyConfig
+from harness.runner import RunConfig, run
+from harness.writers import OutputOptions
+
+STEPS = 3
+
+
+@pytest.fixture(scope="module")
+def tiny(fixtures_dir):
+    return load_pretrained(str(fixtures_dir / "tiny"))
+
+
+def _run(model, out: Path, name: str, **kw):
+    config = RunConfig(tasks=("Lift",), model=model.source, max_steps=STEPS, out_dir=out, run_name=name, **kw)
+    return run(config, model=model)
+
+
+@pytest.fixture(scope="module")
+def two_runs(tiny, tmp_path_factory):
+    out = tmp_path_factory.mktemp("runs")
+    return _run(tiny, out, "a", seed=7), _run(tiny, out, "b", seed=7)
+
+
+def test_episode_writes_png_per_step_and_layer_and_mp4_with_one_frame_per_step(two_runs, tiny):
+    summary = two_runs[0]
+    (row,) = summary.rows
+    assert row.status == "ok" and row.steps == STEPS
+    episode = Path(row.directory)
+    layers = tiny.config.transformer.num_layers if hasattr(tiny.config, "transformer") else 2
+    pngs = sorted(p.name for p in episode.glob("step_*_layer_*.png"))
+    assert pngs == [f"step_{t:04d}_layer_{l:02d}.png" for t in range(STEPS) for l in range(layers)]
+    frames = iio.imread(episode / "rollout.mp4", index=None)
+    assert frames.shape[0] == STEPS
+    meta = json.loads((episode / "episode.json").read_text())
+    assert meta["steps"] == STEPS and meta["seed"] == 7 and meta["task"] == "Lift"
+    assert meta["instruction"] == envs.get_task("Lift").instruction
+    results = json.loads((summary.run_dir / "results.json").read_text())
+    assert results["manifest"]["model_is_random"] is False
+    assert [e["status"] for e in results["episodes"]] == ["ok"]
+    assert not list(episode.glob("*.tmp*"))
+
+
+def test_saved_attention_has_every_step_layer_and_head(two_runs, tiny):
+    episode = Path(two_runs[0].rows[0].directory)
+    with np.load(episode / "attention.npz") as z:
+        readout = z["readout_attention"]  # (steps, layers, heads, readouts, keys)
+        keys = z["tokens/group"].shape[0]
+    assert readout.dtype == np.float16
+    assert readout.shape[0] == STEPS and readout.shape[1:3] == (2, 4) and readout.shape[-1] == keys == 90
+    np.testing.assert_allclose(readout.astype(np.float32).sum(-1), 1.0, atol=5e-3)
+
+
+def test_same_seed_gives_identical_actions_attention_and_images(two_runs):
+    a, b = (Path(s.rows[0].directory) for s in two_runs)
+    for name in ("actions.npz", "attention.npz"):
+        with np.load(a / name) as za, np.load(b / name) as zb:
+            assert za.files == zb.files
+            for key in za.files:
+                np.testing.assert_array_equal(za[key], zb[key], err_msg=f"{name}:{key}")
+    for png in sorted(a.glob("step_*.png")):
+        assert png.read_bytes() == (b / png.name).read_bytes(), png.name
+
+
+def test_different_seed_gives_a_different_episode(tiny, two_runs, tmp_path):
+    other = _run(tiny, tmp_path, "c", seed=8, outputs=OutputOptions(png_every=0, video=False))
+    with np.load(Path(two_runs[0].rows[0].directory) / "actions.npz") as za, \
+            np.load(Path(other.rows[0].directory) / "actions.npz") as zc:
+        assert not np.array_equal(za["predicted"], zc["predicted"])
+
+
+def test_readout_rows_sum_to_one_over_unmasked_keys_and_skip_padded_timestep(tiny):
+    env = envs.make("Lift")
+    try:
+        obs, info = env.reset(seed=0)
+        policy = OctoPolicy(tiny, PolicyConfig())
+        policy.reset(info["instruction"], seed=0)
+        step0 = policy.step(obs)  # window [obs0 (padded), obs0]
+        obs, *_ = env.step(step0.action)
+        step1 = policy.step(obs)  # window [obs0, obs1], nothing padded
+    finally:
+        env.close()
+    tokens = tiny.token_map()
+    padded = np.isin(tokens.group, ["obs_primary", "obs_wrist"]) & (tokens.timestep == 0)
+    for step in (step0, step1):
+        assert step.readout_attention.shape == (2, 4, 1, 90)
+        np.testing.assert_allclose(step.readout_attention.sum(-1), 1.0, atol=1e-5)
+    assert step0.readout_attention[..., padded].max() < 1e-6  # padded timestep's image keys are masked
+    assert step1.readout_attention[..., padded].sum(-1).min() > 1e-4  # ... and attended once real
+    assert step0.chunk.shape == (4, 7) and np.isfinite(step0.chunk).all()
+
+
+def test_failing_episode_is_recorded_and_the_run_goes_on(tiny, tmp_path):
+    blocker = tmp_path / "r" / "Lift" / "episode_0"
+    blocker.parent.mkdir(parents=True)
+    blocker.write_text("not a folder")  # episode 0 cannot create its output folder
+    summary = _run(tiny, tmp_path, "r", episodes=2, outputs=OutputOptions(png_every=0, video=False))
+    assert [r.status for r in summary.rows] == ["failed", "ok"]
+    assert summary.rows[0].error and summary.rows[1].steps == STEPS
+    results = json.loads((tmp_path / "r" / "results.json").read_text())
+    assert [e["status"] for e in results["episodes"]] == ["failed", "ok"]
+    assert blocker.read_text() == "not a folder"  # nothing already written is lost
+
+
+def test_cli_runs_an_episode_and_rejects_an_unknown_task(fixtures_dir, tmp_path, capsys):
+    code = cli.main(["run", "--task", "Lift", "--model", str(fixtures_dir / "tiny"), "--max-steps", "2",
+                     "--out", str(tmp_path), "--run-name", "cli", "--png-every", "2", "--layers", "1"])
+    out = capsys.readouterr().out
+    assert code == 0 and "Lift" in out and "results:" in out
+    assert sorted(p.name for p in (tmp_path / "cli" / "Lift" / "episode_0").glob("*.png")) == ["step_0000_layer_01.png"]
+    code = cli.main(["run", "--task", "Lfit", "--model", str(fixtures_dir / "tiny"), "--out", str(tmp_path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "Lift" in err[0]  # names the closest task
