@@ -70,10 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _cmd_tasks() -> int:
     import envs
 
-    specs = envs.list_tasks()
-    print(f"{'task':<22} {'max steps':>9}  instruction")
-    for spec in specs:
-        print(f"{spec.name:<22} {spec.max_episode_steps:>9}  {spec.instruction}")
+    print(envs.task_table())
     return 0
 
 
