@@ -62,6 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--gif", action="store_true", help="also write rollout.gif")
     r.add_argument("--bbox", action="store_true", help="draw the target object's bounding box on overlays")
     r.add_argument("--no-masks", action="store_true", help="do not render target/robot masks")
+    r.add_argument("--fast-render", action="store_true",
+                   help="render without reflections, shadows and anti-aliasing (~3.6x faster frames)")
 
     sub.add_parser("tasks", help="list the registered tasks")
     return parser
@@ -114,6 +116,7 @@ def _cmd_run(args) -> int:
         run_name=args.run_name,
         instruction=args.instruction,
         masks=not args.no_masks,
+        fast_render=args.fast_render,
         policy=policy,
         outputs=outputs,
     )

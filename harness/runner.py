@@ -40,6 +40,7 @@ class RunConfig:
     run_name: str | None = None  # default: <UTC time>_<model short name>
     instruction: str | None = None  # override the task's default instruction
     masks: bool = True  # ask the env for target/robot masks (attention mass on the target)
+    fast_render: bool = False  # no reflections/shadows/anti-aliasing: ~3.6x faster frames, near-identical pixels
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     outputs: OutputOptions = field(default_factory=OutputOptions)
 
@@ -151,7 +152,7 @@ def run(
     rows: list[EpisodeRow] = []
     tokens = model.token_map()
     for task in config.tasks:
-        env = envs.make(task, masks=config.masks, instruction=config.instruction)
+        env = envs.make(task, masks=config.masks, instruction=config.instruction, fast_render=config.fast_render)
         try:
             for k in range(config.episodes):
                 rows.append(_run_episode(config, env, policy, tokens, task, k, run_dir, manifest, on_step))

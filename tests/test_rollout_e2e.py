@@ -116,10 +116,17 @@ def test_failing_episode_is_recorded_and_the_run_goes_on(tiny, tmp_path):
 
 def test_cli_runs_an_episode_and_rejects_an_unknown_task(fixtures_dir, tmp_path, capsys):
     code = cli.main(["run", "--task", "Lift", "--model", str(fixtures_dir / "tiny"), "--max-steps", "2",
-                     "--out", str(tmp_path), "--run-name", "cli", "--png-every", "2", "--layers", "1"])
+                     "--out", str(tmp_path), "--run-name", "cli", "--png-every", "2", "--layers", "1", "--fast-render"])
     out = capsys.readouterr().out
     assert code == 0 and "Lift" in out and "results:" in out
     assert sorted(p.name for p in (tmp_path / "cli" / "Lift" / "episode_0").glob("*.png")) == ["step_0000_layer_01.png"]
     code = cli.main(["run", "--task", "Lfit", "--model", str(fixtures_dir / "tiny"), "--out", str(tmp_path)])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "Lift" in err[0]  # names the closest task
+
+
+def test_cli_lists_every_registered_task(capsys):
+    assert cli.main(["tasks"]) == 0
+    out = capsys.readouterr().out
+    for spec in envs.list_tasks():
+        assert spec.name in out and spec.instruction in out
