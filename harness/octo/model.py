@@ -30,14 +30,14 @@ from harness.octo.config import DiffusionHeadConfig, ImageTokenizerConfig, Lowdi
 from harness.octo.diffusion import make_schedule, sample
 from harness.octo.errors import ConfigError, HubUnavailableError, InputError, OctoError, UnknownDatasetKeyError
 from harness.octo.heads import ContinuousHead, ScoreNetwork, pool_readouts
-from harness.octo.network import LanguageTokenizer, OctoTransformer, init_params, sequence_layout
+from harness.octo.network import LanguageTokenizer, OctoTransformer, init_params, random_params, sequence_layout
 from harness.octo.stem import image_stack_keys, lowdim_stack_keys
 from harness.octo.tokens import TokenMap
 
 log = logging.getLogger(__name__)
 
 RANDOM_PREFIX = "random:"
-RANDOM_SEED = 0  # random models are initialised from PRNGKey(RANDOM_SEED)
+RANDOM_SEED = 0  # random models draw their weights from this seed (network.random_params)
 _NON_DATA_KEYS = ("pad_mask_dict", "timestep_pad_mask", "pad_mask")
 
 
@@ -354,7 +354,7 @@ def load_pretrained(uri: str, step: int | None = None, *, text_tokenizer: str | 
 
     uri: a local checkpoint folder, "hf://owner/name" (Hugging Face cache; honours HF_HUB_OFFLINE),
     "random:octo-small-1.5" / "random:octo-base-1.5", or "random:<config.json or checkpoint folder>"
-    (that architecture, randomly initialised from PRNGKey(0)).
+    (that architecture with deterministic random weights, seed RANDOM_SEED).
     step: parameter step to load (default: the latest). text_tokenizer: override the tokenizer named by
     the config (a hub name, a tokenizer.json path, or "fallback"). cache_dir: Hugging Face cache folder.
     """
@@ -408,8 +408,9 @@ def _random_model(uri: str, text_tokenizer: str | None, cache_dir) -> OctoModel:
             statistics = checkpoint.read_dataset_statistics(ckpt)
     t5 = _t5_config(config, ckpt)
     shapes = _input_shapes(config, example)
-    params = jax.jit(lambda key: init_params(key, config, t5_config=t5, **shapes))(jax.random.PRNGKey(RANDOM_SEED))
-    log.warning("RANDOM MODEL %s: weights are randomly initialised (PRNGKey(%d)); its actions and attention are meaningless",
+    expected = jax.eval_shape(lambda key: init_params(key, config, t5_config=t5, **shapes), jax.random.PRNGKey(0))
+    params = random_params(expected, RANDOM_SEED)
+    log.warning("RANDOM MODEL %s: weights are randomly initialised (seed %d); its actions and attention are meaningless",
                 uri, RANDOM_SEED)
     return OctoModel(config=config, params=params, example_batch=example, dataset_statistics=statistics,
                      text_tokenizer=_text_tokenizer(config, text_tokenizer, t5, True, cache_dir), t5_config=t5,
