@@ -193,3 +193,48 @@ def test_octo_1_0_config_shims(fixtures_dir):
     parsed = OctoConfig.from_dict(config)
     assert not parsed.use_correct_attention and not parsed.repeat_task_tokens
     assert parsed.action_head.action_horizon == 4 and parsed.action_head.legacy_sampler
+
+
+def test_orbax_layout_checkpoint_loads(fixtures_dir, tiny, tmp_path):
+    """A checkpoint without the msgpack `checkpoint` file (orbax OCDBT layout) restores through orbax."""
+    import shutil
+
+    import orbax.checkpoint as ocp
+
+    dst = tmp_path / "orbax"
+    shutil.copytree(fixtures_dir / "tiny", dst, ignore=shutil.ignore_patterns("300000"))
+    ocp.PyTreeCheckpointer().save(str((dst / "7" / "default").resolve()), jax.tree.map(np.asarray, tiny.params))
+    assert not (dst / "7" / "default" / "checkpoint").exists()
+    restored = load_pretrained(str(dst))
+    flat, ref = traverse_util.flatten_dict(restored.params), traverse_util.flatten_dict(tiny.params)
+    assert flat.keys() == ref.keys() and all(np.array_equal(flat[k], ref[k]) for k in ref)
+
+
+def test_continuous_map_head_and_proprio_tokenizer(fixtures_dir, tmp_path):
+    """An L1 head with MAP pooling and a LowdimObsTokenizer: parsed, initialised and sampled (random weights)."""
+    import json
+
+    from flax import serialization
+
+    config = json.loads((fixtures_dir / "tiny_goal" / "config.json").read_text())
+    config["model"]["observation_tokenizers"]["proprio"] = {
+        "module": "octo.model.components.tokenizers", "name": "LowdimObsTokenizer", "args": [],
+        "kwargs": {"obs_keys": ["proprio"], "n_bins": 256, "bin_type": "normal", "low": -2.0, "high": 2.0}}
+    config["model"]["heads"]["action"] = {
+        "module": "octo.model.components.action_heads", "name": "L1ActionHead", "args": [],
+        "kwargs": {"readout_key": "readout_action", "action_horizon": 4, "action_dim": 7}}
+    (tmp_path / "config.json").write_text(json.dumps(config))
+    batch = serialization.msgpack_restore((fixtures_dir / "tiny_goal" / "example_batch.msgpack").read_bytes())
+    batch["observation"]["proprio"] = np.zeros((1, 2, 8), np.float32)
+    (tmp_path / "example_batch.msgpack").write_bytes(serialization.msgpack_serialize(batch))
+    model = load_pretrained(f"random:{tmp_path}")
+    assert set(model.params["heads_action"]) == {"map_head", "mean_proj"}
+    assert model.params["octo_transformer"]["obs_proprio_projection"]["kernel"].shape == (1, 64)
+    assert model.params["octo_transformer"]["obs_proprio_pos_embedding"].shape == (1, 10, 8, 64)
+    obs = {"image_primary": np.zeros((1, 2, 64, 64, 3), np.uint8), "image_wrist": np.zeros((1, 2, 32, 32, 3), np.uint8),
+           "proprio": np.linspace(-1, 1, 16, dtype=np.float32).reshape(1, 2, 8), "timestep_pad_mask": np.ones((1, 2), bool)}
+    goals = {"image_primary": np.zeros((1, 64, 64, 3), np.uint8)}
+    actions, att = model.sample_actions(obs, model.create_task(goals=goals), jax.random.PRNGKey(0))
+    assert actions.shape == (1, 4, 7) and np.all(np.abs(np.asarray(actions)) <= 5.0)
+    assert list(att.tokens.indices("obs_proprio", timestep=1)) == list(range(49, 57))  # 29 tokens per step: 16 + 4 + 8 + 1
+    np.testing.assert_allclose(np.asarray(att.readout).sum(-1), 1.0, atol=1e-5)

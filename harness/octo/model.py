@@ -298,8 +298,9 @@ class OctoModel:
         for k, (h, w) in self.goal_image_sizes.items():
             if k in task:
                 value = task[k]
-                if np.shape(value) != (batch, h, w, 3):
-                    raise InputError(f"task[{k!r}] is {np.shape(value)}; expected ({batch}, {h}, {w}, 3) uint8")
+                if np.shape(value) != (batch, h, w, 3) or np.dtype(value.dtype) != np.uint8:
+                    raise InputError(f"task[{k!r}] is {np.shape(value)} {value.dtype}; expected ({batch}, {h}, {w}, 3) uint8 "
+                                     "(build tasks with model.create_task)")
                 task_in[k] = jnp.asarray(value, jnp.uint8)
         encoding = None
         lang = self.config.language
