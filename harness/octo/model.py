@@ -76,6 +76,7 @@ class OctoModel:
         self._sample_jit = jax.jit(self._sample, static_argnames=("full_attention", "normalization_type"))
         self._encode_jit = jax.jit(self._encode)
         self._seen_signatures: set = set()
+        self._token_maps: dict = {}  # SequenceLayout -> TokenMap
 
     # ------------------------------------------------------------------ statistics
 
@@ -163,7 +164,7 @@ class OctoModel:
             self._seen_signatures.add(signature)
             log.info("sample_actions compiled and ran in %.2f s (batch %d, window %d, %d keys, full_attention=%s)",
                      time.perf_counter() - start, pad.shape[0], pad.shape[1], layout.num_tokens, full_attention)
-        tokens = layout.token_map()
+        tokens = self._token_map(layout)
         if full_attention:
             readout = captured[:, :, :, tokens.readout_index, :]
             return actions, Attention(readout=readout, full=captured, tokens=tokens)
@@ -183,7 +184,7 @@ class OctoModel:
         cfg = self.config
         head = cfg.action_head
         layout = self._layout(obs, encoding)
-        rows = None if full_attention else tuple(int(i) for i in layout.token_map().readout_index)
+        rows = None if full_attention else tuple(int(i) for i in self._token_map(layout).readout_index)
         out = OctoTransformer(cfg, capture_rows=rows).apply({"params": params["octo_transformer"]}, obs, task, encoding, pad)
         tokens, mask = out["groups"][head.readout_key]
         head_params = params["heads_action"]
@@ -225,7 +226,7 @@ class OctoModel:
             if task is not None and "language_encoding" in task:
                 n_lang = int(np.shape(task["language_encoding"])[1])
         shapes = {k: np.shape(v) for k, v in obs.items() if k != "pad_mask_dict"}
-        return sequence_layout(self.config, shapes, n_lang).token_map()
+        return self._token_map(sequence_layout(self.config, shapes, n_lang))
 
     def run_transformer(self, observations: Mapping, task: Mapping, *, intermediates: bool = False) -> dict:
         """Un-jitted forward of the backbone with full attention: {"groups", "attention", ...intermediates}."""
@@ -263,22 +264,21 @@ class OctoModel:
         obs: dict[str, Any] = {}
         batch_window = None
         for k in keys:
-            value = observations[k]
-            if k in self.image_sizes or k.startswith("image_"):
+            value = observations[k] if isinstance(observations[k], jax.Array) else np.asarray(observations[k])
+            if k.startswith("image_"):
                 h, w = self.image_sizes.get(k, (None, None))
-                shape, dtype = np.shape(value), np.asarray(value).dtype if not isinstance(value, jax.Array) else value.dtype
-                if len(shape) != 5 or shape[-1] != 3 or dtype != np.uint8 or (h is not None and shape[2:4] != (h, w)):
-                    raise InputError(f"observations[{k!r}] is {shape} {dtype}; expected (batch, window, {h}, {w}, 3) uint8 "
-                                     "(resize frames to model.image_sizes)")
-                obs[k] = value
+                if value.ndim != 5 or value.shape[-1] != 3 or value.dtype != np.uint8 or (h is not None and value.shape[2:4] != (h, w)):
+                    raise InputError(f"observations[{k!r}] is {value.shape} {value.dtype}; expected (batch, window, {h}, {w}, 3) "
+                                     "uint8 (resize frames to model.image_sizes)")
+            elif value.ndim != 3:
+                raise InputError(f"observations[{k!r}] is {value.shape}; expected (batch, window, dims)")
             else:
-                if np.ndim(value) != 3:
-                    raise InputError(f"observations[{k!r}] is {np.shape(value)}; expected (batch, window, dims)")
-                obs[k] = jnp.asarray(value, jnp.float32)
+                value = jnp.asarray(value, jnp.float32)
+            obs[k] = value
             if batch_window is None:
-                batch_window = tuple(np.shape(value)[:2])
-            elif tuple(np.shape(value)[:2]) != batch_window:
-                raise InputError(f"observations[{k!r}] has (batch, window) {np.shape(value)[:2]}, others {batch_window}")
+                batch_window = tuple(value.shape[:2])
+            elif tuple(value.shape[:2]) != batch_window:
+                raise InputError(f"observations[{k!r}] has (batch, window) {value.shape[:2]}, others {batch_window}")
         if batch_window[1] > self.config.max_horizon:
             raise InputError(f"window {batch_window[1]} exceeds the model's max_horizon {self.config.max_horizon}")
         pad = observations.get("timestep_pad_mask", observations.get("pad_mask"))
@@ -313,6 +313,15 @@ class OctoModel:
             if pad is not None:
                 task_in["pad_mask_dict"] = {"language_instruction": jnp.asarray(pad, bool)}
         return task_in, encoding
+
+    def _token_map(self, layout) -> TokenMap:
+        """Token map of a layout, built once and shared read-only (its arrays are not writeable)."""
+        if layout not in self._token_maps:
+            tokens = layout.token_map()
+            for arr in (tokens.group, tokens.timestep, tokens.row, tokens.col, tokens.readout_index):
+                arr.flags.writeable = False
+            self._token_maps[layout] = tokens
+        return self._token_maps[layout]
 
     def _layout(self, obs: Mapping, encoding):
         shapes = {k: np.shape(v) for k, v in obs.items() if k != "pad_mask_dict"}
