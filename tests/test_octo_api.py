@@ -58,6 +58,9 @@ def test_readout_rows_sum_to_one_and_equal_full_matrix_rows(request, inputs, nam
     np.testing.assert_allclose(att.readout, np.asarray(att_full.full)[:, :, :, att.tokens.readout_index, :], atol=1e-6)
     np.testing.assert_allclose(att_full.readout, att.readout, atol=1e-6)
     np.testing.assert_allclose(actions, actions_full, atol=1e-5)
+    actions_none, nothing = model.sample_actions(observations(e), task(e), jax.random.PRNGKey(3), capture_attention=False)
+    assert nothing is None
+    np.testing.assert_allclose(actions_none, actions, atol=1e-5)
     # the missing wrist image (sample 1, t=1) receives exactly zero attention
     wrist_t1 = att.tokens.indices("obs_wrist", timestep=1)
     assert np.all(np.asarray(att.readout)[1][..., wrist_t1] == 0)

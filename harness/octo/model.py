@@ -73,7 +73,7 @@ class OctoModel:
         self.action_horizon = head.action_horizon
         self.action_dim = head.action_dim
         self._schedule = make_schedule(head.diffusion_steps) if isinstance(head, DiffusionHeadConfig) else None
-        self._sample_jit = jax.jit(self._sample, static_argnames=("full_attention", "normalization_type"))
+        self._sample_jit = jax.jit(self._sample, static_argnames=("capture", "normalization_type"))
         self._encode_jit = jax.jit(self._encode)
         self._seen_signatures: set = set()
         self._token_maps: dict = {}  # SequenceLayout -> TokenMap
@@ -140,12 +140,15 @@ class OctoModel:
 
     def sample_actions(self, observations: Mapping, task: Mapping, rng: jax.Array,
                        unnormalization_statistics: Mapping | None = None, *, full_attention: bool = False,
-                       normalization_type: str = "normal") -> tuple[jax.Array, Attention]:
+                       normalization_type: str = "normal", capture_attention: bool = True,
+                       ) -> tuple[jax.Array, Attention | None]:
         """Sample an action chunk (batch, action_horizon, action_dim) and capture attention.
 
         Actions are normalised when `unnormalization_statistics` is None, else unnormalised with
         normalization_type "normal" (a*std+mean) or "bounds" (from p01/p99), honouring the statistics'
-        mask. One jitted function; it compiles once per input structure and shape.
+        mask. One jitted function; it compiles once per input structure and shape (and per option).
+        capture_attention=False returns (actions, None) and skips copying attention out (for
+        measuring what capture costs).
         """
         if normalization_type not in ("normal", "bounds"):
             raise InputError(f"normalization_type must be 'normal' or 'bounds', got {normalization_type!r}")
@@ -154,17 +157,20 @@ class OctoModel:
         stats = _prepare_statistics(unnormalization_statistics, normalization_type, self.action_dim)
         layout = self._layout(obs, encoding)
         leaves, treedef = jax.tree.flatten((obs, task_in, encoding, pad, stats))
-        signature = (str(treedef), tuple((np.shape(x), str(x.dtype)) for x in leaves), full_attention, normalization_type)
+        capture = "full" if full_attention else ("readout" if capture_attention else "none")
+        signature = (str(treedef), tuple((np.shape(x), str(x.dtype)) for x in leaves), capture, normalization_type)
         first = signature not in self._seen_signatures
         start = time.perf_counter()
         actions, captured = self._sample_jit(self._inference_params, obs, task_in, encoding, pad, rng, stats,
-                                             full_attention=full_attention, normalization_type=normalization_type)
+                                             capture=capture, normalization_type=normalization_type)
         if first:
             jax.block_until_ready(actions)
             self._seen_signatures.add(signature)
-            log.info("sample_actions compiled and ran in %.2f s (batch %d, window %d, %d keys, full_attention=%s)",
-                     time.perf_counter() - start, pad.shape[0], pad.shape[1], layout.num_tokens, full_attention)
+            log.info("sample_actions compiled and ran in %.2f s (batch %d, window %d, %d keys, attention capture: %s)",
+                     time.perf_counter() - start, pad.shape[0], pad.shape[1], layout.num_tokens, capture)
         tokens = self._token_map(layout)
+        if capture == "none":
+            return actions, None
         if full_attention:
             readout = captured[:, :, :, tokens.readout_index, :]
             return actions, Attention(readout=readout, full=captured, tokens=tokens)
@@ -180,11 +186,11 @@ class OctoModel:
         backbone = {k: v for k, v in self.params["octo_transformer"].items() if not k.startswith("task_tokenizers_")}
         return {**self.params, "octo_transformer": backbone}
 
-    def _sample(self, params, obs, task, encoding, pad, rng, stats, *, full_attention, normalization_type):
+    def _sample(self, params, obs, task, encoding, pad, rng, stats, *, capture, normalization_type):
         cfg = self.config
         head = cfg.action_head
         layout = self._layout(obs, encoding)
-        rows = None if full_attention else tuple(int(i) for i in self._token_map(layout).readout_index)
+        rows = {"full": None, "none": (), "readout": tuple(int(i) for i in self._token_map(layout).readout_index)}[capture]
         out = OctoTransformer(cfg, capture_rows=rows).apply({"params": params["octo_transformer"]}, obs, task, encoding, pad)
         tokens, mask = out["groups"][head.readout_key]
         head_params = params["heads_action"]
@@ -210,7 +216,7 @@ class OctoModel:
             actions = ContinuousHead(head).apply({"params": {"mean_proj": head_params["mean_proj"]}}, embedding)[:, -1]
         if stats is not None:
             actions = _unnormalize(actions, stats, normalization_type)
-        return actions, out["attention"]
+        return actions, (None if capture == "none" else out["attention"])
 
     # ------------------------------------------------------------------ inspection (tests, analysis)
 
