@@ -5,6 +5,7 @@ transformer's attention (`Attention`) from one jitted call. All user-facing erro
 """
 
 from harness.octo.errors import OctoError
-from harness.octo.model import Attention, OctoModel, load_pretrained
+from harness.octo.loading import load_pretrained
+from harness.octo.model import Attention, OctoModel
 
 __all__ = ["Attention", "OctoError", "OctoModel", "load_pretrained"]

@@ -1,5 +1,5 @@
-"""The public Octo model: load a checkpoint (or a random architecture), build tasks, sample actions
-and return the transformer's attention from the same jitted call.
+"""The Octo policy object: build tasks, sample actions and return the transformer's attention from the
+same jitted call (construct it with `harness.octo.load_pretrained`, in loading.py).
 
     model = load_pretrained("hf://rail-berkeley/octo-small-1.5")       # or a local folder, or random:<preset>
     task = model.create_task(texts=["pick up the cube"])                # T5 runs here, once per task
@@ -18,26 +18,23 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from harness.octo import checkpoint, presets
-from harness.octo.config import DiffusionHeadConfig, ImageTokenizerConfig, LowdimTokenizerConfig, OctoConfig
+from harness.octo import presets
+from harness.octo.config import DiffusionHeadConfig, ImageTokenizerConfig, OctoConfig
 from harness.octo.diffusion import make_schedule, sample
-from harness.octo.errors import ConfigError, HubUnavailableError, InputError, OctoError, UnknownDatasetKeyError
+from harness.octo.errors import InputError, OctoError, UnknownDatasetKeyError
 from harness.octo.heads import ContinuousHead, ScoreNetwork, pool_readouts
-from harness.octo.network import LanguageTokenizer, OctoTransformer, init_params, random_params, sequence_layout
+from harness.octo.network import LanguageTokenizer, OctoTransformer, sequence_layout
 from harness.octo.stem import image_stack_keys, lowdim_stack_keys
 from harness.octo.tokens import TokenMap
 
 log = logging.getLogger(__name__)
 
-RANDOM_PREFIX = "random:"
-RANDOM_SEED = 0  # random models draw their weights from this seed (network.random_params)
 _NON_DATA_KEYS = ("pad_mask_dict", "timestep_pad_mask", "pad_mask")
 
 
@@ -359,146 +356,3 @@ def _unnormalize(actions: jax.Array, stats: dict, normalization_type: str) -> ja
     else:  # a = p01, b = p99
         scaled = (actions + 1) * (stats["b"] - stats["a"]) / 2 + stats["a"]
     return jnp.where(stats["mask"], scaled, actions)
-
-
-# ---------------------------------------------------------------------------------------------- loading
-
-
-def load_pretrained(uri: str, step: int | None = None, *, text_tokenizer: str | None = None,
-                    cache_dir: str | Path | None = None) -> OctoModel:
-    """Load an Octo model.
-
-    uri: a local checkpoint folder, "hf://owner/name" (Hugging Face cache; honours HF_HUB_OFFLINE),
-    "random:octo-small-1.5" / "random:octo-base-1.5", or "random:<config.json or checkpoint folder>"
-    (that architecture with deterministic random weights, seed RANDOM_SEED).
-    step: parameter step to load (default: the latest). text_tokenizer: override the tokenizer named by
-    the config (a hub name, a tokenizer.json path, or "fallback"). cache_dir: Hugging Face cache folder.
-    """
-    if uri.startswith(RANDOM_PREFIX):
-        return _random_model(uri, text_tokenizer, cache_dir)
-    ckpt = checkpoint.resolve_checkpoint_dir(uri, cache_dir)
-    config = OctoConfig.from_json(checkpoint.require_file(ckpt, "config.json"))
-    example = checkpoint.read_example_batch(ckpt)
-    statistics = checkpoint.read_dataset_statistics(ckpt)
-    step = checkpoint.select_step(ckpt, step)
-    t5 = _t5_config(config, ckpt)
-    shapes = _input_shapes(config, example)
-    start = time.perf_counter()
-    expected = jax.eval_shape(lambda key: init_params(key, config, t5_config=t5, **shapes), jax.random.PRNGKey(0))
-    raw = checkpoint.read_params(ckpt, step)
-    checkpoint.check_param_tree(expected, raw)
-    params = jax.tree.map(lambda e, r: jnp.asarray(r, dtype=e.dtype), expected, raw)
-    del raw
-    log.info("loaded %s step %d (%d parameters) in %.1f s", uri, step,
-             sum(int(np.prod(x.shape)) for x in jax.tree.leaves(params)), time.perf_counter() - start)
-    return OctoModel(config=config, params=params, example_batch=example, dataset_statistics=statistics,
-                     text_tokenizer=_text_tokenizer(config, text_tokenizer, t5, False, cache_dir), t5_config=t5,
-                     source=uri, is_random=False)
-
-
-def _random_model(uri: str, text_tokenizer: str | None, cache_dir) -> OctoModel:
-    spec = uri[len(RANDOM_PREFIX):]
-    ckpt: Path | None = None
-    statistics: dict = {}
-    if spec in presets.preset_names():
-        config = OctoConfig.from_dict(presets.preset_config(spec))
-        example = _synthetic_example_batch(config, presets.IMAGE_SIZES, presets.WINDOW_SIZE)
-    else:
-        path = Path(spec).expanduser()
-        if path.is_dir():
-            ckpt = path
-            config = OctoConfig.from_json(checkpoint.require_file(path, "config.json"))
-        elif path.is_file():
-            ckpt = path.parent
-            config = OctoConfig.from_json(path)
-        else:
-            raise checkpoint.CheckpointNotFoundError(
-                f"{uri}: no such preset or path; use random:{' | random:'.join(presets.preset_names())} "
-                "or random:<config.json or checkpoint folder>"
-            )
-        if (ckpt / "example_batch.msgpack").is_file():
-            example = checkpoint.read_example_batch(ckpt)
-        else:
-            example = _synthetic_example_batch(config, _default_image_sizes(config), config.window_size)
-        if (ckpt / "dataset_statistics.json").is_file():
-            statistics = checkpoint.read_dataset_statistics(ckpt)
-    t5 = _t5_config(config, ckpt)
-    shapes = _input_shapes(config, example)
-    expected = jax.eval_shape(lambda key: init_params(key, config, t5_config=t5, **shapes), jax.random.PRNGKey(0))
-    params = random_params(expected, RANDOM_SEED)
-    log.warning("RANDOM MODEL %s: weights are randomly initialised (seed %d); its actions and attention are meaningless",
-                uri, RANDOM_SEED)
-    return OctoModel(config=config, params=params, example_batch=example, dataset_statistics=statistics,
-                     text_tokenizer=_text_tokenizer(config, text_tokenizer, t5, True, cache_dir), t5_config=t5,
-                     source=uri, is_random=True)
-
-
-def _t5_config(config: OctoConfig, ckpt: Path | None):
-    if config.language is None:
-        return None
-    from harness.octo.t5 import t5_config_for
-
-    try:
-        return t5_config_for(config.language.encoder, ckpt)
-    except (ValueError, FileNotFoundError) as e:
-        raise ConfigError(f"language encoder {config.language.encoder!r}: {e}") from None
-
-
-def _text_tokenizer(config: OctoConfig, override: str | None, t5, allow_fallback: bool, cache_dir):
-    if config.language is None:
-        return None
-    from harness.octo.text import fallback_tokenizer, load_text_tokenizer
-
-    max_length = config.text_processor.max_length if config.text_processor else presets.LANGUAGE_TOKENS
-    name = override or (config.text_processor.tokenizer_name if config.text_processor else None)
-    if name is None or name == "fallback":
-        log.warning("using the deterministic fallback text tokenizer (NOT T5) over %d ids%s", t5.vocab_size,
-                    "" if name else " because config.json has no text_processor")
-        return fallback_tokenizer(t5.vocab_size, max_length)
-    try:
-        return load_text_tokenizer(name, max_length, allow_fallback=allow_fallback, vocab_size=t5.vocab_size,
-                                   cache_dir=cache_dir)
-    except FileNotFoundError as e:
-        raise HubUnavailableError(f"{e} (or pass text_tokenizer='fallback' to run without it)") from None
-
-
-def _input_shapes(config: OctoConfig, example: dict) -> dict:
-    """Image sizes, low-dim sizes, window and language length that fix the parameter shapes."""
-    obs = example["observation"]
-    images = {k: tuple(int(s) for s in np.shape(v)[2:4]) for k, v in obs.items() if k.startswith("image_") and np.ndim(v) == 5}
-    lowdim = {}
-    for tok in config.observation_tokenizers:
-        if isinstance(tok, LowdimTokenizerConfig):
-            for k in lowdim_stack_keys(tok, [k for k in obs if k not in _NON_DATA_KEYS]):
-                lowdim[k] = int(np.shape(obs[k])[-1])
-    window = int(np.shape(obs["timestep_pad_mask"])[1]) if "timestep_pad_mask" in obs else config.window_size
-    language = example.get("task", {}).get("language_instruction")
-    n_lang = int(np.shape(language["input_ids"])[1]) if isinstance(language, Mapping) else (
-        config.text_processor.max_length if config.text_processor else presets.LANGUAGE_TOKENS)
-    return {"image_sizes": images, "window": window, "lowdim_sizes": lowdim, "language_tokens": n_lang}
-
-
-def _default_image_sizes(config: OctoConfig) -> dict[str, tuple[int, int]]:
-    sizes = {}
-    for tok in config.observation_tokenizers:
-        if isinstance(tok, LowdimTokenizerConfig):
-            raise ConfigError("random init of a config with a LowdimObsTokenizer needs example_batch.msgpack next to config.json")
-        for key in tok.obs_stack_keys:
-            if not key.isidentifier():
-                raise ConfigError(f"cannot infer an image key from pattern {key!r}; put example_batch.msgpack next to config.json")
-            side = presets.IMAGE_SIZES.get(key, (256, 256))
-            sizes[key] = side
-    log.info("no example_batch.msgpack: assuming image sizes %s", sizes)
-    return sizes
-
-
-def _synthetic_example_batch(config: OctoConfig, image_sizes: Mapping[str, tuple[int, int]], window: int) -> dict:
-    obs = {k: np.zeros((1, window, h, w, 3), np.uint8) for k, (h, w) in image_sizes.items()}
-    obs["timestep_pad_mask"] = np.ones((1, window), bool)
-    task: dict[str, Any] = {k: np.zeros((1, h, w, 3), np.uint8) for k, (h, w) in image_sizes.items()}
-    task["pad_mask_dict"] = {k: np.zeros((1,), bool) for k in image_sizes}
-    if config.language is not None:
-        n = config.text_processor.max_length if config.text_processor else presets.LANGUAGE_TOKENS
-        task["language_instruction"] = {"input_ids": np.zeros((1, n), np.int32), "attention_mask": np.zeros((1, n), np.int32)}
-        task["pad_mask_dict"]["language_instruction"] = np.ones((1,), bool)
-    return {"observation": obs, "task": task}
