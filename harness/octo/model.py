@@ -312,6 +312,9 @@ class OctoModel:
             if encoding is None:
                 encoding = self.encode_language(task["language_instruction"])
             encoding = jnp.asarray(encoding, jnp.float32)
+            if encoding.ndim != 3 or encoding.shape[0] != batch:
+                raise InputError(f"task language encoding is {encoding.shape}; expected ({batch}, tokens, d_model) "
+                                 "(create the task with as many instructions as the observation batch)")
             pad = task.get("pad_mask_dict", {}).get("language_instruction")
             if pad is not None:
                 task_in["pad_mask_dict"] = {"language_instruction": jnp.asarray(pad, bool)}
