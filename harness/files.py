@@ -1,54 +1,43 @@
 """Atomic file writing: every product file goes to a temp file in the same folder, then os.replace.
 
-A crash or Ctrl-C therefore never leaves a half-written file under its final name; leftovers carry
-the `.tmp` marker and are removed by `remove_temps`.
+A crash or Ctrl-C therefore never leaves a half-written file under its final name; a temp file is
+`<name>.tmp.<ext>` (the extension stays last so encoders such as ffmpeg pick the format) and is
+deleted when its write fails.
 """
 
 from __future__ import annotations
 
-import io
 import json
 import os
-import tempfile
 from pathlib import Path
+from typing import IO, Callable
 
 import numpy as np
 
-TMP_MARK = ".tmp"
+
+def temp_path(path: Path) -> Path:
+    """`dir/name.ext` -> `dir/name.tmp.ext`."""
+    return path.with_name(f"{path.stem}.tmp{path.suffix}")
 
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
+def write_atomic(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
+    """Call `write(file)` on `<name>.tmp.<ext>` in the same directory, then os.replace it onto `path`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=TMP_MARK)
+    tmp = temp_path(path)
     try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
+        with open(tmp, "wb") as f:
+            write(f)
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
     return path
 
 
 def atomic_write_json(path: str | Path, obj) -> Path:
-    return atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n").encode())
-
-
-def atomic_savez(path: str | Path, arrays: dict[str, np.ndarray], compress: bool = True) -> Path:
-    buf = io.BytesIO()
-    (np.savez_compressed if compress else np.savez)(buf, **arrays)
-    return atomic_write_bytes(path, buf.getvalue())
-
-
-def remove_temps(folder: str | Path) -> int:
-    """Delete leftover temp files (from an aborted write) in `folder`; returns how many."""
-    n = 0
-    for p in Path(folder).glob(f"*{TMP_MARK}*"):
-        if p.is_file():
-            p.unlink(missing_ok=True)
-            n += 1
-    return n
+    data = (json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n").encode()
+    return write_atomic(path, lambda f: f.write(data))
 
 
 def _json_default(obj):

@@ -14,17 +14,14 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.files import temp_path
+
 
 def _check_frame(frame: np.ndarray) -> np.ndarray:
     frame = np.asarray(frame)
     if frame.ndim != 3 or frame.shape[2] != 3 or frame.dtype != np.uint8:
         raise ValueError(f"video frames must be (height, width, 3) uint8; got {frame.shape} {frame.dtype}")
     return frame
-
-
-def temp_path(path: Path) -> Path:
-    """`dir/name.ext` -> `dir/name.tmp.ext` (the extension stays last so encoders pick the format)."""
-    return path.with_name(f"{path.stem}.tmp{path.suffix}")
 
 
 def pad_to_multiple(frame: np.ndarray, multiple: int) -> np.ndarray:

@@ -42,7 +42,7 @@ import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, IO
+from typing import Any
 
 import numpy as np
 
@@ -50,7 +50,8 @@ from harness.attention import HEAD_FUSIONS, camera_maps, fuse_heads, rollout_rea
 from harness.octo.tokens import TokenMap
 from harness.overlays import colormap_lut, heatmap_overlay, layer_panel, mask_bbox, video_frame
 from harness.records import EpisodeMeta, StepRecord
-from harness.video import GifWriter, Mp4Writer, temp_path
+from harness.files import write_atomic
+from harness.video import GifWriter, Mp4Writer
 
 PNG_NAME = "step_{step:04d}_layer_{layer:02d}.png"
 _STOP = object()
@@ -99,19 +100,6 @@ class OutputOptions:
         if not 0 <= self.png_compress_level <= 9:
             raise ValueError(f"png_compress_level must be 0..9; got {self.png_compress_level}")
         colormap_lut(self.cmap)  # unknown colormap: clear error now, not in the thread
-
-
-def write_atomic(path: Path, write: Callable[[IO[bytes]], None]) -> Path:
-    """Write `path` through `<name>.tmp.<ext>` in the same directory and os.replace it into place."""
-    tmp = temp_path(path)
-    try:
-        with open(tmp, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
 
 
 def encode_png(image: np.ndarray, level: int = 2) -> bytes:
