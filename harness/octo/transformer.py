@@ -84,10 +84,25 @@ def attention_rule_mask(
 # ----------------------------------------------------------------------------- modules
 
 
+def masked_softmax(logits: jax.Array, mask: jax.Array | None) -> jax.Array:
+    """Softmax over keys with masked logits set to finfo(float32).min (flax's convention: a fully masked
+    row becomes uniform). logits (batch, heads, queries, keys); mask broadcastable to it."""
+    if mask is not None:
+        logits = jnp.where(mask, logits, MASKED_LOGIT)
+    return jax.nn.softmax(logits, axis=-1)
+
+
 class MultiHeadAttention(nn.Module):
-    """Dot-product attention returning its post-softmax weights `(batch, heads, queries, keys)`."""
+    """Dot-product attention returning post-softmax weights: all `(batch, heads, queries, keys)` when
+    `capture_rows` is None, else only those query rows `(batch, heads, len(capture_rows), keys)`.
+
+    Captured rows are recomputed from their own queries (a (rows x keys) product per head) instead of
+    being sliced out of the full weights, so the main attention stays free to fuse and capture costs
+    almost nothing; the values are the same softmax of the same logits.
+    """
 
     num_heads: int
+    capture_rows: tuple[int, ...] | None = None
 
     @nn.compact
     def __call__(self, inputs_q: jax.Array, inputs_kv: jax.Array, mask: jax.Array | None):
@@ -103,13 +118,15 @@ class MultiHeadAttention(nn.Module):
         k = project("key", inputs_kv)
         v = project("value", inputs_kv)
         q = q / jnp.sqrt(head_dim).astype(q.dtype)
-        logits = jnp.einsum("bqhd,bkhd->bhqk", q, k)  # (batch, heads, queries, keys)
-        if mask is not None:
-            logits = jnp.where(mask, logits, MASKED_LOGIT)
-        weights = jax.nn.softmax(logits, axis=-1)
+        weights = masked_softmax(jnp.einsum("bqhd,bkhd->bhqk", q, k), mask)  # (batch, heads, queries, keys)
         mixed = jnp.einsum("bhqk,bkhd->bqhd", weights, v)
         out = nn.DenseGeneral(d, axis=(-2, -1), kernel_init=init, name="out")(mixed)
-        return out, weights
+        if self.capture_rows is None:
+            return out, weights
+        rows = np.asarray(self.capture_rows, dtype=np.int32)
+        row_mask = None if mask is None else jnp.broadcast_to(mask, weights.shape)[:, :, rows, :]
+        row_weights = masked_softmax(jnp.einsum("bqhd,bkhd->bhqk", q[:, rows], k), row_mask)
+        return out, row_weights  # (batch, heads, rows, keys)
 
 
 class MlpBlock(nn.Module):
@@ -131,11 +148,14 @@ class EncoderBlock(nn.Module):
 
     mlp_dim: int
     num_heads: int
+    capture_rows: tuple[int, ...] | None = None
 
     @nn.compact
     def __call__(self, x: jax.Array, mask: jax.Array):  # (batch, tokens, D), (batch, 1, tokens, tokens)
         y = nn.LayerNorm(name="LayerNorm_0")(x)
-        y, weights = MultiHeadAttention(self.num_heads, name="MultiHeadDotProductAttention_0")(y, y, mask)
+        y, weights = MultiHeadAttention(self.num_heads, self.capture_rows, name="MultiHeadDotProductAttention_0")(
+            y, y, mask
+        )
         x = x + y
         y = nn.LayerNorm(name="LayerNorm_1")(x)
         return x + MlpBlock(self.mlp_dim, name="MlpBlock_0")(y), weights
@@ -155,11 +175,10 @@ class Transformer(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array, mask: jax.Array):
         captured, layer_outputs = [], []
-        rows = None if self.capture_rows is None else np.asarray(self.capture_rows, dtype=np.int32)
         for i in range(self.config.num_layers):
-            block = EncoderBlock(self.config.mlp_dim, self.config.num_heads, name=f"encoderblock_{i}")
+            block = EncoderBlock(self.config.mlp_dim, self.config.num_heads, self.capture_rows, name=f"encoderblock_{i}")
             x, weights = block(x, mask)
-            captured.append(weights if rows is None else weights[:, :, rows, :])
+            captured.append(weights)
             if self.keep_layer_outputs:
                 layer_outputs.append(x)
         encoded = nn.LayerNorm(name="encoder_norm")(x)
