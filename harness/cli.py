@@ -62,6 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--gif", action="store_true", help="also write rollout.gif")
     r.add_argument("--bbox", action="store_true", help="draw the target object's bounding box on overlays")
     r.add_argument("--no-masks", action="store_true", help="do not render target/robot masks")
+    r.add_argument("--goal-images", type=Path, default=None,
+                   help="folder with <obs key>.png goal images (image_primary.png, ...) for goal-conditioned models")
     r.add_argument("--fast-render", action="store_true",
                    help="render without reflections, shadows and anti-aliasing (~3.6x faster frames)")
 
@@ -117,6 +119,7 @@ def _cmd_run(args) -> int:
         instruction=args.instruction,
         masks=not args.no_masks,
         fast_render=args.fast_render,
+        goal_images=args.goal_images,
         policy=policy,
         outputs=outputs,
     )

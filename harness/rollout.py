@@ -35,13 +35,17 @@ def rollout(
     *,
     seed: int,
     instruction: str | None = None,
+    goals: dict[str, np.ndarray] | None = None,
     max_steps: int | None = None,
     on_step: Callable[[int, StepRecord], None] | None = None,
 ) -> EpisodeResult:
-    """Run one episode with `env.reset(seed=seed)`; stops on termination, truncation or `max_steps`."""
+    """Run one episode with `env.reset(seed=seed)`; stops on termination, truncation or `max_steps`.
+
+    The task is the language instruction, or `goals` ({obs key: (height, width, 3) uint8}) when given.
+    """
     observation, info = env.reset(seed=seed)
     instruction = instruction or info.get("instruction", "")
-    policy.reset(instruction, seed=seed)
+    policy.reset(instruction, seed=seed, goals=goals)
     limit = max_steps if max_steps is not None else math.inf
     totals = {"simulation": 0.0, "inference": 0.0, "enqueue": 0.0, "step": 0.0}
     total_reward, success, t = 0.0, False, 0

@@ -17,11 +17,12 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from PIL import Image
 
 import envs
 from harness.files import atomic_write_json
 from harness.octo import load_pretrained
-from harness.policy import OctoPolicy, PolicyConfig
+from harness.policy import OctoPolicy, PolicyConfig, resize_frame
 from harness.records import EpisodeMeta, StepRecord
 from harness.rollout import rollout
 from harness.writers import EpisodeWriter, OutputOptions
@@ -41,6 +42,7 @@ class RunConfig:
     instruction: str | None = None  # override the task's default instruction
     masks: bool = True  # ask the env for target/robot masks (attention mass on the target)
     fast_render: bool = False  # no reflections/shadows/anti-aliasing: ~3.6x faster frames, near-identical pixels
+    goal_images: Path | None = None  # folder with <obs key>.png goal images (goal-conditioned models)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     outputs: OutputOptions = field(default_factory=OutputOptions)
 
@@ -146,6 +148,10 @@ def run(
     if model.is_random:
         log.warning("model %s has RANDOM weights: actions and attention are not Octo's", model.source)
     policy = OctoPolicy(model, config.policy)
+    goals = load_goal_images(config.goal_images, model.goal_image_sizes) if config.goal_images else None
+    if goals is None and model.config.language is None:
+        raise ValueError(f"{model.source} is goal-conditioned (no language input); pass --goal-images DIR holding "
+                         f"{', '.join(k + '.png' for k in sorted(model.goal_image_sizes))}")
     run_name = config.run_name or f"{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}_{_short(model.source)}"
     run_dir = Path(config.out_dir) / run_name
     manifest = _manifest(config, model, policy)
@@ -155,7 +161,7 @@ def run(
         env = envs.make(task, masks=config.masks, instruction=config.instruction, fast_render=config.fast_render)
         try:
             for k in range(config.episodes):
-                rows.append(_run_episode(config, env, policy, tokens, task, k, run_dir, manifest, on_step))
+                rows.append(_run_episode(config, env, policy, goals, tokens, task, k, run_dir, manifest, on_step))
                 atomic_write_json(run_dir / "results.json", {"manifest": manifest, "episodes": [asdict(r) for r in rows]})
         finally:
             env.close()
@@ -166,7 +172,19 @@ def _short(source: str) -> str:
     return source.rstrip("/").replace("hf://", "").replace("random:", "random-").split("/")[-1].replace(":", "-")
 
 
-def _run_episode(config, env, policy, tokens, task, k, run_dir, manifest, on_step) -> EpisodeRow:
+def load_goal_images(folder: Path, sizes: dict[str, tuple[int, int]]) -> dict[str, np.ndarray]:
+    """<folder>/<obs key>.png for each goal key the model takes -> {key: (height, width, 3) uint8} at its size."""
+    goals = {}
+    for key, size in sizes.items():
+        path = Path(folder) / f"{key}.png"
+        if path.is_file():
+            goals[key] = resize_frame(np.asarray(Image.open(path).convert("RGB")), size)
+    if not goals:
+        raise FileNotFoundError(f"no goal images in {folder}; expected {', '.join(k + '.png' for k in sorted(sizes))}")
+    return goals
+
+
+def _run_episode(config, env, policy, goals, tokens, task, k, run_dir, manifest, on_step) -> EpisodeRow:
     seed = config.seed + k
     episode_dir = run_dir / task / f"episode_{k}"
     instruction = config.instruction or envs.get_task(task).instruction
@@ -186,8 +204,8 @@ def _run_episode(config, env, policy, tokens, task, k, run_dir, manifest, on_ste
     step_cb = (lambda t, rec: on_step(task, k, t, rec)) if on_step else None
     try:
         writer = EpisodeWriter(episode_dir, tokens, meta, config.outputs)
-        result = rollout(env, policy, writer.add_step, seed=seed, instruction=instruction, max_steps=config.max_steps,
-                         on_step=step_cb)
+        result = rollout(env, policy, writer.add_step, seed=seed, instruction=instruction, goals=goals,
+                         max_steps=config.max_steps, on_step=step_cb)
         writer.finish(
             {
                 "success": result.success,

@@ -130,3 +130,22 @@ def test_cli_lists_every_registered_task(capsys):
     out = capsys.readouterr().out
     for spec in envs.list_tasks():
         assert spec.name in out and spec.instruction in out
+
+
+def test_goal_conditioned_model_needs_goal_images_and_runs_with_them(fixtures_dir, tmp_path, capsys):
+    model = str(fixtures_dir / "tiny_goal")
+    code = cli.main(["run", "--task", "Lift", "--model", model, "--out", str(tmp_path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "--goal-images" in err[0] and "image_primary.png" in err[0]
+    goals = tmp_path / "goals"
+    goals.mkdir()
+    rng = np.random.default_rng(0)
+    iio.imwrite(goals / "image_primary.png", rng.integers(0, 256, (256, 256, 3), dtype=np.uint8))
+    iio.imwrite(goals / "image_wrist.png", rng.integers(0, 256, (128, 128, 3), dtype=np.uint8))
+    code = cli.main(["run", "--task", "Lift", "--model", model, "--goal-images", str(goals), "--max-steps", "2",
+                     "--out", str(tmp_path), "--run-name", "goal", "--png-every", "0", "--no-video"])
+    assert code == 0
+    with np.load(tmp_path / "goal" / "Lift" / "episode_0" / "attention.npz") as z:
+        groups = set(z["tokens/group"].tolist())
+        assert z["readout_attention"].shape[0] == 2
+    assert "task_language" not in groups and "obs_primary" in groups
