@@ -142,3 +142,23 @@ def test_pad_and_truncate_hand_values():
     enc = pad_and_truncate([[5, 6], [], [7, 8, 9, 10]], max_length=4)
     assert enc.input_ids.tolist() == [[5, 6, 1, 0], [1, 0, 0, 0], [7, 8, 9, 1]]
     assert enc.attention_mask.tolist() == [[1, 1, 1, 0], [1, 0, 0, 0], [1, 1, 1, 1]]
+
+
+def test_cache_only_never_contacts_the_hub(tmp_path, monkeypatch):
+    import socket
+
+    import huggingface_hub.constants as hf_constants
+
+    from harness.octo.text import load_text_tokenizer
+
+    monkeypatch.setattr(hf_constants, "HF_HUB_OFFLINE", False)  # as on a machine with no offline flag set
+    monkeypatch.delenv("HF_HUB_OFFLINE", raising=False)
+    lookups = []
+
+    def no_network(*args, **kwargs):
+        lookups.append(args[0] if args else kwargs)
+        raise OSError("network disabled in this test")
+
+    monkeypatch.setattr(socket, "getaddrinfo", no_network)
+    tok = load_text_tokenizer("t5-base", allow_fallback=True, cache_only=True, cache_dir=tmp_path)
+    assert tok.is_fallback and lookups == []

@@ -125,8 +125,9 @@ def _text_tokenizer(config: OctoConfig, override: str | None, t5, allow_fallback
                     "" if name else " because config.json has no text_processor")
         return fallback_tokenizer(t5.vocab_size, max_length)
     try:
+        # a random model falls back rather than wait on the hub: its weights make any tokenizer arbitrary anyway
         return load_text_tokenizer(name, max_length, allow_fallback=allow_fallback, vocab_size=t5.vocab_size,
-                                   cache_dir=cache_dir)
+                                   cache_dir=cache_dir, cache_only=allow_fallback)
     except FileNotFoundError as e:
         raise HubUnavailableError(f"{e} (or pass text_tokenizer='fallback' to run without it)") from None
 

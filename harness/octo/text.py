@@ -120,17 +120,19 @@ def load_text_tokenizer(
     allow_fallback: bool = False,
     vocab_size: int = 32128,
     cache_dir: str | Path | None = None,
+    cache_only: bool = False,
 ) -> TextTokenizer:
     """Tokenizer from a local tokenizer.json / folder, or a hub repo ("t5-base" -> google-t5/t5-base).
 
     Offline without a cached copy: the fallback over `vocab_size` ids if `allow_fallback`, else
-    TokenizerUnavailableError. `cache_dir` overrides the Hugging Face cache location.
+    TokenizerUnavailableError. `cache_dir` overrides the Hugging Face cache location; `cache_only`
+    never contacts the hub (as if offline), for callers that would rather fall back than wait.
     """
     _check_max_length(max_length)
     path = _local_tokenizer_file(name)
     if path is None:
         try:
-            path = _download(name, cache_dir)
+            path = _download(name, cache_dir, cache_only)
         except TokenizerUnavailableError:
             if not allow_fallback:
                 raise
@@ -160,12 +162,15 @@ def _local_tokenizer_file(name: str) -> Path | None:
     return None
 
 
-def _download(name: str, cache_dir: str | Path | None) -> Path:
+def _download(name: str, cache_dir: str | Path | None, cache_only: bool = False) -> Path:
     repo = _LEGACY_HUB_NAMES.get(name, name)
     try:
-        return Path(hf_hub_download(repo, _TOKENIZER_FILE, cache_dir=cache_dir))
+        return Path(hf_hub_download(repo, _TOKENIZER_FILE, cache_dir=cache_dir, local_files_only=cache_only))
     except (LocalEntryNotFoundError, OfflineModeIsEnabled) as e:  # before EntryNotFoundError: a subclass of it
-        where = "HF_HUB_OFFLINE=1" if hf_constants.HF_HUB_OFFLINE else "the hub could not be reached"
+        if hf_constants.HF_HUB_OFFLINE:
+            where = "HF_HUB_OFFLINE=1"
+        else:
+            where = "the cache alone was searched" if cache_only else "the hub could not be reached"
         raise TokenizerUnavailableError(
             f"{name} tokenizer not in the Hugging Face cache and {where}; "
             "run once online or pass a local tokenizer.json"
