@@ -149,3 +149,22 @@ def test_goal_conditioned_model_needs_goal_images_and_runs_with_them(fixtures_di
         groups = set(z["tokens/group"].tolist())
         assert z["readout_attention"].shape[0] == 2
     assert "task_language" not in groups and "obs_primary" in groups
+
+
+def test_receding_horizon_executes_k_actions_per_inference(tiny):
+    env = envs.make("Lift", cameras={"image_primary": ("agentview", 64), "image_wrist": ("robot0_eye_in_hand", 32)})
+    try:
+        obs, info = env.reset(seed=3)
+        policy = OctoPolicy(tiny, PolicyConfig(execution="receding_horizon", receding_steps=2))
+        policy.reset(info["instruction"], seed=3)
+        steps = []
+        for _ in range(4):
+            steps.append(policy.step(obs))
+            obs, *_ = env.step(steps[-1].action)
+    finally:
+        env.close()
+    assert [s.inferred for s in steps] == [True, False, True, False]
+    np.testing.assert_array_equal(steps[0].action, steps[0].chunk[0])
+    np.testing.assert_array_equal(steps[1].action, steps[0].chunk[1])  # second action of the same chunk
+    assert steps[1].readout_attention is steps[0].readout_attention  # attention of the chunk being executed
+    assert not np.array_equal(steps[2].chunk, steps[0].chunk)
