@@ -2,15 +2,16 @@
 
 A crash or Ctrl-C therefore never leaves a half-written file under its final name; a temp file is
 `<name>.tmp.<ext>` (the extension stays last so encoders such as ffmpeg pick the format) and is
-deleted when its write fails.
+deleted when its write fails. JSON files go through `json_safe` (numpy values to Python, NaN/inf to null).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
-from typing import IO, Callable
+from typing import IO, Any, Callable
 
 import numpy as np
 
@@ -36,15 +37,26 @@ def write_atomic(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
 
 
 def atomic_write_json(path: str | Path, obj) -> Path:
-    data = (json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n").encode()
+    """`json_safe(obj)` as indented JSON with sorted keys, written atomically."""
+    data = (json.dumps(json_safe(obj), indent=2, sort_keys=True) + "\n").encode()
     return write_atomic(path, lambda f: f.write(data))
 
 
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+def json_safe(x: Any) -> Any:
+    """JSON-safe copy: numpy scalars/arrays and Paths to Python, NaN/inf to None, floats rounded to 6 places."""
+    if isinstance(x, dict):
+        return {str(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [json_safe(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return json_safe(x.tolist())
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        x = float(x)
+        return round(x, 6) if math.isfinite(x) else None
+    if isinstance(x, Path):
+        return str(x)
+    return x

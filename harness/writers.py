@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import queue
 import struct
@@ -50,7 +49,7 @@ from harness.attention import HEAD_FUSIONS, camera_maps, fuse_heads, rollout_rea
 from harness.octo.tokens import TokenMap
 from harness.overlays import colormap_lut, heatmap_overlay, layer_panel, mask_bbox, video_frame
 from harness.records import EpisodeMeta, StepRecord
-from harness.files import write_atomic
+from harness.files import atomic_write_json, json_safe, write_atomic
 from harness.video import GifWriter, Mp4Writer
 
 PNG_NAME = "step_{step:04d}_layer_{layer:02d}.png"
@@ -125,26 +124,6 @@ def encode_png(image: np.ndarray, level: int = 2) -> bytes:
 
     header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)  # 8 bits, truecolour, deflate, no interlace
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(filtered.tobytes(), level)) + chunk(b"IEND", b"")
-
-
-def _json_value(x: Any) -> Any:
-    """JSON-safe copy: numpy scalars/arrays to Python, NaN/inf to None, rounded floats."""
-    if isinstance(x, dict):
-        return {str(k): _json_value(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_json_value(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _json_value(x.tolist())
-    if isinstance(x, (bool, np.bool_)):
-        return bool(x)
-    if isinstance(x, (int, np.integer)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        x = float(x)
-        return round(x, 6) if math.isfinite(x) else None
-    if isinstance(x, Path):
-        return str(x)
-    return x
 
 
 def _nest(flat: dict[str, Any]) -> dict[str, Any]:
@@ -254,7 +233,7 @@ class EpisodeWriter:
             self._raise_if_failed()
             files = self._write_files()
             result = self._summary(files, summary or {}, time.perf_counter() - start)
-            write_atomic(self.dir / "episode.json", lambda f: f.write(json.dumps(_json_value(result), indent=2).encode()))
+            atomic_write_json(self.dir / "episode.json", result)
         except BaseException:
             self._abort_outputs()
             raise
@@ -526,7 +505,7 @@ class EpisodeWriter:
                 timings["blocked"] = self._blocked[i]
             entry = {"step": step, "reward": self._rewards[i], "success": self._success[i], **_nest(self._metrics[i]),
                      "timings": timings}
-            lines.append(json.dumps(_json_value(entry)))
+            lines.append(json.dumps(json_safe(entry)))
         write_atomic(self.dir / "metrics.jsonl", lambda f: f.write(("\n".join(lines) + "\n" if lines else "").encode()))
         files["metrics"] = "metrics.jsonl"
 
