@@ -72,7 +72,8 @@ class OctoModel:
         self._schedule = make_schedule(head.diffusion_steps) if isinstance(head, DiffusionHeadConfig) else None
         self._sample_jit = jax.jit(self._sample, static_argnames=("capture", "normalization_type"))
         self._encode_jit = jax.jit(self._encode)
-        self._seen_signatures: set = set()
+        backbone = {k: v for k, v in params["octo_transformer"].items() if not k.startswith("task_tokenizers_")}
+        self._inference_params = {**params, "octo_transformer": backbone}  # without the T5 encoder, built once
         self._token_maps: dict = {}  # SequenceLayout -> TokenMap
 
     # ------------------------------------------------------------------ statistics
@@ -153,16 +154,13 @@ class OctoModel:
         task_in, encoding = self._prepare_task(task, pad.shape[0])
         stats = _prepare_statistics(unnormalization_statistics, normalization_type, self.action_dim)
         layout = self._layout(obs, encoding)
-        leaves, treedef = jax.tree.flatten((obs, task_in, encoding, pad, stats))
         capture = "full" if full_attention else ("readout" if capture_attention else "none")
-        signature = (str(treedef), tuple((np.shape(x), str(x.dtype)) for x in leaves), capture, normalization_type)
-        first = signature not in self._seen_signatures
+        compiled = self.sample_cache_size
         start = time.perf_counter()
         actions, captured = self._sample_jit(self._inference_params, obs, task_in, encoding, pad, rng, stats,
                                              capture=capture, normalization_type=normalization_type)
-        if first:
+        if self.sample_cache_size > compiled:  # this call compiled a new variant
             jax.block_until_ready(actions)
-            self._seen_signatures.add(signature)
             log.info("sample_actions compiled and ran in %.2f s (batch %d, window %d, %d keys, attention capture: %s)",
                      time.perf_counter() - start, pad.shape[0], pad.shape[1], layout.num_tokens, capture)
         tokens = self._token_map(layout)
@@ -177,11 +175,6 @@ class OctoModel:
     def sample_cache_size(self) -> int:
         """Number of compiled variants of the jitted sampler (1 after any number of same-shape calls)."""
         return self._sample_jit._cache_size()
-
-    @property
-    def _inference_params(self) -> dict:
-        backbone = {k: v for k, v in self.params["octo_transformer"].items() if not k.startswith("task_tokenizers_")}
-        return {**self.params, "octo_transformer": backbone}
 
     def _sample(self, params, obs, task, encoding, pad, rng, stats, *, capture, normalization_type):
         cfg = self.config
