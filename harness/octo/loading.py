@@ -22,7 +22,7 @@ import numpy as np
 from harness.octo import checkpoint, presets
 from harness.octo.config import LowdimTokenizerConfig, OctoConfig
 from harness.octo.errors import ConfigError, HubUnavailableError
-from harness.octo.model import OctoModel
+from harness.octo.model import _NON_DATA_KEYS, OctoModel, example_observation_sizes
 from harness.octo.network import init_params, random_params
 from harness.octo.stem import lowdim_stack_keys
 
@@ -30,7 +30,6 @@ log = logging.getLogger(__name__)
 
 RANDOM_PREFIX = "random:"
 RANDOM_SEED = 0  # random models draw their weights from this seed (network.random_params)
-_NON_DATA_KEYS = ("pad_mask_dict", "timestep_pad_mask", "pad_mask")
 
 
 def load_pretrained(uri: str, step: int | None = None, *, text_tokenizer: str | None = None,
@@ -118,7 +117,7 @@ def _text_tokenizer(config: OctoConfig, override: str | None, t5, allow_fallback
         return None
     from harness.octo.text import fallback_tokenizer, load_text_tokenizer
 
-    max_length = config.text_processor.max_length if config.text_processor else presets.LANGUAGE_TOKENS
+    max_length = _language_tokens(config)
     name = override or (config.text_processor.tokenizer_name if config.text_processor else None)
     if name is None or name == "fallback":
         log.warning("using the deterministic fallback text tokenizer (NOT T5) over %d ids%s", t5.vocab_size,
@@ -135,17 +134,20 @@ def _text_tokenizer(config: OctoConfig, override: str | None, t5, allow_fallback
 def _input_shapes(config: OctoConfig, example: dict) -> dict:
     """Image sizes, low-dim sizes, window and language length that fix the parameter shapes."""
     obs = example["observation"]
-    images = {k: tuple(int(s) for s in np.shape(v)[2:4]) for k, v in obs.items() if k.startswith("image_") and np.ndim(v) == 5}
+    images, window = example_observation_sizes(obs, config.window_size)
     lowdim = {}
     for tok in config.observation_tokenizers:
         if isinstance(tok, LowdimTokenizerConfig):
             for k in lowdim_stack_keys(tok, [k for k in obs if k not in _NON_DATA_KEYS]):
                 lowdim[k] = int(np.shape(obs[k])[-1])
-    window = int(np.shape(obs["timestep_pad_mask"])[1]) if "timestep_pad_mask" in obs else config.window_size
     language = example.get("task", {}).get("language_instruction")
-    n_lang = int(np.shape(language["input_ids"])[1]) if isinstance(language, Mapping) else (
-        config.text_processor.max_length if config.text_processor else presets.LANGUAGE_TOKENS)
+    n_lang = int(np.shape(language["input_ids"])[1]) if isinstance(language, Mapping) else _language_tokens(config)
     return {"image_sizes": images, "window": window, "lowdim_sizes": lowdim, "language_tokens": n_lang}
+
+
+def _language_tokens(config: OctoConfig) -> int:
+    """Instruction length in tokens: the config's text processor's, else the released models' default."""
+    return config.text_processor.max_length if config.text_processor else presets.LANGUAGE_TOKENS
 
 
 def _default_image_sizes(config: OctoConfig) -> dict[str, tuple[int, int]]:
@@ -168,7 +170,7 @@ def _synthetic_example_batch(config: OctoConfig, image_sizes: Mapping[str, tuple
     task: dict[str, Any] = {k: np.zeros((1, h, w, 3), np.uint8) for k, (h, w) in image_sizes.items()}
     task["pad_mask_dict"] = {k: np.zeros((1,), bool) for k in image_sizes}
     if config.language is not None:
-        n = config.text_processor.max_length if config.text_processor else presets.LANGUAGE_TOKENS
+        n = _language_tokens(config)
         task["language_instruction"] = {"input_ids": np.zeros((1, n), np.int32), "attention_mask": np.zeros((1, n), np.int32)}
         task["pad_mask_dict"]["language_instruction"] = np.ones((1,), bool)
     return {"observation": obs, "task": task}

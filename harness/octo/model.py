@@ -60,10 +60,7 @@ class OctoModel:
         self.t5_config = t5_config
         self.source = source
         self.is_random = is_random
-        obs = example_batch["observation"]
-        self.window_size = int(np.shape(obs["timestep_pad_mask"])[1]) if "timestep_pad_mask" in obs else config.window_size
-        self.image_sizes = {k: tuple(int(s) for s in np.shape(v)[2:4]) for k, v in obs.items()
-                            if k.startswith("image_") and np.ndim(v) == 5}
+        self.image_sizes, self.window_size = example_observation_sizes(example_batch["observation"], config.window_size)
         self.goal_image_sizes = {k: tuple(int(s) for s in np.shape(v)[1:3]) for k, v in example_batch.get("task", {}).items()
                                  if k.startswith("image_") and np.ndim(v) == 4}
         head = config.action_head
@@ -325,6 +322,13 @@ class OctoModel:
     def _layout(self, obs: Mapping, encoding):
         shapes = {k: np.shape(v) for k, v in obs.items() if k != "pad_mask_dict"}
         return sequence_layout(self.config, shapes, None if encoding is None else int(encoding.shape[1]))
+
+
+def example_observation_sizes(obs: Mapping, default_window: int) -> tuple[dict[str, tuple[int, int]], int]:
+    """An example batch's observation dict -> ({image key: (height, width)}, window)."""
+    sizes = {k: tuple(int(s) for s in np.shape(v)[2:4]) for k, v in obs.items() if k.startswith("image_") and np.ndim(v) == 5}
+    window = int(np.shape(obs["timestep_pad_mask"])[1]) if "timestep_pad_mask" in obs else default_window
+    return sizes, window
 
 
 def _prepare_statistics(stats: Mapping | None, normalization_type: str, action_dim: int) -> dict | None:
