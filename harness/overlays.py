@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from harness.attention import fuse_heads, upsample_map
+from harness.attention import fuse_heads
 
 BACKGROUND = 255
 TEXT = (0, 0, 0)
@@ -87,7 +87,7 @@ def _upsample_colours(colours: np.ndarray, height: int, width: int) -> np.ndarra
     rows, cols = colours.shape[:2]
     if height % rows == 0 and width % cols == 0:  # fast path: whole blocks
         return np.repeat(np.repeat(colours, height // rows, axis=0), width // cols, axis=1)
-    return np.moveaxis(upsample_map(np.moveaxis(colours, -1, 0), height, width), 0, -1)
+    return resize_nearest(colours, height, width)
 
 
 def heatmap_overlays(
