@@ -22,8 +22,8 @@ import numpy as np
 from harness.octo import checkpoint, presets
 from harness.octo.config import LowdimTokenizerConfig, OctoConfig
 from harness.octo.errors import ConfigError, HubUnavailableError
-from harness.octo.model import _NON_DATA_KEYS, OctoModel, example_observation_sizes
-from harness.octo.network import init_params, random_params
+from harness.octo.model import OctoModel, example_observation_sizes
+from harness.octo.network import NON_DATA_KEYS, init_params, random_params
 from harness.octo.stem import lowdim_stack_keys
 
 log = logging.getLogger(__name__)
@@ -138,7 +138,7 @@ def _input_shapes(config: OctoConfig, example: dict) -> dict:
     lowdim = {}
     for tok in config.observation_tokenizers:
         if isinstance(tok, LowdimTokenizerConfig):
-            for k in lowdim_stack_keys(tok, [k for k in obs if k not in _NON_DATA_KEYS]):
+            for k in lowdim_stack_keys(tok, [k for k in obs if k not in NON_DATA_KEYS]):
                 lowdim[k] = int(np.shape(obs[k])[-1])
     language = example.get("task", {}).get("language_instruction")
     n_lang = int(np.shape(language["input_ids"])[1]) if isinstance(language, Mapping) else _language_tokens(config)

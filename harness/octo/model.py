@@ -29,13 +29,11 @@ from harness.octo.config import DiffusionHeadConfig, ImageTokenizerConfig, OctoC
 from harness.octo.diffusion import make_schedule, sample
 from harness.octo.errors import InputError, OctoError, UnknownDatasetKeyError
 from harness.octo.heads import ContinuousHead, ScoreNetwork, pool_readouts
-from harness.octo.network import LanguageTokenizer, OctoTransformer, sequence_layout
+from harness.octo.network import NON_DATA_KEYS, LanguageTokenizer, OctoTransformer, sequence_layout
 from harness.octo.stem import image_stack_keys, lowdim_stack_keys
 from harness.octo.tokens import TokenMap
 
 log = logging.getLogger(__name__)
-
-_NON_DATA_KEYS = ("pad_mask_dict", "timestep_pad_mask", "pad_mask")
 
 
 @dataclass(frozen=True, eq=False)
@@ -239,7 +237,7 @@ class OctoModel:
     # ------------------------------------------------------------------ input preparation
 
     def _used_observation_keys(self, observations: Mapping) -> list[str]:
-        keys = [k for k in observations if k not in _NON_DATA_KEYS]
+        keys = [k for k in observations if k not in NON_DATA_KEYS]
         used = set()
         for tok in self.config.observation_tokenizers:
             if isinstance(tok, ImageTokenizerConfig):

@@ -49,6 +49,9 @@ class SequenceLayout:
         return build_token_map(list(self.prefix_groups), list(self.timestep_groups), self.window, self.image_groups)
 
 
+NON_DATA_KEYS = ("pad_mask_dict", "timestep_pad_mask", "pad_mask")  # observation keys that are masks, not model inputs
+
+
 def sequence_layout(config: OctoConfig, observation_shapes: Mapping[str, tuple[int, ...]],
                     language_tokens: int | None) -> SequenceLayout:
     """Layout for observations of the given shapes `{key: (batch, window, ...)}`.
@@ -56,7 +59,7 @@ def sequence_layout(config: OctoConfig, observation_shapes: Mapping[str, tuple[i
     language_tokens: number of language tokens, or None when the task has no language (Octo then
     skips the language tokenizer).
     """
-    keys = [k for k in observation_shapes if k not in ("pad_mask_dict", "timestep_pad_mask", "pad_mask")]
+    keys = [k for k in observation_shapes if k not in NON_DATA_KEYS]
     window = int(next(iter(observation_shapes[k] for k in keys))[1])
     prefix, timestep, images = [], [], []
     for tok in config.task_tokenizers:
