@@ -10,7 +10,8 @@ timestep, `(rows, cols)` a camera's patch grid.
 - `attention_rollout`, `rollout_readout_rows`: attention rollout across layers (full matrices).
 - `modality_shares`, `timestep_shares`: how a row's mass splits over token groups / timesteps.
 - `mask_mass`, `mask_patch_fraction`, `mask_area_fraction`: attention mass inside an
-  image-resolution mask, the per-patch coverage it uses, and chance level.
+  image-resolution mask, the per-patch coverage it uses, and chance level; `mask_fractions`: the
+  coverage of every camera's masks (what the writers store so mask mass can be recomputed per head).
 - `entropy`: entropy of rows in nats.
 - `upsample_map`: a patch map -> a patch-constant image-resolution map (used by overlays).
 - `step_metrics`: the per-step summary the writers store.
@@ -230,6 +231,21 @@ def _mass_inside(maps: np.ndarray, fraction: np.ndarray) -> np.ndarray:
     total = maps.sum(axis=(-2, -1))
     inside = (maps * fraction).sum(axis=(-2, -1))
     return np.divide(inside, total, out=np.full_like(total, np.nan), where=total > 0)
+
+
+def mask_fractions(tokens: TokenMap, masks: dict[str, dict[str, np.ndarray]] | None) -> dict[str, np.ndarray]:
+    """masks: observation key -> {mask name: (H, W) bool} -> {"<obs>/<name>": (rows, cols) float32 patch coverage}.
+
+    The per-patch coverage (`mask_patch_fraction`) on each camera's own patch grid: with the attention rows it
+    gives the mask mass of any head, layer or readout later (sum_p map[p] * fraction[p] / sum_p map[p]).
+    Cameras the model has no image group for, and missing masks, are left out.
+    """
+    out: dict[str, np.ndarray] = {}
+    for _, obs_key, rows, cols in tokens.image_groups:
+        for name, mask in ((masks or {}).get(obs_key) or {}).items():
+            if mask is not None:
+                out[f"{obs_key}/{name}"] = mask_patch_fraction(mask, rows, cols).astype(np.float32)
+    return out
 
 
 def mask_area_fraction(mask: np.ndarray) -> float:

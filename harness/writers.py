@@ -10,7 +10,10 @@ to the rollout video. `finish()` writes the arrays and JSON. Files in `episode_d
   rollout.mp4 (rollout.gif)   camera | attention overlay | captions, over a per-layer strip
   attention.npz               readout_attention (steps, layers, heads, readouts, keys) float16,
                               tokens/* (TokenMap.to_arrays), metrics/<name> (steps, ...) float32,
-                              step (steps,), rollout_readout (steps, readouts, keys) float16 if used
+                              step (steps,), rollout_readout (steps, readouts, keys) float16 if used,
+                              mask_fraction/<obs>/<name> (steps, rows, cols) float32: each patch's
+                              coverage by the mask (attention.mask_fractions; nan where a step lacks it),
+                              so mask mass can be recomputed per head / layer from readout_attention
   actions.npz                 predicted (steps, horizon, dim), executed (steps, dim), reward, success, step
   metrics.jsonl               one JSON object per step: shares, entropy, mask mass per layer, timings
   episode.json                metadata and summary; written LAST, so a directory holding it is complete
@@ -45,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.attention import HEAD_FUSIONS, camera_maps, fuse_heads, rollout_readout_rows, step_metrics
+from harness.attention import HEAD_FUSIONS, camera_maps, fuse_heads, mask_fractions, rollout_readout_rows, step_metrics
 from harness.octo.tokens import TokenMap
 from harness.overlays import colormap_lut, heatmap_overlay, layer_panel, mask_bbox, video_frame
 from harness.records import EpisodeMeta, StepRecord
@@ -126,6 +129,19 @@ def encode_png(image: np.ndarray, level: int = 2) -> bytes:
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(filtered.tobytes(), level)) + chunk(b"IEND", b"")
 
 
+def _stack_steps(per_step: list[dict[str, np.ndarray]], prefix: str) -> dict[str, np.ndarray]:
+    """[{name: (...)} per step] -> {prefix + name: (steps, ...) float32}; steps that lack a name hold nan."""
+    names: dict[str, tuple] = {}
+    for m in per_step:
+        for k, v in m.items():
+            names.setdefault(k, np.shape(v))
+    out = {}
+    for name, shape in names.items():
+        rows = [np.asarray(m[name], np.float32) if name in m else np.full(shape, np.nan, np.float32) for m in per_step]
+        out[prefix + name] = np.stack(rows)
+    return out
+
+
 def _nest(flat: dict[str, Any]) -> dict[str, Any]:
     """{"a/b/c": v} -> {"a": {"b": {"c": v}}}."""
     out: dict[str, Any] = {}
@@ -194,6 +210,7 @@ class EpisodeWriter:
         self._rewards: list[float] = []
         self._success: list[bool] = []
         self._metrics: list[dict[str, np.ndarray]] = []
+        self._mask_fractions: list[dict[str, np.ndarray]] = []  # "<obs>/<name>" -> (rows, cols) per step
         self._timings: list[dict[str, float]] = []
         self._pngs: list[str] = []
         self._deferred: list[tuple] = []  # episode normalisation: (step, frames, maps, boxes) rendered at finish
@@ -363,6 +380,7 @@ class EpisodeWriter:
         self._rewards.append(float(record.reward))
         self._success.append(bool(record.success))
         self._metrics.append(step_metrics(attn, tokens, record.masks))
+        self._mask_fractions.append(mask_fractions(tokens, record.masks))
         self._timings.append({k: float(v) for k, v in record.timings.items()})
 
         frames = {cam: record.frames[cam] for cam in layout.cameras}
@@ -466,16 +484,8 @@ class EpisodeWriter:
     # ---- files at finish ---------------------------------------------------------------------
 
     def _metric_arrays(self) -> dict[str, np.ndarray]:
-        """metrics/<name> -> (steps, ...) float32; steps that lack a metric (e.g. no mask) hold nan."""
-        names: dict[str, tuple] = {}
-        for m in self._metrics:
-            for k, v in m.items():
-                names.setdefault(k, np.shape(v))
-        out = {}
-        for name, shape in names.items():
-            rows = [np.asarray(m[name], np.float32) if name in m else np.full(shape, np.nan, np.float32) for m in self._metrics]
-            out[f"metrics/{name}"] = np.stack(rows)
-        return out
+        """metrics/<name> and mask_fraction/<obs>/<name> -> (steps, ...) float32; steps that lack one (e.g. no mask) hold nan."""
+        return {**_stack_steps(self._metrics, "metrics/"), **_stack_steps(self._mask_fractions, "mask_fraction/")}
 
     def _write_files(self) -> dict[str, Any]:
         steps = np.asarray(self._steps, np.int32)
