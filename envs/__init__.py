@@ -6,7 +6,11 @@ because MuJoCo reads it at import time, then registers every task with gymnasium
 
     import envs
     env = envs.make("Lift", masks=True)
+    env = envs.make("Lift", envs.EnvOptions(cameras=(("image_primary", "agentview", 84),), action_space="robosuite"))
     obs, info = env.reset(seed=0)
+
+`EnvOptions` (envs.options) is the serialisable part a run protocol records; keyword arguments of
+`make` with the same names override it.
 """
 
 from __future__ import annotations
@@ -21,15 +25,19 @@ import gymnasium  # noqa: E402
 
 from envs.actions import ActionAdapterConfig, ActionAdapterError, adapt_action  # noqa: E402
 from envs.gl import HeadlessGLError  # noqa: E402
+from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvOptions, parse_camera  # noqa: E402
 from envs.render import UnknownCameraError  # noqa: E402
 from envs.robosuite_env import EnvConfig, EnvConfigError, RobosuiteEnv, WrongThreadError, parse_cameras  # noqa: E402
 from envs.tasks import TaskSpec, UnknownTaskError, get_task, list_tasks, task_table  # noqa: E402
 
 __all__ = [
+    "ACTION_SPACES",
+    "IMAGE_CONVENTIONS",
     "ActionAdapterConfig",
     "ActionAdapterError",
     "EnvConfig",
     "EnvConfigError",
+    "EnvOptions",
     "HeadlessGLError",
     "RobosuiteEnv",
     "TaskSpec",
@@ -41,41 +49,51 @@ __all__ = [
     "list_tasks",
     "make",
     "make_vector",
+    "parse_camera",
     "task_table",
 ]
 
 
 def make(
     task: str,
+    options: EnvOptions | None = None,
     *,
     cameras: dict[str, tuple[str, int]] | None = None,
-    masks: bool = False,
+    masks: bool | None = None,
+    fast_render: bool | None = None,
+    image_convention: str | None = None,
+    action_space: str | None = None,
     terminate_on_success: bool = True,
     max_episode_steps: int | None = None,
     instruction: str | None = None,
     action_adapter: ActionAdapterConfig | None = None,
-    fast_render: bool = False,
     model_seed: int = 0,
     render_mode: str | None = None,
     **robosuite_options,
 ) -> RobosuiteEnv:
     """A gymnasium environment for registered task `task` (see `list_tasks()`).
 
-    cameras: {observation key: (robosuite camera, square size)}; None gives image_primary = agentview
-    (Door: sideview) 256 px and image_wrist = robot0_eye_in_hand 128 px; {} renders nothing (no GL needed).
+    options: masks, fast_render, cameras, image_convention, action_space (see envs.options); the keyword
+    arguments of the same names override it when given. cameras: {observation key: (robosuite camera,
+    square size)}; None gives image_primary = agentview (Door: sideview) 256 px and image_wrist =
+    robot0_eye_in_hand 128 px; {} renders nothing (no GL needed).
     Remaining keyword arguments go to `robosuite.make` unchanged.
     """
     spec = get_task(task)
+    options = (options or EnvOptions()).replace(cameras=cameras, masks=masks, fast_render=fast_render,
+                                                image_convention=image_convention, action_space=action_space)
     if max_episode_steps is not None and max_episode_steps <= 0:
         raise EnvConfigError(f"max_episode_steps must be positive, got {max_episode_steps}")
     config = EnvConfig(
-        cameras=parse_cameras(cameras, spec),
-        masks=masks,
+        cameras=parse_cameras(options.camera_dict, spec),
+        masks=options.masks,
         terminate_on_success=terminate_on_success,
         max_episode_steps=max_episode_steps,
         instruction=instruction,
         action_adapter=action_adapter,
-        fast_render=fast_render,
+        fast_render=options.fast_render,
+        image_convention=options.image_convention,
+        action_space=options.action_space,
         model_seed=model_seed,
         render_mode=render_mode,
         robosuite_options=tuple(sorted(robosuite_options.items())),

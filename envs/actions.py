@@ -1,4 +1,7 @@
-"""Action adapter: Octo's 7-D end-effector delta to robosuite's OSC_POSE (delta mode) input, as pure numpy.
+"""Action spaces as pure numpy: Octo's 7-D end-effector delta, or robosuite's own OSC_POSE (delta) input.
+
+`adapt_action` maps Octo's delta to the controller input; `passthrough_action` takes the controller
+input as it is (action space "robosuite": what robosuite and robomimic datasets store).
 
 Octo (Bridge convention): `(dx, dy, dz, droll, dpitch, dyaw, gripper)`: translation in metres, rotation
 delta in radians as Euler angles (`rotation_convention`, scipy sequence, default extrinsic "xyz"),
@@ -88,3 +91,17 @@ def adapt_action(action: np.ndarray, config: ActionAdapterConfig = ActionAdapter
 
     osc = np.concatenate([position, rotation, [gripper]])
     return osc, position_clipped or rotation_clipped or gripper_clipped
+
+
+def passthrough_action(action: np.ndarray) -> tuple[np.ndarray, bool]:
+    """(7,) robosuite OSC_POSE input (6 arm values, gripper -1 open / +1 closed) -> (the same clipped to [-1, 1], clipped?).
+
+    Values outside [-1, 1] are clipped (robosuite would clip them too) and reported, so the env can count them.
+    """
+    action = np.asarray(action, dtype=np.float64)
+    if action.shape != (7,):
+        raise ActionAdapterError(f"expected a (7,) robosuite action (6 arm values, gripper), got shape {action.shape}")
+    if not np.all(np.isfinite(action)):
+        raise ActionAdapterError(f"action contains NaN or inf: {action.tolist()}")
+    clipped = bool(np.any(np.abs(action) > 1.0))
+    return np.clip(action, -1.0, 1.0), clipped

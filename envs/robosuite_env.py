@@ -8,8 +8,13 @@ Observations (dict):
                the roll of a downward gripper sits near +-pi and can wrap),
                and the two finger joint positions (2, metres; (+0.04, -0.04) open, ~0 closed; zeros
                for Wipe, whose wiping tool has no fingers).
-Actions: (7,) float32 in Octo's convention (see `envs.actions`), mapped to robosuite OSC_POSE (Wipe
-ignores the gripper value). With robosuite's default OSC (kp 150, goal set from the achieved pose),
+Actions (`action_space`): "octo-delta" (default): (7,) float32 in Octo's convention (see `envs.actions`),
+mapped to robosuite OSC_POSE; "robosuite": (7,) the OSC_POSE input itself (arm values in [-1, 1], gripper
+-1 open / +1 closed), clipped to [-1, 1]. Wipe ignores the gripper value. Out-of-range values are
+clipped and counted (`info["action_clipped"]`).
+Image convention (`image_convention`): "upright" (default) or "opengl" (row 0 = bottom, as robosuite
+renders and robomimic stores frames); images, masks and target pixels all follow it; `render()` is
+always upright (it is for people). With robosuite's default OSC (kp 150, goal set from the achieved pose),
 the arm realises about 25% of a commanded position delta (measured: 5 steps of 0.02 m move it
 0.024-0.026 m after settling).
 info: success (robosuite's own check), instruction, task, step, action_clipped (steps clipped so far
@@ -31,8 +36,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from envs import gl
-from envs.actions import ActionAdapterConfig, adapt_action
+from envs.actions import ActionAdapterConfig, adapt_action, passthrough_action
 from envs.camera import project_points
+from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvConfigError
 from envs.render import CameraSpec, SceneRenderer
 from envs.segmentation import TARGET, geom_categories, masks_from_segmentation, scene_lookup
 from envs.tasks import TaskSpec
@@ -42,10 +48,6 @@ CONTROL_FREQUENCY_HZ = 20
 # proprio bounds: position within 10 m of the origin, Euler angles in [-pi, pi], finger joints within 0.1 m
 _PROPRIO_HIGH = np.array([10.0] * 3 + [np.pi] * 3 + [0.1] * 2, dtype=np.float32)
 PROPRIO_SPACE = gym.spaces.Box(-_PROPRIO_HIGH, _PROPRIO_HIGH, (8,), np.float32)
-
-
-class EnvConfigError(ValueError):
-    """Invalid environment options."""
 
 
 class WrongThreadError(RuntimeError):
@@ -64,6 +66,8 @@ class EnvConfig:
     model_seed: int = 0  # seeds randomised model properties at construction (object sizes, table height)
     render_mode: str | None = None  # None or "rgb_array" (returns the first camera's latest frame)
     robosuite_options: tuple[tuple[str, object], ...] = field(default_factory=tuple)  # extra robosuite.make kwargs
+    image_convention: str = "upright"  # "upright" | "opengl" (see envs.options)
+    action_space: str = "octo-delta"  # "octo-delta" | "robosuite" (see envs.options)
 
 
 def default_cameras(task: TaskSpec) -> tuple[CameraSpec, ...]:
@@ -107,6 +111,10 @@ class RobosuiteEnv(gym.Env):
             raise EnvConfigError(f"render_mode {config.render_mode!r} unsupported; use None or 'rgb_array'")
         if config.render_mode == "rgb_array" and not config.cameras:
             raise EnvConfigError("render_mode='rgb_array' needs at least one camera")
+        if config.image_convention not in IMAGE_CONVENTIONS:
+            raise EnvConfigError(f"image convention {config.image_convention!r} unknown; use one of {', '.join(IMAGE_CONVENTIONS)}")
+        if config.action_space not in ACTION_SPACES:
+            raise EnvConfigError(f"action space {config.action_space!r} unknown; use one of {', '.join(ACTION_SPACES)}")
         self.task = task
         self.config = config
         self.render_mode = config.render_mode
@@ -159,10 +167,13 @@ class RobosuiteEnv(gym.Env):
 
         images = {spec.key: gym.spaces.Box(0, 255, (spec.size, spec.size, 3), np.uint8) for spec in config.cameras}
         self.observation_space = gym.spaces.Dict({**images, "proprio": PROPRIO_SPACE})
-        # the range the adapter passes unclipped: +-position_max metres, about +-rotation_max radians, gripper [0, 1]
-        high = np.array([self.adapter.position_max] * 3 + [self.adapter.rotation_max] * 3 + [1.0], dtype=np.float32)
-        low = np.concatenate([-high[:6], [0.0]]).astype(np.float32)
-        self.action_space = gym.spaces.Box(low, high, dtype=np.float32)
+        self.image_convention = config.image_convention
+        if config.action_space == "robosuite":  # the controller's own input range
+            self.action_space = gym.spaces.Box(-1.0, 1.0, (7,), dtype=np.float32)
+        else:  # the range the adapter passes unclipped: +-position_max metres, about +-rotation_max radians, gripper [0, 1]
+            high = np.array([self.adapter.position_max] * 3 + [self.adapter.rotation_max] * 3 + [1.0], dtype=np.float32)
+            low = np.concatenate([-high[:6], [0.0]]).astype(np.float32)
+            self.action_space = gym.spaces.Box(low, high, dtype=np.float32)
 
         self._step_index = 0
         self._clipped = 0
@@ -186,7 +197,10 @@ class RobosuiteEnv(gym.Env):
         self._check_thread()
         if self._last_obs is None:
             raise gym.error.ResetNeeded("call reset() before step()")
-        osc, clipped = adapt_action(np.asarray(action), self.adapter)
+        if self.config.action_space == "robosuite":
+            osc, clipped = passthrough_action(np.asarray(action))
+        else:
+            osc, clipped = adapt_action(np.asarray(action), self.adapter)
         raw, reward, _, _ = self._env.step(osc[: self._env.action_dim])  # Wipe's gripper-less arm takes 6 values
         self._step_index += 1
         self._clipped += int(clipped)
@@ -199,7 +213,8 @@ class RobosuiteEnv(gym.Env):
     def render(self):
         if self.render_mode != "rgb_array" or self._last_obs is None:
             return None
-        return self._last_obs[self.config.cameras[0].key].copy()
+        frame = self._last_obs[self.config.cameras[0].key]
+        return np.ascontiguousarray(frame[::-1]) if self.image_convention == "opengl" else frame.copy()
 
     def close(self) -> None:
         env, self._env = getattr(self, "_env", None), None
@@ -222,7 +237,7 @@ class RobosuiteEnv(gym.Env):
             raise WrongThreadError("step/reset this environment only from the thread that created it (its GL context lives there)")
 
     def _observe(self, raw: dict) -> dict[str, np.ndarray]:
-        obs = {spec.key: self._renderer.rgb(spec.key) for spec in self.config.cameras}
+        obs = {spec.key: self._in_convention(self._renderer.rgb(spec.key)) for spec in self.config.cameras}
         euler = Rotation.from_quat(raw["robot0_eef_quat_site"]).as_euler("xyz")  # robosuite quats are (x, y, z, w)
         fingers = raw.get("robot0_gripper_qpos", np.zeros(0))  # (2,) for the Panda hand
         if fingers.shape != (2,):  # Wipe's wiping tool has no finger joints
@@ -231,21 +246,49 @@ class RobosuiteEnv(gym.Env):
         self._last_obs = obs
         return obs
 
+    def _in_convention(self, upright: np.ndarray) -> np.ndarray:
+        """(h, w, ...) upright pixels -> the same in this env's image convention (opengl: rows reversed)."""
+        return np.ascontiguousarray(upright[::-1]) if self.image_convention == "opengl" else upright
+
     def target_centres(self) -> np.ndarray:
         """(n_targets, 3) world positions: mean centre of each target's visual geoms."""
         xpos = self._env.sim.data.geom_xpos
         return np.stack([xpos[ids].mean(axis=0) for ids in self._target_geoms])
 
+    def object_poses(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """{robosuite object name: ((3,) world position, (4,) quaternion (x, y, z, w))} of the scene's objects.
+
+        For scripted demonstrators and diagnostics (a policy sees only observations). Names are robosuite's
+        (Lift: "cube"; Stack: "cubeA", "cubeB"; PickPlaceCan: "Can" plus the bins' fixed "<Obj>Visual" markers).
+        """
+        env = self._env
+        model, data = env.sim.model, env.sim.data
+        poses = {}
+        for obj in getattr(env.model, "mujoco_objects", ()):
+            body = model.body_name2id(obj.root_body)
+            w, x, y, z = data.body_xquat[body]  # MuJoCo stores (w, x, y, z)
+            poses[obj.name] = (np.array(data.body_xpos[body]), np.array([x, y, z, w]))
+        return poses
+
+    def placement_targets(self) -> dict[str, np.ndarray]:
+        """{robosuite object name: (3,) world position of the centre of its target bin} (PickPlace tasks; else {})."""
+        env = self._env
+        placements = getattr(env, "target_bin_placements", None)
+        if placements is None:
+            return {}
+        return {obj.name: np.array(placements[env.object_to_id[obj.name.lower()]]) for obj in env.objects}
+
     def target_pixels(self) -> dict[str, np.ndarray]:
-        """{image key: (n_targets, 2) float32 (row, col)} projected target centres in each upright image."""
+        """{image key: (n_targets, 2) float32 (row, col)} projected target centres in each image (env's convention)."""
         data = self._env.sim.data
         centres = self.target_centres()
         pixels = {}
         for key, size in self._camera_sizes.items():
             cam = self._renderer.camera_id(key)
-            pixels[key] = project_points(centres, data.cam_xpos[cam], data.cam_xmat[cam], self._camera_fovy[key], size, size).astype(
-                np.float32
-            )
+            rc = project_points(centres, data.cam_xpos[cam], data.cam_xmat[cam], self._camera_fovy[key], size, size)
+            if self.image_convention == "opengl":
+                rc[:, 0] = (size - 1) - rc[:, 0]
+            pixels[key] = rc.astype(np.float32)
         return pixels
 
     def masks(self) -> dict[str, dict[str, np.ndarray]]:
@@ -253,7 +296,8 @@ class RobosuiteEnv(gym.Env):
         out = {}
         for spec in self.config.cameras:
             image, segids, objtypes, objids = self._renderer.segmentation(spec.key)
-            out[spec.key] = masks_from_segmentation(image, scene_lookup(segids, objtypes, objids, self._geom_category))
+            named = masks_from_segmentation(image, scene_lookup(segids, objtypes, objids, self._geom_category))
+            out[spec.key] = {name: self._in_convention(mask) for name, mask in named.items()}
         return out
 
     def _info(self, success: bool) -> dict:

@@ -1,0 +1,117 @@
+"""Environment options a run protocol records: masks, rendering, cameras, image convention, action space.
+
+`EnvOptions` is frozen, hashable and round-trips through plain JSON/TOML data (`to_dict` / `from_dict`),
+so a run manifest can embed it and a protocol file can hold it. Parsed once at the edge:
+
+    EnvOptions(cameras=(("image_primary", "agentview", 84),), action_space="robosuite")
+    EnvOptions.from_dict({"cameras": {"image_primary": ["agentview", 84]}, "image_convention": "opengl"})
+    parse_camera("image_primary=agentview:84")  ->  ("image_primary", "agentview", 84)
+
+Fields:
+  masks            target/robot masks in `info` every step (attention mass on the target).
+  fast_render      no shadows, reflections, skybox or anti-aliasing (about 4x faster frames on a CPU).
+  cameras          ((observation key, robosuite camera, square size), ...) in observation order;
+                   None = the task's defaults (image_primary = agentview 256, image_wrist = eye-in-hand 128).
+  image_convention "upright" (row 0 = top, what Octo's datasets hold) or "opengl" (row 0 = bottom: frames
+                   stored upside down, as robosuite renders them and robomimic datasets store them). It
+                   applies to every pixel-indexed thing the env returns: images, masks, target pixels.
+  action_space     "octo-delta": Octo's 7-D end-effector delta (Bridge convention, see envs.actions);
+                   "robosuite": the controller's own 7-D input (OSC_POSE delta: 6 arm values in [-1, 1],
+                   gripper -1 open / +1 closed), as robosuite and robomimic datasets store actions.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+IMAGE_CONVENTIONS = ("upright", "opengl")
+ACTION_SPACES = ("octo-delta", "robosuite")
+
+_CAMERA_SPEC = re.compile(r"^([A-Za-z_][\w]*)=([^:=\s]+):(\d+)$")
+
+
+class EnvConfigError(ValueError):
+    """Invalid environment options (message: one line naming the fix)."""
+
+
+def parse_camera(text: str) -> tuple[str, str, int]:
+    """"KEY=camera:size" (e.g. "image_primary=agentview:84") -> (key, camera, size)."""
+    match = _CAMERA_SPEC.match(text.strip())
+    if not match or int(match.group(3)) <= 0:
+        raise EnvConfigError(f"camera {text!r}: expected KEY=camera:size with a positive size, e.g. image_primary=agentview:84")
+    return match.group(1), match.group(2), int(match.group(3))
+
+
+def _camera_tuple(cameras: Any) -> tuple[tuple[str, str, int], ...] | None:
+    """Cameras as given (None, {key: (camera, size)}, [(key, camera, size)], ["KEY=camera:size"]) -> canonical tuple."""
+    if cameras is None:
+        return None
+    if isinstance(cameras, Mapping):
+        items = []
+        for key, value in cameras.items():
+            if isinstance(value, str):  # {key: "camera:size"}
+                items.append(parse_camera(f"{key}={value}"))
+                continue
+            if not (isinstance(value, (tuple, list)) and len(value) == 2):
+                raise EnvConfigError(f"camera {key!r}: expected (robosuite camera name, size), got {value!r}")
+            items.append((key, value[0], value[1]))
+    else:
+        items = [parse_camera(c) if isinstance(c, str) else tuple(c) for c in cameras]
+    out = []
+    for item in items:
+        if len(item) != 3:
+            raise EnvConfigError(f"camera {item!r}: expected (observation key, robosuite camera, size)")
+        key, camera, size = item
+        if isinstance(size, bool) or not isinstance(size, int) or size <= 0:
+            raise EnvConfigError(f"camera {key!r}: size must be a positive integer, got {size!r}")
+        if key == "proprio":
+            raise EnvConfigError("camera key 'proprio' is reserved for the proprioceptive state; choose another key")
+        out.append((str(key), str(camera), int(size)))
+    keys = [k for k, _, _ in out]
+    if len(set(keys)) != len(keys):
+        raise EnvConfigError(f"camera keys repeat: {keys}; give each observation key one camera")
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class EnvOptions:
+    masks: bool = False
+    fast_render: bool = False
+    cameras: tuple[tuple[str, str, int], ...] | None = None  # None: the task's default cameras; () renders nothing
+    image_convention: str = "upright"  # "upright" | "opengl"
+    action_space: str = "octo-delta"  # "octo-delta" | "robosuite"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "cameras", _camera_tuple(self.cameras))
+        if self.image_convention not in IMAGE_CONVENTIONS:
+            raise EnvConfigError(f"image convention {self.image_convention!r} unknown; use one of {', '.join(IMAGE_CONVENTIONS)}")
+        if self.action_space not in ACTION_SPACES:
+            raise EnvConfigError(f"action space {self.action_space!r} unknown; use one of {', '.join(ACTION_SPACES)}")
+        if self.masks and self.cameras == ():
+            raise EnvConfigError("masks need at least one camera; add --camera KEY=camera:size or turn masks off")
+
+    @property
+    def camera_dict(self) -> dict[str, tuple[str, int]] | None:
+        """{observation key: (robosuite camera, size)}, or None for the task's defaults."""
+        return None if self.cameras is None else {k: (c, s) for k, c, s in self.cameras}
+
+    def to_dict(self) -> dict:
+        """Plain JSON/TOML data; cameras as {key: [camera, size]} (None when the task's defaults are used)."""
+        cameras = None if self.cameras is None else {k: [c, s] for k, c, s in self.cameras}
+        return {"masks": self.masks, "fast_render": self.fast_render, "cameras": cameras,
+                "image_convention": self.image_convention, "action_space": self.action_space}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "EnvOptions":
+        """Inverse of `to_dict`; unknown keys raise (a typo in a protocol file must not be ignored)."""
+        known = {"masks", "fast_render", "cameras", "image_convention", "action_space"}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise EnvConfigError(f"unknown env option(s) {unknown}; known: {sorted(known)}")
+        return cls(**dict(data))
+
+    def replace(self, **changes) -> "EnvOptions":
+        """A copy with some fields changed (None values are ignored: 'not given on the command line')."""
+        return EnvOptions(**{**self.to_dict(), **{k: v for k, v in changes.items() if v is not None}})
