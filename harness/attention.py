@@ -121,20 +121,25 @@ def rollout_readout_rows(
 def modality_categories(tokens: TokenMap) -> dict[str, np.ndarray]:
     """Category name -> (keys,) bool selector.
 
-    Image groups `obs_<name>` become `<name>` (e.g. "primary", "wrist"); "language" is
-    task_language plus obs_task_language; "readout" is every readout group at any timestep;
-    anything else (e.g. proprio) is "other", present only when such keys exist.
+    Image groups `obs_<name>` become `<name>` (e.g. "primary", "wrist"); "lowdim" is every other
+    observation group (LowdimObsTokenizer groups such as obs_proprio), present only when such keys
+    exist; "language" is task_language plus obs_task_language; "readout" is every readout group at
+    any timestep; anything else is "other", present only when such keys exist.
     """
-    group = tokens.group
+    group = tokens.group.astype(str)
     cats: dict[str, np.ndarray] = {}
     image = np.zeros(group.shape, bool)
     for name, _, _, _ in tokens.image_groups:
         sel = group == name
         cats[name.removeprefix("obs_")] = sel
         image |= sel
-    cats["language"] = np.isin(group, ("task_language", "obs_task_language"))
-    cats["readout"] = np.char.startswith(group.astype(str), "readout_")
-    other = ~(image | cats["language"] | cats["readout"])
+    language = np.isin(group, ("task_language", "obs_task_language"))
+    lowdim = np.char.startswith(group, "obs_") & ~np.char.startswith(group, "obs_task_") & ~image
+    if lowdim.any():
+        cats["lowdim"] = lowdim
+    cats["language"] = language
+    cats["readout"] = np.char.startswith(group, "readout_")
+    other = ~(image | lowdim | cats["language"] | cats["readout"])
     if other.any():
         cats["other"] = other
     return cats

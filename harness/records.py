@@ -10,20 +10,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from harness.octo.tokens import TokenMap
+
 
 @dataclass(frozen=True, eq=False)
 class StepRecord:
     step: int  # control step index t (0-based)
-    frames: dict[str, np.ndarray]  # observation key -> (height, width, 3) uint8, upright camera frame the model saw
+    frames: dict[str, np.ndarray]  # observation key -> (height, width, 3) uint8, the frame the model saw, shown upright
     readout_attention: np.ndarray  # (layers, heads, readouts, keys) float32, post-softmax rows of the last timestep's readouts
     actions_predicted: np.ndarray  # (action_horizon, action_dim) float32, unnormalised chunk predicted at this step
     action_executed: np.ndarray  # (action_dim,) float32, the action sent to the env at this step
     reward: float
     success: bool
-    masks: dict[str, dict[str, np.ndarray]] | None = None  # obs key -> {"target": (h, w) bool, "robot": (h, w) bool}
+    masks: dict[str, dict[str, np.ndarray]] | None = None  # obs key -> {"target": (h, w) bool, "robot": (h, w) bool}, upright
     full_attention: np.ndarray | None = None  # (layers, heads, queries, keys) float32 when requested (attention rollout)
     timings: dict[str, float] = field(default_factory=dict)  # seconds: "simulation", "inference", "enqueue"
     inferred: bool = True  # False when this step executed a stored chunk action (receding horizon): attention is that chunk's
+    tokens: TokenMap | None = None  # what each key of the attention is: the map of the very inference that produced it
 
 
 @dataclass(frozen=True)

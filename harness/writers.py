@@ -183,7 +183,10 @@ class EpisodeWriter:
     Use as a context manager, or call `finish(summary)` on success and `abort()` on failure.
     """
 
-    def __init__(self, episode_dir: str | os.PathLike, tokens: TokenMap, meta: EpisodeMeta, options: OutputOptions | None = None):
+    def __init__(self, episode_dir: str | os.PathLike, tokens: TokenMap | None, meta: EpisodeMeta,
+                 options: OutputOptions | None = None):
+        """tokens: the token map of the attention; a record's own `StepRecord.tokens` (the map of the
+        inference that produced it) takes precedence, so None is fine when the records carry one."""
         self.dir = Path(episode_dir)
         self.tokens = tokens
         self.meta = meta
@@ -362,6 +365,14 @@ class EpisodeWriter:
         return _Layout(layers, heads, png_layers, cameras, video_camera, video_layer)
 
     def _process(self, record: StepRecord) -> None:
+        if record.tokens is not None:
+            if self._layout is None:
+                self.tokens = record.tokens
+            elif record.tokens.num_keys != self.tokens.num_keys:
+                raise ValueError(f"step {record.step}: the token map changed from {self.tokens.num_keys} to "
+                                 f"{record.tokens.num_keys} keys within the episode")
+        if self.tokens is None:
+            raise ValueError("no token map: pass tokens to EpisodeWriter or set StepRecord.tokens")
         tokens, opts = self.tokens, self.options
         attn = np.asarray(record.readout_attention, dtype=np.float32)  # (layers, heads, readouts, keys)
         if attn.ndim != 4 or attn.shape[-1] != tokens.num_keys:

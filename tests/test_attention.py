@@ -141,8 +141,8 @@ def test_modality_shares_other_groups():
     )
     row = np.array([0.1, 0.1, 0.2, 0.0, 0.0, 0.0, 0.4, 0.2])
     shares = A.modality_shares(row, tokens)
-    assert set(shares) == {"primary", "language", "readout", "other"}
-    np.testing.assert_allclose(shares["other"], 0.4)
+    assert set(shares) == {"primary", "lowdim", "language", "readout"}
+    np.testing.assert_allclose(shares["lowdim"], 0.4)
     np.testing.assert_allclose(sum(shares.values()), 1.0)
 
 

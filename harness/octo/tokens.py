@@ -5,8 +5,9 @@ analysis (which turns a row of attention over keys into 2-D maps per camera). It
 data so it can be saved next to attention arrays (`to_arrays` / `from_arrays`).
 
 Group names follow Octo: `task_language` (prefix, timestep -1), then per timestep the observation
-groups `obs_<tokenizer>` (e.g. `obs_primary`, `obs_wrist`), the repeated task group
-`obs_task_language`, and the readouts `readout_<name>`.
+groups `obs_<tokenizer>` (image groups e.g. `obs_primary`, `obs_wrist`; low-dimensional groups e.g.
+`obs_proprio`, one token per dimension), the repeated task group `obs_task_language`, and the
+readouts `readout_<name>`. Any subset of these may be present (one camera, no language, proprio, ...).
 Image tokens inside a group are row-major over the stem's output grid.
 """
 
@@ -54,6 +55,21 @@ class TokenMap:
             if key == observation_key:
                 return name
         raise KeyError(f"no image group reads {observation_key!r}")
+
+    def with_rows_flipped(self, observation_keys) -> "TokenMap":
+        """The same map with the patch rows of the cameras fed by `observation_keys` reversed (row r -> rows-1-r).
+
+        For models that see frames upside down (image convention "opengl"): their patch row r covers
+        upright row rows-1-r, so with this map `camera_maps` & co. return maps in the upright frame.
+        """
+        keys = set(observation_keys)
+        row = self.row.copy()
+        for name, key, rows, _ in self.image_groups:
+            if key in keys:
+                sel = self.group == name
+                row[sel] = rows - 1 - row[sel]
+        row.flags.writeable = False
+        return TokenMap(self.group, self.timestep, row, self.col, self.image_groups, self.readout_index)
 
     def to_arrays(self, prefix: str = "tokens/") -> dict[str, np.ndarray]:
         """Flat dict of arrays suitable for np.savez (no pickled objects)."""
