@@ -1,0 +1,166 @@
+"""Anytime-valid sequential test on paired outcomes: stop a regression run as soon as the evidence decides.
+
+Pure functions and a small accumulator; nothing here runs episodes. Written from the published
+descriptions of testing by betting (Shafer 2021, J. R. Stat. Soc. A 184:407; Waudby-Smith & Ramdas 2024,
+J. R. Stat. Soc. B 86:1) and of mixture sequential probability ratio tests (Robbins 1970).
+
+Data: a stream of units y_i in [-1, 1], the candidate's success minus the baseline's on one pair
+(+1 candidate-only success, -1 baseline-only success, 0 concordant), or the mean of that over one round of
+pairs (one seed of every task), so that several tasks weigh equally. mu = E[y] is the difference of
+success rates (candidate - baseline).
+
+Three one-sided nulls, each tested by a bettor whose wealth starts at 1 and is multiplied after every
+unit by 1 + lambda * z_i with a fixed bet lambda >= 0:
+
+    regression   H0: mu >= 0          z = -y           lambda in (0, 1)
+    improvement  H0: mu <= 0          z = y            lambda in (0, 1)
+    held         H0: mu <= -max_drop  z = y + max_drop lambda in (0, 1 / (1 - max_drop))
+
+Under its null each factor has expectation 1 + lambda E[z] <= 1, so the wealth is a nonnegative
+supermartingale, and so is the average of the wealths over a grid of bets (a discrete uniform prior on
+lambda; for y in {-1, 0, 1} the regression and improvement mixtures are exactly mixture likelihood ratios of
+the discordant pairs against Bernoulli(1/2)). Ville's inequality gives P(sup_t wealth_t >= 1/a) <= a, so
+stopping the first time a mixture wealth reaches 2/alpha rejects that null with error <= alpha/2 at any
+stopping time: REGRESSED, IMPROVED or HELD (a drop larger than max_drop ruled out). The two directional
+tests together have a two-sided level alpha, matching the fixed-size McNemar test, and HELD matches the
+lower limit of a two-sided (1 - alpha) interval. When two cross at the same unit, REGRESSED wins over HELD
+and IMPROVED (the gate is conservative). A stream that ends undecided is UNDERPOWERED.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import logsumexp
+
+TESTS = ("regression", "improvement", "held")
+_VERDICT = {"regression": "REGRESSED", "improvement": "IMPROVED", "held": "HELD"}
+_MAX_BET = 0.99  # fraction of the largest bet that keeps every factor positive
+
+
+@dataclass(frozen=True)
+class SequentialConfig:
+    alpha: float = 0.05
+    max_drop: float = 0.1
+    grid: int = 64  # bets in each mixture
+
+    def __post_init__(self):
+        if not 0 < self.alpha < 1:
+            raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
+        if not 0 < self.max_drop < 1:
+            raise ValueError(f"max_drop must be in (0, 1), got {self.max_drop}")
+        if self.grid < 1:
+            raise ValueError(f"grid must be >= 1, got {self.grid}")
+
+    @property
+    def threshold(self) -> float:
+        """Wealth at which a null is rejected: 2 / alpha (each one-sided test at alpha / 2)."""
+        return 2.0 / self.alpha
+
+    def bets(self, test: str) -> np.ndarray:
+        """(grid,) bets lambda: midpoints of a uniform grid on (0, largest safe bet)."""
+        largest = 1.0 / (1.0 - self.max_drop) if test == "held" else 1.0
+        return (np.arange(self.grid) + 0.5) / self.grid * largest * _MAX_BET
+
+    def shift(self, test: str, y: np.ndarray) -> np.ndarray:
+        """z for the test's null from units y."""
+        if test == "regression":
+            return -y
+        if test == "improvement":
+            return y
+        if test == "held":
+            return y + self.max_drop
+        raise ValueError(f"unknown test {test!r}; use one of {TESTS}")
+
+
+def log_wealth_paths(y: np.ndarray, config: SequentialConfig) -> dict[str, np.ndarray]:
+    """y (..., units) in [-1, 1] -> {test: (..., units)} log of each mixture wealth after every unit."""
+    y = np.asarray(y, dtype=np.float64)
+    if y.size and (y.min() < -1 or y.max() > 1):
+        raise ValueError("units must lie in [-1, 1] (candidate minus baseline success)")
+    out = {}
+    for test in TESTS:
+        z = config.shift(test, y)
+        acc = None
+        for bet in config.bets(test):
+            path = np.cumsum(np.log1p(bet * z), axis=-1)
+            acc = path if acc is None else np.logaddexp(acc, path)
+        out[test] = acc - np.log(config.grid)
+    return out
+
+
+def first_decisions(y: np.ndarray, config: SequentialConfig) -> tuple[np.ndarray, np.ndarray]:
+    """y (..., units) -> (verdicts (...) str, units used (...) int).
+
+    Units used is the 1-based index of the deciding unit, or the number of units when undecided.
+    """
+    y = np.asarray(y, dtype=np.float64)
+    units = y.shape[-1]
+    paths = log_wealth_paths(y, config)
+    level = np.log(config.threshold)
+    index = np.arange(units)
+    first = {t: np.where(paths[t] >= level, index, units).min(axis=-1) for t in TESTS}  # (...) first crossing
+    stop = np.minimum.reduce([first[t] for t in TESTS])
+    verdict = np.full(stop.shape, "UNDERPOWERED", dtype=object)
+    for test in ("improvement", "held", "regression"):  # later assignments win ties: REGRESSED last
+        verdict = np.where((first[test] == stop) & (stop < units), _VERDICT[test], verdict)
+    used = np.where(stop < units, stop + 1, units)
+    return verdict, used
+
+
+@dataclass
+class SequentialTest:
+    """Accumulates units one at a time; `verdict` is None until a null is rejected."""
+
+    config: SequentialConfig = field(default_factory=SequentialConfig)
+    units: int = 0
+    verdict: str | None = None
+    _log_wealth: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self):
+        self._log_wealth = {t: np.zeros(self.config.grid) for t in TESTS}
+
+    def add(self, y: float) -> str | None:
+        """Add one unit (candidate minus baseline success, or its mean over a round); returns the verdict."""
+        if not -1.0 <= y <= 1.0:
+            raise ValueError(f"a unit must lie in [-1, 1], got {y}")
+        if self.verdict is not None:
+            return self.verdict
+        self.units += 1
+        for test in TESTS:
+            z = float(self.config.shift(test, np.float64(y)))
+            self._log_wealth[test] = self._log_wealth[test] + np.log1p(self.config.bets(test) * z)
+        crossed = [t for t in TESTS if self.wealth(t) >= self.config.threshold]
+        if crossed:
+            self.verdict = "REGRESSED" if "regression" in crossed else _VERDICT[crossed[0]]
+        return self.verdict
+
+    def wealth(self, test: str) -> float:
+        """Current mixture wealth (the e-value) of one test."""
+        return float(np.exp(logsumexp(self._log_wealth[test]) - np.log(self.config.grid)))
+
+    def summary(self) -> dict:
+        return {
+            "units": self.units,
+            "verdict": self.verdict or "UNDERPOWERED",
+            "decided": self.verdict is not None,
+            "threshold": self.config.threshold,
+            "e_values": {t: self.wealth(t) for t in TESTS},
+            "alpha": self.config.alpha,
+            "max_drop": self.config.max_drop,
+        }
+
+
+def simulate_pairs(baseline_rate: float, candidate_rate: float, pairs: int, runs: int,
+                   rng: np.random.Generator, correlation: float = 0.0) -> np.ndarray:
+    """(runs, pairs) units y = candidate - baseline for simulated paired Bernoulli outcomes.
+
+    With `correlation` c in [0, 1), both arms share the seed's uniform draw with probability c (a seed that is
+    easy for one is easy for the other), else draw independently; the marginal rates are exact either way.
+    """
+    shared = rng.random((runs, pairs))
+    own_b, own_c = rng.random((runs, pairs)), rng.random((runs, pairs))
+    tie = rng.random((runs, pairs)) < correlation
+    base = np.where(tie, shared, own_b) < baseline_rate
+    cand = np.where(tie, shared, own_c) < candidate_rate
+    return cand.astype(np.int8) - base.astype(np.int8)
