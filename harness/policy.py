@@ -5,10 +5,15 @@ env observation -> resized history window (padded as Octo's HistoryWrapper does)
 `sample_actions` call (actions + attention) -> the action to execute now, chosen by temporal
 ensembling (infer every step, average the overlapping predictions) or a receding horizon
 (execute k actions of a chunk per inference).
+
+The state of an episode (`EpisodeState`: history, chunks, rng position, task) is kept apart from the
+stateless batched inference (`BatchInference`), so a server can batch requests of many episodes
+(harness/run/workers.py, ray_executor.py) while the sequential runner uses the same code with batch 1.
 """
 
 from __future__ import annotations
 
+import hashlib
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -79,75 +84,199 @@ def ensemble(chunks: list[np.ndarray], weight: float) -> np.ndarray:
     return (preds * (w / w.sum())[:, None]).sum(axis=0).astype(np.float32)
 
 
-class OctoPolicy:
-    """Stateful per-episode wrapper; `reset(instruction, seed)` then `step(obs)` every control step."""
+@dataclass(frozen=True, eq=False)
+class TaskSpec:
+    """What an episode is asked to do: its instruction and/or the run's goal images; `key` identifies it for caching."""
 
-    def __init__(self, model, config: PolicyConfig):
+    instruction: str
+    goals: dict[str, np.ndarray] | None = None  # {obs key: (height, width, 3) uint8} at the model's goal sizes
+    key: tuple = ()
+
+    @classmethod
+    def of(cls, instruction: str | None, goals: dict[str, np.ndarray] | None = None) -> "TaskSpec":
+        digest = None
+        if goals is not None:
+            h = hashlib.sha1()
+            for k in sorted(goals):
+                h.update(k.encode() + np.ascontiguousarray(goals[k]).tobytes())
+            digest = h.hexdigest()
+        return cls(instruction or "", goals, (instruction or "", digest))
+
+
+@dataclass(frozen=True, eq=False)
+class InferenceRequest:
+    """One episode's input to a batched inference call (no batch axis)."""
+
+    observation: dict  # image_* (window, H, W, 3) uint8, timestep_pad_mask (window,) bool, pad_mask_dict {k: (window,)}
+    task: TaskSpec
+    seed: int  # the episode's rng stream: key = fold_in(PRNGKey(seed), step)
+    step: int
+
+
+@dataclass(frozen=True, eq=False)
+class InferenceResult:
+    """What one inference gives one episode."""
+
+    chunk: np.ndarray  # (action_horizon, action_dim) float32
+    readout_attention: np.ndarray  # (layers, heads, readouts, keys) float32
+    full_attention: np.ndarray | None  # (layers, heads, queries, keys) float32 or None
+    seconds: float  # wall time of the batched call that produced it
+
+
+def make_task(model, spec: TaskSpec) -> dict:
+    """Octo task dict with batch 1 (language encoded here, once per distinct task)."""
+    if spec.goals is not None:
+        return model.create_task(goals={k: v[None] for k, v in spec.goals.items()})
+    return model.create_task(texts=[spec.instruction])
+
+
+def step_key(seed: int, step: int) -> np.ndarray:
+    """(2,) uint32 rng key of an episode's inference at control step `step`: fold_in(PRNGKey(seed), step)."""
+    return np.asarray(jax.random.fold_in(jax.random.PRNGKey(seed), step))
+
+
+class BatchInference:
+    """Stateless batched inference: requests from many episodes -> one `sample_actions` call -> one result each.
+
+    Each example gets its own rng key (`step_key`), so its actions are those of a batch-1 call whatever
+    shares the batch. Batches are padded (repeating the first request, whose copies are discarded) to
+    the smallest of `batch_sizes` that fits, so after `warm_up()` no call compiles. Tasks are built
+    once per distinct TaskSpec and kept.
+    """
+
+    def __init__(self, model, config: PolicyConfig, batch_sizes: tuple[int, ...] = (1,)):
         self.model = model
         self.config = config
-        self.window = int(model.window_size)
-        self.image_sizes = dict(model.image_sizes)  # obs key -> (height, width)
+        self.batch_sizes = tuple(sorted(set(int(b) for b in batch_sizes)))
+        if not self.batch_sizes or self.batch_sizes[0] < 1:
+            raise ValueError(f"batch sizes must be >= 1; got {batch_sizes}")
         self.dataset_key = config.dataset_key if config.dataset_key is not None else default_dataset_key(model)
         self.statistics = model.unnormalization_statistics(self.dataset_key) if self.dataset_key else None
+        self._tasks: dict[tuple, dict] = {}  # TaskSpec.key -> batch-1 task (one per distinct instruction/goals)
+
+    def task(self, spec: TaskSpec) -> dict:
+        if spec.key not in self._tasks:
+            self._tasks[spec.key] = make_task(self.model, spec)
+        return self._tasks[spec.key]
+
+    def padded_size(self, n: int) -> int:
+        """Smallest batch size >= n (n <= the largest size)."""
+        return next(b for b in self.batch_sizes if b >= n)
+
+    def warm_up(self, request: InferenceRequest) -> None:
+        """Compile every batch size once with copies of `request`."""
+        for b in self.batch_sizes:
+            self([request] * b)
+
+    def __call__(self, requests: list[InferenceRequest]) -> list[InferenceResult]:
+        out: list[InferenceResult] = []
+        largest = self.batch_sizes[-1]
+        for i in range(0, len(requests), largest):
+            out.extend(self._call(requests[i:i + largest]))
+        return out
+
+    def _call(self, requests: list[InferenceRequest]) -> list[InferenceResult]:
+        n = len(requests)
+        padded = requests + [requests[0]] * (self.padded_size(n) - n)
+        stack = lambda *xs: np.stack(xs)  # noqa: E731
+        observations = jax.tree.map(stack, *[r.observation for r in padded])  # leaves (batch, window, ...)
+        tasks = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *[self.task(r.task) for r in padded])
+        keys = np.stack([step_key(r.seed, r.step) for r in padded])  # (batch, 2) uint32
+        start = time.perf_counter()
+        actions, attention = self.model.sample_actions(observations, tasks, keys, self.statistics,
+                                                       full_attention=self.config.full_attention)
+        chunks = np.asarray(actions, dtype=np.float32)  # (batch, horizon, action_dim)
+        readout = np.asarray(attention.readout, dtype=np.float32)  # (batch, layers, heads, readouts, keys)
+        full = None if attention.full is None else np.asarray(attention.full, dtype=np.float32)
+        elapsed = time.perf_counter() - start
+        return [InferenceResult(chunks[i], readout[i], None if full is None else full[i], elapsed) for i in range(n)]
+
+
+class EpisodeState:
+    """Everything one episode carries between control steps: history window, action-chunk state, rng position, task.
+
+    `observe(obs)` returns either the `PolicyStep` to execute now (a receding-horizon step reusing a
+    chunk) or an `InferenceRequest`; the result of that request goes to `complete(result)`.
+    """
+
+    def __init__(self, image_sizes: dict[str, tuple[int, int]], window: int, action_horizon: int, config: PolicyConfig,
+                 task: TaskSpec, seed: int):
+        self.image_sizes = dict(image_sizes)
+        self.window = int(window)
+        self.config = config
+        self.task = task
+        self.seed = int(seed)
+        self.t = 0  # control steps taken
         self._history: deque = deque(maxlen=self.window)
-        self._chunks: deque = deque(maxlen=int(model.action_horizon))
-        self._task = None
-        self._key = None
-        self._t = 0
+        self._chunks: deque = deque(maxlen=int(action_horizon))
         self._pending: list[np.ndarray] = []
         self._last: PolicyStep | None = None
 
-    def reset(self, instruction: str | None = None, seed: int = 0, goals: dict[str, np.ndarray] | None = None) -> None:
-        """Start an episode: build the task once (language encoded once) and seed the per-step rng stream."""
-        if goals is not None:
-            self._task = self.model.create_task(goals={k: v[None] for k, v in goals.items()})
-        else:
-            self._task = self.model.create_task(texts=[instruction or ""])
-        self._key = jax.random.PRNGKey(seed)
-        self._history.clear()
-        self._chunks.clear()
-        self._pending = []
-        self._last = None
-        self._t = 0
-
-    def _observation_batch(self) -> dict:
-        """History deque -> Octo observation dict with batch 1: image_* (1, window, H, W, 3), timestep_pad_mask (1, window)."""
+    def _observation_window(self) -> dict:
+        """History -> image_* (window, H, W, 3), timestep_pad_mask (window,), pad_mask_dict; left-padded as HistoryWrapper."""
         n = len(self._history)
         frames = [self._history[0]] * (self.window - n) + list(self._history)  # left-pad with the first observation
         pad = np.arange(self.window) >= self.window - n  # (window,) False for padded slots
-        obs = {k: np.stack([f[k] for f in frames])[None] for k in self.image_sizes}
-        obs["timestep_pad_mask"] = pad[None]
-        obs["pad_mask_dict"] = {k: pad[None] for k in self.image_sizes}
+        obs = {k: np.stack([f[k] for f in frames]) for k in self.image_sizes}
+        obs["timestep_pad_mask"] = pad
+        obs["pad_mask_dict"] = {k: pad for k in self.image_sizes}
         return obs
 
-    def step(self, observation: dict[str, np.ndarray]) -> PolicyStep:
-        """observation: env dict with image_* (H, W, 3) uint8 -> the action to execute now (+ attention when inferred)."""
+    def observe(self, observation: dict[str, np.ndarray]) -> "InferenceRequest | PolicyStep":
         missing = [k for k in self.image_sizes if k not in observation]
         if missing:
             raise KeyError(f"the model needs observation keys {missing}; configure the env cameras to provide them")
         self._history.append({k: resize_frame(observation[k], s) for k, s in self.image_sizes.items()})
-        receding = self.config.execution == "receding_horizon"
-        if receding and self._pending:
-            self._t += 1
+        if self.config.execution == "receding_horizon" and self._pending:
+            self.t += 1
             last = self._last
             return PolicyStep(self._pending.pop(0), last.chunk, last.readout_attention, last.full_attention, False, 0.0)
+        return InferenceRequest(self._observation_window(), self.task, self.seed, self.t)
 
-        rng = jax.random.fold_in(self._key, self._t)
-        start = time.perf_counter()
-        actions, attention = self.model.sample_actions(
-            self._observation_batch(), self._task, rng, self.statistics, full_attention=self.config.full_attention
-        )
-        chunk = np.asarray(actions[0], dtype=np.float32)  # (horizon, action_dim)
-        readout = np.asarray(attention.readout[0], dtype=np.float32)  # (layers, heads, readouts, keys)
-        full = None if attention.full is None else np.asarray(attention.full[0], dtype=np.float32)
-        elapsed = time.perf_counter() - start
-        self._t += 1
-        if receding:
+    def complete(self, result: InferenceResult, seconds: float | None = None) -> PolicyStep:
+        """The action to execute now from this step's inference; `seconds` overrides the recorded inference time."""
+        chunk = result.chunk
+        self.t += 1
+        if self.config.execution == "receding_horizon":
             k = min(self.config.receding_steps, chunk.shape[0])
             self._pending = [chunk[i] for i in range(1, k)]
             action = chunk[0]
         else:
             self._chunks.append(chunk)
             action = ensemble(list(self._chunks), self.config.ensemble_weight)
-        self._last = PolicyStep(action, chunk, readout, full, True, elapsed)
+        elapsed = result.seconds if seconds is None else seconds
+        self._last = PolicyStep(action, chunk, result.readout_attention, result.full_attention, True, elapsed)
         return self._last
+
+
+class OctoPolicy:
+    """Closed-loop policy for one episode at a time: `reset(instruction, seed)` then `step(obs)` every control step.
+
+    `infer` maps a list of InferenceRequests to InferenceResults: by default a batch-1 `BatchInference`
+    in this process; an executor passes a client of a batching server. Either way the episode's state
+    (`EpisodeState`) and the per-example rng make the actions the same.
+    """
+
+    def __init__(self, model, config: PolicyConfig, infer=None):
+        self.model = model
+        self.config = config
+        self.window = int(model.window_size)
+        self.image_sizes = dict(model.image_sizes)  # obs key -> (height, width)
+        self.action_horizon = int(model.action_horizon)
+        self._infer = infer if infer is not None else BatchInference(model, config)
+        self.dataset_key = self._infer.dataset_key  # the unnormalisation statistics the inference side uses
+        self._state: EpisodeState | None = None
+
+    def reset(self, instruction: str | None = None, seed: int = 0, goals: dict[str, np.ndarray] | None = None) -> None:
+        """Start an episode: its task (language encoded once, by the inference side) and its rng stream."""
+        self._state = EpisodeState(self.image_sizes, self.window, self.action_horizon, self.config,
+                                   TaskSpec.of(instruction, goals), seed)
+
+    def step(self, observation: dict[str, np.ndarray]) -> PolicyStep:
+        """observation: env dict with image_* (H, W, 3) uint8 -> the action to execute now (+ attention when inferred)."""
+        decision = self._state.observe(observation)
+        if isinstance(decision, PolicyStep):
+            return decision
+        start = time.perf_counter()
+        (result,) = self._infer([decision])
+        return self._state.complete(result, time.perf_counter() - start)

@@ -137,6 +137,9 @@ class OctoModel:
                        ) -> tuple[jax.Array, Attention | None]:
         """Sample an action chunk (batch, action_horizon, action_dim) and capture attention.
 
+        rng: one key (2,) uint32 for the whole batch (Octo's behaviour: an example's noise depends on its
+        batch position), or one key per example (batch, 2) uint32: example i then gets what a batch-1 call
+        with key i gives (up to float rounding), whatever else shares the batch.
         Actions are normalised when `unnormalization_statistics` is None, else unnormalised with
         normalization_type "normal" (a*std+mean) or "bounds" (from p01/p99), honouring the statistics'
         mask. One jitted function; it compiles once per input structure and shape (and per option).
@@ -148,6 +151,9 @@ class OctoModel:
         obs, pad = self._prepare_observations(observations)
         task_in, encoding = self._prepare_task(task, pad.shape[0])
         stats = _prepare_statistics(unnormalization_statistics, normalization_type, self.action_dim)
+        rng = jnp.asarray(rng)
+        if rng.shape not in ((2,), (pad.shape[0], 2)):
+            raise InputError(f"rng is {rng.shape}; expected one key (2,) or one key per example ({pad.shape[0]}, 2)")
         layout = self._layout(obs, encoding)
         capture = "full" if full_attention else ("readout" if capture_attention else "none")
         compiled = self.sample_cache_size
@@ -191,11 +197,23 @@ class OctoModel:
                 )
             net = ScoreNetwork(head)
 
-            def score(x, t):
-                time_in = jnp.broadcast_to(t, (*x.shape[:-1], 1))
-                return net.apply({"params": head_params["diffusion_model"]}, embedding, x, time_in)
+            def score_of(emb):
+                def score(x, t):
+                    time_in = jnp.broadcast_to(t, (*x.shape[:-1], 1))
+                    return net.apply({"params": head_params["diffusion_model"]}, emb, x, time_in)
+                return score
 
-            x = sample(score, rng, (batch, window, flat), self._schedule, head.max_action, action_mask, head.legacy_sampler)
+            if rng.ndim == 2:  # keys (batch, 2): example i draws exactly what a batch-1 call with key i draws
+                one_mask = None if action_mask is None else action_mask[:1]
+
+                def one(key, emb):  # emb (window, D) -> (window, flat)
+                    return sample(score_of(emb[None]), key, (1, window, flat), self._schedule, head.max_action,
+                                  one_mask, head.legacy_sampler)[0]
+
+                x = jax.vmap(one)(rng, embedding)
+            else:
+                x = sample(score_of(embedding), rng, (batch, window, flat), self._schedule, head.max_action, action_mask,
+                           head.legacy_sampler)
             actions = x.reshape(batch, window, head.action_horizon, head.action_dim)[:, -1]
         else:
             actions = ContinuousHead(head).apply({"params": {"mean_proj": head_params["mean_proj"]}}, embedding)[:, -1]

@@ -1,0 +1,373 @@
+"""Local parallel executor: N spawned env-worker processes, batched inference in the driver process.
+
+    driver process                                   env worker k (spawned; one per --workers)
+    ───────────────────────────────────────────     ─────────────────────────────────────────
+    run store (results.jsonl, results.json)          one env (its own GL context), remade per task
+    InferenceServer: BatchInference(model)   <─obs── EpisodeState (history, chunks, seed/t, task)
+      one sample_actions call over all        ─act─> rollout() -> EpisodeWriter (background thread,
+      waiting workers, padded to a fixed size        PNG pool, MP4) writes the episode folder
+    jobs out, finished rows in               <─row─
+
+Where inference runs, and why: in the driver. The driver has already loaded (and checked) the model;
+one process holding the model means one copy of the weights, one set of compiled functions and one
+XLA thread pool. The driver's other work (appending a row to results.jsonl and rewriting the derived
+files once per episode) is small and happens between batches.
+
+Batching: whenever the model is free, every request waiting at that moment goes into one call
+(greedy: the model never idles while a worker waits, and never waits for a batch to fill). The batch
+is padded to the smallest of a few fixed sizes (powers of two up to N, and N), all compiled during
+warm-up, so nothing compiles during the run. Each example has its own rng key and task, so an
+episode's actions do not depend on what shares its batch (see harness/policy.py).
+
+Where the writers run, and why: in each env worker, in EpisodeWriter's background thread (and its
+PNG thread pool). The frames and masks are already in that process; only the resized observation
+window travels to the driver and only the action chunk and attention rows travel back. A worker
+only enqueues a step (it waits only if its writer falls `queue_size` steps behind), and encoding
+never runs in the driver, so it never stalls inference.
+
+Faults: a worker that dies (SIGKILL, a segfault, an OOM kill) has its current episode recorded as
+failed with the cause ("worker process died: signal 9 (SIGKILL)") and is replaced; an exception in
+inference fails the episodes of that batch only (their workers raise it inside the episode, which
+records the failure and goes on). Ctrl-C / SIGTERM in the driver: workers (which ignore SIGINT, so a
+terminal's Ctrl-C reaches them only through the driver) are told to stop, abort their episode
+writers (no temporary files left) and exit; stragglers are terminated, then killed. Workers also exit
+when the driver's end of their pipe closes, and get SIGKILL from the kernel if the driver dies
+(PR_SET_PDEATHSIG), so no process outlives a run.
+"""
+
+from __future__ import annotations
+
+import collections
+import ctypes
+import logging
+import multiprocessing
+import os
+import signal
+import time
+import traceback
+from dataclasses import dataclass
+from multiprocessing.connection import Connection, wait
+from typing import Any, Callable, Iterable
+
+import numpy as np
+
+from harness.policy import BatchInference, EpisodeState, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskSpec
+
+log = logging.getLogger(__name__)
+
+STOP_TIMEOUT_S = 10.0  # how long stopping workers may take before they are terminated
+
+
+@dataclass(frozen=True)
+class PolicyShape:
+    """What the env side of a policy needs to know about the model (picklable, no weights)."""
+
+    image_sizes: dict  # obs key -> (height, width)
+    window_size: int
+    action_horizon: int
+    dataset_key: str | None
+
+    @classmethod
+    def of(cls, model, dataset_key: str | None) -> "PolicyShape":
+        return cls(dict(model.image_sizes), int(model.window_size), int(model.action_horizon), dataset_key)
+
+
+@dataclass(frozen=True)
+class WorkerSpec:
+    """Everything an env worker needs, picklable (module-level functions or functools.partial of them).
+
+    make_env(task) -> env; run_episode(env, policy, job) -> row (records its own failures as failed rows);
+    failed_row(job, error) -> row for an episode that could not run at all in the worker.
+    """
+
+    make_env: Callable[[str], Any]
+    run_episode: Callable[[Any, OctoPolicy, Any], Any]
+    failed_row: Callable[[Any, str], Any]
+    policy: PolicyConfig
+    shape: PolicyShape
+
+
+def batch_sizes_for(workers: int) -> tuple[int, ...]:
+    """The fixed batch sizes for N workers: powers of two below N, and N (e.g. 6 -> (1, 2, 4, 6))."""
+    sizes = {workers}
+    b = 1
+    while b < workers:
+        sizes.add(b)
+        b *= 2
+    return tuple(sorted(sizes))
+
+
+def death_cause(exitcode: int | None) -> str:
+    """A worker's exit code -> the error recorded for its episode."""
+    if exitcode is not None and exitcode < 0:
+        try:
+            name = signal.Signals(-exitcode).name
+        except ValueError:
+            name = "unknown signal"
+        return f"worker process died: signal {-exitcode} ({name})"
+    return f"worker process exited unexpectedly with code {exitcode}"
+
+
+def warmup_request(shape: PolicyShape, task: TaskSpec) -> InferenceRequest:
+    """A zero observation window of the model's sizes (compilation depends on shapes only)."""
+    window = shape.window_size
+    obs: dict = {k: np.zeros((window, h, w, 3), np.uint8) for k, (h, w) in shape.image_sizes.items()}
+    obs["timestep_pad_mask"] = np.ones((window,), bool)
+    obs["pad_mask_dict"] = {k: np.ones((window,), bool) for k in shape.image_sizes}
+    return InferenceRequest(obs, task, 0, 0)
+
+
+# ---------------------------------------------------------------------------------------------- env worker side
+
+
+class _Stop(KeyboardInterrupt):
+    """The driver asked this worker to stop (or went away): abort the episode like Ctrl-C, write nothing more."""
+
+
+class PolicyError(RuntimeError):
+    """Inference failed for the batch holding this episode's request."""
+
+
+class PipeInference:
+    """Env-worker side of the inference server: `[request] -> [result]` over the worker's pipe."""
+
+    def __init__(self, conn: Connection, dataset_key: str | None):
+        self.conn = conn
+        self.dataset_key = dataset_key
+
+    def __call__(self, requests: list[InferenceRequest]) -> list[InferenceResult]:
+        (request,) = requests
+        try:
+            self.conn.send(("infer", request))
+            kind, payload = self.conn.recv()
+        except (EOFError, OSError) as exc:
+            raise _Stop("driver went away") from exc
+        if kind == "result":
+            return [payload]
+        if kind == "error":
+            raise PolicyError(payload)
+        raise _Stop("stopped by the driver")
+
+
+def _die_with_parent() -> None:
+    """Linux: the kernel sends SIGKILL to this process when its parent dies (no orphans if the driver is killed)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def worker_main(index: int, conn: Connection, spec: WorkerSpec) -> None:
+    """Env worker process: take episode jobs, run each with a policy whose inference is the driver's server."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is handled by the driver, which tells us to stop
+    _die_with_parent()
+    os.environ["OCTO_HARNESS_WORKER"] = str(index)
+    infer = PipeInference(conn, spec.shape.dataset_key)
+    policy = OctoPolicy(spec.shape, spec.policy, infer=infer)
+    env, env_task = None, None
+    try:
+        conn.send(("ready", None))
+        while True:
+            try:
+                kind, job = conn.recv()
+            except (EOFError, OSError):
+                return
+            if kind != "job":
+                return
+            try:
+                if env_task != job.task:
+                    if env is not None:
+                        env.close()
+                    env, env_task = None, None
+                    env = spec.make_env(job.task)
+                    env_task = job.task
+            except Exception as exc:  # the env could not be made: this episode fails, the worker stays
+                row = spec.failed_row(job, f"{type(exc).__name__}: {exc}")
+            else:
+                row = spec.run_episode(env, policy, job)
+            conn.send(("done", row))
+    except (_Stop, EOFError, BrokenPipeError):
+        return
+    finally:
+        if env is not None:
+            try:
+                env.close()
+            except Exception:  # closing a broken env must not hide why the worker stops
+                log.debug("env.close failed in worker %d: %s", index, traceback.format_exc())
+
+
+# ---------------------------------------------------------------------------------------------- driver side
+
+
+@dataclass
+class _Worker:
+    index: int
+    process: multiprocessing.process.BaseProcess
+    conn: Connection
+    job: Any = None  # the episode job it is running, None when idle
+    ready: bool = False
+
+
+class WorkerPool:
+    """Runs episode jobs on N env-worker processes; inference for all of them in this (the driver) process.
+
+        pool = WorkerPool(spec, model, workers=2)
+        pool.run(jobs, on_row)      # on_row(row) for each finished episode, in the driver, in finishing order
+
+    `on_row` is where the driver appends to the run store. Rows of episodes whose worker died come from
+    spec.failed_row(job, cause).
+    """
+
+    def __init__(self, spec: WorkerSpec, model, workers: int, *, context: str = "spawn"):
+        if workers < 1:
+            raise ValueError(f"--workers must be >= 1; got {workers}")
+        self.spec = spec
+        self.workers = workers
+        self.inference = BatchInference(model, spec.policy, batch_sizes_for(workers))
+        self.ctx = multiprocessing.get_context(context)
+        self._pool: dict[int, _Worker] = {}
+        self._next_index = 0
+        self.replacements = 0
+        self.batches: list[int] = []  # number of real requests in each inference call (for statistics/tests)
+
+    # -------------------------------------------------------------- lifecycle
+
+    def _start_worker(self) -> _Worker:
+        parent, child = self.ctx.Pipe(duplex=True)
+        index = self._next_index
+        self._next_index += 1
+        process = self.ctx.Process(target=worker_main, args=(index, child, self.spec), name=f"octo-env-worker-{index}",
+                                   daemon=True)
+        process.start()
+        child.close()
+        worker = _Worker(index, process, parent)
+        self._pool[index] = worker
+        return worker
+
+    def shutdown(self) -> None:
+        """Stop every worker: ask, wait up to STOP_TIMEOUT_S, then terminate and kill; reap all of them."""
+        for w in self._pool.values():
+            try:
+                w.conn.send(("stop", None))
+            except (OSError, ValueError):
+                pass
+        deadline = time.monotonic() + STOP_TIMEOUT_S
+        for w in self._pool.values():
+            w.process.join(max(0.0, deadline - time.monotonic()))
+        for w in self._pool.values():
+            if w.process.is_alive():
+                w.process.terminate()
+                w.process.join(2.0)
+            if w.process.is_alive():
+                w.process.kill()
+                w.process.join()
+            w.conn.close()
+        self._pool.clear()
+
+    def warm_up(self, task: TaskSpec) -> None:
+        """Compile every fixed batch size once (and build the first task)."""
+        self.inference.warm_up(warmup_request(self.spec.shape, task))
+
+    # -------------------------------------------------------------- the loop
+
+    def run(self, jobs: Iterable[Any], on_row: Callable[[Any], None], *, warmup_task: TaskSpec | None = None) -> None:
+        """Run every job; returns when all have a row. Ctrl-C stops the workers (no orphans) and re-raises."""
+        queue = collections.deque(jobs)
+        if not queue:
+            return
+        try:
+            for _ in range(min(self.workers, len(queue))):
+                self._assign(self._start_worker(), queue)  # workers make their envs while the model compiles
+            if warmup_task is not None:
+                self.warm_up(warmup_task)  # compiles while the workers import and make their envs
+            waiting: list[tuple[_Worker, InferenceRequest]] = []
+            while queue or any(w.job is not None for w in self._pool.values()):
+                self._poll(queue, waiting, on_row, block=not waiting)
+                if waiting:
+                    self._serve(waiting)
+                    waiting.clear()
+        finally:
+            self.shutdown()
+
+    def _poll(self, queue, waiting, on_row, *, block: bool) -> None:
+        """Handle every message (and worker death) that is ready; wait for one when `block`."""
+        handles = {}
+        for w in self._pool.values():
+            handles[w.conn] = w
+            handles[w.process.sentinel] = w
+        ready = wait(list(handles), timeout=None if block else 0)
+        dead = []
+        for handle in ready:
+            w = handles[handle]
+            if handle is w.process.sentinel:
+                dead.append(w)
+                continue
+            self._receive(w, queue, waiting, on_row)
+        for w in dict.fromkeys(dead):
+            if w.index not in self._pool:
+                continue
+            while w.conn.poll():  # messages sent before it died still count (e.g. its last "done")
+                try:
+                    self._receive(w, queue, waiting, on_row, drain=True)
+                except (EOFError, OSError):
+                    break
+            self._bury(w, queue, waiting, on_row)
+
+    def _receive(self, w: _Worker, queue, waiting, on_row, drain: bool = False) -> None:
+        try:
+            kind, payload = w.conn.recv()
+        except (EOFError, OSError):
+            if drain:
+                raise
+            return  # the sentinel reports the death
+        if kind == "infer":
+            waiting.append((w, payload))
+            return
+        if kind == "ready":
+            w.ready = True
+        if kind == "done":
+            w.job = None
+            on_row(payload)
+            if not drain:
+                self._assign(w, queue)
+
+    @staticmethod
+    def _assign(w: _Worker, queue) -> None:
+        if queue:
+            w.job = queue.popleft()
+            try:
+                w.conn.send(("job", w.job))
+            except (OSError, ValueError):
+                pass  # it died; its sentinel reports it and the job is recorded as failed
+
+    def _bury(self, w: _Worker, queue, waiting, on_row) -> None:
+        """A worker died: fail its episode with the cause, drop its request, start a replacement if work remains."""
+        w.process.join()
+        cause = death_cause(w.process.exitcode)
+        del self._pool[w.index]
+        w.conn.close()
+        waiting[:] = [(x, r) for x, r in waiting if x is not w]
+        if w.job is not None:
+            log.error("env worker %d died running %s: %s", w.index, w.job, cause)
+            on_row(self.spec.failed_row(w.job, cause))
+        else:
+            log.error("env worker %d died: %s", w.index, cause)
+        if queue:
+            self.replacements += 1
+            self._assign(self._start_worker(), queue)
+
+    def _serve(self, waiting: list[tuple[_Worker, InferenceRequest]]) -> None:
+        """One batched inference over every waiting request; results (or the error) go back to their workers."""
+        self.batches.append(len(waiting))
+        try:
+            results = self.inference([r for _, r in waiting])
+            replies = [("result", res) for res in results]
+        except Exception as exc:  # a policy error fails the episodes of this batch only
+            log.error("inference failed for a batch of %d: %s", len(waiting), exc)
+            replies = [("error", f"{type(exc).__name__}: {exc}")] * len(waiting)
+        for (w, _), reply in zip(waiting, replies):
+            try:
+                w.conn.send(reply)
+            except (OSError, ValueError):
+                pass  # it died meanwhile; its sentinel reports it
