@@ -1,0 +1,1 @@
+"""Report: figures (matplotlib Agg), HTML building blocks and the report builder (`octo-harness report`)."""

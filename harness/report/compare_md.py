@@ -1,0 +1,97 @@
+"""Markdown summary of a comparison (compare.json -> text fit for a CI log or a pull-request comment)."""
+from __future__ import annotations
+
+import math
+
+
+def _num(value, digits: int = 3) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a"
+    return f"{value:.{digits}g}" if isinstance(value, float) else str(value)
+
+
+def _rate(block: dict) -> str:
+    if not block["n"]:
+        return "n/a"
+    return f"{block['successes']}/{block['n']} = {block['rate']:.2f} [{block['ci_low']:.2f}, {block['ci_high']:.2f}]"
+
+
+def _difference(block: dict) -> str:
+    if block["difference"] is None:
+        return "n/a"
+    low, high = block["difference_ci"]
+    return f"{block['difference']:+.2f} [{low:+.2f}, {high:+.2f}]"
+
+
+def _row(name: str, block: dict) -> str:
+    more = block.get("more_pairs_needed")
+    decide = "" if block["verdict"] != "UNDERPOWERED" else ("> 100000" if more is None else f"~{more} more")
+    return (f"| {name} | {block['pairs']} | {_rate(block['baseline'])} | {_rate(block['candidate'])} | "
+            f"{_difference(block)} | {_num(block['mcnemar_p'])} ({_num(block['mcnemar_p_holm'])}) | "
+            f"**{block['verdict']}** | {decide} |")
+
+
+def _layers(values) -> str:
+    return ", ".join(_num(float(v), 2) for v in values) if values is not None else "n/a"
+
+
+def markdown_summary(result: dict, exit_code: int | None = None) -> str:
+    """The comparison as Markdown: verdict, outcome table, drift and what was left out."""
+    cfg, base, cand = result["config"], result["baseline"], result["candidate"]
+    confidence = f"{100 * (1 - cfg['alpha']):g}%"
+    lines = [
+        f"## octo-harness compare: {result['verdict']}",
+        "",
+        f"baseline `{base['run']}` ({base['model']}) vs candidate `{cand['run']}` ({cand['model']}): "
+        f"{result['pairs']} pairs by (task, seed); max drop {cfg['max_drop']:g}, alpha {cfg['alpha']:g}.",
+    ]
+    for arm in (base, cand):
+        if arm["random_weights"]:
+            lines.append(f"> NOTE: `{arm['run']}` uses RANDOM weights ({arm['model']}).")
+    ident = result["identical"]
+    if ident["identical"]:
+        lines += ["", f"Every paired array is equal within {ident['atol']:g} and every outcome is the same "
+                      f"({ident['steps_compared']})."]
+    else:
+        lines += ["", f"Not identical: {ident['pairs_identical']}/{result['pairs']} pairs identical; first difference: "
+                      f"{ident['first_difference']}."]
+    lines += [
+        "",
+        f"| task | pairs | baseline success [{confidence} Wilson] | candidate success | difference "
+        f"[{confidence} Newcombe] | McNemar p (Holm) | verdict | to decide |",
+        "|---|---:|---|---|---|---|---|---|",
+    ]
+    outcomes = result["outcomes"]
+    for task, block in outcomes["tasks"].items():
+        lines.append(_row(task, block))
+    if len(outcomes["tasks"]) > 1:
+        lines.append(_row("**pooled**", outcomes["overall"]))
+
+    drift = result["drift"]
+    s0 = drift["step0"]["overall"]
+    lines += ["", "**Step-0 drift** (same seed, identical observation: the model change alone):",
+              f"- action chunk: mean L2 {_num(s0['action_l2'])}, max |difference| {_num(s0['action_max_abs'])}"]
+    if s0["js_layer"] is not None:
+        lines.append(f"- readout attention Jensen-Shannon (bits, mean over heads) per layer: {_layers(s0['js_layer'])}")
+    else:
+        lines.append("- readout attention: not comparable (different token maps)")
+    for obs, change in s0["target_lift_change"].items():
+        lines.append(f"- target lift change ({obs}) per layer: {_layers(change)}")
+    if drift["first_steps"]:
+        steps = drift["first_steps"]
+        lines.append(f"- first {len(steps)} steps, attention JS: "
+                     + ", ".join(_num(s["js_mean"], 2) for s in steps)
+                     + "; action L2: " + ", ".join(_num(s["action_l2"], 2) for s in steps))
+    whole = drift["whole_episode"]
+    lines.append(f"- whole episodes (confounded by diverging trajectories): attention JS {_num(whole['js_mean'])}, "
+                 f"action L2 {_num(whole['action_l2'])}")
+    missing = result["missing_pairs"]
+    if missing["candidate"] or missing["baseline"]:
+        lines += ["", f"Left out: {len(missing['candidate'])} pairs missing from the candidate, "
+                      f"{len(missing['baseline'])} missing from the baseline."]
+    errors = (base["errors"], cand["errors"])
+    if any(errors):
+        lines.append(f"Episodes that raised (counted as failures): baseline {errors[0]}, candidate {errors[1]}.")
+    if exit_code is not None:
+        lines += ["", f"Exit code {exit_code}."]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,312 @@
+"""Report figures: matplotlib (Agg, no pyplot state) and numpy composites, each returned as PNG bytes.
+
+Inputs are plain arrays already aggregated (harness.analysis.aggregate); nothing here reads run folders.
+Several runs share one figure with one colour per run (`run_colours`). NaN means "absent" and is drawn as
+such (grey cells marked n/a, gaps in lines), never as zero.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import Sequence
+
+import matplotlib
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import Normalize, TwoSlopeNorm
+from matplotlib.figure import Figure
+from PIL import Image, ImageDraw, ImageFont
+
+from harness.overlays import heatmap_overlays, resize_nearest
+
+RUN_COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22")
+DPI = 80
+ABSENT_GREY = "#d9d9d9"
+
+
+def run_colours(n: int) -> list[str]:
+    """One colour per run, in order (cycles after 10)."""
+    return [RUN_COLOURS[i % len(RUN_COLOURS)] for i in range(n)]
+
+
+def _figure(width: float, height: float) -> Figure:
+    fig = Figure(figsize=(width, height), dpi=DPI)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _png(fig: Figure) -> bytes:
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=DPI, bbox_inches="tight", pad_inches=0.08)
+    return buffer.getvalue()
+
+
+def _short(text: str, n: int = 18) -> str:
+    return text if len(text) <= n else text[: n - 1] + "…"
+
+
+def success_chart(tasks: Sequence[str], series: Sequence[tuple[str, str, dict]]) -> bytes:
+    """Success rate per task with intervals; series: [(run label, colour, {task: (rate, low, high, n)})]."""
+    fig = _figure(max(5.0, 0.55 * len(tasks) * max(1, len(series)) ** 0.5 + 2.5), 3.4)
+    ax = fig.add_subplot()
+    width = 0.8 / max(1, len(series))
+    x = np.arange(len(tasks))
+    for i, (label, colour, data) in enumerate(series):
+        pos = x - 0.4 + width * (i + 0.5)
+        rate = np.array([data.get(t, (np.nan,) * 4)[0] for t in tasks], float)
+        low = np.array([data.get(t, (np.nan,) * 4)[1] for t in tasks], float)
+        high = np.array([data.get(t, (np.nan,) * 4)[2] for t in tasks], float)
+        ax.bar(pos, np.nan_to_num(rate), width * 0.9, color=colour, alpha=0.75, label=label)
+        ok = np.isfinite(rate)
+        ax.errorbar(pos[ok], rate[ok], yerr=[rate[ok] - low[ok], high[ok] - rate[ok]], fmt="none", ecolor="black",
+                    capsize=3, lw=1)
+        for p, t in zip(pos, tasks):
+            n = data.get(t, (np.nan,) * 4)[3]
+            ax.text(p, -0.07, "–" if not np.isfinite(n) else f"n={int(n)}", ha="center", va="top", fontsize=7,
+                    transform=ax.get_xaxis_transform())
+    ax.set_xticks(x, [_short(t) for t in tasks], rotation=30, ha="right")
+    ax.set_ylim(0, 1.02)
+    ax.set_ylabel("success rate (95% Wilson)")
+    ax.grid(axis="y", alpha=0.3)
+    if len(series) > 1:
+        ax.legend(fontsize=8, loc="upper right")
+    return _png(fig)
+
+
+def _annotated_heatmap(ax, matrix: np.ndarray, norm, cmap: str, annotate: bool):
+    masked = np.ma.masked_invalid(matrix)
+    cm = matplotlib.colormaps[cmap].copy()
+    cm.set_bad(ABSENT_GREY)
+    im = ax.imshow(masked, aspect="auto", cmap=cm, norm=norm, interpolation="nearest")
+    rows, cols = matrix.shape
+    for r in range(rows):
+        for c in range(cols):
+            v = matrix[r, c]
+            if not np.isfinite(v):
+                ax.text(c, r, "n/a", ha="center", va="center", fontsize=6, color="#555555")
+            elif annotate:
+                ax.text(c, r, f"{v:.2g}", ha="center", va="center", fontsize=6, color="black")
+    return im
+
+
+def _lift_norm(matrices: Sequence[np.ndarray]) -> TwoSlopeNorm:
+    """Colour scale centred on 1 (chance): blue below, red above."""
+    values = np.concatenate([np.ravel(m) for m in matrices]) if matrices else np.array([])
+    values = values[np.isfinite(values)]
+    vmax = max(1.5, float(np.percentile(values, 99))) if values.size else 2.0
+    return TwoSlopeNorm(vmin=0.0, vcenter=1.0, vmax=vmax)
+
+
+def task_layer_heatmaps(tasks: Sequence[str], panels: Sequence[tuple[str, str, np.ndarray]], label: str) -> bytes:
+    """Target lift per task x layer, one panel per run; panels: [(run label, colour, (tasks, layers))]."""
+    n = max(1, len(panels))
+    layers = max((m.shape[1] for _, _, m in panels), default=1)
+    fig = _figure(min(22.0, n * (1.6 + 0.38 * layers) + 1.0), 1.0 + 0.3 * len(tasks) + 0.6)
+    norm = _lift_norm([m for _, _, m in panels])
+    im = None
+    for i, (run, colour, matrix) in enumerate(panels):
+        ax = fig.add_subplot(1, n, i + 1)
+        im = _annotated_heatmap(ax, matrix, norm, "RdBu_r", annotate=matrix.size <= 400)
+        ax.set_title(run, color=colour, fontsize=10, fontweight="bold")
+        ax.set_xticks(range(matrix.shape[1]), [str(i) for i in range(matrix.shape[1])], fontsize=7)
+        ax.set_xlabel("layer")
+        ax.set_yticks(range(len(tasks)), [_short(t) for t in tasks] if i == 0 else [""] * len(tasks), fontsize=8)
+    if im is not None:
+        fig.colorbar(im, ax=fig.axes, shrink=0.8, label=label)
+    return _png(fig)
+
+
+def shares_heatmaps(tasks: Sequence[str], categories: Sequence[str], panels: Sequence[tuple[str, str, dict]]) -> bytes:
+    """Modality shares: rows = categories, columns = runs; each panel a task x layer heatmap in [0, 1].
+
+    panels: [(run label, colour, {category: (tasks, layers)})]."""
+    n, rows = max(1, len(panels)), max(1, len(categories))
+    layers = max((m.shape[1] for _, _, d in panels for m in d.values()), default=1)
+    fig = _figure(min(22.0, n * (1.4 + 0.3 * layers) + 1.2), rows * (0.45 + 0.2 * len(tasks)) + 0.5)
+    norm = Normalize(0.0, 1.0)
+    im = None
+    for r, category in enumerate(categories):
+        for c, (run, colour, data) in enumerate(panels):
+            ax = fig.add_subplot(rows, n, r * n + c + 1)
+            matrix = data.get(category)
+            if matrix is None:
+                matrix = np.full((len(tasks), layers), np.nan)
+            im = _annotated_heatmap(ax, matrix, norm, "viridis", annotate=False)
+            ax.set_title(f"{category} — {run}" if n > 1 else category, fontsize=9, color=colour if n > 1 else "black")
+            ax.set_yticks(range(len(tasks)), [_short(t, 14) for t in tasks] if c == 0 else [""] * len(tasks), fontsize=7)
+            ax.set_xticks(range(matrix.shape[1]), [str(i) for i in range(matrix.shape[1])] if r == rows - 1 else [""] * matrix.shape[1],
+                          fontsize=6)
+            if r == rows - 1:
+                ax.set_xlabel("layer", fontsize=8)
+    if im is not None:
+        fig.colorbar(im, ax=fig.axes, shrink=0.6, label="share of attention")
+    return _png(fig)
+
+
+def _band(ax, x, mean, low, high, colour, label, style="-"):
+    mean, low, high = (np.asarray(a, float) for a in (mean, low, high))
+    ax.plot(x, mean, style, color=colour, lw=1.6, label=label, marker="o", ms=2.5)
+    ok = np.isfinite(low) & np.isfinite(high)
+    if ok.any():
+        ax.fill_between(x, np.where(ok, low, np.nan), np.where(ok, high, np.nan), color=colour, alpha=0.18, lw=0)
+
+
+def progress_small_multiples(
+    tasks: Sequence[str],
+    series: dict[str, list[tuple[str, str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]],
+    ylabel: str,
+    chance: float | None = 1.0,
+) -> bytes:
+    """One panel per task: a metric along normalised episode progress with interval bands, one line per run.
+
+    series: task -> [(run label, colour, x (bins,), mean, low, high)]; an empty list shows 'absent'."""
+    cols = min(5, max(1, len(tasks)))
+    rows = -(-len(tasks) // cols) if tasks else 1
+    fig = _figure(3.0 * cols + 0.4, 2.3 * rows + 0.3)
+    for i, task in enumerate(tasks):
+        ax = fig.add_subplot(rows, cols, i + 1)
+        lines = series.get(task) or []
+        for run, colour, x, mean, low, high in lines:
+            _band(ax, x, mean, low, high, colour, run)
+        if not lines:
+            ax.text(0.5, 0.5, "absent (no target mask)", ha="center", va="center", transform=ax.transAxes, color="#666666")
+        if chance is not None:
+            ax.axhline(chance, color="black", lw=0.8, ls=":")
+        ax.set_title(_short(task, 28), fontsize=9)
+        ax.set_xlim(0, 1)
+        ax.grid(alpha=0.25)
+        if i % cols == 0:
+            ax.set_ylabel(ylabel, fontsize=8)
+        if i >= len(tasks) - cols:
+            ax.set_xlabel("episode progress", fontsize=8)
+        ax.tick_params(labelsize=7)
+    if any(len(v) > 1 for v in series.values()):
+        handles, labels = [], []
+        for ax in fig.axes:
+            for h, l in zip(*ax.get_legend_handles_labels()):
+                if l not in labels:
+                    handles.append(h)
+                    labels.append(l)
+        fig.legend(handles, labels, loc="upper center", ncol=min(4, len(labels)), fontsize=8, bbox_to_anchor=(0.5, 1.04))
+    fig.tight_layout()
+    return _png(fig)
+
+
+def progress_by_outcome(
+    lines: Sequence[tuple[str, str, str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]], ylabel: str, chance: float | None = 1.0
+) -> bytes:
+    """One panel: a metric along progress, lines per (run, outcome); lines: [(run, colour, outcome, x, mean, low, high)].
+    Outcome 'success' is solid, 'no_success' dashed, 'all' dotted."""
+    fig = _figure(6.0, 3.0)
+    ax = fig.add_subplot()
+    styles = {"success": "-", "no_success": "--", "all": ":"}
+    names = {"success": "successful", "no_success": "unsuccessful", "all": "all episodes"}
+    for run, colour, outcome, x, mean, low, high in lines:
+        _band(ax, x, mean, low, high, colour, f"{run}: {names.get(outcome, outcome)}", styles.get(outcome, "-"))
+    if not lines:
+        ax.text(0.5, 0.5, "absent", ha="center", va="center", transform=ax.transAxes, color="#666666")
+    if chance is not None:
+        ax.axhline(chance, color="black", lw=0.8, ls=":")
+    ax.set_xlim(0, 1)
+    ax.set_xlabel("episode progress")
+    ax.set_ylabel(ylabel)
+    ax.grid(alpha=0.25)
+    if lines:
+        ax.legend(fontsize=7, loc="best")
+    return _png(fig)
+
+
+def head_layer_maps(panels: Sequence[tuple[str, str, np.ndarray]], label: str) -> bytes:
+    """Per run a layer x head map (e.g. target lift per head); panels: [(run label, colour, (layers, heads))]."""
+    n = max(1, len(panels))
+    heads = max((m.shape[1] for _, _, m in panels), default=1)
+    layers = max((m.shape[0] for _, _, m in panels), default=1)
+    fig = _figure(min(22.0, n * (1.2 + 0.34 * heads) + 1.0), 0.9 + 0.3 * layers)
+    norm = _lift_norm([m for _, _, m in panels])
+    im = None
+    for i, (run, colour, matrix) in enumerate(panels):
+        ax = fig.add_subplot(1, n, i + 1)
+        im = _annotated_heatmap(ax, matrix, norm, "RdBu_r", annotate=matrix.size <= 200)
+        ax.set_title(run, color=colour, fontsize=10, fontweight="bold")
+        ax.set_xticks(range(matrix.shape[1]), [str(h) for h in range(matrix.shape[1])], fontsize=7)
+        ax.set_yticks(range(matrix.shape[0]), [str(l) for l in range(matrix.shape[0])], fontsize=7)
+        ax.set_xlabel("head")
+        if i == 0:
+            ax.set_ylabel("layer")
+    if im is not None:
+        fig.colorbar(im, ax=fig.axes, shrink=0.8, label=label)
+    return _png(fig)
+
+
+def shares_by_layer(panels: Sequence[tuple[str, str, dict[str, np.ndarray]]], colours: dict[str, str]) -> bytes:
+    """Stacked modality shares along layers, one panel per run; panels: [(run, colour, {category: (layers,)})]."""
+    n = max(1, len(panels))
+    fig = _figure(min(20.0, 4.2 * n + 1.6), 2.8)
+    for i, (run, colour, data) in enumerate(panels):
+        ax = fig.add_subplot(1, n, i + 1)
+        names = [k for k in data if np.isfinite(data[k]).any()]
+        if names:
+            layers = np.arange(len(data[names[0]]))
+            ax.stackplot(layers, *[np.nan_to_num(data[k]) for k in names], labels=names,
+                         colors=[colours.get(k, "#999999") for k in names], alpha=0.85)
+            ax.set_xlim(0, max(1, len(layers) - 1))
+        ax.set_ylim(0, 1)
+        ax.set_title(run, color=colour, fontsize=10)
+        ax.set_xlabel("layer")
+        if i == 0:
+            ax.set_ylabel("share of attention")
+    handles, labels = fig.axes[0].get_legend_handles_labels() if fig.axes else ([], [])
+    if handles:
+        fig.legend(handles, labels, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8)
+    return _png(fig)
+
+
+def _font(size: int) -> ImageFont.ImageFont:
+    try:
+        return ImageFont.load_default(size=size)
+    except TypeError:  # Pillow without FreeType
+        return ImageFont.load_default()
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="PNG", optimize=False, compress_level=6)
+    return buffer.getvalue()
+
+
+def overlay_grid(
+    frames: Sequence[np.ndarray | None],
+    maps: np.ndarray,
+    layers: Sequence[int],
+    steps: Sequence[int],
+    title: str,
+    cell: int = 96,
+    cmap: str = "jet",
+) -> bytes:
+    """Layer x time grid of head-mean attention over the camera frame.
+
+    frames: per time column the (h, w, 3) uint8 camera frame, or None (map drawn without a frame);
+    maps: (len(layers), len(steps), rows, cols) head-mean attention over the camera's patches, each cell
+    coloured with its own range. Returns PNG bytes."""
+    maps = np.asarray(maps, np.float32)
+    n_layers, n_steps, rows, cols = maps.shape
+    width_cell = max(1, int(round(cell * cols / rows)))
+    left, top, pad = 62, 40, 3
+    canvas = np.full((top + n_layers * (cell + pad) + pad, left + n_steps * (width_cell + pad) + pad, 3), 255, np.uint8)
+    for t in range(n_steps):
+        frame = frames[t] if t < len(frames) else None
+        base = resize_nearest(frame, cell, width_cell) if frame is not None else np.full((cell, width_cell, 3), 40, np.uint8)
+        cells = heatmap_overlays(base, maps[:, t], alpha=0.5 if frame is not None else 1.0, cmap=cmap)
+        for li in range(n_layers):
+            y = top + li * (cell + pad)
+            x = left + t * (width_cell + pad)
+            canvas[y:y + cell, x:x + width_cell] = cells[li]
+    image = Image.fromarray(canvas)
+    draw = ImageDraw.Draw(image)
+    font = _font(12)
+    draw.text((4, 3), title, fill=(0, 0, 0), font=font)
+    for t, step in enumerate(steps):
+        draw.text((left + t * (width_cell + pad) + 2, top - 16), f"step {step}", fill=(0, 0, 0), font=font)
+    for li, layer in enumerate(layers):
+        draw.text((4, top + li * (cell + pad) + cell // 2 - 7), f"layer {layer}", fill=(0, 0, 0), font=font)
+    return encode_png(np.asarray(image))
