@@ -66,6 +66,7 @@ def _js_by_layer(result: dict) -> bytes | None:
     ax = fig.add_subplot()
     for (task, values), colour in zip(series, run_colours(len(series))):
         ax.plot(np.arange(len(values)), values, marker="o", color=colour, label=task)
+    ax.set_xticks(range(max(len(v) for _, v in series)))
     ax.set_xlabel("layer")
     ax.set_ylabel("step-0 JS divergence (bits)")
     ax.set_ylim(bottom=0)
@@ -100,6 +101,7 @@ def _first_steps(result: dict) -> bytes | None:
         ax = fig.add_subplot(1, 2, i + 1)
         y = [np.nan if s[key] is None else s[key] for s in steps]
         ax.plot(x, y, marker="o", color=run_colours(2)[1])
+        ax.set_xticks(x)
         ax.set_xlabel("step")
         ax.set_ylabel(label)
         ax.set_ylim(bottom=0)

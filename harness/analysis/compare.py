@@ -1,0 +1,424 @@
+"""Comparison of two runs on the same seeds: paired outcome verdicts, first-step drift and the IDENTICAL check.
+
+`compare_runs(baseline_dir, candidate_dir, config)` reads both run folders (harness.analysis.runs), refuses
+protocols that differ in what changes outcomes (`IncompatibleRuns`, one line naming the fields), pairs
+finished episodes by (task, seed) and returns one JSON-ready dict (what compare.json holds):
+
+- outcomes: per task and pooled, both success rates with Wilson intervals, the paired difference
+  (candidate - baseline) with Newcombe's interval, the exact McNemar p-value, Holm's adjustment over the
+  family {every task, pooled (when there are several tasks)}, a verdict (harness.analysis.paired) and the
+  number of pairs the current rates would need to decide an UNDERPOWERED verdict;
+- drift: at step 0 both arms saw the identical observation (same seed), so the difference of the step-0
+  action chunks, the Jensen-Shannon divergence of the step-0 readout attention per layer and head and the
+  change of target lift measure the model change alone; the same per step over the first k steps; and over
+  whole episodes, marked confounded (trajectories diverge once actions differ);
+- identical: every array of every pair (actions.npz, attention.npz) equal within `atol`, with the same
+  outcomes: the overall verdict is then IDENTICAL.
+
+Overall verdict: IDENTICAL if identical; else REGRESSED if the pooled table or any task is REGRESSED; else the
+pooled table's verdict. `exit_code` maps it to 0 (no regression), 1 (regression, or what --fail-on adds).
+A committed baseline keeps only step-0 arrays (BASELINE.json says so): arrays are then compared over the
+steps both arms stored.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from harness.analysis.paired import (
+    PairedCounts,
+    difference_interval,
+    holm_adjust,
+    mcnemar_exact,
+    paired_verdict,
+    pairs_to_decide,
+)
+from harness.analysis.runs import EpisodeRecord, RunRecord, load_run
+from harness.analysis.stats import wilson_interval
+
+FORMAT = "octo-harness-compare/1"
+BASELINE_MARKER = "BASELINE.json"  # written by scripts/make_baseline.py into a committed baseline
+FAIL_ON = ("regressed", "underpowered", "changed")
+# protocol fields that may differ between the arms (the model is what a comparison changes); any other
+# difference changes outcomes (env options, max steps, execution, action space, cameras, instruction, goals...)
+MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "outputs", "harness_version",
+              "policy.full_attention", "policy.dataset_key",
+              # legacy manifests (before the run store) keep model facts at the top level
+              "model_is_random", "model_note", "text_tokenizer", "dataset_key", "git_commit", "versions")
+ARRAY_FILES = ("actions.npz", "attention.npz")
+
+
+class IncompatibleRuns(ValueError):
+    """The two runs cannot be paired (one line naming the fields or the problem)."""
+
+
+@dataclass(frozen=True)
+class CompareConfig:
+    max_drop: float = 0.1  # HELD needs the interval to rule out a drop larger than this
+    alpha: float = 0.05  # family-wise level of the McNemar tests; intervals at 1 - alpha
+    first_steps: int = 10  # per-step divergence over steps 0..first_steps-1
+    atol: float = 1e-6  # IDENTICAL: every paired array equal within this
+
+    def __post_init__(self):
+        if not 0 < self.alpha < 1:
+            raise ValueError(f"--alpha must be in (0, 1), got {self.alpha}")
+        if not 0 <= self.max_drop < 1:
+            raise ValueError(f"--max-drop must be in [0, 1), got {self.max_drop}")
+        if self.first_steps < 1:
+            raise ValueError(f"--first-steps must be at least 1, got {self.first_steps}")
+
+
+# ------------------------------------------------------------------------------------------- pure maths
+
+def jensen_shannon(p: np.ndarray, q: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Jensen-Shannon divergence in bits (0 = equal, 1 = disjoint support) between rows normalised along `axis`.
+
+    p, q (..., keys) >= 0 -> (...). JS = H(m) - (H(p) + H(q)) / 2 with m = (p + q) / 2.
+    """
+    p = np.asarray(p, np.float64)
+    q = np.asarray(q, np.float64)
+    p = p / np.maximum(p.sum(axis=axis, keepdims=True), 1e-300)
+    q = q / np.maximum(q.sum(axis=axis, keepdims=True), 1e-300)
+    m = 0.5 * (p + q)
+
+    def kl(a, b):
+        ratio = np.divide(a, b, out=np.ones_like(a), where=(a > 0) & (b > 0))
+        return (a * np.log2(ratio)).sum(axis=axis)
+
+    return np.clip(0.5 * kl(p, m) + 0.5 * kl(q, m), 0.0, 1.0)
+
+
+def attention_divergence(base: np.ndarray, cand: np.ndarray) -> np.ndarray:
+    """readout attention (..., layers, heads, readouts, keys) x2 -> (..., layers, heads) JS in bits, mean over readouts."""
+    return jensen_shannon(base, cand).mean(axis=-1)
+
+
+def action_difference(base: np.ndarray, cand: np.ndarray) -> np.ndarray:
+    """predicted chunks (..., horizon, dim) x2 -> (...) L2 norm of the difference over the whole chunk."""
+    diff = np.asarray(cand, np.float64) - np.asarray(base, np.float64)
+    return np.sqrt((diff ** 2).sum(axis=(-2, -1)))
+
+
+def target_lift(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """attention.npz arrays -> {obs key: (steps, layers) target mass / target area} (1 = chance)."""
+    out = {}
+    for name, mass in arrays.items():
+        if name.startswith("metrics/mask_mass/") and name.endswith("/target"):
+            obs = name[len("metrics/mask_mass/"):-len("/target")]
+            area = arrays.get(f"metrics/mask_area/{obs}/target")
+            if area is not None:
+                area = np.asarray(area, np.float64).reshape(-1, 1)
+                out[obs] = np.divide(np.asarray(mass, np.float64), area, out=np.full(mass.shape, np.nan), where=area > 0)
+    return out
+
+
+# ------------------------------------------------------------------------------------------- reading
+
+def _protocol(run: RunRecord) -> dict:
+    manifest = run.manifest
+    if isinstance(manifest.get("protocol"), dict):
+        return manifest["protocol"]
+    return {k: v for k, v in manifest.items() if k not in ("jobs", "run", "created", "format")}  # legacy
+
+
+def _flatten(data, prefix: str = "") -> dict:
+    if isinstance(data, dict) and data:
+        out = {}
+        for key, value in data.items():
+            out.update(_flatten(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: data}
+
+
+def incompatible_fields(baseline: dict, candidate: dict) -> list[str]:
+    """Dotted protocol fields that differ and change outcomes (everything but MAY_DIFFER)."""
+    a, b = _flatten(json.loads(json.dumps(baseline))), _flatten(json.loads(json.dumps(candidate)))
+    missing = object()
+    differ = sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, missing) != b.get(k, missing))
+    if a.get("execution", missing) != b.get("execution", missing) and not any(k.startswith("policy.") for k in differ):
+        differ.append("execution")  # legacy manifests have no policy block
+    return [k for k in differ if not any(k == m or k.startswith(m + ".") for m in MAY_DIFFER)]
+
+
+def _truncated(run: RunRecord) -> bool:
+    """A committed baseline that keeps only the first steps' arrays."""
+    return (run.path / BASELINE_MARKER).is_file()
+
+
+def _load_arrays(episode: EpisodeRecord) -> dict[str, np.ndarray] | None:
+    """Both array files of an episode, keys prefixed "actions.npz:" / "attention.npz:"; None when absent."""
+    out = {}
+    for name in ARRAY_FILES:
+        path = episode.directory / name
+        if not path.is_file():
+            return None
+        with np.load(path) as z:
+            out.update({f"{name}:{key}": z[key] for key in z.files})
+    return out
+
+
+def pair_episodes(baseline: RunRecord, candidate: RunRecord):
+    """Finished episodes paired by (task, seed) -> (pairs [(task, seed, base, cand)], missing {arm: [[task, seed]]})."""
+    def index(run):
+        return {(e.task, e.seed if e.seed is not None else e.episode): e for e in run.episodes}
+
+    base, cand = index(baseline), index(candidate)
+    order = [key for key in base if key in cand]
+    pairs = [(task, seed, base[(task, seed)], cand[(task, seed)]) for task, seed in order]
+    missing = {
+        "candidate": [[t, s] for (t, s) in base if (t, s) not in cand],  # run by the baseline only
+        "baseline": [[t, s] for (t, s) in cand if (t, s) not in base],
+    }
+    return pairs, missing
+
+
+# ------------------------------------------------------------------------------------------- per pair
+
+def _step_count(arrays: dict[str, np.ndarray]) -> int:
+    return int(arrays["attention.npz:step"].shape[0]) if "attention.npz:step" in arrays else 0
+
+
+def _first_difference(a: dict, b: dict, steps: int, atol: float) -> str | None:
+    """None when every array agrees within atol over the first `steps` stored steps, else what differs first."""
+    if set(a) != set(b):
+        return f"array files hold different arrays: {sorted(set(a) ^ set(b))[:4]}"
+    for key in sorted(a):
+        x, y = a[key], b[key]
+        stepwise = not key.startswith("attention.npz:tokens/") and x.ndim > 0
+        if stepwise:
+            x, y = x[:steps], y[:steps]
+        if x.shape != y.shape:
+            return f"{key} shape {x.shape} vs {y.shape}"
+        if x.dtype.kind not in "fc" or y.dtype.kind not in "fc":  # ints, bools, strings: exact
+            if not np.array_equal(x, y):
+                return f"{key} differs"
+            continue
+        xf, yf = x.astype(np.float64), y.astype(np.float64)
+        if not np.array_equal(np.isnan(xf), np.isnan(yf)):
+            return f"{key} differs in NaN positions"
+        diff = np.abs(np.nan_to_num(xf) - np.nan_to_num(yf))
+        if diff.size and diff.max() > atol:
+            return f"{key} max |diff| {diff.max():.3g}"
+    return None
+
+
+def _compare_pair(task, seed, base: EpisodeRecord, cand: EpisodeRecord, truncated: tuple[bool, bool],
+                  config: CompareConfig) -> dict:
+    """One pair: outcome, IDENTICAL check and drift arrays (kept as numpy for aggregation)."""
+    out = {"task": task, "seed": seed, "baseline_dir": str(base.directory), "candidate_dir": str(cand.directory),
+           "baseline_success": base.success, "candidate_success": cand.success,
+           "baseline_steps": base.steps, "candidate_steps": cand.steps,
+           "baseline_status": base.status, "candidate_status": cand.status}
+    a = _load_arrays(base) if base.ok else None
+    b = _load_arrays(cand) if cand.ok else None
+    if a is None or b is None:
+        out["identical"] = False
+        out["difference"] = "an episode failed or has no arrays"
+        return out
+    stored_a, stored_b = _step_count(a), _step_count(b)
+    complete = (stored_a == base.steps or truncated[0]) and (stored_b == cand.steps or truncated[1])
+    steps = min(stored_a, stored_b)
+    difference = None
+    if (base.success, base.steps, base.status) != (cand.success, cand.steps, cand.status):
+        difference = f"outcome differs (success {base.success} -> {cand.success}, steps {base.steps} -> {cand.steps})"
+    elif not complete:
+        difference = "stored arrays are shorter than the episode"
+    else:
+        difference = _first_difference(a, b, steps, config.atol)
+    out["identical"] = difference is None
+    out["difference"] = difference
+    out["compared_steps"] = steps
+
+    pa, pb = a.get("actions.npz:predicted"), b.get("actions.npz:predicted")
+    ra, rb = a.get("attention.npz:readout_attention"), b.get("attention.npz:readout_attention")
+    if pa is not None and pb is not None and pa.shape[1:] == pb.shape[1:] and steps:
+        out["action_l2"] = action_difference(pa[:steps], pb[:steps])  # (steps,)
+        out["action_max_abs_step0"] = float(np.abs(pb[0].astype(np.float64) - pa[0]).max())
+    tokens_equal = all(
+        np.array_equal(a[k], b.get(k)) for k in a if k.startswith("attention.npz:tokens/")
+    ) and ra is not None and rb is not None and ra.shape[1:] == rb.shape[1:]
+    if tokens_equal and steps:
+        out["js"] = attention_divergence(ra[:steps], rb[:steps])  # (steps, layers, heads)
+        la = target_lift({k.split(":", 1)[1]: v for k, v in a.items() if k.startswith("attention.npz:")})
+        lb = target_lift({k.split(":", 1)[1]: v for k, v in b.items() if k.startswith("attention.npz:")})
+        out["lift_change_step0"] = {obs: lb[obs][0] - la[obs][0] for obs in la if obs in lb}  # (layers,)
+    elif not tokens_equal:
+        out["attention_note"] = "token maps or attention shapes differ (different architecture): no attention drift"
+    return out
+
+
+# ------------------------------------------------------------------------------------------- aggregation
+
+def _rate(successes: int, n: int, confidence: float) -> dict:
+    low, high = wilson_interval(successes, n, confidence)
+    return {"successes": successes, "n": n, "rate": successes / n if n else None, "ci_low": low, "ci_high": high}
+
+
+def _outcome_block(counts: PairedCounts, config: CompareConfig) -> dict:
+    confidence = 1.0 - config.alpha
+    low, high = difference_interval(counts, confidence)
+    return {
+        "pairs": counts.n,
+        "table": asdict(counts),
+        "baseline": _rate(counts.baseline_successes, counts.n, confidence),
+        "candidate": _rate(counts.candidate_successes, counts.n, confidence),
+        "difference": counts.difference if counts.n else None,
+        "difference_ci": [low, high],
+        "mcnemar_p": mcnemar_exact(counts.baseline_only, counts.candidate_only),
+    }
+
+
+def outcome_verdicts(tables: dict[str, PairedCounts], config: CompareConfig) -> dict:
+    """{task: counts} -> {"tasks": {task: block}, "overall": block}, each with Holm-adjusted p and verdict."""
+    overall = sum(tables.values(), PairedCounts())
+    blocks = {task: _outcome_block(c, config) for task, c in tables.items()}
+    pooled = _outcome_block(overall, config)
+    family = list(blocks.values()) + ([pooled] if len(blocks) > 1 else [])
+    adjusted = holm_adjust([b["mcnemar_p"] for b in family])
+    if len(blocks) <= 1:
+        pooled_adjusted = adjusted[0] if adjusted else 1.0
+    else:
+        pooled_adjusted = adjusted[-1]
+    for block, p in zip(family, adjusted):
+        block["mcnemar_p_holm"] = p
+    pooled["mcnemar_p_holm"] = pooled_adjusted
+    for name, (block, counts) in {**{t: (blocks[t], tables[t]) for t in tables}, "": (pooled, overall)}.items():
+        verdict = paired_verdict(counts, block["mcnemar_p_holm"], tuple(block["difference_ci"]), config.max_drop,
+                                 config.alpha)
+        block["verdict"] = verdict
+        multiplier = block["mcnemar_p_holm"] / block["mcnemar_p"] if block["mcnemar_p"] > 0 else len(family) or 1
+        needed = pairs_to_decide(counts, config.max_drop, config.alpha, max(multiplier, 1.0)) \
+            if verdict == "UNDERPOWERED" else None
+        block["pairs_to_decide"] = needed
+        block["more_pairs_needed"] = None if needed is None else needed - counts.n
+    return {"tasks": blocks, "overall": pooled, "holm_family": len(family)}
+
+
+def _mean(values: list[np.ndarray]):
+    return np.mean(np.stack(values), axis=0) if values else None
+
+
+def _drift(pairs: list[dict], config: CompareConfig) -> dict:
+    def step0(group: list[dict]) -> dict:
+        js = [p["js"][0] for p in group if "js" in p]
+        actions = [p["action_l2"][0] for p in group if "action_l2" in p]
+        lift: dict[str, list] = {}
+        for p in group:
+            for obs, change in p.get("lift_change_step0", {}).items():
+                lift.setdefault(obs, []).append(change)
+        js_mean = _mean(js)  # (layers, heads)
+        return {
+            "pairs": len(group),
+            "action_l2": float(np.mean(actions)) if actions else None,
+            "action_max_abs": max((p["action_max_abs_step0"] for p in group if "action_max_abs_step0" in p), default=None),
+            "js_layer_head": js_mean,
+            "js_layer": None if js_mean is None else js_mean.mean(axis=-1),
+            "js_mean": None if js_mean is None else float(js_mean.mean()),
+            "target_lift_change": {obs: np.nanmean(np.stack(v), axis=0) for obs, v in lift.items()},
+        }
+
+    tasks = {}
+    for p in pairs:
+        tasks.setdefault(p["task"], []).append(p)
+    first = []
+    for t in range(config.first_steps):
+        js = [p["js"][t].mean() for p in pairs if "js" in p and p["js"].shape[0] > t]
+        actions = [p["action_l2"][t] for p in pairs if "action_l2" in p and p["action_l2"].shape[0] > t]
+        if not js and not actions:
+            break
+        first.append({"step": t, "pairs": max(len(js), len(actions)),
+                      "action_l2": float(np.mean(actions)) if actions else None,
+                      "js_mean": float(np.mean(js)) if js else None})
+    whole_js = [float(p["js"].mean()) for p in pairs if "js" in p]
+    whole_actions = [float(p["action_l2"].mean()) for p in pairs if "action_l2" in p]
+    return {
+        "step0": {"tasks": {task: step0(group) for task, group in tasks.items()}, "overall": step0(pairs)},
+        "first_steps": first,
+        "whole_episode": {
+            "confounded": True,
+            "note": "after step 0 the arms see different observations once their actions differ; "
+                    "only step 0 isolates the model",
+            "action_l2": float(np.mean(whole_actions)) if whole_actions else None,
+            "js_mean": float(np.mean(whole_js)) if whole_js else None,
+            "pairs": len(whole_js),
+        },
+    }
+
+
+def _arm(run: RunRecord) -> dict:
+    return {"run": run.name, "path": str(run.path), "model": run.model.source, "random_weights": run.model.is_random,
+            "status": run.status, "episodes": len(run.episodes), "missing_jobs": run.missing,
+            "errors": sum(not e.ok for e in run.episodes), "git_commit": run.git_commit,
+            "arrays": "first steps only (committed baseline)" if _truncated(run) else "all steps"}
+
+
+def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig()) -> dict:
+    """Compare two run folders (see the module docstring). Raises IncompatibleRuns / NotARunError (exit 2)."""
+    baseline, candidate = load_run(baseline_dir), load_run(candidate_dir)
+    fields = incompatible_fields(_protocol(baseline), _protocol(candidate))
+    if fields:
+        raise IncompatibleRuns(f"the runs' protocols differ in fields that change outcomes: {', '.join(fields)}; "
+                               "re-run the candidate with the baseline's settings (or use `octo-harness regress`)")
+    pairs, missing = pair_episodes(baseline, candidate)
+    if not pairs:
+        raise IncompatibleRuns(f"no (task, seed) pair is finished in both {baseline.path} and {candidate.path}; "
+                               "run the candidate on the baseline's tasks and seeds")
+    truncated = (_truncated(baseline), _truncated(candidate))
+    details = [_compare_pair(task, seed, b, c, truncated, config) for task, seed, b, c in pairs]
+
+    tables: dict[str, PairedCounts] = {}
+    for d in details:
+        one = PairedCounts.from_outcomes([d["baseline_success"]], [d["candidate_success"]])
+        tables[d["task"]] = tables.get(d["task"], PairedCounts()) + one
+    outcomes = outcome_verdicts(tables, config)
+    identical = all(d["identical"] for d in details) and not missing["baseline"] and not missing["candidate"]
+    first_diff = next((f"{d['task']} seed {d['seed']}: {d['difference']}" for d in details if not d["identical"]), None)
+    if identical:
+        verdict = "IDENTICAL"
+    elif any(b["verdict"] == "REGRESSED" for b in outcomes["tasks"].values()) or outcomes["overall"]["verdict"] == "REGRESSED":
+        verdict = "REGRESSED"
+    else:
+        verdict = outcomes["overall"]["verdict"]
+    return {
+        "format": FORMAT,
+        "verdict": verdict,
+        "config": asdict(config),
+        "baseline": _arm(baseline),
+        "candidate": _arm(candidate),
+        "pairs": len(details),
+        "missing_pairs": missing,
+        "identical": {
+            "identical": identical,
+            "pairs_identical": sum(d["identical"] for d in details),
+            "first_difference": first_diff if not identical else None,
+            "atol": config.atol,
+            "steps_compared": "first stored steps of the committed baseline" if any(truncated) else "all steps",
+        },
+        "outcomes": outcomes,
+        "drift": _drift(details, config),
+        "pair_details": [
+            {k: v for k, v in d.items() if k not in ("js", "action_l2", "lift_change_step0")}
+            | {"step0_action_l2": float(d["action_l2"][0]) if "action_l2" in d else None,
+               "step0_js_mean": float(d["js"][0].mean()) if "js" in d else None}
+            for d in details
+        ],
+    }
+
+
+def exit_code(result: dict, fail_on: str = "regressed") -> int:
+    """0 no regression, 1 regression (or UNDERPOWERED with fail_on="underpowered", anything but IDENTICAL with
+    fail_on="changed")."""
+    if fail_on not in FAIL_ON:
+        raise ValueError(f"unknown --fail-on {fail_on!r}; use one of {FAIL_ON}")
+    verdict = result["verdict"]
+    if verdict == "IDENTICAL":
+        return 0
+    if fail_on == "changed" or verdict == "REGRESSED":
+        return 1
+    verdicts = [b["verdict"] for b in result["outcomes"]["tasks"].values()] + [verdict]
+    if fail_on == "underpowered" and "UNDERPOWERED" in verdicts:
+        return 1
+    return 0
