@@ -8,19 +8,15 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-import time
 from pathlib import Path
 
 USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, KeyError, FileNotFoundError, PermissionError)
 
 
-def _parse_layers(text: str | None) -> tuple[int, ...] | None:
-    if not text or text == "all":
-        return None
-    try:
-        return tuple(int(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--layers takes comma-separated layer indices or 'all', got {text!r}") from None
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from harness.run.store import RunLockedError
+
+    return (*USER_ERRORS, RunLockedError)
 
 
 def _video_attention(text: str):
@@ -37,38 +33,129 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    r = sub.add_parser("run", help="run closed-loop episodes and record attention")
-    r.add_argument("--task", action="append", required=True,
+    r = sub.add_parser("run", help="run (or resume) closed-loop episodes and record attention",
+                       description="Run the episodes of an evaluation protocol into <out>/<run-name>; running the same "
+                                   "command again resumes it. Defaults are shown in brackets.")
+    r.add_argument("--protocol", type=Path, default=None,
+                   help="TOML file whose keys mirror these flags (task, model, episodes, ...); flags given here override it")
+    r.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
+                   help="continue the run in RUN_DIR with the protocol from its manifest.json")
+    r.add_argument("--overwrite", action="store_true", help="start the run afresh, deleting what the run folder holds")
+    r.add_argument("--retry-failed", action="store_true", help="on resume, run episodes that failed with an error again")
+    r.add_argument("--task", action="append", default=None,
                    help="task name (repeat or comma-separate for several; 'all' for every registered task)")
-    r.add_argument("--episodes", type=int, default=1)
-    r.add_argument("--model", default="hf://rail-berkeley/octo-small-1.5",
-                   help="hf://owner/name, a local checkpoint folder, or random:octo-small-1.5 / random:octo-base-1.5")
-    r.add_argument("--max-steps", type=int, default=None, help="stop each episode after N control steps")
-    r.add_argument("--out", type=Path, default=Path("results/runs"), help="output root (default results/runs)")
-    r.add_argument("--run-name", default=None, help="folder name of this run (default: UTC time + model)")
-    r.add_argument("--seed", type=int, default=0, help="episode k uses seed + k")
+    r.add_argument("--episodes", type=int, default=None, help="episodes per task [1]")
+    r.add_argument("--model", default=None,
+                   help="hf://owner/name, a local checkpoint folder, or random:octo-small-1.5 / random:octo-base-1.5 "
+                        "[hf://rail-berkeley/octo-small-1.5]")
+    r.add_argument("--max-steps", type=int, default=None, help="stop each episode after N control steps [task's limit]")
+    r.add_argument("--out", type=Path, default=None, help="output root [results/runs]")
+    r.add_argument("--run-name", default=None,
+                   help="folder name of this run [<model>_<protocol hash>: the same command resumes the same run]")
+    r.add_argument("--seed", type=int, default=None, help="episode k uses seed + k [0]")
     r.add_argument("--instruction", default=None, help="override the task's language instruction")
     r.add_argument("--dataset-key", default=None,
                    help="dataset statistics used to unnormalise actions (default: bridge_dataset when present)")
-    r.add_argument("--execution", choices=["temporal_ensemble", "receding_horizon"], default="temporal_ensemble")
-    r.add_argument("--receding-steps", type=int, default=4, help="actions executed per inference (receding horizon)")
-    r.add_argument("--ensemble-weight", type=float, default=0.0, help="temporal ensemble weight exp(-w*i); 0 = mean")
-    r.add_argument("--png-every", type=int, default=1, help="write overlays every n-th step (0 = none)")
-    r.add_argument("--layers", type=_parse_layers, default=None, help="overlay layers, e.g. 0,5,11 (default all)")
-    r.add_argument("--video-attention", type=_video_attention, default=-1,
+    r.add_argument("--execution", choices=["temporal_ensemble", "receding_horizon"], default=None,
+                   help="[temporal_ensemble]")
+    r.add_argument("--receding-steps", type=int, default=None, help="actions executed per inference (receding horizon) [4]")
+    r.add_argument("--ensemble-weight", type=float, default=None, help="temporal ensemble weight exp(-w*i); 0 = mean [0]")
+    r.add_argument("--png-every", type=int, default=None, help="write overlays every n-th step (0 = none) [1]")
+    r.add_argument("--layers", default=None, help="overlay layers, e.g. 0,5,11 [all]")
+    r.add_argument("--video-attention", type=_video_attention, default=None,
                    help="attention shown in the MP4: a layer index (default -1 = last) or 'rollout'")
-    r.add_argument("--normalisation", choices=["frame", "episode"], default="frame")
-    r.add_argument("--no-video", action="store_true")
-    r.add_argument("--gif", action="store_true", help="also write rollout.gif")
-    r.add_argument("--bbox", action="store_true", help="draw the target object's bounding box on overlays")
-    r.add_argument("--no-masks", action="store_true", help="do not render target/robot masks")
+    r.add_argument("--normalisation", choices=["frame", "episode"], default=None, help="[frame]")
+    r.add_argument("--no-video", action="store_true", default=None)
+    r.add_argument("--gif", action="store_true", default=None, help="also write rollout.gif")
+    r.add_argument("--bbox", action="store_true", default=None, help="draw the target object's bounding box on overlays")
+    r.add_argument("--no-masks", action="store_true", default=None, help="do not render target/robot masks")
     r.add_argument("--goal-images", type=Path, default=None,
                    help="folder with <obs key>.png goal images (image_primary.png, ...) for goal-conditioned models")
-    r.add_argument("--fast-render", action="store_true",
+    r.add_argument("--fast-render", action="store_true", default=None,
                    help="render without reflections, shadows and anti-aliasing (~3.6x faster frames)")
+    r.add_argument("--camera", action="append", default=None, metavar="KEY=camera:size",
+                   help="observation key fed by a robosuite camera at a square size, e.g. image_primary=agentview:84 "
+                        "(repeat; default: the task's cameras or the checkpoint's harness.toml)")
+    r.add_argument("--image-convention", choices=["upright", "opengl"], default=None,
+                   help="orientation of the frames the model was trained on [upright]")
+    r.add_argument("--action-space", choices=["octo-delta", "robosuite"], default=None,
+                   help="what the model's actions mean [octo-delta, or the checkpoint's harness.toml]")
+    r.add_argument("--ci-method", choices=["wilson", "clopper-pearson"], default=None,
+                   help="confidence interval of success rates (95%%) [wilson]")
 
     sub.add_parser("tasks", help="list the registered tasks")
+
+    rep = sub.add_parser("report", help="HTML report comparing attention task by task (one or more runs)",
+                         description="Aggregate the episodes of one or more runs into report.html (self-contained), "
+                                     "tables/*.csv (long format) and plots/*.png.")
+    rep.add_argument("runs", nargs="+", type=Path, metavar="RUN_DIR", help="run folder(s); several appear side by side")
+    rep.add_argument("--out", type=Path, default=None, help="report folder [first RUN_DIR/report]")
+    rep.add_argument("--bins", type=int, default=10, help="bins of normalised episode progress [10]")
+    rep.add_argument("--resamples", type=int, default=2000, help="bootstrap resamples for the 95%% intervals [2000]")
+    rep.add_argument("--workers", type=int, default=None, help="processes reading episodes [up to 4]")
+
+    cmp_ = sub.add_parser("compare", help="paired verdict of a candidate run against a baseline run (same seeds)",
+                          description="Pair episodes by (task, seed); write compare.json, compare.md and compare.html. "
+                                      "Exit 0 no regression, 1 regression, 2 incompatible or invalid input.")
+    cmp_.add_argument("baseline", type=Path, metavar="BASELINE_RUN")
+    cmp_.add_argument("candidate", type=Path, metavar="CANDIDATE_RUN")
+    cmp_.add_argument("--max-drop", type=float, default=0.1, help="HELD rules out a larger drop in success rate [0.1]")
+    cmp_.add_argument("--alpha", type=float, default=0.05, help="family-wise level; intervals at 1 - alpha [0.05]")
+    cmp_.add_argument("--first-steps", type=int, default=10, help="per-step divergence over the first k steps [10]")
+    cmp_.add_argument("--fail-on", choices=["regressed", "underpowered", "changed"], default="regressed",
+                      help="also exit 1 on UNDERPOWERED, or on anything but IDENTICAL [regressed]")
+    cmp_.add_argument("--out", type=Path, default=None, help="output folder [CANDIDATE_RUN/compare_<baseline name>]")
+    cmp_.add_argument("--no-frames", action="store_true", help="do not render step-0 camera frames for the overlays")
+
+    reg = sub.add_parser("regress", help="run a candidate on a baseline's protocol and seeds until a sequential test decides",
+                         description="Pair by pair (round by round over tasks) through the run store (resumable); "
+                                     "stops as soon as the anytime-valid test decides at level alpha.")
+    reg.add_argument("--baseline", type=Path, required=True, metavar="RUN", help="baseline run folder")
+    reg.add_argument("--model", required=True, help="candidate model (as for `run --model`)")
+    reg.add_argument("--max-episodes", type=int, default=None, help="at most N episodes per task [the baseline's]")
+    reg.add_argument("--max-drop", type=float, default=0.1, help="HELD rules out a larger drop in success rate [0.1]")
+    reg.add_argument("--alpha", type=float, default=0.05, help="level of the sequential test [0.05]")
+    reg.add_argument("--out", type=Path, default=Path("results/runs"), help="output root of the candidate run [results/runs]")
+    reg.add_argument("--run-name", default=None, help="candidate run folder name [<model>_<protocol hash>]")
+    reg.add_argument("--fail-on", choices=["regressed", "underpowered"], default="regressed",
+                     help="also exit 1 when the test ran out of pairs undecided [regressed]")
     return parser
+
+
+def _cmd_report(args) -> int:
+    from harness.report.build import ReportOptions, build_report
+
+    result = build_report(args.runs, args.out, ReportOptions(bins=args.bins, resamples=args.resamples, workers=args.workers))
+    print(f"report: {result.html} ({result.episodes} episodes, {len(result.plots)} plots, {result.seconds:.1f} s)")
+    return 0
+
+
+def _cmd_compare(args) -> int:
+    from harness.analysis.compare import CompareConfig, compare_runs, exit_code
+    from harness.report.compare_html import step0_frames, write_comparison
+
+    result = compare_runs(args.baseline, args.candidate,
+                          CompareConfig(max_drop=args.max_drop, alpha=args.alpha, first_steps=args.first_steps))
+    code = exit_code(result, args.fail_on)
+    frames = {} if args.no_frames or result["env"] is None else step0_frames(result, result["env"])
+    out = args.out or Path(result["candidate"]["path"]) / f"compare_{result['baseline']['run']}"
+    paths = write_comparison(result, out, frames, code)
+    print(paths["markdown"].read_text(), end="")
+    print(f"compare: {paths['html']}")
+    return code
+
+
+def _cmd_regress(args) -> int:
+    from harness.report.compare_html import write_comparison
+    from harness.run.regress import exit_code, regress, write_regress
+
+    result = regress(args.baseline, args.model, max_episodes=args.max_episodes, out=args.out, run_name=args.run_name,
+                     alpha=args.alpha, max_drop=args.max_drop)
+    code = exit_code(result, args.fail_on)
+    paths = write_regress(result, code, write_comparison)
+    print(paths["summary"])
+    print(f"regress: {paths['json']}")
+    return code
 
 
 def _cmd_tasks() -> int:
@@ -78,82 +165,40 @@ def _cmd_tasks() -> int:
     return 0
 
 
-def _expand_tasks(values: list[str]) -> tuple[str, ...]:
-    import envs
-
-    names = [t.strip() for v in values for t in v.split(",") if t.strip()]
-    if names == ["all"]:
-        return tuple(spec.name for spec in envs.list_tasks())
-    return tuple(names)
+RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed")
 
 
 def _cmd_run(args) -> int:
-    from harness.policy import PolicyConfig
-    from harness.runner import RunConfig, run
-    from harness.writers import OutputOptions
+    from harness.run import ResultsWriteError, RunStore, execute
+    from harness.run.protocol import Protocol
+    from harness.run.settings import build_protocol, out_dir, read_protocol_file
 
-    outputs = OutputOptions(
-        png_every=args.png_every,
-        layers=args.layers,
-        video=not args.no_video,
-        video_attention=args.video_attention,
-        gif=args.gif,
-        normalisation=args.normalisation,
-        bbox=args.bbox,
-    )
-    policy = PolicyConfig(
-        execution=args.execution,
-        receding_steps=args.receding_steps,
-        ensemble_weight=args.ensemble_weight,
-        dataset_key=args.dataset_key,
-        full_attention=args.video_attention == "rollout",
-    )
-    config = RunConfig(
-        tasks=_expand_tasks(args.task),
-        model=args.model,
-        episodes=args.episodes,
-        seed=args.seed,
-        max_steps=args.max_steps,
-        out_dir=args.out,
-        run_name=args.run_name,
-        instruction=args.instruction,
-        masks=not args.no_masks,
-        fast_render=args.fast_render,
-        goal_images=args.goal_images,
-        policy=policy,
-        outputs=outputs,
-    )
-    progress = _Progress(args.episodes, args.max_steps)
-    summary = run(config, on_step=progress)
-    progress.close()
+    given = {k: v for k, v in vars(args).items() if v is not None and k not in ("command", "debug", *RUN_CONTROL)}
+    if args.resume is not None:
+        if given or args.protocol is not None:
+            raise ValueError(f"--resume takes the protocol from {args.resume}/manifest.json; drop "
+                             + ", ".join("--" + k.replace("_", "-") for k in (given or {"protocol": 1})))
+        manifest = RunStore(args.resume).read_manifest()
+        if manifest is None:
+            raise FileNotFoundError(f"{args.resume} holds no manifest.json; pass the folder of an octo-harness run")
+        protocol = Protocol.from_dict({**manifest["protocol"], "model_fingerprint": None, "goal_fingerprint": None})
+        out, name, method = args.resume.parent, args.resume.name, "wilson"
+    else:
+        settings = {**(read_protocol_file(args.protocol) if args.protocol else {}), **given}
+        protocol = build_protocol(settings)
+        out, name, method = out_dir(settings), settings.get("run_name"), settings.get("ci_method", "wilson")
+    try:
+        summary = execute(protocol, out, name, overwrite=args.overwrite, retry_failed=args.retry_failed, ci_method=method)
+    except ResultsWriteError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    if summary.skipped:
+        print(f"resumed: {summary.skipped} of {len(summary.manifest['jobs'])} episodes were already finished")
     print(summary.table())
-    if summary.manifest.get("model_is_random"):
-        print(f"NOTE: {summary.manifest['model']} has random weights; this run checks the pipeline, not Octo's behaviour.")
+    if summary.manifest["model"].get("is_random"):
+        print(f"NOTE: {summary.manifest['model']['source']} has random weights; this run checks the pipeline, not Octo's behaviour.")
     print(f"results: {summary.run_dir}")
     return 0 if all(r.status == "ok" for r in summary.rows) else 1
-
-
-class _Progress:
-    """One-line progress bar on stderr (a line every 25 steps when stderr is not a terminal)."""
-
-    def __init__(self, episodes: int, max_steps: int | None):
-        self.episodes, self.max_steps = episodes, max_steps
-        self.tty = sys.stderr.isatty()
-        self.start = time.perf_counter()
-
-    def __call__(self, task, episode, t, record) -> None:
-        total = f"/{self.max_steps}" if self.max_steps else ""
-        line = (f"{task} episode {episode + 1}/{self.episodes} step {t + 1}{total} "
-                f"success={record.success} {time.perf_counter() - self.start:6.1f}s")
-        if self.tty:
-            sys.stderr.write("\r" + line.ljust(79))
-            sys.stderr.flush()
-        elif (t + 1) % 25 == 0 or t == 0:
-            print(line, file=sys.stderr)
-
-    def close(self) -> None:
-        if self.tty:
-            sys.stderr.write("\n")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -162,11 +207,19 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "tasks":
             return _cmd_tasks()
+        if args.command == "report":
+            return _cmd_report(args)
+        if args.command == "compare":
+            return _cmd_compare(args)
+        if args.command == "regress":
+            return _cmd_regress(args)
         return _cmd_run(args)
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-    except USER_ERRORS as exc:
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", 2)
+        print(f"interrupted ({'SIGTERM' if signum == 15 else 'SIGINT'}); finished episodes are recorded, "
+              "run the same command to resume", file=sys.stderr)
+        return 128 + signum
+    except _user_errors() as exc:
         if args.debug:
             raise
         message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc

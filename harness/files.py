@@ -1,8 +1,9 @@
 """Atomic file writing: every product file goes to a temp file in the same folder, then os.replace.
 
 A crash or Ctrl-C therefore never leaves a half-written file under its final name; a temp file is
-`<name>.tmp.<ext>` (the extension stays last so encoders such as ffmpeg pick the format) and is
-deleted when its write fails. JSON files go through `json_safe` (numpy values to Python, NaN/inf to null).
+`<name>.tmp.<pid>.<ext>` (unique per process, so two processes never share one; the extension stays last so
+encoders such as ffmpeg pick the format) and is deleted when its write fails. Leftovers of a killed process
+match `*.tmp.*`; a resumed run deletes them. JSON files go through `json_safe` (numpy values to Python, NaN/inf to null).
 """
 
 from __future__ import annotations
@@ -17,12 +18,12 @@ import numpy as np
 
 
 def temp_path(path: Path) -> Path:
-    """`dir/name.ext` -> `dir/name.tmp.ext`."""
-    return path.with_name(f"{path.stem}.tmp{path.suffix}")
+    """`dir/name.ext` -> `dir/name.tmp.<pid>.ext` (pid of this process)."""
+    return path.with_name(f"{path.stem}.tmp.{os.getpid()}{path.suffix}")
 
 
 def write_atomic(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
-    """Call `write(file)` on `<name>.tmp.<ext>` in the same directory, then os.replace it onto `path`."""
+    """Call `write(file)` on `<name>.tmp.<pid>.<ext>` in the same directory, then os.replace it onto `path`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_path(path)

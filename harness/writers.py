@@ -15,10 +15,11 @@ to the rollout video. `finish()` writes the arrays and JSON. Files in `episode_d
                               coverage by the mask (attention.mask_fractions; nan where a step lacks it),
                               so mask mass can be recomputed per head / layer from readout_attention
   actions.npz                 predicted (steps, horizon, dim), executed (steps, dim), reward, success, step
-  metrics.jsonl               one JSON object per step: shares, entropy, mask mass per layer, timings
+  metrics.jsonl               one JSON object per step: run, task, episode, step, reward, success, shares, entropy,
+                              mask mass per layer, timings; every row has the same keys (null where n/a)
   episode.json                metadata and summary; written LAST, so a directory holding it is complete
 
-Every file is written to `<name>.tmp.<ext>` in the same directory and moved into place with
+Every file is written to `<name>.tmp.<pid>.<ext>` in the same directory and moved into place with
 os.replace; `abort()` (or an exception inside `with EpisodeWriter(...)`) deletes temporaries and
 never writes episode.json. Starting a writer removes a stale episode.json from the directory.
 
@@ -519,13 +520,16 @@ class EpisodeWriter:
         write_atomic(self.dir / "actions.npz", lambda f: np.savez(f, **actions))
         files["actions"] = "actions.npz"
 
+        # every row has the same keys (null where a metric or timing does not apply at that step), plus its ids
+        metric_names = list(dict.fromkeys(k for m in self._metrics for k in m))
+        timing_names = list(dict.fromkeys([k for t in self._timings for k in t] + (["blocked"] if self._blocked else [])))
         lines = []
         for i, step in enumerate(self._steps):
-            timings = dict(self._timings[i])
-            if i < len(self._blocked):
-                timings["blocked"] = self._blocked[i]
-            entry = {"step": step, "reward": self._rewards[i], "success": self._success[i], **_nest(self._metrics[i]),
-                     "timings": timings}
+            timings = {**self._timings[i], **({"blocked": self._blocked[i]} if i < len(self._blocked) else {})}
+            entry = {"run": self.meta.run, "task": self.meta.task, "episode": self.meta.episode, "step": step,
+                     "reward": self._rewards[i], "success": self._success[i],
+                     **_nest({name: self._metrics[i].get(name) for name in metric_names}),
+                     "timings": {name: timings.get(name) for name in timing_names}}
             lines.append(json.dumps(json_safe(entry)))
         write_atomic(self.dir / "metrics.jsonl", lambda f: f.write(("\n".join(lines) + "\n" if lines else "").encode()))
         files["metrics"] = "metrics.jsonl"

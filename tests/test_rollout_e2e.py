@@ -38,7 +38,7 @@ def test_episode_writes_png_per_step_and_layer_and_mp4_with_one_frame_per_step(t
     summary = two_runs[0]
     (row,) = summary.rows
     assert row.status == "ok" and row.steps == STEPS
-    episode = Path(row.directory)
+    episode = summary.episode_dir(row)
     layers = tiny.config.transformer.num_layers if hasattr(tiny.config, "transformer") else 2
     pngs = sorted(p.name for p in episode.glob("step_*_layer_*.png"))
     assert pngs == [f"step_{t:04d}_layer_{l:02d}.png" for t in range(STEPS) for l in range(layers)]
@@ -48,13 +48,13 @@ def test_episode_writes_png_per_step_and_layer_and_mp4_with_one_frame_per_step(t
     assert meta["steps"] == STEPS and meta["seed"] == 7 and meta["task"] == "Lift"
     assert meta["instruction"] == envs.get_task("Lift").instruction
     results = json.loads((summary.run_dir / "results.json").read_text())
-    assert results["manifest"]["model_is_random"] is False
+    assert results["manifest"]["model"]["is_random"] is False
     assert [e["status"] for e in results["episodes"]] == ["ok"]
     assert not list(episode.glob("*.tmp*"))
 
 
 def test_saved_attention_has_every_step_layer_and_head(two_runs, tiny):
-    episode = Path(two_runs[0].rows[0].directory)
+    episode = two_runs[0].episode_dir(two_runs[0].rows[0])
     with np.load(episode / "attention.npz") as z:
         readout = z["readout_attention"]  # (steps, layers, heads, readouts, keys)
         keys = z["tokens/group"].shape[0]
@@ -64,7 +64,7 @@ def test_saved_attention_has_every_step_layer_and_head(two_runs, tiny):
 
 
 def test_same_seed_gives_identical_actions_attention_and_images(two_runs):
-    a, b = (Path(s.rows[0].directory) for s in two_runs)
+    a, b = (s.episode_dir(s.rows[0]) for s in two_runs)
     for name in ("actions.npz", "attention.npz"):
         with np.load(a / name) as za, np.load(b / name) as zb:
             assert za.files == zb.files
@@ -76,8 +76,8 @@ def test_same_seed_gives_identical_actions_attention_and_images(two_runs):
 
 def test_different_seed_gives_a_different_episode(tiny, two_runs, tmp_path):
     other = _run(tiny, tmp_path, "c", seed=8, outputs=OutputOptions(png_every=0, video=False))
-    with np.load(Path(two_runs[0].rows[0].directory) / "actions.npz") as za, \
-            np.load(Path(other.rows[0].directory) / "actions.npz") as zc:
+    with np.load(two_runs[0].episode_dir(two_runs[0].rows[0]) / "actions.npz") as za, \
+            np.load(other.episode_dir(other.rows[0]) / "actions.npz") as zc:
         assert not np.array_equal(za["predicted"], zc["predicted"])
 
 

@@ -1,0 +1,112 @@
+"""Checks before anything heavy: each raises ValueError (or FileNotFoundError) with one line naming the fix.
+
+`check_environment` and `check_destination` run before the model loads; `check_model` right after it,
+before the first episode. Numbers (episodes, max steps, seed, ensemble weight) are checked where the
+protocol is built (`Protocol.__post_init__`), task names in `settings.resolve_tasks`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+
+from harness.run.protocol import Protocol
+
+# MuJoCo's rendering backends on Linux: egl and osmesa are headless, glfw/glx need a display
+GL_BACKENDS = ("egl", "osmesa", "glfw", "glx")
+
+
+def check_environment(environ: Mapping[str, str] | None = None) -> None:
+    """An unknown MUJOCO_GL value: one line naming the valid ones (MuJoCo would fail at import, after loading)."""
+    environ = os.environ if environ is None else environ
+    value = environ.get("MUJOCO_GL", "").strip().lower()
+    if value and value not in GL_BACKENDS:
+        raise ValueError(f"MUJOCO_GL={environ['MUJOCO_GL']!r} is not a rendering backend; use one of "
+                         f"{', '.join(GL_BACKENDS)} (egl or osmesa on headless servers) or leave it unset")
+
+
+def check_run_name(name: str) -> str:
+    """A run name is a plain folder name: no path separators, not '.'/'..', not hidden, not empty."""
+    if not isinstance(name, str) or not name.strip():
+        raise ValueError("--run-name is empty; pass a plain folder name such as lift_eval")
+    if "/" in name or "\\" in name or "\0" in name or name in (".", "..") or name.startswith(".") or ".." in name:
+        raise ValueError(f"--run-name {name!r} is not a plain folder name (no '/', no '..', not starting with '.'); "
+                         "choose the parent folder with --out")
+    return name
+
+
+def check_destination(out: Path) -> Path:
+    """--out exists or can be created, is a folder and is writable (probed with a real file)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file, not a folder; pass a folder for the runs")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"--out {out} cannot be created ({e.strerror or e}); pass a writable folder") from None
+    probe = out / f".octo-harness-probe.{os.getpid()}"
+    try:
+        with open(probe, "wb") as f:
+            f.write(b"ok")
+    except OSError as e:
+        raise ValueError(f"--out {out} is not writable ({e.strerror or e}); pass a writable folder") from None
+    finally:
+        try:
+            probe.unlink()
+        except OSError:
+            pass
+    return out
+
+
+def decode_goal_images(folder: str | Path) -> dict[str, np.ndarray]:
+    """<folder>/<key>.png -> {key: (height, width, 3) uint8}; one line naming a file that does not decode."""
+    from PIL import Image, UnidentifiedImageError
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"--goal-images {folder} is not a folder; pass a folder holding image_primary.png, ...")
+    images = {}
+    for path in sorted(folder.glob("*.png")):
+        try:
+            with Image.open(path) as image:
+                images[path.stem] = np.asarray(image.convert("RGB"))
+        except (UnidentifiedImageError, OSError, ValueError) as e:
+            raise ValueError(f"goal image {path} does not decode as an image ({type(e).__name__}); replace or remove it") from None
+    return images
+
+
+def layer_count(model) -> int:
+    return int(model.config.transformer.num_layers)
+
+
+def check_model(protocol: Protocol, model, goal_images: Mapping[str, np.ndarray] | None) -> list[str]:
+    """Model-dependent checks; returns the task inputs the episodes will use (["language"], ["goal"] or both)."""
+    layers = layer_count(model)
+    for layer in protocol.outputs.layers or ():
+        if not -layers <= layer < layers:
+            raise ValueError(f"--layers {layer} is out of range: {model.source} has {layers} layers (0..{layers - 1}, "
+                             "or negative from the end)")
+    va = protocol.outputs.video_attention
+    if va != "rollout" and not -layers <= int(va) < layers:
+        raise ValueError(f"--video-attention {va} is out of range: {model.source} has {layers} layers (0..{layers - 1}) "
+                         "or use 'rollout'")
+    policy = protocol.policy
+    if policy.execution == "receding_horizon" and policy.receding_steps > model.action_horizon:
+        raise ValueError(f"--receding-steps {policy.receding_steps} exceeds the action horizon of {model.source} "
+                         f"({model.action_horizon}); choose 1..{model.action_horizon}")
+    takes_language = model.config.language is not None
+    goal_keys = sorted(model.goal_image_sizes)
+    expected = ", ".join(k + ".png" for k in goal_keys)
+    inputs = ["language"] if takes_language else []
+    if goal_images is not None:
+        if not goal_keys:
+            raise ValueError(f"{model.source} takes no goal images; drop --goal-images")
+        if not set(goal_images) & set(goal_keys):
+            raise FileNotFoundError(f"no goal images in {protocol.goal_images}; expected {expected}")
+        inputs.append("goal")
+    elif not takes_language:
+        raise ValueError(f"{model.source} is goal-conditioned (no language input); pass --goal-images DIR holding {expected}")
+    return inputs

@@ -1,0 +1,328 @@
+"""The run driver: checks -> lock -> protocol comparison -> model -> manifest -> executor loop -> results.
+
+`execute(protocol, out)` is the whole pipeline of `octo-harness run`. It owns every write to the run store:
+each row the executor yields is appended to results.jsonl (fsynced), then results.json / summary.csv /
+statistics.csv are rewritten. Running it again with the same protocol resumes (finished jobs are skipped,
+leftover temporaries and incomplete episode folders are deleted first); a different protocol under the same
+run name raises `ProtocolMismatchError` naming the differing fields unless `overwrite`. SIGINT and SIGTERM
+raise `Interrupted` (a KeyboardInterrupt) outside the store's critical sections; the results then say
+"interrupted".
+"""
+
+from __future__ import annotations
+
+import logging
+import platform
+import shutil
+import signal
+import threading
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from harness.run import checks
+from harness.run.executor import EpisodeContext, Executor, SequentialExecutor, StepCallback
+from harness.run.progress import Progress
+from harness.run.protocol import FORMAT, EpisodeJob, Protocol, diff, model_fingerprint
+from harness.run.store import MANIFEST, EpisodeRow, RunStore, now_utc, statistics
+
+log = logging.getLogger(__name__)
+
+ExecutorFactory = Callable[[EpisodeContext, object], Executor]
+
+
+class ProtocolMismatchError(ValueError):
+    """An existing run folder holds a different protocol."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM arrived; `signum` says which (exit code 128 + signum)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    run_dir: Path
+    rows: tuple[EpisodeRow, ...]  # finished episodes in job order (directory relative to run_dir)
+    manifest: dict
+    status: str  # "complete" | "interrupted"
+    statistics: dict
+    skipped: int = 0  # jobs already finished before this call (resume)
+
+    def episode_dir(self, row: EpisodeRow) -> Path:
+        return self.run_dir / row.directory
+
+    def table(self) -> str:
+        """Per-task table with success rate and its confidence interval (plain text)."""
+        header = (f"{'task':<18} {'done':>5} {'failed':>6} {'success':>8} {'rate':>6} {'95% CI':>15} {'steps':>6} "
+                  f"{'s/step':>7} {'infer':>6} {'sim':>6} {'overhead':>8}")
+        lines = [header, "-" * len(header)]
+        groups = {t: [r for r in self.rows if r.task == t] for t in self.statistics["tasks"]}
+        groups["overall"] = list(self.rows)
+        for task, rows in groups.items():
+            s = self.statistics["overall"] if task == "overall" else self.statistics["tasks"][task]
+            ok = [r for r in rows if r.status == "ok"]
+            rate = f"{s['success_rate']:.0%}" if s["n"] else "-"
+            ci = f"[{s['ci_low']:.2f}, {s['ci_high']:.2f}]" if s["n"] else "-"
+            lines.append(f"{task:<18} {len(rows):>5} {s['failed']:>6} {s['successes']:>4}/{s['n']:<3} {rate:>6} "
+                         f"{ci:>15} {_mean([r.steps for r in ok]):>6.1f} {_mean([r.seconds_per_step for r in ok]):>7.3f} "
+                         f"{_mean([r.inference_per_step for r in ok]):>6.3f} {_mean([r.simulation_per_step for r in ok]):>6.3f} "
+                         f"{_mean([r.overhead_fraction for r in ok]):>8.1%}")
+            if task != "overall" and len(groups) == 2:
+                break  # one task: the overall row would repeat it
+        method = self.statistics["overall"]["method"]
+        lines.append(f"success interval: {method} {self.statistics['overall']['confidence']:.0%}; "
+                     "failed episodes (errors) are not counted in n")
+        return "\n".join(lines)
+
+
+def _mean(values) -> float:
+    values = [v for v in values if v is not None]
+    return float(np.mean(values)) if values else float("nan")
+
+
+def default_run_name(protocol: Protocol) -> str:
+    """<model short name>_<first 10 hex digits of the protocol hash>: the same command resumes the same run."""
+    source = protocol.model.rstrip("/")
+    short = source.replace("hf://", "").replace("random:", "random-").split("/")[-1].replace(":", "-") or "model"
+    return f"{short}_{protocol.hash()[:10]}"
+
+
+# ---- signals ---------------------------------------------------------------------------------------
+
+class _SignalGuard:
+    """SIGINT/SIGTERM -> Interrupted, deferred while inside `critical()` (appending and deriving results)."""
+
+    def __init__(self):
+        self.depth = 0
+        self.pending: int | None = None
+
+    def handler(self, signum, frame) -> None:
+        if self.depth:
+            self.pending = signum
+            return
+        raise Interrupted(signum)
+
+    @contextmanager
+    def critical(self):
+        self.depth += 1
+        try:
+            yield
+        finally:
+            self.depth -= 1
+        if not self.depth and self.pending is not None:
+            signum, self.pending = self.pending, None
+            raise Interrupted(signum)
+
+    @contextmanager
+    def installed(self):
+        if threading.current_thread() is not threading.main_thread():
+            yield self
+            return
+        previous = {s: signal.signal(s, self.handler) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield self
+        finally:
+            for s, h in previous.items():
+                signal.signal(s, h)
+
+
+# ---- the pipeline ----------------------------------------------------------------------------------
+
+def _git_commit() -> str | None:
+    """Commit of the harness checkout, read from .git without starting a process."""
+    git = Path(__file__).resolve().parents[2] / ".git"
+    try:
+        head = (git / "HEAD").read_text().strip()
+        if not head.startswith("ref: "):
+            return head
+        ref = head[5:]
+        if (git / ref).exists():
+            return (git / ref).read_text().strip()
+        for line in (git / "packed-refs").read_text().splitlines():
+            if line.endswith(" " + ref):
+                return line.split()[0]
+    except OSError:
+        pass
+    return None
+
+
+def _tokenizer_label(tokenizer) -> str:
+    if tokenizer is None:
+        return "none (goal-conditioned model)"
+    if getattr(tokenizer, "is_fallback", False):
+        return f"{tokenizer.name} [fallback tokenizer]"
+    return tokenizer.name
+
+
+def _model_info(model, policy_dataset_key, fingerprint: dict) -> dict:
+    return {
+        "source": model.source,
+        "is_random": bool(model.is_random),
+        "note": "RANDOM WEIGHTS - actions and attention are not Octo's" if model.is_random else "",
+        "text_tokenizer": _tokenizer_label(getattr(model, "text_tokenizer", None)),
+        "dataset_key": policy_dataset_key,
+        "layers": checks.layer_count(model),
+        "action_horizon": int(model.action_horizon),
+        "window": int(model.window_size),
+        "image_sizes": {k: list(v) for k, v in model.image_sizes.items()},
+        "goal_image_sizes": {k: list(v) for k, v in model.goal_image_sizes.items()},
+        "fingerprint": fingerprint,
+    }
+
+
+def _versions() -> dict:
+    import jax
+    import mujoco
+    import robosuite
+
+    return {"jax": jax.__version__, "robosuite": robosuite.__version__, "mujoco": mujoco.__version__,
+            "numpy": np.__version__, "python": platform.python_version()}
+
+
+def execute(
+    protocol: Protocol,
+    out: str | Path,
+    run_name: str | None = None,
+    *,
+    overwrite: bool = False,
+    retry_failed: bool = False,
+    model=None,
+    executor: ExecutorFactory | None = None,
+    on_step: StepCallback | None = None,
+    progress: bool = True,
+    ci_method: str = "wilson",
+) -> RunSummary:
+    """Run (or resume) the protocol's episodes into `<out>/<run_name>` and return the summary.
+
+    model: an already loaded model of `protocol.model` (else it is loaded after the cheap checks).
+    executor: factory(context, model) -> Executor (default SequentialExecutor).
+    """
+    checks.check_environment()
+    out = checks.check_destination(Path(out))
+    fingerprint, fingerprint_details = model_fingerprint(protocol.model)
+    protocol = protocol.fingerprinted() if protocol.goal_images else protocol
+    protocol = protocol.replace(model_fingerprint=fingerprint)
+    goal_images = checks.decode_goal_images(protocol.goal_images) if protocol.goal_images else None
+    name = checks.check_run_name(run_name) if run_name is not None else default_run_name(protocol)
+    store = RunStore(out / name)
+    jobs = protocol.jobs()
+    protocol_dict = protocol.to_dict()
+    created = not store.dir.exists()
+    with store:
+        try:
+            foreign = store.foreign_content(protocol.tasks)
+            if foreign:
+                raise ValueError(f"{store.dir} exists and is not an octo-harness run (holds {', '.join(foreign[:3])}); "
+                                 "choose another --run-name")
+            manifest = None if overwrite else store.read_manifest()
+            if manifest is not None:
+                differs = diff(manifest.get("protocol", {}), protocol_dict)
+                if differs:
+                    raise ProtocolMismatchError(
+                        f"run {store.dir} was started with a different protocol (differs: {', '.join(differs)}); "
+                        "run the same command to resume it, --overwrite to start it afresh, or choose another --run-name")
+
+            rows = store.load_rows() if manifest is not None else {}
+            done = {key for key, row in rows.items()
+                    if (row.status == "ok" and (store.dir / row.directory / "episode.json").is_file())
+                    or (row.status != "ok" and not retry_failed)}
+            pending = [j for j in jobs if j.key not in done]
+            goals = None
+            if model is None and (pending or manifest is None):  # a finished run needs no model
+                from harness.octo import load_pretrained
+
+                model = load_pretrained(protocol.model)
+            if model is not None:
+                task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)
+            if overwrite:
+                store.clear()  # only now: every check has passed
+            if manifest is None:
+                manifest = {
+                    "format": FORMAT, "run": name, "created": now_utc(), "protocol": protocol_dict,
+                    "protocol_hash": protocol.hash(), "jobs": [[j.task, j.episode, j.seed] for j in jobs],
+                    "model": _model_info(model, dataset_key, fingerprint_details), "task_inputs": task_inputs,
+                    "goal_images": protocol.goal_images, "git_commit": _git_commit(), "versions": _versions(),
+                }
+                store.write_manifest(manifest)
+            store.remove_temporaries()
+            store.remove_incomplete(protocol.tasks, keep=done)
+        except BaseException:
+            if created and not (store.dir / MANIFEST).exists():  # a check failed: leave no empty run folder behind
+                shutil.rmtree(store.dir, ignore_errors=True)
+            raise
+        if len(pending) < len(jobs):
+            log.info("resuming run %s: %d of %d episodes already finished", name, len(jobs) - len(pending), len(jobs))
+
+        context = EpisodeContext(protocol=protocol, run_dir=str(store.dir.resolve()), run=name, model=manifest["model"],
+                                 goals=goals)
+        status = "interrupted"
+        bar = Progress(len(jobs), done=len(done), successes=sum(rows[k].status == "ok" and bool(rows[k].success)
+                                                                for k in done)) if progress else None
+
+        def step(job, t, record):
+            if bar is not None:
+                bar.step(job, t, record)
+            if on_step is not None:
+                on_step(job, t, record)
+
+        guard = _SignalGuard()
+        with guard.installed():
+            runner = None
+            try:
+                with guard.critical():
+                    _derive(store, manifest, jobs, rows, "running", ci_method)
+                    runner = (executor or SequentialExecutor)(context, model) if pending else None
+                for row in (runner.run(pending, on_step=step) if runner is not None else ()):
+                    with guard.critical():
+                        store.append(row)
+                        rows[row.key] = row
+                        done.add(row.key)
+                        _derive(store, manifest, jobs, rows, "running", ci_method)
+                    if bar is not None:
+                        bar.episode(row)
+                status = "complete" if all(j.key in done for j in jobs) else "interrupted"
+            finally:
+                if bar is not None:
+                    bar.close()
+                try:
+                    if runner is not None:
+                        runner.close()
+                finally:
+                    if status != "complete":  # nothing half-written stays behind
+                        store.remove_temporaries()
+                        store.remove_incomplete(protocol.tasks, keep=done)
+                    _derive(store, manifest, jobs, rows, status, ci_method)
+        ordered = tuple(rows[j.key] for j in jobs if j.key in rows)
+        return RunSummary(store.dir, ordered, manifest, status, statistics(ordered, protocol.tasks, method=ci_method),
+                          skipped=len(jobs) - len(pending))
+
+
+def _check_model(protocol: Protocol, model, goal_images) -> tuple[list[str], dict | None, str | None]:
+    """Model-dependent checks; returns (task inputs, goal images at the model's sizes, dataset key)."""
+    if model.is_random:
+        log.warning("model %s has RANDOM weights: actions and attention are not Octo's", model.source)
+    task_inputs = checks.check_model(protocol, model, goal_images)
+    goals = None
+    if goal_images is not None:
+        from harness.policy import resize_frame
+
+        goals = {k: resize_frame(v, model.goal_image_sizes[k]) for k, v in goal_images.items() if k in model.goal_image_sizes}
+    from harness.policy import OctoPolicy
+
+    dataset_key = OctoPolicy(model, protocol.policy).dataset_key  # an unknown key fails here, before any episode
+    return task_inputs, goals, dataset_key
+
+
+def _derive(store: RunStore, manifest, jobs, rows, status, method) -> None:
+    """Rewrite the derived files; a failure there (disk full) is logged, results.jsonl stays the record."""
+    try:
+        store.write_derived(manifest, jobs, rows, status, method)
+    except OSError as e:
+        log.error("could not rewrite results.json/summary.csv in %s: %s (results.jsonl is intact)", store.dir, e)

@@ -1,0 +1,158 @@
+"""Executors: what turns episode jobs into finished episodes. The driver (harness/run/driver.py) owns the run store.
+
+The interface (all an executor has to provide):
+
+    class Executor:
+        def run(self, jobs: Sequence[EpisodeJob], on_step=None) -> Iterator[EpisodeRow]: ...
+        def close(self) -> None: ...
+
+- `run` receives the jobs still to do (in run order) and yields exactly one `EpisodeRow` per job as each
+  finishes, in any order. A job that fails (an exception in the env, the policy or the writer) yields a row
+  with status "failed" and its error; the executor goes on with the other jobs.
+- Episode files are written by `EpisodeWriter` into `<run_dir>/<job.directory>` only (`run_episode` does all
+  of it); an executor never touches results.jsonl, results.json, summary.csv or the manifest: the driver
+  appends each yielded row and rewrites the derived files, so every executor leaves the same run folder.
+- Episodes are independent given (task, seed): `env.reset(seed=seed)` and `OctoPolicy.reset(..., seed=seed)`
+  restore everything an episode depends on, so a job gives the same files whichever process runs it and
+  whatever ran before (this is what makes resume and parallel runs equal a sequential run).
+- On KeyboardInterrupt (SIGINT, or SIGTERM turned into `Interrupted`) `run` aborts the episodes in flight
+  (their writers delete temporaries and never write episode.json) and lets the exception propagate; the
+  driver then calls `close()` and removes the incomplete episode folders.
+- `on_step(job, t, record)` (optional) is called after each control step, for progress display.
+
+An executor is built by a factory `factory(context, model) -> Executor`; `EpisodeContext` is frozen and
+picklable (protocol, run folder, model description, goal images), so worker processes can receive it.
+`SequentialExecutor` is the reference: one environment at a time in this thread, the loaded model.
+"""
+
+from __future__ import annotations
+
+import logging
+import traceback
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable, Iterator, Protocol as TypingProtocol, Sequence
+
+import numpy as np
+
+import envs
+from harness.files import atomic_write_json
+from harness.policy import OctoPolicy
+from harness.records import EpisodeMeta, StepRecord
+from harness.rollout import rollout
+from harness.run.protocol import EpisodeJob, Protocol
+from harness.run.store import EpisodeRow
+from harness.writers import EpisodeWriter
+
+log = logging.getLogger(__name__)
+
+StepCallback = Callable[[EpisodeJob, int, StepRecord], None]
+
+
+@dataclass(frozen=True, eq=False)
+class EpisodeContext:
+    """What any process needs to run a job of this run (picklable)."""
+
+    protocol: Protocol
+    run_dir: str  # absolute path of the run folder
+    run: str  # run name
+    model: dict  # manifest["model"]: source, is_random, text_tokenizer, dataset_key, ...
+    goals: dict[str, np.ndarray] | None  # {obs key: (height, width, 3) uint8} at the model's goal sizes
+
+    def episode_dir(self, job: EpisodeJob) -> Path:
+        return Path(self.run_dir) / job.directory
+
+    def meta(self, job: EpisodeJob) -> EpisodeMeta:
+        return EpisodeMeta(
+            run=self.run, task=job.task, episode=job.episode, seed=job.seed,
+            instruction=self.protocol.instruction or envs.get_task(job.task).instruction,
+            model=self.model["source"], model_is_random=bool(self.model["is_random"]),
+            dataset_key=self.model.get("dataset_key"), text_tokenizer=self.model.get("text_tokenizer", ""),
+            execution=self.protocol.policy.describe(),
+        )
+
+
+class Executor(TypingProtocol):
+    def run(self, jobs: Sequence[EpisodeJob], on_step: StepCallback | None = None) -> Iterator[EpisodeRow]: ...
+
+    def close(self) -> None: ...
+
+
+def make_env(context: EpisodeContext, task: str):
+    """The environment of `task` as the protocol asks for it (create and use it in one thread)."""
+    return envs.make(task, context.protocol.env, instruction=context.protocol.instruction)
+
+
+def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolicy, tokens=None,
+                on_step: StepCallback | None = None) -> EpisodeRow:
+    """Roll out one job with `env` and `policy` and write its episode folder; a failure gives a "failed" row."""
+    episode_dir = context.episode_dir(job)
+    meta = context.meta(job)
+    writer = None
+    step_cb = (lambda t, record: on_step(job, t, record)) if on_step else None
+    try:
+        writer = EpisodeWriter(episode_dir, tokens, meta, context.protocol.outputs)
+        result = rollout(env, policy, writer.add_step, seed=job.seed, instruction=meta.instruction, goals=context.goals,
+                         max_steps=context.protocol.max_steps, on_step=step_cb)
+        writer.finish({"success": result.success, "steps": result.steps, "total_reward": result.total_reward,
+                       "actions_clipped": result.actions_clipped, "timings": result.timings})
+    except KeyboardInterrupt:
+        if writer is not None:
+            writer.abort()
+        raise
+    except Exception as exc:  # a failing episode is recorded and the run goes on
+        if writer is not None:
+            writer.abort()
+        return record_failure(context, job, exc, traceback.format_exc())
+    n = max(result.steps, 1)
+    step = result.timings["step"] / n
+    sim = result.timings["simulation"] / n
+    inf = result.timings["inference"] / n
+    return EpisodeRow(context.run, job.task, job.episode, job.seed, "ok", bool(result.success), result.steps,
+                      float(result.total_reward), step, sim, inf, (step - sim - inf) / step if step > 0 else 0.0,
+                      job.directory)
+
+
+def record_failure(context: EpisodeContext, job: EpisodeJob, exc: BaseException, trace: str = "") -> EpisodeRow:
+    """Write the failed episode's episode.json where possible and return its "failed" row."""
+    error = f"{type(exc).__name__}: {exc}".splitlines()[0]
+    log.error("episode %s failed: %s", job.directory, error)
+    try:
+        atomic_write_json(context.episode_dir(job) / "episode.json",
+                          {**asdict(context.meta(job)), "status": "failed", "success": False, "error": error,
+                           "traceback": trace})
+    except OSError as write_error:  # the folder itself may be what failed; results.jsonl still records it
+        log.error("could not write %s: %s", context.episode_dir(job) / "episode.json", write_error)
+    return EpisodeRow.failed(context.run, job, error)
+
+
+class SequentialExecutor:
+    """The reference executor: jobs one after another in this thread, one environment open at a time."""
+
+    def __init__(self, context: EpisodeContext, model):
+        self.context = context
+        self.policy = OctoPolicy(model, context.protocol.policy)
+        self.tokens = model.token_map()
+        self._env = None
+        self._env_task: str | None = None
+
+    def _environment(self, task: str):
+        if self._env_task != task:
+            self.close()
+            self._env = make_env(self.context, task)
+            self._env_task = task
+        return self._env
+
+    def run(self, jobs: Sequence[EpisodeJob], on_step: StepCallback | None = None) -> Iterator[EpisodeRow]:
+        for job in jobs:
+            try:
+                env = self._environment(job.task)
+            except Exception as exc:  # e.g. a camera the task lacks: this job fails, the next one tries again
+                yield record_failure(self.context, job, exc, traceback.format_exc())
+                continue
+            yield run_episode(self.context, job, env, self.policy, self.tokens, on_step)
+
+    def close(self) -> None:
+        env, self._env, self._env_task = self._env, None, None
+        if env is not None:
+            env.close()

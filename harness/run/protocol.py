@@ -1,0 +1,243 @@
+"""The protocol of an evaluation run: everything that decides its episodes, as one frozen, serialisable value.
+
+A run is a `Protocol` (model source and fingerprint of its checkpoint files, tasks, episodes, seeds, max steps,
+execution, instruction and goal overrides, env options, output options, harness version) plus the list of
+episode jobs it implies (`Protocol.jobs()`: `(task, episode index, seed)`, episode k of every task seeded
+`seed + k`). Two runs with equal `to_dict()` produce the same files; `protocol_hash` names that value and
+`diff` lists the fields (dotted names, e.g. `policy.receding_steps`, `env.cameras`) where two protocols differ.
+
+Nested options are frozen dataclasses owned by their stages (`envs.EnvOptions`, `harness.policy.PolicyConfig`,
+`harness.writers.OutputOptions`); they serialise with their own `to_dict` when they have one, else
+`dataclasses.asdict`, so a field added there is recorded, compared and restored here without code changes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from envs.options import EnvOptions
+from harness.files import json_safe
+from harness.policy import PolicyConfig
+from harness.writers import OutputOptions
+
+FORMAT = "octo-harness-run/1"
+
+
+def harness_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("octo-harness")
+    except Exception:  # not installed (running from a checkout)
+        return "0+unknown"
+
+
+@dataclass(frozen=True, order=True)
+class EpisodeJob:
+    """One episode to run: the unit executors receive. `directory` is relative to the run folder."""
+
+    task: str
+    episode: int
+    seed: int
+
+    @property
+    def key(self) -> tuple[str, int]:
+        return (self.task, self.episode)
+
+    @property
+    def directory(self) -> str:
+        return f"{self.task}/episode_{self.episode}"
+
+
+@dataclass(frozen=True)
+class Protocol:
+    model: str  # hf://owner/name, a checkpoint folder (absolute path), or random:<preset>
+    tasks: tuple[str, ...]  # registry names, in run order, no duplicates
+    episodes: int = 1  # per task
+    seed: int = 0  # episode k of every task is reset with seed + k
+    max_steps: int | None = None  # None = each task's own limit
+    instruction: str | None = None  # override of every task's instruction
+    goal_images: str | None = None  # absolute folder holding <obs key>.png goal images
+    env: EnvOptions = field(default_factory=lambda: EnvOptions(masks=True))
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    outputs: OutputOptions = field(default_factory=OutputOptions)
+    model_fingerprint: str | None = None  # filled by `fingerprinted()`: sha256 of the checkpoint files, or the preset
+    goal_fingerprint: str | None = None  # sha256 of the goal image files
+    harness_version: str = field(default_factory=harness_version)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "tasks", tuple(self.tasks))
+        if not self.tasks:
+            raise ValueError("no task given; pass --task NAME (see `octo-harness tasks`)")
+        if not _is_int(self.episodes) or self.episodes < 1:
+            raise ValueError(f"--episodes must be at least 1, got {self.episodes}")
+        if self.max_steps is not None and (not _is_int(self.max_steps) or self.max_steps < 1):
+            raise ValueError(f"--max-steps must be at least 1, got {self.max_steps}")
+        if not _is_int(self.seed) or self.seed < 0:
+            raise ValueError(f"--seed must be a non-negative integer, got {self.seed}")
+        weight = float(self.policy.ensemble_weight)
+        if weight != weight or weight in (float("inf"), float("-inf")):
+            raise ValueError(f"--ensemble-weight must be a finite number, got {self.policy.ensemble_weight}")
+
+    def jobs(self) -> list[EpisodeJob]:
+        """Episode jobs in run order: task by task, episode 0..episodes-1, seed + episode."""
+        return [EpisodeJob(task, k, self.seed + k) for task in self.tasks for k in range(self.episodes)]
+
+    def replace(self, **changes) -> "Protocol":
+        return dataclasses.replace(self, **changes)
+
+    def fingerprinted(self) -> "Protocol":
+        """This protocol with `model_fingerprint` and `goal_fingerprint` computed from the files (stream-hashed)."""
+        fp, _ = model_fingerprint(self.model)
+        goals = goal_fingerprint(self.goal_images) if self.goal_images else None
+        return self.replace(model_fingerprint=fp, goal_fingerprint=goals)
+
+    def to_dict(self) -> dict:
+        """Plain JSON data (what manifest.json holds under "protocol"); "execution" is a derived summary string."""
+        return json_safe({
+            "model": self.model,
+            "model_fingerprint": self.model_fingerprint,
+            "tasks": list(self.tasks),
+            "episodes": self.episodes,
+            "seed": self.seed,
+            "max_steps": self.max_steps,
+            "execution": self.policy.describe(),
+            "instruction": self.instruction,
+            "goal_images": self.goal_images,
+            "goal_fingerprint": self.goal_fingerprint,
+            "env": _plain(self.env),
+            "policy": _plain(self.policy),
+            "outputs": _plain(self.outputs),
+            "harness_version": self.harness_version,
+        })
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "Protocol":
+        """Inverse of `to_dict` (manifest.json -> Protocol); unknown keys raise."""
+        data = dict(data)
+        data.pop("execution", None)
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"protocol has unknown field(s) {unknown}; was it written by a newer octo-harness?")
+        nested = {"env": EnvOptions, "policy": PolicyConfig, "outputs": OutputOptions}
+        for name, kind in nested.items():
+            if name in data and data[name] is not None:
+                data[name] = build(kind, data[name])
+        if "tasks" in data:
+            data["tasks"] = tuple(data["tasks"])
+        return cls(**data)
+
+    def hash(self) -> str:
+        return protocol_hash(self.to_dict())
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _plain(options) -> dict:
+    return options.to_dict() if hasattr(options, "to_dict") else dataclasses.asdict(options)
+
+
+def build(kind, data: Mapping[str, Any]):
+    """A frozen options dataclass from plain data: its own `from_dict` when it has one, else its fields."""
+    if hasattr(kind, "from_dict"):
+        return kind.from_dict(data)
+    names = {f.name for f in dataclasses.fields(kind)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"unknown {kind.__name__} field(s) {unknown}; known: {sorted(names)}")
+    return kind(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+
+
+def protocol_hash(protocol: Mapping[str, Any]) -> str:
+    """sha256 (hex) of the canonical JSON of a protocol dict."""
+    return hashlib.sha256(json.dumps(json_safe(protocol), sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(data, Mapping) and data:
+        out: dict[str, Any] = {}
+        for key, value in data.items():
+            out.update(_flatten(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: data}
+
+
+def diff(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
+    """Dotted names of the fields whose values differ between two protocol dicts (sorted; derived "execution" skipped)."""
+    a, b = _flatten(json_safe(dict(old))), _flatten(json_safe(dict(new)))
+    return sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, _MISSING) != b.get(k, _MISSING))
+
+
+_MISSING = object()
+
+
+# ---------------------------------------------------------------------------------------------- fingerprints
+
+def _sha256_file(path: Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _files_fingerprint(root: Path, files: list[Path]) -> tuple[str, dict]:
+    entries = {}
+    for path in sorted(files):
+        resolved = path.resolve()  # hub snapshots are symlinks into the blob store
+        entries[path.relative_to(root).as_posix()] = {"size": resolved.stat().st_size, "sha256": _sha256_file(resolved)}
+    lines = "".join(f"{name} {e['size']} {e['sha256']}\n" for name, e in entries.items())
+    return "sha256:" + hashlib.sha256(lines.encode()).hexdigest(), entries
+
+
+def checkpoint_files(ckpt: Path, step: int | None) -> list[Path]:
+    """The files loading reads: config.json, dataset_statistics.json, example_batch.msgpack, every file of the
+    chosen step folder (latest when `step` is None), and the files of non-step subfolders (tokenizer, T5 config)."""
+    files = [ckpt / name for name in ("config.json", "dataset_statistics.json", "example_batch.msgpack", "harness.toml")
+             if (ckpt / name).is_file()]
+    for sub in sorted(p for p in ckpt.iterdir() if p.is_dir()):
+        if sub.name.isdigit() and (step is None or int(sub.name) != step):
+            continue
+        files += [p for p in sub.rglob("*") if p.is_file()]
+    return files
+
+
+def model_fingerprint(source: str) -> tuple[str, dict]:
+    """(fingerprint, details) of a model source, from its files (stream-hashed; a hub model from the local cache).
+
+    random:<preset> -> "preset:<name>" (weights are drawn from a fixed seed); random:<path> and checkpoint
+    folders -> "sha256:<hex>" over (relative path, size, sha256) of `checkpoint_files`.
+    """
+    from harness.octo import checkpoint, presets
+
+    if source.startswith("random:"):
+        spec = source[len("random:"):]
+        if spec in presets.preset_names():
+            return f"preset:{spec}", {"kind": "preset", "preset": spec}
+        path = Path(spec).expanduser()
+        root = path if path.is_dir() else path.parent
+        files = checkpoint_files(root, None) if path.is_dir() else [path]
+        files = [f for f in files if not f.relative_to(root).parts[0].isdigit()]  # random weights: no params read
+    else:
+        root = checkpoint.resolve_checkpoint_dir(source)
+        step = checkpoint.select_step(root, None)
+        files = checkpoint_files(root, step)
+    if not files:
+        raise FileNotFoundError(f"{source}: no checkpoint files to fingerprint")
+    fp, entries = _files_fingerprint(root, files)
+    return fp, {"kind": "files", "root": str(root), "files": entries}
+
+
+def goal_fingerprint(folder: str | Path) -> str | None:
+    """sha256 over the goal images (<key>.png) in `folder`; None when it holds none."""
+    folder = Path(folder)
+    files = sorted(folder.glob("*.png")) if folder.is_dir() else []
+    return _files_fingerprint(folder, files)[0] if files else None

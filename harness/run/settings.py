@@ -1,0 +1,199 @@
+"""From what the user asked for (command-line flags, a protocol file) to a `Protocol`, parsed once at the edge.
+
+Settings are a flat dict keyed like the `run` command's flags (`max_steps` for `--max-steps`, `task` for
+`--task`, ...). A protocol file (`--protocol eval.toml`, read with `tomllib`) holds the same keys (dashes or
+underscores) at its top level; flags given on the command line override it; checkpoint conventions
+(`<checkpoint>/harness.toml`, see harness/conventions.py) come next, then the defaults below:
+
+    # eval.toml
+    task = ["Lift", "Stack"]          # or "Lift,Stack"
+    model = "/models/finetune"
+    episodes = 50
+    seed = 1000
+    max_steps = 200
+    execution = "receding_horizon"
+    receding_steps = 4
+    camera = ["image_primary=agentview:84"]   # or a table: [camera] image_primary = "agentview:84"
+    png_every = 0
+    fast_render = true
+
+An unknown key is a one-line error naming it.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from pathlib import Path
+from typing import Any, Mapping
+
+from envs.options import EnvOptions, parse_camera
+from harness.policy import PolicyConfig
+from harness.run.protocol import Protocol
+from harness.writers import OutputOptions
+
+DEFAULT_MODEL = "hf://rail-berkeley/octo-small-1.5"
+DEFAULT_OUT = "results/runs"
+DEFAULT_RECEDING_STEPS = 4
+
+# key -> expected TOML type(s); the same names as the `run` flags
+FILE_KEYS: dict[str, tuple[type, ...]] = {
+    "task": (str, list), "episodes": (int,), "model": (str,), "max_steps": (int,), "out": (str,), "run_name": (str,),
+    "seed": (int,), "instruction": (str,), "dataset_key": (str,), "execution": (str,), "receding_steps": (int,),
+    "ensemble_weight": (int, float), "png_every": (int,), "layers": (str, list), "video_attention": (int, str),
+    "normalisation": (str,), "no_video": (bool,), "gif": (bool,), "bbox": (bool,), "no_masks": (bool,),
+    "goal_images": (str,), "fast_render": (bool,), "camera": (str, list, dict), "image_convention": (str,),
+    "action_space": (str,), "ci_method": (str,),
+}
+
+
+def read_protocol_file(path: str | Path) -> dict[str, Any]:
+    """Settings from a TOML protocol file (keys normalised to underscores); one-line errors for bad files and keys."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"protocol file {path} does not exist") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"cannot read protocol file {path}: {e}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"protocol file {path} is not valid TOML: {e}") from None
+    settings = {key.replace("-", "_"): value for key, value in data.items()}
+    if "tasks" in settings and "task" not in settings:
+        settings["task"] = settings.pop("tasks")
+    unknown = sorted(set(settings) - set(FILE_KEYS))
+    if unknown:
+        raise ValueError(f"protocol file {path}: unknown key(s) {', '.join(unknown)}; "
+                         f"known: {', '.join(sorted(FILE_KEYS))}")
+    for key, value in settings.items():
+        if not isinstance(value, FILE_KEYS[key]) or (isinstance(value, bool) and bool not in FILE_KEYS[key]):
+            kinds = " or ".join(t.__name__ for t in FILE_KEYS[key])
+            raise ValueError(f"protocol file {path}: {key} must be a {kinds}, got {value!r}")
+    if isinstance(settings.get("layers"), list):
+        settings["layers"] = tuple(settings["layers"])
+    if isinstance(settings.get("task"), str):
+        settings["task"] = [settings["task"]]
+    if isinstance(settings.get("camera"), str):
+        settings["camera"] = [settings["camera"]]
+    if isinstance(settings.get("camera"), dict):
+        settings["camera"] = [f"{k}={v}" if isinstance(v, str) else f"{k}={v[0]}:{v[1]}" for k, v in settings["camera"].items()]
+    if settings.get("goal_images") is not None:  # relative to the protocol file
+        settings["goal_images"] = str((path.parent / settings["goal_images"]).resolve())
+    return settings
+
+
+def resolve_tasks(values: list[str] | tuple[str, ...] | None) -> tuple[str, ...]:
+    """Task names as given (repeated and/or comma-separated; 'all') -> registry names, case-insensitive, deduplicated."""
+    import envs
+
+    names = [t.strip() for v in (values or []) for t in str(v).split(",") if t.strip()]
+    if not names:
+        raise ValueError("no task given; pass --task NAME (see `octo-harness tasks`)")
+    registry = {spec.name.lower(): spec.name for spec in envs.list_tasks()}
+    if [n.lower() for n in names] == ["all"]:
+        return tuple(registry.values())
+    resolved = []
+    for name in names:
+        canonical = registry.get(name.lower())
+        if canonical is None:
+            envs.get_task(name)  # raises the registry's error naming the closest task
+        if canonical not in resolved:
+            resolved.append(canonical)
+    return tuple(resolved)
+
+
+def _model_folder(model: str) -> Path | None:
+    """The local checkpoint folder of a model source (for its harness.toml), or None."""
+    if model.startswith("random:"):
+        path = Path(model[len("random:"):]).expanduser()
+        return path if path.is_dir() else (path.parent if path.is_file() else None)
+    if model.startswith("hf://"):
+        from harness.octo import checkpoint
+
+        try:
+            return checkpoint.resolve_checkpoint_dir(model)
+        except Exception:  # not in the cache: loading reports it
+            return None
+    path = Path(model).expanduser()
+    return path if path.is_dir() else None
+
+
+def _conventions(model: str):
+    try:
+        from harness.conventions import CheckpointConventions
+    except ImportError:  # older checkout without checkpoint conventions
+        return None
+    return CheckpointConventions.read(_model_folder(model))
+
+
+def normalise_model(model: str) -> str:
+    """Local checkpoint paths become absolute (a run's protocol must not depend on the working directory)."""
+    from harness.octo import presets
+
+    if model.startswith("hf://") or model[len("random:"):] in presets.preset_names():
+        return model
+    if model.startswith("random:"):
+        return "random:" + str(Path(model[len("random:"):]).expanduser().resolve())
+    path = Path(model).expanduser()
+    return str(path.resolve()) if path.exists() else model
+
+
+def build_protocol(settings: Mapping[str, Any]) -> Protocol:
+    """A Protocol from explicit settings (None = not given); conventions and defaults fill the rest."""
+    s = {k: v for k, v in settings.items() if v is not None}
+    model = normalise_model(str(s.get("model", DEFAULT_MODEL)))
+    conventions = _conventions(model)
+
+    env_given: dict[str, Any] = {"masks": not s.get("no_masks", False), "fast_render": bool(s.get("fast_render", False))}
+    if s.get("camera"):
+        env_given["cameras"] = tuple(parse_camera(c) for c in s["camera"])
+    for key in ("image_convention", "action_space"):
+        if key in s:
+            env_given[key] = s[key]
+    env = conventions.env_options(env_given) if conventions is not None else EnvOptions.from_dict(env_given)
+
+    video_attention = s.get("video_attention", -1)
+    policy_given: dict[str, Any] = {k: s[k] for k in ("execution", "receding_steps", "ensemble_weight", "dataset_key") if k in s}
+    if policy_given.get("execution") == "receding_horizon" and "receding_steps" not in policy_given \
+            and not (conventions is not None and "receding_steps" in conventions.policy):
+        policy_given["receding_steps"] = DEFAULT_RECEDING_STEPS
+    policy_given["full_attention"] = video_attention == "rollout"
+    policy = conventions.policy_config(policy_given) if conventions is not None else PolicyConfig(**policy_given)
+
+    outputs = OutputOptions(
+        png_every=s.get("png_every", 1),
+        layers=_layers(s.get("layers")),
+        video=not s.get("no_video", False),
+        video_attention=video_attention,
+        gif=bool(s.get("gif", False)),
+        normalisation=s.get("normalisation", "frame"),
+        bbox=bool(s.get("bbox", False)),
+    )
+    goal_images = s.get("goal_images")
+    return Protocol(
+        model=model,
+        tasks=resolve_tasks(s.get("task")),
+        episodes=s.get("episodes", 1),
+        seed=s.get("seed", 0),
+        max_steps=s.get("max_steps"),
+        instruction=s.get("instruction"),
+        goal_images=str(Path(goal_images).expanduser().resolve()) if goal_images is not None else None,
+        env=env,
+        policy=policy,
+        outputs=outputs,
+    )
+
+
+def _layers(value) -> tuple[int, ...] | None:
+    if value is None or value == "all":
+        return None
+    if isinstance(value, str):
+        try:
+            return tuple(int(x) for x in value.split(","))
+        except ValueError:
+            raise ValueError(f"layers takes comma-separated layer indices or 'all', got {value!r}") from None
+    return tuple(int(x) for x in value)
+
+
+def out_dir(settings: Mapping[str, Any]) -> Path:
+    return Path(os.path.expanduser(str(settings.get("out") or DEFAULT_OUT)))

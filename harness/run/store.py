@@ -1,0 +1,292 @@
+"""The run folder on disk: lock, manifest, the results.jsonl record, derived tables, and clean-up for resume.
+
+Layout (the interface every reader builds on; see README "The run folder"):
+
+  <out>/<run>/.lock           fcntl lock held by the writing process; holds its pid
+  <out>/<run>/manifest.json   written once, at the start: format, run, created, protocol, protocol_hash, jobs, model, ...
+  <out>/<run>/results.jsonl   SOURCE OF TRUTH: one line per finished episode, appended and fsynced (last line of a job wins)
+  <out>/<run>/results.json    derived, rewritten atomically after each episode: manifest, status, episodes, missing, statistics
+  <out>/<run>/summary.csv     derived: one row per episode (+ its task's success statistics)
+  <out>/<run>/statistics.csv  derived: one row per task and one "overall" row (n, successes, rate, interval)
+  <out>/<run>/<task>/episode_<k>/...   episode outputs (harness/writers.py); episode.json written last
+
+Only the process holding the lock writes here; executors write only inside the episode folders of their jobs.
+A lock left by a dead process does not block: the kernel releases flock locks when their holder dies.
+"""
+
+from __future__ import annotations
+
+import csv
+import errno
+import fcntl
+import io
+import json
+import os
+import re
+import shutil
+from dataclasses import dataclass, fields
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterable
+
+from harness.analysis.stats import success_summary
+from harness.files import atomic_write_json, json_safe, write_atomic
+from harness.run.protocol import FORMAT, EpisodeJob
+
+LOCK = ".lock"
+MANIFEST = "manifest.json"
+RESULTS_JSONL = "results.jsonl"
+RESULTS_JSON = "results.json"
+SUMMARY_CSV = "summary.csv"
+STATISTICS_CSV = "statistics.csv"
+_EPISODE_DIR = re.compile(r"^episode_(\d+)$")
+
+
+class RunLockedError(RuntimeError):
+    """Another live process writes into this run folder."""
+
+
+class ResultsWriteError(RuntimeError):
+    """results.jsonl could not be appended: the run must stop (message: one line, path and OS error)."""
+
+
+@dataclass(frozen=True)
+class EpisodeRow:
+    """One finished episode, as results.jsonl holds it (`to_dict`: "return" for `total_return`)."""
+
+    run: str
+    task: str
+    episode: int
+    seed: int
+    status: str  # "ok" | "failed"
+    success: bool
+    steps: int
+    total_return: float | None
+    seconds_per_step: float | None  # None for failed episodes
+    simulation_per_step: float | None
+    inference_per_step: float | None
+    overhead_fraction: float | None  # (step - simulation - inference) / step
+    directory: str  # relative to the run folder: "<task>/episode_<k>"
+    error: str | None = None
+
+    @property
+    def key(self) -> tuple[str, int]:
+        return (self.task, self.episode)
+
+    def to_dict(self) -> dict:
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d["return"] = d.pop("total_return")
+        return json_safe(d)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "EpisodeRow":
+        d = dict(data)
+        d["total_return"] = d.pop("return", None)
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+    @classmethod
+    def failed(cls, run: str, job: EpisodeJob, error: str, steps: int = 0) -> "EpisodeRow":
+        return cls(run, job.task, job.episode, job.seed, "failed", False, steps, None, None, None, None, None,
+                   job.directory, error)
+
+
+CSV_COLUMNS = ["run", "task", "episode", "seed", "status", "success", "steps", "return", "seconds_per_step",
+               "simulation_per_step", "inference_per_step", "overhead_fraction", "directory", "error"]
+STAT_COLUMNS = ["n", "successes", "failed", "success_rate", "ci_low", "ci_high", "method", "confidence"]
+
+
+def statistics(rows: Iterable[EpisodeRow], tasks: Iterable[str], method: str = "wilson", confidence: float = 0.95) -> dict:
+    """{"tasks": {task: summary}, "overall": summary}: success statistics over the episodes that ran ("ok");
+    episodes that failed with an error are counted in "failed", not in n."""
+    rows = list(rows)
+
+    def summary(subset: list[EpisodeRow]) -> dict:
+        ok = [r for r in subset if r.status == "ok"]
+        out = success_summary(sum(bool(r.success) for r in ok), len(ok), method=method, confidence=confidence)
+        out["failed"] = len(subset) - len(ok)
+        return out
+
+    return {"tasks": {t: summary([r for r in rows if r.task == t]) for t in tasks}, "overall": summary(rows)}
+
+
+class RunStore:
+    """One run folder. Use `with store.locked():` around everything that writes into it."""
+
+    def __init__(self, run_dir: str | os.PathLike):
+        self.dir = Path(run_dir)
+        self.name = self.dir.name
+        self._lock_fd: int | None = None
+
+    # ---- lock ------------------------------------------------------------------------------------
+
+    def lock(self) -> None:
+        """Take the folder's lock (creating the folder) or raise RunLockedError naming the holder's pid."""
+        self.dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.dir / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            if e.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise RunLockedError(f"run folder {self.dir} is in use by process {holder}; wait for it to finish, "
+                                     "or choose another --run-name") from None
+            raise
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._lock_fd = fd
+
+    def unlock(self) -> None:
+        if self._lock_fd is not None:
+            fd, self._lock_fd = self._lock_fd, None
+            try:
+                os.ftruncate(fd, 0)
+            except OSError:
+                pass
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
+
+    def __enter__(self) -> "RunStore":
+        self.lock()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.unlock()
+
+    # ---- manifest --------------------------------------------------------------------------------
+
+    def read_manifest(self) -> dict | None:
+        path = self.dir / MANIFEST
+        if not path.is_file():
+            return None
+        try:
+            manifest = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{path} is unreadable ({e}); use --overwrite to start the run afresh") from None
+        if manifest.get("format") != FORMAT:
+            raise ValueError(f"{path} is not an {FORMAT} manifest (format {manifest.get('format')!r}); "
+                             "use --overwrite or another --run-name")
+        return manifest
+
+    def foreign_content(self, tasks: Iterable[str] = ()) -> list[str]:
+        """Names in a folder without manifest that a run would not write (guards --run-name against a wrong folder)."""
+        ours = {LOCK, MANIFEST, RESULTS_JSONL, RESULTS_JSON, SUMMARY_CSV, STATISTICS_CSV, *tasks}
+        if not self.dir.is_dir() or (self.dir / MANIFEST).exists():
+            return []
+        return sorted(p.name for p in self.dir.iterdir() if p.name not in ours and ".tmp." not in p.name)
+
+    def write_manifest(self, manifest: dict) -> None:
+        atomic_write_json(self.dir / MANIFEST, manifest)
+
+    def clear(self) -> None:
+        """--overwrite: delete everything in the folder but the lock."""
+        for path in self.dir.iterdir():
+            if path.name == LOCK:
+                continue
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            else:
+                path.unlink()
+
+    # ---- results ---------------------------------------------------------------------------------
+
+    def load_rows(self) -> dict[tuple[str, int], EpisodeRow]:
+        """Rows of results.jsonl by job (last line wins). A torn last line (killed mid-append) is cut off."""
+        path = self.dir / RESULTS_JSONL
+        if not path.is_file():
+            return {}
+        data = path.read_bytes()
+        if data and not data.endswith(b"\n"):
+            keep = data.rfind(b"\n") + 1
+            with open(path, "r+b") as f:
+                f.truncate(keep)
+                f.flush()
+                os.fsync(f.fileno())
+            data = data[:keep]
+        rows: dict[tuple[str, int], EpisodeRow] = {}
+        for line in data.decode().splitlines():
+            if line.strip():
+                row = EpisodeRow.from_dict(json.loads(line))
+                rows[row.key] = row
+        return rows
+
+    def append(self, row: EpisodeRow) -> None:
+        """Append one row to results.jsonl and fsync; ResultsWriteError (one line) when that fails."""
+        path = self.dir / RESULTS_JSONL
+        line = (json.dumps(row.to_dict(), sort_keys=True) + "\n").encode()
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+            try:
+                written = os.write(fd, line)
+                if written != len(line):
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        except OSError as e:
+            raise ResultsWriteError(f"cannot append to {path}: {e.strerror or e} (errno {e.errno}); "
+                                    "free space or fix permissions, then run the same command again to resume") from None
+
+    def write_derived(self, manifest: dict, jobs: list[EpisodeJob], rows: dict[tuple[str, int], EpisodeRow],
+                      status: str, method: str = "wilson") -> None:
+        """results.json, summary.csv and statistics.csv from the rows (atomic; rows sorted by job order)."""
+        ordered = [rows[j.key] for j in jobs if j.key in rows]
+        tasks = list(dict.fromkeys(j.task for j in jobs))
+        stats = statistics(ordered, tasks, method=method)
+        atomic_write_json(self.dir / RESULTS_JSON, {
+            "manifest": manifest, "status": status, "episodes": [r.to_dict() for r in ordered],
+            "missing": len(jobs) - len(ordered), "statistics": stats,
+        })
+        by_task = stats["tasks"]
+        buffer = io.StringIO()
+        writer = csv.writer(buffer, lineterminator="\n")
+        writer.writerow(CSV_COLUMNS + ["task_success_rate", "task_ci_low", "task_ci_high", "ci_method"])
+        for r in ordered:
+            d, t = r.to_dict(), by_task[r.task]
+            writer.writerow([_cell(d[c]) for c in CSV_COLUMNS]
+                            + [_cell(json_safe(t[c])) for c in ("success_rate", "ci_low", "ci_high")] + [t["method"]])
+        write_atomic(self.dir / SUMMARY_CSV, lambda f: f.write(buffer.getvalue().encode()))
+        buffer = io.StringIO()
+        writer = csv.writer(buffer, lineterminator="\n")
+        writer.writerow(["run", "task"] + STAT_COLUMNS)
+        for task, s in [*by_task.items(), ("overall", stats["overall"])]:
+            writer.writerow([self.name, task] + [_cell(json_safe(s[c])) for c in STAT_COLUMNS])
+        write_atomic(self.dir / STATISTICS_CSV, lambda f: f.write(buffer.getvalue().encode()))
+
+    # ---- clean-up --------------------------------------------------------------------------------
+
+    def remove_temporaries(self) -> list[Path]:
+        """Delete `*.tmp.*` files anywhere in the folder (leftovers of killed processes). Returns what was deleted."""
+        removed = []
+        for path in self.dir.rglob("*.tmp.*"):
+            if path.is_file():
+                path.unlink(missing_ok=True)
+                removed.append(path)
+        return removed
+
+    def remove_incomplete(self, tasks: Iterable[str], keep: set[tuple[str, int]]) -> list[Path]:
+        """Delete every `<task>/episode_<k>` folder whose job is not in `keep` (not finished, or to be rerun)."""
+        removed = []
+        for task in tasks:
+            task_dir = self.dir / task
+            if not task_dir.is_dir():
+                continue
+            for path in task_dir.iterdir():
+                match = _EPISODE_DIR.match(path.name)
+                if match and path.is_dir() and (task, int(match.group(1))) not in keep:
+                    shutil.rmtree(path)
+                    removed.append(path)
+        return removed
+
+
+def _cell(value: Any) -> Any:
+    if value is None:
+        return ""
+    if isinstance(value, float) and value != value:
+        return ""
+    return value
+
+
+def now_utc() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
