@@ -39,19 +39,24 @@ from __future__ import annotations
 
 import collections
 import ctypes
+import functools
 import logging
 import multiprocessing
 import os
+import shutil
 import signal
 import time
 import traceback
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from harness.policy import BatchInference, EpisodeState, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskSpec
+from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskSpec
+from harness.run.executor import EpisodeContext, make_env, record_failure, run_episode
+from harness.run.protocol import EpisodeJob
+from harness.run.store import EpisodeRow
 
 log = logging.getLogger(__name__)
 
@@ -77,12 +82,14 @@ class WorkerSpec:
     """Everything an env worker needs, picklable (module-level functions or functools.partial of them).
 
     make_env(task) -> env; run_episode(env, policy, job) -> row (records its own failures as failed rows);
-    failed_row(job, error) -> row for an episode that could not run at all in the worker.
+    failed_row(job, exc, trace) -> row of an episode whose env could not be made (called in the worker);
+    died_row(job, cause) -> row of an episode whose worker died (called in the driver).
     """
 
     make_env: Callable[[str], Any]
     run_episode: Callable[[Any, OctoPolicy, Any], Any]
-    failed_row: Callable[[Any, str], Any]
+    failed_row: Callable[[Any, BaseException, str], Any]
+    died_row: Callable[[Any, str], Any]
     policy: PolicyConfig
     shape: PolicyShape
 
@@ -183,7 +190,7 @@ def worker_main(index: int, conn: Connection, spec: WorkerSpec) -> None:
                     env = spec.make_env(job.task)
                     env_task = job.task
             except Exception as exc:  # the env could not be made: this episode fails, the worker stays
-                row = spec.failed_row(job, f"{type(exc).__name__}: {exc}")
+                row = spec.failed_row(job, exc, traceback.format_exc())
             else:
                 row = spec.run_episode(env, policy, job)
             conn.send(("done", row))
@@ -213,10 +220,10 @@ class WorkerPool:
     """Runs episode jobs on N env-worker processes; inference for all of them in this (the driver) process.
 
         pool = WorkerPool(spec, model, workers=2)
-        pool.run(jobs, on_row)      # on_row(row) for each finished episode, in the driver, in finishing order
+        for row in pool.run(jobs): ...   # one row per job, in finishing order, in the driver
 
-    `on_row` is where the driver appends to the run store. Rows of episodes whose worker died come from
-    spec.failed_row(job, cause).
+    The driver appends each row to the run store. Rows of episodes whose worker died come from
+    spec.died_row(job, cause), called in the driver.
     """
 
     def __init__(self, spec: WorkerSpec, model, workers: int, *, context: str = "spawn"):
@@ -271,19 +278,24 @@ class WorkerPool:
 
     # -------------------------------------------------------------- the loop
 
-    def run(self, jobs: Iterable[Any], on_row: Callable[[Any], None], *, warmup_task: TaskSpec | None = None) -> None:
-        """Run every job; returns when all have a row. Ctrl-C stops the workers (no orphans) and re-raises."""
+    def run(self, jobs: Iterable[Any], *, warmup_task: TaskSpec | None = None) -> Iterator[Any]:
+        """Yield one row per job as each finishes. Ctrl-C (or closing the generator) stops the workers, no orphans."""
         queue = collections.deque(jobs)
         if not queue:
             return
+        finished: list = []
         try:
             for _ in range(min(self.workers, len(queue))):
                 self._assign(self._start_worker(), queue)  # workers make their envs while the model compiles
             if warmup_task is not None:
-                self.warm_up(warmup_task)  # compiles while the workers import and make their envs
+                self.warm_up(warmup_task)
             waiting: list[tuple[_Worker, InferenceRequest]] = []
-            while queue or any(w.job is not None for w in self._pool.values()):
-                self._poll(queue, waiting, on_row, block=not waiting)
+            while queue or finished or any(w.job is not None for w in self._pool.values()):
+                while finished:
+                    yield finished.pop(0)
+                if not (queue or any(w.job is not None for w in self._pool.values())):
+                    break
+                self._poll(queue, waiting, finished.append, block=not waiting)
                 if waiting:
                     self._serve(waiting)
                     waiting.clear()
@@ -350,7 +362,7 @@ class WorkerPool:
         waiting[:] = [(x, r) for x, r in waiting if x is not w]
         if w.job is not None:
             log.error("env worker %d died running %s: %s", w.index, w.job, cause)
-            on_row(self.spec.failed_row(w.job, cause))
+            on_row(self.spec.died_row(w.job, cause))
         else:
             log.error("env worker %d died: %s", w.index, cause)
         if queue:
@@ -371,3 +383,58 @@ class WorkerPool:
                 w.conn.send(reply)
             except (OSError, ValueError):
                 pass  # it died meanwhile; its sentinel reports it
+
+
+# ---------------------------------------------------------------------------------------------- the run store's executor
+
+
+class WorkerDied(RuntimeError):
+    """The env-worker process running an episode died (signal, OOM kill, segfault)."""
+
+
+def _run_job(context: EpisodeContext, tokens, env, policy: OctoPolicy, job: EpisodeJob) -> EpisodeRow:
+    return run_episode(context, job, env, policy, tokens)
+
+
+def _failed_row(context: EpisodeContext, job: EpisodeJob, exc: BaseException, trace: str) -> EpisodeRow:
+    return record_failure(context, job, exc, trace)
+
+
+def _died_row(context: EpisodeContext, job: EpisodeJob, cause: str) -> EpisodeRow:
+    """The dead process could not clean up: drop its partial episode folder, then record the failure there."""
+    shutil.rmtree(context.episode_dir(job), ignore_errors=True)
+    return record_failure(context, job, WorkerDied(cause))
+
+
+def worker_spec(context: EpisodeContext, model) -> WorkerSpec:
+    """The WorkerSpec of a run: the sequential executor's env and episode functions, bound to this run's context."""
+    return WorkerSpec(
+        make_env=functools.partial(make_env, context),
+        run_episode=functools.partial(_run_job, context, model.token_map()),
+        failed_row=functools.partial(_failed_row, context),
+        died_row=functools.partial(_died_row, context),
+        policy=context.protocol.policy,
+        shape=PolicyShape.of(model, context.model.get("dataset_key")),
+    )
+
+
+def warmup_task(context: EpisodeContext, jobs: Sequence[EpisodeJob]) -> TaskSpec | None:
+    """The first job's task (compiling with it also builds it: the first episodes find it cached)."""
+    return TaskSpec.of(context.meta(jobs[0]).instruction, context.goals) if jobs else None
+
+
+class WorkersExecutor:
+    """`--workers N`: the run store's executor over a WorkerPool (factory: functools.partial(WorkersExecutor, workers=N)).
+
+    on_step is not forwarded (the steps happen in other processes); progress is reported per episode.
+    """
+
+    def __init__(self, context: EpisodeContext, model, *, workers: int):
+        self.context = context
+        self.pool = WorkerPool(worker_spec(context, model), model, workers)
+
+    def run(self, jobs: Sequence[EpisodeJob], on_step=None) -> Iterator[EpisodeRow]:
+        yield from self.pool.run(jobs, warmup_task=warmup_task(self.context, jobs))
+
+    def close(self) -> None:
+        self.pool.shutdown()

@@ -1,0 +1,307 @@
+"""Ray executor (`--executor ray [--ray-address ADDR]`): env workers and policy replicas as Ray actors.
+
+    driver (this process)                 EnvWorker actor k (1 CPU)               PolicyReplica actor r
+    ──────────────────────────────        ──────────────────────────────        ─────────────────────────────
+    run store: every write to             one env + GL context; runs an          the model (1 GPU where the
+    results.jsonl / results.json   <─row─ episode per call: EpisodeState  ─obs─> cluster has GPUs); batches all
+    jobs out ─────────────────────job─>   -> rollout -> EpisodeWriter    <─act─  requests waiting when it is free
+                                          (writes the episode folder)            (BatchInference, fixed sizes)
+
+The driver owns the run store, so resume, statistics and the files of a run are the same as with the
+local executor (harness/run/workers.py): env workers run the same episode function and write the
+episode folder under `--out`, which therefore must be a filesystem every node sees (NFS, a shared
+volume). That is checked before any episode: the driver writes a marker file into the run folder and
+every env-worker actor reads it when it starts; a worker that cannot gives one line naming the node.
+
+Env worker k uses replica k % R. A replica is an async actor: requests accumulate while a batch runs
+(in a worker thread, off the event loop) and the next batch takes all of them, padded to a fixed size.
+
+Without an address a local Ray instance is started for this run (no dashboard) and shut down at the
+end. Its logical CPUs are max(os.cpu_count(), workers + replicas): each actor asks for one CPU, so
+2 workers + 1 replica on a 2-core machine oversubscribe the cores exactly as the local executor does.
+
+Faults: an env-worker actor that dies (SIGKILL, segfault, OOM) fails its episode with the cause and is
+replaced; a policy error fails the episodes of its batch (their workers raise it inside the episode);
+Ctrl-C kills every actor and, for a local instance, stops Ray (no processes left behind).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import os
+import socket
+import uuid
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskSpec
+from harness.run.executor import EpisodeContext
+from harness.run.workers import PolicyError, WorkerSpec, batch_sizes_for, warmup_request, warmup_task, worker_spec
+
+log = logging.getLogger(__name__)
+
+FORWARDED_ENV = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "HF_HUB_OFFLINE", "HF_HOME", "JAX_PLATFORMS")
+MARKER_PREFIX = ".octo-harness-shared-check-"
+
+
+class RayExecutorError(RuntimeError):
+    """A user-facing problem with the Ray set-up (one line: what and how to fix it)."""
+
+
+def import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise RayExecutorError("--executor ray needs Ray: pip install 'octo-harness[ray]' (or pip install 'ray>=2.9')") from None
+    return ray
+
+
+# ---------------------------------------------------------------------------------------------- actors
+
+
+class PolicyReplica:
+    """A model replica serving batched inference requests from many env workers (an async Ray actor)."""
+
+    def __init__(self, model_source: str, config: PolicyConfig, batch_sizes: tuple[int, ...]):
+        from harness.octo import load_pretrained
+
+        self.model = load_pretrained(model_source)
+        self.inference = BatchInference(self.model, config, batch_sizes)
+        self._pending: list[tuple[InferenceRequest, asyncio.Future]] = []
+        self._running = False
+        self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inference")
+        self.batches: list[int] = []
+
+    def warm_up(self, request: InferenceRequest) -> int:
+        """Compile every batch size; returns the number of compiled sampler variants."""
+        self.inference.warm_up(request)
+        return self.model.sample_cache_size
+
+    def stats(self) -> dict:
+        return {"batches": list(self.batches), "sample_cache_size": self.model.sample_cache_size}
+
+    async def infer(self, request: InferenceRequest) -> InferenceResult:
+        future = asyncio.get_running_loop().create_future()
+        self._pending.append((request, future))
+        if not self._running:
+            self._running = True
+            asyncio.get_running_loop().create_task(self._serve())
+        return await future
+
+    async def _serve(self) -> None:
+        loop = asyncio.get_running_loop()
+        try:
+            while self._pending:
+                batch, self._pending = self._pending, []
+                self.batches.append(len(batch))
+                try:
+                    results = await loop.run_in_executor(self._thread, self.inference, [r for r, _ in batch])
+                except Exception as exc:  # a policy error fails the episodes of this batch only
+                    for _, future in batch:
+                        future.set_exception(PolicyError(f"{type(exc).__name__}: {exc}"))
+                else:
+                    for (_, future), result in zip(batch, results):
+                        future.set_result(result)
+        finally:
+            self._running = False
+
+
+class RayInference:
+    """Env-worker side: `[request] -> [result]` through a PolicyReplica actor."""
+
+    def __init__(self, replica, dataset_key: str | None):
+        self.replica = replica
+        self.dataset_key = dataset_key
+
+    def __call__(self, requests: list[InferenceRequest]) -> list[InferenceResult]:
+        import ray
+
+        (request,) = requests
+        try:
+            return [ray.get(self.replica.infer.remote(request))]
+        except ray.exceptions.RayTaskError as exc:
+            cause = exc.as_instanceof_cause() if hasattr(exc, "as_instanceof_cause") else exc
+            raise PolicyError(str(getattr(cause, "args", [cause])[0] if getattr(cause, "args", None) else cause)) from None
+        except ray.exceptions.RayActorError as exc:
+            raise PolicyError(f"policy replica died: {str(exc).splitlines()[0]}") from None
+
+
+class EnvWorker:
+    """One env (and GL context) on some node; `run(job)` runs one episode and returns its row."""
+
+    def __init__(self, spec: WorkerSpec, replica, marker: tuple[str, str]):
+        path, token = marker
+        try:
+            seen = Path(path).read_text()
+        except OSError:
+            seen = None
+        if seen != token:
+            raise RayExecutorError(f"--out is not visible from node {socket.gethostname()} ({path} missing there); "
+                                   "put --out on a filesystem every Ray node mounts at the same path (NFS, shared volume)")
+        self.spec = spec
+        self.policy = OctoPolicy(spec.shape, spec.policy, infer=RayInference(replica, spec.shape.dataset_key))
+        self.env, self.env_task = None, None
+
+    def ready(self) -> tuple[str, int]:
+        return socket.gethostname(), os.getpid()
+
+    def run(self, job) -> Any:
+        if self.env_task != job.task:
+            if self.env is not None:
+                self.env.close()
+            self.env, self.env_task = None, None
+            try:
+                self.env = self.spec.make_env(job.task)
+            except Exception as exc:  # the env could not be made: this episode fails, the worker stays
+                return self.spec.failed_row(job, f"{type(exc).__name__}: {exc}")
+            self.env_task = job.task
+        return self.spec.run_episode(self.env, self.policy, job)
+
+
+# ---------------------------------------------------------------------------------------------- driver
+
+
+def actor_death_cause(exc: BaseException) -> str:
+    """A Ray actor error -> the error recorded for its episode (first line of Ray's explanation)."""
+    text = " ".join(str(exc).split())
+    return f"worker process died: {text[:300]}"
+
+
+class RayExecutor:
+    """Runs episode jobs on env-worker actors with inference on policy-replica actors; rows come back to the driver.
+
+        factory = functools.partial(RayExecutor, workers=2, address=None)   # factory(context, model)
+        for row in factory(context, model).run(jobs): ...                  # the driver appends each row
+    """
+
+    def __init__(self, context: EpisodeContext, model, *, workers: int, address: str | None = None, replicas: int = 1):
+        if workers < 1 or replicas < 1:
+            raise ValueError(f"--workers and --policy-replicas must be >= 1; got {workers} and {replicas}")
+        import_ray()  # not installed: one line before anything starts
+        self.context = context
+        self.spec = worker_spec(context, model)
+        self.model_source = model.source
+        self.workers = workers
+        self.replicas = replicas
+        self.run_dir = Path(context.run_dir)
+        self.address = address
+        self.replacements = 0
+        self.replica_stats: list[dict] = []
+        self._ray = None
+        self._started_ray = False
+
+    def _init(self):
+        ray = import_ray()
+        env_vars = {k: os.environ[k] for k in FORWARDED_ENV if k in os.environ}
+        if self.address:
+            try:
+                ray.init(address=self.address, runtime_env={"env_vars": env_vars}, log_to_driver=True)
+            except (ConnectionError, RuntimeError, ValueError) as exc:
+                raise RayExecutorError(f"cannot connect to the Ray cluster at {self.address}: {str(exc).splitlines()[0]}; "
+                                       "check `ray status` on the head node") from None
+        else:
+            with warnings.catch_warnings():  # Ray starts its daemons with fork+exec, which JAX's fork warning flags
+                warnings.simplefilter("ignore", RuntimeWarning)
+                ray.init(num_cpus=max(os.cpu_count() or 1, self.workers + self.replicas), include_dashboard=False,
+                         runtime_env={"env_vars": env_vars}, configure_logging=False, log_to_driver=True)
+            self._started_ray = True
+        self._ray = ray
+        return ray
+
+    def _check_resources(self, ray) -> float:
+        """Returns GPUs per replica (1 where the cluster has enough GPUs, else 0); one line when CPUs cannot fit the actors."""
+        resources = ray.cluster_resources()
+        cpus, gpus = resources.get("CPU", 0), resources.get("GPU", 0)
+        if cpus < self.workers + self.replicas:
+            raise RayExecutorError(f"the Ray cluster has {cpus:g} CPUs; {self.workers} env workers + {self.replicas} policy "
+                                   f"replica(s) need {self.workers + self.replicas}: lower --workers or add nodes")
+        return 1.0 if gpus >= self.replicas else 0.0
+
+    def run(self, jobs: Iterable[Any], on_step=None) -> Iterator[Any]:
+        """Yield one row per job as each finishes (on_step is not forwarded: steps happen on other processes)."""
+        jobs = list(jobs)
+        warmup = warmup_task(self.context, jobs)
+        queue = collections.deque(jobs)
+        if not queue:
+            return
+        ray = self._init()
+        marker = self.run_dir / f"{MARKER_PREFIX}{uuid.uuid4().hex}"
+        actors: dict = {}
+        replicas: list = []
+        try:
+            gpus = self._check_resources(ray)
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            token = uuid.uuid4().hex
+            marker.write_text(token)
+            replica_cls = ray.remote(num_cpus=1, num_gpus=gpus)(PolicyReplica)
+            worker_cls = ray.remote(num_cpus=1, max_restarts=0)(EnvWorker)
+            sizes = batch_sizes_for(-(-self.workers // self.replicas))
+            replicas = [replica_cls.remote(self.model_source, self.spec.policy, sizes) for _ in range(self.replicas)]
+            if warmup is not None:
+                request = warmup_request(self.spec.shape, warmup)
+                ray.get([r.warm_up.remote(request) for r in replicas])
+
+            def start(i: int):
+                actor = worker_cls.remote(self.spec, replicas[i % self.replicas], (str(marker), token))
+                actors[i] = actor
+                return actor
+
+            n = min(self.workers, len(queue))
+            for i in range(n):
+                start(i)
+            try:
+                ray.get([a.ready.remote() for a in actors.values()])
+            except ray.exceptions.RayActorError as exc:
+                cause = exc.__cause__ or exc
+                raise RayExecutorError(str(cause).strip().splitlines()[-1]) from None
+            in_flight: dict = {}
+            for i in range(n):
+                job = queue.popleft()
+                in_flight[actors[i].run.remote(job)] = (i, job)
+            while in_flight:
+                (ref,), _ = ray.wait(list(in_flight), num_returns=1)
+                i, job = in_flight.pop(ref)
+                try:
+                    row = ray.get(ref)
+                except ray.exceptions.RayActorError as exc:
+                    cause = actor_death_cause(exc)
+                    log.error("env worker %d died running %s: %s", i, job, cause)
+                    row = self.spec.failed_row(job, cause)
+                    ray.kill(actors[i], no_restart=True)
+                    if queue:
+                        self.replacements += 1
+                        start(i)
+                except ray.exceptions.RayTaskError as exc:  # a bug in the episode function itself
+                    row = self.spec.failed_row(job, " ".join(str(exc.cause if hasattr(exc, "cause") else exc).split())[:300])
+                yield row
+                if queue:
+                    job = queue.popleft()
+                    in_flight[actors[i].run.remote(job)] = (i, job)
+            self.replica_stats = ray.get([r.stats.remote() for r in replicas])
+        finally:
+            self._stop(actors, replicas, marker)
+
+    def _stop(self, actors: dict, replicas: list, marker: Path) -> None:
+        ray = self._ray
+        if ray is None:
+            return
+        for actor in list(actors.values()) + replicas:
+            try:
+                ray.kill(actor, no_restart=True)
+            except Exception:  # already dead
+                pass
+        marker.unlink(missing_ok=True)
+        if self._started_ray:
+            ray.shutdown()
+            self._started_ray = False
+        self._ray = None
+
+    def close(self) -> None:
+        """Called by the driver after run(); run() already stopped everything it started (idempotent)."""
+        if self._ray is not None and self._started_ray:
+            self._ray.shutdown()
+            self._started_ray = False
