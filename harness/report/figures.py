@@ -30,7 +30,7 @@ def run_colours(n: int) -> list[str]:
 
 
 def _figure(width: float, height: float) -> Figure:
-    fig = Figure(figsize=(width, height), dpi=DPI)
+    fig = Figure(figsize=(width, height), dpi=DPI, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
 
@@ -60,12 +60,13 @@ def success_chart(tasks: Sequence[str], series: Sequence[tuple[str, str, dict]])
         ok = np.isfinite(rate)
         ax.errorbar(pos[ok], rate[ok], yerr=[rate[ok] - low[ok], high[ok] - rate[ok]], fmt="none", ecolor="black",
                     capsize=3, lw=1)
-        for p, t in zip(pos, tasks):
+        for p, t, r, h in zip(pos, tasks, rate, high):
             n = data.get(t, (np.nan,) * 4)[3]
-            ax.text(p, -0.07, "–" if not np.isfinite(n) else f"n={int(n)}", ha="center", va="top", fontsize=7,
-                    transform=ax.get_xaxis_transform())
+            top = h if np.isfinite(h) else (r if np.isfinite(r) else 0.0)
+            ax.text(p, top + 0.02, "no episodes" if not np.isfinite(n) or n == 0 else f"n={int(n)}", ha="center",
+                    va="bottom", fontsize=7)
     ax.set_xticks(x, [_short(t) for t in tasks], rotation=30, ha="right")
-    ax.set_ylim(0, 1.02)
+    ax.set_ylim(0, 1.12)
     ax.set_ylabel("success rate (95% Wilson)")
     ax.grid(axis="y", alpha=0.3)
     if len(series) > 1:
@@ -187,8 +188,7 @@ def progress_small_multiples(
                 if l not in labels:
                     handles.append(h)
                     labels.append(l)
-        fig.legend(handles, labels, loc="upper center", ncol=min(4, len(labels)), fontsize=8, bbox_to_anchor=(0.5, 1.04))
-    fig.tight_layout()
+        fig.legend(handles, labels, loc="outside upper center", ncol=min(4, len(labels)), fontsize=8)
     return _png(fig)
 
 
@@ -257,7 +257,7 @@ def shares_by_layer(panels: Sequence[tuple[str, str, dict[str, np.ndarray]]], co
             ax.set_ylabel("share of attention")
     handles, labels = fig.axes[0].get_legend_handles_labels() if fig.axes else ([], [])
     if handles:
-        fig.legend(handles, labels, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8)
+        fig.legend(handles, labels, loc="outside right center", fontsize=8)
     return _png(fig)
 
 
