@@ -25,7 +25,7 @@ import gymnasium  # noqa: E402
 
 from envs.actions import ActionAdapterConfig, ActionAdapterError, adapt_action  # noqa: E402
 from envs.gl import HeadlessGLError  # noqa: E402
-from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvOptions, parse_camera  # noqa: E402
+from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvOptions, parse_camera, to_convention  # noqa: E402
 from envs.render import UnknownCameraError  # noqa: E402
 from envs.robosuite_env import EnvConfig, EnvConfigError, RobosuiteEnv, WrongThreadError, parse_cameras  # noqa: E402
 from envs.tasks import TaskSpec, UnknownTaskError, get_task, list_tasks, task_table  # noqa: E402
@@ -50,6 +50,7 @@ __all__ = [
     "make",
     "make_vector",
     "parse_camera",
+    "to_convention",
     "task_table",
 ]
 

@@ -26,6 +26,8 @@ import re
 from dataclasses import dataclass
 from typing import Any, Mapping
 
+import numpy as np
+
 IMAGE_CONVENTIONS = ("upright", "opengl")
 ACTION_SPACES = ("octo-delta", "robosuite")
 
@@ -34,6 +36,15 @@ _CAMERA_SPEC = re.compile(r"^([A-Za-z_][\w]*)=([^:=\s]+):(\d+)$")
 
 class EnvConfigError(ValueError):
     """Invalid environment options (message: one line naming the fix)."""
+
+
+def to_convention(image: np.ndarray, convention: str) -> np.ndarray:
+    """(height, width, ...) upright pixels -> the same in `convention` ("opengl": rows reversed). Its own inverse."""
+    if convention == "opengl":
+        return np.ascontiguousarray(np.asarray(image)[::-1])
+    if convention == "upright":
+        return image
+    raise EnvConfigError(f"image convention {convention!r} unknown; use one of {', '.join(IMAGE_CONVENTIONS)}")
 
 
 def parse_camera(text: str) -> tuple[str, str, int]:

@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation
 from envs import gl
 from envs.actions import ActionAdapterConfig, adapt_action, passthrough_action
 from envs.camera import project_points
-from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvConfigError
+from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvConfigError, to_convention
 from envs.render import CameraSpec, SceneRenderer
 from envs.segmentation import TARGET, geom_categories, masks_from_segmentation, scene_lookup
 from envs.tasks import TaskSpec
@@ -214,7 +214,7 @@ class RobosuiteEnv(gym.Env):
         if self.render_mode != "rgb_array" or self._last_obs is None:
             return None
         frame = self._last_obs[self.config.cameras[0].key]
-        return np.ascontiguousarray(frame[::-1]) if self.image_convention == "opengl" else frame.copy()
+        return to_convention(frame, self.image_convention).copy()  # upright again
 
     def close(self) -> None:
         env, self._env = getattr(self, "_env", None), None
@@ -248,7 +248,7 @@ class RobosuiteEnv(gym.Env):
 
     def _in_convention(self, upright: np.ndarray) -> np.ndarray:
         """(h, w, ...) upright pixels -> the same in this env's image convention (opengl: rows reversed)."""
-        return np.ascontiguousarray(upright[::-1]) if self.image_convention == "opengl" else upright
+        return to_convention(upright, self.image_convention)
 
     def target_centres(self) -> np.ndarray:
         """(n_targets, 3) world positions: mean centre of each target's visual geoms."""

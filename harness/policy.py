@@ -9,6 +9,13 @@ ensembling (infer every step, average the overlapping predictions) or a receding
 The state of an episode (`EpisodeState`: history, chunks, rng position, task) is kept apart from the
 stateless batched inference (`BatchInference`), so a server can batch requests of many episodes
 (harness/run/workers.py, ray_executor.py) while the sequential runner uses the same code with batch 1.
+
+Finetune conventions (Octo's finetuning example: one camera, a `proprio` LowdimObsTokenizer, a new
+head, window 1): every low-dimensional key a LowdimObsTokenizer reads is taken from the env
+observation, windowed and padded like the images, and normalised on the inference side with the
+checkpoint's statistics for that key (`dataset_statistics[dataset_key][key]`, by
+`proprio_normalization`, as Octo's NormalizeProprio). `check_env` compares the model's inputs and
+action dimension with an env before anything runs (one line per problem).
 """
 
 from __future__ import annotations
@@ -22,6 +29,14 @@ import jax
 import numpy as np
 from PIL import Image
 
+from harness.octo.diffusion import SAMPLERS
+from harness.octo.normalization import NORMALIZATIONS, normalize
+from harness.octo.tokens import TokenMap
+
+
+class EnvMismatchError(ValueError):
+    """The model and the environment do not fit together (message: one line naming the fix)."""
+
 
 @dataclass(frozen=True)
 class PolicyConfig:
@@ -30,12 +45,21 @@ class PolicyConfig:
     ensemble_weight: float = 0.0  # temporal ensemble: weight exp(-w * age_rank), 0 = plain average (Octo's default)
     dataset_key: str | None = None  # unnormalisation statistics key; None = model's default choice
     full_attention: bool = False  # also return (layers, heads, queries, keys) matrices (needed by attention rollout)
+    action_normalization: str = "normal"  # how the head's actions are unnormalised: "normal" (mean/std) | "bounds" (p01/p99)
+    proprio_normalization: str = "normal"  # low-dim inputs: "normal" | "bounds" | "none" (see harness.octo.normalization)
+    sampler: str = "latest"  # diffusion heads: "latest" (the latest original code, any checkpoint) | "v0.1.0"
 
     def __post_init__(self) -> None:
         if self.execution not in ("temporal_ensemble", "receding_horizon"):
             raise ValueError(f"unknown execution {self.execution!r}; use 'temporal_ensemble' or 'receding_horizon'")
         if self.receding_steps < 1:
             raise ValueError("receding_steps must be >= 1")
+        if self.action_normalization not in ("normal", "bounds"):
+            raise ValueError(f"unknown action normalization {self.action_normalization!r}; use 'normal' or 'bounds'")
+        if self.proprio_normalization not in NORMALIZATIONS:
+            raise ValueError(f"unknown proprio normalization {self.proprio_normalization!r}; use one of {', '.join(NORMALIZATIONS)}")
+        if self.sampler not in SAMPLERS:
+            raise ValueError(f"unknown sampler {self.sampler!r}; use one of {', '.join(SAMPLERS)}")
 
     def describe(self) -> str:
         if self.execution == "receding_horizon":
@@ -51,6 +75,7 @@ class PolicyStep:
     full_attention: np.ndarray | None  # (layers, heads, queries, keys) float32 or None
     inferred: bool  # False when a receding-horizon step reused an earlier chunk (attention is that chunk's)
     inference_seconds: float
+    tokens: TokenMap | None = None  # what each attention key is (the layout of the inference that produced it)
 
 
 def default_dataset_key(model) -> str | None:
@@ -107,7 +132,8 @@ class TaskSpec:
 class InferenceRequest:
     """One episode's input to a batched inference call (no batch axis)."""
 
-    observation: dict  # image_* (window, H, W, 3) uint8, timestep_pad_mask (window,) bool, pad_mask_dict {k: (window,)}
+    observation: dict  # image_* (window, H, W, 3) uint8, low-dim keys (window, dims) float32 as the env gives them
+    # (normalised by the inference side), timestep_pad_mask (window,) bool, pad_mask_dict {k: (window,)}
     task: TaskSpec
     seed: int  # the episode's rng stream: key = fold_in(PRNGKey(seed), step)
     step: int
@@ -121,6 +147,7 @@ class InferenceResult:
     readout_attention: np.ndarray  # (layers, heads, readouts, keys) float32
     full_attention: np.ndarray | None  # (layers, heads, queries, keys) float32 or None
     seconds: float  # wall time of the batched call that produced it
+    tokens: TokenMap | None = None  # what each attention key is
 
 
 def make_task(model, spec: TaskSpec) -> dict:
@@ -152,6 +179,10 @@ class BatchInference:
             raise ValueError(f"batch sizes must be >= 1; got {batch_sizes}")
         self.dataset_key = config.dataset_key if config.dataset_key is not None else default_dataset_key(model)
         self.statistics = model.unnormalization_statistics(self.dataset_key) if self.dataset_key else None
+        self.lowdim_statistics = lowdim_statistics(model, self.dataset_key, config.proprio_normalization)
+        # the dimension of the actions handed to the env: the statistics' (Octo keeps those), else the head's
+        self.action_dim = int(len(self.statistics["mean" if config.action_normalization == "normal" else "p01"])) \
+            if self.statistics else int(model.action_dim)
         self._tasks: dict[tuple, dict] = {}  # TaskSpec.key -> batch-1 task (one per distinct instruction/goals)
 
     def task(self, spec: TaskSpec) -> dict:
@@ -180,16 +211,21 @@ class BatchInference:
         padded = requests + [requests[0]] * (self.padded_size(n) - n)
         stack = lambda *xs: np.stack(xs)  # noqa: E731
         observations = jax.tree.map(stack, *[r.observation for r in padded])  # leaves (batch, window, ...)
+        for key, stats in self.lowdim_statistics.items():  # (batch, window, dims), as Octo's NormalizeProprio
+            observations[key] = normalize(observations[key], stats, self.config.proprio_normalization, key)
         tasks = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *[self.task(r.task) for r in padded])
         keys = np.stack([step_key(r.seed, r.step) for r in padded])  # (batch, 2) uint32
         start = time.perf_counter()
         actions, attention = self.model.sample_actions(observations, tasks, keys, self.statistics,
-                                                       full_attention=self.config.full_attention)
+                                                       full_attention=self.config.full_attention,
+                                                       normalization_type=self.config.action_normalization,
+                                                       sampler=self.config.sampler)
         chunks = np.asarray(actions, dtype=np.float32)  # (batch, horizon, action_dim)
         readout = np.asarray(attention.readout, dtype=np.float32)  # (batch, layers, heads, readouts, keys)
         full = None if attention.full is None else np.asarray(attention.full, dtype=np.float32)
         elapsed = time.perf_counter() - start
-        return [InferenceResult(chunks[i], readout[i], None if full is None else full[i], elapsed) for i in range(n)]
+        return [InferenceResult(chunks[i], readout[i], None if full is None else full[i], elapsed, attention.tokens)
+                for i in range(n)]
 
 
 class EpisodeState:
@@ -200,8 +236,9 @@ class EpisodeState:
     """
 
     def __init__(self, image_sizes: dict[str, tuple[int, int]], window: int, action_horizon: int, config: PolicyConfig,
-                 task: TaskSpec, seed: int):
+                 task: TaskSpec, seed: int, lowdim_sizes: dict[str, int] | None = None):
         self.image_sizes = dict(image_sizes)
+        self.lowdim_sizes = dict(lowdim_sizes or {})  # low-dim obs key -> dims
         self.window = int(window)
         self.config = config
         self.task = task
@@ -217,20 +254,22 @@ class EpisodeState:
         n = len(self._history)
         frames = [self._history[0]] * (self.window - n) + list(self._history)  # left-pad with the first observation
         pad = np.arange(self.window) >= self.window - n  # (window,) False for padded slots
-        obs = {k: np.stack([f[k] for f in frames]) for k in self.image_sizes}
+        keys = [*self.image_sizes, *self.lowdim_sizes]
+        obs = {k: np.stack([f[k] for f in frames]) for k in keys}  # (window, H, W, 3) uint8 / (window, dims) float32
         obs["timestep_pad_mask"] = pad
-        obs["pad_mask_dict"] = {k: pad for k in self.image_sizes}
+        obs["pad_mask_dict"] = {k: pad for k in keys}
         return obs
 
     def observe(self, observation: dict[str, np.ndarray]) -> "InferenceRequest | PolicyStep":
-        missing = [k for k in self.image_sizes if k not in observation]
-        if missing:
-            raise KeyError(f"the model needs observation keys {missing}; configure the env cameras to provide them")
-        self._history.append({k: resize_frame(observation[k], s) for k, s in self.image_sizes.items()})
+        check_observation(observation, self.image_sizes, self.lowdim_sizes)
+        entry = {k: resize_frame(observation[k], s) for k, s in self.image_sizes.items()}
+        entry.update({k: np.asarray(observation[k], np.float32) for k in self.lowdim_sizes})
+        self._history.append(entry)
         if self.config.execution == "receding_horizon" and self._pending:
             self.t += 1
             last = self._last
-            return PolicyStep(self._pending.pop(0), last.chunk, last.readout_attention, last.full_attention, False, 0.0)
+            return PolicyStep(self._pending.pop(0), last.chunk, last.readout_attention, last.full_attention, False, 0.0,
+                              last.tokens)
         return InferenceRequest(self._observation_window(), self.task, self.seed, self.t)
 
     def complete(self, result: InferenceResult, seconds: float | None = None) -> PolicyStep:
@@ -245,7 +284,7 @@ class EpisodeState:
             self._chunks.append(chunk)
             action = ensemble(list(self._chunks), self.config.ensemble_weight)
         elapsed = result.seconds if seconds is None else seconds
-        self._last = PolicyStep(action, chunk, result.readout_attention, result.full_attention, True, elapsed)
+        self._last = PolicyStep(action, chunk, result.readout_attention, result.full_attention, True, elapsed, result.tokens)
         return self._last
 
 
@@ -262,15 +301,21 @@ class OctoPolicy:
         self.config = config
         self.window = int(model.window_size)
         self.image_sizes = dict(model.image_sizes)  # obs key -> (height, width)
+        self.lowdim_sizes = dict(getattr(model, "lowdim_sizes", None) or {})  # low-dim obs key -> dims
         self.action_horizon = int(model.action_horizon)
         self._infer = infer if infer is not None else BatchInference(model, config)
         self.dataset_key = self._infer.dataset_key  # the unnormalisation statistics the inference side uses
+        self.action_dim = getattr(self._infer, "action_dim", None)  # dims of the actions handed to the env (None: unknown here)
         self._state: EpisodeState | None = None
 
     def reset(self, instruction: str | None = None, seed: int = 0, goals: dict[str, np.ndarray] | None = None) -> None:
         """Start an episode: its task (language encoded once, by the inference side) and its rng stream."""
         self._state = EpisodeState(self.image_sizes, self.window, self.action_horizon, self.config,
-                                   TaskSpec.of(instruction, goals), seed)
+                                   TaskSpec.of(instruction, goals), seed, self.lowdim_sizes)
+
+    def check_env(self, env) -> None:
+        """One-line EnvMismatchError when `env` lacks an input of the model or takes another action dimension."""
+        check_env(self.image_sizes, self.lowdim_sizes, self.action_dim, env)
 
     def step(self, observation: dict[str, np.ndarray]) -> PolicyStep:
         """observation: env dict with image_* (H, W, 3) uint8 -> the action to execute now (+ attention when inferred)."""
@@ -280,3 +325,59 @@ class OctoPolicy:
         start = time.perf_counter()
         (result,) = self._infer([decision])
         return self._state.complete(result, time.perf_counter() - start)
+
+
+# ---------------------------------------------------------------------------------------------- model <-> env fit
+
+ENV_LOWDIM_HELP = "the robosuite envs give 'proprio' (8-D: end-effector position, xyz Euler angles, 2 finger joints)"
+
+
+def lowdim_statistics(model, dataset_key: str | None, kind: str) -> dict[str, dict | None]:
+    """{low-dim obs key: its statistics in dataset_statistics[dataset_key]} for every key the model reads.
+
+    kind "none" needs no statistics (values {key: None}); otherwise a missing entry is a one-line error.
+    """
+    sizes = getattr(model, "lowdim_sizes", None) or {}
+    if kind == "none":
+        return {k: None for k in sizes}
+    out = {}
+    for key in sizes:
+        stats = (getattr(model, "dataset_statistics", None) or {}).get(dataset_key or "", {}).get(key)
+        if stats is None:
+            where = f"dataset_statistics[{dataset_key!r}]" if dataset_key else "dataset_statistics.json (it has no datasets)"
+            raise EnvMismatchError(f"the model reads low-dim input {key!r} but {where} has no {key!r} statistics to "
+                                   f"normalise it; choose --dataset-key with them, or proprio_normalization='none' "
+                                   f"if the model was trained on raw values")
+        out[key] = {k: np.asarray(v) for k, v in stats.items() if k in ("mean", "std", "p01", "p99", "mask")}
+    return out
+
+
+def check_observation(observation: dict, image_sizes: dict, lowdim_sizes: dict) -> None:
+    """One-line EnvMismatchError when an observation lacks a model input or a low-dim input has other dims."""
+    missing = [k for k in image_sizes if k not in observation]
+    if missing:
+        raise EnvMismatchError(f"the model needs camera observation(s) {missing}; give the env those cameras "
+                               f"(e.g. --camera {missing[0]}=agentview:{image_sizes[missing[0]][0]})")
+    for key, dims in lowdim_sizes.items():
+        if key not in observation:
+            raise EnvMismatchError(f"the model reads low-dim observation {key!r} ({dims}-D) which the env does not give; "
+                                   f"{ENV_LOWDIM_HELP}: use a checkpoint whose LowdimObsTokenizer reads 'proprio' "
+                                   f"or add {key!r} to the env's observations")
+        got = int(np.shape(observation[key])[-1]) if np.ndim(observation[key]) else 1
+        if got != dims:
+            raise EnvMismatchError(f"the model reads {key!r} as {dims}-D but the env gives {got}-D; "
+                                   f"{ENV_LOWDIM_HELP}: finetune on the env's layout")
+
+
+def check_env(image_sizes: dict, lowdim_sizes: dict, action_dim: int | None, env) -> None:
+    """Model inputs against `env.observation_space`, and the action dimension against `env.action_space`."""
+    spaces = getattr(getattr(env, "observation_space", None), "spaces", None)
+    if spaces is not None:
+        check_observation({k: np.zeros(space.shape, np.float32) for k, space in spaces.items()},
+                          {k: s for k, s in image_sizes.items()}, lowdim_sizes)
+    env_dim = getattr(getattr(env, "action_space", None), "shape", None)
+    if action_dim is not None and env_dim is not None and tuple(env_dim) != (action_dim,):
+        kind = getattr(getattr(env, "config", None), "action_space", "this")
+        raise EnvMismatchError(f"the model's actions are {action_dim}-D but the env's {kind!r} action space takes "
+                               f"{env_dim[0]}-D; evaluate with a {env_dim[0]}-D action head (or statistics), or choose "
+                               "--action-space to match how the model was trained")

@@ -3,6 +3,12 @@
 `rollout` owns no files: it returns an `EpisodeResult` (arrays and numbers) and pushes each
 `StepRecord` to `sink` (an EpisodeWriter, or any callable taking a StepRecord), which may do its
 work in the background.
+
+Image convention: the policy sees the frames exactly as the env gives them (for an env with
+image_convention "opengl", upside down, as the model was trained). Records are for people and for
+the attention analysis, so they are upright: frames and masks are flipped back and the token map's
+patch rows are reversed for those cameras (`TokenMap.with_rows_flipped`), so maps, overlays and
+mask mass all live in the upright frame.
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ from typing import Callable
 
 import numpy as np
 
+from envs.options import to_convention
 from harness.policy import OctoPolicy
 from harness.records import StepRecord
 
@@ -43,6 +50,9 @@ def rollout(
 
     The task is the language instruction, or `goals` ({obs key: (height, width, 3) uint8}) when given.
     """
+    policy.check_env(env)  # a model/env mismatch is one line, before the episode starts
+    convention = getattr(env, "image_convention", "upright")
+    upright_tokens = _UprightTokens(tuple(policy.image_sizes) if convention == "opengl" else ())
     observation, info = env.reset(seed=seed)
     instruction = instruction or info.get("instruction", "")
     policy.reset(instruction, seed=seed, goals=goals)
@@ -59,16 +69,17 @@ def rollout(
         total_reward += float(reward)
         record = StepRecord(
             step=t,
-            frames={key: observation[key] for key in policy.image_sizes},
+            frames={key: to_convention(observation[key], convention) for key in policy.image_sizes},
             readout_attention=decision.readout_attention,
             actions_predicted=decision.chunk,
             action_executed=np.asarray(decision.action, dtype=np.float32),
             reward=float(reward),
             success=success,
-            masks=info.get("masks"),  # masks of `observation`, the frame the model saw
+            masks=_upright_masks(info.get("masks"), convention),  # masks of `observation`, the frame the model saw
             full_attention=decision.full_attention,
             timings={"inference": decision.inference_seconds, "simulation": after_sim - after_policy},
             inferred=decision.inferred,
+            tokens=upright_tokens(decision.tokens),
         )
         sink(record)
         end = time.perf_counter()
@@ -90,3 +101,26 @@ def rollout(
         actions_clipped=int(info.get("action_clipped", 0)),
         timings=totals,
     )
+
+
+def _upright_masks(masks: dict | None, convention: str) -> dict | None:
+    """{obs key: {name: (h, w) bool}} in the env's convention -> upright."""
+    if masks is None or convention == "upright":
+        return masks
+    flip = lambda m: None if m is None else to_convention(m, convention)  # noqa: E731
+    return {key: {name: flip(m) for name, m in (named or {}).items()} for key, named in masks.items()}
+
+
+class _UprightTokens:
+    """Token map of an inference -> the same with the rows of upside-down cameras reversed (one copy per map)."""
+
+    def __init__(self, flipped_keys: tuple[str, ...]):
+        self.flipped_keys = flipped_keys
+        self._last: tuple = (None, None)
+
+    def __call__(self, tokens):
+        if tokens is None or not self.flipped_keys:
+            return tokens
+        if self._last[0] is not tokens:
+            self._last = (tokens, tokens.with_rows_flipped(self.flipped_keys))
+        return self._last[1]

@@ -195,7 +195,8 @@ def test_octo_1_0_config_shims(fixtures_dir):
     head["pred_horizon"] = head.pop("action_horizon")
     parsed = OctoConfig.from_dict(config)
     assert not parsed.use_correct_attention and not parsed.repeat_task_tokens
-    assert parsed.action_head.action_horizon == 4 and parsed.action_head.legacy_sampler
+    assert parsed.action_head.action_horizon == 4 and parsed.checkpoint_format == "1.0"
+    assert OctoConfig.from_json(fixtures_dir / "tiny" / "config.json").checkpoint_format == "1.5"
 
 
 def test_orbax_layout_checkpoint_loads(fixtures_dir, tiny, tmp_path):

@@ -143,7 +143,6 @@ class DiffusionHeadConfig:
     hidden_dim: int = 256
     use_layer_norm: bool = True
     diffusion_steps: int = 20
-    legacy_sampler: bool = False  # Octo 1.0 sampler: rng split once more (vmap over 1 sample), no action mask
     map_head: MapHeadConfig = field(default_factory=MapHeadConfig)
 
 
@@ -179,6 +178,7 @@ class OctoConfig:
     use_correct_attention: bool
     window_size: int
     text_processor: TextProcessorConfig | None
+    checkpoint_format: str = "1.5"  # "1.0" for December 2023 configs (pred_horizon, no use_correct_attention)
 
     @property
     def language(self) -> LanguageTokenizerConfig | None:
@@ -230,7 +230,14 @@ class OctoConfig:
             use_correct_attention=bool(m.get("use_correct_attention", False)),
             window_size=int(data.get("window_size", 2)),
             text_processor=_text_processor(data.get("text_processor")),
+            checkpoint_format="1.0" if _is_octo_1_0(m) else "1.5",
         )
+
+
+def _is_octo_1_0(model: Mapping[str, Any]) -> bool:
+    """A December 2023 (Octo 1.0) model config: heads name their horizon pred_horizon."""
+    heads = model.get("heads") or {}
+    return any(isinstance(h, Mapping) and "pred_horizon" in (h.get("kwargs") or {}) for h in heads.values())
 
 
 # ----------------------------------------------------------------------------- ModuleSpec parsing
@@ -357,8 +364,7 @@ def _head(name: str, spec: Any) -> HeadConfig:
     where = f"heads.{name}"
     module, cls, kw = _spec(spec, where)
     _require(module, cls, tuple(s for s in SUPPORTED_MODULES if s.startswith(_HEADS)), where)
-    legacy = "pred_horizon" in kw  # Octo 1.0 configs; Octo's loader renames it to action_horizon
-    if legacy:
+    if "pred_horizon" in kw:  # Octo 1.0 configs; Octo's loader renames it to action_horizon
         kw = dict(kw)
         kw["action_horizon"] = kw.pop("pred_horizon")
     if cls == "DiffusionActionHead":
@@ -374,7 +380,6 @@ def _head(name: str, spec: Any) -> HeadConfig:
             action_dim=int(kw["action_dim"]), use_map=bool(kw["use_map"]), max_action=float(kw["max_action"]),
             time_dim=int(kw["time_dim"]), num_blocks=int(kw["num_blocks"]), hidden_dim=int(kw["hidden_dim"]),
             use_layer_norm=bool(kw["use_layer_norm"]), diffusion_steps=int(kw["diffusion_steps"]),
-            legacy_sampler=legacy,
         )
     kw = _check_kwargs(kw, {
         "readout_key": None, "use_map": cls != "ContinuousActionHead", "action_horizon": 1, "action_dim": 7,

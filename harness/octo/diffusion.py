@@ -12,11 +12,18 @@ Sampler (Octo's DiffusionActionHead.predict_action), x of shape (batch, window, 
         x = where(action_mask, x, sqrt(1 - alpha_hat_t) * z)
 
 All window positions are denoised; callers keep the last one.
+
+Samplers: "latest" is the loop above, as the latest original code (octo-models/octo 241fb35, the 1.5
+release) runs it for every checkpoint, 1.0-format ones included. "v0.1.0" is the December 2023 code
+(tag v0.1.0): it sampled inside `vmap` over `split(rng, n_samples)` with one sample, i.e. the key is
+split once more before the loop (so every draw differs), and it had no action mask.
 """
 
 from __future__ import annotations
 
 from typing import Callable, NamedTuple
+
+SAMPLERS = ("latest", "v0.1.0")
 
 import jax
 import jax.numpy as jnp
@@ -58,14 +65,17 @@ def denoise_step(x: jax.Array, eps: jax.Array, t: jax.Array, z: jax.Array, sched
 
 def sample(score: Callable[[jax.Array, jax.Array], jax.Array], rng: jax.Array, shape: tuple[int, ...],
            schedule: Schedule, max_action: float, action_mask: jax.Array | None = None,
-           legacy_rng: bool = False) -> jax.Array:
+           sampler: str = "latest") -> jax.Array:
     """Run the reverse process from pure noise; returns x_0 of `shape` (batch, window, horizon*dim).
 
-    score(x, t) -> eps, with t a scalar int32 step. legacy_rng reproduces Octo 1.0, which split the
-    key once more before sampling (a vmap over one sample).
+    score(x, t) -> eps, with t a scalar int32 step. sampler "latest" or "v0.1.0" (see the module
+    docstring; "v0.1.0" ignores action_mask, which that code did not have).
     """
-    if legacy_rng:
+    if sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {sampler!r}; use one of {', '.join(SAMPLERS)}")
+    if sampler == "v0.1.0":
         rng = jax.random.split(rng, 1)[0]
+        action_mask = None
     rng, key = jax.random.split(rng)
     x = jax.random.normal(key, shape)
     steps = schedule.betas.shape[0]

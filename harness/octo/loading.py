@@ -22,9 +22,8 @@ import numpy as np
 from harness.octo import checkpoint, presets
 from harness.octo.config import LowdimTokenizerConfig, OctoConfig
 from harness.octo.errors import ConfigError, HubUnavailableError
-from harness.octo.model import OctoModel, example_observation_sizes
-from harness.octo.network import NON_DATA_KEYS, init_params, random_params
-from harness.octo.stem import lowdim_stack_keys
+from harness.octo.model import OctoModel, example_lowdim_sizes, example_observation_sizes
+from harness.octo.network import init_params, random_params
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +60,7 @@ def load_pretrained(uri: str, step: int | None = None, *, text_tokenizer: str | 
              sum(int(np.prod(x.shape)) for x in jax.tree.leaves(params)), time.perf_counter() - start)
     return OctoModel(config=config, params=params, example_batch=example, dataset_statistics=statistics,
                      text_tokenizer=_text_tokenizer(config, text_tokenizer, t5, False, cache_dir), t5_config=t5,
-                     source=uri, is_random=False)
+                     source=uri, is_random=False, checkpoint_dir=ckpt)
 
 
 def _random_model(uri: str, text_tokenizer: str | None, cache_dir) -> OctoModel:
@@ -98,7 +97,7 @@ def _random_model(uri: str, text_tokenizer: str | None, cache_dir) -> OctoModel:
                 uri, RANDOM_SEED)
     return OctoModel(config=config, params=params, example_batch=example, dataset_statistics=statistics,
                      text_tokenizer=_text_tokenizer(config, text_tokenizer, t5, True, cache_dir), t5_config=t5,
-                     source=uri, is_random=True)
+                     source=uri, is_random=True, checkpoint_dir=ckpt)
 
 
 def _t5_config(config: OctoConfig, ckpt: Path | None):
@@ -135,11 +134,7 @@ def _input_shapes(config: OctoConfig, example: dict) -> dict:
     """Image sizes, low-dim sizes, window and language length that fix the parameter shapes."""
     obs = example["observation"]
     images, window = example_observation_sizes(obs, config.window_size)
-    lowdim = {}
-    for tok in config.observation_tokenizers:
-        if isinstance(tok, LowdimTokenizerConfig):
-            for k in lowdim_stack_keys(tok, [k for k in obs if k not in NON_DATA_KEYS]):
-                lowdim[k] = int(np.shape(obs[k])[-1])
+    lowdim = example_lowdim_sizes(config, obs)
     language = example.get("task", {}).get("language_instruction")
     n_lang = int(np.shape(language["input_ids"])[1]) if isinstance(language, Mapping) else _language_tokens(config)
     return {"image_sizes": images, "window": window, "lowdim_sizes": lowdim, "language_tokens": n_lang}

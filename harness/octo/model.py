@@ -26,7 +26,7 @@ import numpy as np
 
 from harness.octo import presets
 from harness.octo.config import DiffusionHeadConfig, ImageTokenizerConfig, OctoConfig
-from harness.octo.diffusion import make_schedule, sample
+from harness.octo.diffusion import SAMPLERS, make_schedule, sample
 from harness.octo.errors import InputError, OctoError, UnknownDatasetKeyError
 from harness.octo.heads import ContinuousHead, ScoreNetwork, pool_readouts
 from harness.octo.network import NON_DATA_KEYS, LanguageTokenizer, OctoTransformer, sequence_layout
@@ -49,7 +49,7 @@ class OctoModel:
     """A loaded Octo policy. Build with `load_pretrained`; read-only after construction."""
 
     def __init__(self, *, config: OctoConfig, params: dict, example_batch: dict, dataset_statistics: dict,
-                 text_tokenizer, t5_config, source: str, is_random: bool):
+                 text_tokenizer, t5_config, source: str, is_random: bool, checkpoint_dir=None):
         self.config = config
         self.params = params
         self.example_batch = example_batch
@@ -58,14 +58,16 @@ class OctoModel:
         self.t5_config = t5_config
         self.source = source
         self.is_random = is_random
+        self.checkpoint_dir = checkpoint_dir  # local folder the model was read from (None: random preset)
         self.image_sizes, self.window_size = example_observation_sizes(example_batch["observation"], config.window_size)
+        self.lowdim_sizes = example_lowdim_sizes(config, example_batch["observation"])  # obs key -> dims
         self.goal_image_sizes = {k: tuple(int(s) for s in np.shape(v)[1:3]) for k, v in example_batch.get("task", {}).items()
                                  if k.startswith("image_") and np.ndim(v) == 4}
         head = config.action_head
         self.action_horizon = head.action_horizon
         self.action_dim = head.action_dim
         self._schedule = make_schedule(head.diffusion_steps) if isinstance(head, DiffusionHeadConfig) else None
-        self._sample_jit = jax.jit(self._sample, static_argnames=("capture", "normalization_type"))
+        self._sample_jit = jax.jit(self._sample, static_argnames=("capture", "normalization_type", "sampler"))
         self._encode_jit = jax.jit(self._encode)
         backbone = {k: v for k, v in params["octo_transformer"].items() if not k.startswith("task_tokenizers_")}
         self._inference_params = {**params, "octo_transformer": backbone}  # without the T5 encoder, built once
@@ -134,7 +136,7 @@ class OctoModel:
     def sample_actions(self, observations: Mapping, task: Mapping, rng: jax.Array,
                        unnormalization_statistics: Mapping | None = None, *, full_attention: bool = False,
                        normalization_type: str = "normal", capture_attention: bool = True,
-                       ) -> tuple[jax.Array, Attention | None]:
+                       sampler: str = "latest") -> tuple[jax.Array, Attention | None]:
         """Sample an action chunk (batch, action_horizon, action_dim) and capture attention.
 
         rng: one key (2,) uint32 for the whole batch (Octo's behaviour: an example's noise depends on its
@@ -144,10 +146,14 @@ class OctoModel:
         normalization_type "normal" (a*std+mean) or "bounds" (from p01/p99), honouring the statistics'
         mask. One jitted function; it compiles once per input structure and shape (and per option).
         capture_attention=False returns (actions, None) and skips copying attention out (for
-        measuring what capture costs).
+        measuring what capture costs). sampler (diffusion heads): "latest" samples as the latest original
+        code does with any checkpoint (1.0-format ones included); "v0.1.0" as the December 2023 code
+        did (one more rng split, no action mask); see harness.octo.diffusion.
         """
         if normalization_type not in ("normal", "bounds"):
             raise InputError(f"normalization_type must be 'normal' or 'bounds', got {normalization_type!r}")
+        if sampler not in SAMPLERS:
+            raise InputError(f"sampler must be one of {', '.join(SAMPLERS)}, got {sampler!r}")
         obs, pad = self._prepare_observations(observations)
         task_in, encoding = self._prepare_task(task, pad.shape[0])
         stats = _prepare_statistics(unnormalization_statistics, normalization_type, self.action_dim)
@@ -159,7 +165,7 @@ class OctoModel:
         compiled = self.sample_cache_size
         start = time.perf_counter()
         actions, captured = self._sample_jit(self._inference_params, obs, task_in, encoding, pad, rng, stats,
-                                             capture=capture, normalization_type=normalization_type)
+                                             capture=capture, normalization_type=normalization_type, sampler=sampler)
         if self.sample_cache_size > compiled:  # this call compiled a new variant
             jax.block_until_ready(actions)
             log.info("sample_actions compiled and ran in %.2f s (batch %d, window %d, %d keys, attention capture: %s)",
@@ -177,7 +183,7 @@ class OctoModel:
         """Number of compiled variants of the jitted sampler (1 after any number of same-shape calls)."""
         return self._sample_jit._cache_size()
 
-    def _sample(self, params, obs, task, encoding, pad, rng, stats, *, capture, normalization_type):
+    def _sample(self, params, obs, task, encoding, pad, rng, stats, *, capture, normalization_type, sampler):
         cfg = self.config
         head = cfg.action_head
         layout = self._layout(obs, encoding)
@@ -189,12 +195,11 @@ class OctoModel:
         batch, window = embedding.shape[:2]
         if isinstance(head, DiffusionHeadConfig):
             flat = head.action_horizon * head.action_dim
-            action_mask = None
-            if not head.legacy_sampler:
-                dims = head.action_dim if stats is None else stats["mask"].shape[0]
-                action_mask = jnp.broadcast_to(
-                    jnp.tile(jnp.arange(head.action_dim) < dims, head.action_horizon), (batch, window, flat)
-                )
+            # as Octo: dimensions beyond the statistics' (the embodiment's) are masked to training-time noise
+            dims = head.action_dim if stats is None else stats["mask"].shape[0]
+            action_mask = jnp.broadcast_to(
+                jnp.tile(jnp.arange(head.action_dim) < dims, head.action_horizon), (batch, window, flat)
+            )
             net = ScoreNetwork(head)
 
             def score_of(emb):
@@ -208,12 +213,12 @@ class OctoModel:
 
                 def one(key, emb):  # emb (window, D) -> (window, flat)
                     return sample(score_of(emb[None]), key, (1, window, flat), self._schedule, head.max_action,
-                                  one_mask, head.legacy_sampler)[0]
+                                  one_mask, sampler)[0]
 
                 x = jax.vmap(one)(rng, embedding)
             else:
                 x = sample(score_of(embedding), rng, (batch, window, flat), self._schedule, head.max_action, action_mask,
-                           head.legacy_sampler)
+                           sampler)
             actions = x.reshape(batch, window, head.action_horizon, head.action_dim)[:, -1]
         else:
             actions = ContinuousHead(head).apply({"params": {"mean_proj": head_params["mean_proj"]}}, embedding)[:, -1]
@@ -338,6 +343,17 @@ class OctoModel:
     def _layout(self, obs: Mapping, encoding):
         shapes = {k: np.shape(v) for k, v in obs.items() if k != "pad_mask_dict"}
         return sequence_layout(self.config, shapes, None if encoding is None else int(encoding.shape[1]))
+
+
+def example_lowdim_sizes(config: OctoConfig, obs: Mapping) -> dict[str, int]:
+    """{observation key: dims} of every low-dim key a LowdimObsTokenizer reads, from an example observation dict."""
+    keys = [k for k in obs if k not in NON_DATA_KEYS]
+    sizes = {}
+    for tok in config.observation_tokenizers:
+        if not isinstance(tok, ImageTokenizerConfig):
+            for k in lowdim_stack_keys(tok, keys):
+                sizes[k] = int(np.shape(obs[k])[-1])
+    return sizes
 
 
 def example_observation_sizes(obs: Mapping, default_window: int) -> tuple[dict[str, tuple[int, int]], int]:

@@ -1,0 +1,156 @@
+"""Evaluation conventions a checkpoint records next to its config.json (`harness.toml`), and how they combine
+with what the user asks for.
+
+A finetuned Octo checkpoint only works in robosuite when it is evaluated the way it was trained: the
+same cameras at the same sizes, the same image orientation, the same action space, the same
+normalisation statistics. `harness.toml` (TOML, read with the standard library's `tomllib`) says so:
+
+    # How octo-harness evaluates this checkpoint; every key is optional.
+    format = "octo-harness-conventions/1"
+
+    [env]                              # envs.EnvOptions fields a model depends on
+    action_space = "robosuite"         # "octo-delta" | "robosuite"
+    image_convention = "upright"       # "upright" | "opengl"
+
+    [env.cameras]                      # observation key = [robosuite camera, square size]
+    image_primary = ["agentview", 84]
+
+    [policy]                           # harness.policy.PolicyConfig fields
+    dataset_key = "robosuite_reference"
+    action_normalization = "normal"    # "normal" (mean/std) | "bounds" (p01/p99)
+    proprio_normalization = "normal"   # "normal" | "bounds" | "none"
+    sampler = "latest"                 # "latest" | "v0.1.0" (diffusion heads)
+    execution = "receding_horizon"     # and receding_steps, ensemble_weight
+
+Precedence, highest first: command-line flags, the protocol file, `harness.toml`, the defaults.
+A missing file means "no conventions" (the defaults: octo-delta, upright, task cameras).
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Mapping
+
+from envs.options import EnvConfigError, EnvOptions
+
+CONVENTIONS_FILE = "harness.toml"
+FORMAT = "octo-harness-conventions/1"
+ENV_KEYS = ("cameras", "image_convention", "action_space")  # masks and fast_render are run choices, not model conventions
+
+
+class ConventionsError(ValueError):
+    """A harness.toml that cannot be used (message: one line naming the file and the fix)."""
+
+
+def _policy_keys() -> tuple[str, ...]:
+    from harness.policy import PolicyConfig
+
+    return tuple(f.name for f in fields(PolicyConfig) if f.name != "full_attention")
+
+
+@dataclass(frozen=True, eq=False)
+class CheckpointConventions:
+    env: Mapping[str, Any] = field(default_factory=dict)  # subset of ENV_KEYS, as EnvOptions.to_dict writes them
+    policy: Mapping[str, Any] = field(default_factory=dict)  # subset of PolicyConfig fields
+    source: str | None = None  # the file they were read from
+
+    @classmethod
+    def parse(cls, data: Mapping[str, Any], source: str | None = None) -> "CheckpointConventions":
+        where = source or CONVENTIONS_FILE
+        unknown = sorted(set(data) - {"format", "env", "policy"})
+        if unknown:
+            raise ConventionsError(f"{where}: unknown top-level key(s) {unknown}; use format, [env], [policy]")
+        if data.get("format", FORMAT) != FORMAT:
+            raise ConventionsError(f"{where}: format {data.get('format')!r} unsupported; this harness reads {FORMAT!r}")
+        env = dict(data.get("env") or {})
+        policy = dict(data.get("policy") or {})
+        bad_env = sorted(set(env) - set(ENV_KEYS))
+        if bad_env:
+            raise ConventionsError(f"{where}: [env] key(s) {bad_env} are not checkpoint conventions; allowed: {list(ENV_KEYS)}")
+        bad_policy = sorted(set(policy) - set(_policy_keys()))
+        if bad_policy:
+            raise ConventionsError(f"{where}: [policy] key(s) {bad_policy} unknown; allowed: {list(_policy_keys())}")
+        try:
+            EnvOptions.from_dict(env)  # validate values now, with the file named
+        except EnvConfigError as e:
+            raise ConventionsError(f"{where}: {e}") from None
+        conventions = cls(env=env, policy=policy, source=source)
+        try:
+            conventions.policy_config()
+        except ValueError as e:
+            raise ConventionsError(f"{where}: {e}") from None
+        return conventions
+
+    @classmethod
+    def read(cls, folder: str | Path | None) -> "CheckpointConventions":
+        """The conventions in `<folder>/harness.toml`; none (empty) when the folder or file does not exist."""
+        if folder is None:
+            return cls()
+        path = Path(folder) / CONVENTIONS_FILE
+        if not path.is_file():
+            return cls()
+        try:
+            data = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as e:
+            raise ConventionsError(f"{path}: not valid TOML ({e}); fix or delete the file") from None
+        return cls.parse(data, str(path))
+
+    def env_options(self, overrides: Mapping[str, Any] | None = None) -> EnvOptions:
+        """EnvOptions from these conventions with `overrides` (the user's explicit choices; None values ignored) on top."""
+        given = {k: v for k, v in (overrides or {}).items() if v is not None}
+        return EnvOptions.from_dict({**self.env, **given})
+
+    def policy_config(self, overrides: Mapping[str, Any] | None = None):
+        """PolicyConfig from these conventions with `overrides` (None values ignored) on top."""
+        from harness.policy import PolicyConfig
+
+        given = {k: v for k, v in (overrides or {}).items() if v is not None}
+        return PolicyConfig(**{**self.policy, **given})
+
+    def to_dict(self) -> dict:
+        return {"format": FORMAT, "env": dict(self.env), "policy": dict(self.policy)}
+
+    def to_toml(self) -> str:
+        """TOML text of these conventions (strings, numbers, booleans, camera tables)."""
+        lines = ["# How octo-harness evaluates this checkpoint; every key is optional (see harness/conventions.py).",
+                 f"format = {_toml_value(FORMAT)}", ""]
+        env = {k: v for k, v in self.env.items() if k != "cameras" and v is not None}
+        cameras = self.env.get("cameras")
+        if env or cameras:
+            lines.append("[env]")
+            lines += [f"{k} = {_toml_value(v)}" for k, v in env.items()]
+            lines.append("")
+        if cameras:
+            lines.append("[env.cameras]")
+            lines += [f"{k} = {_toml_value(list(v))}" for k, v in EnvOptions(cameras=cameras).to_dict()["cameras"].items()]
+            lines.append("")
+        policy = {k: v for k, v in self.policy.items() if v is not None}
+        if policy:
+            lines.append("[policy]")
+            lines += [f"{k} = {_toml_value(v)}" for k, v in policy.items()]
+            lines.append("")
+        return "\n".join(lines)
+
+    def write(self, folder: str | Path) -> Path:
+        """Write `<folder>/harness.toml` (validated by reading it back)."""
+        from harness.files import write_atomic
+
+        text = self.to_toml()
+        CheckpointConventions.parse(tomllib.loads(text))
+        path = Path(folder) / CONVENTIONS_FILE
+        write_atomic(path, lambda f: f.write(text.encode()))
+        return path
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise ConventionsError(f"cannot write {value!r} ({type(value).__name__}) to {CONVENTIONS_FILE}")
