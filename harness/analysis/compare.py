@@ -388,6 +388,7 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
         "config": asdict(config),
         "baseline": _arm(baseline),
         "candidate": _arm(candidate),
+        "env": _protocol(baseline).get("env") if isinstance(_protocol(baseline).get("env"), dict) else None,
         "pairs": len(details),
         "missing_pairs": missing,
         "identical": {

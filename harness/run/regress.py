@@ -177,3 +177,31 @@ def exit_code(result: dict, fail_on: str = "regressed") -> int:
     if fail_on == "underpowered" and verdict == "UNDERPOWERED":
         return 1
     return 0
+
+
+def summary_text(result: dict, code: int) -> str:
+    """A few lines for the terminal / CI log."""
+    seq = result["sequential"]
+    e = seq["e_values"]
+    lines = [
+        f"regress: {result['verdict']} after {result['pairs_used']} pairs ({result['rounds_used']} rounds) of "
+        f"{result['baseline_pairs']} in the baseline; sequential test at alpha {seq['alpha']:g}, max drop {seq['max_drop']:g}",
+        f"  e-values (reject at {seq['threshold']:g}): regression {e['regression']:.3g}, improvement "
+        f"{e['improvement']:.3g}, held {e['held']:.3g}",
+        f"  a fixed-size McNemar test would need {result['fixed_size_pairs_80_power'] or 'n/a (no difference observed)'} "
+        f"pairs for 80% power at the observed discordance",
+        f"  fixed-size comparison of the pairs run: {result['compare']['verdict']}",
+        f"exit code {code}",
+    ]
+    return "\n".join(lines)
+
+
+def write_regress(result: dict, code: int, write_comparison) -> dict:
+    """regress.json and the comparison outputs into <candidate run>/regress/; returns paths and the summary text."""
+    from harness.files import atomic_write_json
+
+    out = Path(result["candidate_run"]) / "regress"
+    paths = write_comparison(result["compare"], out, None, None)
+    atomic_write_json(out / "regress.json", {**{k: v for k, v in result.items() if k != "compare"}, "exit_code": code,
+                                             "compare_json": str(paths["json"])})
+    return {"json": out / "regress.json", "html": paths["html"], "summary": summary_text(result, code)}
