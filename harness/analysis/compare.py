@@ -140,6 +140,7 @@ def incompatible_fields(baseline: dict, candidate: dict) -> list[str]:
     differ = sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, missing) != b.get(k, missing))
     if a.get("execution", missing) != b.get("execution", missing) and not any(k.startswith("policy.") for k in differ):
         differ.append("execution")  # legacy manifests have no policy block
+    differ = [k for k in differ if not any(k.startswith(d + ".") for d in differ)]  # None vs {...}: name the parent
     return [k for k in differ if not any(k == m or k.startswith(m + ".") for m in MAY_DIFFER)]
 
 

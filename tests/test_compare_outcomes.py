@@ -1,0 +1,76 @@
+"""compare's outcome statistics on run folders written by hand (no arrays): pairing, Holm, verdicts, exit codes."""
+
+import json
+
+import pytest
+
+from harness import cli
+from harness.analysis.compare import compare_runs, exit_code, incompatible_fields
+from harness.analysis.paired import holm_adjust, mcnemar_exact
+
+PROTOCOL = {"model": "m", "model_fingerprint": "x", "tasks": ["Lift", "Stack"], "episodes": 10, "seed": 0,
+            "max_steps": 50, "execution": "temporal_ensemble:0", "instruction": None, "goal_images": None,
+            "goal_fingerprint": None, "env": {"masks": True, "fast_render": True, "cameras": None,
+                                              "image_convention": "upright", "action_space": "octo-delta"},
+            "policy": {"execution": "temporal_ensemble", "receding_steps": 1, "ensemble_weight": 0.0,
+                       "dataset_key": None, "full_attention": False},
+            "outputs": {"png_every": 1}, "harness_version": "1"}
+
+
+def write_run(folder, successes: dict[str, list[bool]], protocol=None, model="m"):
+    protocol = {**(protocol or PROTOCOL), "model": model}
+    jobs = [[task, k, k] for task, flags in successes.items() for k in range(len(flags))]
+    folder.mkdir(parents=True)
+    (folder / "manifest.json").write_text(json.dumps({
+        "format": "octo-harness-run/1", "run": folder.name, "protocol": protocol, "jobs": jobs,
+        "model": {"source": model, "is_random": False}}))
+    rows = [{"run": folder.name, "task": task, "episode": k, "seed": k, "status": "ok", "success": flag, "steps": 5,
+             "directory": f"{task}/episode_{k}"} for task, flags in successes.items() for k, flag in enumerate(flags)]
+    (folder / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return folder
+
+
+def test_a_significant_drop_is_regressed_with_holm_across_tasks_and_exits_1(tmp_path, capsys):
+    base = write_run(tmp_path / "base", {"Lift": [True] * 10, "Stack": [True, False] * 5})
+    cand = write_run(tmp_path / "cand", {"Lift": [False] * 10, "Stack": [True, False] * 5}, model="m2")
+    result = compare_runs(base, cand)
+    lift, stack, pooled = result["outcomes"]["tasks"]["Lift"], result["outcomes"]["tasks"]["Stack"], result["outcomes"]["overall"]
+    assert lift["table"] == {"both": 0, "baseline_only": 10, "candidate_only": 0, "neither": 0}
+    assert lift["mcnemar_p"] == pytest.approx(2 / 1024)
+    # family = Lift, Stack, pooled: Holm multiplies the smallest p by 3
+    expected = holm_adjust([2 / 1024, 1.0, mcnemar_exact(10, 0)])
+    assert [lift["mcnemar_p_holm"], stack["mcnemar_p_holm"], pooled["mcnemar_p_holm"]] == pytest.approx(expected)
+    assert lift["verdict"] == "REGRESSED" and stack["verdict"] == "UNDERPOWERED" and pooled["verdict"] == "REGRESSED"
+    assert stack["more_pairs_needed"] > 0
+    assert result["verdict"] == "REGRESSED" and exit_code(result) == 1
+    assert cli.main(["compare", str(base), str(cand), "--no-frames"]) == 1
+    out = capsys.readouterr().out
+    assert "compare: REGRESSED" in out and "| Lift | 10 |" in out
+    assert (cand / "compare_base" / "compare.html").is_file()
+
+
+def test_missing_pairs_are_reported_and_left_out_and_underpowered_can_fail(tmp_path):
+    base = write_run(tmp_path / "base", {"Lift": [True, False, True, True]})
+    cand = write_run(tmp_path / "cand", {"Lift": [True, False]}, model="m2")  # still running: 2 of 4 episodes
+    result = compare_runs(base, cand)
+    assert result["pairs"] == 2 and result["missing_pairs"] == {"candidate": [["Lift", 2], ["Lift", 3]], "baseline": []}
+    assert result["verdict"] == "UNDERPOWERED"
+    assert exit_code(result) == 0 and exit_code(result, "underpowered") == 1 and exit_code(result, "changed") == 1
+
+
+def test_only_outcome_changing_protocol_fields_are_incompatible():
+    other = json.loads(json.dumps(PROTOCOL))
+    other.update(model="m2", model_fingerprint="y", episodes=50, harness_version="2", outputs={"png_every": 0})
+    other["policy"]["dataset_key"] = "robomimic"
+    assert incompatible_fields(PROTOCOL, other) == []
+    other["env"]["action_space"] = "robosuite"
+    other["env"]["cameras"] = {"image_primary": ["agentview", 84]}
+    other["policy"]["receding_steps"] = 4
+    assert incompatible_fields(PROTOCOL, other) == ["env.action_space", "env.cameras", "policy.receding_steps"]
+
+
+def test_not_a_run_is_one_line_exit_2(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    code = cli.main(["compare", str(tmp_path / "empty"), str(tmp_path / "empty")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "run folder" in err[0]
