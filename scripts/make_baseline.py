@@ -1,0 +1,104 @@
+"""Make a committed baseline from a finished run: results/baselines/<name>/ (small enough for git).
+
+    .venv/bin/octo-harness run --task Lift --episodes 2 --model models/octo-reference-robosuite \
+        --fast-render --png-every 0 --no-video --out /tmp/runs --run-name baseline
+    .venv/bin/python scripts/make_baseline.py /tmp/runs/baseline results/baselines/reference-lift
+
+Keeps manifest.json, results.jsonl, results.json, summary.csv and per episode episode.json plus actions.npz and
+attention.npz cut to the first --steps steps (default 1: the step-0 arrays that isolate the model); drops PNG,
+MP4, GIF and metrics.jsonl. BASELINE.json records where it came from and how to find the model again
+("model_ref": "repo:<path inside the repository>" or "fixture:<name>"); harness.analysis.compare reads it to
+compare arrays over the stored steps only. The destination is replaced atomically (built next to it, renamed).
+"""
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from harness.analysis.compare import BASELINE_MARKER  # noqa: E402
+from harness.analysis.runs import load_run  # noqa: E402
+
+KEEP_RUN_FILES = ("manifest.json", "results.jsonl", "results.json", "summary.csv", "statistics.csv")
+
+
+def model_ref(source: str) -> str:
+    """How the gate test finds the model again: inside the repository, or a reference fixture by name."""
+    path = Path(source)
+    if path.is_absolute():
+        try:
+            return "repo:" + path.resolve().relative_to(REPO).as_posix()
+        except ValueError:
+            if path.parent.name == "octo-reference":
+                return "fixture:" + path.name
+    return source  # hf://..., random:...
+
+
+def cut_npz(src: Path, dst: Path, steps: int) -> None:
+    """Copy an episode array file keeping the first `steps` entries of every per-step array (tokens/* whole)."""
+    with np.load(src) as z:
+        arrays = {k: (z[k] if k.startswith("tokens/") or z[k].ndim == 0 else z[k][:steps]) for k in z.files}
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **arrays)
+    dst.write_bytes(buffer.getvalue())
+
+
+def make_baseline(run_dir: Path, dest: Path, steps: int = 1) -> Path:
+    run = load_run(run_dir)
+    if run.format == "legacy":
+        raise SystemExit(f"error: {run_dir} was made before the run store; re-run it with this octo-harness")
+    if run.status != "complete" or any(not e.ok for e in run.episodes):
+        raise SystemExit(f"error: {run_dir} is {run.status} or has failed episodes; a baseline needs a complete, clean run")
+    tmp = dest.with_name(dest.name + f".tmp.{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    for name in KEEP_RUN_FILES:
+        if (run.path / name).is_file():
+            shutil.copy2(run.path / name, tmp / name)
+    for episode in run.episodes:
+        rel = episode.directory.relative_to(run.path)
+        (tmp / rel).mkdir(parents=True)
+        shutil.copy2(episode.directory / "episode.json", tmp / rel / "episode.json")
+        for name in ("actions.npz", "attention.npz"):
+            cut_npz(episode.directory / name, tmp / rel / name, steps)
+    (tmp / BASELINE_MARKER).write_text(json.dumps({
+        "source_run": str(run.path), "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "arrays_steps": steps, "model_ref": model_ref(run.model.source),
+        "model_fingerprint": (run.manifest.get("protocol") or {}).get("model_fingerprint"),
+        "note": "arrays keep only the first steps; PNG, MP4 and metrics.jsonl are dropped",
+    }, indent=2) + "\n")
+    if dest.exists():
+        old = dest.with_name(dest.name + f".old.{os.getpid()}")
+        dest.rename(old)
+        tmp.rename(dest)
+        shutil.rmtree(old)
+    else:
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        tmp.rename(dest)
+    return dest
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path, help="a complete run folder")
+    parser.add_argument("dest", type=Path, help="baseline folder, e.g. results/baselines/reference-lift")
+    parser.add_argument("--steps", type=int, default=1, help="steps of arrays to keep per episode [1]")
+    args = parser.parse_args()
+    dest = make_baseline(args.run, args.dest, args.steps)
+    size = sum(p.stat().st_size for p in dest.rglob("*") if p.is_file())
+    print(f"baseline: {dest} ({size / 1024:.0f} KiB)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
