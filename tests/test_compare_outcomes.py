@@ -74,3 +74,24 @@ def test_not_a_run_is_one_line_exit_2(tmp_path, capsys):
     code = cli.main(["compare", str(tmp_path / "empty"), str(tmp_path / "empty")])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "run folder" in err[0]
+
+
+def test_regress_feeds_complete_rounds_in_order_as_the_mean_over_tasks():
+    from harness.analysis.sequential import SequentialConfig
+    from harness.run.protocol import EpisodeJob
+    from harness.run.regress import round_order, sequential_state
+
+    tasks = ("Lift", "Stack")
+    jobs = [EpisodeJob(t, k, 10 + k) for t in tasks for k in range(3)]  # task-major, as a protocol lists them
+    assert [(j.task, j.episode) for j in round_order(jobs, tasks)] == [
+        ("Lift", 0), ("Stack", 0), ("Lift", 1), ("Stack", 1), ("Lift", 2), ("Stack", 2)]
+    baseline = {(t, 10 + k): True for t in tasks for k in range(3)}
+    candidate = {("Lift", 10): False, ("Stack", 10): True, ("Lift", 11): False, ("Stack", 11): False,
+                 ("Lift", 12): False}  # round 2 is not finished (Stack missing)
+    config = SequentialConfig(alpha=0.05, max_drop=0.1)
+    test = sequential_state(baseline, candidate, jobs, tasks, config)
+    assert test.units == 2  # rounds 0 and 1; units -0.5 and -1
+    bets = config.bets("regression")
+    import numpy as np
+
+    assert test.wealth("regression") == pytest.approx(np.mean((1 + 0.5 * bets) * (1 + bets)))
