@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import io
+import logging
 import math
 import os
 import shutil
@@ -211,6 +212,9 @@ def read_video_frames(path: Path, indices: list[int], height: int, width: int) -
     if not indices:
         return {}
     select = "+".join(f"eq(n\\,{i})" for i in sorted(set(indices)))
+    logger = logging.getLogger("imageio_ffmpeg")  # it warns that the cropped size differs from the video's: intended
+    level = logger.level
+    logger.setLevel(logging.ERROR)
     try:
         reader = imageio_ffmpeg.read_frames(str(path), output_params=[
             "-vf", f"select={select},crop={width}:{height}:0:0", "-fps_mode", "passthrough"])
@@ -221,6 +225,8 @@ def read_video_frames(path: Path, indices: list[int], height: int, width: int) -
         frames = [np.frombuffer(buf, np.uint8).reshape(height, width, 3).copy() for buf in reader]
     except (OSError, RuntimeError, StopIteration, ValueError):
         return {}
+    finally:
+        logger.setLevel(level)
     return dict(zip(sorted(set(indices)), frames))
 
 
@@ -363,7 +369,7 @@ def _episode_rows(run: RunData, task: str, out: Path) -> tuple[str, str]:
         value = _episode_headline(run, e)
         rows.append([e.episode, "" if e.seed is None else e.seed, e.status, "yes" if e.success else "no", e.steps,
                      H.fmt(value) if math.isfinite(value) else H.absent("n/a"), note])
-        if e.video_path is not None:
+        if e.ok and e.video_path is not None:
             rel = os.path.relpath(e.video_path, out)
             videos.append(H.video(rel, f"episode {e.episode} (seed {e.seed}) — {'success' if e.success else 'no success'}"))
     table = H.table(["episode", "seed", "status", "success", "steps", "target lift (last layer, mean over steps)", "note"],
