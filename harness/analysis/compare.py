@@ -49,6 +49,7 @@ MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "output
               # legacy manifests (before the run store) keep model facts at the top level
               "model_is_random", "model_note", "text_tokenizer", "dataset_key", "git_commit", "versions")
 ARRAY_FILES = ("actions.npz", "attention.npz")
+POOLED = "\0pooled"  # key of the pooled table while verdicts are computed (cannot clash with a task name)
 
 
 class IncompatibleRuns(ValueError):
@@ -273,28 +274,30 @@ def _outcome_block(counts: PairedCounts, config: CompareConfig) -> dict:
 
 
 def outcome_verdicts(tables: dict[str, PairedCounts], config: CompareConfig) -> dict:
-    """{task: counts} -> {"tasks": {task: block}, "overall": block}, each with Holm-adjusted p and verdict."""
-    overall = sum(tables.values(), PairedCounts())
-    blocks = {task: _outcome_block(c, config) for task, c in tables.items()}
-    pooled = _outcome_block(overall, config)
-    family = list(blocks.values()) + ([pooled] if len(blocks) > 1 else [])
-    adjusted = holm_adjust([b["mcnemar_p"] for b in family])
-    if len(blocks) <= 1:
-        pooled_adjusted = adjusted[0] if adjusted else 1.0
-    else:
-        pooled_adjusted = adjusted[-1]
-    for block, p in zip(family, adjusted):
-        block["mcnemar_p_holm"] = p
-    pooled["mcnemar_p_holm"] = pooled_adjusted
-    for name, (block, counts) in {**{t: (blocks[t], tables[t]) for t in tables}, "": (pooled, overall)}.items():
-        verdict = paired_verdict(counts, block["mcnemar_p_holm"], tuple(block["difference_ci"]), config.max_drop,
-                                 config.alpha)
-        block["verdict"] = verdict
-        multiplier = block["mcnemar_p_holm"] / block["mcnemar_p"] if block["mcnemar_p"] > 0 else len(family) or 1
-        needed = pairs_to_decide(counts, config.max_drop, config.alpha, max(multiplier, 1.0)) \
-            if verdict == "UNDERPOWERED" else None
+    """{task: counts} -> {"tasks": {task: block}, "overall": block}, each with Holm-adjusted p and verdict.
+
+    The Holm family is every task plus the pooled table (the pooled table alone when there is one task). For an
+    UNDERPOWERED block, `pairs_to_decide` projects its table with the family size as the p-value factor (the
+    largest Holm factor, so the estimate errs towards more pairs).
+    """
+    named = dict(tables)
+    named[POOLED] = sum(tables.values(), PairedCounts())
+    blocks = {name: _outcome_block(counts, config) for name, counts in named.items()}
+    family = list(named) if len(tables) > 1 else [POOLED]
+    for name, p in zip(family, holm_adjust([blocks[name]["mcnemar_p"] for name in family])):
+        blocks[name]["mcnemar_p_holm"] = p
+    if len(tables) == 1:  # one task: its table is the pooled one
+        blocks[next(iter(tables))]["mcnemar_p_holm"] = blocks[POOLED]["mcnemar_p_holm"]
+    for name, counts in named.items():
+        block = blocks[name]
+        block["verdict"] = paired_verdict(counts, block["mcnemar_p_holm"], tuple(block["difference_ci"]),
+                                          config.max_drop, config.alpha)
+        needed = None
+        if block["verdict"] == "UNDERPOWERED":
+            needed = pairs_to_decide(counts, config.max_drop, config.alpha, multiplier=len(family))
         block["pairs_to_decide"] = needed
         block["more_pairs_needed"] = None if needed is None else needed - counts.n
+    pooled = blocks.pop(POOLED)
     return {"tasks": blocks, "overall": pooled, "holm_family": len(family)}
 
 
@@ -376,7 +379,8 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
         tables[d["task"]] = tables.get(d["task"], PairedCounts()) + one
     outcomes = outcome_verdicts(tables, config)
     identical = all(d["identical"] for d in details) and not missing["baseline"] and not missing["candidate"]
-    first_diff = next((f"{d['task']} seed {d['seed']}: {d['difference']}" for d in details if not d["identical"]), None)
+    first_diff = next((f"{d['task']} seed {d['seed']}: {d['difference']}" for d in details if not d["identical"]),
+                      "pairs are missing from one run" if not identical else None)
     if identical:
         verdict = "IDENTICAL"
     elif any(b["verdict"] == "REGRESSED" for b in outcomes["tasks"].values()) or outcomes["overall"]["verdict"] == "REGRESSED":
