@@ -1,5 +1,16 @@
 #!/usr/bin/env bash
 # Runs the whole test suite (installs system libraries and .venv on first use).
 source "$(dirname "$0")/_bootstrap.sh"
+# Debian's chromium: the report's real-browser test (tests/test_report_e2e.py) opens report.html headless
+if ! command -v chromium >/dev/null 2>&1; then
+    if [ "$(id -u)" = "0" ]; then
+        echo "[setup] installing chromium (headless browser test of the HTML report)"
+        DEBIAN_FRONTEND=noninteractive apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium >/dev/null
+    else
+        echo "[setup] missing chromium for the report's browser test; run: sudo apt-get install -y --no-install-recommends chromium" >&2
+        exit 1
+    fi
+fi
 export HF_HUB_OFFLINE=1
 exec .venv/bin/python -m pytest "$@"
