@@ -183,6 +183,7 @@ def test_killed_runs_resume_to_the_files_of_an_uninterrupted_run(fixtures_dir, t
         assert len(pngs) == STEPS * 2
         for png in pngs:
             assert png.read_bytes() == (b / png.name).read_bytes(), f"episode {k} {png.name}"
+        assert (a / "rollout.mp4").read_bytes() == (b / "rollout.mp4").read_bytes()
         metrics = [json.loads(line) for line in (a / "metrics.jsonl").read_text().splitlines()]
         assert [(m["run"], m["task"], m["episode"], m["step"]) for m in metrics] == [("k", "Lift", k, t) for t in range(STEPS)]
         assert len({tuple(sorted(m)) for m in metrics}) == 1  # the same keys in every row
