@@ -164,3 +164,23 @@ def test_lowdim_share_and_several_readouts_in_token_map():
     np.testing.assert_allclose(metrics["share/lowdim"], [0.6])
     np.testing.assert_allclose(metrics["share/primary"], [0.4])
     assert "share/other" not in metrics
+
+
+# ------------------------------------------------------------------ low-dim history window
+
+
+def test_episode_state_windows_and_pads_lowdim_like_images():
+    from harness.policy import EnvMismatchError, EpisodeState, PolicyConfig, TaskSpec
+
+    state = EpisodeState({"image_primary": (4, 4)}, 2, 1, PolicyConfig(), TaskSpec.of("x"), 0, {"proprio": 3})
+    first = {"image_primary": np.zeros((4, 4, 3), np.uint8), "proprio": np.array([1.0, 2.0, 3.0])}
+    request = state.observe(first)
+    obs = request.observation
+    np.testing.assert_array_equal(obs["proprio"], [[1, 2, 3], [1, 2, 3]])  # left-padded with the first observation
+    np.testing.assert_array_equal(obs["timestep_pad_mask"], [False, True])
+    np.testing.assert_array_equal(obs["pad_mask_dict"]["proprio"], [False, True])
+    assert obs["proprio"].dtype == np.float32 and obs["image_primary"].shape == (2, 4, 4, 3)
+    with pytest.raises(EnvMismatchError, match="'proprio' as 3-D but the env gives 8-D"):
+        state.observe({"image_primary": first["image_primary"], "proprio": np.zeros(8)})
+    with pytest.raises(EnvMismatchError, match=r"camera observation\(s\) \['image_primary'\]"):
+        state.observe({"proprio": np.zeros(3)})
