@@ -51,7 +51,7 @@ def rollout(
     The task is the language instruction, or `goals` ({obs key: (height, width, 3) uint8}) when given.
     """
     policy.check_env(env)  # a model/env mismatch is one line, before the episode starts
-    convention = getattr(env, "image_convention", "upright")
+    convention = getattr(getattr(env, "unwrapped", env), "image_convention", "upright")
     upright_tokens = _UprightTokens(tuple(policy.image_sizes) if convention == "opengl" else ())
     observation, info = env.reset(seed=seed)
     instruction = instruction or info.get("instruction", "")
