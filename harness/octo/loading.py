@@ -59,7 +59,7 @@ def load_pretrained(uri: str, step: int | None = None, *, text_tokenizer: str | 
     log.info("loaded %s step %d (%d parameters) in %.1f s", uri, step,
              sum(int(np.prod(x.shape)) for x in jax.tree.leaves(params)), time.perf_counter() - start)
     return OctoModel(config=config, params=params, example_batch=example, dataset_statistics=statistics,
-                     text_tokenizer=_text_tokenizer(config, text_tokenizer, t5, False, cache_dir), t5_config=t5,
+                     text_tokenizer=_text_tokenizer(config, text_tokenizer, t5, False, cache_dir, ckpt), t5_config=t5,
                      source=uri, is_random=False, checkpoint_dir=ckpt)
 
 
@@ -111,7 +111,8 @@ def _t5_config(config: OctoConfig, ckpt: Path | None):
         raise ConfigError(f"language encoder {config.language.encoder!r}: {e}") from None
 
 
-def _text_tokenizer(config: OctoConfig, override: str | None, t5, allow_fallback: bool, cache_dir):
+def _text_tokenizer(config: OctoConfig, override: str | None, t5, allow_fallback: bool, cache_dir,
+                    ckpt: Path | None = None):
     if config.language is None:
         return None
     from harness.octo.text import fallback_tokenizer, load_text_tokenizer
@@ -122,6 +123,9 @@ def _text_tokenizer(config: OctoConfig, override: str | None, t5, allow_fallback
         log.warning("using the deterministic fallback text tokenizer (NOT T5) over %d ids%s", t5.vocab_size,
                     "" if name else " because config.json has no text_processor")
         return fallback_tokenizer(t5.vocab_size, max_length)
+    if ckpt is not None and not override and not Path(name).is_absolute() and ".." not in Path(name).parts \
+            and (ckpt / name / "tokenizer.json").is_file():
+        name = str(ckpt / name)  # a tokenizer folder inside the checkpoint, as the T5 config folder can be
     try:
         # a random model falls back rather than wait on the hub: its weights make any tokenizer arbitrary anyway
         return load_text_tokenizer(name, max_length, allow_fallback=allow_fallback, vocab_size=t5.vocab_size,

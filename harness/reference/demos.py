@@ -1,0 +1,152 @@
+"""Demonstrations from the scripted experts, recorded as the reference policy will see them.
+
+Each step stores what the closed loop feeds the model: the env's default cameras (agentview 256 px,
+eye-in-hand 128 px, upright, fast render) resized with the policy's own Lanczos resize to the model's
+sizes, the env's `proprio`, and the expert's robosuite OSC_POSE input as the action label. While
+recording, Gaussian noise perturbs the *executed* arm input (the label stays the expert's clean action)
+so the data covers the small deviations a learned policy makes (DART-style); episodes the expert fails
+under noise are dropped and the next seed is used.
+
+Seeds: training episodes of task i use seeds TRAIN_SEED_BASE + 100_000 * i + k (Lift 100000.., Stack
+200000.., PickPlaceCan 300000..); evaluation uses seeds 0..EVAL_SEEDS-1, never recorded here.
+Recording runs in spawned processes (never fork after rendering); a job's episodes depend only on its
+seeds, so the data are identical whatever the number of workers.
+
+Output: one `<task>.npz` per task under the output folder with
+  image_primary (n, S, S, 3) uint8, image_wrist (n, W, W, 3) uint8, proprio (n, 8) float32,
+  action (n, 7) float32 (label), episode (n,) int32, step (n,) int32, seeds (episodes,) int64,
+  lengths (episodes,) int32.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from harness.reference.experts import EXPERT_TASKS, ScriptedExpert
+
+log = logging.getLogger(__name__)
+
+TRAIN_SEED_BASE = 100_000
+EVAL_SEEDS = 50  # evaluation seeds 0..49
+SEEDS_PER_JOB = 1_000  # seed block reserved for one recording job (dropped episodes use the next seeds)
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    tasks: tuple[str, ...] = EXPERT_TASKS
+    episodes_per_task: int = 100
+    jobs_per_task: int = 4  # fixed split (not the worker count) so the data do not depend on the workers
+    image_sizes: tuple[tuple[str, int], ...] = (("image_primary", 64), ("image_wrist", 64))
+    fast_render: bool = True
+    noise: float = 0.2  # std of the Gaussian noise added to the executed position input (OSC units)
+    max_steps: dict = field(default_factory=lambda: {"Lift": 120, "Stack": 250, "PickPlaceCan": 300})
+
+    def task_seed_base(self, task: str) -> int:
+        return TRAIN_SEED_BASE + 100_000 * EXPERT_TASKS.index(task)
+
+
+def record_episode(env, expert: ScriptedExpert, seed: int, sizes: dict[str, int], noise: float,
+                   max_steps: int) -> dict | None:
+    """One noisy expert episode; arrays as in the module docstring, or None if the expert failed."""
+    from harness.policy import resize_frame
+
+    rng = np.random.default_rng(seed)
+    obs, info = env.reset(seed=seed)
+    expert.reset(obs, env)
+    frames = {k: [] for k in sizes}
+    proprio, actions = [], []
+    for _ in range(max_steps):
+        label = expert.act(obs, env)
+        for key, size in sizes.items():
+            frames[key].append(resize_frame(obs[key], (size, size)))
+        proprio.append(obs["proprio"].astype(np.float32))
+        actions.append(label)
+        executed = label.copy()
+        executed[:3] = np.clip(executed[:3] + noise * rng.standard_normal(3), -1.0, 1.0)
+        obs, _, terminated, truncated, info = env.step(executed)
+        if info["success"]:
+            break
+    if not info["success"]:
+        return None
+    out = {k: np.stack(v) for k, v in frames.items()}
+    out["proprio"] = np.stack(proprio)
+    out["action"] = np.stack(actions).astype(np.float32)
+    return out
+
+
+def _record_job(args: tuple) -> tuple[list[dict], list[int], int]:
+    """Spawned worker: `count` successful episodes of `task` from seeds `first_seed`, `first_seed + 1`, ..."""
+    task, first_seed, count, config = args
+    import envs
+
+    env = envs.make(task, fast_render=config.fast_render, action_space="robosuite",
+                    max_episode_steps=config.max_steps[task])
+    expert = ScriptedExpert(task)
+    sizes = dict(config.image_sizes)
+    episodes, seeds, dropped = [], [], 0
+    seed = first_seed
+    while len(episodes) < count:
+        if seed >= first_seed + SEEDS_PER_JOB:
+            raise RuntimeError(f"{task}: expert failed on too many seeds from {first_seed}")
+        episode = record_episode(env, expert, seed, sizes, config.noise, config.max_steps[task])
+        if episode is None:
+            dropped += 1
+        else:
+            episodes.append(episode)
+            seeds.append(seed)
+        seed += 1
+    env.close()
+    return episodes, seeds, dropped
+
+
+def record_demos(config: DemoConfig, out_dir: str | Path, workers: int = 2) -> dict:
+    """Record every task's demonstrations into `out_dir/<task>.npz`; returns a summary per task."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    jobs = []
+    for task in config.tasks:
+        counts = np.full(config.jobs_per_task, config.episodes_per_task // config.jobs_per_task)
+        counts[: config.episodes_per_task % config.jobs_per_task] += 1
+        for j, count in enumerate(counts):
+            jobs.append((task, config.task_seed_base(task) + j * SEEDS_PER_JOB, int(count), config))
+    start = time.perf_counter()
+    if workers > 1:
+        with multiprocessing.get_context("spawn").Pool(workers) as pool:
+            results = pool.map(_record_job, jobs, chunksize=1)
+    else:
+        results = [_record_job(job) for job in jobs]
+    summary = {}
+    for task in config.tasks:
+        parts = [r for job, r in zip(jobs, results) if job[0] == task]
+        episodes = [e for p in parts for e in p[0]]
+        seeds = [s for p in parts for s in p[1]]
+        lengths = np.array([len(e["action"]) for e in episodes], np.int32)
+        arrays = {key: np.concatenate([e[key] for e in episodes]) for key in episodes[0]}
+        arrays["episode"] = np.repeat(np.arange(len(episodes), dtype=np.int32), lengths)
+        arrays["step"] = np.concatenate([np.arange(n, dtype=np.int32) for n in lengths])
+        arrays["seeds"] = np.array(seeds, np.int64)
+        arrays["lengths"] = lengths
+        path = out_dir / f"{task}.npz"
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, **arrays)
+        tmp.replace(path)
+        summary[task] = {"episodes": len(episodes), "steps": int(lengths.sum()), "mean_length": float(lengths.mean()),
+                         "dropped": int(sum(p[2] for p in parts)), "seed_min": int(min(seeds)), "seed_max": int(max(seeds))}
+        log.info("%s: %s", task, summary[task])
+    summary["seconds"] = time.perf_counter() - start
+    return summary
+
+
+def load_demos(out_dir: str | Path, tasks: tuple[str, ...] = EXPERT_TASKS) -> dict[str, dict[str, np.ndarray]]:
+    """{task: arrays} from `record_demos`' files."""
+    out = {}
+    for task in tasks:
+        with np.load(Path(out_dir) / f"{task}.npz") as data:
+            out[task] = {k: data[k] for k in data.files}
+    return out

@@ -1,0 +1,180 @@
+"""Scripted demonstrators for Lift, Stack and PickPlaceCan, driving robosuite's OSC_POSE input directly.
+
+An expert reads the end-effector pose from the observation's `proprio` and object poses from the
+simulator (`RobosuiteEnv.object_poses` / `placement_targets`; a demonstrator may see the state) and
+returns robosuite's own controller input: (7,) float32, arm values in [-1, 1] (position, then an
+axis-angle rotation delta in the base frame, scaled by the controller's output limits), gripper -1 open,
++1 closed.
+
+Each expert is a short list of phases (hover above the object, descend, close, lift, carry, lower,
+release, retreat). Within a phase the arm follows a waypoint with a saturated proportional law
+`clip(gain * error / output_max, -1, 1)`: robosuite's default OSC realises only about a quarter of a
+commanded step per control step, so the gain is well above 1 and saturation keeps large moves at full
+speed. The gripper's yaw turns to the nearest face of a cube (mod 90 degrees) and its roll/pitch stay as
+at reset. A phase ends when its waypoint is reached within tolerance (or after its step budget).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+POSITION_MAX = 0.05  # metres per unit OSC input (robosuite 1.5 default output_max)
+ROTATION_MAX = 0.5  # radians per unit OSC input
+OPEN, CLOSED = -1.0, 1.0
+EXPERT_TASKS = ("Lift", "Stack", "PickPlaceCan")
+
+
+@dataclass(frozen=True)
+class Phase:
+    name: str
+    gripper: float  # OPEN or CLOSED
+    tolerance: float  # metres: the phase ends when the end effector is this close to its waypoint
+    min_steps: int = 0  # stay at least this many steps (e.g. while the fingers close)
+    max_steps: int = 80  # give up waiting and move on
+
+
+@dataclass(frozen=True)
+class ExpertConfig:
+    position_gain: float = 10.0  # OSC units per (error / POSITION_MAX)
+    rotation_gain: float = 2.0
+    hover: float = 0.07  # metres above the grasp point before descending
+    lift: float = 0.12  # metres to raise an object after grasping
+    carry_height: float = 0.10  # Stack: clearance of cubeA's bottom above cubeB's top while carrying
+
+
+def _yaw_of(rotation: Rotation) -> float:
+    """Heading (radians) of a frame's x axis in the world xy-plane."""
+    x_axis = rotation.as_matrix()[:, 0]
+    return float(np.arctan2(x_axis[1], x_axis[0]))
+
+
+def _wrap(angle: float, period: float) -> float:
+    """angle wrapped to [-period/2, period/2)."""
+    return (angle + period / 2) % period - period / 2
+
+
+class ScriptedExpert:
+    """Waypoint state machine for one task; `reset(env)` at each episode, then `act(obs, env)` each step."""
+
+    def __init__(self, task: str, config: ExpertConfig = ExpertConfig()):
+        if task not in EXPERT_TASKS:
+            raise ValueError(f"no scripted expert for task {task!r}; experts exist for {', '.join(EXPERT_TASKS)}")
+        self.task = task
+        self.config = config
+        self.phases = _phases(task)
+        self._phase = 0
+        self._steps_in_phase = 0
+        self._orientation: Rotation | None = None
+        self._grasp_offset = np.zeros(3)
+
+    @property
+    def phase(self) -> str:
+        return self.phases[min(self._phase, len(self.phases) - 1)].name
+
+    def reset(self, obs: dict, env) -> None:
+        """New episode: remember the reset orientation, aligned in yaw to the object to grasp."""
+        self._phase = 0
+        self._steps_in_phase = 0
+        current = Rotation.from_euler("xyz", obs["proprio"][3:6])
+        name, (_, quat) = self._grasp_object(env)
+        if self.task in ("Lift", "Stack"):  # cubes: turn to the nearest face (90-degree symmetry)
+            delta = _wrap(_yaw_of(Rotation.from_quat(quat)) - _yaw_of(current), np.pi / 2)
+        else:  # the can is round
+            delta = 0.0
+        self._orientation = Rotation.from_euler("z", delta) * current
+        self._grasp_offset = np.zeros(3)
+
+    def _grasp_object(self, env) -> tuple[str, tuple[np.ndarray, np.ndarray]]:
+        poses = env.object_poses()
+        name = {"Lift": "cube", "Stack": "cubeA", "PickPlaceCan": "Can"}[self.task]
+        return name, poses[name]
+
+    def _waypoint(self, phase: str, eef: np.ndarray, env) -> np.ndarray:
+        """(3,) end-effector target of `phase` from the current state."""
+        cfg = self.config
+        poses = env.object_poses()
+        name, (obj, _) = self._grasp_object(env)
+        up = np.array([0.0, 0.0, 1.0])
+        if phase == "hover":
+            return obj + up * cfg.hover
+        if phase in ("descend", "close"):
+            return obj
+        if phase == "lift":
+            return self._lift_target
+        if self.task == "Stack":
+            base = poses["cubeB"][0]
+            # cubeA half size 0.02, cubeB half size 0.025 (robosuite's Stack): cubeA centre rests 0.045 above cubeB's
+            rest = base + up * 0.045 + self._grasp_offset
+            if phase == "carry":
+                return rest + up * cfg.carry_height
+            if phase == "lower":
+                return rest + up * 0.012
+            if phase == "release":
+                return self._hold
+            if phase == "retreat":
+                return self._hold + up * 0.08
+        if self.task == "PickPlaceCan":
+            target = env.placement_targets()[name]
+            # the bin's centre is near the edge of the Panda's reach: aim 4 cm nearer the robot (the bin's
+            # region is +-6 cm around its centre), carry high over the walls, retreat up and back
+            above = np.array([target[0], target[1] - 0.04, target[2] + 0.20]) + self._grasp_offset
+            if phase == "carry":
+                return above
+            if phase == "lower":
+                return above - up * 0.06
+            if phase == "release":
+                return self._hold
+            if phase == "retreat":
+                return self._hold + np.array([0.0, -0.10, 0.05])
+        return eef  # "hold": stay
+
+    def act(self, obs: dict, env) -> np.ndarray:
+        """(7,) float32 OSC_POSE input for the current observation."""
+        if self._orientation is None:
+            raise RuntimeError("call reset(obs, env) at the start of each episode")
+        eef = np.asarray(obs["proprio"][:3], np.float64)
+        phase = self.phases[min(self._phase, len(self.phases) - 1)]
+        if self._steps_in_phase == 0:
+            self._enter(phase.name, eef, env)
+        target = self._waypoint(phase.name, eef, env)
+        error = target - eef
+        done = np.linalg.norm(error) < phase.tolerance and self._steps_in_phase >= phase.min_steps
+        if (done or self._steps_in_phase >= phase.max_steps) and self._phase < len(self.phases) - 1:
+            self._phase += 1
+            self._steps_in_phase = 0
+            return self.act(obs, env)
+        self._steps_in_phase += 1
+        position = np.clip(self.config.position_gain * error / POSITION_MAX, -1.0, 1.0)
+        current = Rotation.from_euler("xyz", obs["proprio"][3:6])
+        rotvec = (self._orientation * current.inv()).as_rotvec()
+        rotation = np.clip(self.config.rotation_gain * rotvec / ROTATION_MAX, -1.0, 1.0)
+        return np.concatenate([position, rotation, [phase.gripper]]).astype(np.float32)
+
+    def _enter(self, phase: str, eef: np.ndarray, env) -> None:
+        """Freeze what a phase needs from the moment it starts."""
+        _, (obj, _) = self._grasp_object(env)
+        if phase == "lift":
+            self._grasp_offset = eef - obj  # where the object sits in the hand
+            self._lift_target = eef + np.array([0.0, 0.0, self.config.lift])
+        if phase in ("release", "retreat"):
+            self._hold = eef.copy() if phase == "release" else self._hold
+
+
+def _phases(task: str) -> tuple[Phase, ...]:
+    grasp = (
+        Phase("hover", OPEN, 0.012, max_steps=60),
+        Phase("descend", OPEN, 0.008, max_steps=40),
+        Phase("close", CLOSED, 1.0, min_steps=8, max_steps=8),
+        Phase("lift", CLOSED, 0.02, max_steps=40),
+    )
+    if task == "Lift":
+        return grasp + (Phase("hold", CLOSED, 0.0, max_steps=10**6),)
+    return grasp + (
+        Phase("carry", CLOSED, 0.012, max_steps=80),
+        Phase("lower", CLOSED, 0.008, max_steps=40),
+        Phase("release", OPEN, 1.0, min_steps=6, max_steps=6),
+        Phase("retreat", OPEN, 0.0, max_steps=10**6),
+    )

@@ -1,0 +1,435 @@
+"""Train the reference policy: a small Octo-architecture model, from scratch, on the scripted demonstrations.
+
+The forward pass is the runtime's own Flax modules (`OctoTransformer`, `pool_readouts`, `ScoreNetwork`),
+so parameter names are Octo's and `harness.octo.load_pretrained(folder)` reads the result. Loss: Octo's
+diffusion loss (DiffusionActionHead.loss): t ~ U{0..steps-1}, x_t = sqrt(a_t) x_0 + sqrt(1 - a_t) eps,
+MSE between the predicted and the true eps over the valid (not past the episode's end) chunk entries.
+The T5 encoder is tiny, randomly initialised and frozen (Octo's `finetune_encoder=False`): its encodings
+of the instructions are computed once.
+
+Output: Octo's save_pretrained layout,
+  config.json (ModuleSpecs), example_batch.msgpack, dataset_statistics.json {DATASET_KEY: {action,
+  proprio, num_transitions, num_trajectories}}, <step>/default/checkpoint (msgpack param dict),
+  t5-tiny/config.json (HF T5 config, LanguageTokenizer encoder="t5-tiny"), tokenizer/tokenizer.json
+  (word-level, T5's special ids; text_processor tokenizer_name="tokenizer"),
+  training_curve.csv (step, loss, lr, seconds), training_curve.png.
+Periodic checkpoints replace the previous step folder, so a killed run keeps its latest weights.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import serialization, traverse_util
+
+from harness.octo.config import OctoConfig
+from harness.octo.diffusion import make_schedule
+from harness.octo.heads import ScoreNetwork, pool_readouts
+from harness.octo.network import LanguageTokenizer, OctoTransformer, init_params
+from harness.octo.t5 import T5Config
+
+log = logging.getLogger(__name__)
+
+DATASET_KEY = "robosuite_reference"
+T5_FOLDER = "t5-tiny"
+TOKENIZER_FOLDER = "tokenizer"
+LANGUAGE_TOKENS = 16
+PROPRIO_DIM = 8
+ACTION_DIM = 7
+SPECIALS = ("<pad>", "</s>", "<unk>")  # T5's ids 0, 1, 2
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    steps: int = 6000
+    batch_size: int = 64
+    learning_rate: float = 3e-4
+    warmup_steps: int = 300
+    weight_decay: float = 1e-4
+    grad_clip: float = 1.0
+    seed: int = 0
+    log_every: int = 50
+    checkpoint_every: int = 500
+    shift_pixels: int = 4  # random-shift augmentation (pad + random crop) of every camera image
+    paraphrase_probability: float = 0.25  # train on a paraphrase of the task's instruction this often
+    # architecture
+    width: int = 128
+    layers: int = 4
+    heads: int = 4
+    mlp_dim: int = 512
+    stem_features: tuple[int, ...] = (32, 32, 64, 128)
+    image_sizes: tuple[tuple[str, int], ...] = (("image_primary", 64), ("image_wrist", 64))
+    action_horizon: int = 4
+    head_hidden: int = 256
+    t5_width: int = 64
+
+
+# ----------------------------------------------------------------------------- config and text
+
+
+def _spec(module: str, name: str, **kwargs) -> dict:
+    return {"module": module, "name": name, "args": [], "kwargs": kwargs}
+
+
+def model_config(cfg: TrainConfig) -> dict:
+    """config.json contents (Octo ModuleSpecs) of the reference architecture."""
+    tok = "octo.model.components.tokenizers"
+    images = {}
+    for key, _ in cfg.image_sizes:
+        stem = _spec("octo.model.components.vit_encoders", "SmallStem16", features=list(cfg.stem_features),
+                     num_features=cfg.width)
+        images[key.removeprefix("image_")] = _spec(tok, "ImageTokenizer", obs_stack_keys=[key], task_stack_keys=[],
+                                                   encoder=stem)
+    return {
+        "model": {
+            "observation_tokenizers": {
+                **images,
+                "proprio": _spec(tok, "LowdimObsTokenizer", obs_keys=["proprio"], discretize=False),
+            },
+            "task_tokenizers": {"language": _spec(tok, "LanguageTokenizer", encoder=T5_FOLDER, finetune_encoder=False)},
+            "heads": {
+                "action": _spec("octo.model.components.action_heads", "DiffusionActionHead", readout_key="readout_action",
+                                use_map=False, action_horizon=cfg.action_horizon, action_dim=ACTION_DIM,
+                                n_diffusion_samples=1, dropout_rate=0.0, hidden_dim=cfg.head_hidden),
+            },
+            "readouts": {"action": 1},
+            "token_embedding_size": cfg.width,
+            "transformer_kwargs": {"num_layers": cfg.layers, "mlp_dim": cfg.mlp_dim, "num_attention_heads": cfg.heads,
+                                   "dropout_rate": 0.0, "attention_dropout_rate": 0.0, "add_position_embedding": False},
+            "max_horizon": 10,
+            "repeat_task_tokens": False,
+            "use_correct_attention": True,
+        },
+        "text_processor": _spec("octo.data.utils.text_processing", "HFTokenizer", tokenizer_name=TOKENIZER_FOLDER,
+                                encode_with_model=False,
+                                tokenizer_kwargs={"max_length": LANGUAGE_TOKENS, "padding": "max_length",
+                                                  "truncation": True, "return_tensors": "np"}),
+        "window_size": 1,
+        "action_space": "robosuite",
+    }
+
+
+def words(text: str) -> list[str]:
+    import re
+
+    return re.findall(r"\w+", text.lower())
+
+
+def build_tokenizer(texts: list[str]):
+    """Word-level `tokenizers.Tokenizer` over the words of `texts`, with T5's <pad>=0 </s>=1 <unk>=2, appending </s>."""
+    from tokenizers import Tokenizer, models, normalizers, pre_tokenizers, processors
+
+    vocab = {s: i for i, s in enumerate(SPECIALS)}
+    for text in texts:
+        for w in words(text):
+            vocab.setdefault(w, len(vocab))
+    tok = Tokenizer(models.WordLevel(vocab, unk_token="<unk>"))
+    tok.normalizer = normalizers.Lowercase()
+    tok.pre_tokenizer = pre_tokenizers.Whitespace()
+    tok.post_processor = processors.TemplateProcessing(single="$A </s>", special_tokens=[("</s>", 1)])
+    return tok
+
+
+def t5_config_dict(vocab_size: int, width: int) -> dict:
+    """Hugging Face T5 config.json of the tiny frozen encoder."""
+    return {"architectures": ["T5EncoderModel"], "model_type": "t5", "vocab_size": vocab_size, "d_model": width,
+            "d_kv": width // 4, "d_ff": 2 * width, "num_layers": 2, "num_decoder_layers": 2, "num_heads": 4,
+            "relative_attention_num_buckets": 32, "relative_attention_max_distance": 128, "layer_norm_epsilon": 1e-6,
+            "feed_forward_proj": "relu", "dropout_rate": 0.0, "is_encoder_decoder": True, "pad_token_id": 0,
+            "eos_token_id": 1, "decoder_start_token_id": 0, "initializer_factor": 1.0}
+
+
+def task_instructions() -> dict[str, tuple[str, ...]]:
+    """{task: (default instruction, paraphrases...)} from the env's task registry."""
+    from envs.tasks import get_task
+    from harness.reference.experts import EXPERT_TASKS
+
+    return {t: (get_task(t).instruction, *get_task(t).paraphrases) for t in EXPERT_TASKS}
+
+
+# ----------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True, eq=False)
+class Dataset:
+    images: dict  # {key: (n, S, S, 3) uint8}
+    proprio: np.ndarray  # (n, 8) float32, normalised
+    actions: np.ndarray  # (n, horizon, 7) float32, normalised chunks
+    action_mask: np.ndarray  # (n, horizon) bool, False past the episode's end
+    task: np.ndarray  # (n,) int32 index into the task list
+    statistics: dict
+
+
+def _stats(x: np.ndarray, mask: np.ndarray) -> dict:
+    return {"mean": x.mean(0), "std": np.maximum(x.std(0), 1e-6), "max": x.max(0), "min": x.min(0),
+            "p99": np.percentile(x, 99, axis=0), "p01": np.percentile(x, 1, axis=0), "mask": mask}
+
+
+def build_dataset(demos: dict[str, dict[str, np.ndarray]], horizon: int) -> Dataset:
+    """Concatenate all tasks; action chunks a[t:t+horizon] (masked past the end); mean/std normalisation."""
+    tasks = list(demos)
+    keys = [k for k in demos[tasks[0]] if k.startswith("image_")]
+    images = {k: np.concatenate([demos[t][k] for t in tasks]) for k in keys}
+    proprio = np.concatenate([demos[t]["proprio"] for t in tasks]).astype(np.float32)
+    actions = np.concatenate([demos[t]["action"] for t in tasks]).astype(np.float32)
+    episode = np.concatenate([demos[t]["episode"] + 10_000 * i for i, t in enumerate(tasks)])
+    task = np.concatenate([np.full(len(demos[t]["action"]), i, np.int32) for i, t in enumerate(tasks)])
+    n = len(actions)
+    index = np.arange(n)[:, None] + np.arange(horizon)[None]  # (n, horizon)
+    index = np.minimum(index, n - 1)
+    valid = episode[index] == episode[:, None]
+    index = np.where(valid, index, np.arange(n)[:, None])  # past the end: hold the last valid index
+    last = np.maximum.accumulate(np.where(valid, index, -1), axis=1)
+    chunks = actions[last]
+    action_mask = np.ones(ACTION_DIM, bool)
+    action_mask[-1] = False  # gripper stays as is (-1 open / +1 closed), as Octo leaves it unnormalised
+    action_stats = _stats(actions, action_mask)
+    proprio_stats = _stats(proprio, np.ones(PROPRIO_DIM, bool))
+    norm_actions = np.where(action_mask, (chunks - action_stats["mean"]) / action_stats["std"], chunks)
+    norm_proprio = (proprio - proprio_stats["mean"]) / proprio_stats["std"]
+    statistics = {DATASET_KEY: {
+        "action": action_stats, "proprio": proprio_stats, "num_transitions": n,
+        "num_trajectories": int(sum(len(demos[t]["lengths"]) for t in tasks)),
+    }}
+    return Dataset(images, norm_proprio.astype(np.float32), norm_actions.astype(np.float32), valid, task, statistics)
+
+
+# ----------------------------------------------------------------------------- model maths
+
+
+def _shift(images: jax.Array, offsets: jax.Array, pad: int) -> jax.Array:
+    """Random-shift augmentation: (b, H, W, 3) uint8, (b, 2) int offsets in [0, 2 pad] -> (b, H, W, 3)."""
+    h, w = images.shape[1:3]
+    padded = jnp.pad(images, ((0, 0), (pad, pad), (pad, pad), (0, 0)), mode="edge")
+    crop = lambda img, o: jax.lax.dynamic_slice(img, (o[0], o[1], 0), (h, w, 3))  # noqa: E731
+    return jax.vmap(crop)(padded, offsets)
+
+
+def diffusion_loss(params: dict, config: OctoConfig, batch: dict, encodings: jax.Array, rng: jax.Array,
+                   alpha_hats: jax.Array) -> jax.Array:
+    """Octo's diffusion loss for a batch; params without the frozen T5 encoder.
+
+    batch: image_<key> (b, 1, S, S, 3) uint8, proprio (b, 1, 8), actions (b, horizon, 7), action_mask
+    (b, horizon) bool, instruction (b,) int32 index into encodings (k, tokens, d_t5).
+    """
+    head = config.action_head
+    b = batch["actions"].shape[0]
+    obs = {k: v for k, v in batch.items() if k.startswith("image_") or k == "proprio"}
+    ones = jnp.ones((b, 1), bool)
+    obs["pad_mask_dict"] = {k: ones for k in obs}
+    task = {"pad_mask_dict": {"language_instruction": jnp.ones((b,), bool)}}
+    encoding = encodings[batch["instruction"]]
+    out = OctoTransformer(config, capture_rows=()).apply({"params": params["octo_transformer"]}, obs, task, encoding, ones)
+    tokens, mask = out["groups"][head.readout_key]
+    embedding = pool_readouts(params["heads_action"], head, tokens, mask)  # (b, 1, D)
+    actions = jnp.clip(batch["actions"], -head.max_action, head.max_action).reshape(b, 1, -1)  # (b, 1, horizon*7)
+    t_key, n_key = jax.random.split(rng)
+    t = jax.random.randint(t_key, (b, 1, 1), 0, head.diffusion_steps)
+    noise = jax.random.normal(n_key, actions.shape)
+    alpha_hat = alpha_hats[t]
+    noisy = jnp.sqrt(alpha_hat) * actions + jnp.sqrt(1 - alpha_hat) * noise
+    eps = ScoreNetwork(head).apply({"params": params["heads_action"]["diffusion_model"]}, embedding, noisy,
+                                   t.astype(jnp.float32))
+    mask = jnp.broadcast_to(batch["action_mask"][:, :, None], (b, head.action_horizon, head.action_dim)).reshape(b, 1, -1)
+    return jnp.sum(jnp.square(eps - noise) * mask) / jnp.maximum(jnp.sum(mask), 1)
+
+
+def split_t5(params: dict, language: str = "language") -> tuple[dict, dict]:
+    """(trainable params, frozen T5 subtree)."""
+    backbone = dict(params["octo_transformer"])
+    t5 = backbone.pop(f"task_tokenizers_{language}")
+    return {**params, "octo_transformer": backbone}, t5
+
+
+# ----------------------------------------------------------------------------- saving
+
+
+def _to_lists(node):
+    if isinstance(node, dict):
+        return {k: _to_lists(v) for k, v in node.items()}
+    if isinstance(node, (np.ndarray, jax.Array)):
+        return np.asarray(node).tolist()
+    if isinstance(node, np.generic):
+        return node.item()
+    return node
+
+
+def write_static_files(folder: Path, config_dict: dict, tokenizer, t5_dict: dict, statistics: dict,
+                       example_batch: dict) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "config.json").write_text(json.dumps(config_dict, indent=2))
+    (folder / "dataset_statistics.json").write_text(json.dumps(_to_lists(statistics), indent=2))
+    (folder / "example_batch.msgpack").write_bytes(serialization.msgpack_serialize(example_batch))
+    (folder / T5_FOLDER).mkdir(exist_ok=True)
+    (folder / T5_FOLDER / "config.json").write_text(json.dumps(t5_dict, indent=2))
+    (folder / TOKENIZER_FOLDER).mkdir(exist_ok=True)
+    tokenizer.save(str(folder / TOKENIZER_FOLDER / "tokenizer.json"))
+    (folder / TOKENIZER_FOLDER / "tokenizer_config.json").write_text(json.dumps(
+        {"tokenizer_class": "PreTrainedTokenizerFast", "pad_token": "<pad>", "eos_token": "</s>", "unk_token": "<unk>",
+         "model_max_length": LANGUAGE_TOKENS}, indent=2))
+
+
+def write_params(folder: Path, step: int, params: dict, keep_previous: bool = False) -> Path:
+    """<step>/default/checkpoint (one msgpack blob, as orbax's aggregate file); older steps removed."""
+    tree = jax.tree.map(lambda x: np.asarray(x, np.float32), params)
+    target = folder / str(step) / "default"
+    tmp = folder / f".tmp-{step}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "default").mkdir(parents=True)
+    (tmp / "default" / "checkpoint").write_bytes(serialization.msgpack_serialize(tree))
+    shutil.rmtree(folder / str(step), ignore_errors=True)
+    tmp.rename(folder / str(step))
+    if not keep_previous:
+        for p in folder.iterdir():
+            if p.is_dir() and p.name.isdigit() and int(p.name) != step:
+                shutil.rmtree(p)
+    return target
+
+
+def write_curve(folder: Path, rows: list[dict]) -> None:
+    path = folder / "training_curve.csv"
+    with open(path.with_suffix(".tmp"), "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    path.with_suffix(".tmp").replace(path)
+
+
+def plot_curve(folder: Path, rows: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=120)
+    ax.plot([r["step"] for r in rows], [r["loss"] for r in rows], lw=1.2)
+    ax.set_yscale("log")
+    ax.set_xlabel("training step")
+    ax.set_ylabel(f"diffusion loss (mean of {rows[1]['step'] - rows[0]['step'] if len(rows) > 1 else 1} steps)")
+    ax.set_title("octo-reference-robosuite: training curve")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(folder / "training_curve.png")
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------- training
+
+
+def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: TrainConfig = TrainConfig(),
+          extra_files: dict[str, str] | None = None) -> dict:
+    """Train on `demos` ({task: arrays from demos.load_demos}) and save into `out_dir`; returns a summary."""
+    out_dir = Path(out_dir)
+    start = time.perf_counter()
+    instructions = task_instructions()
+    tasks = list(demos)
+    texts = [s for t in tasks for s in instructions[t]]  # per task: default, then paraphrases
+    per_task = len(instructions[tasks[0]])
+    tokenizer = build_tokenizer(texts)
+    vocab = tokenizer.get_vocab_size()
+    t5_dict = t5_config_dict(vocab, cfg.t5_width)
+    t5 = T5Config.from_hf_dict(t5_dict)
+    config_dict = model_config(cfg)
+    config = OctoConfig.from_dict(config_dict)
+    data = build_dataset(demos, cfg.action_horizon)
+    sizes = dict(cfg.image_sizes)
+
+    key = jax.random.PRNGKey(cfg.seed)
+    init_key, key = jax.random.split(key)
+    params = init_params(init_key, config, {k: (s, s) for k, s in sizes.items()}, 1, t5_config=t5,
+                         lowdim_sizes={"proprio": PROPRIO_DIM}, language_tokens=LANGUAGE_TOKENS)
+    trainable, t5_params = split_t5(params)
+    n_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(params))
+    log.info("reference model: %d parameters (%.1f MB float32), %d frames, vocab %d", n_params, n_params * 4 / 2**20,
+             len(data.actions), vocab)
+
+    from harness.octo.text import load_text_tokenizer  # the runtime's own padding and truncation
+
+    write_static_files(out_dir, config_dict, tokenizer, t5_dict, data.statistics, {})
+    text = load_text_tokenizer(str(out_dir / TOKENIZER_FOLDER / "tokenizer.json"), LANGUAGE_TOKENS)
+    encoded = text.encode(texts)
+    encodings = LanguageTokenizer(t5).apply({"params": t5_params}, jnp.asarray(encoded["input_ids"]),
+                                            jnp.asarray(encoded["attention_mask"]))  # (k, tokens, d_t5)
+    example_batch = {
+        "observation": {
+            **{k: np.zeros((1, 1, s, s, 3), np.uint8) for k, s in sizes.items()},
+            "proprio": np.zeros((1, 1, PROPRIO_DIM), np.float32),
+            "timestep_pad_mask": np.ones((1, 1), bool),
+            "pad_mask_dict": {**{k: np.ones((1, 1), bool) for k in sizes}, "proprio": np.ones((1, 1), bool)},
+        },
+        "task": {
+            "language_instruction": {k: np.asarray(v[:1]) for k, v in encoded.items()},
+            "pad_mask_dict": {"language_instruction": np.ones((1,), bool)},
+        },
+        "action": np.zeros((1, 1, cfg.action_horizon, ACTION_DIM), np.float32),
+        "dataset_name": np.array([DATASET_KEY.encode()]),
+    }
+    write_static_files(out_dir, config_dict, tokenizer, t5_dict, data.statistics, example_batch)
+    for name, content in (extra_files or {}).items():
+        (out_dir / name).write_text(content)
+
+    schedule = optax.warmup_cosine_decay_schedule(0.0, cfg.learning_rate, cfg.warmup_steps, cfg.steps,
+                                                  cfg.learning_rate * 0.05)
+    optimizer = optax.chain(optax.clip_by_global_norm(cfg.grad_clip),
+                            optax.adamw(schedule, weight_decay=cfg.weight_decay))
+    opt_state = optimizer.init(trainable)
+    alpha_hats = make_schedule(config.action_head.diffusion_steps).alpha_hats
+
+    @jax.jit
+    def train_step(trainable, opt_state, batch, rng):
+        aug_key, loss_key = jax.random.split(rng)
+        batch = dict(batch)
+        for i, k in enumerate(sizes):
+            offsets = jax.random.randint(jax.random.fold_in(aug_key, i), (batch[k].shape[0], 2), 0, 2 * cfg.shift_pixels + 1)
+            batch[k] = _shift(batch[k][:, 0], offsets, cfg.shift_pixels)[:, None]
+        loss, grads = jax.value_and_grad(diffusion_loss)(trainable, config, batch, encodings, loss_key, alpha_hats)
+        updates, opt_state = optimizer.update(grads, opt_state, trainable)
+        return optax.apply_updates(trainable, updates), opt_state, loss
+
+    rng = np.random.default_rng(cfg.seed)
+    by_task = [np.flatnonzero(data.task == i) for i in range(len(tasks))]
+
+    def sample_batch():
+        task = rng.integers(0, len(tasks), cfg.batch_size)  # task-balanced
+        idx = np.array([by_task[t][rng.integers(0, len(by_task[t]))] for t in task])
+        phrase = np.where(rng.random(cfg.batch_size) < cfg.paraphrase_probability,
+                          rng.integers(1, per_task, cfg.batch_size), 0)
+        return {
+            **{k: data.images[k][idx][:, None] for k in sizes},
+            "proprio": data.proprio[idx][:, None],
+            "actions": data.actions[idx],
+            "action_mask": data.action_mask[idx],
+            "instruction": (data.task[idx] * per_task + phrase).astype(np.int32),
+        }
+
+    rows, window, t0 = [], [], time.perf_counter()
+    for step in range(1, cfg.steps + 1):
+        key, step_key = jax.random.split(key)
+        trainable, opt_state, loss = train_step(trainable, opt_state, sample_batch(), step_key)
+        window.append(loss)
+        if step % cfg.log_every == 0 or step == cfg.steps:
+            mean = float(np.mean(jax.device_get(window)))
+            window = []
+            rows.append({"step": step, "loss": round(mean, 6), "lr": float(schedule(step)),
+                         "seconds": round(time.perf_counter() - t0, 1)})
+            log.info("step %d loss %.4f (%.2f s/step)", step, mean, (time.perf_counter() - t0) / step)
+            write_curve(out_dir, rows)
+        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+            full = {**trainable, "octo_transformer": {**trainable["octo_transformer"], "task_tokenizers_language": t5_params}}
+            write_params(out_dir, step, full)
+            log.info("checkpoint %d written", step)
+    plot_curve(out_dir, rows)
+    summary = {"parameters": n_params, "frames": int(len(data.actions)), "train_seconds": time.perf_counter() - t0,
+               "total_seconds": time.perf_counter() - start, "final_loss": rows[-1]["loss"], "config": asdict(cfg)}
+    (out_dir / "training_summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    return summary
