@@ -152,9 +152,9 @@ class InferenceResult:
 
 def make_task(model, spec: TaskSpec) -> dict:
     """Octo task dict with batch 1 (language encoded here, once per distinct task)."""
-    if spec.goals is not None:
-        return model.create_task(goals={k: v[None] for k, v in spec.goals.items()})
-    return model.create_task(texts=[spec.instruction])
+    texts = [spec.instruction] if model.config.language is not None else None  # a model taking both gets both
+    goals = {k: v[None] for k, v in spec.goals.items()} if spec.goals is not None else None
+    return model.create_task(texts=texts, goals=goals)
 
 
 def step_key(seed: int, step: int) -> np.ndarray:
@@ -377,7 +377,7 @@ def check_env(image_sizes: dict, lowdim_sizes: dict, action_dim: int | None, env
                           {k: s for k, s in image_sizes.items()}, lowdim_sizes)
     env_dim = getattr(getattr(env, "action_space", None), "shape", None)
     if action_dim is not None and env_dim is not None and tuple(env_dim) != (action_dim,):
-        kind = getattr(getattr(env, "config", None), "action_space", "this")
+        kind = getattr(getattr(getattr(env, "unwrapped", env), "config", None), "action_space", "this")
         raise EnvMismatchError(f"the model's actions are {action_dim}-D but the env's {kind!r} action space takes "
                                f"{env_dim[0]}-D; evaluate with a {env_dim[0]}-D action head (or statistics), or choose "
                                "--action-space to match how the model was trained")

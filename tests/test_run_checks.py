@@ -115,6 +115,7 @@ def test_concurrent_run_refuses_naming_the_holder(capsys, tmp_path, tiny, no_mod
     (("--video-attention", "50"), "--video-attention 50 is out of range"),
     (("--execution", "receding_horizon", "--receding-steps", "99"), "--receding-steps 99 exceeds the action horizon"),
     (("--dataset-key", "nope"), "unknown dataset key"),
+    (("--camera", "image_primary=agentview:64"), "image_wrist"),  # the model also needs a wrist camera
 ])
 def test_model_dependent_checks_fail_before_any_episode(capsys, tmp_path, tiny, args, needle):
     _one_line_error(capsys, needle, *BASE, "--model", tiny, "--out", tmp_path, "--run-name", "r", *args)

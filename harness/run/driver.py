@@ -241,6 +241,8 @@ def execute(
                 model = load_pretrained(protocol.model)
             if model is not None:
                 task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)
+                if pending:
+                    _check_env(protocol, model, pending[0].task)
             if overwrite:
                 store.clear()  # only now: every check has passed
             if manifest is None:
@@ -318,6 +320,18 @@ def _check_model(protocol: Protocol, model, goal_images) -> tuple[list[str], dic
 
     dataset_key = OctoPolicy(model, protocol.policy).dataset_key  # an unknown key fails here, before any episode
     return task_inputs, goals, dataset_key
+
+
+def _check_env(protocol: Protocol, model, task: str) -> None:
+    """The model's inputs and action dimension against the env of the first task to run (EnvMismatchError, one line)."""
+    import envs
+    from harness.policy import OctoPolicy
+
+    env = envs.make(task, protocol.env, instruction=protocol.instruction)
+    try:
+        OctoPolicy(model, protocol.policy).check_env(env)
+    finally:
+        env.close()
 
 
 def _derive(store: RunStore, manifest, jobs, rows, status, method) -> None:

@@ -15,6 +15,8 @@ The interface (all an executor has to provide):
 - Episodes are independent given (task, seed): `env.reset(seed=seed)` and `OctoPolicy.reset(..., seed=seed)`
   restore everything an episode depends on, so a job gives the same files whichever process runs it and
   whatever ran before (this is what makes resume and parallel runs equal a sequential run).
+- `harness.policy.EnvMismatchError` (the model's inputs or action dimension do not fit the env: a protocol error,
+  not an episode outcome) propagates out of `run` like KeyboardInterrupt; the driver stops the run with one line.
 - On KeyboardInterrupt (SIGINT, or SIGTERM turned into `Interrupted`) `run` aborts the episodes in flight
   (their writers delete temporaries and never write episode.json) and lets the exception propagate; the
   driver then calls `close()` and removes the incomplete episode folders.
@@ -37,7 +39,7 @@ import numpy as np
 
 import envs
 from harness.files import atomic_write_json
-from harness.policy import OctoPolicy
+from harness.policy import EnvMismatchError, OctoPolicy
 from harness.records import EpisodeMeta, StepRecord
 from harness.rollout import rollout
 from harness.run.protocol import EpisodeJob, Protocol
@@ -96,7 +98,7 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
                          max_steps=context.protocol.max_steps, on_step=step_cb)
         writer.finish({"success": result.success, "steps": result.steps, "total_reward": result.total_reward,
                        "actions_clipped": result.actions_clipped, "timings": result.timings})
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, EnvMismatchError):  # a model/env mismatch is the protocol's error: refuse the run
         if writer is not None:
             writer.abort()
         raise
@@ -141,12 +143,15 @@ class SequentialExecutor:
             self.close()
             self._env = make_env(self.context, task)
             self._env_task = task
+            self.policy.check_env(self._env)  # EnvMismatchError: one line, the run stops before this task's episodes
         return self._env
 
     def run(self, jobs: Sequence[EpisodeJob], on_step: StepCallback | None = None) -> Iterator[EpisodeRow]:
         for job in jobs:
             try:
                 env = self._environment(job.task)
+            except EnvMismatchError:
+                raise
             except Exception as exc:  # e.g. a camera the task lacks: this job fails, the next one tries again
                 yield record_failure(self.context, job, exc, traceback.format_exc())
                 continue

@@ -43,8 +43,11 @@ FILE_KEYS: dict[str, tuple[type, ...]] = {
     "ensemble_weight": (int, float), "png_every": (int,), "layers": (str, list), "video_attention": (int, str),
     "normalisation": (str,), "no_video": (bool,), "gif": (bool,), "bbox": (bool,), "no_masks": (bool,),
     "goal_images": (str,), "fast_render": (bool,), "camera": (str, list, dict), "image_convention": (str,),
-    "action_space": (str,), "ci_method": (str,),
+    "action_space": (str,), "ci_method": (str,), "sampler": (str,), "action_normalization": (str,),
+    "proprio_normalization": (str,),
 }
+POLICY_KEYS = ("execution", "receding_steps", "ensemble_weight", "dataset_key", "sampler", "action_normalization",
+               "proprio_normalization")
 
 
 def read_protocol_file(path: str | Path) -> dict[str, Any]:
@@ -153,7 +156,7 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
     env = conventions.env_options(env_given) if conventions is not None else EnvOptions.from_dict(env_given)
 
     video_attention = s.get("video_attention", -1)
-    policy_given: dict[str, Any] = {k: s[k] for k in ("execution", "receding_steps", "ensemble_weight", "dataset_key") if k in s}
+    policy_given: dict[str, Any] = {k: s[k] for k in POLICY_KEYS if k in s}
     if policy_given.get("execution") == "receding_horizon" and "receding_steps" not in policy_given \
             and not (conventions is not None and "receding_steps" in conventions.policy):
         policy_given["receding_steps"] = DEFAULT_RECEDING_STEPS
