@@ -210,3 +210,18 @@ def test_derived_tables_hold_rows_in_job_order_with_wilson_intervals(tmp_path):
         stats = {r["task"]: r for r in csv.DictReader(f)}
     assert set(stats) == {"Lift", "Stack", "overall"} and stats["Stack"]["successes"] == "0"
     assert float(stats["Lift"]["ci_high"]) == pytest.approx(0.9055, abs=1e-4)
+
+
+def test_progress_prints_one_line_per_episode_with_successes_and_eta_when_not_a_terminal():
+    import io
+
+    from harness.run.progress import Progress
+
+    stream = io.StringIO()
+    progress = Progress(total=4, done=1, successes=1, stream=stream)
+    assert progress.bar is None  # not a terminal: no bar, plain lines
+    progress.episode(_row(k=1, success=False))
+    progress.episode(_row(k=2, status="failed"))
+    lines = stream.getvalue().splitlines()
+    assert lines[0].startswith("[2/4] Lift/episode_1: no success") and "success 1/2" in lines[0] and "ETA" in lines[0]
+    assert lines[1].startswith("[3/4] Lift/episode_2: FAILED") and "success 1/3" in lines[1]
