@@ -49,7 +49,7 @@ def runs(fixtures_dir, tmp_path_factory):
     model = load_pretrained(str(fixtures_dir / "tiny"))
     protocol = Protocol(model=str(fixtures_dir / "tiny"), tasks=("Lift",), episodes=2, max_steps=STEPS,
                         env=EnvOptions(masks=True, fast_render=True), outputs=OutputOptions(png_every=0, video=False))
-    for name, p in (("base", protocol), ("same", protocol), ("longer", protocol.replace(max_steps=STEPS + 1))):
+    for name, p in (("base", protocol), ("same", protocol), ("longer", protocol.replace(max_steps=STEPS + 1, episodes=1))):
         execute(p, out, name, model=model, progress=False)
     return out
 
