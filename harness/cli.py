@@ -80,8 +80,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="orientation of the frames the model was trained on [upright]")
     r.add_argument("--action-space", choices=["octo-delta", "robosuite"], default=None,
                    help="what the model's actions mean [octo-delta, or the checkpoint's harness.toml]")
+    r.add_argument("--sampler", choices=["latest", "v0.1.0"], default=None,
+                   help="diffusion sampling as the latest original Octo code does, or as v0.1.0 did [latest]")
+    r.add_argument("--action-normalization", choices=["normal", "bounds"], default=None,
+                   help="how actions are unnormalised: mean/std or p01/p99 bounds [checkpoint's harness.toml, else normal]")
+    r.add_argument("--proprio-normalization", choices=["normal", "bounds", "none"], default=None,
+                   help="how proprio inputs are normalised [checkpoint's harness.toml, else normal]")
     r.add_argument("--ci-method", choices=["wilson", "clopper-pearson"], default=None,
                    help="confidence interval of success rates (95%%) [wilson]")
+    r.add_argument("--workers", type=int, default=None,
+                   help="env worker processes, inference batched in one process (same episodes as a sequential run) "
+                        "[none: sequential; with --executor ray: this machine's CPU count]")
+    r.add_argument("--executor", choices=["local", "ray"], default=None,
+                   help="where the env workers run: local processes or Ray actors (pip install 'octo-harness[ray]') [local]")
+    r.add_argument("--ray-address", default=None,
+                   help="Ray cluster to join (e.g. auto or head-node:6379); --out must be on a filesystem every node "
+                        "mounts [start a local Ray instance]")
+    r.add_argument("--policy-replicas", type=int, default=None, help="Ray: model replicas serving the env workers [1]")
 
     sub.add_parser("tasks", help="list the registered tasks")
 
@@ -165,13 +180,16 @@ def _cmd_tasks() -> int:
     return 0
 
 
-RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed")
+RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "executor", "ray_address", "policy_replicas")
 
 
 def _cmd_run(args) -> int:
     from harness.run import ResultsWriteError, RunStore, execute
     from harness.run.protocol import Protocol
     from harness.run.settings import build_protocol, out_dir, read_protocol_file
+    from harness.run.workers import executor_factory
+
+    factory = executor_factory(args.workers, args.executor, args.ray_address, args.policy_replicas)
 
     given = {k: v for k, v in vars(args).items() if v is not None and k not in ("command", "debug", *RUN_CONTROL)}
     if args.resume is not None:
@@ -188,7 +206,8 @@ def _cmd_run(args) -> int:
         protocol = build_protocol(settings)
         out, name, method = out_dir(settings), settings.get("run_name"), settings.get("ci_method", "wilson")
     try:
-        summary = execute(protocol, out, name, overwrite=args.overwrite, retry_failed=args.retry_failed, ci_method=method)
+        summary = execute(protocol, out, name, overwrite=args.overwrite, retry_failed=args.retry_failed, ci_method=method,
+                          executor=factory)
     except ResultsWriteError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

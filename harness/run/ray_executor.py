@@ -48,8 +48,8 @@ FORWARDED_ENV = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "HF_HUB_OFFLINE", "HF_HOME", 
 MARKER_PREFIX = ".octo-harness-shared-check-"
 
 
-class RayExecutorError(RuntimeError):
-    """A user-facing problem with the Ray set-up (one line: what and how to fix it)."""
+class RayExecutorError(ValueError):
+    """A user-facing problem with the Ray set-up (one line: what and how to fix it; the CLI prints it, exit 2)."""
 
 
 def import_ray():
@@ -165,6 +165,12 @@ class EnvWorker:
 # ---------------------------------------------------------------------------------------------- driver
 
 
+def _last_line(exc: BaseException) -> str:
+    """The last non-empty line of a Ray error (the underlying exception's message)."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    return lines[-1] if lines else type(exc).__name__
+
+
 def actor_death_cause(exc: BaseException) -> str:
     """A Ray actor error -> the error recorded for its episode (first line of Ray's explanation)."""
     text = " ".join(str(exc).split())
@@ -241,9 +247,7 @@ class RayExecutor:
             worker_cls = ray.remote(num_cpus=1, max_restarts=0)(EnvWorker)
             sizes = batch_sizes_for(-(-self.workers // self.replicas))
             replicas = [replica_cls.remote(self.model_source, self.spec.policy, sizes) for _ in range(self.replicas)]
-            if warmup is not None:
-                request = warmup_request(self.spec.shape, warmup)
-                ray.get([r.warm_up.remote(request) for r in replicas])
+            warming = [r.warm_up.remote(warmup_request(self.spec.shape, warmup)) for r in replicas] if warmup else []
 
             def start(i: int):
                 actor = worker_cls.remote(self.spec, replicas[i % self.replicas], (str(marker), token))
@@ -253,11 +257,11 @@ class RayExecutor:
             n = min(self.workers, len(queue))
             for i in range(n):
                 start(i)
-            try:
+            try:  # env workers check the shared folder while the replicas load the model and compile
                 ray.get([a.ready.remote() for a in actors.values()])
-            except ray.exceptions.RayActorError as exc:
-                cause = exc.__cause__ or exc
-                raise RayExecutorError(str(cause).strip().splitlines()[-1]) from None
+                ray.get(warming)
+            except (ray.exceptions.RayActorError, ray.exceptions.RayTaskError) as exc:
+                raise RayExecutorError(_last_line(exc)) from None
             in_flight: dict = {}
             for i in range(n):
                 job = queue.popleft()
