@@ -18,6 +18,7 @@ class Progress:
         self.start = time.perf_counter()
         self.finished_here = 0
         self.bar = None
+        self._shown = 0.0
         if self.stream.isatty():
             from tqdm import tqdm
 
@@ -31,7 +32,10 @@ class Progress:
 
     def step(self, job: EpisodeJob, t: int, record) -> None:
         if self.bar is not None:
-            self.bar.set_postfix_str(self._postfix(f"{job.directory} step {t + 1}"), refresh=False)
+            now = time.perf_counter()
+            refresh = now - self._shown >= 0.5  # redraw at most twice a second
+            self._shown = now if refresh else self._shown
+            self.bar.set_postfix_str(self._postfix(f"{job.directory} step {t + 1}"), refresh=refresh)
 
     def episode(self, row: EpisodeRow) -> None:
         self.done += 1
