@@ -217,3 +217,20 @@ def test_octo_1_0_checkpoint_samples_as_the_latest_original_code_by_default(fixt
         PolicyConfig(sampler="v0.2")
     with pytest.raises(ValueError, match="sampler"):
         model.sample_actions(observations(e), task(e), jax.random.PRNGKey(0), sampler="v0.2")
+
+
+def test_robosuite_action_space_reaches_the_controller_unchanged(env):
+    """The env hands the policy's 7 values to robosuite as they are (clipped to [-1, 1], clipping counted)."""
+    env.reset(seed=0)
+    inner = env.robosuite_env
+    seen, original = [], inner.step
+    inner.step = lambda action: (seen.append(np.array(action)), original(action))[1]  # spy; the real step runs
+    try:
+        *_, info = env.step(np.array([0.5, -0.25, 0.0, 0.0, 0.0, 0.1, 1.0]))
+        assert info["action_clipped"] == 0
+        *_, info = env.step(np.array([0.5, -0.25, 1.5, 0.0, 0.0, 0.1, -1.0]))
+    finally:
+        del inner.step
+    np.testing.assert_array_equal(seen[0], [0.5, -0.25, 0.0, 0.0, 0.0, 0.1, 1.0])  # gripper +1 = closed, as stored
+    np.testing.assert_array_equal(seen[1], [0.5, -0.25, 1.0, 0.0, 0.0, 0.1, -1.0])
+    assert info["action_clipped"] == 1
