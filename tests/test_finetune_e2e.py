@@ -157,7 +157,7 @@ def test_proprio_is_fed_normalised_with_the_checkpoint_statistics(finetuned, env
     (result,) = inference([InferenceRequest(window, TaskSpec.of(info["instruction"]), seed=3, step=0)])
     by_hand = (obs["proprio"] - np.array(PROPRIO_STATS["mean"])) / (np.array(PROPRIO_STATS["std"]) + 1e-8)
     by_hand[7] = obs["proprio"][7]  # masked dimension stays raw
-    batch = {k: v[None] for k, v in window.items() if k != "pad_mask_dict"}
+    batch = jax.tree.map(lambda v: v[None], window)  # the same structure as the policy's (no second compile)
     batch["proprio"] = by_hand[None, None].astype(np.float32)
     np.testing.assert_allclose(normalize(obs["proprio"], PROPRIO_STATS), by_hand, rtol=1e-5, atol=1e-6)
     actions, _ = finetuned.sample_actions(batch, inference.task(TaskSpec.of(info["instruction"])), step_key(3, 0)[None],
