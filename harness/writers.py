@@ -13,7 +13,9 @@ to the rollout video. `finish()` writes the arrays and JSON. Files in `episode_d
                               step (steps,), rollout_readout (steps, readouts, keys) float16 if used,
                               mask_fraction/<obs>/<name> (steps, rows, cols) float32: each patch's
                               coverage by the mask (attention.mask_fractions; nan where a step lacks it),
-                              so mask mass can be recomputed per head / layer from readout_attention
+                              so mask mass can be recomputed per head / layer from readout_attention;
+                              measures/layer/<m> (steps, layers), measures/head/<m> (steps, layers, heads)
+                              float32: shares, entropy, mask mass and lift per step (analysis.aggregate)
   actions.npz                 predicted (steps, horizon, dim), executed (steps, dim), reward, success, step
   metrics.jsonl               one JSON object per step: run, task, episode, step, reward, success, shares, entropy,
                               mask mass per layer, timings; every row has the same keys (null where n/a)
@@ -49,6 +51,7 @@ from typing import Any
 
 import numpy as np
 
+from harness.analysis.aggregate import measure_arrays
 from harness.attention import HEAD_FUSIONS, camera_maps, fuse_heads, mask_fractions, rollout_readout_rows, step_metrics
 from harness.octo.tokens import TokenMap
 from harness.overlays import colormap_lut, heatmap_overlay, layer_panel, mask_bbox, video_frame
@@ -505,6 +508,7 @@ class EpisodeWriter:
         arrays = {"step": steps, **self.tokens.to_arrays(), **self._metric_arrays()}
         if self._attention:
             arrays["readout_attention"] = np.stack(self._attention)
+            arrays.update(measure_arrays(arrays, self.tokens))  # per-head measures the report aggregates
         if self._rollout:
             arrays["rollout_readout"] = np.stack(self._rollout)
         write_atomic(self.dir / "attention.npz", lambda f: np.savez(f, **arrays))

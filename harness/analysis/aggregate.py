@@ -20,12 +20,16 @@ Metric names (the same at layer and head level):
 
 Layer-level values use the definitions of attention.step_metrics (the numbers in metrics.jsonl): shares and
 mask mass of the head-mean row, entropy averaged over heads and readouts.
+
+The writers store each episode's measures in attention.npz (`measure_arrays`, "measures/..."), so a report reads a
+few MB per episode instead of its full attention; runs made before that are measured from readout_attention.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Mapping
 
 import numpy as np
 
@@ -176,6 +180,33 @@ def episode_measures(
         if name in mask_areas:
             layer[f"mask_lift/{name}"] = _ratio(mass_l, np.asarray(mask_areas[name], np.float64).reshape(steps)[:, None])
     return EpisodeMeasures(layer=layer, head=head)
+
+
+MEASURES = "measures/"  # attention.npz prefix of stored per-step measures: measures/layer/<metric>, measures/head/<metric>
+
+
+def measure_arrays(arrays: Mapping[str, np.ndarray], tokens: TokenMap) -> dict[str, np.ndarray]:
+    """The contents of an attention.npz (readout_attention, mask_fraction/*, metrics/mask_area/*) -> the episode's
+    measures as arrays to store next to them: "measures/layer/<metric>" (steps, layers) and
+    "measures/head/<metric>" (steps, layers, heads), float32. {} without attention steps."""
+    attn = arrays.get("readout_attention")
+    if attn is None or np.shape(attn)[0] == 0:
+        return {}
+
+    def prefixed(prefix: str) -> dict[str, np.ndarray]:
+        return {k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}
+
+    m = episode_measures(attn, tokens, prefixed("mask_fraction/"), prefixed("metrics/mask_area/"), prefixed("metrics/mask_mass/"))
+    out = {f"{MEASURES}layer/{k}": v.astype(np.float32) for k, v in m.layer.items()}
+    out.update({f"{MEASURES}head/{k}": v.astype(np.float32) for k, v in m.head.items()})
+    return out
+
+
+def measures_from_arrays(arrays: Mapping[str, np.ndarray]) -> EpisodeMeasures | None:
+    """Stored measures/* arrays -> EpisodeMeasures (None when there are none)."""
+    layer = {k[len(MEASURES) + 6:]: np.asarray(v) for k, v in arrays.items() if k.startswith(MEASURES + "layer/")}
+    head = {k[len(MEASURES) + 5:]: np.asarray(v) for k, v in arrays.items() if k.startswith(MEASURES + "head/")}
+    return EpisodeMeasures(layer=layer, head=head) if layer else None
 
 
 def nanmean(values: np.ndarray, axis: int = 0) -> np.ndarray:

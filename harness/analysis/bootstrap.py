@@ -4,7 +4,9 @@ The unit of resampling is the episode (rows); every column (a metric at a layer,
 resampled with the same draws, so columns keep their joint structure. NaN marks a value an episode does
 not have (e.g. a target never visible): it is left out of that column's mean, in the estimate and in each
 resample alike. Method: percentile bootstrap (Efron & Tibshirani 1993, ch. 13) with multinomial resample
-counts, so the resample means are one matrix product counts (resamples, n) @ values (n, columns).
+counts, so the resample means are one matrix product values (columns, n) @ counts (n, resamples); the interval
+ends are the order statistics floor((B-1)(1-c)/2) and ceil((B-1)(1+c)/2) of the B resample means (rounded
+outward, no interpolation).
 """
 
 from __future__ import annotations
@@ -43,24 +45,33 @@ def bootstrap_mean_ci(
         mean = filled.sum(axis=0) / n
     low = np.full(mean.shape, np.nan)
     high = np.full(mean.shape, np.nan)
-    enough = n >= 2
-    if episodes >= 2 and enough.any():
+    cols = np.flatnonzero(n >= 2)
+    if cols.size:
         rng = np.random.default_rng(seed)
-        counts = rng.multinomial(episodes, np.full(episodes, 1.0 / episodes), size=resamples).astype(np.float64)  # (B, n)
-        cols = np.flatnonzero(enough)
-        sums = counts @ filled[:, cols]  # (B, m')
-        weights = counts @ present[:, cols].astype(np.float64)  # (B, m') episodes drawn that have a value
-        with np.errstate(invalid="ignore", divide="ignore"):
-            means = sums / weights
-        tail = (1.0 - confidence) / 2.0
-        if np.isnan(means).any():  # some resamples drew only episodes without a value for a column
-            qs = np.nanquantile(means, [tail, 1.0 - tail], axis=0)
-        else:
-            qs = np.quantile(means, [tail, 1.0 - tail], axis=0)
-        low[cols], high[cols] = qs[0], qs[1]
+        counts = rng.multinomial(episodes, np.full(episodes, 1.0 / episodes), size=resamples).T.astype(np.float64)  # (n, B)
+        full = cols[n[cols] == episodes]  # columns every episode has: means = values @ counts / n
+        part = cols[n[cols] < episodes]
+        k_low = int(np.floor((resamples - 1) * (1.0 - confidence) / 2.0))  # order statistics, rounded outward
+        k_high = int(np.ceil((resamples - 1) * (1.0 + confidence) / 2.0))
+        for block in (full, part):
+            if not block.size:
+                continue
+            sums = filled[:, block].T @ counts  # (m', B) resample sums
+            if block is full:
+                means = sums / episodes
+            else:  # a resample may draw only episodes without a value: those resamples are left out of that column
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    means = sums / (present[:, block].T.astype(np.float64) @ counts)
+            if np.isnan(means).any():
+                qs = np.nanquantile(means, [k_low / (resamples - 1), k_high / (resamples - 1)], axis=1,
+                                    method="nearest") if resamples > 1 else np.stack([means[:, 0]] * 2)
+                low[block], high[block] = qs[0], qs[1]
+            else:
+                ordered = np.partition(means, sorted({k_low, k_high}), axis=1)
+                low[block], high[block] = ordered[:, k_low], ordered[:, k_high]
         # constant columns: the interval is exactly the value (no floating-point spread from the matrix product)
-        spread = np.nanmax(np.where(present[:, cols], flat[:, cols], np.nan), axis=0) - np.nanmin(
-            np.where(present[:, cols], flat[:, cols], np.nan), axis=0)
-        constant = spread == 0
-        low[cols[constant]] = high[cols[constant]] = mean[cols[constant]]
+        values_c = flat[:, cols]
+        spread = np.where(present[:, cols], values_c, -np.inf).max(axis=0) - np.where(present[:, cols], values_c, np.inf).min(axis=0)
+        constant = cols[spread == 0]
+        low[constant] = high[constant] = mean[constant]
     return mean.reshape(shape), low.reshape(shape), high.reshape(shape), n.reshape(shape)

@@ -25,7 +25,7 @@ import os
 import shutil
 import time
 from collections import defaultdict
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
@@ -126,17 +126,25 @@ class RunData:
 # ---- episode analysis (runs in worker processes) ----------------------------------------------------------------
 
 
-def _analyse_episode(job: tuple) -> tuple[int, str, int, agg.EpisodeSummary | None, str | None]:
-    """(run index, task, episode, episode dir, bins) -> (run index, task, episode, summary or None, error or None)."""
+def _analyse_episode(job: tuple, stored_only: bool = False) -> tuple[int, str, int, agg.EpisodeSummary | None, str | None]:
+    """(run index, task, episode, episode dir, bins) -> (run index, task, episode, summary or None, error or None).
+
+    Reads the measures the writers stored (a few MB); without them (older runs) measures the readout attention,
+    unless `stored_only` (then summary and error are both None: the caller measures it later, maybe in a pool).
+    """
     from harness.octo.tokens import TokenMap
 
     run_index, task, episode, directory, bins = job
     record = EpisodeRecord(task=task, episode=episode, seed=None, status="ok", success=False, steps=0, directory=Path(directory))
     try:
-        arrays = load_episode_arrays(record)
-        tokens = TokenMap.from_arrays(arrays.tokens)
-        measures = agg.episode_measures(arrays.readout_attention, tokens, arrays.mask_fractions, arrays.mask_areas,
-                                        arrays.mask_mass)
+        with np.load(record.attention_path) as z:
+            measures = agg.measures_from_arrays({k: z[k] for k in z.files if k.startswith(agg.MEASURES)})
+        if measures is None:
+            if stored_only:
+                return run_index, task, episode, None, None
+            arrays = load_episode_arrays(record)
+            measures = agg.episode_measures(arrays.readout_attention, TokenMap.from_arrays(arrays.tokens),
+                                            arrays.mask_fractions, arrays.mask_areas, arrays.mask_mass)
         return run_index, task, episode, agg.summarise_episode(measures, bins), None
     except Exception as exc:  # noqa: BLE001 - one unreadable episode is reported, the report goes on
         return run_index, task, episode, None, f"{type(exc).__name__}: {exc}"
@@ -145,23 +153,19 @@ def _analyse_episode(job: tuple) -> tuple[int, str, int, agg.EpisodeSummary | No
 def _analyse_all(runs: list[RunData], options: ReportOptions) -> None:
     jobs = [(i, e.task, e.episode, str(e.directory), options.bins)
             for i, run in enumerate(runs) for e in run.record.episodes if e.ok]
-    workers = options.workers
-    if workers is None:
-        workers = 1 if len(jobs) < 8 else max(1, min(4, os.cpu_count() or 1))
-    if workers == 1 or len(jobs) <= 1:
-        results = map(_analyse_episode, jobs)
-    else:
-        pool = ProcessPoolExecutor(max_workers=min(workers, len(jobs)), mp_context=get_context("spawn"))
-        results = pool.map(_analyse_episode, jobs, chunksize=1)
-    try:
-        for run_index, task, episode, summary, error in results:
-            if summary is not None:
-                runs[run_index].summaries[(task, episode)] = summary
-            else:
-                runs[run_index].errors[(task, episode)] = error
-    finally:
-        if workers != 1 and len(jobs) > 1:
-            pool.shutdown()
+    results = [_analyse_episode(job, stored_only=True) for job in jobs]
+    todo = [job for job, (_, _, _, summary, error) in zip(jobs, results) if summary is None and error is None]
+    workers = options.workers or (1 if len(todo) < 8 else max(1, min(4, os.cpu_count() or 1)))
+    if todo and (workers == 1 or len(todo) == 1):
+        results += [_analyse_episode(job) for job in todo]
+    elif todo:  # older runs: the attention arrays are measured in parallel processes
+        with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=get_context("spawn")) as pool:
+            results += list(pool.map(_analyse_episode, todo, chunksize=1))
+    for run_index, task, episode, summary, error in results:
+        if summary is not None:
+            runs[run_index].summaries[(task, episode)] = summary
+        elif error is not None:
+            runs[run_index].errors[(task, episode)] = error
 
 
 def _aggregate(run: RunData, options: ReportOptions) -> None:
@@ -216,8 +220,8 @@ def read_video_frames(path: Path, indices: list[int], height: int, width: int) -
     level = logger.level
     logger.setLevel(logging.ERROR)
     try:
-        reader = imageio_ffmpeg.read_frames(str(path), output_params=[
-            "-vf", f"select={select},crop={width}:{height}:0:0", "-fps_mode", "passthrough"])
+        reader = imageio_ffmpeg.read_frames(str(path), input_params=["-skip_loop_filter", "all"], output_params=[
+            "-vf", f"select={select},crop={width}:{height}:0:0", "-fps_mode", "passthrough"])  # thumbnails: no deblocking
         meta = next(reader)
         if meta["source_size"][0] < width or meta["source_size"][1] < height:
             reader.close()
@@ -508,15 +512,15 @@ def _cross_task(runs: list[RunData], tasks: list[str], plots: _Plots) -> str:
     return H.section("Cross-task comparison", H.Raw(f"<p>{legend}</p>") + "".join(body), anchor="cross-task")
 
 
-def _task_section(runs: list[RunData], task: str, out: Path, plots: _Plots, options: ReportOptions) -> str:
+def _task_section(runs: list[RunData], task: str, out: Path, plots: _Plots, overlays: dict) -> str:
     body = [_task_table(runs, task)]
     safe = H.anchor_id(task)[2:]
     for run in runs:
         if task not in run.record.tasks:
             continue
-        rep = _representative(run, task)
-        if rep is not None:
-            overlay = _overlay_png(run, rep, options)
+        future = overlays.get((run.label, task))
+        if future is not None:
+            overlay = future.result()
             if overlay is not None:
                 body.append(plots.add(f"overlays_{safe}_{run.label}", overlay[0], f"overlays {task} {run.label}",
                                       f"{run.label}: layer x time grid of head-mean readout attention over {overlay[1]}; "
@@ -655,9 +659,16 @@ def build_report(run_dirs: list[str | Path], out: str | Path | None = None, opti
     body = [_status_banners(runs), H.Raw("<p class='note'>Every number here comes from the CSV files in "
                                          "<code>tables/</code> next to this page; intervals are 95% (Wilson for success, "
                                          "percentile bootstrap over episodes for attention).</p>")]
-    body.append(_cross_task(runs, tasks, plots))
-    for task in tasks:
-        body.append(_task_section(runs, task, out, plots, options))
+    with ThreadPoolExecutor(max_workers=3) as pool:  # overlay grids decode videos in ffmpeg processes meanwhile
+        overlays = {}
+        for run in runs:
+            for task in run.record.tasks:
+                rep = _representative(run, task)
+                if rep is not None:
+                    overlays[(run.label, task)] = pool.submit(_overlay_png, run, rep, options)
+        body.append(_cross_task(runs, tasks, plots))
+        for task in tasks:
+            body.append(_task_section(runs, task, out, plots, overlays))
     body.append(H.section("Run manifest", "".join(_manifest_section(run) for run in runs), anchor="manifest"))
     body.append(H.section("Definitions", H.Raw(_DEFINITIONS), anchor="definitions"))
     toc = [("cross-task", "Cross-task comparison")] + [(H.anchor_id("task-" + t), t) for t in tasks] + [

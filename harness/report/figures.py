@@ -30,14 +30,14 @@ def run_colours(n: int) -> list[str]:
 
 
 def _figure(width: float, height: float) -> Figure:
-    fig = Figure(figsize=(width, height), dpi=DPI, layout="constrained")
+    fig = Figure(figsize=(width, height), dpi=DPI)  # no layout engine: it costs more than the drawing; bbox "tight" trims
     FigureCanvasAgg(fig)
     return fig
 
 
 def _png(fig: Figure) -> bytes:
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=DPI, bbox_inches="tight", pad_inches=0.08)
+    fig.savefig(buffer, format="png", dpi=DPI)
     return buffer.getvalue()
 
 
@@ -107,7 +107,7 @@ def task_layer_heatmaps(tasks: Sequence[str], panels: Sequence[tuple[str, str, n
     im = None
     for i, (run, colour, matrix) in enumerate(panels):
         ax = fig.add_subplot(1, n, i + 1)
-        im = _annotated_heatmap(ax, matrix, norm, "RdBu_r", annotate=matrix.size <= 400)
+        im = _annotated_heatmap(ax, matrix, norm, "RdBu_r", annotate=matrix.size <= 60)
         ax.set_title(run, color=colour, fontsize=10, fontweight="bold")
         ax.set_xticks(range(matrix.shape[1]), [str(i) for i in range(matrix.shape[1])], fontsize=7)
         ax.set_xlabel("layer")
@@ -139,6 +139,7 @@ def shares_heatmaps(tasks: Sequence[str], categories: Sequence[str], panels: Seq
                           fontsize=6)
             if r == rows - 1:
                 ax.set_xlabel("layer", fontsize=8)
+    fig.subplots_adjust(hspace=0.45 + 0.02 * len(tasks), wspace=0.08)
     if im is not None:
         fig.colorbar(im, ax=fig.axes, shrink=0.6, label="share of attention")
     return _png(fig)
@@ -181,6 +182,7 @@ def progress_small_multiples(
         if i >= len(tasks) - cols:
             ax.set_xlabel("episode progress", fontsize=8)
         ax.tick_params(labelsize=7)
+    fig.subplots_adjust(hspace=0.5, wspace=0.28)
     if any(len(v) > 1 for v in series.values()):
         handles, labels = [], []
         for ax in fig.axes:
@@ -188,7 +190,7 @@ def progress_small_multiples(
                 if l not in labels:
                     handles.append(h)
                     labels.append(l)
-        fig.legend(handles, labels, loc="outside upper center", ncol=min(4, len(labels)), fontsize=8)
+        fig.legend(handles, labels, loc="lower center", ncol=min(4, len(labels)), fontsize=8, bbox_to_anchor=(0.5, 0.98))
     return _png(fig)
 
 
@@ -226,7 +228,7 @@ def head_layer_maps(panels: Sequence[tuple[str, str, np.ndarray]], label: str) -
     im = None
     for i, (run, colour, matrix) in enumerate(panels):
         ax = fig.add_subplot(1, n, i + 1)
-        im = _annotated_heatmap(ax, matrix, norm, "RdBu_r", annotate=matrix.size <= 200)
+        im = _annotated_heatmap(ax, matrix, norm, "RdBu_r", annotate=matrix.size <= 60)
         ax.set_title(run, color=colour, fontsize=10, fontweight="bold")
         ax.set_xticks(range(matrix.shape[1]), [str(h) for h in range(matrix.shape[1])], fontsize=7)
         ax.set_yticks(range(matrix.shape[0]), [str(l) for l in range(matrix.shape[0])], fontsize=7)
@@ -257,7 +259,7 @@ def shares_by_layer(panels: Sequence[tuple[str, str, dict[str, np.ndarray]]], co
             ax.set_ylabel("share of attention")
     handles, labels = fig.axes[0].get_legend_handles_labels() if fig.axes else ([], [])
     if handles:
-        fig.legend(handles, labels, loc="outside right center", fontsize=8)
+        fig.legend(handles, labels, loc="center left", fontsize=8, bbox_to_anchor=(0.92, 0.5))
     return _png(fig)
 
 
