@@ -53,7 +53,7 @@ class ReportOptions:
     resamples: int = 2000  # bootstrap resamples
     confidence: float = 0.95
     seed: int = 0  # bootstrap seed (same seed -> same intervals)
-    workers: int | None = None  # processes reading episodes; None = up to 4 (in-process below 8 episodes); 1 = none
+    workers: int | None = None  # processes measuring older runs' attention; None = up to 4 above 1 GB, else none
     overlay_steps: int = 6  # time columns of the overlay grid
     overlay_layers: int = 12  # at most this many layers in the overlay grid (evenly spaced, first and last kept)
 
@@ -155,7 +155,8 @@ def _analyse_all(runs: list[RunData], options: ReportOptions) -> None:
             for i, run in enumerate(runs) for e in run.record.episodes if e.ok]
     results = [_analyse_episode(job, stored_only=True) for job in jobs]
     todo = [job for job, (_, _, _, summary, error) in zip(jobs, results) if summary is None and error is None]
-    workers = options.workers or (1 if len(todo) < 8 else max(1, min(4, os.cpu_count() or 1)))
+    heavy = sum(Path(job[3], "attention.npz").stat().st_size for job in todo) > 1e9  # worth starting processes
+    workers = options.workers or (max(1, min(4, os.cpu_count() or 1)) if heavy else 1)
     if todo and (workers == 1 or len(todo) == 1):
         results += [_analyse_episode(job) for job in todo]
     elif todo:  # older runs: the attention arrays are measured in parallel processes

@@ -35,6 +35,12 @@ def _figure(width: float, height: float) -> Figure:
     return fig
 
 
+def _margins(fig: Figure, left: float, right: float, bottom: float, top: float, **spacing) -> None:
+    """Fixed margins in inches (instead of a layout engine or a tight bbox, which draw the figure twice)."""
+    width, height = fig.get_size_inches()
+    fig.subplots_adjust(left=left / width, right=1 - right / width, bottom=bottom / height, top=1 - top / height, **spacing)
+
+
 def _png(fig: Figure) -> bytes:
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=DPI)
@@ -69,8 +75,9 @@ def success_chart(tasks: Sequence[str], series: Sequence[tuple[str, str, dict]])
     ax.set_ylim(0, 1.12)
     ax.set_ylabel("success rate (95% Wilson)")
     ax.grid(axis="y", alpha=0.3)
+    _margins(fig, 0.7, 0.15, 1.0, 0.45)
     if len(series) > 1:
-        ax.legend(fontsize=8, loc="upper right")
+        ax.legend(fontsize=8, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=min(4, len(series)), frameon=False)
     return _png(fig)
 
 
@@ -102,7 +109,8 @@ def task_layer_heatmaps(tasks: Sequence[str], panels: Sequence[tuple[str, str, n
     """Target lift per task x layer, one panel per run; panels: [(run label, colour, (tasks, layers))]."""
     n = max(1, len(panels))
     layers = max((m.shape[1] for _, _, m in panels), default=1)
-    fig = _figure(min(22.0, n * (1.6 + 0.38 * layers) + 1.0), 1.0 + 0.3 * len(tasks) + 0.6)
+    fig = _figure(min(22.0, n * (1.6 + 0.38 * layers) + 1.6), 1.0 + 0.3 * len(tasks) + 0.6)
+    _margins(fig, 1.4, 0.5, 0.6, 0.35, wspace=0.08)
     norm = _lift_norm([m for _, _, m in panels])
     im = None
     for i, (run, colour, matrix) in enumerate(panels):
@@ -139,7 +147,7 @@ def shares_heatmaps(tasks: Sequence[str], categories: Sequence[str], panels: Seq
                           fontsize=6)
             if r == rows - 1:
                 ax.set_xlabel("layer", fontsize=8)
-    fig.subplots_adjust(hspace=0.45 + 0.02 * len(tasks), wspace=0.08)
+    _margins(fig, 1.2, 0.5, 0.6, 0.3, hspace=0.45 + 0.02 * len(tasks), wspace=0.08)
     if im is not None:
         fig.colorbar(im, ax=fig.axes, shrink=0.6, label="share of attention")
     return _png(fig)
@@ -182,7 +190,7 @@ def progress_small_multiples(
         if i >= len(tasks) - cols:
             ax.set_xlabel("episode progress", fontsize=8)
         ax.tick_params(labelsize=7)
-    fig.subplots_adjust(hspace=0.5, wspace=0.28)
+    _margins(fig, 0.65, 0.15, 0.6, 0.55, hspace=0.5, wspace=0.28)
     if any(len(v) > 1 for v in series.values()):
         handles, labels = [], []
         for ax in fig.axes:
@@ -213,6 +221,7 @@ def progress_by_outcome(
     ax.set_xlabel("episode progress")
     ax.set_ylabel(ylabel)
     ax.grid(alpha=0.25)
+    _margins(fig, 0.75, 0.15, 0.6, 0.15)
     if lines:
         ax.legend(fontsize=7, loc="best")
     return _png(fig)
@@ -223,7 +232,8 @@ def head_layer_maps(panels: Sequence[tuple[str, str, np.ndarray]], label: str) -
     n = max(1, len(panels))
     heads = max((m.shape[1] for _, _, m in panels), default=1)
     layers = max((m.shape[0] for _, _, m in panels), default=1)
-    fig = _figure(min(22.0, n * (1.2 + 0.34 * heads) + 1.0), 0.9 + 0.3 * layers)
+    fig = _figure(min(22.0, n * (1.2 + 0.34 * heads) + 1.4), 0.9 + 0.3 * layers)
+    _margins(fig, 0.6, 0.5, 0.6, 0.35, wspace=0.15)
     norm = _lift_norm([m for _, _, m in panels])
     im = None
     for i, (run, colour, matrix) in enumerate(panels):
@@ -244,6 +254,7 @@ def shares_by_layer(panels: Sequence[tuple[str, str, dict[str, np.ndarray]]], co
     """Stacked modality shares along layers, one panel per run; panels: [(run, colour, {category: (layers,)})]."""
     n = max(1, len(panels))
     fig = _figure(min(20.0, 4.2 * n + 1.6), 2.8)
+    _margins(fig, 0.75, 1.6, 0.6, 0.35, wspace=0.2)
     for i, (run, colour, data) in enumerate(panels):
         ax = fig.add_subplot(1, n, i + 1)
         names = [k for k in data if np.isfinite(data[k]).any()]
@@ -259,7 +270,7 @@ def shares_by_layer(panels: Sequence[tuple[str, str, dict[str, np.ndarray]]], co
             ax.set_ylabel("share of attention")
     handles, labels = fig.axes[0].get_legend_handles_labels() if fig.axes else ([], [])
     if handles:
-        fig.legend(handles, labels, loc="center left", fontsize=8, bbox_to_anchor=(0.92, 0.5))
+        fig.legend(handles, labels, loc="center right", fontsize=8, bbox_to_anchor=(1.0, 0.5), frameon=False)
     return _png(fig)
 
 
@@ -294,7 +305,9 @@ def overlay_grid(
     n_layers, n_steps, rows, cols = maps.shape
     width_cell = max(1, int(round(cell * cols / rows)))
     left, top, pad = 62, 40, 3
-    canvas = np.full((top + n_layers * (cell + pad) + pad, left + n_steps * (width_cell + pad) + pad, 3), 255, np.uint8)
+    font = _font(12)
+    width = max(left + n_steps * (width_cell + pad) + pad, int(font.getlength(title)) + 10)
+    canvas = np.full((top + n_layers * (cell + pad) + pad, width, 3), 255, np.uint8)
     for t in range(n_steps):
         frame = frames[t] if t < len(frames) else None
         base = resize_nearest(frame, cell, width_cell) if frame is not None else np.full((cell, width_cell, 3), 40, np.uint8)
@@ -305,7 +318,6 @@ def overlay_grid(
             canvas[y:y + cell, x:x + width_cell] = cells[li]
     image = Image.fromarray(canvas)
     draw = ImageDraw.Draw(image)
-    font = _font(12)
     draw.text((4, 3), title, fill=(0, 0, 0), font=font)
     for t, step in enumerate(steps):
         draw.text((left + t * (width_cell + pad) + 2, top - 16), f"step {step}", fill=(0, 0, 0), font=font)
