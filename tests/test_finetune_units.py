@@ -184,3 +184,35 @@ def test_episode_state_windows_and_pads_lowdim_like_images():
         state.observe({"image_primary": first["image_primary"], "proprio": np.zeros(8)})
     with pytest.raises(EnvMismatchError, match=r"camera observation\(s\) \['image_primary'\]"):
         state.observe({"proprio": np.zeros(3)})
+
+
+# ------------------------------------------------------------------ writers with any set of token groups
+
+
+def test_writer_takes_the_token_map_from_the_records_and_handles_proprio_one_camera_two_readouts(tmp_path):
+    """No language, one camera, a proprio group and two readout groups; the writer is given no token map."""
+    from harness.records import EpisodeMeta, StepRecord
+    from harness.writers import EpisodeWriter, OutputOptions
+
+    tokens = build_token_map([], [("obs_primary", 16), ("obs_proprio", 8), ("readout_action", 1), ("readout_value", 1)],
+                             1, (("obs_primary", "image_primary", 4, 4),))
+    rng = np.random.default_rng(0)
+    meta = EpisodeMeta(run="t", task="Lift", episode=0, seed=0, instruction="", model="built", model_is_random=True,
+                       dataset_key=None, text_tokenizer="none", execution="temporal_ensemble")
+    writer = EpisodeWriter(tmp_path / "ep", None, meta, OutputOptions(video=False))
+    for t in range(2):
+        target = np.zeros((64, 64), bool)
+        target[:16, :16] = True
+        writer.add_step(StepRecord(
+            step=t, frames={"image_primary": rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)},
+            readout_attention=rng.dirichlet(np.ones(26), size=(2, 4, 2)).astype(np.float32),
+            actions_predicted=np.zeros((3, 7), np.float32), action_executed=np.zeros(7, np.float32), reward=0.0,
+            success=False, masks={"image_primary": {"target": target, "robot": ~target}}, tokens=tokens))
+    writer.finish({})
+    ep = tmp_path / "ep"
+    assert sorted(p.name for p in ep.glob("*.png")) == [f"step_{t:04d}_layer_{l:02d}.png" for t in range(2) for l in range(2)]
+    with np.load(ep / "attention.npz") as z:
+        assert list(z["tokens/group"]).count("obs_proprio") == 8 and z["readout_attention"].shape == (2, 2, 4, 2, 26)
+        shares = sum(z[f"metrics/share/{k}"] for k in ("primary", "lowdim", "readout"))
+        np.testing.assert_allclose(shares, 1.0, atol=1e-5)
+        assert "metrics/share/language" in z.files and np.all(z["metrics/share/language"] == 0)
