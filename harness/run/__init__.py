@@ -3,7 +3,8 @@
     from harness.run import execute, Protocol
     summary = execute(Protocol(model="random:octo-small-1.5", tasks=("Lift",), episodes=2), "results/runs")
 
-protocol.py  Protocol (frozen, serialisable, fingerprinted), EpisodeJob, diff, model_fingerprint
+jobs.py      EpisodeJob (task, episode, seed), FORMAT
+protocol.py  Protocol (frozen, serialisable, fingerprinted), diff, model_fingerprint
 settings.py  flags / protocol file (TOML) -> Protocol
 checks.py    checks before anything heavy (one-line errors)
 store.py     the run folder: lock, manifest, results.jsonl, derived tables, clean-up; EpisodeRow
@@ -12,13 +13,20 @@ driver.py    execute(): the pipeline, resume, signals, RunSummary
 progress.py  progress bar
 """
 
-from harness.run.driver import Interrupted, ProtocolMismatchError, RunSummary, default_run_name, execute
-from harness.run.executor import EpisodeContext, Executor, SequentialExecutor, make_env, record_failure, run_episode
-from harness.run.protocol import EpisodeJob, Protocol, diff, model_fingerprint
-from harness.run.store import EpisodeRow, ResultsWriteError, RunLockedError, RunStore
+import importlib
 
-__all__ = [
-    "EpisodeContext", "EpisodeJob", "EpisodeRow", "Executor", "Interrupted", "Protocol", "ProtocolMismatchError",
-    "ResultsWriteError", "RunLockedError", "RunStore", "RunSummary", "SequentialExecutor", "default_run_name", "diff",
-    "execute", "make_env", "model_fingerprint", "record_failure", "run_episode",
-]
+_EXPORTS = {
+    "Interrupted": "driver", "ProtocolMismatchError": "driver", "RunSummary": "driver", "default_run_name": "driver",
+    "execute": "driver", "EpisodeContext": "executor", "Executor": "executor", "SequentialExecutor": "executor",
+    "make_env": "executor", "record_failure": "executor", "run_episode": "executor", "EpisodeJob": "jobs",
+    "Protocol": "protocol", "diff": "protocol", "model_fingerprint": "protocol", "EpisodeRow": "store",
+    "ResultsWriteError": "store", "RunLockedError": "store", "RunStore": "store",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    """Lazy exports: readers importing harness.run.store do not pay for the simulator and model imports."""
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(f"harness.run.{_EXPORTS[name]}"), name)
+    raise AttributeError(f"module 'harness.run' has no attribute {name!r}")

@@ -7,7 +7,7 @@ import sys
 import time
 from typing import TextIO
 
-from harness.run.protocol import EpisodeJob
+from harness.run.jobs import EpisodeJob
 from harness.run.store import EpisodeRow
 
 

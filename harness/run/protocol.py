@@ -23,9 +23,9 @@ from typing import Any, Mapping
 from envs.options import EnvOptions
 from harness.files import json_safe
 from harness.policy import PolicyConfig
+from harness.run.jobs import FORMAT, EpisodeJob  # noqa: F401  (re-exported)
 from harness.writers import OutputOptions
 
-FORMAT = "octo-harness-run/1"
 
 
 def harness_version() -> str:
@@ -35,23 +35,6 @@ def harness_version() -> str:
         return version("octo-harness")
     except Exception:  # not installed (running from a checkout)
         return "0+unknown"
-
-
-@dataclass(frozen=True, order=True)
-class EpisodeJob:
-    """One episode to run: the unit executors receive. `directory` is relative to the run folder."""
-
-    task: str
-    episode: int
-    seed: int
-
-    @property
-    def key(self) -> tuple[str, int]:
-        return (self.task, self.episode)
-
-    @property
-    def directory(self) -> str:
-        return f"{self.task}/episode_{self.episode}"
 
 
 @dataclass(frozen=True)

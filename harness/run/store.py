@@ -31,7 +31,7 @@ from typing import Any, Iterable
 
 from harness.analysis.stats import success_summary
 from harness.files import atomic_write_json, json_safe, write_atomic
-from harness.run.protocol import FORMAT, EpisodeJob
+from harness.run.jobs import FORMAT, EpisodeJob
 
 LOCK = ".lock"
 MANIFEST = "manifest.json"
