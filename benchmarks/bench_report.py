@@ -139,17 +139,21 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--heads", type=int, default=12)
     parser.add_argument("--workers", type=int, default=None, help="report worker processes [report default]")
-    parser.add_argument("--keep", type=Path, default=None, help="generate into this folder and keep it")
+    parser.add_argument("--keep", type=Path, default=None,
+                        help="generate into this folder and keep it (a folder kept earlier is reused, not regenerated)")
     args = parser.parse_args()
 
     root = args.keep or Path(tempfile.mkdtemp(prefix="bench_report_"))
     try:
         start = time.perf_counter()
-        run = generate(root, args.tasks, args.episodes, args.steps, args.heads)
+        if (root / "bench-run" / "results.json").is_file():  # --keep DIR from an earlier call: time the report again
+            run = root / "bench-run"
+        else:
+            run = generate(root, args.tasks, args.episodes, args.steps, args.heads)
         generated = time.perf_counter() - start
         size = sum(p.stat().st_size for p in run.rglob("*.npz"))
-        n = args.tasks * args.episodes
-        print(f"generated {args.tasks} tasks x {args.episodes} episodes x {args.steps} steps "
+        n = len(json.loads((run / "manifest.json").read_text())["jobs"])
+        print(f"data: {args.tasks} tasks x {args.episodes} episodes x {args.steps} steps "
               f"({LAYERS} layers, {args.heads} heads, {TOKENS.num_keys} keys): {size / 1e9:.2f} GB of arrays in {generated:.0f} s")
         result = build_report([run], root / "report", ReportOptions(workers=args.workers))
         print(f"report: {result.seconds:.1f} s wall for {result.episodes} episodes ({result.episodes / result.seconds:.1f} "

@@ -456,7 +456,7 @@ def _cross_task(runs: list[RunData], tasks: list[str], plots: _Plots) -> str:
         data = {t: (s["success_rate"], s["ci_low"], s["ci_high"], s["n"]) for t, s in run.success.items()}
         series.append((run.label, run.colour, data))
     body.append(plots.add("success_by_task", figures.success_chart(tasks, series), "success rate per task",
-                          "Success rate per task with 95% Wilson intervals (finished, non-errored episodes; n below "
+                          "Success rate per task with 95% Wilson intervals (finished, non-errored episodes; n above "
                           "each bar)."))
     panels = []
     for run in runs:
