@@ -181,8 +181,8 @@ class BatchInference:
         self.statistics = model.unnormalization_statistics(self.dataset_key) if self.dataset_key else None
         self.lowdim_statistics = lowdim_statistics(model, self.dataset_key, config.proprio_normalization)
         # the dimension of the actions handed to the env: the statistics' (Octo keeps those), else the head's
-        self.action_dim = int(len(self.statistics["mean" if config.action_normalization == "normal" else "p01"])) \
-            if self.statistics else int(model.action_dim)
+        dims = [len(self.statistics[k]) for k in ("mask", "mean", "p01") if self.statistics and k in self.statistics]
+        self.action_dim = dims[0] if dims else int(model.action_dim)
         self._tasks: dict[tuple, dict] = {}  # TaskSpec.key -> batch-1 task (one per distinct instruction/goals)
 
     def task(self, spec: TaskSpec) -> dict:
