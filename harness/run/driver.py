@@ -26,7 +26,7 @@ import numpy as np
 from harness.run import checks
 from harness.run.executor import EpisodeContext, Executor, SequentialExecutor, StepCallback
 from harness.run.progress import Progress
-from harness.run.protocol import FORMAT, EpisodeJob, Protocol, diff, model_fingerprint
+from harness.run.protocol import FORMAT, EpisodeJob, Protocol, diff, goal_fingerprint, model_fingerprint
 from harness.run.store import MANIFEST, EpisodeRow, RunStore, now_utc, statistics
 
 log = logging.getLogger(__name__)
@@ -207,8 +207,8 @@ def execute(
     checks.check_environment()
     out = checks.check_destination(Path(out))
     fingerprint, fingerprint_details = model_fingerprint(protocol.model)
-    protocol = protocol.fingerprinted() if protocol.goal_images else protocol
-    protocol = protocol.replace(model_fingerprint=fingerprint)
+    goals_fp = goal_fingerprint(protocol.goal_images) if protocol.goal_images else None
+    protocol = protocol.replace(model_fingerprint=fingerprint, goal_fingerprint=goals_fp)
     goal_images = checks.decode_goal_images(protocol.goal_images) if protocol.goal_images else None
     name = checks.check_run_name(run_name) if run_name is not None else default_run_name(protocol)
     store = RunStore(out / name)
