@@ -629,6 +629,20 @@ def _check_out(out: Path, runs: list[RunRecord]) -> None:
             raise ReportError(f"--out {out} is a run folder; choose another folder (default: RUN_DIR/report)")
 
 
+def _remove_stale_staging(out: Path) -> None:
+    """Delete `.<out>.tmp-<pid>` / `.<out>.old-<pid>` folders left by report processes that no longer run."""
+    for path in out.parent.glob(f".{out.name}.*-*"):
+        kind, _, pid = path.name[len(out.name) + 2:].partition("-")
+        if kind not in ("tmp", "old") or not pid.isdigit():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(path, ignore_errors=True)
+        except PermissionError:  # another user's live process
+            pass
+
+
 @dataclass(frozen=True)
 class ReportResult:
     out: Path
@@ -680,6 +694,7 @@ def build_report(run_dirs: list[str | Path], out: str | Path | None = None, opti
     document = H.page(title, "".join(body), subtitle, toc, footer="octo-harness report")
 
     tables = _tables(runs)
+    _remove_stale_staging(out)
     staging = out.parent / f".{out.name}.tmp-{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)
     try:
