@@ -225,3 +225,24 @@ def test_progress_prints_one_line_per_episode_with_successes_and_eta_when_not_a_
     lines = stream.getvalue().splitlines()
     assert lines[0].startswith("[2/4] Lift/episode_1: no success") and "success 1/2" in lines[0] and "ETA" in lines[0]
     assert lines[1].startswith("[3/4] Lift/episode_2: FAILED") and "success 1/3" in lines[1]
+
+
+def test_checkpoint_conventions_fill_what_the_user_did_not_give(fixtures_dir, tmp_path):
+    import shutil
+
+    from harness.conventions import CheckpointConventions
+
+    ckpt = tmp_path / "ckpt"
+    shutil.copytree(fixtures_dir / "tiny", ckpt)
+    os.chmod(ckpt, 0o755)
+    CheckpointConventions(env={"cameras": {"image_primary": ["agentview", 84]}, "action_space": "robosuite"},
+                          policy={"execution": "receding_horizon", "receding_steps": 2}).write(ckpt)
+    p = build_protocol({"task": ["Lift"], "model": str(ckpt)})
+    assert p.env.cameras == (("image_primary", "agentview", 84),) and p.env.action_space == "robosuite"
+    assert p.policy.execution == "receding_horizon" and p.policy.receding_steps == 2
+    # flags (or protocol-file keys) win over the checkpoint's conventions
+    p = build_protocol({"task": ["Lift"], "model": str(ckpt), "camera": ["image_primary=agentview:96"],
+                        "receding_steps": 3, "action_space": "octo-delta"})
+    assert p.env.cameras == (("image_primary", "agentview", 96),) and p.env.action_space == "octo-delta"
+    assert p.policy.receding_steps == 3
+    assert model_fingerprint(str(ckpt))[1]["files"].keys() >= {"harness.toml"}  # conventions are part of the model
