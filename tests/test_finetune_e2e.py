@@ -102,7 +102,7 @@ def finetuned(fixtures_dir, tmp_path_factory):
 @pytest.fixture(scope="module")
 def env():
     options = CONVENTIONS.env_options({"masks": True, "fast_render": True})
-    e = envs.make("Lift", options)
+    e = envs.make("Lift", options, render_mode="rgb_array")
     yield e
     e.close()
 
@@ -234,3 +234,16 @@ def test_robosuite_action_space_reaches_the_controller_unchanged(env):
     np.testing.assert_array_equal(seen[0], [0.5, -0.25, 0.0, 0.0, 0.0, 0.1, 1.0])  # gripper +1 = closed, as stored
     np.testing.assert_array_equal(seen[1], [0.5, -0.25, 1.0, 0.0, 0.0, 0.1, -1.0])
     assert info["action_clipped"] == 1
+
+
+def test_opengl_env_images_masks_and_target_pixels_agree_upside_down(env):
+    """In the opengl convention the red cube, its mask and its projected pixel all sit in the flipped frame."""
+    obs, info = env.reset(seed=0)
+    image = obs["image_primary"].astype(np.float64)
+    assert image[:16].mean() > image[-16:].mean() + 30  # the white table is at the TOP of an opengl frame
+    target = info["masks"]["image_primary"]["target"]
+    row, col = np.round(info["target_pixels"]["image_primary"][0]).astype(int)
+    assert target[row, col]
+    r, g, b = obs["image_primary"][row, col].astype(int)
+    assert r > 80 and r > 1.5 * g and r > 1.5 * b
+    np.testing.assert_array_equal(env.render(), obs["image_primary"][::-1])  # render() is for people: upright
