@@ -199,6 +199,11 @@ class RayExecutor:
         self.replica_stats: list[dict] = []
         self._ray = None
         self._started_ray = False
+        self._actors: dict = {}
+        self._replicas: list = []
+        self._marker: Path | None = None
+        self._token = ""
+        self._worker_cls = None
 
     def _init(self):
         ray = import_ray()
@@ -227,45 +232,48 @@ class RayExecutor:
                                    f"replica(s) need {self.workers + self.replicas}: lower --workers or add nodes")
         return 1.0 if gpus >= self.replicas else 0.0
 
+    def _start(self, warmup: TaskSpec | None) -> None:
+        """Start Ray, the policy replicas and the env-worker actors; check the shared folder and warm up."""
+        ray = self._init()
+        gpus = self._check_resources(ray)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._marker = self.run_dir / f"{MARKER_PREFIX}{uuid.uuid4().hex}"
+        self._token = uuid.uuid4().hex
+        self._marker.write_text(self._token)
+        replica_cls = ray.remote(num_cpus=1, num_gpus=gpus)(PolicyReplica)
+        self._worker_cls = ray.remote(num_cpus=1, max_restarts=0)(EnvWorker)
+        sizes = batch_sizes_for(-(-self.workers // self.replicas))
+        self._replicas = [replica_cls.remote(self.model_source, self.spec.policy, sizes) for _ in range(self.replicas)]
+        warming = [r.warm_up.remote(warmup_request(self.spec.shape, warmup)) for r in self._replicas] if warmup else []
+        for i in range(self.workers):
+            self._start_worker(i)
+        try:  # env workers check the shared folder while the replicas load the model and compile
+            ray.get([a.ready.remote() for a in self._actors.values()])
+            ray.get(warming)
+        except (ray.exceptions.RayActorError, ray.exceptions.RayTaskError) as exc:
+            raise RayExecutorError(_last_line(exc)) from None
+
+    def _start_worker(self, i: int):
+        self._actors[i] = self._worker_cls.remote(self.spec, self._replicas[i % self.replicas], (str(self._marker), self._token))
+        return self._actors[i]
+
     def run(self, jobs: Iterable[Any], on_step=None) -> Iterator[Any]:
-        """Yield one row per job as each finishes (on_step is not forwarded: steps happen on other processes)."""
+        """Yield one row per job as each finishes (on_step is not forwarded: steps happen on other processes).
+
+        The actors stay for the next `run` until `close()`; an exception (Ctrl-C) stops everything at once."""
         jobs = list(jobs)
-        warmup = warmup_task(self.context, jobs)
         queue = collections.deque(jobs)
         if not queue:
             return
-        ray = self._init()
-        marker = self.run_dir / f"{MARKER_PREFIX}{uuid.uuid4().hex}"
-        actors: dict = {}
-        replicas: list = []
+        completed = False
         try:
-            gpus = self._check_resources(ray)
-            self.run_dir.mkdir(parents=True, exist_ok=True)
-            token = uuid.uuid4().hex
-            marker.write_text(token)
-            replica_cls = ray.remote(num_cpus=1, num_gpus=gpus)(PolicyReplica)
-            worker_cls = ray.remote(num_cpus=1, max_restarts=0)(EnvWorker)
-            sizes = batch_sizes_for(-(-self.workers // self.replicas))
-            replicas = [replica_cls.remote(self.model_source, self.spec.policy, sizes) for _ in range(self.replicas)]
-            warming = [r.warm_up.remote(warmup_request(self.spec.shape, warmup)) for r in replicas] if warmup else []
-
-            def start(i: int):
-                actor = worker_cls.remote(self.spec, replicas[i % self.replicas], (str(marker), token))
-                actors[i] = actor
-                return actor
-
-            n = min(self.workers, len(queue))
-            for i in range(n):
-                start(i)
-            try:  # env workers check the shared folder while the replicas load the model and compile
-                ray.get([a.ready.remote() for a in actors.values()])
-                ray.get(warming)
-            except (ray.exceptions.RayActorError, ray.exceptions.RayTaskError) as exc:
-                raise RayExecutorError(_last_line(exc)) from None
+            if self._ray is None:
+                self._start(warmup_task(self.context, jobs))
+            ray = self._ray
             in_flight: dict = {}
-            for i in range(n):
+            for i in range(min(self.workers, len(queue))):
                 job = queue.popleft()
-                in_flight[actors[i].run.remote(job)] = (i, job)
+                in_flight[self._actors[i].run.remote(job)] = (i, job)
             while in_flight:
                 (ref,), _ = ray.wait(list(in_flight), num_returns=1)
                 i, job = in_flight.pop(ref)
@@ -274,38 +282,36 @@ class RayExecutor:
                 except ray.exceptions.RayActorError as exc:
                     cause = actor_death_cause(exc)
                     log.error("env worker %d died running %s: %s", i, job, cause)
-                    row = self.spec.failed_row(job, cause)
-                    ray.kill(actors[i], no_restart=True)
-                    if queue:
-                        self.replacements += 1
-                        start(i)
+                    row = self.spec.died_row(job, cause)
+                    ray.kill(self._actors[i], no_restart=True)
+                    self.replacements += 1
+                    self._start_worker(i)
                 except ray.exceptions.RayTaskError as exc:  # a bug in the episode function itself
-                    row = self.spec.failed_row(job, " ".join(str(exc.cause if hasattr(exc, "cause") else exc).split())[:300])
+                    row = self.spec.failed_row(job, RuntimeError(_last_line(exc)), str(exc))
                 yield row
                 if queue:
                     job = queue.popleft()
-                    in_flight[actors[i].run.remote(job)] = (i, job)
-            self.replica_stats = ray.get([r.stats.remote() for r in replicas])
+                    in_flight[self._actors[i].run.remote(job)] = (i, job)
+            self.replica_stats = ray.get([r.stats.remote() for r in self._replicas])
+            completed = True
         finally:
-            self._stop(actors, replicas, marker)
+            if not completed:
+                self.close()
 
-    def _stop(self, actors: dict, replicas: list, marker: Path) -> None:
+    def close(self) -> None:
+        """Kill every actor, remove the marker and stop a Ray instance started here (idempotent)."""
         ray = self._ray
         if ray is None:
             return
-        for actor in list(actors.values()) + replicas:
+        for actor in list(self._actors.values()) + self._replicas:
             try:
                 ray.kill(actor, no_restart=True)
             except Exception:  # already dead
                 pass
-        marker.unlink(missing_ok=True)
+        self._actors, self._replicas = {}, []
+        if self._marker is not None:
+            self._marker.unlink(missing_ok=True)
         if self._started_ray:
             ray.shutdown()
             self._started_ray = False
         self._ray = None
-
-    def close(self) -> None:
-        """Called by the driver after run(); run() already stopped everything it started (idempotent)."""
-        if self._ray is not None and self._started_ray:
-            self._ray.shutdown()
-            self._started_ray = False

@@ -47,7 +47,7 @@ import shutil
 import signal
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing.connection import Connection, wait
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
@@ -71,10 +71,12 @@ class PolicyShape:
     window_size: int
     action_horizon: int
     dataset_key: str | None
+    lowdim_sizes: dict = field(default_factory=dict)  # low-dim obs key -> dims (e.g. {"proprio": 8})
 
     @classmethod
     def of(cls, model, dataset_key: str | None) -> "PolicyShape":
-        return cls(dict(model.image_sizes), int(model.window_size), int(model.action_horizon), dataset_key)
+        return cls(dict(model.image_sizes), int(model.window_size), int(model.action_horizon), dataset_key,
+                   dict(getattr(model, "lowdim_sizes", None) or {}))
 
 
 @dataclass(frozen=True)
@@ -119,8 +121,9 @@ def warmup_request(shape: PolicyShape, task: TaskSpec) -> InferenceRequest:
     """A zero observation window of the model's sizes (compilation depends on shapes only)."""
     window = shape.window_size
     obs: dict = {k: np.zeros((window, h, w, 3), np.uint8) for k, (h, w) in shape.image_sizes.items()}
+    obs.update({k: np.zeros((window, n), np.float32) for k, n in shape.lowdim_sizes.items()})
     obs["timestep_pad_mask"] = np.ones((window,), bool)
-    obs["pad_mask_dict"] = {k: np.ones((window,), bool) for k in shape.image_sizes}
+    obs["pad_mask_dict"] = {k: np.ones((window,), bool) for k in [*shape.image_sizes, *shape.lowdim_sizes]}
     return InferenceRequest(obs, task, 0, 0)
 
 
@@ -236,6 +239,7 @@ class WorkerPool:
         self._pool: dict[int, _Worker] = {}
         self._next_index = 0
         self.replacements = 0
+        self._warm = False
         self.batches: list[int] = []  # number of real requests in each inference call (for statistics/tests)
 
     # -------------------------------------------------------------- lifecycle
@@ -275,22 +279,28 @@ class WorkerPool:
     def warm_up(self, task: TaskSpec) -> None:
         """Compile every fixed batch size once (and build the first task)."""
         self.inference.warm_up(warmup_request(self.spec.shape, task))
+        self._warm = True
 
     # -------------------------------------------------------------- the loop
 
     def run(self, jobs: Iterable[Any], *, warmup_task: TaskSpec | None = None) -> Iterator[Any]:
-        """Yield one row per job as each finishes. Ctrl-C (or closing the generator) stops the workers, no orphans."""
+        """Yield one row per job as each finishes. The workers stay for the next `run` until `shutdown()`;
+        Ctrl-C (or closing the generator early) stops them at once, leaving no process behind."""
         queue = collections.deque(jobs)
         if not queue:
             return
         finished: list = []
+        completed = False
         try:
-            for _ in range(min(self.workers, len(queue))):
-                self._assign(self._start_worker(), queue)  # workers make their envs while the model compiles
-            if warmup_task is not None:
+            idle = [w for w in self._pool.values() if w.job is None]
+            for _ in range(min(self.workers - len(self._pool), len(queue))):
+                self._assign(self._start_worker(), queue)  # new workers make their envs while the model compiles
+            for w in idle:
+                self._assign(w, queue)
+            if warmup_task is not None and not self._warm:
                 self.warm_up(warmup_task)
             waiting: list[tuple[_Worker, InferenceRequest]] = []
-            while queue or finished or any(w.job is not None for w in self._pool.values()):
+            while True:
                 while finished:
                     yield finished.pop(0)
                 if not (queue or any(w.job is not None for w in self._pool.values())):
@@ -299,8 +309,10 @@ class WorkerPool:
                 if waiting:
                     self._serve(waiting)
                     waiting.clear()
+            completed = True
         finally:
-            self.shutdown()
+            if not completed:
+                self.shutdown()
 
     def _poll(self, queue, waiting, on_row, *, block: bool) -> None:
         """Handle every message (and worker death) that is ready; wait for one when `block`."""
@@ -431,6 +443,7 @@ class WorkersExecutor:
 
     def __init__(self, context: EpisodeContext, model, *, workers: int):
         self.context = context
+        self.workers = workers
         self.pool = WorkerPool(worker_spec(context, model), model, workers)
 
     def run(self, jobs: Sequence[EpisodeJob], on_step=None) -> Iterator[EpisodeRow]:
