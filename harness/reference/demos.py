@@ -20,10 +20,11 @@ Output: one `<task>.npz` per task under the output folder with
 
 from __future__ import annotations
 
+import json
 import logging
 import multiprocessing
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +41,7 @@ SEEDS_PER_JOB = 1_000  # seed block reserved for one recording job (dropped epis
 @dataclass(frozen=True)
 class DemoConfig:
     tasks: tuple[str, ...] = EXPERT_TASKS
-    episodes_per_task: int = 100
+    episodes_per_task: int = 64
     jobs_per_task: int = 4  # fixed split (not the worker count) so the data do not depend on the workers
     image_sizes: tuple[tuple[str, int], ...] = (("image_primary", 64), ("image_wrist", 64))
     fast_render: bool = True
@@ -140,6 +141,26 @@ def record_demos(config: DemoConfig, out_dir: str | Path, workers: int = 2) -> d
                          "dropped": int(sum(p[2] for p in parts)), "seed_min": int(min(seeds)), "seed_max": int(max(seeds))}
         log.info("%s: %s", task, summary[task])
     summary["seconds"] = time.perf_counter() - start
+    summary["config"] = config_fingerprint(config)
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def config_fingerprint(config: DemoConfig) -> dict:
+    """JSON-able description of a recording configuration (to reuse matching recordings)."""
+    return json.loads(json.dumps(asdict(config)))
+
+
+def existing_demos(config: DemoConfig, out_dir: str | Path) -> dict | None:
+    """The summary of a finished recording with exactly this configuration in `out_dir`, else None."""
+    path = Path(out_dir) / "summary.json"
+    if not path.is_file():
+        return None
+    summary = json.loads(path.read_text())
+    if summary.get("config") != config_fingerprint(config):
+        return None
+    if not all((Path(out_dir) / f"{t}.npz").is_file() for t in config.tasks):
+        return None
     return summary
 
 

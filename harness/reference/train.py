@@ -11,7 +11,8 @@ Output: Octo's save_pretrained layout,
   config.json (ModuleSpecs), example_batch.msgpack, dataset_statistics.json {DATASET_KEY: {action,
   proprio, num_transitions, num_trajectories}}, <step>/default/checkpoint (msgpack param dict),
   t5-tiny/config.json (HF T5 config, LanguageTokenizer encoder="t5-tiny"), tokenizer/tokenizer.json
-  (word-level, T5's special ids; text_processor tokenizer_name="tokenizer"),
+  (word-level, T5's special ids; text_processor tokenizer_name="tokenizer"), harness.toml (evaluation
+  conventions: robosuite action space, statistics key),
   training_curve.csv (step, loss, lr, seconds), training_curve.png.
 Periodic checkpoints replace the previous step folder, so a killed run keeps its latest weights.
 """
@@ -51,22 +52,22 @@ SPECIALS = ("<pad>", "</s>", "<unk>")  # T5's ids 0, 1, 2
 
 @dataclass(frozen=True)
 class TrainConfig:
-    steps: int = 6000
-    batch_size: int = 64
-    learning_rate: float = 3e-4
-    warmup_steps: int = 300
+    steps: int = 2000
+    batch_size: int = 32
+    learning_rate: float = 4e-4
+    warmup_steps: int = 200
     weight_decay: float = 1e-4
     grad_clip: float = 1.0
     seed: int = 0
     log_every: int = 50
-    checkpoint_every: int = 500
+    checkpoint_every: int = 250
     shift_pixels: int = 4  # random-shift augmentation (pad + random crop) of every camera image
     paraphrase_probability: float = 0.25  # train on a paraphrase of the task's instruction this often
     # architecture
     width: int = 128
     layers: int = 4
     heads: int = 4
-    mlp_dim: int = 512
+    mlp_dim: int = 256
     stem_features: tuple[int, ...] = (32, 32, 64, 128)
     image_sizes: tuple[tuple[str, int], ...] = (("image_primary", 64), ("image_wrist", 64))
     action_horizon: int = 4
@@ -115,8 +116,18 @@ def model_config(cfg: TrainConfig) -> dict:
                                 tokenizer_kwargs={"max_length": LANGUAGE_TOKENS, "padding": "max_length",
                                                   "truncation": True, "return_tensors": "np"}),
         "window_size": 1,
-        "action_space": "robosuite",
     }
+
+
+def conventions_toml() -> str:
+    """harness.toml: how octo-harness evaluates this checkpoint (see harness.conventions)."""
+    return (
+        '# How octo-harness evaluates this checkpoint (trained on robosuite OSC_POSE inputs, default cameras\n'
+        '# agentview 256 px and eye-in-hand 128 px resized to 64 px, upright images, fast render).\n'
+        'format = "octo-harness-conventions/1"\n\n'
+        '[env]\naction_space = "robosuite"\nimage_convention = "upright"\n\n'
+        f'[policy]\ndataset_key = "{DATASET_KEY}"\naction_normalization = "normal"\nproprio_normalization = "normal"\n'
+    )
 
 
 def words(text: str) -> list[str]:
@@ -372,9 +383,9 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
             "pad_mask_dict": {"language_instruction": np.ones((1,), bool)},
         },
         "action": np.zeros((1, 1, cfg.action_horizon, ACTION_DIM), np.float32),
-        "dataset_name": np.array([DATASET_KEY.encode()]),
     }
     write_static_files(out_dir, config_dict, tokenizer, t5_dict, data.statistics, example_batch)
+    (out_dir / "harness.toml").write_text(conventions_toml())
     for name, content in (extra_files or {}).items():
         (out_dir / name).write_text(content)
 
