@@ -180,6 +180,30 @@ def test_a_worker_killed_mid_episode_fails_that_episode_is_replaced_and_the_run_
     assert _no_temporaries(summary.run_dir)
 
 
+def test_an_env_worker_that_cannot_see_the_run_folder_names_its_node_and_the_fix(tmp_path):
+    from harness.run.ray_executor import EnvWorker, RayExecutorError
+
+    (tmp_path / "marker").write_text("token")
+    with pytest.raises(RayExecutorError, match=r"not visible from node .*filesystem every Ray node mounts"):
+        EnvWorker(None, None, (str(tmp_path / "elsewhere"), "token"))
+    with pytest.raises(RayExecutorError, match="not visible"):
+        EnvWorker(None, None, (str(tmp_path / "marker"), "another run's token"))
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--workers", "0"], "--workers must be at least 1"),
+    (["--ray-address", "auto"], "need --executor ray"),
+    (["--executor", "ray", "--policy-replicas", "0"], "--policy-replicas must be at least 1"),
+])
+def test_impossible_execution_options_are_one_line_before_anything_loads(fixtures_dir, tmp_path, capsys, flags, message):
+    from harness import cli
+
+    code = cli.main(["run", "--task", "Lift", "--model", str(fixtures_dir / "tiny"), "--out", str(tmp_path), *flags])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0]
+    assert not any(tmp_path.iterdir())  # nothing written
+
+
 # ---------------------------------------------------------------------------------------------- the command line
 
 

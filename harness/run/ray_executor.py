@@ -168,7 +168,8 @@ class EnvWorker:
 def _last_line(exc: BaseException) -> str:
     """The last non-empty line of a Ray error (the underlying exception's message)."""
     lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
-    return lines[-1] if lines else type(exc).__name__
+    line = lines[-1] if lines else type(exc).__name__
+    return line.split("RayExecutorError: ", 1)[-1]  # our own one-line errors, raised inside an actor
 
 
 def actor_death_cause(exc: BaseException) -> str:
