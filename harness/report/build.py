@@ -1,7 +1,9 @@
 """`octo-harness report`: read runs, aggregate attention per task, draw figures, write report.html + tables + plots.
 
-Pipeline: load_run (metadata) -> per finished episode, in worker processes: attention.npz -> measures ->
-summary (harness.analysis.aggregate) -> per run and task: bootstrap tables -> figures -> HTML. Output folder:
+Pipeline: load_run (metadata) -> per finished episode: the measures stored in attention.npz (older runs: measured
+from readout_attention, in worker processes when large) -> summary (harness.analysis.aggregate) -> per run and
+task: bootstrap tables (harness.report.rundata) -> overlay grids (videos decoded in background threads) ->
+page (harness.report.page) -> files. Output folder:
 
   report.html        one self-contained file (images inlined as base64 PNG, videos linked relatively)
   tables/layers.csv  long format: run, task, layer, head ("mean"), metric, value, ci_low, ci_high, outcome, n
@@ -24,9 +26,8 @@ import math
 import os
 import shutil
 import time
-from collections import defaultdict
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -35,12 +36,10 @@ import numpy as np
 from harness.analysis import aggregate as agg
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays, load_run
 from harness.analysis.stats import success_summary
-from harness.report import figures
-from harness.report import html as H
+from harness.report import figures, page
+from harness.report.rundata import RunData, episode_headline, representative
 
 VIDEO_DISPLAY = 256  # harness.overlays.video_frame's `display`: the camera frame fills the video's top-left display x w
-SHARE_COLOURS = {"primary": "#4c72b0", "wrist": "#55a868", "language": "#c44e52", "readout": "#8172b2",
-                 "proprio": "#ccb974", "other": "#999999", "earlier timesteps": "#64b5cd"}
 
 
 class ReportError(ValueError):
@@ -64,63 +63,6 @@ class ReportOptions:
             raise ReportError(f"confidence must be between 0 and 1, got {self.confidence}")
         if self.workers is not None and self.workers < 1:
             raise ReportError(f"workers must be >= 1, got {self.workers}")
-
-
-@dataclass
-class RunData:
-    """Everything the page needs about one run."""
-
-    record: RunRecord
-    label: str
-    colour: str
-    summaries: dict[tuple[str, int], agg.EpisodeSummary] = field(default_factory=dict)
-    errors: dict[tuple[str, int], str] = field(default_factory=dict)  # episodes whose arrays could not be analysed
-    rows: dict[str, list[tuple]] = field(default_factory=lambda: {"layers": [], "heads": [], "progress": []})
-    success: dict[str, dict] = field(default_factory=dict)  # task -> success_summary(...) + counts
-    headline: str | None = None  # e.g. mask_lift/image_primary/target
-    cameras: list[str] = field(default_factory=list)
-
-    def layer_values(self, task: str, metric: str, outcome: str = "all") -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        return self._index.get(("layers", task, outcome, metric))
-
-    def head_values(self, task: str, metric: str, outcome: str = "all") -> np.ndarray | None:
-        found = self._index.get(("heads", task, outcome, metric))
-        return None if found is None else found[0]
-
-    def progress_values(self, task: str, metric: str, layer: int, outcome: str = "all"):
-        return self._index.get(("progress", task, outcome, metric, layer))
-
-    def build_index(self) -> None:
-        """(table, task, outcome, metric[, layer]) -> arrays, from the long rows."""
-        index: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        grouped: dict[tuple, list[tuple]] = defaultdict(list)
-        for r in self.rows["layers"]:
-            grouped[("layers", r[1], r[8], r[4])].append(r)
-        for key, rows in grouped.items():
-            layers = max(r[2] for r in rows) + 1
-            v, lo, hi = (np.full(layers, np.nan) for _ in range(3))
-            for r in rows:
-                v[r[2]], lo[r[2]], hi[r[2]] = r[5], r[6], r[7]
-            index[key] = (v, lo, hi)
-        grouped = defaultdict(list)
-        for r in self.rows["heads"]:
-            grouped[("heads", r[1], r[8], r[4])].append(r)
-        for key, rows in grouped.items():
-            shape = (max(r[2] for r in rows) + 1, max(r[3] for r in rows) + 1)
-            v, lo, hi = (np.full(shape, np.nan) for _ in range(3))
-            for r in rows:
-                v[r[2], r[3]], lo[r[2], r[3]], hi[r[2], r[3]] = r[5], r[6], r[7]
-            index[key] = (v, lo, hi)
-        grouped = defaultdict(list)
-        for r in self.rows["progress"]:
-            grouped[("progress", r[1], r[8], r[4], r[2])].append(r)
-        for key, rows in grouped.items():
-            bins = max(r[10] for r in rows) + 1
-            v, lo, hi = (np.full(bins, np.nan) for _ in range(3))
-            for r in rows:
-                v[r[10]], lo[r[10]], hi[r[10]] = r[5], r[6], r[7]
-            index[key] = (v, lo, hi)
-        self._index = index
 
 
 # ---- episode analysis (runs in worker processes) ----------------------------------------------------------------
@@ -242,21 +184,6 @@ def _evenly(n: int, k: int) -> list[int]:
     return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)})
 
 
-def _representative(run: RunData, task: str) -> EpisodeRecord | None:
-    analysed = [e for e in run.record.task_episodes(task) if e.ok and (task, e.episode) in run.summaries]
-    if not analysed:
-        return None
-    values = np.array([_episode_headline(run, e) for e in analysed])
-    return analysed[agg.representative_index(values)]
-
-
-def _episode_headline(run: RunData, e: EpisodeRecord) -> float:
-    summary = run.summaries.get((e.task, e.episode))
-    if summary is None or run.headline is None or run.headline not in summary.layer:
-        return float("nan")
-    return float(summary.layer[run.headline][-1])
-
-
 def _overlay_png(run: RunData, episode: EpisodeRecord, options: ReportOptions) -> tuple[bytes, str] | None:
     from harness.attention import camera_maps
     from harness.octo.tokens import TokenMap
@@ -293,289 +220,6 @@ def _overlay_png(run: RunData, episode: EpisodeRecord, options: ReportOptions) -
     return png, f"{camera}, episode {episode.episode}{note}"
 
 
-# ---- page ------------------------------------------------------------------------------------------------------
-
-
-def _metric_label(metric: str) -> str:
-    parts = metric.split("/")
-    if parts[0] == "mask_lift":
-        return f"{parts[2]} lift ({parts[1]})"
-    if parts[0] == "mask_mass":
-        return f"{parts[2]} mass ({parts[1]})"
-    if parts[0] == "share":
-        return f"share: {parts[1]}"
-    if parts[0] == "timestep_share":
-        return f"share: {parts[1]} timestep" + ("s" if parts[1] == "earlier" else "")
-    return metric
-
-
-def _share_categories(runs: list[RunData]) -> list[tuple[str, str]]:
-    """[(label, metric)] of the modality shares plus the earlier-timesteps share, in a fixed order."""
-    metrics: list[str] = []
-    for run in runs:
-        for r in run.rows["layers"]:
-            if r[4].startswith("share/") and r[4] not in metrics:
-                metrics.append(r[4])
-    order = ["primary", "wrist", "language", "readout"]
-    metrics.sort(key=lambda m: (order.index(m[6:]) if m[6:] in order else len(order), m))
-    out = [(m[6:], m) for m in metrics]
-    if any(r[4] == "timestep_share/earlier" for run in runs for r in run.rows["layers"]):
-        out.append(("earlier timesteps", "timestep_share/earlier"))
-    return out
-
-
-def _mask_metric(run: RunData, name: str) -> str | None:
-    """mask_lift / mask_mass metric of a mask name on the headline camera."""
-    if run.headline is None:
-        return None
-    return run.headline.replace("/target", f"/{name}")
-
-
-def _last(values) -> float:
-    return float(values[-1]) if values is not None and len(values) else float("nan")
-
-
-def _task_table(runs: list[RunData], task: str) -> str:
-    header = ["run", "episodes done / jobs", "missing", "errored", "success (95% Wilson)",
-              "target lift, last layer", "robot mass, last layer", "entropy, last layer (nats)"]
-    rows = []
-    for run in runs:
-        s = run.success.get(task)
-        if s is None:
-            rows.append([H.swatch(run.colour, run.label), H.absent("task not in this run"), "", "", "", "", "", ""])
-            continue
-        done = s["jobs"] - s["missing"]
-        rate = (H.fmt_ci(s["success_rate"], s["ci_low"], s["ci_high"]) if s["n"] else H.absent("no finished episode"))
-        cells = [H.swatch(run.colour, run.label), f"{done} / {s['jobs']}", s["missing"], s["errored"],
-                 H.Raw(f"{s['successes']}/{s['n']} = {rate}") if s["n"] else rate]
-        for metric in (run.headline, _mask_metric(run, "robot").replace("mask_lift", "mask_mass") if run.headline else None,
-                       "entropy"):
-            found = run.layer_values(task, metric) if metric else None
-            if found is None:
-                cells.append(H.absent("absent (no mask)" if metric != "entropy" else "n/a"))
-            else:
-                v, lo, hi = found
-                cells.append(H.fmt_ci(v[-1], lo[-1], hi[-1]))
-        rows.append(cells)
-    return H.table(header, rows, numeric=(2, 3))
-
-
-def _episode_rows(run: RunData, task: str, out: Path) -> tuple[str, str]:
-    """(table html, videos html) for the episodes of a task."""
-    rows, videos = [], []
-    rep = _representative(run, task)
-    for e in run.record.task_episodes(task):
-        if not e.ok:
-            note = H.Raw(f"<span style='color:#c0392b'>failed: {H.esc(e.error or 'error')}</span>")
-        elif (task, e.episode) in run.errors:
-            note = H.Raw(f"<span style='color:#c0392b'>not analysed: {H.esc(run.errors[(task, e.episode)])}</span>")
-        else:
-            note = "representative episode (overlays)" if rep is not None and e.episode == rep.episode else ""
-        value = _episode_headline(run, e)
-        rows.append([e.episode, "" if e.seed is None else e.seed, e.status, "yes" if e.success else "no", e.steps,
-                     H.fmt(value) if math.isfinite(value) else H.absent("n/a"), note])
-        if e.ok and e.video_path is not None:
-            rel = os.path.relpath(e.video_path, out)
-            videos.append(H.video(rel, f"episode {e.episode} (seed {e.seed}) — {'success' if e.success else 'no success'}"))
-    table = H.table(["episode", "seed", "status", "success", "steps", "target lift (last layer, mean over steps)", "note"],
-                    rows, numeric=(0, 1, 4, 5))
-    return table, "".join(videos)
-
-
-def _manifest_section(run: RunData) -> str:
-    r = run.record
-    parts = []
-    if r.model.is_random:
-        parts.append(H.banner(f"RANDOM WEIGHTS: {r.model.source} has random weights — its actions and attention are "
-                              "not a trained policy's. This run checks the pipeline, not Octo's behaviour.", danger=True))
-    protocol = r.manifest.get("protocol") or r.manifest
-    execution = protocol.get("execution")
-    pairs = [
-        ("run", f"{r.name} ({r.path})"),
-        ("format", r.format),
-        ("status", f"{r.status}; {len(r.episodes)} of {len(r.jobs)} jobs finished, {r.missing} missing"),
-        ("model", r.model.source + (" [RANDOM WEIGHTS]" if r.model.is_random else "")),
-        ("model note", r.model.note or "—"),
-        ("text tokenizer", r.model.text_tokenizer or "—"),
-        ("dataset key (action statistics)", r.model.dataset_key or "none"),
-        ("execution", execution if isinstance(execution, str) else (str(execution) if execution else "—")),
-        ("tasks", ", ".join(r.tasks)),
-        ("episodes per task, seed", f"{protocol.get('episodes', '?')}, {protocol.get('seed', '?')}"),
-        ("max steps", protocol.get("max_steps") if protocol.get("max_steps") is not None else "task default"),
-        ("created", r.created or "—"),
-        ("git commit", r.git_commit or "—"),
-        ("versions", ", ".join(f"{k} {v}" for k, v in sorted(r.versions.items())) or "—"),
-    ]
-    if "protocol_hash" in r.manifest:
-        pairs.append(("protocol hash", r.manifest["protocol_hash"]))
-    parts.append(H.key_values(pairs))
-    return H.section(f"Manifest: {run.label}", "".join(parts), anchor=H.anchor_id("manifest-" + run.label), level=3)
-
-
-def _status_banners(runs: list[RunData]) -> str:
-    out = []
-    for run in runs:
-        r = run.record
-        if r.model.is_random:
-            out.append(H.banner(f"{run.label}: RANDOM WEIGHTS ({r.model.source}) — actions and attention are not a "
-                                "trained policy's.", danger=True))
-        if r.missing:
-            per_task = ", ".join(f"{t}: {n}" for t, n in r.missing_by_task().items() if n)
-            state = {"running": "is still running", "interrupted": "was interrupted"}.get(r.status, "is incomplete")
-            out.append(H.banner(f"{run.label} {state}: {r.missing} of {len(r.jobs)} episodes missing ({per_task}). "
-                                f"This report shows the {len(r.episodes)} finished episodes."))
-        failed = [e for e in r.episodes if not e.ok]
-        if failed:
-            out.append(H.banner(f"{run.label}: {len(failed)} episode(s) failed with an error (listed per task); they "
-                                "have no attention and are left out of success rates and attention statistics."))
-        if run.errors:
-            out.append(H.banner(f"{run.label}: {len(run.errors)} finished episode(s) could not be analysed "
-                                "(listed per task)."))
-        if run.summaries and run.headline is None:
-            out.append(H.banner(f"{run.label} recorded no target masks: target and robot metrics are absent "
-                                "(not zero). Run without --no-masks to get them."))
-    return "".join(out)
-
-
-class _Plots:
-    """Collects figure PNGs: written to plots/<name>.png and inlined in the page."""
-
-    def __init__(self) -> None:
-        self.files: dict[str, bytes] = {}
-
-    def add(self, name: str, png: bytes, alt: str, caption: str) -> str:
-        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
-        self.files[safe + ".png"] = png
-        return H.image(png, alt, caption + f" (plots/{safe}.png)")
-
-
-def _cross_task(runs: list[RunData], tasks: list[str], plots: _Plots) -> str:
-    body = []
-    series = []
-    for run in runs:
-        data = {t: (s["success_rate"], s["ci_low"], s["ci_high"], s["n"]) for t, s in run.success.items()}
-        series.append((run.label, run.colour, data))
-    body.append(plots.add("success_by_task", figures.success_chart(tasks, series), "success rate per task",
-                          "Success rate per task with 95% Wilson intervals (finished, non-errored episodes; n above "
-                          "each bar)."))
-    panels = []
-    for run in runs:
-        layers = max((s.layers for s in run.summaries.values()), default=0)
-        matrix = np.full((len(tasks), max(layers, 1)), np.nan)
-        for i, t in enumerate(tasks):
-            found = run.layer_values(t, run.headline) if run.headline else None
-            if found is not None:
-                matrix[i, : len(found[0])] = found[0]
-        panels.append((run.label, run.colour, matrix))
-    if any(np.isfinite(m).any() for _, _, m in panels):
-        body.append(plots.add("target_lift_task_layer", figures.task_layer_heatmaps(tasks, panels, "target lift (1 = chance)"),
-                              "target lift per task and layer",
-                              "Target lift (attention mass on the target mask / mask area; 1 = chance, blue below, red "
-                              "above) per task and layer, mean over episodes; grey n/a = absent."))
-    else:
-        body.append(H.note("Target lift: absent — no run recorded target masks."))
-    categories = _share_categories(runs)
-    share_panels = []
-    for run in runs:
-        layers = max((s.layers for s in run.summaries.values()), default=1)
-        data = {}
-        for label, metric in categories:
-            matrix = np.full((len(tasks), max(layers, 1)), np.nan)
-            for i, t in enumerate(tasks):
-                found = run.layer_values(t, metric)
-                if found is not None:
-                    matrix[i, : len(found[0])] = found[0]
-            data[label] = matrix
-        share_panels.append((run.label, run.colour, data))
-    if categories:
-        body.append(plots.add("modality_shares_task_layer",
-                              figures.shares_heatmaps(tasks, [c for c, _ in categories], share_panels),
-                              "modality shares per task and layer",
-                              "Share of the readout's attention per token group (rows) by task and layer, mean over "
-                              "episodes; 'earlier timesteps' is the share on observation history (a separate split)."))
-    prog: dict[str, list] = {}
-    for t in tasks:
-        prog[t] = []
-        for run in runs:
-            if not run.headline:
-                continue
-            layers = max((s.layers for s in run.summaries.values()), default=0)
-            found = run.progress_values(t, run.headline, layers - 1)
-            if found is not None:
-                x = (np.arange(len(found[0])) + 0.5) / len(found[0])
-                prog[t].append((run.label, run.colour, x, *found))
-    if any(prog.values()):
-        body.append(plots.add("target_lift_progress", figures.progress_small_multiples(tasks, prog, "target lift, last layer"),
-                              "target lift along episode progress",
-                              "Target lift at the last layer along normalised episode progress (bins of step / steps), "
-                              "mean over episodes with 95% bootstrap bands; dotted line = chance."))
-    legend = " ".join(H.swatch(r.colour, r.label) for r in runs)
-    return H.section("Cross-task comparison", H.Raw(f"<p>{legend}</p>") + "".join(body), anchor="cross-task")
-
-
-def _task_section(runs: list[RunData], task: str, out: Path, plots: _Plots, overlays: dict) -> str:
-    body = [_task_table(runs, task)]
-    safe = H.anchor_id(task)[2:]
-    for run in runs:
-        if task not in run.record.tasks:
-            continue
-        future = overlays.get((run.label, task))
-        if future is not None:
-            overlay = future.result()
-            if overlay is not None:
-                body.append(plots.add(f"overlays_{safe}_{run.label}", overlay[0], f"overlays {task} {run.label}",
-                                      f"{run.label}: layer x time grid of head-mean readout attention over {overlay[1]}; "
-                                      "the representative episode is the one whose target lift (last layer) is closest "
-                                      "to the task's median (the first analysed episode without masks)."))
-    head_panels = []
-    for run in runs:
-        matrix = run.head_values(task, run.headline) if run.headline else None
-        if matrix is not None:
-            head_panels.append((run.label, run.colour, matrix))
-    if head_panels:
-        body.append(plots.add(f"head_layer_lift_{safe}", figures.head_layer_maps(head_panels, "target lift (1 = chance)"),
-                              f"target lift per head {task}",
-                              "Target lift per layer and head (which heads follow the object), mean over episodes."))
-    else:
-        body.append(H.note("Target lift per head: absent (no target mask coverage recorded for this task)."))
-    lines = []
-    for run in runs:
-        if not run.headline:
-            continue
-        layers = max((s.layers for s in run.summaries.values()), default=0)
-        for outcome in ("success", "no_success"):
-            found = run.progress_values(task, run.headline, layers - 1, outcome)
-            if found is not None:
-                x = (np.arange(len(found[0])) + 0.5) / len(found[0])
-                lines.append((run.label, run.colour, outcome, x, *found))
-    if lines:
-        body.append(plots.add(f"target_lift_progress_{safe}", figures.progress_by_outcome(lines, "target lift, last layer"),
-                              f"target lift along progress {task}",
-                              "Target lift at the last layer along episode progress, successful (solid) vs "
-                              "unsuccessful (dashed) episodes, 95% bootstrap bands."))
-    share_panels = []
-    for run in runs:
-        data = {}
-        for label, metric in _share_categories([run]):
-            if metric.startswith("share/"):
-                found = run.layer_values(task, metric)
-                if found is not None:
-                    data[label] = found[0]
-        if data:
-            share_panels.append((run.label, run.colour, data))
-    if share_panels:
-        body.append(plots.add(f"modality_shares_{safe}", figures.shares_by_layer(share_panels, SHARE_COLOURS),
-                              f"modality shares {task}", "Modality shares of the readout attention along layers."))
-    for run in runs:
-        if task not in run.record.tasks:
-            continue
-        table, videos = _episode_rows(run, task, out)
-        body.append(H.section(f"Episodes: {run.label}", table + (H.details(f"videos ({run.label})", H.Raw(
-            f"<div class='videos'>{videos}</div>"), open_=False) if videos else H.note("no rollout.mp4 in this run")),
-            level=3))
-    return H.section(f"Task: {task}", "".join(body), anchor=H.anchor_id("task-" + task))
-
-
 # ---- tables --------------------------------------------------------------------------------------------------------
 
 
@@ -601,7 +245,7 @@ def _tables(runs: list[RunData]) -> dict[str, bytes]:
             analysed = (e.task, e.episode) in run.summaries
             error = e.error if not e.ok else run.errors.get((e.task, e.episode), "")
             episode_rows.append((run.label, e.task, e.episode, e.seed, e.status, e.success, e.steps, analysed,
-                                 run.headline or "", _episode_headline(run, e), error or "", str(e.directory)))
+                                 run.headline or "", episode_headline(run, e), error or "", str(e.directory)))
     return {
         "layers.csv": _csv(agg.TABLE_COLUMNS, [r for run in runs for r in run.rows["layers"]]),
         "heads.csv": _csv(agg.TABLE_COLUMNS, [r for run in runs for r in run.rows["heads"]]),
@@ -670,28 +314,14 @@ def build_report(run_dirs: list[str | Path], out: str | Path | None = None, opti
         _aggregate(run, options)
     tasks = list(dict.fromkeys(t for run in runs for t in run.record.tasks))
 
-    plots = _Plots()
-    body = [_status_banners(runs), H.Raw("<p class='note'>Every number here comes from the CSV files in "
-                                         "<code>tables/</code> next to this page; intervals are 95% (Wilson for success, "
-                                         "percentile bootstrap over episodes for attention).</p>")]
     with ThreadPoolExecutor(max_workers=3) as pool:  # overlay grids decode videos in ffmpeg processes meanwhile
         overlays = {}
         for run in runs:
             for task in run.record.tasks:
-                rep = _representative(run, task)
+                rep = representative(run, task)
                 if rep is not None:
                     overlays[(run.label, task)] = pool.submit(_overlay_png, run, rep, options)
-        body.append(_cross_task(runs, tasks, plots))
-        for task in tasks:
-            body.append(_task_section(runs, task, out, plots, overlays))
-    body.append(H.section("Run manifest", "".join(_manifest_section(run) for run in runs), anchor="manifest"))
-    body.append(H.section("Definitions", H.Raw(_DEFINITIONS), anchor="definitions"))
-    toc = [("cross-task", "Cross-task comparison")] + [(H.anchor_id("task-" + t), t) for t in tasks] + [
-        ("manifest", "Run manifest"), ("definitions", "Definitions")]
-    title = "Attention report: " + " vs ".join(run.label for run in runs)
-    subtitle = (f"{len(runs)} run(s), {len(tasks)} task(s), {sum(len(r.summaries) for r in runs)} episodes analysed; "
-                f"generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
-    document = H.page(title, "".join(body), subtitle, toc, footer="octo-harness report")
+        document, plot_files = page.render(runs, tasks, out, overlays)
 
     tables = _tables(runs)
     _remove_stale_staging(out)
@@ -702,7 +332,7 @@ def build_report(run_dirs: list[str | Path], out: str | Path | None = None, opti
         (staging / "plots").mkdir()
         for name, data in tables.items():
             (staging / "tables" / name).write_bytes(data)
-        for name, data in plots.files.items():
+        for name, data in plot_files.items():
             (staging / "plots" / name).write_bytes(data)
         (staging / "report.html").write_text(document, encoding="utf-8")
         old = out.parent / f".{out.name}.old-{os.getpid()}"
@@ -713,27 +343,5 @@ def build_report(run_dirs: list[str | Path], out: str | Path | None = None, opti
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    return ReportResult(out=out, html=out / "report.html", tables=tuple(sorted(tables)), plots=tuple(sorted(plots.files)),
+    return ReportResult(out=out, html=out / "report.html", tables=tuple(sorted(tables)), plots=tuple(sorted(plot_files)),
                         seconds=time.perf_counter() - start, episodes=sum(len(r.summaries) for r in runs))
-
-
-_DEFINITIONS = """
-<ul>
-<li><b>Readout attention</b>: the post-softmax attention rows of the last timestep's readout token(s) over every key,
-per layer and head (what the action head reads from). Head-mean values use the mean row over heads and readouts,
-as in <code>metrics.jsonl</code>.</li>
-<li><b>Modality share</b>: fraction of a row's mass on a token group (primary camera, wrist camera, language, readouts,
-other groups such as proprio); the groups partition the keys, so shares sum to 1. <b>Earlier timesteps</b>: the
-fraction on the observation history (all groups of earlier window steps), a separate split.</li>
-<li><b>Target mass</b>: the fraction of the camera's current-timestep attention inside the target's segmentation mask
-(each patch weighted by the share of its pixels in the mask). <b>Target lift</b> = target mass / mask area: 1 is
-chance (uniform attention), 1/area means all attention on the target. Steps where the target is not visible have no
-value. <b>Robot mass</b>: the same for the robot's mask.</li>
-<li><b>Entropy</b>: entropy (nats) of each attention row, mean over heads and readouts.</li>
-<li><b>Episode progress</b>: step t of an n-step episode falls in bin floor(t &middot; bins / n); values are averaged per
-episode and bin, then over episodes.</li>
-<li><b>Intervals</b>: success: Wilson score interval over non-errored episodes. Attention: 95% percentile bootstrap over
-episodes (2000 resamples by default, fixed seed); one episode gives no interval. Outcome splits: successful vs
-unsuccessful episodes.</li>
-</ul>
-"""
