@@ -107,7 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--out", type=Path, default=None, help="report folder [first RUN_DIR/report]")
     rep.add_argument("--bins", type=int, default=10, help="bins of normalised episode progress [10]")
     rep.add_argument("--resamples", type=int, default=2000, help="bootstrap resamples for the 95%% intervals [2000]")
-    rep.add_argument("--workers", type=int, default=None, help="processes measuring runs made before measures were stored [up to 4, above 1 GB of attention]")
+    rep.add_argument("--workers", type=int, default=None,
+                     help="processes measuring runs made before measures were stored [up to 4 above 1 GB of attention]")
 
     cmp_ = sub.add_parser("compare", help="paired verdict of a candidate run against a baseline run (same seeds)",
                           description="Pair episodes by (task, seed); write compare.json, compare.md and compare.html. "
