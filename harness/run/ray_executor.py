@@ -32,6 +32,7 @@ import collections
 import logging
 import os
 import socket
+import traceback
 import uuid
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -157,7 +158,7 @@ class EnvWorker:
             try:
                 self.env = self.spec.make_env(job.task)
             except Exception as exc:  # the env could not be made: this episode fails, the worker stays
-                return self.spec.failed_row(job, f"{type(exc).__name__}: {exc}")
+                return self.spec.failed_row(job, exc, traceback.format_exc())
             self.env_task = job.task
         return self.spec.run_episode(self.env, self.policy, job)
 

@@ -264,8 +264,16 @@ class WorkerPool:
             except (OSError, ValueError):
                 pass
         deadline = time.monotonic() + STOP_TIMEOUT_S
-        for w in self._pool.values():
-            w.process.join(max(0.0, deadline - time.monotonic()))
+        live = list(self._pool.values())
+        while live and time.monotonic() < deadline:
+            for w in live:  # drain what they still send (a worker blocked sending a request then sees the stop)
+                try:
+                    while w.conn.poll():
+                        w.conn.recv()
+                except (EOFError, OSError):
+                    pass
+            wait([w.process.sentinel for w in live], timeout=0.05)
+            live = [w for w in live if w.process.is_alive()]
         for w in self._pool.values():
             if w.process.is_alive():
                 w.process.terminate()
