@@ -31,6 +31,7 @@ import asyncio
 import collections
 import logging
 import os
+import re
 import socket
 import traceback
 import uuid
@@ -174,9 +175,12 @@ def _last_line(exc: BaseException) -> str:
 
 
 def actor_death_cause(exc: BaseException) -> str:
-    """A Ray actor error -> the error recorded for its episode (first line of Ray's explanation)."""
+    """A Ray actor error -> the error recorded for its episode: where it ran and Ray's exit detail."""
     text = " ".join(str(exc).split())
-    return f"worker process died: {text[:300]}"
+    pid, ip = re.search(r"\bpid: (\d+)", text), re.search(r"\bip: (\S+)", text)
+    detail = re.search(r"Worker exit detail: (.*)", text)
+    where = f" (pid {pid.group(1)}{' on ' + ip.group(1) if ip else ''})" if pid else ""
+    return f"worker process died{where}: {(detail.group(1) if detail else text)[:300]}"
 
 
 class RayExecutor:
