@@ -54,7 +54,7 @@ SPECIALS = ("<pad>", "</s>", "<unk>")  # T5's ids 0, 1, 2
 class TrainConfig:
     steps: int = 2000
     batch_size: int = 32
-    learning_rate: float = 4e-4
+    learning_rate: float = 6e-4
     warmup_steps: int = 200
     weight_decay: float = 1e-4
     grad_clip: float = 1.0
@@ -196,9 +196,9 @@ def build_dataset(demos: dict[str, dict[str, np.ndarray]], horizon: int) -> Data
     episode = np.concatenate([demos[t]["episode"] + 10_000 * i for i, t in enumerate(tasks)])
     task = np.concatenate([np.full(len(demos[t]["action"]), i, np.int32) for i, t in enumerate(tasks)])
     n = len(actions)
-    index = np.arange(n)[:, None] + np.arange(horizon)[None]  # (n, horizon)
-    index = np.minimum(index, n - 1)
-    valid = episode[index] == episode[:, None]
+    raw_index = np.arange(n)[:, None] + np.arange(horizon)[None]  # (n, horizon)
+    index = np.minimum(raw_index, n - 1)
+    valid = (raw_index < n) & (episode[index] == episode[:, None])
     index = np.where(valid, index, np.arange(n)[:, None])  # past the end: hold the last valid index
     last = np.maximum.accumulate(np.where(valid, index, -1), axis=1)
     chunks = actions[last]

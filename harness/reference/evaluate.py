@@ -1,0 +1,102 @@
+"""Evaluation table of the reference policy from finished `octo-harness run` folders.
+
+    python -m harness.reference.evaluate RUN_DIR [RUN_DIR ...] --out models/octo-reference-robosuite
+
+Reads each run's results.jsonl (success per episode) and every episode's metrics.jsonl, and writes
+EVAL.md and eval.json: per task n, successes, rate, Wilson 95% interval (harness.analysis.stats) and the
+target lift per layer: for each camera, the fraction of that camera's attention on the target mask divided
+by the mask's area (1 = chance), averaged over the steps where the target is visible, then over episodes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from harness.analysis.stats import wilson_interval
+
+
+def target_lift(metrics_path: Path) -> dict[str, np.ndarray]:
+    """{camera: (layers,) mean over steps of mask_mass/target / mask_area/target} for one episode."""
+    per_camera: dict[str, list[np.ndarray]] = {}
+    with open(metrics_path) as f:
+        for line in f:
+            row = json.loads(line)
+            for camera, masses in (row.get("mask_mass") or {}).items():
+                area = ((row.get("mask_area") or {}).get(camera) or {}).get("target")
+                mass = (masses or {}).get("target")
+                if not area or mass is None:
+                    continue
+                per_camera.setdefault(camera, []).append(np.asarray(mass, np.float64) / area)
+    return {camera: np.nanmean(np.stack(values), axis=0) for camera, values in per_camera.items()}
+
+
+def summarise_runs(run_dirs: list[Path]) -> list[dict]:
+    """One row per task: n, successes, rate, Wilson 95% CI, mean target lift per camera and layer, seeds."""
+    rows = []
+    for run in run_dirs:
+        results = {}
+        with open(run / "results.jsonl") as f:
+            for line in f:
+                r = json.loads(line)
+                results[(r["task"], r["episode"])] = r  # the last line of a job wins
+        by_task: dict[str, list[dict]] = {}
+        for r in results.values():
+            if r["status"] == "ok":
+                by_task.setdefault(r["task"], []).append(r)
+        for task, episodes in by_task.items():
+            n = len(episodes)
+            successes = sum(bool(e["success"]) for e in episodes)
+            low, high = wilson_interval(successes, n)
+            lifts: dict[str, list[np.ndarray]] = {}
+            for e in episodes:
+                path = run / e["directory"] / "metrics.jsonl"
+                if path.is_file():
+                    for camera, lift in target_lift(path).items():
+                        lifts.setdefault(camera, []).append(lift)
+            rows.append({
+                "task": task, "run": run.name, "n": n, "successes": successes, "rate": successes / n if n else float("nan"),
+                "ci_low": low, "ci_high": high, "seeds": [min(e["seed"] for e in episodes), max(e["seed"] for e in episodes)],
+                "mean_steps": float(np.mean([e["steps"] for e in episodes])),
+                "target_lift": {c: np.nanmean(np.stack(v), axis=0).round(3).tolist() for c, v in sorted(lifts.items())},
+            })
+    return rows
+
+
+def markdown(rows: list[dict], note: str = "") -> str:
+    layers = max((len(v) for r in rows for v in r["target_lift"].values()), default=0)
+    header = "| task | n | successes | rate | Wilson 95% CI | seeds | camera | " + " | ".join(f"lift L{i}" for i in range(layers)) + " |"
+    lines = ["# octo-reference-robosuite: evaluation", "", note, "", header, "|" + "---|" * (7 + layers)]
+    for r in rows:
+        cams = list(r["target_lift"].items()) or [("-", [])]
+        for i, (camera, lift) in enumerate(cams):
+            first = i == 0
+            cells = [r["task"] if first else "", str(r["n"]) if first else "", str(r["successes"]) if first else "",
+                     f"{r['rate']:.0%}" if first else "", f"[{r['ci_low']:.2f}, {r['ci_high']:.2f}]" if first else "",
+                     f"{r['seeds'][0]}..{r['seeds'][1]}" if first else "", camera] + [f"{x:.2f}" for x in lift]
+            lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "Target lift: fraction of a camera's attention (readout rows, head mean) on the target object's "
+              "segmentation mask divided by the mask's area (1 = uniform attention), mean over the steps where the "
+              "target is visible, then over episodes; L0 is the first transformer layer."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m harness.reference.evaluate", description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", type=Path, help="octo-harness run folders")
+    parser.add_argument("--out", type=Path, default=Path("models/octo-reference-robosuite"))
+    parser.add_argument("--note", default="", help="text placed above the table (command, checkpoint step, ...)")
+    args = parser.parse_args(argv)
+    rows = summarise_runs(args.runs)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "eval.json").write_text(json.dumps({"note": args.note, "tasks": rows}, indent=2))
+    (args.out / "EVAL.md").write_text(markdown(rows, args.note))
+    print(markdown(rows, args.note))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,137 @@
+"""Reference policy pipeline: scripted experts in the real simulator, demonstration recording, dataset
+chunks and statistics, and a tiny training run that reduces the loss and saves a loadable Octo checkpoint."""
+
+import numpy as np
+import pytest
+
+import envs
+from harness.reference import demos as demos_mod
+from harness.reference.experts import EXPERT_TASKS, ScriptedExpert
+from harness.reference.train import DATASET_KEY, TrainConfig, build_dataset, build_tokenizer, train
+
+
+def _expert_succeeds(task: str, seed: int) -> bool:
+    env = envs.make(task, cameras={}, action_space="robosuite")
+    try:
+        obs, info = env.reset(seed=seed)
+        expert = ScriptedExpert(task)
+        expert.reset(obs, env)
+        for _ in range(env.max_episode_steps):
+            obs, _, terminated, truncated, info = env.step(expert.act(obs, env))
+            if terminated or truncated:
+                break
+        return bool(info["success"])
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("task,seed", [("Lift", 3), ("Stack", 4), ("PickPlaceCan", 5)])
+def test_expert_succeeds_in_the_simulator(task, seed):
+    assert _expert_succeeds(task, seed)
+
+
+def test_expert_rejects_an_unknown_task():
+    with pytest.raises(ValueError, match="no scripted expert"):
+        ScriptedExpert("Door")
+
+
+def test_training_seeds_are_disjoint_from_evaluation_seeds():
+    config = demos_mod.DemoConfig()
+    blocks = []
+    for task in EXPERT_TASKS:
+        base = config.task_seed_base(task)
+        blocks.append((base, base + config.jobs_per_task * demos_mod.SEEDS_PER_JOB))
+    assert all(low >= demos_mod.EVAL_SEEDS for low, _ in blocks)
+    blocks.sort()
+    assert all(a_high <= b_low for (_, a_high), (b_low, _) in zip(blocks, blocks[1:]))
+
+
+def test_recorded_episode_is_what_the_policy_sees():
+    env = envs.make("Lift", fast_render=True, action_space="robosuite", max_episode_steps=120)
+    try:
+        episode = demos_mod.record_episode(env, ScriptedExpert("Lift"), 100_000, {"image_primary": 64, "image_wrist": 64},
+                                           noise=0.2, max_steps=120)
+    finally:
+        env.close()
+    assert episode is not None
+    n = len(episode["action"])
+    assert 10 < n < 120
+    assert episode["image_primary"].shape == (n, 64, 64, 3) and episode["image_primary"].dtype == np.uint8
+    assert episode["image_wrist"].shape == (n, 64, 64, 3) and episode["image_wrist"].dtype == np.uint8
+    assert episode["proprio"].shape == (n, 8) and episode["proprio"].dtype == np.float32
+    assert episode["action"].shape == (n, 7) and episode["action"].dtype == np.float32
+    assert np.all(np.abs(episode["action"]) <= 1.0)
+    assert set(np.unique(episode["action"][:, 6])) == {-1.0, 1.0}  # opens, then closes
+    assert episode["image_primary"].std() > 5  # a rendered scene, not a blank frame
+
+
+def _toy_demos(lengths=(3, 2), seed=0):
+    """Two episodes with actions a[t] = (episode*10 + t) in every arm dim, gripper alternating."""
+    rng = np.random.default_rng(seed)
+    actions, episode = [], []
+    for e, n in enumerate(lengths):
+        for t in range(n):
+            actions.append([e * 10 + t] * 6 + [1.0 if t % 2 else -1.0])
+            episode.append(e)
+    n = len(actions)
+    return {
+        "image_primary": rng.integers(0, 255, (n, 32, 32, 3), dtype=np.uint8),
+        "proprio": rng.normal(size=(n, 8)).astype(np.float32),
+        "action": np.array(actions, np.float32),
+        "episode": np.array(episode, np.int32),
+        "step": np.concatenate([np.arange(k) for k in lengths]).astype(np.int32),
+        "lengths": np.array(lengths, np.int32),
+        "seeds": np.arange(len(lengths)),
+    }
+
+
+def test_action_chunks_stop_at_the_episode_end_and_keep_the_gripper_unnormalised():
+    data = build_dataset({"Lift": _toy_demos()}, horizon=3)
+    stats = data.statistics[DATASET_KEY]["action"]
+    raw = data.actions * np.where(stats["mask"], stats["std"], 1) + np.where(stats["mask"], stats["mean"], 0)
+    # episode 0 (t = 0, 1, 2): chunk at t=1 is a[1], a[2], then a[2] held and masked out
+    np.testing.assert_allclose(raw[1, :, 0], [1, 2, 2], atol=1e-5)
+    assert data.action_mask[1].tolist() == [True, True, False]
+    # episode 1 starts at index 3 and never reads episode 0
+    np.testing.assert_allclose(raw[3, :, 0], [10, 11, 11], atol=1e-5)
+    assert data.action_mask[4].tolist() == [True, False, False]
+    assert stats["mask"].tolist() == [True] * 6 + [False]
+    np.testing.assert_array_equal(data.actions[:, 0, 6], [-1, 1, -1, -1, 1])  # gripper as recorded
+    np.testing.assert_allclose(stats["mean"][0], np.mean([0, 1, 2, 10, 11]), rtol=1e-6)
+    proprio = data.statistics[DATASET_KEY]["proprio"]
+    np.testing.assert_allclose(data.proprio.mean(0), 0, atol=1e-5)
+    assert proprio["mask"].all()
+
+
+def test_word_tokenizer_uses_t5_special_ids():
+    tok = build_tokenizer(["pick up the red cube", "stack the red cube"])
+    enc = tok.encode("Pick up the RED cube")
+    assert enc.ids[-1] == 1 and tok.token_to_id("<pad>") == 0 and tok.token_to_id("<unk>") == 2
+    assert tok.encode("pick up the blue cube").ids[3] == 2  # unknown word
+
+
+def test_tiny_training_reduces_loss_and_saves_a_loadable_octo_checkpoint(tmp_path):
+    from harness.octo import load_pretrained
+
+    demo = _toy_demos(lengths=(12, 10))
+    demo["image_wrist"] = demo["image_primary"][:, :16, :16].copy()
+    cfg = TrainConfig(steps=60, batch_size=16, log_every=10, checkpoint_every=30, warmup_steps=5, learning_rate=1e-3,
+                      width=32, layers=1, heads=2, mlp_dim=64, stem_features=(32, 32, 32, 32), head_hidden=32, t5_width=16,
+                      image_sizes=(("image_primary", 32), ("image_wrist", 16)), action_horizon=2)
+    summary = train({"Lift": demo}, tmp_path, cfg)
+    curve = _read_curve(tmp_path / "training_curve.csv")
+    assert curve[-1]["loss"] < 0.7 * curve[0]["loss"]
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.isdigit()) == ["60"]  # older steps replaced
+    model = load_pretrained(str(tmp_path))  # checks every parameter path and shape against config.json
+    assert model.text_tokenizer.tokenizer is not None  # the tokenizer inside the checkpoint, not the fallback
+    assert model.action_horizon == 2 and model.window_size == 1
+    stats = model.unnormalization_statistics(DATASET_KEY)
+    assert stats["mask"].tolist() == [True] * 6 + [False]
+    assert summary["parameters"] == sum(int(np.prod(x.shape)) for x in __import__("jax").tree.leaves(model.params))
+
+
+def _read_curve(path):
+    import csv
+
+    with open(path) as f:
+        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
