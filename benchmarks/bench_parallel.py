@@ -117,7 +117,7 @@ def main() -> None:
     print(f"per step: inference {cost['inference_cpu']:.3f} core-s ({cost['inference_wall']:.3f} s wall), simulation "
           f"{cost['simulation_cpu']:.3f} core-s ({cost['simulation_wall']:.3f} s wall)")
     print(f"bound: {cores} cores / {cost['inference_cpu'] + cost['simulation_cpu']:.3f} core-s per step = {bound:.2f} env-steps/s\n")
-    print(f"| executor | env-steps/s | vs sequential | of bound |\n|---|---:|---:|---:|")
+    print("| executor | env-steps/s | vs sequential | of bound |\n|---|---:|---:|---:|")
     for label, rate, _, _ in results:
         print(f"| {label} | {rate:.2f} | {rate / seq:.2f}x | {rate / bound:.0%} |")
     print("\ntargets (2-core CPU): --workers 2 >= 1.1x sequential and >= 85% of the bound")

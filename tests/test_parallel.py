@@ -4,7 +4,6 @@ neither recompiles after warm-up nor lets an episode's actions depend on its bat
 
 from __future__ import annotations
 
-import functools
 import json
 import os
 import signal
