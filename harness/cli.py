@@ -90,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="confidence interval of success rates (95%%) [wilson]")
     r.add_argument("--workers", type=int, default=None,
                    help="env worker processes, inference batched in one process (same episodes as a sequential run) "
-                        "[none: sequential; with --executor ray: this machine's CPU count]")
+                        "[none: sequential; with --executor ray: the CPU count, minus one per replica on a cluster]")
     r.add_argument("--executor", choices=["local", "ray"], default=None,
                    help="where the env workers run: local processes or Ray actors (pip install 'octo-harness[ray]') [local]")
     r.add_argument("--ray-address", default=None,

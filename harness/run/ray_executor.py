@@ -190,8 +190,10 @@ class RayExecutor:
         for row in factory(context, model).run(jobs): ...                  # the driver appends each row
     """
 
-    def __init__(self, context: EpisodeContext, model, *, workers: int, address: str | None = None, replicas: int = 1):
-        if workers < 1 or replicas < 1:
+    def __init__(self, context: EpisodeContext, model, *, workers: int | None, address: str | None = None,
+                 replicas: int = 1):
+        """workers None: os.cpu_count() on a local instance, the cluster's CPUs minus one per replica on a cluster."""
+        if (workers is not None and workers < 1) or replicas < 1:
             raise ValueError(f"--workers and --policy-replicas must be >= 1; got {workers} and {replicas}")
         import_ray()  # not installed: one line before anything starts
         self.context = context
@@ -223,6 +225,8 @@ class RayExecutor:
         else:
             with warnings.catch_warnings():  # Ray starts its daemons with fork+exec, which JAX's fork warning flags
                 warnings.simplefilter("ignore", RuntimeWarning)
+                if self.workers is None:
+                    self.workers = os.cpu_count() or 1
                 ray.init(num_cpus=max(os.cpu_count() or 1, self.workers + self.replicas), include_dashboard=False,
                          runtime_env={"env_vars": env_vars}, configure_logging=False, log_to_driver=True)
             self._started_ray = True
@@ -233,6 +237,8 @@ class RayExecutor:
         """Returns GPUs per replica (1 where the cluster has enough GPUs, else 0); one line when CPUs cannot fit the actors."""
         resources = ray.cluster_resources()
         cpus, gpus = resources.get("CPU", 0), resources.get("GPU", 0)
+        if self.workers is None:
+            self.workers = max(1, int(cpus) - self.replicas)
         if cpus < self.workers + self.replicas:
             raise RayExecutorError(f"the Ray cluster has {cpus:g} CPUs; {self.workers} env workers + {self.replicas} policy "
                                    f"replica(s) need {self.workers + self.replicas}: lower --workers or add nodes")

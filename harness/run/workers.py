@@ -478,7 +478,7 @@ def executor_factory(workers: int | None, executor: str | None = None, ray_addre
         from harness.run.ray_executor import RayExecutor, import_ray
 
         import_ray()
-        return functools.partial(RayExecutor, workers=workers or os.cpu_count() or 1, address=ray_address,
+        return functools.partial(RayExecutor, workers=workers, address=ray_address,
                                  replicas=policy_replicas or 1)
     if workers is None:
         return None
