@@ -125,9 +125,9 @@ class RayInference:
         (request,) = requests
         try:
             return [ray.get(self.replica.infer.remote(request))]
-        except ray.exceptions.RayTaskError as exc:
-            cause = exc.as_instanceof_cause() if hasattr(exc, "as_instanceof_cause") else exc
-            raise PolicyError(str(getattr(cause, "args", [cause])[0] if getattr(cause, "args", None) else cause)) from None
+        except ray.exceptions.RayTaskError as exc:  # the replica's PolicyError (this batch failed)
+            cause = getattr(exc, "cause", None)
+            raise PolicyError(str(cause) if cause is not None else _last_line(exc)) from None
         except ray.exceptions.RayActorError as exc:
             raise PolicyError(f"policy replica died: {str(exc).splitlines()[0]}") from None
 
@@ -142,7 +142,7 @@ class EnvWorker:
         except OSError:
             seen = None
         if seen != token:
-            raise RayExecutorError(f"--out is not visible from node {socket.gethostname()} ({path} missing there); "
+            raise RayExecutorError(f"--out is not visible from node {socket.gethostname()} ({path} is missing there or not this run's); "
                                    "put --out on a filesystem every Ray node mounts at the same path (NFS, shared volume)")
         self.spec = spec
         self.policy = OctoPolicy(spec.shape, spec.policy, infer=RayInference(replica, spec.shape.dataset_key))
