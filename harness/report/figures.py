@@ -127,30 +127,35 @@ def task_layer_heatmaps(tasks: Sequence[str], panels: Sequence[tuple[str, str, n
 
 
 def shares_heatmaps(tasks: Sequence[str], categories: Sequence[str], panels: Sequence[tuple[str, str, dict]]) -> bytes:
-    """Modality shares: rows = categories, columns = runs; each panel a task x layer heatmap in [0, 1].
+    """Modality shares: rows = runs, columns = categories; each panel a task x layer heatmap in [0, 1].
 
     panels: [(run label, colour, {category: (tasks, layers)})]."""
-    n, rows = max(1, len(panels)), max(1, len(categories))
+    rows, cols = max(1, len(panels)), max(1, len(categories))
     layers = max((m.shape[1] for _, _, d in panels for m in d.values()), default=1)
-    fig = _figure(min(22.0, n * (1.4 + 0.3 * layers) + 1.2), rows * (0.45 + 0.2 * len(tasks)) + 0.5)
+    panel_w, panel_h = max(1.3, 0.6 + 0.17 * layers), max(0.9, 0.45 + 0.17 * len(tasks))
+    fig = _figure(1.5 + cols * panel_w + 1.0, 0.5 + rows * panel_h + 0.3)
     norm = Normalize(0.0, 1.0)
     im = None
-    for r, category in enumerate(categories):
-        for c, (run, colour, data) in enumerate(panels):
-            ax = fig.add_subplot(rows, n, r * n + c + 1)
+    for r, (run, colour, data) in enumerate(panels):
+        for c, category in enumerate(categories):
+            ax = fig.add_subplot(rows, cols, r * cols + c + 1)
             matrix = data.get(category)
             if matrix is None:
                 matrix = np.full((len(tasks), layers), np.nan)
             im = _annotated_heatmap(ax, matrix, norm, "viridis", annotate=False)
-            ax.set_title(f"{category} — {run}" if n > 1 else category, fontsize=9, color=colour if n > 1 else "black")
+            if r == 0:
+                ax.set_title(category, fontsize=8)
+            if c == 0 and rows > 1:
+                ax.set_ylabel(run, color=colour, fontsize=9, fontweight="bold")
             ax.set_yticks(range(len(tasks)), [_short(t, 14) for t in tasks] if c == 0 else [""] * len(tasks), fontsize=7)
-            ax.set_xticks(range(matrix.shape[1]), [str(i) for i in range(matrix.shape[1])] if r == rows - 1 else [""] * matrix.shape[1],
-                          fontsize=6)
+            step = 1 if matrix.shape[1] <= 6 else 3
+            ticks = list(range(0, matrix.shape[1], step))
+            ax.set_xticks(ticks, [str(i) for i in ticks], fontsize=6)
             if r == rows - 1:
                 ax.set_xlabel("layer", fontsize=8)
-    _margins(fig, 1.2, 0.5, 0.6, 0.3, hspace=0.45 + 0.02 * len(tasks), wspace=0.08)
+    _margins(fig, 1.5, 1.0, 0.5, 0.3, hspace=0.3, wspace=0.12)
     if im is not None:
-        fig.colorbar(im, ax=fig.axes, shrink=0.6, label="share of attention")
+        fig.colorbar(im, ax=fig.axes, shrink=0.8, label="share of attention", fraction=0.03)
     return _png(fig)
 
 
@@ -306,6 +311,7 @@ def overlay_grid(
     coloured with its own range. Returns PNG bytes."""
     maps = np.asarray(maps, np.float32)
     n_layers, n_steps, rows, cols = maps.shape
+    cell = cell if n_layers <= 6 else cell * 3 // 4  # deep models: smaller cells keep the grid on one screen
     width_cell = max(1, int(round(cell * cols / rows)))
     left, top, pad = 62, 40, 3
     font = _font(12)
