@@ -149,6 +149,11 @@ def _cameras(run: RunData) -> list[str]:
 # ---- overlays of a representative episode -----------------------------------------------------------------------
 
 
+def _drop_crop_note(record: logging.LogRecord) -> bool:
+    """imageio-ffmpeg warns that a cropped read differs from the video's size: intended here."""
+    return "different from the source frame size" not in record.getMessage()
+
+
 def read_video_frames(path: Path, indices: list[int], height: int, width: int) -> dict[int, np.ndarray]:
     """Frames `indices` of an MP4, cropped to the top-left height x width -> {index: (height, width, 3) uint8}.
 
@@ -159,9 +164,7 @@ def read_video_frames(path: Path, indices: list[int], height: int, width: int) -
     if not indices:
         return {}
     select = "+".join(f"eq(n\\,{i})" for i in sorted(set(indices)))
-    logger = logging.getLogger("imageio_ffmpeg")  # it warns that the cropped size differs from the video's: intended
-    level = logger.level
-    logger.setLevel(logging.ERROR)
+    logging.getLogger("imageio_ffmpeg").addFilter(_drop_crop_note)  # once (a filter is added only once)
     try:
         reader = imageio_ffmpeg.read_frames(str(path), input_params=["-skip_loop_filter", "all"], output_params=[
             "-vf", f"select={select},crop={width}:{height}:0:0", "-fps_mode", "passthrough"])  # thumbnails: no deblocking
@@ -172,8 +175,6 @@ def read_video_frames(path: Path, indices: list[int], height: int, width: int) -
         frames = [np.frombuffer(buf, np.uint8).reshape(height, width, 3).copy() for buf in reader]
     except (OSError, RuntimeError, StopIteration, ValueError):
         return {}
-    finally:
-        logger.setLevel(level)
     return dict(zip(sorted(set(indices)), frames))
 
 

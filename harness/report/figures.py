@@ -178,7 +178,7 @@ def progress_small_multiples(
     series: task -> [(run label, colour, x (bins,), mean, low, high)]; an empty list shows 'absent'."""
     cols = min(5, max(1, len(tasks)))
     rows = -(-len(tasks) // cols) if tasks else 1
-    fig = _figure(3.0 * cols + 0.4, 2.3 * rows + 0.3)
+    fig = _figure(3.0 * cols + 0.4, 2.3 * rows + 0.6)
     for i, task in enumerate(tasks):
         ax = fig.add_subplot(rows, cols, i + 1)
         lines = series.get(task) or []
@@ -198,15 +198,17 @@ def progress_small_multiples(
         if i >= len(tasks) - cols:
             ax.set_xlabel("episode progress", fontsize=8)
         ax.tick_params(labelsize=7)
-    _margins(fig, 0.65, 0.15, 0.6, 0.55, hspace=0.5, wspace=0.28)
-    if any(len(v) > 1 for v in series.values()):
+    legend = any(len(v) > 1 for v in series.values())
+    _margins(fig, 0.65, 0.15, 0.6, 0.8 if legend else 0.45, hspace=0.5, wspace=0.28)
+    if legend:
         handles, labels = [], []
         for ax in fig.axes:
             for h, l in zip(*ax.get_legend_handles_labels()):
                 if l not in labels:
                     handles.append(h)
                     labels.append(l)
-        fig.legend(handles, labels, loc="lower center", ncol=min(4, len(labels)), fontsize=8, bbox_to_anchor=(0.5, 0.98))
+        fig.legend(handles, labels, loc="upper center", ncol=min(4, len(labels)), fontsize=8, bbox_to_anchor=(0.5, 1.0),
+                   frameon=False)
     return _png(fig)
 
 

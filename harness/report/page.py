@@ -203,8 +203,9 @@ def _cross_task(runs: list[RunData], tasks: list[str], plots: _Plots) -> str:
         body.append(plots.add("modality_shares_task_layer",
                               figures.shares_heatmaps(tasks, [c for c, _ in categories], share_panels),
                               "modality shares per task and layer",
-                              "Share of the readout's attention per token group (rows) by task and layer, mean over "
-                              "episodes; 'earlier timesteps' is the share on observation history (a separate split)."))
+                              "Share of the readout's attention per token group (columns; one row of panels per run) by "
+                              "task and layer, mean over episodes; 'earlier timesteps' is the share on observation "
+                              "history (a separate split)."))
     prog: dict[str, list] = {}
     for t in tasks:
         prog[t] = []
