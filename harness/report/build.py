@@ -185,6 +185,16 @@ def _evenly(n: int, k: int) -> list[int]:
     return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)})
 
 
+def _patch_box(coverage: np.ndarray) -> tuple[float, float, float, float] | None:
+    """coverage (rows, cols) -> (top, left, bottom, right) as fractions of the image around the covered patches."""
+    inside = np.nan_to_num(coverage) > 0
+    if not inside.any():
+        return None
+    ys, xs = np.flatnonzero(inside.any(axis=1)), np.flatnonzero(inside.any(axis=0))
+    rows, cols = coverage.shape
+    return ys[0] / rows, xs[0] / cols, (ys[-1] + 1) / rows, (xs[-1] + 1) / cols
+
+
 def _overlay_png(run: RunData, episode: EpisodeRecord, options: ReportOptions) -> tuple[bytes, str] | None:
     from harness.attention import camera_maps
     from harness.octo.tokens import TokenMap
@@ -215,8 +225,11 @@ def _overlay_png(run: RunData, episode: EpisodeRecord, options: ReportOptions) -
         by_index = read_video_frames(episode.video_path, picked, VIDEO_DISPLAY, width)
         frames = {step_numbers[j]: by_index[i] for j, i in enumerate(picked) if i in by_index}
     step_numbers = [int(arrays.step[i]) for i in picked]
-    title = f"{run.label} | {episode.task} episode {episode.episode} | {camera} | head-mean attention (each cell its own range)"
-    png = figures.overlay_grid([frames.get(s) for s in step_numbers], maps, shown_layers, step_numbers, title)
+    title = (f"{run.label} | {episode.task} episode {episode.episode} | {camera} | head-mean attention (each cell its own "
+             "range) | green: target patches")
+    coverage = arrays.mask_fractions.get(f"{camera}/target")  # (steps, rows, cols) or None
+    boxes = [_patch_box(coverage[i]) if coverage is not None else None for i in picked]
+    png = figures.overlay_grid([frames.get(s) for s in step_numbers], maps, shown_layers, step_numbers, title, boxes)
     note = "" if frames else " (no rollout.mp4 frames: attention maps without the camera image)"
     return png, f"{camera}, episode {episode.episode}{note}"
 

@@ -18,7 +18,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 from PIL import Image, ImageDraw, ImageFont
 
-from harness.overlays import heatmap_overlays, resize_nearest
+from harness.overlays import heatmap_overlays
 
 RUN_COLOURS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#17becf", "#8c564b", "#e377c2", "#7f7f7f", "#bcbd22")
 DPI = 80
@@ -303,6 +303,7 @@ def overlay_grid(
     layers: Sequence[int],
     steps: Sequence[int],
     title: str,
+    boxes: Sequence[tuple[float, float, float, float] | None] = (),
     cell: int = 96,
     cmap: str = "jet",
 ) -> bytes:
@@ -310,7 +311,8 @@ def overlay_grid(
 
     frames: per time column the (h, w, 3) uint8 camera frame, or None (map drawn without a frame);
     maps: (len(layers), len(steps), rows, cols) head-mean attention over the camera's patches, each cell
-    coloured with its own range. Returns PNG bytes."""
+    coloured with its own range; boxes: per time column the target's (top, left, bottom, right) as fractions
+    of the image (drawn in green on every layer), or None. Returns PNG bytes."""
     maps = np.asarray(maps, np.float32)
     n_layers, n_steps, rows, cols = maps.shape
     cell = cell if n_layers <= 6 else cell * 3 // 4  # deep models: smaller cells keep the grid on one screen
@@ -321,7 +323,10 @@ def overlay_grid(
     canvas = np.full((top + n_layers * (cell + pad) + pad, width, 3), 255, np.uint8)
     for t in range(n_steps):
         frame = frames[t] if t < len(frames) else None
-        base = resize_nearest(frame, cell, width_cell) if frame is not None else np.full((cell, width_cell, 3), 40, np.uint8)
+        if frame is not None:  # area-averaged downscale (nearest neighbour would alias the scene)
+            base = np.asarray(Image.fromarray(frame).resize((width_cell, cell), Image.BOX))
+        else:
+            base = np.full((cell, width_cell, 3), 40, np.uint8)
         cells = heatmap_overlays(base, maps[:, t], alpha=0.5 if frame is not None else 1.0, cmap=cmap)
         for li in range(n_layers):
             y = top + li * (cell + pad)
@@ -334,4 +339,13 @@ def overlay_grid(
         draw.text((left + t * (width_cell + pad) + 2, top - 16), f"step {step}", fill=(0, 0, 0), font=font)
     for li, layer in enumerate(layers):
         draw.text((4, top + li * (cell + pad) + cell // 2 - 7), f"layer {layer}", fill=(0, 0, 0), font=font)
+    for t, box in enumerate(boxes):
+        if box is None:
+            continue
+        y0, x0, y1, x1 = box
+        x = left + t * (width_cell + pad)
+        for li in range(n_layers):
+            y = top + li * (cell + pad)
+            draw.rectangle([x + int(x0 * width_cell), y + int(y0 * cell), x + max(int(x0 * width_cell) + 1, int(round(x1 * width_cell)) - 1),
+                            y + max(int(y0 * cell) + 1, int(round(y1 * cell)) - 1)], outline=(0, 255, 0), width=1)
     return encode_png(np.asarray(image))
