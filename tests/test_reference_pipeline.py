@@ -110,13 +110,15 @@ def test_word_tokenizer_uses_t5_special_ids():
     assert tok.encode("pick up the blue cube").ids[3] == 2  # unknown word
 
 
-def test_tiny_training_reduces_loss_and_saves_a_loadable_octo_checkpoint(tmp_path):
+def test_tiny_diffusion_training_reduces_loss_and_saves_a_loadable_octo_checkpoint(tmp_path):
+    """The diffusion head's training path (the committed model, tested in test_reference_model.py, uses L1)."""
     from harness.octo import load_pretrained
 
     demo = _toy_demos(lengths=(12, 10))
     demo["image_wrist"] = demo["image_primary"][:, :16, :16].copy()
     cfg = TrainConfig(steps=60, batch_size=16, log_every=10, checkpoint_every=30, warmup_steps=5, learning_rate=1e-3,
-                      width=32, layers=1, heads=2, mlp_dim=64, stem_features=(32, 32, 32, 32), head_hidden=32, t5_width=16,
+                      width=32, layers=1, heads=2, mlp_dim=64, stem_features=(32, 32, 32, 32), head="diffusion", head_hidden=32,
+                      t5_width=16,
                       image_sizes=(("image_primary", 32), ("image_wrist", 16)), action_horizon=2)
     summary = train({"Lift": demo}, tmp_path, cfg)
     curve = _read_curve(tmp_path / "training_curve.csv")

@@ -45,7 +45,7 @@ class DemoConfig:
     jobs_per_task: int = 4  # fixed split (not the worker count) so the data do not depend on the workers
     image_sizes: tuple[tuple[str, int], ...] = (("image_primary", 64), ("image_wrist", 64))
     fast_render: bool = True
-    noise: float = 0.2  # std of the Gaussian noise added to the executed position input (OSC units)
+    noise: float = 0.3  # std of the Gaussian noise added to the executed position input (OSC units)
     max_steps: dict = field(default_factory=lambda: {"Lift": 120, "Stack": 250, "PickPlaceCan": 300})
 
     def task_seed_base(self, task: str) -> int:

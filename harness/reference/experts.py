@@ -43,6 +43,7 @@ class ExpertConfig:
     hover: float = 0.07  # metres above the grasp point before descending
     lift: float = 0.12  # metres to raise an object after grasping
     carry_height: float = 0.10  # Stack: clearance of cubeA's bottom above cubeB's top while carrying
+    funnel: float = 3.0  # descending: metres of height kept per metre of horizontal misalignment
 
 
 def _yaw_of(rotation: Rotation) -> float:
@@ -100,7 +101,10 @@ class ScriptedExpert:
         up = np.array([0.0, 0.0, 1.0])
         if phase == "hover":
             return obj + up * cfg.hover
-        if phase in ("descend", "close"):
+        if phase == "descend":  # a funnel: stay higher while off-centre, so a misaligned gripper rises and re-centres
+            off_centre = float(np.linalg.norm((obj - eef)[:2]))
+            return obj + up * min(cfg.hover, cfg.funnel * max(off_centre - 0.004, 0.0))
+        if phase == "close":
             return obj
         if phase == "lift":
             return self._lift_target

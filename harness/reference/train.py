@@ -1,9 +1,14 @@
 """Train the reference policy: a small Octo-architecture model, from scratch, on the scripted demonstrations.
 
 The forward pass is the runtime's own Flax modules (`OctoTransformer`, `pool_readouts`, `ScoreNetwork`),
-so parameter names are Octo's and `harness.octo.load_pretrained(folder)` reads the result. Loss: Octo's
-diffusion loss (DiffusionActionHead.loss): t ~ U{0..steps-1}, x_t = sqrt(a_t) x_0 + sqrt(1 - a_t) eps,
-MSE between the predicted and the true eps over the valid (not past the episode's end) chunk entries.
+so parameter names are Octo's and `harness.octo.load_pretrained(folder)` reads the result. Heads and losses
+are Octo's, over the valid (not past the episode's end) entries of each action chunk:
+  "l1" (default, L1ActionHead as in Octo's finetuning example): mean |prediction - normalised action|;
+  "diffusion" (DiffusionActionHead.loss): t ~ U{0..steps-1}, x_t = sqrt(a_t) x_0 + sqrt(1 - a_t) eps, MSE
+  between the predicted and the true eps. At this CPU budget (2000 steps) the diffusion head did not
+  sample usable actions: Octo's 20-step cosine sampler divides its first step by sqrt(alpha_19) = 0.032,
+  so an eps error of 0.14 (measured at t = 19) becomes ~4 normalised units and the chain saturates at
+  +-max_action. The L1 head has no such amplification and learns the scripted experts in minutes.
 The T5 encoder is tiny, randomly initialised and frozen (Octo's `finetune_encoder=False`): its encodings
 of the instructions are computed once.
 
@@ -35,7 +40,8 @@ from flax import serialization, traverse_util
 
 from harness.octo.config import OctoConfig
 from harness.octo.diffusion import make_schedule
-from harness.octo.heads import ScoreNetwork, pool_readouts
+from harness.octo.config import DiffusionHeadConfig
+from harness.octo.heads import ContinuousHead, ScoreNetwork, pool_readouts
 from harness.octo.network import LanguageTokenizer, OctoTransformer, init_params
 from harness.octo.t5 import T5Config
 
@@ -52,7 +58,7 @@ SPECIALS = ("<pad>", "</s>", "<unk>")  # T5's ids 0, 1, 2
 
 @dataclass(frozen=True)
 class TrainConfig:
-    steps: int = 2000
+    steps: int = 6000
     batch_size: int = 32
     learning_rate: float = 6e-4
     warmup_steps: int = 200
@@ -71,7 +77,8 @@ class TrainConfig:
     stem_features: tuple[int, ...] = (32, 32, 64, 128)
     image_sizes: tuple[tuple[str, int], ...] = (("image_primary", 64), ("image_wrist", 64))
     action_horizon: int = 4
-    head_hidden: int = 256
+    head: str = "l1"  # "l1" (Octo's L1ActionHead) or "diffusion" (DiffusionActionHead; see the module docstring)
+    head_hidden: int = 256  # diffusion head only
     t5_width: int = 64
 
 
@@ -98,11 +105,7 @@ def model_config(cfg: TrainConfig) -> dict:
                 "proprio": _spec(tok, "LowdimObsTokenizer", obs_keys=["proprio"], discretize=False),
             },
             "task_tokenizers": {"language": _spec(tok, "LanguageTokenizer", encoder=T5_FOLDER, finetune_encoder=False)},
-            "heads": {
-                "action": _spec("octo.model.components.action_heads", "DiffusionActionHead", readout_key="readout_action",
-                                use_map=False, action_horizon=cfg.action_horizon, action_dim=ACTION_DIM,
-                                n_diffusion_samples=1, dropout_rate=0.0, hidden_dim=cfg.head_hidden),
-            },
+            "heads": {"action": _head_spec(cfg)},
             "readouts": {"action": 1},
             "token_embedding_size": cfg.width,
             "transformer_kwargs": {"num_layers": cfg.layers, "mlp_dim": cfg.mlp_dim, "num_attention_heads": cfg.heads,
@@ -128,6 +131,18 @@ def conventions_toml() -> str:
         '[env]\naction_space = "robosuite"\nimage_convention = "upright"\n\n'
         f'[policy]\ndataset_key = "{DATASET_KEY}"\naction_normalization = "normal"\nproprio_normalization = "normal"\n'
     )
+
+
+def _head_spec(cfg: TrainConfig) -> dict:
+    heads = "octo.model.components.action_heads"
+    if cfg.head == "diffusion":
+        return _spec(heads, "DiffusionActionHead", readout_key="readout_action", use_map=False,
+                     action_horizon=cfg.action_horizon, action_dim=ACTION_DIM, n_diffusion_samples=1, dropout_rate=0.0,
+                     hidden_dim=cfg.head_hidden)
+    if cfg.head == "l1":
+        return _spec(heads, "L1ActionHead", readout_key="readout_action", use_map=False,
+                     action_horizon=cfg.action_horizon, action_dim=ACTION_DIM, max_action=5.0)
+    raise ValueError(f"unknown head {cfg.head!r}; use 'l1' or 'diffusion'")
 
 
 def words(text: str) -> list[str]:
@@ -226,15 +241,14 @@ def _shift(images: jax.Array, offsets: jax.Array, pad: int) -> jax.Array:
     return jax.vmap(crop)(padded, offsets)
 
 
-def diffusion_loss(params: dict, config: OctoConfig, batch: dict, encodings: jax.Array, rng: jax.Array,
-                   alpha_hats: jax.Array) -> jax.Array:
-    """Octo's diffusion loss for a batch; params without the frozen T5 encoder.
+def readout_embedding(params: dict, config: OctoConfig, batch: dict, encodings: jax.Array) -> jax.Array:
+    """The action head's input (b, 1, D): the transformer's readout tokens, pooled as the head does.
 
-    batch: image_<key> (b, 1, S, S, 3) uint8, proprio (b, 1, 8), actions (b, horizon, 7), action_mask
-    (b, horizon) bool, instruction (b,) int32 index into encodings (k, tokens, d_t5).
+    batch: image_<key> (b, 1, S, S, 3) uint8, proprio (b, 1, 8), instruction (b,) int32 index into
+    encodings (k, tokens, d_t5); params without the frozen T5 encoder.
     """
     head = config.action_head
-    b = batch["actions"].shape[0]
+    b = batch["proprio"].shape[0]
     obs = {k: v for k, v in batch.items() if k.startswith("image_") or k == "proprio"}
     ones = jnp.ones((b, 1), bool)
     obs["pad_mask_dict"] = {k: ones for k in obs}
@@ -242,7 +256,33 @@ def diffusion_loss(params: dict, config: OctoConfig, batch: dict, encodings: jax
     encoding = encodings[batch["instruction"]]
     out = OctoTransformer(config, capture_rows=()).apply({"params": params["octo_transformer"]}, obs, task, encoding, ones)
     tokens, mask = out["groups"][head.readout_key]
-    embedding = pool_readouts(params["heads_action"], head, tokens, mask)  # (b, 1, D)
+    return pool_readouts(params["heads_action"], head, tokens, mask)  # (b, 1, D)
+
+
+def _chunk_mask(batch: dict, head) -> jax.Array:
+    """(b, horizon, dim) float32: 1 for chunk entries inside the episode."""
+    b = batch["action_mask"].shape[0]
+    return jnp.broadcast_to(batch["action_mask"][:, :, None], (b, head.action_horizon, head.action_dim)).astype(jnp.float32)
+
+
+def l1_loss(params: dict, config: OctoConfig, batch: dict, encodings: jax.Array, rng: jax.Array,
+            alpha_hats: jax.Array | None = None) -> jax.Array:
+    """Octo's L1ActionHead loss: mean |predicted - normalised action| over valid chunk entries (rng unused)."""
+    head = config.action_head
+    embedding = readout_embedding(params, config, batch, encodings)
+    predicted = ContinuousHead(head).apply({"params": {"mean_proj": params["heads_action"]["mean_proj"]}}, embedding)[:, 0]
+    target = jnp.clip(batch["actions"], -head.max_action, head.max_action)  # (b, horizon, 7)
+    mask = _chunk_mask(batch, head)
+    return jnp.sum(jnp.abs(predicted - target) * mask) / jnp.maximum(jnp.sum(mask), 1)
+
+
+def diffusion_loss(params: dict, config: OctoConfig, batch: dict, encodings: jax.Array, rng: jax.Array,
+                   alpha_hats: jax.Array) -> jax.Array:
+    """Octo's DiffusionActionHead loss (eps MSE over valid chunk entries); batch as `readout_embedding` plus
+    actions (b, horizon, 7) normalised and action_mask (b, horizon) bool."""
+    head = config.action_head
+    b = batch["actions"].shape[0]
+    embedding = readout_embedding(params, config, batch, encodings)
     actions = jnp.clip(batch["actions"], -head.max_action, head.max_action).reshape(b, 1, -1)  # (b, 1, horizon*7)
     t_key, n_key = jax.random.split(rng)
     t = jax.random.randint(t_key, (b, 1, 1), 0, head.diffusion_steps)
@@ -251,7 +291,7 @@ def diffusion_loss(params: dict, config: OctoConfig, batch: dict, encodings: jax
     noisy = jnp.sqrt(alpha_hat) * actions + jnp.sqrt(1 - alpha_hat) * noise
     eps = ScoreNetwork(head).apply({"params": params["heads_action"]["diffusion_model"]}, embedding, noisy,
                                    t.astype(jnp.float32))
-    mask = jnp.broadcast_to(batch["action_mask"][:, :, None], (b, head.action_horizon, head.action_dim)).reshape(b, 1, -1)
+    mask = _chunk_mask(batch, head).reshape(b, 1, -1)
     return jnp.sum(jnp.square(eps - noise) * mask) / jnp.maximum(jnp.sum(mask), 1)
 
 
@@ -394,7 +434,9 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     optimizer = optax.chain(optax.clip_by_global_norm(cfg.grad_clip),
                             optax.adamw(schedule, weight_decay=cfg.weight_decay))
     opt_state = optimizer.init(trainable)
-    alpha_hats = make_schedule(config.action_head.diffusion_steps).alpha_hats
+    diffusion = isinstance(config.action_head, DiffusionHeadConfig)
+    alpha_hats = make_schedule(config.action_head.diffusion_steps).alpha_hats if diffusion else None
+    loss_fn = diffusion_loss if diffusion else l1_loss
 
     @jax.jit
     def train_step(trainable, opt_state, batch, rng):
@@ -403,7 +445,7 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
         for i, k in enumerate(sizes):
             offsets = jax.random.randint(jax.random.fold_in(aug_key, i), (batch[k].shape[0], 2), 0, 2 * cfg.shift_pixels + 1)
             batch[k] = _shift(batch[k][:, 0], offsets, cfg.shift_pixels)[:, None]
-        loss, grads = jax.value_and_grad(diffusion_loss)(trainable, config, batch, encodings, loss_key, alpha_hats)
+        loss, grads = jax.value_and_grad(loss_fn)(trainable, config, batch, encodings, loss_key, alpha_hats)
         updates, opt_state = optimizer.update(grads, opt_state, trainable)
         return optax.apply_updates(trainable, updates), opt_state, loss
 
