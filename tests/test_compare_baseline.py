@@ -41,7 +41,8 @@ def test_rerunning_a_committed_baseline_gives_no_regression(name, fixtures_dir, 
     protocol = candidate_protocol(manifest, _model(info["model_ref"], fixtures_dir))
     summary = execute(protocol, tmp_path, "again", progress=False)
     assert summary.manifest["protocol"]["model_fingerprint"] == info["model_fingerprint"], (
-        f"the model of baseline {name} changed; regenerate it with scripts/make_baseline.py")
+        f"the model of baseline {name} changed; regenerate it (scripts/make_reference_baseline.sh for reference-lift, "
+        "else octo-harness run + scripts/make_baseline.py) and commit it")
 
     result = compare_runs(folder, summary.run_dir)
     assert exit_code(result) == 0, result["verdict"]
