@@ -70,7 +70,7 @@ def main() -> None:
     from harness.run.executor import EpisodeContext, SequentialExecutor
     from harness.run.protocol import EpisodeJob, Protocol
     from harness.run.workers import WorkersExecutor
-    from harness.writers import OutputOptions
+    from harness.outputs.writers import OutputOptions
 
     model = load_pretrained(args.model)
     protocol = Protocol(model=args.model, tasks=(args.task,), episodes=args.episodes, max_steps=args.steps,

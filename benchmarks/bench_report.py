@@ -28,11 +28,11 @@ from pathlib import Path
 import numpy as np
 
 from harness.analysis.aggregate import measure_arrays
-from harness.attention import camera_keys
+from harness.analysis.attention import camera_keys
 from harness.octo.tokens import build_token_map
-from harness.overlays import heatmap_overlay, video_frame
+from harness.outputs.overlays import heatmap_overlay, video_frame
 from harness.report.build import ReportOptions, build_report
-from harness.video import Mp4Writer
+from harness.outputs.video import Mp4Writer
 
 LAYERS, READOUTS = 12, 1
 TOKENS = build_token_map(

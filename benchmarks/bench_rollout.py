@@ -31,7 +31,7 @@ def main() -> None:
     from harness.octo import load_pretrained
     from harness.policy import PolicyConfig
     from harness.runner import RunConfig, run
-    from harness.writers import OutputOptions
+    from harness.outputs.writers import OutputOptions
 
     model = load_pretrained(args.model)
     rows = []

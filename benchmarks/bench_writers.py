@@ -19,12 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.attention import camera_maps, step_metrics
+from harness.analysis.attention import camera_maps, step_metrics
 from harness.octo.tokens import build_token_map
-from harness.overlays import heatmap_overlay, layer_panel, video_frame
+from harness.outputs.overlays import heatmap_overlay, layer_panel, video_frame
 from harness.records import EpisodeMeta, StepRecord
-from harness.video import Mp4Writer
-from harness.writers import EpisodeWriter, OutputOptions, encode_png
+from harness.outputs.video import Mp4Writer
+from harness.outputs.writers import EpisodeWriter, OutputOptions, encode_png
 
 LAYERS, HEADS = 12, 6
 

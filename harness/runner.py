@@ -18,7 +18,7 @@ from harness.run.driver import RunSummary, execute
 from harness.run.protocol import Protocol
 from harness.run.settings import normalise_model, resolve_tasks
 from harness.run.store import EpisodeRow
-from harness.writers import OutputOptions
+from harness.outputs.writers import OutputOptions
 
 __all__ = ["EpisodeRow", "RunConfig", "RunSummary", "run"]
 

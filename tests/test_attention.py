@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from harness import attention as A
+from harness.analysis import attention as A
 from harness.octo.tokens import build_token_map
 
 

@@ -17,7 +17,7 @@ from harness import cli
 from harness.analysis.compare import compare_runs, exit_code
 from harness.octo import load_pretrained
 from harness.run import Protocol, execute
-from harness.writers import OutputOptions
+from harness.outputs.writers import OutputOptions
 
 STEPS = 2
 

@@ -24,7 +24,7 @@ from harness.octo.normalization import normalize
 from harness.policy import BatchInference, EnvMismatchError, InferenceRequest, OctoPolicy, PolicyConfig, TaskSpec, step_key
 from harness.rollout import rollout
 from harness.runner import RunConfig, run
-from harness.writers import OutputOptions
+from harness.outputs.writers import OutputOptions
 from octo_reference import load_expected, observations, task, threefry_flag
 
 STEPS = 3

@@ -7,7 +7,7 @@ import pytest
 import envs
 from envs.actions import ActionAdapterError, passthrough_action
 from envs.options import EnvConfigError, EnvOptions, parse_camera
-from harness import attention as A
+from harness.analysis import attention as A
 from harness.conventions import CheckpointConventions, ConventionsError
 from harness.octo.normalization import NormalizationError, normalize
 from harness.octo.tokens import build_token_map
@@ -192,7 +192,7 @@ def test_episode_state_windows_and_pads_lowdim_like_images():
 def test_writer_takes_the_token_map_from_the_records_and_handles_proprio_one_camera_two_readouts(tmp_path):
     """No language, one camera, a proprio group and two readout groups; the writer is given no token map."""
     from harness.records import EpisodeMeta, StepRecord
-    from harness.writers import EpisodeWriter, OutputOptions
+    from harness.outputs.writers import EpisodeWriter, OutputOptions
 
     tokens = build_token_map([], [("obs_primary", 16), ("obs_proprio", 8), ("readout_action", 1), ("readout_value", 1)],
                              1, (("obs_primary", "image_primary", 4, 4),))

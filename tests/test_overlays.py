@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from harness.attention import upsample_map
-from harness.overlays import (
+from harness.analysis.attention import upsample_map
+from harness.outputs.overlays import (
     BOX,
     colormap_lut,
     heatmap_overlay,

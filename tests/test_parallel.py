@@ -22,7 +22,7 @@ from harness.policy import BatchInference, PolicyConfig, TaskSpec
 from harness.run import execute
 from harness.run.protocol import Protocol
 from harness.run.workers import WorkersExecutor, batch_sizes_for, warmup_request, PolicyShape
-from harness.writers import OutputOptions
+from harness.outputs.writers import OutputOptions
 
 STEPS = 8
 CAMERAS = (("image_primary", "agentview", 64), ("image_wrist", "robot0_eye_in_hand", 32))  # the tiny model's sizes

@@ -9,7 +9,7 @@ import pytest
 from harness.analysis import aggregate as agg
 from harness.analysis.bootstrap import bootstrap_mean_ci
 from harness.analysis.runs import NotARunError, load_run
-from harness.attention import mask_area_fraction, mask_fractions, step_metrics
+from harness.analysis.attention import mask_area_fraction, mask_fractions, step_metrics
 from harness.octo.tokens import build_token_map
 
 # a small Octo-like layout: 3 language tokens, window 2 x (primary 4x4, wrist 2x2, 2 language, 1 readout)

@@ -13,7 +13,7 @@ from harness import cli
 from harness.octo import load_pretrained
 from harness.policy import OctoPolicy, PolicyConfig
 from harness.runner import RunConfig, run
-from harness.writers import OutputOptions
+from harness.outputs.writers import OutputOptions
 
 STEPS = 3
 

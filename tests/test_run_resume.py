@@ -33,7 +33,7 @@ def pause(tag):
     time.sleep(600)
 
 if point.startswith("step:"):
-    import harness.writers as w
+    import harness.outputs.writers as w
     n, original = int(point[5:]), w.EpisodeWriter.add_step
     def add_step(self, record):
         blocked = original(self, record)
@@ -45,7 +45,7 @@ if point.startswith("step:"):
         return blocked
     w.EpisodeWriter.add_step = add_step
 elif point == "mp4":
-    import harness.video as v
+    import harness.outputs.video as v
     original = v.Mp4Writer.close
     def close(self):
         path = original(self)
@@ -192,7 +192,7 @@ def test_killed_runs_resume_to_the_files_of_an_uninterrupted_run(fixtures_dir, t
 def _failing_write(monkeypatch, names):
     """Make the writers' atomic writes of `names` fail as on a full disk."""
     import harness.files
-    import harness.writers
+    import harness.outputs.writers
 
     original = harness.files.write_atomic
 
@@ -201,7 +201,7 @@ def _failing_write(monkeypatch, names):
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         return original(path, write)
 
-    monkeypatch.setattr(harness.writers, "write_atomic", write_atomic)
+    monkeypatch.setattr(harness.outputs.writers, "write_atomic", write_atomic)
 
 
 def test_disk_full_fails_the_episode_and_a_failed_results_append_stops_with_one_line(fixtures_dir, tmp_path, capsys,

@@ -15,7 +15,7 @@ from harness.policy import PolicyConfig
 from harness.run.protocol import EpisodeJob, Protocol, diff, model_fingerprint
 from harness.run.settings import build_protocol, read_protocol_file, resolve_tasks
 from harness.run.store import EpisodeRow, ResultsWriteError, RunLockedError, RunStore
-from harness.writers import OutputOptions
+from harness.outputs.writers import OutputOptions
 
 
 def _protocol(**kw) -> Protocol:

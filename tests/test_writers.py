@@ -10,8 +10,8 @@ from PIL import Image
 
 from harness.octo.tokens import TokenMap, build_token_map
 from harness.records import EpisodeMeta, StepRecord
-from harness.video import GifWriter, Mp4Writer
-from harness.writers import EpisodeWriter, OutputOptions, WriterError
+from harness.outputs.video import GifWriter, Mp4Writer
+from harness.outputs.writers import EpisodeWriter, OutputOptions, WriterError
 
 LAYERS, HEADS, KEYS = 2, 4, 90
 
@@ -261,7 +261,7 @@ def test_encode_png_round_trips_through_pillow():
     image[10:20] = 200  # flat area next to noise: exercises the Up filter's wraparound both ways
     import io
 
-    from harness.writers import encode_png
+    from harness.outputs.writers import encode_png
 
     for level in (0, 2, 9):
         with Image.open(io.BytesIO(encode_png(image, level))) as im:

@@ -34,7 +34,7 @@ from typing import Mapping
 import numpy as np
 
 from harness.analysis.bootstrap import DEFAULT_RESAMPLES, bootstrap_mean_ci
-from harness.attention import _timestep_parts, camera_keys, modality_categories  # one definition of the parts
+from harness.analysis.attention import _timestep_parts, camera_keys, modality_categories  # one definition of the parts
 from harness.octo.tokens import TokenMap
 
 OUTCOMES = ("all", "success", "no_success")  # episode subsets: every ok episode, those that succeeded, those that did not

@@ -102,7 +102,7 @@ class RunRecord:
 
 @dataclass(frozen=True, eq=False)
 class EpisodeArrays:
-    """What the report needs from one attention.npz (see harness/writers.py)."""
+    """What the report needs from one attention.npz (see harness/outputs/writers.py)."""
 
     readout_attention: np.ndarray  # (steps, layers, heads, readouts, keys) float16
     tokens: dict[str, np.ndarray]  # tokens/* arrays (TokenMap.from_arrays reads them)

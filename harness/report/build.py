@@ -39,7 +39,7 @@ from harness.analysis.stats import success_summary
 from harness.report import figures, page
 from harness.report.rundata import RunData, episode_headline, representative
 
-VIDEO_DISPLAY = 256  # harness.overlays.video_frame's `display`: the camera frame fills the video's top-left display x w
+VIDEO_DISPLAY = 256  # harness.outputs.overlays.video_frame's `display`: the camera frame fills the video's top-left display x w
 
 
 class ReportError(ValueError):
@@ -196,7 +196,7 @@ def _patch_box(coverage: np.ndarray) -> tuple[float, float, float, float] | None
 
 
 def _overlay_png(run: RunData, episode: EpisodeRecord, options: ReportOptions) -> tuple[bytes, str] | None:
-    from harness.attention import camera_maps
+    from harness.analysis.attention import camera_maps
     from harness.octo.tokens import TokenMap
 
     try:

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.attention import camera_maps
+from harness.analysis.attention import camera_maps
 from harness.files import atomic_write_json, write_atomic
 from harness.octo.tokens import TokenMap
 from harness.report import html as H

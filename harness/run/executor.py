@@ -44,7 +44,7 @@ from harness.records import EpisodeMeta, StepRecord
 from harness.rollout import rollout
 from harness.run.protocol import EpisodeJob, Protocol
 from harness.run.store import EpisodeRow
-from harness.writers import EpisodeWriter
+from harness.outputs.writers import EpisodeWriter
 
 log = logging.getLogger(__name__)
 

@@ -7,7 +7,7 @@ episode jobs it implies (`Protocol.jobs()`: `(task, episode index, seed)`, episo
 `diff` lists the fields (dotted names, e.g. `policy.receding_steps`, `env.cameras`) where two protocols differ.
 
 Nested options are frozen dataclasses owned by their stages (`envs.EnvOptions`, `harness.policy.PolicyConfig`,
-`harness.writers.OutputOptions`); they serialise with their own `to_dict` when they have one, else
+`harness.outputs.writers.OutputOptions`); they serialise with their own `to_dict` when they have one, else
 `dataclasses.asdict`, so a field added there is recorded, compared and restored here without code changes.
 """
 
@@ -24,7 +24,7 @@ from envs.options import EnvOptions
 from harness.files import json_safe
 from harness.policy import PolicyConfig
 from harness.run.jobs import FORMAT, EpisodeJob  # noqa: F401  (re-exported)
-from harness.writers import OutputOptions
+from harness.outputs.writers import OutputOptions
 
 
 

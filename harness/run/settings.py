@@ -30,7 +30,7 @@ from typing import Any, Mapping
 from envs.options import EnvOptions, parse_camera
 from harness.policy import PolicyConfig
 from harness.run.protocol import Protocol
-from harness.writers import OutputOptions
+from harness.outputs.writers import OutputOptions
 
 DEFAULT_MODEL = "hf://rail-berkeley/octo-small-1.5"
 DEFAULT_OUT = "results/runs"

@@ -8,7 +8,7 @@ Layout (the interface every reader builds on; see README "The run folder"):
   <out>/<run>/results.json    derived, rewritten atomically after each episode: manifest, status, episodes, missing, statistics
   <out>/<run>/summary.csv     derived: one row per episode (+ its task's success statistics)
   <out>/<run>/statistics.csv  derived: one row per task and one "overall" row (n, successes, rate, interval)
-  <out>/<run>/<task>/episode_<k>/...   episode outputs (harness/writers.py); episode.json written last
+  <out>/<run>/<task>/episode_<k>/...   episode outputs (harness/outputs/writers.py); episode.json written last
 
 Only the process holding the lock writes here; executors write only inside the episode folders of their jobs.
 A lock left by a dead process does not block: the kernel releases flock locks when their holder dies.

@@ -52,12 +52,12 @@ from typing import Any
 import numpy as np
 
 from harness.analysis.aggregate import measure_arrays
-from harness.attention import HEAD_FUSIONS, camera_maps, fuse_heads, mask_fractions, rollout_readout_rows, step_metrics
+from harness.analysis.attention import HEAD_FUSIONS, camera_maps, fuse_heads, mask_fractions, rollout_readout_rows, step_metrics
 from harness.octo.tokens import TokenMap
-from harness.overlays import colormap_lut, heatmap_overlay, layer_panel, mask_bbox, video_frame
+from harness.outputs.overlays import colormap_lut, heatmap_overlay, layer_panel, mask_bbox, video_frame
 from harness.records import EpisodeMeta, StepRecord
 from harness.files import atomic_write_json, json_safe, write_atomic
-from harness.video import GifWriter, Mp4Writer
+from harness.outputs.video import GifWriter, Mp4Writer
 
 PNG_NAME = "step_{step:04d}_layer_{layer:02d}.png"
 _STOP = object()

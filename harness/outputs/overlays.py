@@ -2,7 +2,7 @@
 
 Fast enough to run every control step: colours come from a 256-entry lookup table built once per
 colormap from matplotlib's colormaps (no figures), blending is integer numpy, text and boxes are
-drawn with Pillow's ImageDraw. Maps are patch-constant (`harness.attention.upsample_map`), so a
+drawn with Pillow's ImageDraw. Maps are patch-constant (`harness.analysis.attention.upsample_map`), so a
 patch of the model's grid lights exactly the block of pixels it was cut from, in the frame's own
 orientation.
 
@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from harness.attention import fuse_heads
+from harness.analysis.attention import fuse_heads
 
 BACKGROUND = 255
 TEXT = (0, 0, 0)
