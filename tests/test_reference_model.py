@@ -14,7 +14,7 @@ from harness.octo.checkpoint import check_param_tree, read_params, select_step
 from harness.octo.config import OctoConfig
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "octo-reference-robosuite"
-LIFT_SEED = 0  # an evaluation seed (0..49) on which the committed model lifts the cube
+LIFT_SEED = 1  # an evaluation seed (0..49) on which the committed model lifts the cube (28 steps in the evaluation run)
 
 
 @pytest.fixture(scope="module")
@@ -57,9 +57,9 @@ def test_reference_policy_lifts_the_cube_in_the_harness(tmp_path):
     from harness.cli import main
 
     code = main(["run", "--model", str(MODEL), "--task", "Lift", "--episodes", "1", "--seed", str(LIFT_SEED),
-                 "--max-steps", "120", "--png-every", "0", "--no-video", "--fast-render", "--out", str(tmp_path),
+                 "--max-steps", "60", "--png-every", "0", "--no-video", "--fast-render", "--out", str(tmp_path),
                  "--run-name", "reference"])
     assert code == 0
     (row,) = [json.loads(line) for line in (tmp_path / "reference" / "results.jsonl").read_text().splitlines()]
     assert row["status"] == "ok" and row["seed"] == LIFT_SEED
-    assert row["success"] is True and row["steps"] < 120
+    assert row["success"] is True and row["steps"] < 60
