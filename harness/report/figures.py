@@ -112,18 +112,26 @@ def task_layer_heatmaps(tasks: Sequence[str], panels: Sequence[tuple[str, str, n
     layers = max((m.shape[1] for _, _, m in panels), default=1)
     fig = _figure(min(22.0, n * (1.6 + 0.38 * layers) + 1.6), 1.0 + 0.3 * len(tasks) + 0.6)
     _margins(fig, 1.4, 0.5, 0.6, 0.35, wspace=0.08)
+    for i, ax, matrix in _lift_panels(fig, panels, label):
+        ax.set_xlabel("layer")
+        ax.set_yticks(range(len(tasks)), [_short(t) for t in tasks] if i == 0 else [""] * len(tasks), fontsize=8)
+    return _png(fig)
+
+
+def _lift_panels(fig, panels: Sequence[tuple[str, str, np.ndarray]], label: str):
+    """One lift heatmap per run side by side (shared norm centred on 1, one colour bar, run names in their colour,
+    column indices as x ticks); yields (index, axes, matrix) for each panel's own labels before the bar is added."""
+    n = max(1, len(panels))
     norm = _lift_norm([m for _, _, m in panels])
     im = None
     for i, (run, colour, matrix) in enumerate(panels):
         ax = fig.add_subplot(1, n, i + 1)
         im = _annotated_heatmap(ax, matrix, norm, "RdBu_r", annotate=matrix.size <= 60)
         ax.set_title(run, color=colour, fontsize=10, fontweight="bold")
-        ax.set_xticks(range(matrix.shape[1]), [str(i) for i in range(matrix.shape[1])], fontsize=7)
-        ax.set_xlabel("layer")
-        ax.set_yticks(range(len(tasks)), [_short(t) for t in tasks] if i == 0 else [""] * len(tasks), fontsize=8)
+        ax.set_xticks(range(matrix.shape[1]), [str(c) for c in range(matrix.shape[1])], fontsize=7)
+        yield i, ax, matrix
     if im is not None:
         fig.colorbar(im, ax=fig.axes, shrink=0.8, label=label)
-    return _png(fig)
 
 
 def shares_heatmaps(tasks: Sequence[str], categories: Sequence[str], panels: Sequence[tuple[str, str, dict]]) -> bytes:
@@ -244,19 +252,11 @@ def head_layer_maps(panels: Sequence[tuple[str, str, np.ndarray]], label: str) -
     layers = max((m.shape[0] for _, _, m in panels), default=1)
     fig = _figure(min(22.0, n * (1.2 + 0.34 * heads) + 1.4), 0.9 + 0.3 * layers)
     _margins(fig, 0.6, 0.5, 0.6, 0.35, wspace=0.15)
-    norm = _lift_norm([m for _, _, m in panels])
-    im = None
-    for i, (run, colour, matrix) in enumerate(panels):
-        ax = fig.add_subplot(1, n, i + 1)
-        im = _annotated_heatmap(ax, matrix, norm, "RdBu_r", annotate=matrix.size <= 60)
-        ax.set_title(run, color=colour, fontsize=10, fontweight="bold")
-        ax.set_xticks(range(matrix.shape[1]), [str(h) for h in range(matrix.shape[1])], fontsize=7)
+    for i, ax, matrix in _lift_panels(fig, panels, label):
         ax.set_yticks(range(matrix.shape[0]), [str(l) for l in range(matrix.shape[0])], fontsize=7)
         ax.set_xlabel("head")
         if i == 0:
             ax.set_ylabel("layer")
-    if im is not None:
-        fig.colorbar(im, ax=fig.axes, shrink=0.8, label=label)
     return _png(fig)
 
 
