@@ -40,33 +40,9 @@ class RunData:
     def build_index(self) -> None:
         """(table, task, outcome, metric[, layer]) -> arrays, from the long rows."""
         index: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        grouped: dict[tuple, list[tuple]] = defaultdict(list)
-        for r in self.rows["layers"]:
-            grouped[("layers", r[1], r[8], r[4])].append(r)
-        for key, rows in grouped.items():
-            layers = max(r[2] for r in rows) + 1
-            v, lo, hi = (np.full(layers, np.nan) for _ in range(3))
-            for r in rows:
-                v[r[2]], lo[r[2]], hi[r[2]] = r[5], r[6], r[7]
-            index[key] = (v, lo, hi)
-        grouped = defaultdict(list)
-        for r in self.rows["heads"]:
-            grouped[("heads", r[1], r[8], r[4])].append(r)
-        for key, rows in grouped.items():
-            shape = (max(r[2] for r in rows) + 1, max(r[3] for r in rows) + 1)
-            v, lo, hi = (np.full(shape, np.nan) for _ in range(3))
-            for r in rows:
-                v[r[2], r[3]], lo[r[2], r[3]], hi[r[2], r[3]] = r[5], r[6], r[7]
-            index[key] = (v, lo, hi)
-        grouped = defaultdict(list)
-        for r in self.rows["progress"]:
-            grouped[("progress", r[1], r[8], r[4], r[2])].append(r)
-        for key, rows in grouped.items():
-            bins = max(r[10] for r in rows) + 1
-            v, lo, hi = (np.full(bins, np.nan) for _ in range(3))
-            for r in rows:
-                v[r[10]], lo[r[10]], hi[r[10]] = r[5], r[6], r[7]
-            index[key] = (v, lo, hi)
+        index.update(_scatter(self.rows["layers"], lambda r: ("layers", r[1], r[8], r[4]), lambda r: (r[2],)))
+        index.update(_scatter(self.rows["heads"], lambda r: ("heads", r[1], r[8], r[4]), lambda r: (r[2], r[3])))
+        index.update(_scatter(self.rows["progress"], lambda r: ("progress", r[1], r[8], r[4], r[2]), lambda r: (r[10],)))
         self._index = index
 
 
@@ -97,4 +73,21 @@ def share_categories(runs: list[RunData]) -> list[tuple[str, str]]:
     out = [(m[6:], m) for m in metrics]
     if any(r[4] == "timestep_share/earlier" for run in runs for r in run.rows["layers"]):
         out.append(("earlier timesteps", "timestep_share/earlier"))
+    return out
+
+
+def _scatter(rows, key_of, position_of) -> dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Long rows (value, ci_low, ci_high at columns 5-7) -> {key: (value, low, high) arrays}, each row at its
+    position (layer / (layer, head) / progress bin); positions no row names stay NaN."""
+    grouped: dict[tuple, list[tuple]] = defaultdict(list)
+    for r in rows:
+        grouped[key_of(r)].append(r)
+    out = {}
+    for key, members in grouped.items():
+        positions = [position_of(r) for r in members]
+        shape = tuple(max(p[i] for p in positions) + 1 for i in range(len(positions[0])))
+        v, lo, hi = (np.full(shape, np.nan) for _ in range(3))
+        for r, pos in zip(members, positions):
+            v[pos], lo[pos], hi[pos] = r[5], r[6], r[7]
+        out[key] = (v, lo, hi)
     return out
