@@ -28,6 +28,19 @@ def _video_attention(text: str):
         raise argparse.ArgumentTypeError(f"--video-attention takes 'rollout' or a layer index, got {text!r}") from None
 
 
+def _add_execution_args(parser: argparse.ArgumentParser) -> None:
+    """Where a run's episodes execute (not part of the protocol: a run may resume with another worker count)."""
+    parser.add_argument("--workers", type=int, default=None,
+                        help="env worker processes, inference batched in one process (same episodes as a sequential run) "
+                             "[none: sequential; with --executor ray: the CPU count, minus one per replica on a cluster]")
+    parser.add_argument("--executor", choices=["local", "ray"], default=None,
+                        help="where the env workers run: local processes or Ray actors (pip install 'octo-harness[ray]') [local]")
+    parser.add_argument("--ray-address", default=None,
+                        help="Ray cluster to join (e.g. auto or head-node:6379); --out must be on a filesystem every node "
+                             "mounts [start a local Ray instance]")
+    parser.add_argument("--policy-replicas", type=int, default=None, help="Ray: model replicas serving the env workers [1]")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="octo-harness", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
@@ -88,15 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="how proprio inputs are normalised [checkpoint's harness.toml, else normal]")
     r.add_argument("--ci-method", choices=["wilson", "clopper-pearson"], default=None,
                    help="confidence interval of success rates (95%%) [wilson]")
-    r.add_argument("--workers", type=int, default=None,
-                   help="env worker processes, inference batched in one process (same episodes as a sequential run) "
-                        "[none: sequential; with --executor ray: the CPU count, minus one per replica on a cluster]")
-    r.add_argument("--executor", choices=["local", "ray"], default=None,
-                   help="where the env workers run: local processes or Ray actors (pip install 'octo-harness[ray]') [local]")
-    r.add_argument("--ray-address", default=None,
-                   help="Ray cluster to join (e.g. auto or head-node:6379); --out must be on a filesystem every node "
-                        "mounts [start a local Ray instance]")
-    r.add_argument("--policy-replicas", type=int, default=None, help="Ray: model replicas serving the env workers [1]")
+    _add_execution_args(r)
 
     sub.add_parser("tasks", help="list the registered tasks")
 
@@ -135,6 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--run-name", default=None, help="candidate run folder name [<model>_<protocol hash>]")
     reg.add_argument("--fail-on", choices=["regressed", "underpowered"], default="regressed",
                      help="also exit 1 when the test ran out of pairs undecided [regressed]")
+    _add_execution_args(reg)
     return parser
 
 
@@ -165,8 +171,11 @@ def _cmd_regress(args) -> int:
     from harness.report.compare_html import write_comparison
     from harness.run.regress import exit_code, regress, write_regress
 
+    from harness.run.workers import executor_factory
+
+    factory = executor_factory(args.workers, args.executor, args.ray_address, args.policy_replicas)
     result = regress(args.baseline, args.model, max_episodes=args.max_episodes, out=args.out, run_name=args.run_name,
-                     alpha=args.alpha, max_drop=args.max_drop)
+                     alpha=args.alpha, max_drop=args.max_drop, executor=factory)
     code = exit_code(result, args.fail_on)
     paths = write_regress(result, code, write_comparison)
     print(paths["summary"])

@@ -203,6 +203,24 @@ def test_impossible_execution_options_are_one_line_before_anything_loads(fixture
     assert not any(tmp_path.iterdir())  # nothing written
 
 
+def test_regress_with_two_workers_pairs_the_sequential_episodes(tiny, sequential, tmp_path, capsys):
+    """`regress --workers 2`: the candidate's episodes run in env workers and still pair step for step."""
+    from harness import cli
+    from harness.analysis.runs import load_run
+
+    args = ["regress", "--baseline", str(sequential.run_dir), "--model", tiny.source, "--workers", "2",
+            "--out", str(tmp_path), "--run-name", "cand"]
+    assert cli.main(args) == 0  # same model, same seeds: no regression
+    result = json.loads((tmp_path / "cand" / "regress" / "regress.json").read_text())
+    assert result["pairs_used"] == result["baseline_pairs"] == 2
+    candidate = load_run(tmp_path / "cand")
+    assert candidate.status == "complete" and len(candidate.episodes) == 2
+    for base, cand in zip(sequential.rows, sorted(candidate.episodes, key=lambda e: e.episode)):
+        assert (cand.seed, cand.success, cand.steps) == (base.seed, base.success, base.steps)
+        with np.load(cand.directory / "actions.npz") as z:
+            np.testing.assert_allclose(z["executed"], _actions(sequential, base), rtol=0, atol=1e-4)
+
+
 # ---------------------------------------------------------------------------------------------- the command line
 
 
