@@ -58,7 +58,7 @@ SPECIALS = ("<pad>", "</s>", "<unk>")  # T5's ids 0, 1, 2
 
 @dataclass(frozen=True)
 class TrainConfig:
-    steps: int = 6000
+    steps: int = 14000
     batch_size: int = 32
     learning_rate: float = 6e-4
     warmup_steps: int = 200
@@ -356,7 +356,7 @@ def write_curve(folder: Path, rows: list[dict]) -> None:
     path.with_suffix(".tmp").replace(path)
 
 
-def plot_curve(folder: Path, rows: list[dict]) -> None:
+def plot_curve(folder: Path, rows: list[dict], head: str = "l1") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -366,7 +366,8 @@ def plot_curve(folder: Path, rows: list[dict]) -> None:
     ax.plot([r["step"] for r in rows], [r["loss"] for r in rows], lw=1.2)
     ax.set_yscale("log")
     ax.set_xlabel("training step")
-    ax.set_ylabel(f"diffusion loss (mean of {rows[1]['step'] - rows[0]['step'] if len(rows) > 1 else 1} steps)")
+    every = rows[1]["step"] - rows[0]["step"] if len(rows) > 1 else 1
+    ax.set_ylabel(f"{'L1' if head == 'l1' else 'diffusion'} loss (mean of {every} steps)")
     ax.set_title("octo-reference-robosuite: training curve")
     ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -481,7 +482,7 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
             full = {**trainable, "octo_transformer": {**trainable["octo_transformer"], "task_tokenizers_language": t5_params}}
             write_params(out_dir, step, full)
             log.info("checkpoint %d written", step)
-    plot_curve(out_dir, rows)
+    plot_curve(out_dir, rows, cfg.head)
     summary = {"parameters": n_params, "frames": int(len(data.actions)), "train_seconds": time.perf_counter() - t0,
                "total_seconds": time.perf_counter() - start, "final_loss": rows[-1]["loss"], "config": asdict(cfg)}
     (out_dir / "training_summary.json").write_text(json.dumps(summary, indent=2, default=str))
