@@ -342,3 +342,52 @@ def test_ray_executor_with_two_workers_gives_the_sequential_episodes(tiny, seque
     assert stats["sample_cache_size"] == len(batch_sizes_for(2))  # the replica compiled only during warm-up
     assert sum(stats["batches"]) == 2 * STEPS
     assert not list(Path(summary.run_dir).glob(".octo-harness-shared-check-*"))  # the marker is removed
+
+
+def _busy_ray_env_workers() -> list[int]:
+    """Pids of Ray env-worker actors inside `run` (Ray titles the process `ray::EnvWorker.run` meanwhile)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if (entry / "cmdline").read_bytes().startswith(b"ray::EnvWorker.run"):
+                    pids.append(int(entry.name))
+            except OSError:
+                pass
+    return pids
+
+
+@pytest.mark.slow
+def test_a_ray_env_worker_killed_during_a_job_fails_that_episode_is_replaced_and_the_run_completes(tiny, tmp_path):
+    from harness.run.ray_executor import RayExecutor
+
+    executors, killed = [], []
+
+    def factory(context, model):
+        executors.append(RayExecutor(context, model, workers=2))
+        return executors[-1]
+
+    def kill_a_busy_actor():
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline:
+            busy = _busy_ray_env_workers()
+            if busy:  # a job is under way on that actor (making its env or stepping the episode)
+                os.kill(busy[0], signal.SIGKILL)
+                killed.append(busy[0])
+                return
+            time.sleep(0.02)
+
+    thread = threading.Thread(target=kill_a_busy_actor, daemon=True)
+    thread.start()
+    summary = execute(_protocol(tiny, episodes=3), tmp_path, "raykill", model=tiny, executor=factory, progress=False)
+    thread.join()
+    assert killed, "no Ray env worker was killed"
+    assert summary.status == "complete" and len(summary.rows) == 3
+    failed = [r for r in summary.rows if r.status == "failed"]
+    assert len(failed) == 1 and f"worker process died (pid {killed[0]}" in failed[0].error
+    assert all(r.status == "ok" and r.steps == STEPS for r in summary.rows if r is not failed[0])
+    assert executors[0].replacements == 1
+    meta = json.loads((summary.episode_dir(failed[0]) / "episode.json").read_text())
+    assert meta["status"] == "failed" and sorted(p.name for p in summary.episode_dir(failed[0]).iterdir()) == ["episode.json"]
+    assert _no_temporaries(summary.run_dir)
+    assert not _busy_ray_env_workers()  # every actor is gone with the run
