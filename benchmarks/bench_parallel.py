@@ -10,6 +10,8 @@ Bound: cores / (inference core-seconds + simulation core-seconds per step), with
 here by process CPU time (time.process_time: all threads of the process: XLA's pool, llvmpipe's render
 threads) around `policy.step` and `env.step` of a plain closed loop. No schedule can beat it: every step
 needs that much CPU. Targets on a 2-core CPU: 2 workers >= 1.1x sequential and >= 85% of the bound.
+Batching: the core-seconds per example of one batched inference call at batch 1 and 2 (what batching the
+workers' requests can save per step; the bound assumes it saves nothing).
 
     .venv/bin/python benchmarks/bench_parallel.py [--model random:octo-small-1.5] [--episodes 4] [--steps 15]
 """
@@ -55,6 +57,29 @@ def core_seconds_per_step(model, protocol, steps: int) -> dict:
     return {k: v / steps for k, v in totals.items()}
 
 
+def batch_core_seconds(model, protocol, sizes=(1, 2), calls: int = 6) -> dict[int, float]:
+    """Core-seconds per example of one batched inference call at each batch size (after compiling them)."""
+    import numpy as np
+
+    from harness.policy import BatchInference, TaskSpec
+    from harness.run.workers import PolicyShape, warmup_request
+
+    inference = BatchInference(model, protocol.policy, sizes)
+    request = warmup_request(PolicyShape.of(model, inference.dataset_key), TaskSpec.of("pick up the red cube"))
+    rng = np.random.default_rng(0)
+    for value in request.observation.values():
+        if isinstance(value, np.ndarray) and value.dtype == np.uint8:
+            value[:] = rng.integers(0, 256, value.shape)
+    inference.warm_up(request)
+    out = {}
+    for b in sizes:
+        c0 = time.process_time()
+        for _ in range(calls):
+            inference([request] * b)
+        out[b] = (time.process_time() - c0) / calls / b
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--model", default="random:octo-small-1.5")
@@ -78,6 +103,7 @@ def main() -> None:
     cores = os.cpu_count() or 1
     cost = core_seconds_per_step(model, protocol, steps=max(10, args.steps))
     bound = cores / (cost["inference_cpu"] + cost["simulation_cpu"])
+    per_example = batch_core_seconds(model, protocol)
 
     executors: list[tuple[str, object]] = [("sequential", SequentialExecutor)]
     executors += [(f"--workers {n}", functools.partial(WorkersExecutor, workers=int(n))) for n in args.workers.split(",")]
@@ -116,6 +142,8 @@ def main() -> None:
           f"{args.steps} steps per executor, after warm-up; {cores} cores")
     print(f"per step: inference {cost['inference_cpu']:.3f} core-s ({cost['inference_wall']:.3f} s wall), simulation "
           f"{cost['simulation_cpu']:.3f} core-s ({cost['simulation_wall']:.3f} s wall)")
+    print(f"batched inference, core-s per example: batch 1 {per_example[1]:.3f}, batch 2 {per_example[2]:.3f} "
+          f"({per_example[2] / per_example[1]:.2f}x: what batching saves per step)")
     print(f"bound: {cores} cores / {cost['inference_cpu'] + cost['simulation_cpu']:.3f} core-s per step = {bound:.2f} env-steps/s\n")
     print("| executor | env-steps/s | vs sequential | of bound |\n|---|---:|---:|---:|")
     for label, rate, _, _ in results:
