@@ -65,6 +65,28 @@ def _assert_same_episodes(reference, other) -> None:
                                        za["readout_attention"].astype(np.float32), atol=2e-3)  # float16 storage
 
 
+def _run_three_while(tiny, tmp_path, name, factory, killer):
+    """Run 3 episodes with `factory` while `killer` (a thread) kills a worker."""
+    thread = threading.Thread(target=killer, daemon=True)
+    thread.start()
+    summary = execute(_protocol(tiny, episodes=3), tmp_path, name, model=tiny, executor=factory, progress=False)
+    thread.join()
+    return summary
+
+
+def _the_one_failed_episode(summary):
+    """A 3-episode run that lost one worker: complete, one failed row (its folder holds only episode.json), the
+    other episodes whole, no temporaries. Returns the failed row."""
+    assert summary.status == "complete" and len(summary.rows) == 3
+    failed = [r for r in summary.rows if r.status == "failed"]
+    assert len(failed) == 1
+    assert all(r.status == "ok" and r.steps == STEPS for r in summary.rows if r is not failed[0])
+    meta = json.loads((summary.episode_dir(failed[0]) / "episode.json").read_text())
+    assert meta["status"] == "failed" and sorted(p.name for p in summary.episode_dir(failed[0]).iterdir()) == ["episode.json"]
+    assert _no_temporaries(summary.run_dir)
+    return failed[0]
+
+
 def test_two_worker_processes_give_the_sequential_episodes_without_recompiling(tiny, sequential, tmp_path):
     executors = []
 
@@ -163,20 +185,12 @@ def test_a_worker_killed_mid_episode_fails_that_episode_is_replaced_and_the_run_
                     return
             time.sleep(0.01)
 
-    thread = threading.Thread(target=kill_a_busy_worker, daemon=True)
-    thread.start()
-    summary = execute(_protocol(tiny, episodes=3), tmp_path, "kill", model=tiny, executor=factory, progress=False)
-    thread.join()
+    summary = _run_three_while(tiny, tmp_path, "kill", factory, kill_a_busy_worker)
     assert killed, "no worker was killed"
-    assert summary.status == "complete" and len(summary.rows) == 3
-    failed = [r for r in summary.rows if r.status == "failed"]
-    assert [(r.task, r.episode) for r in failed] == [(killed[0].task, killed[0].episode)]
-    assert "worker process died: signal 9" in failed[0].error
-    assert all(r.status == "ok" and r.steps == STEPS for r in summary.rows if r is not failed[0])
+    failed = _the_one_failed_episode(summary)
+    assert (failed.task, failed.episode) == (killed[0].task, killed[0].episode)
+    assert "worker process died: signal 9" in failed.error
     assert executors[0].pool.replacements == 1
-    meta = json.loads((summary.episode_dir(failed[0]) / "episode.json").read_text())
-    assert meta["status"] == "failed" and sorted(p.name for p in summary.episode_dir(failed[0]).iterdir()) == ["episode.json"]
-    assert _no_temporaries(summary.run_dir)
 
 
 def test_an_env_worker_that_cannot_see_the_run_folder_names_its_node_and_the_fix(tmp_path):
@@ -377,17 +391,9 @@ def test_a_ray_env_worker_killed_during_a_job_fails_that_episode_is_replaced_and
                 return
             time.sleep(0.02)
 
-    thread = threading.Thread(target=kill_a_busy_actor, daemon=True)
-    thread.start()
-    summary = execute(_protocol(tiny, episodes=3), tmp_path, "raykill", model=tiny, executor=factory, progress=False)
-    thread.join()
+    summary = _run_three_while(tiny, tmp_path, "raykill", factory, kill_a_busy_actor)
     assert killed, "no Ray env worker was killed"
-    assert summary.status == "complete" and len(summary.rows) == 3
-    failed = [r for r in summary.rows if r.status == "failed"]
-    assert len(failed) == 1 and f"worker process died (pid {killed[0]}" in failed[0].error
-    assert all(r.status == "ok" and r.steps == STEPS for r in summary.rows if r is not failed[0])
+    failed = _the_one_failed_episode(summary)
+    assert f"worker process died (pid {killed[0]}" in failed.error
     assert executors[0].replacements == 1
-    meta = json.loads((summary.episode_dir(failed[0]) / "episode.json").read_text())
-    assert meta["status"] == "failed" and sorted(p.name for p in summary.episode_dir(failed[0]).iterdir()) == ["episode.json"]
-    assert _no_temporaries(summary.run_dir)
     assert not _busy_ray_env_workers()  # every actor is gone with the run
