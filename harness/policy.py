@@ -194,10 +194,17 @@ class BatchInference:
         """Smallest batch size >= n (n <= the largest size)."""
         return next(b for b in self.batch_sizes if b >= n)
 
-    def warm_up(self, request: InferenceRequest) -> None:
-        """Compile every batch size once with copies of `request`."""
+    def warm_up(self, request: InferenceRequest, timed: tuple[int, ...] = ()) -> dict[int, float]:
+        """Compile every batch size once with copies of `request`; then time one more call at each size in
+        `timed` and return {size: seconds}."""
         for b in self.batch_sizes:
             self([request] * b)
+        seconds = {}
+        for b in timed:
+            start = time.perf_counter()
+            self([request] * b)
+            seconds[b] = time.perf_counter() - start
+        return seconds
 
     def __call__(self, requests: list[InferenceRequest]) -> list[InferenceResult]:
         out: list[InferenceResult] = []

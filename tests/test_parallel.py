@@ -21,7 +21,7 @@ from harness.octo import load_pretrained
 from harness.policy import BatchInference, PolicyConfig, TaskSpec
 from harness.run import execute
 from harness.run.protocol import Protocol
-from harness.run.workers import WorkersExecutor, batch_sizes_for, warmup_request, PolicyShape
+from harness.run.workers import WorkersExecutor, batch_limit, batch_sizes_for, warmup_request, PolicyShape
 from harness.outputs.writers import OutputOptions
 
 STEPS = 8
@@ -99,10 +99,21 @@ def test_two_worker_processes_give_the_sequential_episodes_without_recompiling(t
     # every batch size the run can use was compiled during warm-up: batch 1 (shared with the sequential run) and 2
     assert tiny.sample_cache_size == len(batch_sizes_for(2)) == 2
     pool = executors[0].pool
-    assert sum(pool.batches) == 2 * STEPS and max(pool.batches) <= 2 and pool.replacements == 0
+    assert sum(pool.batches) == 2 * STEPS and max(pool.batches) <= pool.max_batch <= 2 and pool.replacements == 0
     rows = [json.loads(line) for line in (summary.run_dir / "results.jsonl").read_text().splitlines()]
     assert sorted((r["task"], r["episode"]) for r in rows) == [("Lift", 0), ("Lift", 1)]
     assert _no_temporaries(summary.run_dir)
+
+
+@pytest.mark.parametrize("seconds_1, seconds_4, expected", [
+    (0.40, 1.60, 1),  # a CPU: 4 examples cost 4x one -> serve singly so inference overlaps simulation
+    (0.40, 1.20, 4),  # 0.30 s per example <= 0.8 x 0.40: batching pays
+    (0.40, 1.28, 4),  # exactly 80%: batch
+    (0.40, 1.29, 1),  # 80.6%: too little saved
+    (0.010, 0.012, 4),  # a GPU: a batch of 4 costs little more than one
+])
+def test_requests_are_batched_only_where_batching_saves_a_fifth_per_example(seconds_1, seconds_4, expected):
+    assert batch_limit(seconds_1, seconds_4, 4) == expected
 
 
 def test_an_episode_gets_its_batch_1_actions_whatever_shares_its_batch(tiny):

@@ -13,11 +13,16 @@ one process holding the model means one copy of the weights, one set of compiled
 XLA thread pool. The driver's other work (appending a row to results.jsonl and rewriting the derived
 files once per episode) is small and happens between batches.
 
-Batching: whenever the model is free, every request waiting at that moment goes into one call
-(greedy: the model never idles while a worker waits, and never waits for a batch to fill). The batch
-is padded to the smallest of a few fixed sizes (powers of two up to N, and N), all compiled during
-warm-up, so nothing compiles during the run. Each example has its own rng key and task, so an
-episode's actions do not depend on what shares its batch (see harness/policy.py).
+Batching: whenever the model is free, the requests waiting at that moment go into one call (greedy:
+the model never idles while a worker waits, and never waits for a batch to fill). The batch is padded
+to the smallest of a few fixed sizes (powers of two up to N, and N), all compiled during warm-up, so
+nothing compiles during the run. Each example has its own rng key and task, so an episode's actions
+do not depend on what shares its batch (see harness/policy.py). Warm-up also times one call at batch 1
+and at the largest size: where batching does not save at least BATCH_SAVING per example (a CPU, where
+one inference already uses every core), requests are served one at a time, first come first served.
+Then the workers fall out of step: one worker's inference runs while the others simulate, instead of
+every worker simulating at once and then waiting for one big batch (measured on 2 cores with
+octo-small: 2 workers 1.25x sequential served singly, about 1.03-1.06x when batched in lockstep).
 
 Where the writers run, and why: in each env worker, in EpisodeWriter's background thread (and its
 PNG thread pool). The frames and masks are already in that process; only the resized observation
@@ -104,6 +109,15 @@ def batch_sizes_for(workers: int) -> tuple[int, ...]:
         sizes.add(b)
         b *= 2
     return tuple(sorted(sizes))
+
+
+BATCH_SAVING = 0.2  # batch requests only where a full batch costs at most 80% per example of batch-1 calls
+
+
+def batch_limit(seconds_1: float, seconds_largest: float, largest: int, saving: float = BATCH_SAVING) -> int:
+    """Largest number of requests per inference call: `largest` where batching saves at least `saving` of the
+    per-example time (seconds_largest / largest <= (1 - saving) * seconds_1), else 1."""
+    return largest if seconds_largest / largest <= (1.0 - saving) * seconds_1 else 1
 
 
 def death_cause(exitcode: int | None) -> str:
@@ -241,6 +255,7 @@ class WorkerPool:
         self.replacements = 0
         self._warm = False
         self.batches: list[int] = []  # number of real requests in each inference call (for statistics/tests)
+        self.max_batch = workers  # set by warm_up(): 1 where batching saves too little (see the module docstring)
 
     # -------------------------------------------------------------- lifecycle
 
@@ -285,8 +300,13 @@ class WorkerPool:
         self._pool.clear()
 
     def warm_up(self, task: TaskSpec) -> None:
-        """Compile every fixed batch size once (and build the first task)."""
-        self.inference.warm_up(warmup_request(self.spec.shape, task))
+        """Compile every fixed batch size once (and build the first task), then choose how to batch."""
+        largest = batch_sizes_for(self.workers)[-1]
+        seconds = self.inference.warm_up(warmup_request(self.spec.shape, task), timed=(1, largest) if largest > 1 else ())
+        if largest > 1:
+            self.max_batch = batch_limit(seconds[1], seconds[largest], largest)
+            log.info("inference: batch 1 %.3f s, batch %d %.3f s per example -> serving %s", seconds[1], largest,
+                     seconds[largest] / largest, "batches" if self.max_batch > 1 else "one request at a time")
         self._warm = True
 
     # -------------------------------------------------------------- the loop
@@ -314,9 +334,9 @@ class WorkerPool:
                 if not (queue or any(w.job is not None for w in self._pool.values())):
                     break
                 self._poll(queue, waiting, finished.append, block=not waiting)
-                if waiting:
-                    self._serve(waiting)
-                    waiting.clear()
+                if waiting:  # first come, first served
+                    batch, waiting[:] = waiting[:self.max_batch], waiting[self.max_batch:]
+                    self._serve(batch)
             completed = True
         finally:
             if not completed:
