@@ -135,7 +135,10 @@ def main() -> None:
                 raise SystemExit(f"{label}: {len(failed)} episodes failed: {failed[0].error}")
             steps = sum(r.steps for r in rows)
             results.append((label, steps / wall, wall, steps))
-            print(f"{label:<20} {steps / wall:6.2f} env-steps/s ({steps} steps in {wall:.1f} s)", flush=True)
+            pool = getattr(executor, "pool", None)
+            served = (f"; inference calls of 1/2/..: {[pool.batches.count(b) for b in range(1, pool.max_batch + 1)]}"
+                      if pool is not None else "")
+            print(f"{label:<20} {steps / wall:6.2f} env-steps/s ({steps} steps in {wall:.1f} s{served})", flush=True)
 
     seq = results[0][1]
     print(f"\nmodel {args.model}, task {args.task}, cameras 256+128 px, masks on, no PNG/MP4; {args.episodes} episodes x "
