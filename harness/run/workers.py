@@ -21,8 +21,8 @@ do not depend on what shares its batch (see harness/policy.py). Warm-up also tim
 and at the largest size: where batching does not save at least BATCH_SAVING per example (a CPU, where
 one inference already uses every core), requests are served one at a time, first come first served.
 Then the workers fall out of step: one worker's inference runs while the others simulate, instead of
-every worker simulating at once and then waiting for one big batch (measured on 2 cores with
-octo-small: 2 workers 1.25x sequential served singly, about 1.03-1.06x when batched in lockstep).
+every worker simulating at once and then waiting for one big batch (benchmarks/bench_parallel.py on 2
+cores with octo-small: 2 workers 1.15x sequential served singly, 1.03-1.06x when batched in lockstep).
 
 Where the writers run, and why: in each env worker, in EpisodeWriter's background thread (and its
 PNG thread pool). The frames and masks are already in that process; only the resized observation
