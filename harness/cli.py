@@ -41,6 +41,13 @@ def _add_execution_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy-replicas", type=int, default=None, help="Ray: model replicas serving the env workers [1]")
 
 
+def _execution(args):
+    """The executor factory the execution flags of `_add_execution_args` ask for (None: sequential)."""
+    from harness.run.workers import executor_factory
+
+    return executor_factory(args.workers, args.executor, args.ray_address, args.policy_replicas)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="octo-harness", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
@@ -171,9 +178,7 @@ def _cmd_regress(args) -> int:
     from harness.report.compare_html import write_comparison
     from harness.run.regress import exit_code, regress, write_regress
 
-    from harness.run.workers import executor_factory
-
-    factory = executor_factory(args.workers, args.executor, args.ray_address, args.policy_replicas)
+    factory = _execution(args)
     result = regress(args.baseline, args.model, max_episodes=args.max_episodes, out=args.out, run_name=args.run_name,
                      alpha=args.alpha, max_drop=args.max_drop, executor=factory)
     code = exit_code(result, args.fail_on)
@@ -197,9 +202,8 @@ def _cmd_run(args) -> int:
     from harness.run import ResultsWriteError, RunStore, execute
     from harness.run.protocol import Protocol
     from harness.run.settings import build_protocol, out_dir, read_protocol_file
-    from harness.run.workers import executor_factory
 
-    factory = executor_factory(args.workers, args.executor, args.ray_address, args.policy_replicas)
+    factory = _execution(args)
 
     given = {k: v for k, v in vars(args).items() if v is not None and k not in ("command", "debug", *RUN_CONTROL)}
     if args.resume is not None:

@@ -302,8 +302,9 @@ class WorkerPool:
     def warm_up(self, task: TaskSpec) -> None:
         """Compile every fixed batch size once (and build the first task), then choose how to batch."""
         largest = batch_sizes_for(self.workers)[-1]
-        seconds = self.inference.warm_up(warmup_request(self.spec.shape, task), timed=(1, largest) if largest > 1 else ())
-        if largest > 1:
+        timed = (1, largest) if largest > 1 else ()
+        seconds = self.inference.warm_up(warmup_request(self.spec.shape, task), timed=timed)
+        if timed:
             self.max_batch = batch_limit(seconds[1], seconds[largest], largest)
             log.info("inference: batch 1 %.3f s, batch %d %.3f s per example -> serving %s", seconds[1], largest,
                      seconds[largest] / largest, "batches" if self.max_batch > 1 else "one request at a time")
