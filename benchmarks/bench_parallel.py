@@ -64,15 +64,15 @@ def batch_core_seconds(model, protocol, sizes=(1, 2), calls: int = 6) -> dict[in
     from harness.policy import BatchInference, TaskSpec
     from harness.run.workers import PolicyShape, warmup_request
 
-    inference = BatchInference(model, protocol.policy, sizes)
-    request = warmup_request(PolicyShape.of(model, inference.dataset_key), TaskSpec.of("pick up the red cube"))
-    rng = np.random.default_rng(0)
-    for value in request.observation.values():
-        if isinstance(value, np.ndarray) and value.dtype == np.uint8:
-            value[:] = rng.integers(0, 256, value.shape)
-    inference.warm_up(request)
     out = {}
-    for b in sizes:
+    for b in sizes:  # one BatchInference per shape: a run compiles exactly its protocol's inference_batch
+        inference = BatchInference(model, protocol.policy.__class__(**{**vars(protocol.policy), "inference_batch": b}))
+        request = warmup_request(PolicyShape.of(model, inference.dataset_key), TaskSpec.of("pick up the red cube"))
+        rng = np.random.default_rng(0)
+        for value in request.observation.values():
+            if isinstance(value, np.ndarray) and value.dtype == np.uint8:
+                value[:] = rng.integers(0, 256, value.shape)
+        inference.warm_up(request)
         c0 = time.process_time()
         for _ in range(calls):
             inference([request] * b)

@@ -34,6 +34,9 @@ from harness.octo.normalization import NORMALIZATIONS, normalize
 from harness.octo.tokens import TokenMap
 
 
+MAX_INFERENCE_BATCH = 256  # a larger compiled batch only costs memory: no machine here gains from it
+
+
 class EnvMismatchError(ValueError):
     """The model and the environment do not fit together (message: one line naming the fix)."""
 
@@ -48,6 +51,10 @@ class PolicyConfig:
     action_normalization: str = "normal"  # how the head's actions are unnormalised: "normal" (mean/std) | "bounds" (p01/p99)
     proprio_normalization: str = "normal"  # low-dim inputs: "normal" | "bounds" | "none" (see harness.octo.normalization)
     sampler: str = "latest"  # diffusion heads: "latest" (the latest original code, any checkpoint) | "v0.1.0"
+    # examples per compiled inference call: every call (sequential, --workers, Ray) is padded to exactly this size, so
+    # an example's numbers never depend on what shares its call, the worker count or the load (XLA's results depend
+    # on the batch shape; 1 is fastest on a CPU, where one inference already uses every core)
+    inference_batch: int = 1
 
     def __post_init__(self) -> None:
         if self.execution not in ("temporal_ensemble", "receding_horizon"):
@@ -60,6 +67,9 @@ class PolicyConfig:
             raise ValueError(f"unknown proprio normalization {self.proprio_normalization!r}; use one of {', '.join(NORMALIZATIONS)}")
         if self.sampler not in SAMPLERS:
             raise ValueError(f"unknown sampler {self.sampler!r}; use one of {', '.join(SAMPLERS)}")
+        if isinstance(self.inference_batch, bool) or not isinstance(self.inference_batch, int) \
+                or not 1 <= self.inference_batch <= MAX_INFERENCE_BATCH:
+            raise ValueError(f"--inference-batch must be an integer in 1..{MAX_INFERENCE_BATCH}, got {self.inference_batch!r}")
 
     def describe(self) -> str:
         if self.execution == "receding_horizon":
@@ -163,20 +173,19 @@ def step_key(seed: int, step: int) -> np.ndarray:
 
 
 class BatchInference:
-    """Stateless batched inference: requests from many episodes -> one `sample_actions` call -> one result each.
+    """Stateless batched inference: requests from many episodes -> `sample_actions` calls -> one result each.
 
-    Each example gets its own rng key (`step_key`), so its actions are those of a batch-1 call whatever
-    shares the batch. Batches are padded (repeating the first request, whose copies are discarded) to
-    the smallest of `batch_sizes` that fits, so after `warm_up()` no call compiles. Tasks are built
-    once per distinct TaskSpec and kept.
+    Every call has exactly `config.inference_batch` examples (padded by repeating the first request, whose
+    copies are discarded; more requests are split into several calls), so one shape is compiled, at
+    `warm_up()`, and an example's actions and attention are bit-identical whatever shares its call: XLA's
+    numbers depend on the batch shape, not on the other examples. Each example also has its own rng key
+    (`step_key`). Tasks are built once per distinct TaskSpec and kept.
     """
 
-    def __init__(self, model, config: PolicyConfig, batch_sizes: tuple[int, ...] = (1,)):
+    def __init__(self, model, config: PolicyConfig):
         self.model = model
         self.config = config
-        self.batch_sizes = tuple(sorted(set(int(b) for b in batch_sizes)))
-        if not self.batch_sizes or self.batch_sizes[0] < 1:
-            raise ValueError(f"batch sizes must be >= 1; got {batch_sizes}")
+        self.batch_size = int(config.inference_batch)
         self.dataset_key = config.dataset_key if config.dataset_key is not None else default_dataset_key(model)
         self.statistics = model.unnormalization_statistics(self.dataset_key) if self.dataset_key else None
         self.lowdim_statistics = lowdim_statistics(model, self.dataset_key, config.proprio_normalization)
@@ -190,33 +199,19 @@ class BatchInference:
             self._tasks[spec.key] = make_task(self.model, spec)
         return self._tasks[spec.key]
 
-    def padded_size(self, n: int) -> int:
-        """Smallest batch size >= n (n <= the largest size)."""
-        return next(b for b in self.batch_sizes if b >= n)
-
-    def warm_up(self, request: InferenceRequest, timed: tuple[int, ...] = (), repeats: int = 3) -> dict[int, float]:
-        """Compile every batch size once with copies of `request`; then time `repeats` more calls at each size
-        in `timed` and return {size: the fastest call's seconds} (the minimum is robust to other load)."""
-        for b in self.batch_sizes:
-            self([request] * b)
-        seconds = {b: float("inf") for b in timed}
-        for _ in range(repeats if timed else 0):
-            for b in timed:  # interleaved, so a burst of other load does not favour one size
-                start = time.perf_counter()
-                self([request] * b)
-                seconds[b] = min(seconds[b], time.perf_counter() - start)
-        return seconds
+    def warm_up(self, request: InferenceRequest) -> None:
+        """Compile the one batch shape (and build the request's task) with copies of `request`."""
+        self([request])
 
     def __call__(self, requests: list[InferenceRequest]) -> list[InferenceResult]:
         out: list[InferenceResult] = []
-        largest = self.batch_sizes[-1]
-        for i in range(0, len(requests), largest):
-            out.extend(self._call(requests[i:i + largest]))
+        for i in range(0, len(requests), self.batch_size):
+            out.extend(self._call(requests[i:i + self.batch_size]))
         return out
 
     def _call(self, requests: list[InferenceRequest]) -> list[InferenceResult]:
         n = len(requests)
-        padded = requests + [requests[0]] * (self.padded_size(n) - n)
+        padded = requests + [requests[0]] * (self.batch_size - n)
         stack = lambda *xs: np.stack(xs)  # noqa: E731
         observations = jax.tree.map(stack, *[r.observation for r in padded])  # leaves (batch, window, ...)
         for key, stats in self.lowdim_statistics.items():  # (batch, window, dims), as Octo's NormalizeProprio

@@ -5,7 +5,7 @@
     run store: every write to             one env + GL context; runs an          the model (1 GPU where the
     results.jsonl / results.json   <─row─ episode per call: EpisodeState  ─obs─> cluster has GPUs); batches all
     jobs out ─────────────────────job─>   -> rollout -> EpisodeWriter    <─act─  requests waiting when it is free
-                                          (writes the episode folder)            (BatchInference, fixed sizes)
+                                          (writes the episode folder)            (BatchInference, one fixed shape)
 
 The driver owns the run store, so resume, statistics and the files of a run are the same as with the
 local executor (harness/run/workers.py): env workers run the same episode function and write the
@@ -14,7 +14,8 @@ volume). That is checked before any episode: the driver writes a marker file int
 every env-worker actor reads it when it starts; a worker that cannot gives one line naming the node.
 
 Env worker k uses replica k % R. A replica is an async actor: requests accumulate while a batch runs
-(in a worker thread, off the event loop) and the next batch takes all of them, padded to a fixed size.
+(in a worker thread, off the event loop) and the next batch takes up to `policy.inference_batch` of them,
+padded to exactly that size (the protocol's shape: actions bit-identical to a sequential run).
 
 Without an address a local Ray instance is started for this run (no dashboard) and shut down at the
 end. Its logical CPUs are max(os.cpu_count(), workers + replicas): each actor asks for one CPU, so
@@ -42,7 +43,7 @@ from typing import Any, Iterable, Iterator
 
 from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskSpec
 from harness.run.executor import EpisodeContext
-from harness.run.workers import PolicyError, WorkerSpec, batch_sizes_for, warmup_request, warmup_task, worker_spec
+from harness.run.workers import PolicyError, WorkerSpec, warmup_request, warmup_task, worker_spec
 
 log = logging.getLogger(__name__)
 
@@ -68,18 +69,18 @@ def import_ray():
 class PolicyReplica:
     """A model replica serving batched inference requests from many env workers (an async Ray actor)."""
 
-    def __init__(self, model_source: str, config: PolicyConfig, batch_sizes: tuple[int, ...]):
+    def __init__(self, model_source: str, config: PolicyConfig):
         from harness.octo import load_pretrained
 
         self.model = load_pretrained(model_source)
-        self.inference = BatchInference(self.model, config, batch_sizes)
+        self.inference = BatchInference(self.model, config)
         self._pending: list[tuple[InferenceRequest, asyncio.Future]] = []
         self._running = False
         self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inference")
         self.batches: list[int] = []
 
     def warm_up(self, request: InferenceRequest) -> int:
-        """Compile every batch size; returns the number of compiled sampler variants."""
+        """Compile the one inference shape; returns the number of compiled sampler variants."""
         self.inference.warm_up(request)
         return self.model.sample_cache_size
 
@@ -98,7 +99,8 @@ class PolicyReplica:
         loop = asyncio.get_running_loop()
         try:
             while self._pending:
-                batch, self._pending = self._pending, []
+                size = self.inference.batch_size  # the protocol's fixed shape: same numbers as a sequential run
+                batch, self._pending = self._pending[:size], self._pending[size:]
                 self.batches.append(len(batch))
                 try:
                     results = await loop.run_in_executor(self._thread, self.inference, [r for r, _ in batch])
@@ -254,8 +256,7 @@ class RayExecutor:
         self._marker.write_text(self._token)
         replica_cls = ray.remote(num_cpus=1, num_gpus=gpus)(PolicyReplica)
         self._worker_cls = ray.remote(num_cpus=1, max_restarts=0)(EnvWorker)
-        sizes = batch_sizes_for(-(-self.workers // self.replicas))
-        self._replicas = [replica_cls.remote(self.model_source, self.spec.policy, sizes) for _ in range(self.replicas)]
+        self._replicas = [replica_cls.remote(self.model_source, self.spec.policy) for _ in range(self.replicas)]
         warming = [r.warm_up.remote(warmup_request(self.spec.shape, warmup)) for r in self._replicas] if warmup else []
         for i in range(self.workers):
             self._start_worker(i)

@@ -47,7 +47,7 @@ FILE_KEYS: dict[str, tuple[type, ...]] = {
     "proprio_normalization": (str,),
 }
 POLICY_KEYS = ("execution", "receding_steps", "ensemble_weight", "dataset_key", "sampler", "action_normalization",
-               "proprio_normalization")
+               "proprio_normalization", "inference_batch")
 
 
 def read_protocol_file(path: str | Path) -> dict[str, Any]:

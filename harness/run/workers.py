@@ -13,16 +13,15 @@ one process holding the model means one copy of the weights, one set of compiled
 XLA thread pool. The driver's other work (appending a row to results.jsonl and rewriting the derived
 files once per episode) is small and happens between batches.
 
-Batching: whenever the model is free, the requests waiting at that moment go into one call (greedy:
-the model never idles while a worker waits, and never waits for a batch to fill). The batch is padded
-to the smallest of a few fixed sizes (powers of two up to N, and N), all compiled during warm-up, so
-nothing compiles during the run. Each example has its own rng key and task, so an episode's actions
-do not depend on what shares its batch (see harness/policy.py). Warm-up also times one call at batch 1
-and at the largest size: where batching does not save at least BATCH_SAVING per example (a CPU, where
-one inference already uses every core), requests are served one at a time, first come first served.
-Then the workers fall out of step: one worker's inference runs while the others simulate, instead of
-every worker simulating at once and then waiting for one big batch (benchmarks/bench_parallel.py on 2
-cores with octo-small: 2 workers 1.15x sequential served singly, 1.03-1.06x when batched in lockstep).
+Batching: whenever the model is free, up to `policy.inference_batch` waiting requests go into one call,
+padded to exactly that size (the one shape compiled during warm-up; nothing compiles during the run).
+The batch shape is part of the protocol, not a timing decision: XLA's numbers depend on the batch shape,
+so a fixed shape makes every episode's actions and attention bit-identical to a sequential run of the
+same protocol, whatever the worker count, the arrival order or the load (each example also has its own
+rng key and task, see harness/policy.py). With the default of 1 (right on a CPU, where one inference
+already uses every core) requests are served one at a time, first come first served, and the workers
+fall out of step: one worker's inference runs while the others simulate (benchmarks/bench_parallel.py
+on 2 cores with octo-small: 2 workers 1.15x sequential). On a GPU a larger --inference-batch pays.
 
 Where the writers run, and why: in each env worker, in EpisodeWriter's background thread (and its
 PNG thread pool). The frames and masks are already in that process; only the resized observation
@@ -101,23 +100,20 @@ class WorkerSpec:
     shape: PolicyShape
 
 
-def batch_sizes_for(workers: int) -> tuple[int, ...]:
-    """The fixed batch sizes for N workers: powers of two below N, and N (e.g. 6 -> (1, 2, 4, 6))."""
-    sizes = {workers}
-    b = 1
-    while b < workers:
-        sizes.add(b)
-        b *= 2
-    return tuple(sorted(sizes))
+def max_workers(cpus: int | None = None, memory_bytes: int | None = None) -> int:
+    """The most env workers this machine can use: 4 per CPU core (rendering and physics are CPU-bound; more only
+    queue) and one per WORKER_MEMORY of physical memory (each holds an env, a GL context and a writer)."""
+    cpus = cpus if cpus is not None else (os.cpu_count() or 1)
+    if memory_bytes is None:
+        try:
+            memory_bytes = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (ValueError, OSError, AttributeError):
+            memory_bytes = 0
+    by_memory = memory_bytes // WORKER_MEMORY if memory_bytes > 0 else 4 * cpus
+    return max(1, min(4 * cpus, by_memory))
 
 
-BATCH_SAVING = 0.2  # batch requests only where a full batch costs at most 80% per example of batch-1 calls
-
-
-def batch_limit(seconds_1: float, seconds_largest: float, largest: int, saving: float = BATCH_SAVING) -> int:
-    """Largest number of requests per inference call: `largest` where batching saves at least `saving` of the
-    per-example time (seconds_largest / largest <= (1 - saving) * seconds_1), else 1."""
-    return largest if seconds_largest / largest <= (1.0 - saving) * seconds_1 else 1
+WORKER_MEMORY = 1 << 30  # bytes one env worker may take (measured ~0.4-0.6 GB: robosuite, MuJoCo, GL, writer)
 
 
 def death_cause(exitcode: int | None) -> str:
@@ -248,14 +244,14 @@ class WorkerPool:
             raise ValueError(f"--workers must be >= 1; got {workers}")
         self.spec = spec
         self.workers = workers
-        self.inference = BatchInference(model, spec.policy, batch_sizes_for(workers))
+        self.inference = BatchInference(model, spec.policy)
         self.ctx = multiprocessing.get_context(context)
         self._pool: dict[int, _Worker] = {}
         self._next_index = 0
         self.replacements = 0
         self._warm = False
         self.batches: list[int] = []  # number of real requests in each inference call (for statistics/tests)
-        self.max_batch = workers  # set by warm_up(): 1 where batching saves too little (see the module docstring)
+        self.max_batch = spec.policy.inference_batch  # requests per inference call (see the module docstring)
 
     # -------------------------------------------------------------- lifecycle
 
@@ -300,14 +296,8 @@ class WorkerPool:
         self._pool.clear()
 
     def warm_up(self, task: TaskSpec) -> None:
-        """Compile every fixed batch size once (and build the first task), then choose how to batch."""
-        largest = batch_sizes_for(self.workers)[-1]
-        timed = (1, largest) if largest > 1 else ()
-        seconds = self.inference.warm_up(warmup_request(self.spec.shape, task), timed=timed)
-        if timed:
-            self.max_batch = batch_limit(seconds[1], seconds[largest], largest)
-            log.info("inference: batch 1 %.3f s, batch %d %.3f s per example -> serving %s", seconds[1], largest,
-                     seconds[largest] / largest, "batches" if self.max_batch > 1 else "one request at a time")
+        """Compile the one inference shape (and build the first task)."""
+        self.inference.warm_up(warmup_request(self.spec.shape, task))
         self._warm = True
 
     # -------------------------------------------------------------- the loop
@@ -491,6 +481,9 @@ def executor_factory(workers: int | None, executor: str | None = None, ray_addre
     executor = executor or "local"
     if workers is not None and workers < 1:
         raise ValueError(f"--workers must be at least 1, got {workers}")
+    if workers is not None and workers > max_workers():
+        raise ValueError(f"--workers {workers} is more than this machine can use ({os.cpu_count()} CPU cores, "
+                         f"memory for {max_workers()} env workers); use --workers {max_workers()} or fewer")
     if executor != "ray" and (ray_address is not None or policy_replicas is not None):
         raise ValueError("--ray-address and --policy-replicas need --executor ray")
     if policy_replicas is not None and policy_replicas < 1:
