@@ -106,6 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="how actions are unnormalised: mean/std or p01/p99 bounds [checkpoint's harness.toml, else normal]")
     r.add_argument("--proprio-normalization", choices=["normal", "bounds", "none"], default=None,
                    help="how proprio inputs are normalised [checkpoint's harness.toml, else normal]")
+    r.add_argument("--inference-batch", type=int, default=None,
+                   help="examples per compiled inference call; every call is padded to it, so actions are bit-identical "
+                        "whatever --workers or the load (part of the protocol; >1 pays on a GPU) [1]")
     r.add_argument("--ci-method", choices=["wilson", "clopper-pearson"], default=None,
                    help="confidence interval of success rates (95%%) [wilson]")
     _add_execution_args(r)

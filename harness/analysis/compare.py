@@ -45,7 +45,7 @@ FAIL_ON = ("regressed", "underpowered", "changed")
 # protocol fields that may differ between the arms (the model is what a comparison changes); any other
 # difference changes outcomes (env options, max steps, execution, action space, cameras, instruction, goals...)
 MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "outputs", "harness_version",
-              "policy.full_attention", "policy.dataset_key",
+              "policy.full_attention", "policy.dataset_key", "policy.inference_batch",
               # legacy manifests (before the run store) keep model facts at the top level
               "model_is_random", "model_note", "text_tokenizer", "dataset_key", "git_commit", "versions")
 ARRAY_FILES = ("actions.npz", "attention.npz")
