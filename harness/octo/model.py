@@ -184,13 +184,21 @@ class OctoModel:
         return self._sample_jit._cache_size()
 
     def _sample(self, params, obs, task, encoding, pad, rng, stats, *, capture, normalization_type, sampler):
-        cfg = self.config
-        head = cfg.action_head
         layout = self._layout(obs, encoding)
         rows = {"full": None, "none": (), "readout": tuple(int(i) for i in self._token_map(layout).readout_index)}[capture]
-        out = OctoTransformer(cfg, capture_rows=rows).apply({"params": params["octo_transformer"]}, obs, task, encoding, pad)
+        out = OctoTransformer(self.config, capture_rows=rows).apply({"params": params["octo_transformer"]}, obs, task,
+                                                                   encoding, pad)
+        actions = self.head_actions(params["heads_action"], out, rng, stats, normalization_type, sampler)
+        return actions, (None if capture == "none" else out["attention"])
+
+    def head_actions(self, head_params, out, rng, stats=None, normalization_type="normal", sampler="latest"):
+        """The action head on the transformer's output `out` (OctoTransformer's dict) -> (batch, horizon, dim).
+
+        Traceable (jit, grad): the diffusion head samples with `rng` (one key, or one per example), the
+        continuous heads read the pooled readouts directly. stats None: normalised actions.
+        """
+        head = self.config.action_head
         tokens, mask = out["groups"][head.readout_key]
-        head_params = params["heads_action"]
         embedding = pool_readouts(head_params, head, tokens, mask)  # (batch, window, D)
         batch, window = embedding.shape[:2]
         if isinstance(head, DiffusionHeadConfig):
@@ -224,7 +232,7 @@ class OctoModel:
             actions = ContinuousHead(head).apply({"params": {"mean_proj": head_params["mean_proj"]}}, embedding)[:, -1]
         if stats is not None:
             actions = _unnormalize(actions, stats, normalization_type)
-        return actions, (None if capture == "none" else out["attention"])
+        return actions
 
     # ------------------------------------------------------------------ inspection (tests, analysis)
 

@@ -119,6 +119,9 @@ class MultiHeadAttention(nn.Module):
         v = project("value", inputs_kv)
         q = q / jnp.sqrt(head_dim).astype(q.dtype)
         weights = masked_softmax(jnp.einsum("bqhd,bkhd->bhqk", q, k), mask)  # (batch, heads, queries, keys)
+        # a no-op unless a "perturbations" collection is passed: then d(output)/d(weights) is its gradient
+        # (gradient-weighted attention relevance, harness.analysis.attribution)
+        weights = self.perturb("weights", weights)
         mixed = jnp.einsum("bhqk,bkhd->bqhd", weights, v)
         out = nn.DenseGeneral(d, axis=(-2, -1), kernel_init=init, name="out")(mixed)
         if self.capture_rows is None:

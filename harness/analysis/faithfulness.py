@@ -1,0 +1,259 @@
+"""Faithfulness of attribution maps: does deleting the patches a map ranks highest change the action most?
+
+Pure numpy functions around one evaluation callable (images -> predicted action chunks), named after the
+papers they implement:
+
+- `baseline_image`: what a deleted patch becomes: the image's per-channel mean ("mean") or a Gaussian blur
+  of the image ("blur", sigma = one patch width).
+- Deletion and insertion curves (RISE, Petsiuk, Das & Saenko 2018; pixel flipping, Samek et al. 2017) on the
+  patch grid: delete the top-k patches of the ranking (k = 0..n), or insert them into the fully deleted
+  image, and measure the predicted chunk's change `action_change` (RMS over the chunk, normalised units,
+  same rng). Curves are in "action retained" units y(k) = 1 - change(k) / change(all patches deleted):
+  deletion starts at 1 and ends at 0 (a faithful map drops at once: low AUC); insertion starts at 0 and ends
+  at 1 (a faithful map rises at once: high AUC). AUC: trapezoid over the deleted fraction k/n.
+- top-k / random-k / bottom-k: the change when the k highest-, randomly- or lowest-ranked patches are deleted.
+- `relative_to_random`: a method's AUC over the random map's on the same steps (sums over steps, so
+  1 = no better than random; deletion < 1 and insertion > 1 are better than random) with a percentile
+  bootstrap interval over episodes (over steps when there is one episode).
+
+A camera whose whole deletion changes the chunk by less than `MIN_CHANGE` has no curves (the policy does not
+use it at this step; nothing to rank): its rows carry `change_all` and NaN elsewhere.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+from harness.analysis.attention import _patch_index
+
+FILLS = ("mean", "blur")
+MIN_CHANGE = 1e-6  # normalised action units
+TOP_K = (1, 0.1, 0.25)  # patches (int) or fractions of the camera's patches
+
+
+def baseline_image(image: np.ndarray, fill: str = "mean", rows: int = 1, cols: int = 1) -> np.ndarray:
+    """image (H, W, 3) -> (H, W, 3) float32 of deleted content: per-channel mean, or a blur (sigma = a patch)."""
+    image = np.asarray(image, np.float32)
+    if fill == "mean":
+        return np.broadcast_to(image.mean(axis=(0, 1)), image.shape).astype(np.float32)
+    if fill == "blur":
+        sigma = max(image.shape[0] / rows, image.shape[1] / cols)
+        return gaussian_filter(image, sigma=(sigma, sigma, 0), mode="nearest").astype(np.float32)
+    raise ValueError(f"unknown fill {fill!r}; use one of {', '.join(FILLS)}")
+
+
+def ranking(scores: np.ndarray) -> np.ndarray:
+    """scores (rows, cols) -> (rows*cols,) patch indices, highest score first (ties: lower index first)."""
+    flat = np.asarray(scores, np.float64).ravel()
+    return np.argsort(-flat, kind="stable")
+
+
+def first_k(order: np.ndarray, ks: Sequence[int]) -> np.ndarray:
+    """order (n,), ks (m,) -> (m, n) bool: the first k patches of the order, for each k."""
+    n = len(order)
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n)
+    return rank[None, :] < np.asarray(ks)[:, None]
+
+
+def compose(image: np.ndarray, baseline: np.ndarray, deleted: np.ndarray) -> np.ndarray:
+    """image, baseline (H, W, 3); deleted (m, rows, cols) bool -> (m, H, W, 3): baseline inside deleted patches."""
+    deleted = np.asarray(deleted, bool)
+    h, w = image.shape[:2]
+    ry = _patch_index(h, deleted.shape[1])
+    cx = _patch_index(w, deleted.shape[2])
+    pixel = deleted[:, ry[:, None], cx[None, :]]  # (m, H, W)
+    return np.where(pixel[..., None], baseline[None], image[None]).astype(np.float32)
+
+
+def action_change(actions: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """actions (..., horizon, dim), reference (horizon, dim) -> (...) RMS difference over the chunk."""
+    d = np.asarray(actions, np.float64) - np.asarray(reference, np.float64)
+    return np.sqrt((d ** 2).mean(axis=(-2, -1)))
+
+
+def auc(fractions: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Trapezoid area under values (..., m) over fractions (m,) in [0, 1]."""
+    x = np.asarray(fractions, np.float64)
+    y = np.asarray(values, np.float64)
+    return ((y[..., 1:] + y[..., :-1]) * np.diff(x) / 2).sum(axis=-1)
+
+
+def curve_points(n: int, max_points: int = 17) -> np.ndarray:
+    """The k of a curve over n patches: every k when n + 1 <= max_points, else evenly spaced (0 and n included)."""
+    if n + 1 <= max_points:
+        return np.arange(n + 1)
+    return np.unique(np.round(np.linspace(0, n, max_points)).astype(int))
+
+
+def k_values(n: int, top_k: Sequence[float] = TOP_K) -> tuple[int, ...]:
+    """TOP_K entries -> patch counts in 1..n (ints as given, fractions of n rounded, at least 1), unique."""
+    out = []
+    for k in top_k:
+        count = int(k) if float(k).is_integer() and k >= 1 else max(1, int(round(float(k) * n)))
+        if 1 <= count <= n and count not in out:
+            out.append(count)
+    return tuple(out)
+
+
+def camera_faithfulness(
+    evaluate: Callable[[np.ndarray], np.ndarray],
+    image: np.ndarray,
+    reference: np.ndarray,
+    maps: Mapping[str, np.ndarray],
+    *,
+    fill: str = "mean",
+    random_orders: int = 4,
+    seed: int = 0,
+    top_k: Sequence[float] = TOP_K,
+    max_points: int = 17,
+) -> list[dict]:
+    """One camera at one step: a row per method with its curves, AUCs and top/random/bottom-k changes.
+
+    evaluate: images (m, H, W, 3) float32 of this camera's current frame -> (m, horizon, dim) normalised chunks
+    (the other inputs held fixed, same rng); image (H, W, 3) the frame as the policy saw it; reference
+    (horizon, dim) the chunk predicted from it; maps {method: (rows, cols)}. The random control is the mean
+    of `random_orders` random rankings drawn from `seed`; each row carries it (random_deletion_auc, ...).
+    """
+    first = next(iter(maps.values()))
+    rows, cols = first.shape
+    n = rows * cols
+    base = baseline_image(image, fill, rows, cols)
+    topk = k_values(n, top_k)
+    ks = _ks_with(n, topk, max_points)  # the curve's k, the top-k counts included
+    fractions = ks / n
+    rng = np.random.default_rng(seed)
+    orders = {name: ranking(m) for name, m in maps.items()}
+    controls = [rng.permutation(n) for _ in range(random_orders)]
+
+    # one batch: full deletion; per ranking deletion and insertion at every k; bottom-k per method
+    blocks: list[np.ndarray] = [np.ones((1, n), bool)]
+    for order in [*orders.values(), *controls]:
+        chosen = first_k(order, ks)
+        blocks += [chosen, ~chosen]
+    for order in orders.values():
+        blocks.append(first_k(order[::-1], topk))
+    deleted = np.concatenate(blocks)
+    changes = action_change(evaluate(compose(image, base, deleted.reshape(-1, rows, cols))), reference)
+
+    change_all = float(changes[0])
+    at = 1
+    curves = []
+    for _ in range(len(orders) + len(controls)):
+        d = changes[at:at + len(ks)]
+        i = changes[at + len(ks):at + 2 * len(ks)]
+        curves.append((d, i))
+        at += 2 * len(ks)
+    bottoms = []
+    for _ in orders:
+        bottoms.append(changes[at:at + len(topk)])
+        at += len(topk)
+
+    valid = change_all >= MIN_CHANGE
+    scale = change_all if valid else np.nan
+    retained = lambda c: 1.0 - np.asarray(c) / scale  # noqa: E731
+    control_del = np.mean([auc(fractions, retained(d)) for d, _ in curves[len(orders):]])
+    control_ins = np.mean([auc(fractions, retained(i)) for _, i in curves[len(orders):]])
+    position = {k: int(np.searchsorted(ks, k)) for k in topk}  # every top-k count is on the curve
+    random_k = {k: float(np.mean([d[position[k]] for d, _ in curves[len(orders):]])) for k in topk}
+
+    out = []
+    for (name, order), (d, i), bottom in zip(orders.items(), curves, bottoms):
+        row = {
+            "method": name,
+            "patches": n,
+            "change_all": change_all,
+            "deletion_auc": float(auc(fractions, retained(d))),
+            "insertion_auc": float(auc(fractions, retained(i))),
+            "random_deletion_auc": float(control_del),
+            "random_insertion_auc": float(control_ins),
+            "fractions": fractions.tolist(),
+            "deletion_curve": [float(x) for x in retained(d)],
+            "insertion_curve": [float(x) for x in retained(i)],
+        }
+        for j, k in enumerate(topk):
+            row[f"top_k/{k}"] = float(d[position[k]])
+            row[f"random_k/{k}"] = random_k[k]
+            row[f"bottom_k/{k}"] = float(bottom[j])
+        out.append(row)
+    return out
+
+
+def _ks_with(n: int, topk: Sequence[int], max_points: int) -> np.ndarray:
+    return np.unique(np.concatenate([curve_points(n, max_points), np.asarray(topk, int)]))
+
+
+def relative_to_random(
+    values: np.ndarray,
+    controls: np.ndarray,
+    groups: np.ndarray,
+    resamples: int = 2000,
+    confidence: float = 0.95,
+    seed: int = 0,
+) -> tuple[float, float, float, int]:
+    """values, controls, groups (steps,) -> (ratio, ci_low, ci_high, n_groups).
+
+    ratio = sum(values) / sum(controls) over the steps with both finite; the interval is the percentile
+    bootstrap of that ratio resampling whole groups (episodes), or steps when there is only one group.
+    Seeded: the same input gives the same interval. Fewer than 2 resampling units: NaN interval.
+    """
+    values = np.asarray(values, np.float64)
+    controls = np.asarray(controls, np.float64)
+    groups = np.asarray(groups)
+    ok = np.isfinite(values) & np.isfinite(controls)
+    values, controls, groups = values[ok], controls[ok], groups[ok]
+    if values.size == 0 or controls.sum() == 0:
+        return np.nan, np.nan, np.nan, 0
+    ratio = float(values.sum() / controls.sum())
+    labels, index = np.unique(groups, return_inverse=True)
+    if len(labels) < 2:
+        index = np.arange(values.size)
+    units = index.max() + 1
+    num = np.bincount(index, weights=values, minlength=units)
+    den = np.bincount(index, weights=controls, minlength=units)
+    if units < 2:
+        return ratio, np.nan, np.nan, int(len(labels))
+    rng = np.random.default_rng(seed)
+    counts = rng.multinomial(units, np.full(units, 1.0 / units), size=resamples)  # (B, units)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        boot = (counts @ num) / (counts @ den)
+    boot = np.sort(boot[np.isfinite(boot)])
+    if boot.size == 0:
+        return ratio, np.nan, np.nan, int(len(labels))
+    lo = boot[int(np.floor((boot.size - 1) * (1 - confidence) / 2))]
+    hi = boot[int(np.ceil((boot.size - 1) * (1 + confidence) / 2))]
+    return ratio, float(lo), float(hi), int(len(labels))
+
+
+def step_faithfulness(
+    batch: Callable[[dict], np.ndarray],
+    images: Mapping[str, np.ndarray],
+    reference: np.ndarray,
+    maps: Mapping[str, Mapping[str, np.ndarray]],
+    **options,
+) -> list[dict]:
+    """Every camera of one step: `camera_faithfulness` rows with a "camera" key.
+
+    batch: {obs key: (m, window, H, W, 3)} -> (m, horizon, dim) chunks (a StepFunction's `batch`); images
+    {obs key: (window, H, W, 3)} the step's inputs; maps {method: {obs key: (rows, cols)}}. Only the
+    current (last) frame of one camera is changed at a time.
+    """
+    out = []
+    for key, window in images.items():
+        window = np.asarray(window, np.float32)
+
+        def evaluate(frames: np.ndarray, key=key, window=window) -> np.ndarray:
+            m = len(frames)
+            inputs = {k: np.repeat(np.asarray(v, np.float32)[None], m, axis=0) for k, v in images.items()}
+            inputs[key][:, -1] = frames
+            return batch(inputs)
+
+        camera_maps = {method: by_camera[key] for method, by_camera in maps.items() if key in by_camera}
+        if not camera_maps:
+            continue
+        for row in camera_faithfulness(evaluate, window[-1], reference, camera_maps, **options):
+            out.append({"camera": key, **row})
+    return out
