@@ -127,20 +127,24 @@ def build_parser() -> argparse.ArgumentParser:
 
     cmp_ = sub.add_parser("compare", help="paired verdict of a candidate run against a baseline run (same seeds)",
                           description="Pair episodes by (task, seed); write compare.json, compare.md and compare.html. "
-                                      "Exit 0 no regression, 1 regression, 2 incompatible or invalid input.")
+                                      "Exit 0 pass, 1 REGRESSED or SUSPECT (see --fail-on), 2 incompatible or invalid "
+                                      "input, 3 ERRORED (an arm errored on more than half of its paired episodes).")
     cmp_.add_argument("baseline", type=Path, metavar="BASELINE_RUN")
     cmp_.add_argument("candidate", type=Path, metavar="CANDIDATE_RUN")
     cmp_.add_argument("--max-drop", type=float, default=0.1, help="HELD rules out a larger drop in success rate [0.1]")
     cmp_.add_argument("--alpha", type=float, default=0.05, help="family-wise level; intervals at 1 - alpha [0.05]")
     cmp_.add_argument("--first-steps", type=int, default=10, help="per-step divergence over the first k steps [10]")
-    cmp_.add_argument("--fail-on", choices=["regressed", "underpowered", "changed"], default="regressed",
-                      help="also exit 1 on UNDERPOWERED, or on anything but IDENTICAL [regressed]")
+    cmp_.add_argument("--fail-on", choices=["regressed", "suspect", "underpowered", "changed"], default="suspect",
+                      help="mildest verdict that exits 1: REGRESSED only; also SUSPECT (a drop the interval shows, "
+                           "the exact test does not confirm); also UNDERPOWERED; anything but IDENTICAL [suspect]")
     cmp_.add_argument("--out", type=Path, default=None, help="output folder [CANDIDATE_RUN/compare_<baseline name>]")
     cmp_.add_argument("--no-frames", action="store_true", help="do not render step-0 camera frames for the overlays")
 
     reg = sub.add_parser("regress", help="run a candidate on a baseline's protocol and seeds until a sequential test decides",
                          description="Pair by pair (round by round over tasks) through the run store (resumable); "
-                                     "stops as soon as the anytime-valid test decides at level alpha.")
+                                     "one anytime-valid test per task (alpha / tasks each); stops as soon as a task "
+                                     "regressed or every task decided. Exit codes as for compare, from the worse "
+                                     "of the sequential verdict and compare's verdict on the pairs run.")
     reg.add_argument("--baseline", type=Path, required=True, metavar="RUN", help="baseline run folder")
     reg.add_argument("--model", required=True, help="candidate model (as for `run --model`)")
     reg.add_argument("--max-episodes", type=int, default=None, help="at most N episodes per task [the baseline's]")
@@ -148,8 +152,8 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--alpha", type=float, default=0.05, help="level of the sequential test [0.05]")
     reg.add_argument("--out", type=Path, default=Path("results/runs"), help="output root of the candidate run [results/runs]")
     reg.add_argument("--run-name", default=None, help="candidate run folder name [<model>_<protocol hash>]")
-    reg.add_argument("--fail-on", choices=["regressed", "underpowered"], default="regressed",
-                     help="also exit 1 when the test ran out of pairs undecided [regressed]")
+    reg.add_argument("--fail-on", choices=["regressed", "suspect", "underpowered", "changed"], default="suspect",
+                     help="mildest verdict that exits 1, as for compare [suspect]")
     _add_execution_args(reg)
     return parser
 
@@ -203,7 +207,7 @@ RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "ex
 
 def _cmd_run(args) -> int:
     from harness.run import ResultsWriteError, RunStore, execute
-    from harness.run.protocol import Protocol
+    from harness.run.schema import protocol_from_manifest
     from harness.run.settings import build_protocol, out_dir, read_protocol_file
 
     factory = _execution(args)
@@ -216,7 +220,8 @@ def _cmd_run(args) -> int:
         manifest = RunStore(args.resume).read_manifest()
         if manifest is None:
             raise FileNotFoundError(f"{args.resume} holds no manifest.json; pass the folder of an octo-harness run")
-        protocol = Protocol.from_dict({**manifest["protocol"], "model_fingerprint": None, "goal_fingerprint": None})
+        protocol = protocol_from_manifest(manifest, args.resume / "manifest.json", model_fingerprint=None,
+                                          goal_fingerprint=None)
         out, name, method = args.resume.parent, args.resume.name, "wilson"
     else:
         settings = {**(read_protocol_file(args.protocol) if args.protocol else {}), **given}

@@ -15,8 +15,12 @@ finished episodes by (task, seed) and returns one JSON-ready dict (what compare.
 - identical: every array of every pair (actions.npz, attention.npz) equal within `atol`, with the same
   outcomes: the overall verdict is then IDENTICAL.
 
-Overall verdict: IDENTICAL if identical; else REGRESSED if the pooled table or any task is REGRESSED; else the
-pooled table's verdict. `exit_code` maps it to 0 (no regression), 1 (regression, or what --fail-on adds).
+Outcomes: n is the pairs in which both arms ran to an outcome (as in the run store's statistics); a pair in
+which either arm errored (status "failed") is left out of the table and counted beside n ("errored pairs").
+A task whose pairs are all identical shows IDENTICAL; the overall verdict is IDENTICAL if every pair is, else
+the worst verdict of the tasks and the pooled table (harness.analysis.paired.VERDICTS: ERRORED > REGRESSED >
+SUSPECT > UNDERPOWERED > HELD > IMPROVED), so no task's verdict is hidden by a pooled one. `exit_code` maps it
+to 0 (pass), 1 (REGRESSED or SUSPECT, or what --fail-on adds), 3 (ERRORED); 2 is invalid input (the CLI).
 A committed baseline keeps only step-0 arrays (BASELINE.json says so): arrays are then compared over the
 steps both arms stored.
 """
@@ -29,19 +33,27 @@ from pathlib import Path
 import numpy as np
 
 from harness.analysis.paired import (
+    ErroredPairs,
     PairedCounts,
     difference_interval,
+    errored_most,
     holm_adjust,
     mcnemar_exact,
+    min_mcnemar_p,
     paired_verdict,
+    pairs_for_regressed,
     pairs_to_decide,
+    regressed_reachable,
+    worst,
 )
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run
 from harness.analysis.stats import wilson_interval
 
 FORMAT = "octo-harness-compare/1"
 BASELINE_MARKER = "BASELINE.json"  # written by scripts/make_baseline.py into a committed baseline
-FAIL_ON = ("regressed", "underpowered", "changed")
+# --fail-on: the mildest verdict that fails the gate (exit 1); each level also fails on everything worse
+FAIL_ON = ("regressed", "suspect", "underpowered", "changed")
+EXIT_OK, EXIT_FAIL, EXIT_INVALID, EXIT_ERRORED = 0, 1, 2, 3
 # protocol fields that may differ between the arms (the model is what a comparison changes); any other
 # difference changes outcomes (env options, max steps, execution, action space, cameras, instruction, goals...)
 MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "outputs", "harness_version",
@@ -254,51 +266,100 @@ def _compare_pair(task, seed, base: EpisodeRecord, cand: EpisodeRecord, truncate
 
 # ------------------------------------------------------------------------------------------- aggregation
 
-def _rate(successes: int, n: int, confidence: float) -> dict:
+def _rate(successes: int, n: int, confidence: float, errored: int = 0) -> dict:
     low, high = wilson_interval(successes, n, confidence)
-    return {"successes": successes, "n": n, "rate": successes / n if n else None, "ci_low": low, "ci_high": high}
+    return {"successes": successes, "n": n, "rate": successes / n if n else None, "ci_low": low, "ci_high": high,
+            "errored": errored}
 
 
-def _outcome_block(counts: PairedCounts, config: CompareConfig) -> dict:
+def _outcome_block(counts: PairedCounts, config: CompareConfig, errored: ErroredPairs = ErroredPairs()) -> dict:
+    """One table's numbers: n = pairs with an outcome in both arms; errored pairs counted beside it."""
     confidence = 1.0 - config.alpha
     low, high = difference_interval(counts, confidence)
     return {
         "pairs": counts.n,
+        "errored_pairs": errored.pairs,
+        "paired_episodes": counts.n + errored.pairs,
         "table": asdict(counts),
-        "baseline": _rate(counts.baseline_successes, counts.n, confidence),
-        "candidate": _rate(counts.candidate_successes, counts.n, confidence),
+        "baseline": _rate(counts.baseline_successes, counts.n, confidence, errored.baseline),
+        "candidate": _rate(counts.candidate_successes, counts.n, confidence, errored.candidate),
         "difference": counts.difference if counts.n else None,
         "difference_ci": [low, high],
         "mcnemar_p": mcnemar_exact(counts.baseline_only, counts.candidate_only),
     }
 
 
-def outcome_verdicts(tables: dict[str, PairedCounts], config: CompareConfig) -> dict:
-    """{task: counts} -> {"tasks": {task: block}, "overall": block}, each with Holm-adjusted p and verdict.
+def _notes(label: str, block: dict, alpha: float) -> list[str]:
+    """The lines that say why a block's verdict is what it is (errors, an unreachable REGRESSED)."""
+    notes = []
+    n, paired = block["pairs"], block["paired_episodes"]
+    for arm in ("candidate", "baseline"):
+        errored = block[arm]["errored"]
+        if errored_most(errored, paired):
+            tail = ("it cannot pass the gate" if arm == "candidate" else
+                    "the baseline cannot serve as the reference, so the gate cannot pass; re-run the baseline")
+            notes.append(f"ERRORED: the {arm} errored on {errored} of {paired} paired episodes in {label} "
+                         f"(more than half): {tail}.")
+    if block["errored_pairs"] and block["verdict"] != "ERRORED":
+        notes.append(f"{block['errored_pairs']} errored pair(s) in {label} left out of n = {n} (baseline errored "
+                     f"{block['baseline']['errored']}, candidate {block['candidate']['errored']}): at best "
+                     "UNDERPOWERED.")
+    if not block["regressed_reachable"] and block["verdict"] != "ERRORED":
+        factor = block["holm_factor"]
+        notes.append(f"REGRESSED is unreachable with {n} pairs in {label}: the smallest exact McNemar p is "
+                     f"{min_mcnemar_p(n):.3g} (x Holm factor {factor} = {min(1.0, factor * min_mcnemar_p(n)):.3g}) "
+                     f"> alpha {alpha:g}; at least {block['pairs_for_regressed']} pairs are needed.")
+    return notes
 
-    The Holm family is every task plus the pooled table (the pooled table alone when there is one task). For an
-    UNDERPOWERED block, `pairs_to_decide` projects its table with the family size as the p-value factor (the
-    largest Holm factor, so the estimate errs towards more pairs).
+
+def outcome_verdicts(tables: dict[str, PairedCounts], config: CompareConfig,
+                     errored: dict[str, ErroredPairs] | None = None) -> dict:
+    """{task: counts} -> {"tasks": {task: block}, "overall": block, "holm_family", "notes"}, each block with its
+    Holm-adjusted p and verdict.
+
+    errored: {task: pairs left out because an arm errored} (none when absent). The Holm family is every task
+    plus the pooled table (the pooled table alone when there is one task). For an UNDERPOWERED or SUSPECT block,
+    `pairs_to_decide` projects its table with the family size as the p-value factor (the largest Holm factor,
+    so the estimate errs towards more pairs); `regressed_reachable` says whether its n pairs could give
+    REGRESSED at all with that factor. The overall block's verdict is the pooled table's; the overall verdict
+    of a comparison is `overall_verdict`.
     """
+    errored = errored or {}
     named = dict(tables)
     named[POOLED] = sum(tables.values(), PairedCounts())
-    blocks = {name: _outcome_block(counts, config) for name, counts in named.items()}
+    named_errored = {name: errored.get(name, ErroredPairs()) for name in tables}
+    named_errored[POOLED] = sum(named_errored.values(), ErroredPairs())
+    blocks = {name: _outcome_block(counts, config, named_errored[name]) for name, counts in named.items()}
     family = list(named) if len(tables) > 1 else [POOLED]
     for name, p in zip(family, holm_adjust([blocks[name]["mcnemar_p"] for name in family])):
         blocks[name]["mcnemar_p_holm"] = p
     if len(tables) == 1:  # one task: its table is the pooled one
         blocks[next(iter(tables))]["mcnemar_p_holm"] = blocks[POOLED]["mcnemar_p_holm"]
+    factor = len(family)
+    notes = []
     for name, counts in named.items():
         block = blocks[name]
         block["verdict"] = paired_verdict(counts, block["mcnemar_p_holm"], tuple(block["difference_ci"]),
-                                          config.max_drop, config.alpha)
+                                          config.max_drop, config.alpha, named_errored[name])
         needed = None
-        if block["verdict"] == "UNDERPOWERED":
-            needed = pairs_to_decide(counts, config.max_drop, config.alpha, multiplier=len(family))
+        if block["verdict"] in ("UNDERPOWERED", "SUSPECT"):
+            needed = pairs_to_decide(counts, config.max_drop, config.alpha, multiplier=factor)
         block["pairs_to_decide"] = needed
         block["more_pairs_needed"] = None if needed is None else needed - counts.n
+        block["holm_factor"] = factor
+        block["regressed_reachable"] = regressed_reachable(counts.n, config.alpha, factor)
+        block["pairs_for_regressed"] = pairs_for_regressed(config.alpha, factor)
+        if name != POOLED or len(tables) > 1:
+            notes += _notes("pooled" if name == POOLED else name, block, config.alpha)
     pooled = blocks.pop(POOLED)
-    return {"tasks": blocks, "overall": pooled, "holm_family": len(family)}
+    return {"tasks": blocks, "overall": pooled, "holm_family": factor, "notes": notes}
+
+
+def overall_verdict(outcomes: dict, identical: bool = False) -> str:
+    """IDENTICAL when every pair is identical, else the worst verdict of the tasks and the pooled table."""
+    if identical:
+        return "IDENTICAL"
+    return worst([b["verdict"] for b in outcomes["tasks"].values()] + [outcomes["overall"]["verdict"]])
 
 
 def _mean(values: list[np.ndarray]):
@@ -359,6 +420,22 @@ def _arm(run: RunRecord) -> dict:
             "arrays": "first steps only (committed baseline)" if _truncated(run) else "all steps"}
 
 
+def outcome_tables(details: list[dict]) -> tuple[dict[str, PairedCounts], dict[str, ErroredPairs]]:
+    """Pairs (task, baseline/candidate success and status) -> ({task: 2x2 table of the pairs in which both
+    arms ran to an outcome}, {task: pairs left out because an arm errored}), tasks in order of appearance."""
+    tables: dict[str, PairedCounts] = {}
+    errored: dict[str, ErroredPairs] = {}
+    for d in details:
+        task = d["task"]
+        base_ok, cand_ok = d["baseline_status"] == "ok", d["candidate_status"] == "ok"
+        tables.setdefault(task, PairedCounts())
+        errored[task] = errored.get(task, ErroredPairs()) + ErroredPairs.from_statuses([base_ok], [cand_ok])
+        if base_ok and cand_ok:
+            one = PairedCounts.from_outcomes([bool(d["baseline_success"])], [bool(d["candidate_success"])])
+            tables[task] = tables[task] + one
+    return tables, errored
+
+
 def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig()) -> dict:
     """Compare two run folders (see the module docstring). Raises IncompatibleRuns / NotARunError (exit 2)."""
     baseline, candidate = load_run(baseline_dir), load_run(candidate_dir)
@@ -373,20 +450,20 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
     truncated = (_truncated(baseline), _truncated(candidate))
     details = [_compare_pair(task, seed, b, c, truncated, config) for task, seed, b, c in pairs]
 
-    tables: dict[str, PairedCounts] = {}
-    for d in details:
-        one = PairedCounts.from_outcomes([d["baseline_success"]], [d["candidate_success"]])
-        tables[d["task"]] = tables.get(d["task"], PairedCounts()) + one
-    outcomes = outcome_verdicts(tables, config)
+    tables, errored = outcome_tables(details)
+    outcomes = outcome_verdicts(tables, config, errored)
     identical = all(d["identical"] for d in details) and not missing["baseline"] and not missing["candidate"]
     first_diff = next((f"{d['task']} seed {d['seed']}: {d['difference']}" for d in details if not d["identical"]),
                       "pairs are missing from one run" if not identical else None)
+    missing_tasks = {t for t, _ in missing["baseline"] + missing["candidate"]}
+    for task, block in outcomes["tasks"].items():  # a task whose every pair is identical says so in its row
+        block["paired_verdict"] = block["verdict"]
+        if task not in missing_tasks and all(d["identical"] for d in details if d["task"] == task):
+            block["verdict"] = "IDENTICAL"
+    outcomes["overall"]["paired_verdict"] = outcomes["overall"]["verdict"]
     if identical:
-        verdict = "IDENTICAL"
-    elif any(b["verdict"] == "REGRESSED" for b in outcomes["tasks"].values()) or outcomes["overall"]["verdict"] == "REGRESSED":
-        verdict = "REGRESSED"
-    else:
-        verdict = outcomes["overall"]["verdict"]
+        outcomes["overall"]["verdict"] = "IDENTICAL"
+    verdict = overall_verdict(outcomes, identical)
     return {
         "format": FORMAT,
         "verdict": verdict,
@@ -414,17 +491,22 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
     }
 
 
-def exit_code(result: dict, fail_on: str = "regressed") -> int:
-    """0 no regression, 1 regression (or UNDERPOWERED with fail_on="underpowered", anything but IDENTICAL with
-    fail_on="changed")."""
+def gate_exit_code(verdict: str, fail_on: str = "suspect") -> int:
+    """Exit code of an overall verdict: 3 ERRORED; 1 REGRESSED, SUSPECT (unless fail_on="regressed"),
+    UNDERPOWERED (fail_on="underpowered" or "changed"), HELD/IMPROVED (fail_on="changed"); else 0."""
     if fail_on not in FAIL_ON:
         raise ValueError(f"unknown --fail-on {fail_on!r}; use one of {FAIL_ON}")
-    verdict = result["verdict"]
+    if verdict == "ERRORED":
+        return EXIT_ERRORED
     if verdict == "IDENTICAL":
-        return 0
-    if fail_on == "changed" or verdict == "REGRESSED":
-        return 1
-    verdicts = [b["verdict"] for b in result["outcomes"]["tasks"].values()] + [verdict]
-    if fail_on == "underpowered" and "UNDERPOWERED" in verdicts:
-        return 1
-    return 0
+        return EXIT_OK
+    failing = {"regressed": ("REGRESSED",), "suspect": ("REGRESSED", "SUSPECT"),
+               "underpowered": ("REGRESSED", "SUSPECT", "UNDERPOWERED")}.get(fail_on)
+    if failing is None or verdict in failing:  # "changed": anything but IDENTICAL fails
+        return EXIT_FAIL
+    return EXIT_OK
+
+
+def exit_code(result: dict, fail_on: str = "suspect") -> int:
+    """0 pass, 1 regression (REGRESSED, SUSPECT, or what --fail-on adds), 3 ERRORED (see `gate_exit_code`)."""
+    return gate_exit_code(result["verdict"], fail_on)

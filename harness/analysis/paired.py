@@ -13,26 +13,50 @@ Only the discordant pairs (baseline_only, candidate_only) carry information abou
   Statistics in Medicine 17:2635, method 10: Wilson score limits of both margins combined with the
   continuity-corrected phi coefficient).
 - `holm_adjust`: Holm's (1979) step-down adjusted p-values.
-- `paired_verdict`: REGRESSED / IMPROVED / HELD / UNDERPOWERED from the rules below.
+- `paired_verdict`: ERRORED / REGRESSED / SUSPECT / IMPROVED / HELD / UNDERPOWERED from the rules below.
+- `worst`: the gate's order of verdicts (an overall verdict is the worst of its parts).
+- `regressed_reachable` / `pairs_for_regressed`: whether n pairs can give REGRESSED at all (exact test).
 - `pairs_to_decide`: how many pairs the current rates would need for a verdict other than UNDERPOWERED.
-- `mcnemar_sample_size`: fixed-size number of pairs for a given power (Connor 1987).
+- `mcnemar_sample_size`: fixed-size number of pairs for a given power (Connor 1987, asymptotic);
+  `mcnemar_exact_sample_size`: the same for the exact conditional McNemar test that `compare` runs.
+
+Only pairs in which both arms ran to an outcome are counted (n). A pair in which either arm errored (the
+episode raised: no outcome) is an "errored pair": it is left out of the 2x2 table and counted separately.
 
 Decision rules (difference = candidate rate - baseline rate, interval at confidence 1 - alpha):
+  ERRORED       an arm errored on more than half of its paired episodes (no outcome to compare)
   REGRESSED     Holm-adjusted McNemar p <= alpha and candidate_only < baseline_only
   IMPROVED      Holm-adjusted McNemar p <= alpha and candidate_only > baseline_only
-  HELD          neither, and the interval's lower limit >= -max_drop (a drop larger than max_drop is ruled out)
-  UNDERPOWERED  none of the above (or no pairs)
+  SUSPECT       neither, but the interval's upper limit < 0 (the printed interval shows a drop the exact test,
+                after Holm, does not confirm: the verdict never contradicts its interval)
+  HELD          none of these, no errored pair, and the interval's lower limit >= -max_drop (a drop larger
+                than max_drop is ruled out)
+  UNDERPOWERED  none of the above (or no pairs, or HELD but with errored pairs)
+Gate order (worst first): ERRORED > REGRESSED > SUSPECT > UNDERPOWERED > HELD > IMPROVED > IDENTICAL.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
 
-from scipy.stats import binomtest, norm
+import numpy as np
+from scipy.stats import binom, binomtest, norm
 
 from harness.analysis.stats import wilson_interval
 
-VERDICTS = ("REGRESSED", "IMPROVED", "HELD", "UNDERPOWERED")
+# worst first: an overall verdict is the worst of its tasks' (and the pooled table's) verdicts
+VERDICTS = ("ERRORED", "REGRESSED", "SUSPECT", "UNDERPOWERED", "HELD", "IMPROVED", "IDENTICAL")
+
+
+def worst(verdicts) -> str:
+    """The worst verdict in the gate's order (VERDICTS, worst first); IDENTICAL for none."""
+    ranked = [VERDICTS.index(v) for v in verdicts]
+    return VERDICTS[min(ranked)] if ranked else "IDENTICAL"
+
+
+def errored_most(errored: int, paired_episodes: int) -> bool:
+    """An arm errored on more than half of its paired episodes (the ERRORED rule)."""
+    return paired_episodes > 0 and 2 * errored > paired_episodes
 
 
 @dataclass(frozen=True)
@@ -77,6 +101,24 @@ class PairedCounts:
     def difference(self) -> float:
         """Candidate success rate minus baseline success rate (NaN without pairs)."""
         return (self.candidate_only - self.baseline_only) / self.n if self.n else float("nan")
+
+
+@dataclass(frozen=True)
+class ErroredPairs:
+    """Pairs left out of the 2x2 table because an arm errored (status "failed": the episode raised)."""
+
+    baseline: int = 0  # pairs whose baseline episode errored
+    candidate: int = 0  # pairs whose candidate episode errored
+    pairs: int = 0  # pairs with either arm errored
+
+    @classmethod
+    def from_statuses(cls, baseline_ok: list[bool], candidate_ok: list[bool]) -> "ErroredPairs":
+        """Per pair, whether each arm ran to an outcome."""
+        flags = list(zip(baseline_ok, candidate_ok))
+        return cls(sum(not b for b, _ in flags), sum(not c for _, c in flags), sum(not (b and c) for b, c in flags))
+
+    def __add__(self, other: "ErroredPairs") -> "ErroredPairs":
+        return ErroredPairs(self.baseline + other.baseline, self.candidate + other.candidate, self.pairs + other.pairs)
 
 
 def mcnemar_exact(baseline_only: int, candidate_only: int) -> float:
@@ -149,21 +191,50 @@ def holm_adjust(pvalues: list[float]) -> list[float]:
 
 
 def paired_verdict(counts: PairedCounts, p_adjusted: float, interval: tuple[float, float],
-                   max_drop: float, alpha: float) -> str:
-    """REGRESSED / IMPROVED / HELD / UNDERPOWERED by the rules in the module docstring."""
+                   max_drop: float, alpha: float, errored: "ErroredPairs | None" = None) -> str:
+    """Verdict of one table by the rules in the module docstring.
+
+    errored: the pairs left out of `counts` because an arm errored; paired episodes = counts.n + errored.pairs.
+    """
+    errored = errored or ErroredPairs()
+    errored_pairs = errored.pairs
+    paired_episodes = counts.n + errored_pairs
+    if errored_most(errored.baseline, paired_episodes) or errored_most(errored.candidate, paired_episodes):
+        return "ERRORED"
     if counts.n == 0:
         return "UNDERPOWERED"
     if p_adjusted <= alpha and counts.candidate_only != counts.baseline_only:
         return "REGRESSED" if counts.candidate_only < counts.baseline_only else "IMPROVED"
-    if interval[0] >= -max_drop:
+    if interval[1] < 0:
+        return "SUSPECT"
+    if interval[0] >= -max_drop and not errored_pairs:
         return "HELD"
     return "UNDERPOWERED"
 
 
-def decide(counts: PairedCounts, max_drop: float, alpha: float, multiplier: float = 1.0) -> str:
+def min_mcnemar_p(pairs: int) -> float:
+    """Smallest two-sided exact McNemar p-value `pairs` pairs can give (all of them discordant one way)."""
+    return min(1.0, 2.0 * 0.5 ** pairs)
+
+
+def regressed_reachable(pairs: int, alpha: float, multiplier: float = 1.0) -> bool:
+    """Whether any table of `pairs` pairs can be REGRESSED: multiplier x smallest exact p <= alpha."""
+    return multiplier * min_mcnemar_p(pairs) <= alpha
+
+
+def pairs_for_regressed(alpha: float, multiplier: float = 1.0) -> int:
+    """Fewest pairs with which REGRESSED is reachable (every pair discordant towards the baseline)."""
+    n = 1
+    while not regressed_reachable(n, alpha, multiplier):
+        n += 1
+    return n
+
+
+def decide(counts: PairedCounts, max_drop: float, alpha: float, multiplier: float = 1.0,
+           errored: ErroredPairs | None = None) -> str:
     """Verdict for one table on its own; `multiplier` scales its McNemar p (e.g. its Holm factor)."""
     p = min(1.0, multiplier * mcnemar_exact(counts.baseline_only, counts.candidate_only))
-    return paired_verdict(counts, p, difference_interval(counts, 1.0 - alpha), max_drop, alpha)
+    return paired_verdict(counts, p, difference_interval(counts, 1.0 - alpha), max_drop, alpha, errored)
 
 
 def _scaled(counts: PairedCounts, n: int) -> PairedCounts:
@@ -178,7 +249,8 @@ def _scaled(counts: PairedCounts, n: int) -> PairedCounts:
 
 def pairs_to_decide(counts: PairedCounts, max_drop: float, alpha: float, multiplier: float = 1.0,
                     limit: int = 100_000) -> int | None:
-    """Total pairs at which a table with the current proportions would no longer be UNDERPOWERED.
+    """Total pairs at which a table with the current proportions would be REGRESSED, IMPROVED or HELD
+    (no longer UNDERPOWERED or SUSPECT).
 
     A plug-in estimate: the observed 2x2 proportions are held fixed and scaled to N pairs; the smallest
     such N (found by doubling, then bisection) whose verdict under `decide` is REGRESSED, IMPROVED or HELD
@@ -190,7 +262,7 @@ def pairs_to_decide(counts: PairedCounts, max_drop: float, alpha: float, multipl
         return None
 
     def decided(n: int) -> bool:
-        return decide(_scaled(counts, n), max_drop, alpha, multiplier) != "UNDERPOWERED"
+        return decide(_scaled(counts, n), max_drop, alpha, multiplier) in ("REGRESSED", "IMPROVED", "HELD")
 
     if decided(counts.n):
         return counts.n
@@ -227,3 +299,48 @@ def mcnemar_sample_size(baseline_only_rate: float, candidate_only_rate: float, a
         return None
     z_a, z_b = norm.ppf(1 - alpha / 2), norm.ppf(power)
     return math.ceil((z_a * math.sqrt(psi) + z_b * math.sqrt(max(psi - delta * delta, 0.0))) ** 2 / delta ** 2)
+
+
+def exact_rejection_probability(discordant: np.ndarray, candidate_share: float, alpha: float) -> np.ndarray:
+    """P(the exact two-sided McNemar test rejects at alpha | D discordant pairs), D (k,) -> (k,).
+
+    Given D, the candidate-only count is Bin(D, q) with q = p_c / (p_b + p_c). The test rejects when
+    2 P(Bin(D, 1/2) <= min(x, D - x)) <= alpha, i.e. x <= k or x >= D - k with k the largest count whose
+    lower tail is <= alpha / 2 (k = -1: no rejection possible at this D).
+    """
+    d = np.asarray(discordant, dtype=np.int64)
+    k = binom.ppf(alpha / 2, d, 0.5)  # smallest k with cdf >= alpha/2
+    k = np.where(binom.cdf(k, d, 0.5) <= alpha / 2 * (1 + 1e-12), k, k - 1)  # largest with cdf <= alpha/2
+    lower = np.where(k >= 0, binom.cdf(k, d, candidate_share), 0.0)
+    upper = np.where(k >= 0, binom.sf(d - k - 1, d, candidate_share), 0.0)
+    return lower + upper
+
+
+def mcnemar_exact_power(n: int, baseline_only_rate: float, candidate_only_rate: float, alpha: float = 0.05) -> float:
+    """Unconditional power of the exact conditional McNemar test with n pairs:
+    sum over D ~ Bin(n, psi) of P(D) P(reject | D), psi = p_b + p_c."""
+    psi = baseline_only_rate + candidate_only_rate
+    if psi <= 0:
+        return 0.0
+    d = np.arange(n + 1)
+    share = candidate_only_rate / psi
+    return float(np.sum(binom.pmf(d, n, psi) * exact_rejection_probability(d, share, alpha)))
+
+
+def mcnemar_exact_sample_size(baseline_only_rate: float, candidate_only_rate: float, alpha: float = 0.05,
+                              power: float = 0.8, limit: int = 20_000) -> int | None:
+    """Smallest n whose exact McNemar power (`mcnemar_exact_power`) reaches `power`.
+
+    Exact power is a saw-tooth in n (the discrete test's level jumps), so n is searched upwards from 1 rather
+    than solved; P(reject | D) does not depend on n and is computed once. None when the rates are equal or
+    n would exceed `limit`.
+    """
+    psi = baseline_only_rate + candidate_only_rate
+    if baseline_only_rate == candidate_only_rate or psi <= 0:
+        return None
+    reject = exact_rejection_probability(np.arange(limit + 1), candidate_only_rate / psi, alpha)  # (limit + 1,)
+    for n in range(1, limit + 1):
+        d = np.arange(n + 1)
+        if float(np.sum(binom.pmf(d, n, psi) * reject[: n + 1])) >= power:
+            return n
+    return None

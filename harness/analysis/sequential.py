@@ -23,8 +23,15 @@ the discordant pairs against Bernoulli(1/2)). Ville's inequality gives P(sup_t w
 stopping the first time a mixture wealth reaches 2/alpha rejects that null with error <= alpha/2 at any
 stopping time: REGRESSED, IMPROVED or HELD (a drop larger than max_drop ruled out). The two directional
 tests together have a two-sided level alpha, matching the fixed-size McNemar test, and HELD matches the
-lower limit of a two-sided (1 - alpha) interval. When two cross at the same unit, REGRESSED wins over HELD
-and IMPROVED (the gate is conservative). A stream that ends undecided is UNDERPOWERED.
+lower limit of a two-sided (1 - alpha) interval. When several cross at the same unit, one rule (`PRIORITY`,
+used by both `first_decisions` and `SequentialTest.add`) picks REGRESSED > IMPROVED > HELD. A stream that ends
+undecided is UNDERPOWERED.
+
+Several tasks (`TaskwiseTest`, `taskwise_decisions`): one test per task on that task's own pairs, each at
+alpha / T (Bonferroni over T tasks, so the family-wise error of a false REGRESSED stays <= alpha / 2 and of a
+false HELD <= alpha / 2). A mean over tasks would let a task that breaks hide behind one that improves. The
+family is REGRESSED as soon as any task is; it stops when a task regressed or every task decided, and is
+then the worst task verdict (HELD unless every task IMPROVED); undecided at the end: UNDERPOWERED.
 """
 from __future__ import annotations
 
@@ -35,6 +42,7 @@ from scipy.special import logsumexp
 
 TESTS = ("regression", "improvement", "held")
 _VERDICT = {"regression": "REGRESSED", "improvement": "IMPROVED", "held": "HELD"}
+PRIORITY = ("regression", "improvement", "held")  # the one tie rule: REGRESSED > IMPROVED > HELD
 _MAX_BET = 0.99  # fraction of the largest bet that keeps every factor positive
 
 
@@ -102,7 +110,7 @@ def first_decisions(y: np.ndarray, config: SequentialConfig) -> tuple[np.ndarray
     first = {t: np.where(paths[t] >= level, index, units).min(axis=-1) for t in TESTS}  # (...) first crossing
     stop = np.minimum.reduce([first[t] for t in TESTS])
     verdict = np.full(stop.shape, "UNDERPOWERED", dtype=object)
-    for test in ("improvement", "held", "regression"):  # later assignments win ties: REGRESSED last
+    for test in reversed(PRIORITY):  # later assignments win ties: PRIORITY[0] last
         verdict = np.where((first[test] == stop) & (stop < units), _VERDICT[test], verdict)
     used = np.where(stop < units, stop + 1, units)
     return verdict, used
@@ -132,7 +140,7 @@ class SequentialTest:
             self._log_wealth[test] = self._log_wealth[test] + np.log1p(self.config.bets(test) * z)
         crossed = [t for t in TESTS if self.wealth(t) >= self.config.threshold]
         if crossed:
-            self.verdict = "REGRESSED" if "regression" in crossed else _VERDICT[crossed[0]]
+            self.verdict = _VERDICT[next(t for t in PRIORITY if t in crossed)]
         return self.verdict
 
     def wealth(self, test: str) -> float:
@@ -149,6 +157,88 @@ class SequentialTest:
             "alpha": self.config.alpha,
             "max_drop": self.config.max_drop,
         }
+
+
+def combine_tasks(verdicts: list[str]) -> str | None:
+    """The family's verdict from its tasks' (None = undecided): REGRESSED if any task is, else None while a
+    task is undecided, else HELD unless every task IMPROVED."""
+    if "REGRESSED" in verdicts:
+        return "REGRESSED"
+    if any(v is None or v == "UNDERPOWERED" for v in verdicts) or not verdicts:
+        return None
+    return "IMPROVED" if all(v == "IMPROVED" for v in verdicts) else "HELD"
+
+
+@dataclass
+class TaskwiseTest:
+    """One SequentialTest per task at alpha / T; `config` holds the family's alpha (see module docstring)."""
+
+    tasks: tuple[str, ...]
+    config: SequentialConfig = field(default_factory=SequentialConfig)
+    tests: dict[str, SequentialTest] = field(default_factory=dict)
+    errored: dict[str, int] = field(default_factory=dict)  # pairs left out because an arm errored
+    rounds: int = 0
+
+    def __post_init__(self):
+        if not self.tasks:
+            raise ValueError("a taskwise test needs at least one task")
+        task_config = SequentialConfig(alpha=self.task_alpha, max_drop=self.config.max_drop, grid=self.config.grid)
+        self.tests = {t: SequentialTest(task_config) for t in self.tasks}
+        self.errored = {t: 0 for t in self.tasks}
+
+    @property
+    def task_alpha(self) -> float:
+        return self.config.alpha / len(self.tasks)
+
+    def add_round(self, outcomes: dict[str, tuple[bool | None, bool | None]]) -> str | None:
+        """One round: {task: (baseline success, candidate success)}, None for an arm that errored (the pair is
+        counted in `errored`, not tested). Tasks already decided ignore their pair. Returns the verdict."""
+        if self.verdict is not None:
+            return self.verdict
+        self.rounds += 1
+        for task, (base, cand) in outcomes.items():
+            if base is None or cand is None:
+                self.errored[task] += 1
+            elif self.tests[task].verdict is None:
+                self.tests[task].add(float(cand) - float(base))
+        return self.verdict
+
+    @property
+    def verdict(self) -> str | None:
+        return combine_tasks([self.tests[t].verdict for t in self.tasks])
+
+    def summary(self) -> dict:
+        return {
+            "verdict": self.verdict or "UNDERPOWERED",
+            "decided": self.verdict is not None,
+            "rounds": self.rounds,
+            "alpha": self.config.alpha,
+            "task_alpha": self.task_alpha,
+            "max_drop": self.config.max_drop,
+            "threshold": self.tests[self.tasks[0]].config.threshold,
+            "tasks": {t: {**self.tests[t].summary(), "errored_pairs": self.errored[t]} for t in self.tasks},
+        }
+
+
+def taskwise_decisions(y: np.ndarray, config: SequentialConfig) -> tuple[np.ndarray, np.ndarray]:
+    """y (tasks, ..., rounds) units per task and round -> (family verdicts (...), rounds used (...)).
+
+    The vectorised `TaskwiseTest` (no errored pairs): each task at alpha / T; stops at the first REGRESSED
+    task, else when the last task decides.
+    """
+    y = np.asarray(y, dtype=np.float64)
+    tasks, rounds = y.shape[0], y.shape[-1]
+    task_config = SequentialConfig(alpha=config.alpha / tasks, max_drop=config.max_drop, grid=config.grid)
+    verdicts, used = zip(*(first_decisions(y[t], task_config) for t in range(tasks)))
+    verdicts, used = np.stack(verdicts), np.stack(used)  # (tasks, ...)
+    regressed = verdicts == "REGRESSED"
+    decided = verdicts != "UNDERPOWERED"
+    first_regressed = np.where(regressed, used, rounds + 1).min(axis=0)
+    all_improved = (verdicts == "IMPROVED").all(axis=0)
+    out = np.where(decided.all(axis=0), np.where(all_improved, "IMPROVED", "HELD"), "UNDERPOWERED").astype(object)
+    out = np.where(regressed.any(axis=0), "REGRESSED", out)
+    stop = np.where(regressed.any(axis=0), first_regressed, np.where(decided.all(axis=0), used.max(axis=0), rounds))
+    return out, stop
 
 
 def simulate_pairs(baseline_rate: float, candidate_rate: float, pairs: int, runs: int,
