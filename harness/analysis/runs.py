@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.run.schema import check_manifest, check_row, parse_row
+
 RUN_FORMAT = "octo-harness-run/1"
 
 
@@ -189,20 +191,25 @@ def _load_store_run(path: Path) -> RunRecord:
     manifest = _read_json(path / "manifest.json")
     if not isinstance(manifest, dict) or "jobs" not in manifest:
         raise NotARunError(f"{path / 'manifest.json'} has no 'jobs'; it is not an octo-harness run manifest")
+    check_manifest(manifest, path / "manifest.json")
     protocol = manifest.get("protocol") or {}
-    jobs = [(str(t), int(k), None if s is None else int(s)) for t, k, s in manifest["jobs"]]
+    jobs = [(t, k, s) for t, k, s in manifest["jobs"]]
+    keys = {(t, k) for t, k, _ in jobs}
     rows: dict[tuple[str, int], dict] = {}
     results = path / "results.jsonl"
     if results.is_file():
-        for line in results.read_text().splitlines():
-            line = line.strip()
-            if not line:
+        text = results.read_text(errors="replace")
+        lines = text.splitlines()
+        for number, line in enumerate(lines, 1):
+            if not line.strip():
                 continue
-            try:
-                row = json.loads(line)
-            except ValueError:  # a line being appended right now
-                continue
-            rows[(str(row["task"]), int(row["episode"]))] = row  # the last line of a job wins
+            if number == len(lines) and not text.endswith("\n"):
+                try:  # the last line may be being appended right now
+                    json.loads(line)
+                except ValueError:
+                    continue
+            row = check_row(parse_row(line, results, number), results, number, keys)
+            rows[(row["task"], row["episode"])] = row  # the last line of a job wins
     episodes = [_episode(row, path) for row in rows.values()]
     status = None
     if (path / "results.json").is_file():

@@ -11,6 +11,7 @@ raise `Interrupted` (a KeyboardInterrupt) outside the store's critical sections;
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import platform
 import shutil
@@ -24,6 +25,8 @@ from typing import Callable
 import numpy as np
 
 from harness.run import checks
+from harness.run.schema import protocol_from_manifest
+from harness.run.platform import platform_differences, platform_fingerprint, platform_info
 from harness.run.executor import EpisodeContext, Executor, SequentialExecutor, StepCallback
 from harness.run.progress import Progress
 from harness.run.protocol import FORMAT, EpisodeJob, Protocol, diff, goal_fingerprint, model_fingerprint
@@ -223,13 +226,20 @@ def execute(
                                  "choose another --run-name")
             manifest = None if overwrite else store.read_manifest()
             if manifest is not None:
-                differs = diff(manifest.get("protocol", {}), protocol_dict)
+                # through Protocol, so a field added since the run started compares at its default
+                recorded = protocol_from_manifest(manifest, store.dir / MANIFEST).to_dict()
+                differs = diff(recorded, protocol_dict)
                 if differs:
                     raise ProtocolMismatchError(
                         f"run {store.dir} was started with a different protocol (differs: {', '.join(differs)}); "
                         "run the same command to resume it, --overwrite to start it afresh, or choose another --run-name")
 
-            rows = store.load_rows() if manifest is not None else {}
+            platform_now = platform_info()
+            platform_fp = platform_fingerprint(platform_now)
+            if manifest is not None and manifest.get("platform_fingerprint") not in (None, platform_fp):
+                log.warning("resuming run %s on another platform (differs: %s); its episodes record where they ran",
+                            name, ", ".join(platform_differences(manifest.get("platform"), platform_now)) or "unknown")
+            rows = store.load_rows({j.key for j in jobs}) if manifest is not None else {}
             done = {key for key, row in rows.items()
                     if (row.status == "ok" and (store.dir / row.directory / "episode.json").is_file())
                     or (row.status != "ok" and not retry_failed)}
@@ -251,6 +261,7 @@ def execute(
                     "protocol_hash": protocol.hash(), "jobs": [[j.task, j.episode, j.seed] for j in jobs],
                     "model": _model_info(model, dataset_key, fingerprint_details), "task_inputs": task_inputs,
                     "goal_images": protocol.goal_images, "git_commit": _git_commit(), "versions": _versions(),
+                    "platform": platform_now, "platform_fingerprint": platform_fp,
                 }
                 store.write_manifest(manifest)
             store.remove_temporaries()
@@ -282,6 +293,7 @@ def execute(
                     _derive(store, manifest, jobs, rows, "running", ci_method)
                     runner = (executor or SequentialExecutor)(context, model) if pending else None
                 for row in (runner.run(pending, on_step=step) if runner is not None else ()):
+                    row = dataclasses.replace(row, platform=platform_fp)  # where this episode's numbers came from
                     with guard.critical():
                         store.append(row)
                         rows[row.key] = row

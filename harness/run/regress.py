@@ -4,12 +4,16 @@ anytime-valid test decides (harness.analysis.sequential).
 `regress(baseline_dir, model, ...)` builds the candidate's protocol from the baseline's manifest with only the
 model replaced (and, with `max_episodes`, fewer episodes per task), and runs it through the run store
 (`harness.run.execute`), so an interrupted regression resumes where it stopped. Jobs run round by round
-(episode k of every task, then k + 1), and each complete round is one unit of the sequential test: the mean
-over the round's tasks of (candidate success - baseline success) on the same seed. The executor stops as soon
-as the test decides; episodes already in the candidate run are counted first, so re-running the same command
-reproduces the decision without new episodes. Afterwards the pairs are compared with the fixed-size
-statistics (harness.analysis.compare), and the result says how many pairs were used against what a fixed-size
-McNemar test would need.
+(episode k of every task, then k + 1); each task's pairs feed that task's own sequential test at alpha / T
+(harness.analysis.sequential.TaskwiseTest), so a task that breaks cannot hide behind one that improves. The
+executor stops as soon as a task is REGRESSED, every task has decided, or the candidate errored on more than half
+of a task's pairs (ERRORED whatever follows); a pair with an errored arm is counted, never tested. Episodes
+already in the candidate run are counted first, so re-running the same command reproduces the decision without
+new episodes. A baseline that errored on more than half of a task's episodes is refused before anything runs.
+
+Afterwards the pairs run are compared with the fixed-size statistics (harness.analysis.compare), and the verdict
+is the worse of the sequential verdict and that comparison's (`gate_verdict`): regress never exits 0 where
+`compare` on the same pairs exits non-zero. `gate_on_outcomes` is the same decision on outcome dicts.
 """
 from __future__ import annotations
 
@@ -18,10 +22,17 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Iterator, Sequence
 
-from harness.analysis.compare import CompareConfig, compare_runs
-from harness.analysis.paired import PairedCounts, mcnemar_sample_size
+from harness.analysis.compare import (
+    CompareConfig,
+    compare_runs,
+    gate_exit_code,
+    outcome_tables,
+    outcome_verdicts,
+    overall_verdict,
+)
+from harness.analysis.paired import PairedCounts, errored_most, mcnemar_exact_sample_size, worst
 from harness.analysis.runs import load_run
-from harness.analysis.sequential import SequentialConfig, SequentialTest
+from harness.analysis.sequential import SequentialConfig, TaskwiseTest
 from harness.run.executor import EpisodeContext, SequentialExecutor
 from harness.run.protocol import EpisodeJob, Protocol
 from harness.run.store import EpisodeRow, RunStore
@@ -29,19 +40,22 @@ from harness.run.store import EpisodeRow, RunStore
 log = logging.getLogger(__name__)
 
 
-def candidate_protocol(baseline_manifest: dict, model: str, max_episodes: int | None = None) -> Protocol:
+def candidate_protocol(baseline_manifest: dict, model: str, max_episodes: int | None = None,
+                       where: str = "the baseline's manifest.json") -> Protocol:
     """The baseline's protocol with the model replaced (fingerprints recomputed by the run)."""
-    data = dict(baseline_manifest.get("protocol") or {})
+    from harness.run.schema import check_protocol, protocol_from_manifest
+
+    data = baseline_manifest.get("protocol")
     if not data:
         raise ValueError("the baseline run has no protocol in manifest.json (made before the run store); "
                          "re-run the baseline with this octo-harness, then regress against it")
-    episodes = int(data.get("episodes") or 1)
+    episodes = check_protocol(data, where)["episodes"]
     if max_episodes is not None:
         if max_episodes < 1:
             raise ValueError(f"--max-episodes must be at least 1, got {max_episodes}")
         episodes = min(episodes, max_episodes)
-    data.update(model=model, model_fingerprint=None, goal_fingerprint=None, episodes=episodes)
-    return Protocol.from_dict(data)
+    return protocol_from_manifest(baseline_manifest, where, model=model, model_fingerprint=None, goal_fingerprint=None,
+                                  episodes=episodes)
 
 
 def round_order(jobs: Sequence[EpisodeJob], tasks: Sequence[str]) -> list[EpisodeJob]:
@@ -50,27 +64,71 @@ def round_order(jobs: Sequence[EpisodeJob], tasks: Sequence[str]) -> list[Episod
     return sorted(jobs, key=lambda j: (j.episode, rank.get(j.task, len(rank))))
 
 
-def sequential_state(baseline: dict[tuple[str, int], bool], candidate: dict[tuple[str, int], bool],
-                     jobs: Sequence[EpisodeJob], tasks: Sequence[str], config: SequentialConfig) -> SequentialTest:
-    """Feed complete rounds in order into a fresh test (stops at the first decision).
+def sequential_state(baseline: dict[tuple[str, int], bool | None], candidate: dict[tuple[str, int], bool | None],
+                     jobs: Sequence[EpisodeJob], tasks: Sequence[str], config: SequentialConfig) -> TaskwiseTest:
+    """Feed complete rounds in order into a fresh per-task test (stops at the family's first decision).
 
-    baseline / candidate: {(task, seed): success}. A round is complete when every task that has a baseline
-    episode for that round's seed has a candidate episode too; rounds without any pair are skipped.
+    baseline / candidate: {(task, seed): success, None if the episode errored}. A round is complete when every
+    task that has a baseline episode for that round's seed has a candidate episode too; rounds without any
+    pair are skipped. Each task's pair goes to that task's own test; a pair with an errored arm is counted,
+    not tested.
     """
-    test = SequentialTest(config)
+    test = TaskwiseTest(tuple(tasks), config)
+    for paired in _rounds(baseline, jobs, tasks):
+        if any((j.task, j.seed) not in candidate for j in paired):
+            break  # the next round is not finished yet
+        if test.add_round({j.task: (baseline[(j.task, j.seed)], candidate[(j.task, j.seed)]) for j in paired}):
+            break
+    return test
+
+
+def _rounds(baseline: dict, jobs: Sequence[EpisodeJob], tasks: Sequence[str]) -> list[list[EpisodeJob]]:
+    """Jobs with a baseline episode, grouped round by round (empty rounds dropped)."""
     rounds: dict[int, list[EpisodeJob]] = {}
     for job in round_order(jobs, tasks):
         rounds.setdefault(job.episode, []).append(job)
-    for episode in sorted(rounds):
-        paired = [j for j in rounds[episode] if (j.task, j.seed) in baseline]
-        if not paired:
-            continue
-        if any((j.task, j.seed) not in candidate for j in paired):
-            break  # the next round is not finished yet
-        y = sum(float(candidate[(j.task, j.seed)]) - float(baseline[(j.task, j.seed)]) for j in paired) / len(paired)
-        if test.add(y) is not None:
-            break
-    return test
+    return [paired for episode in sorted(rounds) if (paired := [j for j in rounds[episode] if (j.task, j.seed) in baseline])]
+
+
+def errored_tasks(baseline: dict, candidate: dict, jobs: Sequence[EpisodeJob]) -> list[str]:
+    """Tasks whose candidate errored on more than half of the task's baseline pairs: ERRORED whatever follows."""
+    planned: dict[str, int] = {}
+    errored: dict[str, int] = {}
+    for j in jobs:
+        if (j.task, j.seed) in baseline:
+            planned[j.task] = planned.get(j.task, 0) + 1
+            errored[j.task] = errored.get(j.task, 0) + ((j.task, j.seed) in candidate and candidate[(j.task, j.seed)] is None)
+    return [t for t in planned if errored_most(errored[t], planned[t])]
+
+
+def gate_verdict(sequential: str, compared: str) -> str:
+    """regress's verdict: the worse of the sequential verdict and compare's verdict on the pairs run, so regress
+    never passes what `compare` on the same pairs fails (IDENTICAL pairs: IDENTICAL, nothing changed)."""
+    return "IDENTICAL" if compared == "IDENTICAL" else worst([sequential, compared])
+
+
+def gate_on_outcomes(baseline: dict, candidate: dict, jobs: Sequence[EpisodeJob], tasks: Sequence[str],
+                     alpha: float = 0.05, max_drop: float = 0.1) -> dict:
+    """The whole decision of `regress` on outcome dicts (no episodes run, no files): the per-task sequential
+    test over the complete rounds, compare's outcome verdict on the same pairs, and the gate verdict.
+
+    baseline / candidate: {(task, seed): success, None if errored}. Pairs are those of the rounds the
+    sequential test consumed (all complete rounds when it stops on errors or runs out).
+    """
+    test = sequential_state(baseline, candidate, jobs, tasks, SequentialConfig(alpha=alpha, max_drop=max_drop))
+    rounds = _rounds(baseline, jobs, tasks)[: test.rounds]
+    details = [{"task": j.task, "baseline_success": baseline[(j.task, j.seed)],
+                "candidate_success": candidate[(j.task, j.seed)],
+                "baseline_status": "failed" if baseline[(j.task, j.seed)] is None else "ok",
+                "candidate_status": "failed" if candidate[(j.task, j.seed)] is None else "ok"}
+               for paired in rounds for j in paired]
+    tables, errored = outcome_tables(details)
+    outcomes = outcome_verdicts(tables, CompareConfig(max_drop=max_drop, alpha=alpha), errored)
+    compared = overall_verdict(outcomes)
+    sequential = test.summary()["verdict"]
+    return {"verdict": gate_verdict(sequential, compared), "sequential_verdict": sequential,
+            "compare_verdict": compared, "rounds": test.rounds, "pairs": len(details), "test": test,
+            "outcomes": outcomes}
 
 
 class _StoppingExecutor:
@@ -82,13 +140,14 @@ class _StoppingExecutor:
         self.jobs, self.tasks, self.config = list(jobs), list(tasks), config
 
     def decided(self) -> bool:
-        return sequential_state(self.baseline, self.done, self.jobs, self.tasks, self.config).verdict is not None
+        return (sequential_state(self.baseline, self.done, self.jobs, self.tasks, self.config).verdict is not None
+                or bool(errored_tasks(self.baseline, self.done, self.jobs)))
 
     def run(self, jobs: Sequence[EpisodeJob], on_step=None) -> Iterator[EpisodeRow]:
         if self.decided():
             return
         for row in self.inner.run(round_order(jobs, self.tasks), on_step=on_step):
-            self.done[(row.task, row.seed)] = bool(row.success) and row.status == "ok"
+            self.done[(row.task, row.seed)] = bool(row.success) if row.status == "ok" else None
             yield row
             if self.decided():
                 log.info("sequential test decided after %d candidate episodes; stopping", len(self.done))
@@ -98,8 +157,19 @@ class _StoppingExecutor:
         self.inner.close()
 
 
-def _outcomes(run) -> dict[tuple[str, int], bool]:
-    return {(e.task, e.seed): bool(e.success) and e.ok for e in run.episodes if e.seed is not None}
+def _outcomes(run) -> dict[tuple[str, int], bool | None]:
+    """{(task, seed): success, None for an episode that errored}."""
+    return {(e.task, e.seed): bool(e.success) if e.ok else None for e in run.episodes if e.seed is not None}
+
+
+def _check_baseline(baseline: dict, jobs: Sequence[EpisodeJob], path) -> None:
+    """A baseline that errored on more than half of a task's episodes cannot be the reference (one line)."""
+    for task in dict.fromkeys(j.task for j in jobs):
+        outcomes = [baseline[(j.task, j.seed)] for j in jobs if j.task == task and (j.task, j.seed) in baseline]
+        errored = sum(o is None for o in outcomes)
+        if errored_most(errored, len(outcomes)):
+            raise ValueError(f"the baseline {path} errored on {errored} of {len(outcomes)} episodes of {task} (more "
+                             "than half): it cannot serve as the reference; re-run it (octo-harness run --retry-failed)")
 
 
 def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = None, out: str | Path = "results/runs",
@@ -112,43 +182,52 @@ def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = 
     from harness.run import execute
 
     baseline = load_run(baseline_dir)
-    protocol = candidate_protocol(baseline.manifest, model, max_episodes)
+    protocol = candidate_protocol(baseline.manifest, model, max_episodes, str(baseline.path / "manifest.json"))
     config = SequentialConfig(alpha=alpha, max_drop=max_drop)
     compare_config = CompareConfig(max_drop=max_drop, alpha=alpha)
     base_outcomes = _outcomes(baseline)
     jobs = protocol.jobs()
     if not any((j.task, j.seed) in base_outcomes for j in jobs):
         raise ValueError(f"the baseline {baseline.path} has no finished episode to pair with; finish the baseline first")
+    _check_baseline(base_outcomes, jobs, baseline.path)
 
     def factory(context: EpisodeContext, model_):
-        existing = {(r.task, r.seed): bool(r.success) and r.status == "ok"
+        existing = {(r.task, r.seed): bool(r.success) if r.status == "ok" else None
                     for r in RunStore(context.run_dir).load_rows().values()}
         inner = (executor or SequentialExecutor)(context, model_)
         return _StoppingExecutor(inner, base_outcomes, existing, jobs, protocol.tasks, config)
 
     summary = execute(protocol, out, run_name, model=loaded_model, executor=factory, progress=progress)
     candidate = load_run(summary.run_dir)
-    test = sequential_state(base_outcomes, _outcomes(candidate), jobs, protocol.tasks, config)
-    used_rounds = test.units
-    rounds = round_order(jobs, protocol.tasks)
-    used_jobs = [j for j in rounds if j.episode < _round_limit(rounds, used_rounds, base_outcomes)]
     cand = _outcomes(candidate)
-    paired = [(j.task, j.seed) for j in used_jobs if (j.task, j.seed) in base_outcomes and (j.task, j.seed) in cand]
-    counts = PairedCounts.from_outcomes([base_outcomes[k] for k in paired], [cand[k] for k in paired])
-    fixed = None
-    if counts.n:
-        fixed = mcnemar_sample_size(counts.baseline_only / counts.n, counts.candidate_only / counts.n, alpha, 0.8)
+    gate = gate_on_outcomes(base_outcomes, cand, jobs, protocol.tasks, alpha, max_drop)
+    test: TaskwiseTest = gate["test"]
+    used = [(j.task, j.seed) for paired in _rounds(base_outcomes, jobs, protocol.tasks)[: test.rounds] for j in paired]
+    outcome_pairs = [k for k in used if base_outcomes[k] is not None and cand[k] is not None]
+    counts = PairedCounts.from_outcomes([base_outcomes[k] for k in outcome_pairs], [cand[k] for k in outcome_pairs])
     comparison = compare_runs(baseline.path, candidate.path, compare_config)
+    sequential = test.summary()
+    stopped_errored = errored_tasks(base_outcomes, cand, jobs)
+    if stopped_errored:
+        sequential["errored_tasks"] = stopped_errored
     return {
-        "format": "octo-harness-regress/1",
-        "verdict": test.summary()["verdict"],
-        "sequential": test.summary(),
+        "format": "octo-harness-regress/2",
+        "verdict": gate_verdict(sequential["verdict"], comparison["verdict"]),
+        "sequential_verdict": sequential["verdict"],
+        "compare_verdict": comparison["verdict"],
+        "sequential": sequential,
         "pairs_used": counts.n,
-        "rounds_used": used_rounds,
+        "errored_pairs": len(used) - len(outcome_pairs),
+        "rounds_used": test.rounds,
         "baseline_pairs": sum((j.task, j.seed) in base_outcomes for j in jobs),
-        "fixed_size_pairs_80_power": fixed,
-        "fixed_size_note": "pairs a fixed-size two-sided McNemar test at the same alpha needs for 80% power at the "
-                           "observed discordance rates (Connor 1987); null when no difference was observed",
+        "fixed_size_pairs_80_power": _fixed_size(counts, alpha),
+        "fixed_size_pairs_80_power_tasks": {
+            task: _fixed_size(PairedCounts.from_outcomes([base_outcomes[k] for k in outcome_pairs if k[0] == task],
+                                                         [cand[k] for k in outcome_pairs if k[0] == task]), alpha)
+            for task in protocol.tasks},
+        "fixed_size_note": "pairs a fixed-size exact two-sided McNemar test at the same alpha needs for 80% power at "
+                           "the observed discordance rates (exact unconditional power); null when no difference was "
+                           "observed",
         "table": asdict(counts),
         "baseline_run": str(baseline.path),
         "candidate_run": str(candidate.path),
@@ -157,40 +236,40 @@ def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = 
     }
 
 
-def _round_limit(rounds: list[EpisodeJob], used_rounds: int, baseline: dict) -> int:
-    """Episode index after the last round the test consumed (rounds without pairs do not count)."""
-    counted, limit = 0, 0
-    for episode in sorted({j.episode for j in rounds}):
-        if counted >= used_rounds:
-            break
-        limit = episode + 1
-        if any(j.episode == episode and (j.task, j.seed) in baseline for j in rounds):
-            counted += 1
-    return limit
+def _fixed_size(counts: PairedCounts, alpha: float) -> int | None:
+    if not counts.n:
+        return None
+    return mcnemar_exact_sample_size(counts.baseline_only / counts.n, counts.candidate_only / counts.n, alpha, 0.8)
 
 
-def exit_code(result: dict, fail_on: str = "regressed") -> int:
-    """0 no regression, 1 REGRESSED (or UNDERPOWERED with fail_on="underpowered")."""
-    verdict = result["verdict"]
-    if verdict == "REGRESSED":
-        return 1
-    if fail_on == "underpowered" and verdict == "UNDERPOWERED":
-        return 1
-    return 0
+def exit_code(result: dict, fail_on: str = "suspect") -> int:
+    """The gate verdict's exit code, as for compare: 0 pass, 1 REGRESSED/SUSPECT (or what --fail-on adds),
+    3 ERRORED."""
+    return gate_exit_code(result["verdict"], fail_on)
 
 
 def summary_text(result: dict, code: int) -> str:
     """A few lines for the terminal / CI log."""
     seq = result["sequential"]
-    e = seq["e_values"]
     lines = [
-        f"regress: {result['verdict']} after {result['pairs_used']} pairs ({result['rounds_used']} rounds) of "
-        f"{result['baseline_pairs']} in the baseline; sequential test at alpha {seq['alpha']:g}, max drop {seq['max_drop']:g}",
-        f"  e-values (reject at {seq['threshold']:g}): regression {e['regression']:.3g}, improvement "
-        f"{e['improvement']:.3g}, held {e['held']:.3g}",
-        f"  a fixed-size McNemar test would need {result['fixed_size_pairs_80_power'] or 'n/a (no difference observed)'} "
+        f"regress: {result['verdict']} after {result['pairs_used']} pairs ({result['rounds_used']} rounds"
+        + (f", {result['errored_pairs']} errored pairs left out" if result.get("errored_pairs") else "")
+        + f") of {result['baseline_pairs']} in the baseline",
+        f"  sequential test per task (alpha {seq['alpha']:g} / {len(seq['tasks'])} tasks = {seq['task_alpha']:.3g} each, "
+        f"max drop {seq['max_drop']:g}, reject at e-value {seq['threshold']:g}): {result['sequential_verdict']}",
+    ]
+    for task, t in seq["tasks"].items():
+        e = t["e_values"]
+        lines.append(f"    {task}: {t['verdict']} after {t['units']} pairs ({t['errored_pairs']} errored); e-values "
+                     f"regression {e['regression']:.3g}, improvement {e['improvement']:.3g}, held {e['held']:.3g}")
+    for task in seq.get("errored_tasks", []):
+        lines.append(f"    {task}: the candidate errored on more than half of its pairs: ERRORED")
+    lines += [
+        f"  fixed-size comparison of the pairs run: {result['compare_verdict']}"
+        + "".join(f"\n    {note}" for note in result["compare"]["outcomes"].get("notes", [])),
+        f"  an exact fixed-size McNemar test would need {result['fixed_size_pairs_80_power'] or 'n/a (no difference observed)'} "
         f"pairs for 80% power at the observed discordance",
-        f"  fixed-size comparison of the pairs run: {result['compare']['verdict']}",
+        f"  verdict = worse of sequential and fixed-size: {result['verdict']}",
         f"exit code {code}",
     ]
     return "\n".join(lines)

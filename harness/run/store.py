@@ -32,6 +32,7 @@ from typing import Any, Iterable
 from harness.analysis.stats import success_summary
 from harness.files import atomic_write_json, json_safe, write_atomic
 from harness.run.jobs import FORMAT, EpisodeJob
+from harness.run.schema import check_manifest, check_row, parse_row
 
 LOCK = ".lock"
 MANIFEST = "manifest.json"
@@ -68,6 +69,7 @@ class EpisodeRow:
     overhead_fraction: float | None  # (step - simulation - inference) / step
     directory: str  # relative to the run folder: "<task>/episode_<k>"
     error: str | None = None
+    platform: str | None = None  # platform_fingerprint of the driver that recorded it (harness/run/platform.py)
 
     @property
     def key(self) -> tuple[str, int]:
@@ -92,7 +94,7 @@ class EpisodeRow:
 
 
 CSV_COLUMNS = ["run", "task", "episode", "seed", "status", "success", "steps", "return", "seconds_per_step",
-               "simulation_per_step", "inference_per_step", "overhead_fraction", "directory", "error"]
+               "simulation_per_step", "inference_per_step", "overhead_fraction", "directory", "error", "platform"]
 STAT_COLUMNS = ["n", "successes", "failed", "success_rate", "ci_low", "ci_high", "method", "confidence"]
 
 
@@ -164,10 +166,11 @@ class RunStore:
             manifest = json.loads(path.read_text())
         except (OSError, ValueError) as e:
             raise ValueError(f"{path} is unreadable ({e}); use --overwrite to start the run afresh") from None
-        if manifest.get("format") != FORMAT:
-            raise ValueError(f"{path} is not an {FORMAT} manifest (format {manifest.get('format')!r}); "
+        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+            found = manifest.get("format") if isinstance(manifest, dict) else type(manifest).__name__
+            raise ValueError(f"{path} is not an {FORMAT} manifest (format {found!r}); "
                              "use --overwrite or another --run-name")
-        return manifest
+        return check_manifest(manifest, path)
 
     def foreign_content(self, tasks: Iterable[str] = ()) -> list[str]:
         """Names in a folder without manifest that a run would not write (guards --run-name against a wrong folder)."""
@@ -191,8 +194,9 @@ class RunStore:
 
     # ---- results ---------------------------------------------------------------------------------
 
-    def load_rows(self) -> dict[tuple[str, int], EpisodeRow]:
-        """Rows of results.jsonl by job (last line wins). A torn last line (killed mid-append) is cut off."""
+    def load_rows(self, jobs: set[tuple[str, int]] | None = None) -> dict[tuple[str, int], EpisodeRow]:
+        """Rows of results.jsonl by job (last line wins). A torn last line (killed mid-append) is cut off; any other
+        malformed line, or a row of a job not in `jobs` (when given), is a MalformedRunError."""
         path = self.dir / RESULTS_JSONL
         if not path.is_file():
             return {}
@@ -205,9 +209,9 @@ class RunStore:
                 os.fsync(f.fileno())
             data = data[:keep]
         rows: dict[tuple[str, int], EpisodeRow] = {}
-        for line in data.decode().splitlines():
+        for number, line in enumerate(data.decode(errors="replace").splitlines(), 1):
             if line.strip():
-                row = EpisodeRow.from_dict(json.loads(line))
+                row = EpisodeRow.from_dict(check_row(parse_row(line, path, number), path, number, jobs))
                 rows[row.key] = row
         return rows
 

@@ -1,0 +1,138 @@
+"""The one check of what a run folder's files hold, shared by run, resume, report, compare, regress and replay.
+
+`check_manifest(data, path)` and `check_row(data, path, line)` take parsed JSON and raise `MalformedRunError`
+(a ValueError: the command line prints one line and exits 2) naming the file, the field and the fix, instead
+of letting a wrong type surface later as a traceback (exit 1, which for compare and regress means
+"regression"). They check types and the consistency a reader relies on (jobs are (task, episode, seed)
+triples of the protocol's tasks; a row's job is one of the manifest's jobs), not values a newer harness may
+add: unknown keys pass.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+FIX = "repair the file or re-create the run (octo-harness run ... --overwrite)"
+ROW_STATUSES = ("ok", "failed")
+
+
+class MalformedRunError(ValueError):
+    """A run folder's manifest.json or results.jsonl holds something of the wrong type (one line, with the fix)."""
+
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _fail(path: Path | str, what: str) -> MalformedRunError:
+    return MalformedRunError(f"{path}: {what}; {FIX}")
+
+
+def _expect(path, name: str, value: Any, kinds: tuple, label: str, optional: bool = False) -> None:
+    if value is None and optional:
+        return
+    ok = (_is_int(value) if kinds == (int,) else isinstance(value, kinds))
+    if not ok:
+        raise _fail(path, f"{name} must be {label}, got {type(value).__name__} {_short(value)}")
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def check_protocol(protocol: Any, path: Path | str) -> dict:
+    """The manifest's "protocol" block: types of the fields every reader uses."""
+    _expect(path, "protocol", protocol, (dict,), "an object")
+    _expect(path, "protocol.model", protocol.get("model"), (str,), "a model source string")
+    tasks = protocol.get("tasks")
+    if not isinstance(tasks, list) or not tasks or not all(isinstance(t, str) and t for t in tasks):
+        raise _fail(path, f"protocol.tasks must be a non-empty list of task names, got {_short(tasks)}")
+    for name in ("episodes", "seed"):
+        _expect(path, f"protocol.{name}", protocol.get(name), (int,), "an integer")
+    if protocol["episodes"] < 1 or protocol["seed"] < 0:
+        raise _fail(path, f"protocol.episodes must be >= 1 and protocol.seed >= 0, got {protocol['episodes']} "
+                          f"and {protocol['seed']}")
+    _expect(path, "protocol.max_steps", protocol.get("max_steps"), (int,), "an integer or null", optional=True)
+    for name in ("env", "policy", "outputs"):
+        _expect(path, f"protocol.{name}", protocol.get(name), (dict,), "an object", optional=True)
+    for name in ("model_fingerprint", "instruction", "goal_images", "goal_fingerprint", "harness_version"):
+        _expect(path, f"protocol.{name}", protocol.get(name), (str,), "a string or null", optional=True)
+    return protocol
+
+
+def check_manifest(manifest: Any, path: Path | str) -> dict:
+    """A run-store manifest (format octo-harness-run/1): returns it unchanged or raises MalformedRunError."""
+    _expect(path, "the manifest", manifest, (dict,), "a JSON object")
+    _expect(path, "run", manifest.get("run"), (str,), "the run's name", optional=True)
+    protocol = manifest.get("protocol")
+    if protocol is not None:
+        check_protocol(protocol, path)
+    jobs = manifest.get("jobs")
+    if not isinstance(jobs, list) or not jobs:
+        raise _fail(path, f"jobs must be a non-empty list of [task, episode, seed], got {_short(jobs)}")
+    tasks = set(protocol["tasks"]) if protocol is not None else None
+    seen = set()
+    for job in jobs:
+        if not (isinstance(job, list) and len(job) == 3 and isinstance(job[0], str) and _is_int(job[1]) and job[1] >= 0
+                and (job[2] is None or _is_int(job[2]))):
+            raise _fail(path, f"every job must be [task, episode >= 0, seed], got {_short(job)}")
+        if tasks is not None and job[0] not in tasks:
+            raise _fail(path, f"job {_short(job)} names a task that protocol.tasks does not hold")
+        if (job[0], job[1]) in seen:
+            raise _fail(path, f"job {_short(job)} appears twice")
+        seen.add((job[0], job[1]))
+    if protocol is not None and len(jobs) != len(protocol["tasks"]) * protocol["episodes"]:
+        raise _fail(path, f"jobs holds {len(jobs)} episodes but protocol asks for {len(protocol['tasks'])} tasks x "
+                          f"{protocol['episodes']} episodes")
+    for name in ("model", "platform", "versions"):
+        _expect(path, name, manifest.get(name), (dict,), "an object", optional=True)
+    _expect(path, "platform_fingerprint", manifest.get("platform_fingerprint"), (str,), "a string", optional=True)
+    return manifest
+
+
+def parse_row(line: str, path: Path | str, number: int) -> Any:
+    """One results.jsonl line (1-based `number`) -> its JSON value, or a MalformedRunError naming the line."""
+    import json
+
+    try:
+        return json.loads(line)
+    except ValueError as exc:
+        raise _fail(f"{path} line {number}", f"not JSON ({exc})") from None
+
+
+def check_row(row: Any, path: Path | str, line: int, jobs: set[tuple[str, int]] | None = None) -> dict:
+    """One results.jsonl row (1-based `line`): returns it unchanged or raises MalformedRunError."""
+    where = f"{path} line {line}"
+    _expect(where, "the row", row, (dict,), "a JSON object")
+    _expect(where, "task", row.get("task"), (str,), "a task name")
+    _expect(where, "episode", row.get("episode"), (int,), "an integer")
+    _expect(where, "seed", row.get("seed"), (int,), "an integer or null", optional=True)
+    _expect(where, "steps", row.get("steps"), (int,), "an integer", optional=True)
+    _expect(where, "success", row.get("success"), (bool,), "true or false", optional=True)
+    status = row.get("status", "ok")
+    if status not in ROW_STATUSES:
+        raise _fail(where, f"status must be one of {ROW_STATUSES}, got {_short(status)}")
+    if row.get("steps") is not None and row["steps"] < 0:
+        raise _fail(where, f"steps must be >= 0, got {row['steps']}")
+    if jobs is not None and (row["task"], row["episode"]) not in jobs:
+        raise _fail(where, f"({row['task']!r}, episode {row['episode']}) is not one of the manifest's jobs")
+    return row
+
+
+def protocol_from_manifest(manifest: dict, path: Path | str, **overrides):
+    """The manifest's protocol as a `Protocol` (with `overrides` applied to its fields first); a value no Protocol
+    accepts is a MalformedRunError naming the manifest, not a traceback."""
+    from harness.run.protocol import Protocol
+
+    protocol = manifest.get("protocol")
+    if not protocol:
+        raise MalformedRunError(f"{path} has no protocol (a run made before the run store); re-run it with this "
+                                "octo-harness")
+    check_protocol(protocol, path)
+    try:
+        return Protocol.from_dict({**protocol, **overrides})
+    except (TypeError, ValueError, AttributeError, KeyError) as exc:
+        message = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).splitlines()[0]
+        raise _fail(path, f"its protocol is not valid ({message})") from None
