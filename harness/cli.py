@@ -106,6 +106,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="how actions are unnormalised: mean/std or p01/p99 bounds [checkpoint's harness.toml, else normal]")
     r.add_argument("--proprio-normalization", choices=["normal", "bounds", "none"], default=None,
                    help="how proprio inputs are normalised [checkpoint's harness.toml, else normal]")
+    r.add_argument("--intervene", default=None, metavar="SPEC",
+                   help="closed-loop intervention at every step (part of the protocol): mask-top:K:METHOD[:LAYER][@CAMERA], "
+                        "mask-bottom:K:METHOD[:LAYER][@CAMERA], mask-random:K[@CAMERA], mask-all[@CAMERA], "
+                        "ablate-heads:L:H[,L:H...] (METHOD: attention, rollout, grad-attention, saliency)")
     r.add_argument("--inference-batch", type=int, default=None,
                    help="examples per compiled inference call; every call is padded to it, so actions are bit-identical "
                         "whatever --workers or the load (part of the protocol; >1 pays on a GPU) [1]")

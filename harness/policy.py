@@ -20,6 +20,7 @@ action dimension with an env before anything runs (one line per problem).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import time
 from collections import deque
@@ -55,6 +56,9 @@ class PolicyConfig:
     # an example's numbers never depend on what shares its call, the worker count or the load (XLA's results depend
     # on the batch shape; 1 is fastest on a CPU, where one inference already uses every core)
     inference_batch: int = 1
+    # closed-loop intervention (harness/interventions.py), e.g. "mask-top:4:attention:2"; None = none. Recorded in
+    # the protocol only when set, so protocols without one keep their hash
+    intervention: str | None = None
 
     def __post_init__(self) -> None:
         if self.execution not in ("temporal_ensemble", "receding_horizon"):
@@ -70,6 +74,17 @@ class PolicyConfig:
         if isinstance(self.inference_batch, bool) or not isinstance(self.inference_batch, int) \
                 or not 1 <= self.inference_batch <= MAX_INFERENCE_BATCH:
             raise ValueError(f"--inference-batch must be an integer in 1..{MAX_INFERENCE_BATCH}, got {self.inference_batch!r}")
+        if self.intervention is not None:
+            from harness.interventions import canonical
+
+            object.__setattr__(self, "intervention", canonical(self.intervention))
+
+    def to_dict(self) -> dict:
+        """The fields as plain data; `intervention` only when set (protocols without one keep their hash)."""
+        data = dataclasses.asdict(self)
+        if data["intervention"] is None:
+            del data["intervention"]
+        return data
 
     def describe(self) -> str:
         if self.execution == "receding_horizon":
@@ -158,6 +173,7 @@ class InferenceResult:
     full_attention: np.ndarray | None  # (layers, heads, queries, keys) float32 or None
     seconds: float  # wall time of the batched call that produced it
     tokens: TokenMap | None = None  # what each attention key is
+    observed: dict | None = None  # {obs key: (H, W, 3) uint8} current frames an intervention changed (masked)
 
 
 def make_task(model, spec: TaskSpec) -> dict:
@@ -193,6 +209,13 @@ class BatchInference:
         dims = [len(self.statistics[k]) for k in ("mask", "mean", "p01") if self.statistics and k in self.statistics]
         self.action_dim = dims[0] if dims else int(model.action_dim)
         self._tasks: dict[tuple, dict] = {}  # TaskSpec.key -> batch-1 task (one per distinct instruction/goals)
+        self.intervener = None  # closed-loop intervention (harness/interventions.py), checked against the model here
+        self._model = model
+        if config.intervention is not None:
+            from harness.interventions import Intervener, parse_intervention
+
+            self.intervener = Intervener(model, parse_intervention(config.intervention))
+            self._model = self.intervener.model_for_inference()
 
     def task(self, spec: TaskSpec) -> dict:
         if spec.key not in self._tasks:
@@ -209,17 +232,37 @@ class BatchInference:
             out.extend(self._call(requests[i:i + self.batch_size]))
         return out
 
-    def _call(self, requests: list[InferenceRequest]) -> list[InferenceResult]:
-        n = len(requests)
-        padded = requests + [requests[0]] * (self.batch_size - n)
+    def _inputs(self, requests: list[InferenceRequest]) -> tuple[dict, dict, np.ndarray]:
+        """(observations, tasks, keys) of a list of requests: leaves (batch, window, ...), low-dim normalised."""
         stack = lambda *xs: np.stack(xs)  # noqa: E731
-        observations = jax.tree.map(stack, *[r.observation for r in padded])  # leaves (batch, window, ...)
+        observations = jax.tree.map(stack, *[r.observation for r in requests])  # leaves (batch, window, ...)
         for key, stats in self.lowdim_statistics.items():  # (batch, window, dims), as Octo's NormalizeProprio
             observations[key] = normalize(observations[key], stats, self.config.proprio_normalization, key)
-        tasks = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *[self.task(r.task) for r in padded])
-        keys = np.stack([step_key(r.seed, r.step) for r in padded])  # (batch, 2) uint32
+        tasks = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *[self.task(r.task) for r in requests])
+        keys = np.stack([step_key(r.seed, r.step) for r in requests])  # (batch, 2) uint32
+        return observations, tasks, keys
+
+    def _intervene(self, request: InferenceRequest) -> tuple[InferenceRequest, dict | None]:
+        """The request with its current frames masked by the intervention, and those frames (None: unchanged)."""
+        if self.intervener is None or not self.intervener.intervention.masks:
+            return request, None
+        observations, tasks, keys = self._inputs([request])
+        frames = self.intervener.mask(observations, tasks, request.seed, request.step, keys[0])
+        observation = dict(request.observation)
+        for key, frame in frames.items():
+            window = np.array(observation[key])
+            window[-1] = frame
+            observation[key] = window
+        return dataclasses.replace(request, observation=observation), frames
+
+    def _call(self, requests: list[InferenceRequest]) -> list[InferenceResult]:
+        n = len(requests)
+        changed = [self._intervene(r) for r in requests]
+        requests = [r for r, _ in changed]
+        padded = requests + [requests[0]] * (self.batch_size - n)
+        observations, tasks, keys = self._inputs(padded)
         start = time.perf_counter()
-        actions, attention = self.model.sample_actions(observations, tasks, keys, self.statistics,
+        actions, attention = self._model.sample_actions(observations, tasks, keys, self.statistics,
                                                        full_attention=self.config.full_attention,
                                                        normalization_type=self.config.action_normalization,
                                                        sampler=self.config.sampler)
@@ -227,8 +270,8 @@ class BatchInference:
         readout = np.asarray(attention.readout, dtype=np.float32)  # (batch, layers, heads, readouts, keys)
         full = None if attention.full is None else np.asarray(attention.full, dtype=np.float32)
         elapsed = time.perf_counter() - start
-        return [InferenceResult(chunks[i], readout[i], None if full is None else full[i], elapsed, attention.tokens)
-                for i in range(n)]
+        return [InferenceResult(chunks[i], readout[i], None if full is None else full[i], elapsed, attention.tokens,
+                                changed[i][1]) for i in range(n)]
 
 
 class EpisodeState:
@@ -278,6 +321,8 @@ class EpisodeState:
     def complete(self, result: InferenceResult, seconds: float | None = None) -> PolicyStep:
         """The action to execute now from this step's inference; `seconds` overrides the recorded inference time."""
         chunk = result.chunk
+        if result.observed:  # an intervention masked the current frames: the history holds what the policy saw
+            self._history[-1].update(result.observed)
         self.t += 1
         if self.config.execution == "receding_horizon":
             k = min(self.config.receding_steps, chunk.shape[0])

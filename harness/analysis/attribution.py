@@ -75,8 +75,11 @@ def direction_score(actions: jax.Array) -> jax.Array:
     return jnp.where(norm > 0, jnp.dot(a, u) / jnp.where(norm > 0, norm, 1.0), 0.0)
 
 
-def analyse(step: StepFunction) -> StepAnalysis:
-    """Forward + one vjp of S with respect to the images and the attention perturbation."""
+def analyse(step: StepFunction, gradients: bool = True) -> StepAnalysis:
+    """Forward + one vjp of S with respect to the images and the attention perturbation.
+
+    gradients=False: the forward pass only (enough for attention and rollout; the gradients are zeros).
+    """
     zeros = jnp.zeros(step.shape[:2] + (step.shape[2], step.shape[2]), jnp.float32)
 
     def score(images, perturbation):
@@ -84,7 +87,12 @@ def analyse(step: StepFunction) -> StepAnalysis:
         return direction_score(actions), (actions, attention)
 
     images = {k: jnp.asarray(v, jnp.float32) for k, v in step.images.items()}
-    (_, (actions, attention)), (g_images, g_attention) = _value_and_grad(score)(images, zeros)
+    if gradients:
+        (_, (actions, attention)), (g_images, g_attention) = _value_and_grad(score)(images, zeros)
+    else:
+        actions, attention = step.fn(images, zeros)
+        g_images = {k: np.zeros_like(v) for k, v in step.images.items()}
+        g_attention = np.zeros(zeros.shape, np.float32)
     return StepAnalysis(
         actions=np.asarray(actions, np.float32),
         attention=np.asarray(attention, np.float32),

@@ -58,6 +58,7 @@ EXIT_OK, EXIT_FAIL, EXIT_INVALID, EXIT_ERRORED = 0, 1, 2, 3
 # difference changes outcomes (env options, max steps, execution, action space, cameras, instruction, goals...)
 MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "outputs", "harness_version",
               "policy.full_attention", "policy.dataset_key", "policy.inference_batch",
+              "policy.intervention",  # an intervention run against a plain one: the change is what is measured
               # legacy manifests (before the run store) keep model facts at the top level
               "model_is_random", "model_note", "text_tokenizer", "dataset_key", "git_commit", "versions")
 ARRAY_FILES = ("actions.npz", "attention.npz")

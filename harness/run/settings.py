@@ -38,6 +38,7 @@ DEFAULT_RECEDING_STEPS = 4
 
 # key -> expected TOML type(s); the same names as the `run` flags
 FILE_KEYS: dict[str, tuple[type, ...]] = {
+    "intervene": (str,),  # harness/interventions.py; recorded as policy.intervention
     "task": (str, list), "episodes": (int,), "model": (str,), "max_steps": (int,), "out": (str,), "run_name": (str,),
     "seed": (int,), "instruction": (str,), "dataset_key": (str,), "execution": (str,), "receding_steps": (int,),
     "ensemble_weight": (int, float), "png_every": (int,), "layers": (str, list), "video_attention": (int, str),
@@ -161,6 +162,8 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
             and not (conventions is not None and "receding_steps" in conventions.policy):
         policy_given["receding_steps"] = DEFAULT_RECEDING_STEPS
     policy_given["full_attention"] = video_attention == "rollout"
+    if "intervene" in s:
+        policy_given["intervention"] = s["intervene"]
     policy = conventions.policy_config(policy_given) if conventions is not None else PolicyConfig(**policy_given)
 
     outputs = OutputOptions(

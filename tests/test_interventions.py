@@ -1,0 +1,147 @@
+"""Closed-loop interventions: parsing, what they do to the policy's inputs and actions, and runs that carry one."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from harness.interventions import Intervention, parse_intervention
+from harness.policy import BatchInference, EpisodeState, InferenceRequest, PolicyConfig, TaskSpec
+
+REFERENCE = Path(__file__).resolve().parents[1] / "models" / "octo-reference-robosuite"
+CONFIG = PolicyConfig(dataset_key="robosuite_reference")
+
+
+def test_parse_known_specs_and_canonical_strings():
+    assert parse_intervention("mask-top:4:attention:2") == Intervention("mask-top", k=4, method="attention:2")
+    assert parse_intervention("mask-top:4:attention").method == "attention:-1"
+    assert parse_intervention("mask-bottom:3:saliency@image_wrist") == Intervention("mask-bottom", 3, "saliency", "image_wrist")
+    assert parse_intervention("mask-random:5").spec() == "mask-random:5"
+    assert parse_intervention("mask-all@image_primary").spec() == "mask-all@image_primary"
+    assert parse_intervention("ablate-heads:2:3,0:1,2:3").spec() == "ablate-heads:0:1,2:3"
+    for bad, message in [("mask-top:4", "needs a METHOD"), ("mask", "unknown intervention"), ("mask-top:x:saliency", "K must"),
+                         ("mask-top:4:lime", "unknown method"), ("mask-top:4:random", "unknown method"),
+                         ("ablate-heads:1", "LAYER:HEAD"), ("mask-all:3", "takes no K"),
+                         ("mask-random:2:saliency", "takes no METHOD"), ("mask-top:2:saliency:1", "only attention")]:
+        with pytest.raises(ValueError, match=message):
+            PolicyConfig(intervention=bad)
+
+
+def test_protocol_records_an_intervention_only_when_set():
+    assert "intervention" not in PolicyConfig().to_dict()  # protocols without one keep their hash
+    config = PolicyConfig(intervention="mask-top:4:attention")
+    assert config.to_dict()["intervention"] == "mask-top:4:attention:-1"
+    from harness.run.protocol import Protocol
+
+    plain = Protocol(model="random:octo-small-1.5", tasks=("Lift",))
+    masked = plain.replace(policy=config)
+    assert plain.hash() != masked.hash()
+    assert Protocol.from_dict(masked.to_dict()).policy.intervention == "mask-top:4:attention:-1"
+    assert Protocol.from_dict(plain.to_dict()).policy.intervention is None
+
+
+@pytest.fixture(scope="module")
+def reference():
+    from harness.octo import load_pretrained
+
+    model = load_pretrained(str(REFERENCE))
+    rng = np.random.default_rng(0)
+    obs = {k: rng.integers(0, 255, (1, h, w, 3), dtype=np.uint8) for k, (h, w) in model.image_sizes.items()}
+    obs["proprio"] = rng.standard_normal((1, 8)).astype(np.float32)
+    obs["timestep_pad_mask"] = np.ones((1,), bool)
+    obs["pad_mask_dict"] = {k: np.ones((1,), bool) for k in [*model.image_sizes, "proprio"]}
+    return model, InferenceRequest(obs, TaskSpec.of("lift the red cube"), 0, 0)
+
+
+def _changed_patches(frame: np.ndarray, original: np.ndarray, patch: int = 16) -> set[int]:
+    diff = (frame != original).any(axis=-1)
+    rows = diff.shape[0] // patch
+    return {r * rows + c for r in range(rows) for c in range(rows) if diff[r * patch:(r + 1) * patch, c * patch:(c + 1) * patch].any()}
+
+
+def test_mask_all_and_head_ablation_change_the_reference_policy_measurably(reference):
+    model, request = reference
+    (plain,) = BatchInference(model, CONFIG)([request])
+    (masked,) = BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention="mask-all"))([request])
+    (ablated,) = BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention="ablate-heads:0:0,1:1"))([request])
+    assert np.abs(masked.chunk - plain.chunk).max() > 0.05
+    assert np.abs(ablated.chunk - plain.chunk).max() > 0.05
+    assert ablated.observed is None
+    for key, frame in masked.observed.items():  # the whole frame is its mean colour
+        assert np.ptp(frame.reshape(-1, 3), axis=0).max() <= 1
+    # the model itself is untouched by the ablation
+    (again,) = BatchInference(model, CONFIG)([request])
+    np.testing.assert_array_equal(again.chunk, plain.chunk)
+
+
+def test_mask_top_masks_the_k_patches_the_method_ranks_highest(reference):
+    from harness.analysis import attribution as A
+    from harness.analysis.faithfulness import ranking
+
+    model, request = reference
+    inference = BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention="mask-top:3:attention:2"))
+    (result,) = inference([request])
+    observations, tasks, keys = inference._inputs([request])
+    analysis = A.analyse(A.OctoFunctions(model).at(observations, tasks, keys[0]), gradients=False)
+    maps = A.attribute(analysis, "attention:2")
+    for key in model.image_sizes:
+        assert _changed_patches(result.observed[key], request.observation[key][-1]) == set(ranking(maps[key])[:3].tolist())
+    bottom = BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention="mask-bottom:3:attention:2"))
+    (low,) = bottom([request])
+    for key in model.image_sizes:
+        assert _changed_patches(low.observed[key], request.observation[key][-1]) == set(ranking(maps[key])[-3:].tolist())
+    rand = BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention="mask-random:3@image_wrist"))
+    (r1,), (r2,) = rand([request]), rand([request])
+    assert set(r1.observed) == {"image_wrist"} and len(_changed_patches(r1.observed["image_wrist"], request.observation["image_wrist"][-1])) == 3
+    np.testing.assert_array_equal(r1.observed["image_wrist"], r2.observed["image_wrist"])  # seeded by (seed, step)
+
+
+def test_the_masked_frame_is_what_enters_the_history(reference):
+    model, request = reference
+    config = PolicyConfig(dataset_key="robosuite_reference", intervention="mask-all@image_primary")
+    state = EpisodeState(model.image_sizes, 1, model.action_horizon, config, TaskSpec.of("lift the red cube"), 0,
+                         model.lowdim_sizes)
+    obs = {k: v[0] for k, v in request.observation.items() if k.startswith("image_")}
+    obs["proprio"] = request.observation["proprio"][0]
+    decision = state.observe(obs)
+    (result,) = BatchInference(model, config)([decision])
+    state.complete(result)
+    np.testing.assert_array_equal(state._history[-1]["image_primary"], result.observed["image_primary"])
+    np.testing.assert_array_equal(state._history[-1]["image_wrist"], obs["image_wrist"])
+
+
+def test_bad_intervention_for_the_model_is_one_line(reference):
+    model, _ = reference
+    for spec, message in [("ablate-heads:9:0", "outside the model's 4 layers x 4 heads"),
+                          ("mask-all@image_side", "reads no camera 'image_side'"),
+                          ("mask-top:2:attention:7", "layer 7 is outside")]:
+        with pytest.raises(ValueError, match=message):
+            BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention=spec))
+
+
+@pytest.mark.slow
+def test_intervention_runs_resume_and_compare_like_any_run(tmp_path, capsys):
+    from harness import cli
+
+    common = ["run", "--model", str(REFERENCE), "--task", "Lift", "--episodes", "2", "--max-steps", "4", "--fast-render",
+              "--png-every", "0", "--no-video", "--out", str(tmp_path)]
+    assert cli.main([*common, "--run-name", "plain"]) == 0
+    assert cli.main([*common, "--run-name", "masked", "--intervene", "mask-top:4:attention:2"]) == 0
+    manifest = json.loads((tmp_path / "masked" / "manifest.json").read_text())
+    assert manifest["protocol"]["policy"]["intervention"] == "mask-top:4:attention:2"
+    assert "intervention" not in json.loads((tmp_path / "plain" / "manifest.json").read_text())["protocol"]["policy"]
+    before = (tmp_path / "masked" / "results.jsonl").read_text()
+    assert cli.main([*common, "--run-name", "masked", "--intervene", "mask-top:4:attention:2"]) == 0  # resumes: nothing to run
+    assert (tmp_path / "masked" / "results.jsonl").read_text() == before
+    assert cli.main([*common, "--run-name", "masked", "--intervene", "mask-all"]) == 2  # another protocol under that name
+    assert "policy.intervention" in capsys.readouterr().err
+    code = cli.main(["compare", str(tmp_path / "plain"), str(tmp_path / "masked"), "--no-frames"])
+    assert code in (0, 1)  # compared (not refused with 2)
+    result = json.loads((tmp_path / "masked" / "compare_plain" / "compare.json").read_text())
+    assert result["identical"]["pairs_identical"] == 0  # the intervention changed the actions
+    plain = np.load(tmp_path / "plain" / "Lift" / "episode_0" / "actions.npz")["predicted"]
+    masked = np.load(tmp_path / "masked" / "Lift" / "episode_0" / "actions.npz")["predicted"]
+    assert np.abs(plain[0] - masked[0]).max() > 1e-3
