@@ -17,15 +17,19 @@ PROTOCOL = {"model": "m", "model_fingerprint": "x", "tasks": ["Lift", "Stack"], 
             "outputs": {"png_every": 1}, "harness_version": "1"}
 
 
-def write_run(folder, successes: dict[str, list[bool]], protocol=None, model="m"):
-    protocol = {**(protocol or PROTOCOL), "model": model}
-    jobs = [[task, k, k] for task, flags in successes.items() for k in range(len(flags))]
+def write_run(folder, successes: dict[str, list[bool | None]], protocol=None, model="m"):
+    """A run folder by hand: {task: [success per episode]} with None for an episode that errored (status
+    "failed", no outcome); the protocol's tasks and episode count follow `successes` (as the run store's do)."""
+    episodes = max(len(flags) for flags in successes.values())
+    protocol = {**(protocol or PROTOCOL), "model": model, "tasks": list(successes), "episodes": episodes}
+    jobs = [[task, k, k] for task in successes for k in range(episodes)]
     folder.mkdir(parents=True)
     (folder / "manifest.json").write_text(json.dumps({
         "format": "octo-harness-run/1", "run": folder.name, "protocol": protocol, "jobs": jobs,
         "model": {"source": model, "is_random": False}}))
-    rows = [{"run": folder.name, "task": task, "episode": k, "seed": k, "status": "ok", "success": flag, "steps": 5,
-             "directory": f"{task}/episode_{k}"} for task, flags in successes.items() for k, flag in enumerate(flags)]
+    rows = [{"run": folder.name, "task": task, "episode": k, "seed": k, "status": "ok" if flag is not None else "failed",
+             "success": flag, "steps": 5, "directory": f"{task}/episode_{k}"}
+            for task, flags in successes.items() for k, flag in enumerate(flags)]
     (folder / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     return folder
 
@@ -76,7 +80,9 @@ def test_not_a_run_is_one_line_exit_2(tmp_path, capsys):
     assert code == 2 and len(err) == 1 and "run folder" in err[0]
 
 
-def test_regress_feeds_complete_rounds_in_order_as_the_mean_over_tasks():
+def test_regress_feeds_complete_rounds_in_order_to_each_tasks_own_test():
+    import numpy as np
+
     from harness.analysis.sequential import SequentialConfig
     from harness.run.protocol import EpisodeJob
     from harness.run.regress import round_order, sequential_state
@@ -86,12 +92,14 @@ def test_regress_feeds_complete_rounds_in_order_as_the_mean_over_tasks():
     assert [(j.task, j.episode) for j in round_order(jobs, tasks)] == [
         ("Lift", 0), ("Stack", 0), ("Lift", 1), ("Stack", 1), ("Lift", 2), ("Stack", 2)]
     baseline = {(t, 10 + k): True for t in tasks for k in range(3)}
-    candidate = {("Lift", 10): False, ("Stack", 10): True, ("Lift", 11): False, ("Stack", 11): False,
-                 ("Lift", 12): False}  # round 2 is not finished (Stack missing)
+    candidate = {("Lift", 10): False, ("Stack", 10): True, ("Lift", 11): False, ("Stack", 11): None,
+                 ("Lift", 12): False}  # Stack's second candidate episode errored; round 2 is not finished
     config = SequentialConfig(alpha=0.05, max_drop=0.1)
     test = sequential_state(baseline, candidate, jobs, tasks, config)
-    assert test.units == 2  # rounds 0 and 1; units -0.5 and -1
-    bets = config.bets("regression")
-    import numpy as np
-
-    assert test.wealth("regression") == pytest.approx(np.mean((1 + 0.5 * bets) * (1 + bets)))
+    assert test.rounds == 2 and test.task_alpha == pytest.approx(0.025)
+    lift, stack = test.tests["Lift"], test.tests["Stack"]
+    assert lift.units == 2 and stack.units == 1 and test.errored == {"Lift": 0, "Stack": 1}
+    assert lift.config.alpha == pytest.approx(0.025) and lift.config.threshold == pytest.approx(80.0)
+    bets = lift.config.bets("regression")
+    assert lift.wealth("regression") == pytest.approx(np.mean((1 + bets) ** 2))  # units -1, -1
+    assert stack.wealth("regression") == pytest.approx(1.0)  # one concordant pair: no evidence either way

@@ -273,10 +273,13 @@ def _rate(successes: int, n: int, confidence: float, errored: int = 0) -> dict:
             "errored": errored}
 
 
-def _outcome_block(counts: PairedCounts, config: CompareConfig, errored: ErroredPairs = ErroredPairs()) -> dict:
-    """One table's numbers: n = pairs with an outcome in both arms; errored pairs counted beside it."""
+def _outcome_block(counts: PairedCounts, config: CompareConfig, errored: ErroredPairs = ErroredPairs(),
+                   family: int = 1) -> dict:
+    """One table's numbers: n = pairs with an outcome in both arms; errored pairs counted beside it. The arms'
+    Wilson intervals are at 1 - alpha; the difference's Newcombe interval at 1 - alpha / family (Bonferroni
+    over the Holm family: the intervals of every task and the pooled table hold together at 1 - alpha)."""
     confidence = 1.0 - config.alpha
-    low, high = difference_interval(counts, confidence)
+    low, high = difference_interval(counts, 1.0 - config.alpha / family)
     return {
         "pairs": counts.n,
         "errored_pairs": errored.pairs,
@@ -286,6 +289,7 @@ def _outcome_block(counts: PairedCounts, config: CompareConfig, errored: Errored
         "candidate": _rate(counts.candidate_successes, counts.n, confidence, errored.candidate),
         "difference": counts.difference if counts.n else None,
         "difference_ci": [low, high],
+        "difference_confidence": 1.0 - config.alpha / family,
         "mcnemar_p": mcnemar_exact(counts.baseline_only, counts.candidate_only),
     }
 
@@ -314,24 +318,26 @@ def _notes(label: str, block: dict, alpha: float) -> list[str]:
 
 
 def outcome_verdicts(tables: dict[str, PairedCounts], config: CompareConfig,
-                     errored: dict[str, ErroredPairs] | None = None) -> dict:
+                     errored: dict[str, ErroredPairs] | None = None, project: bool = True) -> dict:
     """{task: counts} -> {"tasks": {task: block}, "overall": block, "holm_family", "notes"}, each block with its
     Holm-adjusted p and verdict.
 
     errored: {task: pairs left out because an arm errored} (none when absent). The Holm family is every task
-    plus the pooled table (the pooled table alone when there is one task). For an UNDERPOWERED or SUSPECT block,
+    plus the pooled table (the pooled table alone when there is one task); the difference intervals are
+    simultaneous over it (1 - alpha / family), so SUSPECT's family-wise false alarm stays <= alpha / 2 as
+    REGRESSED's does. For an UNDERPOWERED or SUSPECT block,
     `pairs_to_decide` projects its table with the family size as the p-value factor (the largest Holm factor,
     so the estimate errs towards more pairs); `regressed_reachable` says whether its n pairs could give
-    REGRESSED at all with that factor. The overall block's verdict is the pooled table's; the overall verdict
-    of a comparison is `overall_verdict`.
+    REGRESSED at all with that factor (project=False skips the projection: simulations). The overall block's
+    verdict is the pooled table's; the overall verdict of a comparison is `overall_verdict`.
     """
     errored = errored or {}
     named = dict(tables)
     named[POOLED] = sum(tables.values(), PairedCounts())
     named_errored = {name: errored.get(name, ErroredPairs()) for name in tables}
     named_errored[POOLED] = sum(named_errored.values(), ErroredPairs())
-    blocks = {name: _outcome_block(counts, config, named_errored[name]) for name, counts in named.items()}
     family = list(named) if len(tables) > 1 else [POOLED]
+    blocks = {name: _outcome_block(counts, config, named_errored[name], len(family)) for name, counts in named.items()}
     for name, p in zip(family, holm_adjust([blocks[name]["mcnemar_p"] for name in family])):
         blocks[name]["mcnemar_p_holm"] = p
     if len(tables) == 1:  # one task: its table is the pooled one
@@ -343,7 +349,7 @@ def outcome_verdicts(tables: dict[str, PairedCounts], config: CompareConfig,
         block["verdict"] = paired_verdict(counts, block["mcnemar_p_holm"], tuple(block["difference_ci"]),
                                           config.max_drop, config.alpha, named_errored[name])
         needed = None
-        if block["verdict"] in ("UNDERPOWERED", "SUSPECT"):
+        if project and block["verdict"] in ("UNDERPOWERED", "SUSPECT"):
             needed = pairs_to_decide(counts, config.max_drop, config.alpha, multiplier=factor)
         block["pairs_to_decide"] = needed
         block["more_pairs_needed"] = None if needed is None else needed - counts.n

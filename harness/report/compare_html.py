@@ -15,6 +15,7 @@ from harness.analysis.attention import camera_maps
 from harness.files import atomic_write_json, write_atomic
 from harness.octo.tokens import TokenMap
 from harness.report import html as H
+from harness.report.compare_md import pairs_cell, to_decide
 from harness.report.figures import _figure, _png, overlay_grid, run_colours, success_chart
 
 ARM_LABELS = ("baseline", "candidate")
@@ -113,16 +114,20 @@ def _outcome_rows(result: dict):
     outcomes = result["outcomes"]
     blocks = list(outcomes["tasks"].items()) + ([("pooled", outcomes["overall"])] if len(outcomes["tasks"]) > 1 else [])
     for name, b in blocks:
-        more = b.get("more_pairs_needed")
         yield [
-            name, b["pairs"],
-            H.fmt_ci(b["baseline"]["rate"], b["baseline"]["ci_low"], b["baseline"]["ci_high"]),
-            H.fmt_ci(b["candidate"]["rate"], b["candidate"]["ci_low"], b["candidate"]["ci_high"]),
+            name, pairs_cell(b),
+            _arm_cell(b["baseline"]),
+            _arm_cell(b["candidate"]),
             H.fmt_ci(b["difference"], *b["difference_ci"]),
             f"{H.fmt(b['mcnemar_p'])} ({H.fmt(b['mcnemar_p_holm'])})",
             H.Raw(f"<b>{H.esc(b['verdict'])}</b>"),
-            "" if b["verdict"] != "UNDERPOWERED" else ("> 100000" if more is None else f"~{more} more pairs"),
+            to_decide(b, "more pairs"),
         ]
+
+
+def _arm_cell(arm: dict) -> str:
+    errored = arm.get("errored") or 0
+    return H.fmt_ci(arm["rate"], arm["ci_low"], arm["ci_high"]) + (f" ({errored} errored)" if errored else "")
 
 
 def _overlays(result: dict, frames: dict) -> str:
@@ -156,7 +161,8 @@ def compare_page(result: dict, frames: dict | None = None, markdown: str | None 
     """The whole HTML document for a comparison result (see module docstring)."""
     base, cand = result["baseline"], result["candidate"]
     verdict = result["verdict"]
-    body = [H.banner(f"Verdict: {verdict}", danger=verdict == "REGRESSED")]
+    body = [H.banner(f"Verdict: {verdict}", danger=verdict in ("REGRESSED", "SUSPECT", "ERRORED"))]
+    body += [H.note(note) for note in result["outcomes"].get("notes") or []]
     for arm in (base, cand):
         if arm["random_weights"]:
             body.append(H.banner(f"{arm['run']} uses RANDOM weights ({arm['model']}): not a trained policy", danger=True))
@@ -174,10 +180,12 @@ def compare_page(result: dict, frames: dict | None = None, markdown: str | None 
               for label, arm, colour in zip(ARM_LABELS, (base, cand), colours)]
     cfg = result["config"]
     outcome_body = (
-        H.table(["task", "pairs", "baseline success", "candidate success", "difference (cand - base)",
+        H.table(["task", "pairs", "baseline success", "candidate success", "difference = candidate - baseline",
                  "McNemar p (Holm)", "verdict", "to decide"], _outcome_rows(result), numeric=(1,))
         + H.note(f"Intervals at {100 * (1 - cfg['alpha']):g}%: Wilson for each arm, Newcombe (1998, method 10) for the "
-                 f"paired difference. HELD = the interval rules out a drop larger than {cfg['max_drop']:g}.")
+                 f"paired difference. HELD = the interval and an exact test rule out a drop larger than {cfg['max_drop']:g}; "
+                 "SUSPECT = the interval lies below 0 but the exact McNemar test (after Holm) does not reject; n counts "
+                 "pairs in which both arms ran to an outcome (errored pairs are left out and counted).")
         + H.image(success_chart(tasks, series), "success per task, both arms")
     )
     missing = result["missing_pairs"]

@@ -10,10 +10,30 @@ def _num(value, digits: int = 3) -> str:
     return f"{value:.{digits}g}" if isinstance(value, float) else str(value)
 
 
+def _errored(count) -> str:
+    return f" ({count} errored)" if count else ""
+
+
 def _rate(block: dict) -> str:
+    """successes/n = rate [interval], n = pairs with an outcome in both arms, this arm's errored episodes beside."""
     if not block["n"]:
-        return "n/a"
-    return f"{block['successes']}/{block['n']} = {block['rate']:.2f} [{block['ci_low']:.2f}, {block['ci_high']:.2f}]"
+        return "n/a" + _errored(block.get("errored"))
+    return (f"{block['successes']}/{block['n']} = {block['rate']:.2f} [{block['ci_low']:.2f}, {block['ci_high']:.2f}]"
+            + _errored(block.get("errored")))
+
+
+def to_decide(block: dict, more: str = "more") -> str:
+    """The "to decide" cell: pairs an UNDERPOWERED or SUSPECT table would need (plug-in estimate)."""
+    if block["verdict"] not in ("UNDERPOWERED", "SUSPECT"):
+        return ""
+    needed = block.get("more_pairs_needed")
+    return "> 100000" if needed is None else f"~{needed} {more}"
+
+
+def pairs_cell(block: dict) -> str:
+    """n, with the errored pairs left out beside it."""
+    errored = block.get("errored_pairs") or 0
+    return f"{block['pairs']}" + (f" (+{errored} errored)" if errored else "")
 
 
 def _difference(block: dict) -> str:
@@ -24,11 +44,9 @@ def _difference(block: dict) -> str:
 
 
 def _row(name: str, block: dict) -> str:
-    more = block.get("more_pairs_needed")
-    decide = "" if block["verdict"] != "UNDERPOWERED" else ("> 100000" if more is None else f"~{more} more")
-    return (f"| {name} | {block['pairs']} | {_rate(block['baseline'])} | {_rate(block['candidate'])} | "
+    return (f"| {name} | {pairs_cell(block)} | {_rate(block['baseline'])} | {_rate(block['candidate'])} | "
             f"{_difference(block)} | {_num(block['mcnemar_p'])} ({_num(block['mcnemar_p_holm'])}) | "
-            f"**{block['verdict']}** | {decide} |")
+            f"**{block['verdict']}** | {to_decide(block)} |")
 
 
 def _layers(values) -> str:
@@ -57,8 +75,8 @@ def markdown_summary(result: dict, exit_code: int | None = None) -> str:
                       f"{ident['first_difference']}."]
     lines += [
         "",
-        f"| task | pairs | baseline success [{confidence} Wilson] | candidate success | difference "
-        f"[{confidence} Newcombe] | McNemar p (Holm) | verdict | to decide |",
+        f"| task | pairs | baseline success [{confidence} Wilson] | candidate success | difference = candidate - "
+        f"baseline [{confidence} Newcombe] | McNemar p (Holm) | verdict | to decide |",
         "|---|---:|---|---|---|---|---|---|",
     ]
     outcomes = result["outcomes"]
@@ -66,6 +84,9 @@ def markdown_summary(result: dict, exit_code: int | None = None) -> str:
         lines.append(_row(task, block))
     if len(outcomes["tasks"]) > 1:
         lines.append(_row("**pooled**", outcomes["overall"]))
+    notes = outcomes.get("notes") or []
+    if notes:
+        lines += [""] + [f"- {note}" for note in notes]
 
     drift = result["drift"]
     s0 = drift["step0"]["overall"]
@@ -91,7 +112,8 @@ def markdown_summary(result: dict, exit_code: int | None = None) -> str:
                       f"{len(missing['baseline'])} missing from the baseline."]
     errors = (base["errors"], cand["errors"])
     if any(errors):
-        lines.append(f"Episodes that raised (counted as failures): baseline {errors[0]}, candidate {errors[1]}.")
+        lines.append(f"Episodes that raised (no outcome; their pairs are left out of n and counted as errored): "
+                     f"baseline {errors[0]}, candidate {errors[1]}.")
     if exit_code is not None:
         lines += ["", f"Exit code {exit_code}."]
     return "\n".join(lines) + "\n"
