@@ -110,6 +110,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="closed-loop intervention at every step (part of the protocol): mask-top:K:METHOD[:LAYER][@CAMERA], "
                         "mask-bottom:K:METHOD[:LAYER][@CAMERA], mask-random:K[@CAMERA], mask-all[@CAMERA], "
                         "ablate-heads:L:H[,L:H...] (METHOD: attention, rollout, grad-attention, saliency)")
+    r.add_argument("--text-tokenizer", default=None, metavar="auto|fallback|PATH",
+                   help="text tokenizer: the checkpoint's own (t5-base from the Hugging Face cache), the deterministic "
+                        "fallback (not T5), or a tokenizer.json / folder; part of the model fingerprint [auto]")
     r.add_argument("--inference-batch", type=int, default=None,
                    help="examples per compiled inference call; every call is padded to it, so actions are bit-identical "
                         "whatever --workers or the load (part of the protocol; >1 pays on a GPU) [1]")
@@ -158,6 +161,8 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--run-name", default=None, help="candidate run folder name [<model>_<protocol hash>]")
     reg.add_argument("--fail-on", choices=["regressed", "suspect", "underpowered", "changed"], default="suspect",
                      help="mildest verdict that exits 1, as for compare [suspect]")
+    reg.add_argument("--text-tokenizer", default=None, metavar="auto|fallback|PATH",
+                     help="the candidate's text tokenizer (as for `run --text-tokenizer`) [the baseline's choice]")
     _add_execution_args(reg)
     return parser
 
@@ -191,7 +196,7 @@ def _cmd_regress(args) -> int:
 
     factory = _execution(args)
     result = regress(args.baseline, args.model, max_episodes=args.max_episodes, out=args.out, run_name=args.run_name,
-                     alpha=args.alpha, max_drop=args.max_drop, executor=factory)
+                     alpha=args.alpha, max_drop=args.max_drop, executor=factory, text_tokenizer=args.text_tokenizer)
     code = exit_code(result, args.fail_on)
     paths = write_regress(result, code, write_comparison)
     print(paths["summary"])

@@ -22,12 +22,16 @@ normalisation statistics. `harness.toml` (TOML, read with the standard library's
     sampler = "latest"                 # "latest" | "v0.1.0" (diffusion heads)
     execution = "receding_horizon"     # and receding_steps, ensemble_weight
 
+    [text]
+    tokenizer = "tokenizer"            # "auto" | "fallback" | a tokenizer.json or folder, relative to the checkpoint
+
 Precedence, highest first: command-line flags, the protocol file, `harness.toml`, the defaults.
 A missing file means "no conventions" (the defaults: octo-delta, upright, task cameras).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import tomllib
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -55,13 +59,18 @@ class CheckpointConventions:
     env: Mapping[str, Any] = field(default_factory=dict)  # subset of ENV_KEYS, as EnvOptions.to_dict writes them
     policy: Mapping[str, Any] = field(default_factory=dict)  # subset of PolicyConfig fields
     source: str | None = None  # the file they were read from
+    text_tokenizer: str | None = None  # [text] tokenizer: "auto", "fallback" or a path (absolute once read from a folder)
 
     @classmethod
     def parse(cls, data: Mapping[str, Any], source: str | None = None) -> "CheckpointConventions":
         where = source or CONVENTIONS_FILE
-        unknown = sorted(set(data) - {"format", "env", "policy"})
+        unknown = sorted(set(data) - {"format", "env", "policy", "text"})
         if unknown:
-            raise ConventionsError(f"{where}: unknown top-level key(s) {unknown}; use format, [env], [policy]")
+            raise ConventionsError(f"{where}: unknown top-level key(s) {unknown}; use format, [env], [policy], [text]")
+        text = dict(data.get("text") or {})
+        if sorted(text) not in ([], ["tokenizer"]) or not isinstance(text.get("tokenizer", ""), str):
+            raise ConventionsError(f"{where}: [text] takes one key, tokenizer = \"auto\" | \"fallback\" | \"<path>\"; "
+                                   f"got {text}")
         if data.get("format", FORMAT) != FORMAT:
             raise ConventionsError(f"{where}: format {data.get('format')!r} unsupported; this harness reads {FORMAT!r}")
         env = dict(data.get("env") or {})
@@ -76,7 +85,7 @@ class CheckpointConventions:
             EnvOptions.from_dict(env)  # validate values now, with the file named
         except EnvConfigError as e:
             raise ConventionsError(f"{where}: {e}") from None
-        conventions = cls(env=env, policy=policy, source=source)
+        conventions = cls(env=env, policy=policy, source=source, text_tokenizer=text.get("tokenizer"))
         try:
             conventions.policy_config()
         except ValueError as e:
@@ -95,7 +104,15 @@ class CheckpointConventions:
             data = tomllib.loads(path.read_text())
         except tomllib.TOMLDecodeError as e:
             raise ConventionsError(f"{path}: not valid TOML ({e}); fix or delete the file") from None
-        return cls.parse(data, str(path))
+        conventions = cls.parse(data, str(path))
+        tokenizer = conventions.text_tokenizer
+        if tokenizer not in (None, "auto", "fallback"):  # a path: relative to the checkpoint folder
+            tokenizer = str((Path(folder) / Path(tokenizer).expanduser()).resolve())
+            if not Path(tokenizer).exists():
+                raise ConventionsError(f"{path}: [text] tokenizer {conventions.text_tokenizer!r} does not exist in "
+                                       f"{folder}; fix the path or delete the key")
+            conventions = dataclasses.replace(conventions, text_tokenizer=tokenizer)
+        return conventions
 
     def env_options(self, overrides: Mapping[str, Any] | None = None) -> EnvOptions:
         """EnvOptions from these conventions with `overrides` (the user's explicit choices; None values ignored) on top."""
@@ -110,7 +127,8 @@ class CheckpointConventions:
         return PolicyConfig(**{**self.policy, **given})
 
     def to_dict(self) -> dict:
-        return {"format": FORMAT, "env": dict(self.env), "policy": dict(self.policy)}
+        text = {"text": {"tokenizer": self.text_tokenizer}} if self.text_tokenizer is not None else {}
+        return {"format": FORMAT, "env": dict(self.env), "policy": dict(self.policy), **text}
 
     def to_toml(self) -> str:
         """TOML text of these conventions (strings, numbers, booleans, camera tables)."""
@@ -131,6 +149,8 @@ class CheckpointConventions:
             lines.append("[policy]")
             lines += [f"{k} = {_toml_value(v)}" for k, v in policy.items()]
             lines.append("")
+        if self.text_tokenizer is not None:
+            lines += ["[text]", f"tokenizer = {_toml_value(self.text_tokenizer)}", ""]
         return "\n".join(lines)
 
     def write(self, folder: str | Path) -> Path:

@@ -63,26 +63,39 @@ def load_pretrained(uri: str, step: int | None = None, *, text_tokenizer: str | 
                      source=uri, is_random=False, checkpoint_dir=ckpt)
 
 
-def _random_model(uri: str, text_tokenizer: str | None, cache_dir) -> OctoModel:
+def _random_config(uri: str) -> tuple[OctoConfig, Path | None]:
+    """(config, folder it came from or None for a preset) of a random:<preset | config.json | folder> source."""
     spec = uri[len(RANDOM_PREFIX):]
-    ckpt: Path | None = None
-    statistics: dict = {}
     if spec in presets.preset_names():
-        config = OctoConfig.from_dict(presets.preset_config(spec))
+        return OctoConfig.from_dict(presets.preset_config(spec)), None
+    path = Path(spec).expanduser()
+    if path.is_dir():
+        return OctoConfig.from_json(checkpoint.require_file(path, "config.json")), path
+    if path.is_file():
+        return OctoConfig.from_json(path), path.parent
+    raise checkpoint.CheckpointNotFoundError(
+        f"{uri}: no such preset or path; use random:{' | random:'.join(presets.preset_names())} "
+        "or random:<config.json or checkpoint folder>"
+    )
+
+
+def resolve_text_tokenizer(uri: str, text_tokenizer: str | None = None, *, cache_dir: str | Path | None = None):
+    """The TextTokenizer `load_pretrained(uri, text_tokenizer=...)` uses, found without reading any parameters
+    (None for a goal-conditioned model); what the run's model fingerprint identifies the tokenizer by."""
+    if uri.startswith(RANDOM_PREFIX):
+        config, ckpt = _random_config(uri)
+        return _text_tokenizer(config, text_tokenizer, _t5_config(config, ckpt), True, cache_dir, warn=False)
+    ckpt = checkpoint.resolve_checkpoint_dir(uri, cache_dir)
+    config = OctoConfig.from_json(checkpoint.require_file(ckpt, "config.json"))
+    return _text_tokenizer(config, text_tokenizer, _t5_config(config, ckpt), False, cache_dir, ckpt, warn=False)
+
+
+def _random_model(uri: str, text_tokenizer: str | None, cache_dir) -> OctoModel:
+    statistics: dict = {}
+    config, ckpt = _random_config(uri)
+    if ckpt is None:
         example = _synthetic_example_batch(config, presets.IMAGE_SIZES, presets.WINDOW_SIZE)
     else:
-        path = Path(spec).expanduser()
-        if path.is_dir():
-            ckpt = path
-            config = OctoConfig.from_json(checkpoint.require_file(path, "config.json"))
-        elif path.is_file():
-            ckpt = path.parent
-            config = OctoConfig.from_json(path)
-        else:
-            raise checkpoint.CheckpointNotFoundError(
-                f"{uri}: no such preset or path; use random:{' | random:'.join(presets.preset_names())} "
-                "or random:<config.json or checkpoint folder>"
-            )
         if (ckpt / "example_batch.msgpack").is_file():
             example = checkpoint.read_example_batch(ckpt)
         else:
@@ -112,16 +125,19 @@ def _t5_config(config: OctoConfig, ckpt: Path | None):
 
 
 def _text_tokenizer(config: OctoConfig, override: str | None, t5, allow_fallback: bool, cache_dir,
-                    ckpt: Path | None = None):
+                    ckpt: Path | None = None, warn: bool = True):
+    """override: None or "auto" (the config's text processor), "fallback", a hub name or a tokenizer.json path."""
     if config.language is None:
         return None
     from harness.octo.text import fallback_tokenizer, load_text_tokenizer
 
     max_length = _language_tokens(config)
+    override = None if override == "auto" else override
     name = override or (config.text_processor.tokenizer_name if config.text_processor else None)
     if name is None or name == "fallback":
-        log.warning("using the deterministic fallback text tokenizer (NOT T5) over %d ids%s", t5.vocab_size,
-                    "" if name else " because config.json has no text_processor")
+        if warn:
+                log.warning("using the deterministic fallback text tokenizer (NOT T5) over %d ids%s", t5.vocab_size,
+                        "" if name else " because config.json has no text_processor")
         return fallback_tokenizer(t5.vocab_size, max_length)
     if ckpt is not None and not override and not Path(name).is_absolute() and ".." not in Path(name).parts \
             and (ckpt / name / "tokenizer.json").is_file():
@@ -129,9 +145,10 @@ def _text_tokenizer(config: OctoConfig, override: str | None, t5, allow_fallback
     try:
         # a random model falls back rather than wait on the hub: its weights make any tokenizer arbitrary anyway
         return load_text_tokenizer(name, max_length, allow_fallback=allow_fallback, vocab_size=t5.vocab_size,
-                                   cache_dir=cache_dir, cache_only=allow_fallback)
+                                   cache_dir=cache_dir, cache_only=allow_fallback, warn=warn)
     except FileNotFoundError as e:
-        raise HubUnavailableError(f"{e} (or pass text_tokenizer='fallback' to run without it)") from None
+        raise HubUnavailableError(f"{e} (or --text-tokenizer PATH to a tokenizer.json, or --text-tokenizer fallback "
+                                  "to run without it; text_tokenizer= in Python)") from None
 
 
 def _input_shapes(config: OctoConfig, example: dict) -> dict:

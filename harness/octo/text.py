@@ -11,6 +11,7 @@ initialised model may ask for a deterministic hash-based fallback, which is labe
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import re
 import zlib
@@ -60,17 +61,36 @@ class TextTokenizer:
     """Encodes instructions to (batch, max_length) arrays.
 
     `tokenizer` is a `tokenizers.Tokenizer` already set to truncate and pad to `max_length` (see
-    `load_text_tokenizer`); None means the hash fallback over `fallback_vocab_size` ids.
+    `load_text_tokenizer`); None means the hash fallback over `fallback_vocab_size` ids. `path` and `sha256`
+    name the tokenizer.json it was read from.
     """
 
     name: str
     max_length: int
     tokenizer: tokenizers.Tokenizer | None
     fallback_vocab_size: int = 0
+    path: str | None = None
+    sha256: str | None = None
 
     @property
     def is_fallback(self) -> bool:
         return self.tokenizer is None
+
+    @property
+    def vocab_size(self) -> int:
+        return self.fallback_vocab_size if self.tokenizer is None else int(self.tokenizer.get_vocab_size())
+
+    def identity(self) -> dict:
+        """What tells two tokenizers apart: kind ("tokenizer.json" | "fallback-hash"), name, vocabulary size,
+        max length and the sha256 of the file (None for the fallback)."""
+        return {"kind": "fallback-hash" if self.is_fallback else "tokenizer.json", "name": self.name,
+                "vocab_size": self.vocab_size, "max_length": self.max_length, "sha256": self.sha256, "path": self.path}
+
+    def label(self) -> str:
+        """One line for records: 't5-base [tokenizer.json, 32100 ids, sha256 1a2b3c4d5e6f]' or the fallback's."""
+        if self.is_fallback:
+            return f"{self.name} [fallback tokenizer, {self.vocab_size} ids]"
+        return f"{self.name} [tokenizer.json, {self.vocab_size} ids, sha256 {(self.sha256 or '?')[:12]}]"
 
     def encode(self, texts: Sequence[str]) -> dict[str, np.ndarray]:
         """{"input_ids", "attention_mask"}: (batch, max_length) int32 each."""
@@ -121,12 +141,14 @@ def load_text_tokenizer(
     vocab_size: int = 32128,
     cache_dir: str | Path | None = None,
     cache_only: bool = False,
+    warn: bool = True,
 ) -> TextTokenizer:
     """Tokenizer from a local tokenizer.json / folder, or a hub repo ("t5-base" -> google-t5/t5-base).
 
     Offline without a cached copy: the fallback over `vocab_size` ids if `allow_fallback`, else
     TokenizerUnavailableError. `cache_dir` overrides the Hugging Face cache location; `cache_only`
-    never contacts the hub (as if offline), for callers that would rather fall back than wait.
+    never contacts the hub (as if offline), for callers that would rather fall back than wait. `warn`:
+    log the fallback (off where the same tokenizer is only being identified, before loading).
     """
     _check_max_length(max_length)
     path = _local_tokenizer_file(name)
@@ -136,9 +158,14 @@ def load_text_tokenizer(
         except TokenizerUnavailableError:
             if not allow_fallback:
                 raise
-            log.warning("%s tokenizer unavailable offline; using the deterministic %s tokenizer", name, FALLBACK_NAME)
+            if warn:
+                log.warning("%s tokenizer unavailable offline; using the deterministic %s tokenizer", name, FALLBACK_NAME)
             return fallback_tokenizer(vocab_size, max_length)
-    return TextTokenizer(name, max_length, _configured(path, max_length))
+    return TextTokenizer(name, max_length, _configured(path, max_length), path=str(path), sha256=_sha256(path))
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def _check_max_length(max_length: int) -> None:

@@ -159,9 +159,7 @@ def _git_commit() -> str | None:
 def _tokenizer_label(tokenizer) -> str:
     if tokenizer is None:
         return "none (goal-conditioned model)"
-    if getattr(tokenizer, "is_fallback", False):
-        return f"{tokenizer.name} [fallback tokenizer]"
-    return tokenizer.name
+    return tokenizer.label() if hasattr(tokenizer, "label") else str(tokenizer.name)
 
 
 def _model_info(model, policy_dataset_key, fingerprint: dict) -> dict:
@@ -170,6 +168,7 @@ def _model_info(model, policy_dataset_key, fingerprint: dict) -> dict:
         "is_random": bool(model.is_random),
         "note": "RANDOM WEIGHTS - actions and attention are not Octo's" if model.is_random else "",
         "text_tokenizer": _tokenizer_label(getattr(model, "text_tokenizer", None)),
+        "tokenizer": fingerprint.get("tokenizer"),  # kind, name, vocab_size, max_length, sha256, path
         "dataset_key": policy_dataset_key,
         "layers": checks.layer_count(model),
         "action_horizon": int(model.action_horizon),
@@ -209,7 +208,7 @@ def execute(
     """
     checks.check_environment()
     out = checks.check_destination(Path(out))
-    fingerprint, fingerprint_details = model_fingerprint(protocol.model)
+    fingerprint, fingerprint_details = model_fingerprint(protocol.model, protocol.text_tokenizer)
     goals_fp = goal_fingerprint(protocol.goal_images) if protocol.goal_images else None
     protocol = protocol.replace(model_fingerprint=fingerprint, goal_fingerprint=goals_fp)
     goal_images = checks.decode_goal_images(protocol.goal_images) if protocol.goal_images else None
@@ -248,7 +247,7 @@ def execute(
             if model is None and (pending or manifest is None):  # a finished run needs no model
                 from harness.octo import load_pretrained
 
-                model = load_pretrained(protocol.model)
+                model = load_pretrained(protocol.model, text_tokenizer=protocol.text_tokenizer)
             if model is not None:
                 task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)
                 if pending:

@@ -52,6 +52,7 @@ class Protocol:
     model_fingerprint: str | None = None  # filled by `fingerprinted()`: sha256 of the checkpoint files, or the preset
     goal_fingerprint: str | None = None  # sha256 of the goal image files
     harness_version: str = field(default_factory=harness_version)
+    text_tokenizer: str | None = None  # None: the checkpoint's own (auto); "fallback"; or an absolute tokenizer.json path
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "tasks", tuple(self.tasks))
@@ -76,7 +77,7 @@ class Protocol:
 
     def fingerprinted(self) -> "Protocol":
         """This protocol with `model_fingerprint` and `goal_fingerprint` computed from the files (stream-hashed)."""
-        fp, _ = model_fingerprint(self.model)
+        fp, _ = model_fingerprint(self.model, self.text_tokenizer)
         goals = goal_fingerprint(self.goal_images) if self.goal_images else None
         return self.replace(model_fingerprint=fp, goal_fingerprint=goals)
 
@@ -97,6 +98,8 @@ class Protocol:
             "policy": _plain(self.policy),
             "outputs": _plain(self.outputs),
             "harness_version": self.harness_version,
+            # only when chosen, so protocols (and run names) of the automatic choice keep their hash
+            **({"text_tokenizer": self.text_tokenizer} if self.text_tokenizer is not None else {}),
         })
 
     @classmethod
@@ -193,18 +196,38 @@ def checkpoint_files(ckpt: Path, step: int | None) -> list[Path]:
     return files
 
 
-def model_fingerprint(source: str) -> tuple[str, dict]:
+def tokenizer_identity(source: str, text_tokenizer: str | None = None) -> dict | None:
+    """The identity (kind, name, vocab_size, max_length, sha256, path) of the text tokenizer a model source is run
+    with (None: a goal-conditioned model), resolved as loading resolves it, without reading parameters."""
+    from harness.octo.loading import resolve_text_tokenizer
+
+    tokenizer = resolve_text_tokenizer(source, text_tokenizer)
+    return None if tokenizer is None else tokenizer.identity()
+
+
+def _tokenizer_line(identity: dict) -> str:
+    return f"tokenizer {identity['kind']} {identity['vocab_size']} {identity['max_length']} {identity['sha256']}\n"
+
+
+def model_fingerprint(source: str, text_tokenizer: str | None = None) -> tuple[str, dict]:
     """(fingerprint, details) of a model source, from its files (stream-hashed; a hub model from the local cache).
 
-    random:<preset> -> "preset:<name>" (weights are drawn from a fixed seed); random:<path> and checkpoint
-    folders -> "sha256:<hex>" over (relative path, size, sha256) of `checkpoint_files`.
+    random:<preset> -> "preset:<name>+<tokenizer kind>:<sha256 or vocabulary size>" (weights are drawn from a
+    fixed seed); random:<path> and checkpoint folders -> "sha256:<hex>" over (relative path, size, sha256) of
+    `checkpoint_files` and, when the tokenizer is not one of those files (t5-base from the Hugging Face cache,
+    the fallback, a --text-tokenizer file), a line with its kind, vocabulary size and sha256: a changed tokenizer
+    changes the fingerprint. details["tokenizer"] holds the identity.
     """
     from harness.octo import checkpoint, presets
 
+    tokenizer = tokenizer_identity(source, text_tokenizer)
     if source.startswith("random:"):
         spec = source[len("random:"):]
         if spec in presets.preset_names():
-            return f"preset:{spec}", {"kind": "preset", "preset": spec}
+            fp = f"preset:{spec}"
+            if tokenizer is not None:
+                fp += f"+{tokenizer['kind']}:{(tokenizer['sha256'] or str(tokenizer['vocab_size']))[:16]}"
+            return fp, {"kind": "preset", "preset": spec, "tokenizer": tokenizer}
         path = Path(spec).expanduser()
         root = path if path.is_dir() else path.parent
         files = checkpoint_files(root, None) if path.is_dir() else [path]
@@ -216,7 +239,11 @@ def model_fingerprint(source: str) -> tuple[str, dict]:
     if not files:
         raise FileNotFoundError(f"{source}: no checkpoint files to fingerprint")
     fp, entries = _files_fingerprint(root, files)
-    return fp, {"kind": "files", "root": str(root), "files": entries}
+    hashed = {p.resolve() for p in files}
+    if tokenizer is not None and (tokenizer["path"] is None or Path(tokenizer["path"]).resolve() not in hashed):
+        lines = "".join(f"{name} {e['size']} {e['sha256']}\n" for name, e in entries.items()) + _tokenizer_line(tokenizer)
+        fp = "sha256:" + hashlib.sha256(lines.encode()).hexdigest()
+    return fp, {"kind": "files", "root": str(root), "files": entries, "tokenizer": tokenizer}
 
 
 def goal_fingerprint(folder: str | Path) -> str | None:

@@ -69,10 +69,10 @@ def import_ray():
 class PolicyReplica:
     """A model replica serving batched inference requests from many env workers (an async Ray actor)."""
 
-    def __init__(self, model_source: str, config: PolicyConfig):
+    def __init__(self, model_source: str, config: PolicyConfig, text_tokenizer: str | None = None):
         from harness.octo import load_pretrained
 
-        self.model = load_pretrained(model_source)
+        self.model = load_pretrained(model_source, text_tokenizer=text_tokenizer)
         self.inference = BatchInference(self.model, config)
         self._pending: list[tuple[InferenceRequest, asyncio.Future]] = []
         self._running = False
@@ -256,7 +256,8 @@ class RayExecutor:
         self._marker.write_text(self._token)
         replica_cls = ray.remote(num_cpus=1, num_gpus=gpus)(PolicyReplica)
         self._worker_cls = ray.remote(num_cpus=1, max_restarts=0)(EnvWorker)
-        self._replicas = [replica_cls.remote(self.model_source, self.spec.policy) for _ in range(self.replicas)]
+        self._replicas = [replica_cls.remote(self.model_source, self.spec.policy, self.context.protocol.text_tokenizer)
+                          for _ in range(self.replicas)]
         warming = [r.warm_up.remote(warmup_request(self.spec.shape, warmup)) for r in self._replicas] if warmup else []
         for i in range(self.workers):
             self._start_worker(i)

@@ -41,8 +41,9 @@ log = logging.getLogger(__name__)
 
 
 def candidate_protocol(baseline_manifest: dict, model: str, max_episodes: int | None = None,
-                       where: str = "the baseline's manifest.json") -> Protocol:
-    """The baseline's protocol with the model replaced (fingerprints recomputed by the run)."""
+                       where: str = "the baseline's manifest.json", text_tokenizer: str | None = None) -> Protocol:
+    """The baseline's protocol with the model (and the text tokenizer, when given: auto|fallback|PATH) replaced
+    (fingerprints recomputed by the run)."""
     from harness.run.schema import check_protocol, protocol_from_manifest
 
     data = baseline_manifest.get("protocol")
@@ -54,8 +55,13 @@ def candidate_protocol(baseline_manifest: dict, model: str, max_episodes: int | 
         if max_episodes < 1:
             raise ValueError(f"--max-episodes must be at least 1, got {max_episodes}")
         episodes = min(episodes, max_episodes)
+    tokenizer = {}
+    if text_tokenizer is not None:
+        from harness.run.settings import text_tokenizer_choice
+
+        tokenizer = {"text_tokenizer": text_tokenizer_choice(text_tokenizer)}
     return protocol_from_manifest(baseline_manifest, where, model=model, model_fingerprint=None, goal_fingerprint=None,
-                                  episodes=episodes)
+                                  episodes=episodes, **tokenizer)
 
 
 def round_order(jobs: Sequence[EpisodeJob], tasks: Sequence[str]) -> list[EpisodeJob]:
@@ -174,7 +180,7 @@ def _check_baseline(baseline: dict, jobs: Sequence[EpisodeJob], path) -> None:
 
 def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = None, out: str | Path = "results/runs",
             run_name: str | None = None, alpha: float = 0.05, max_drop: float = 0.1, loaded_model=None,
-            executor=None, progress: bool = True) -> dict:
+            executor=None, progress: bool = True, text_tokenizer: str | None = None) -> dict:
     """Run the sequential regression (see the module docstring); returns the result dict (regress.json).
 
     executor: factory(context, model) -> Executor for the candidate's episodes (default SequentialExecutor).
@@ -182,7 +188,8 @@ def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = 
     from harness.run import execute
 
     baseline = load_run(baseline_dir)
-    protocol = candidate_protocol(baseline.manifest, model, max_episodes, str(baseline.path / "manifest.json"))
+    protocol = candidate_protocol(baseline.manifest, model, max_episodes, str(baseline.path / "manifest.json"),
+                                  text_tokenizer)
     config = SequentialConfig(alpha=alpha, max_drop=max_drop)
     compare_config = CompareConfig(max_drop=max_drop, alpha=alpha)
     base_outcomes = _outcomes(baseline)

@@ -46,6 +46,7 @@ FILE_KEYS: dict[str, tuple[type, ...]] = {
     "goal_images": (str,), "fast_render": (bool,), "camera": (str, list, dict), "image_convention": (str,),
     "action_space": (str,), "ci_method": (str,), "sampler": (str,), "action_normalization": (str,),
     "proprio_normalization": (str,),
+    "text_tokenizer": (str,),
 }
 POLICY_KEYS = ("execution", "receding_steps", "ensemble_weight", "dataset_key", "sampler", "action_normalization",
                "proprio_normalization", "inference_batch")
@@ -63,6 +64,9 @@ def read_protocol_file(path: str | Path) -> dict[str, Any]:
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"protocol file {path} is not valid TOML: {e}") from None
     settings = {key.replace("-", "_"): value for key, value in data.items()}
+    if len(settings) < len(data):
+        twice = sorted(k for k in settings if sum(key.replace("-", "_") == k for key in data) > 1)
+        raise ValueError(f"protocol file {path}: {', '.join(twice)} given twice (with '-' and with '_'); keep one")
     if "tasks" in settings and "task" not in settings:
         settings["task"] = settings.pop("tasks")
     unknown = sorted(set(settings) - set(FILE_KEYS))
@@ -83,6 +87,10 @@ def read_protocol_file(path: str | Path) -> dict[str, Any]:
         settings["camera"] = [f"{k}={v}" if isinstance(v, str) else f"{k}={v[0]}:{v[1]}" for k, v in settings["camera"].items()]
     if settings.get("goal_images") is not None:  # relative to the protocol file
         settings["goal_images"] = str((path.parent / settings["goal_images"]).resolve())
+    if settings.get("text_tokenizer") not in (None, "auto", "fallback"):  # a tokenizer.json path: relative to the file
+        candidate = path.parent / Path(settings["text_tokenizer"]).expanduser()
+        if candidate.exists():
+            settings["text_tokenizer"] = str(candidate.resolve())
     return settings
 
 
@@ -187,7 +195,24 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
         env=env,
         policy=policy,
         outputs=outputs,
+        text_tokenizer=text_tokenizer_choice(s.get("text_tokenizer", conventions.text_tokenizer if conventions else None)),
     )
+
+
+def text_tokenizer_choice(value: str | None) -> str | None:
+    """--text-tokenizer auto|fallback|PATH as the protocol records it: None (auto), "fallback", or an absolute path
+    (a name that is no existing path stays as given: a Hugging Face hub repo holding tokenizer.json)."""
+    if value is None or value == "auto":
+        return None
+    if value == "fallback":
+        return value
+    path = Path(value).expanduser()
+    if path.exists():
+        return str(path.resolve())
+    if value.endswith(".json") or value.startswith(("/", ".", "~")):
+        raise FileNotFoundError(f"--text-tokenizer {value}: no such file; pass a tokenizer.json (or a folder holding "
+                                "one), 'fallback' or 'auto'")
+    return value
 
 
 def _layers(value) -> tuple[int, ...] | None:
