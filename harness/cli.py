@@ -7,16 +7,27 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
+import threading
 from pathlib import Path
 
 USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, KeyError, FileNotFoundError, PermissionError)
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
+    from envs.gl import HeadlessGLError
+    from harness.octo.errors import OctoError
     from harness.run.store import RunLockedError
 
-    return (*USER_ERRORS, RunLockedError)
+    return (*USER_ERRORS, RunLockedError, OctoError, HeadlessGLError)
+
+
+def _interrupt(signum, frame):
+    """SIGTERM before the run installs its own handler (loading the model, compiling): the same exit as later."""
+    exc = KeyboardInterrupt(signal.Signals(signum).name)
+    exc.signum = signum
+    raise exc
 
 
 def _video_attention(text: str):
@@ -254,6 +265,8 @@ def _cmd_run(args) -> int:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
     try:
         if args.command == "tasks":
             return _cmd_tasks()
@@ -275,6 +288,9 @@ def main(argv: list[str] | None = None) -> int:
         message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"error: {message}", file=sys.stderr)
         return 2
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
 
 
 if __name__ == "__main__":

@@ -44,7 +44,7 @@ def atomic_write_json(path: str | Path, obj) -> Path:
 
 
 def json_safe(x: Any) -> Any:
-    """JSON-safe copy: numpy scalars/arrays and Paths to Python, NaN/inf to None, floats rounded to 6 places."""
+    """JSON-safe copy: numpy scalars/arrays and Paths to Python, NaN/inf to None, floats rounded to 6 places (6 significant digits below 1)."""
     if isinstance(x, dict):
         return {str(k): json_safe(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
@@ -57,7 +57,9 @@ def json_safe(x: Any) -> Any:
         return int(x)
     if isinstance(x, (float, np.floating)):
         x = float(x)
-        return round(x, 6) if math.isfinite(x) else None
+        if not math.isfinite(x):
+            return None
+        return round(x, 6) if abs(x) >= 1 else float(f"{x:.6g}")  # 6 significant digits below 1 (1e-9 stays 1e-9)
     if isinstance(x, Path):
         return str(x)
     return x

@@ -59,6 +59,12 @@ class PolicyConfig:
     # closed-loop intervention (harness/interventions.py), e.g. "mask-top:4:attention:2"; None = none. Recorded in
     # the protocol only when set, so protocols without one keep their hash
     intervention: str | None = None
+    # attribution maps at every inference step (harness/analysis/attribution.py: "attention,rollout,grad-attention,
+    # saliency"; random is always added) and open-loop faithfulness every k-th step (0 = never), deleted patches
+    # filled with "mean" or "blur". They do not change actions; recorded only when set
+    attribution: str | None = None
+    faithfulness_every: int = 0
+    faithfulness_fill: str = "mean"
 
     def __post_init__(self) -> None:
         if self.execution not in ("temporal_ensemble", "receding_horizon"):
@@ -78,12 +84,27 @@ class PolicyConfig:
             from harness.interventions import canonical
 
             object.__setattr__(self, "intervention", canonical(self.intervention))
+        if isinstance(self.faithfulness_every, bool) or not isinstance(self.faithfulness_every, int) \
+                or self.faithfulness_every < 0:
+            raise ValueError(f"--faithfulness-every must be an integer >= 0 (0 = never), got {self.faithfulness_every!r}")
+        if self.faithfulness_fill not in ("mean", "blur"):
+            raise ValueError(f"--faithfulness-fill must be 'mean' or 'blur', got {self.faithfulness_fill!r}")
+        if self.faithfulness_every and self.attribution is None:
+            from harness.analysis.attribution import DEFAULT_METHODS
+
+            object.__setattr__(self, "attribution", DEFAULT_METHODS)
+        if self.attribution is not None:
+            from harness.analysis.attribution import parse_methods
+
+            parse_methods(self.attribution, 1 << 16)  # names checked here; layers against the model at start
 
     def to_dict(self) -> dict:
         """The fields as plain data; `intervention` only when set (protocols without one keep their hash)."""
         data = dataclasses.asdict(self)
-        if data["intervention"] is None:
-            del data["intervention"]
+        defaults = {"intervention": None, "attribution": None, "faithfulness_every": 0, "faithfulness_fill": "mean"}
+        for key, default in defaults.items():
+            if data[key] == default:
+                del data[key]
         return data
 
     def describe(self) -> str:
@@ -101,6 +122,10 @@ class PolicyStep:
     inferred: bool  # False when a receding-horizon step reused an earlier chunk (attention is that chunk's)
     inference_seconds: float
     tokens: TokenMap | None = None  # what each attention key is (the layout of the inference that produced it)
+    # what the policy was fed at this step: the newest history entry, image_* (height, width, 3) uint8 resized,
+    # low-dim keys (dims,) float32 raw, exactly as they enter the observation window (harness.replay rebuilds it)
+    inputs: dict | None = None
+    attribution: dict | None = None  # attribution maps / faithfulness rows of this step's inference (or None)
 
 
 def default_dataset_key(model) -> str | None:
@@ -174,6 +199,7 @@ class InferenceResult:
     seconds: float  # wall time of the batched call that produced it
     tokens: TokenMap | None = None  # what each attention key is
     observed: dict | None = None  # {obs key: (H, W, 3) uint8} current frames an intervention changed (masked)
+    attribution: dict | None = None  # attribution maps / faithfulness rows (harness.analysis.attribution.Probe)
 
 
 def make_task(model, spec: TaskSpec) -> dict:
@@ -216,6 +242,11 @@ class BatchInference:
 
             self.intervener = Intervener(model, parse_intervention(config.intervention))
             self._model = self.intervener.model_for_inference()
+        self.probe = None  # attribution maps and faithfulness at inference steps (what the policy saw, same rng)
+        if config.attribution is not None:
+            from harness.analysis.attribution import Probe
+
+            self.probe = Probe(self._model, config.attribution, config.faithfulness_every, config.faithfulness_fill)
 
     def task(self, spec: TaskSpec) -> dict:
         if spec.key not in self._tasks:
@@ -270,8 +301,36 @@ class BatchInference:
         readout = np.asarray(attention.readout, dtype=np.float32)  # (batch, layers, heads, readouts, keys)
         full = None if attention.full is None else np.asarray(attention.full, dtype=np.float32)
         elapsed = time.perf_counter() - start
+        probes = [None] * n
+        if self.probe is not None:
+            for i, request in enumerate(requests):
+                observations, tasks, keys = self._inputs([request])
+                probes[i] = self.probe(observations, tasks, keys[0], request.seed, request.step)
         return [InferenceResult(chunks[i], readout[i], None if full is None else full[i], elapsed, attention.tokens,
-                                changed[i][1]) for i in range(n)]
+                                changed[i][1], probes[i]) for i in range(n)]
+
+
+def window_from_entries(entries: list[dict], window: int, keys: list[str]) -> dict:
+    """The observation window after the last of `entries` (oldest first): image_* (window, H, W, 3), low-dim
+    (window, dims), timestep_pad_mask (window,) and pad_mask_dict, left-padded with the first entry as Octo's
+    HistoryWrapper does. `EpisodeState` and replay (harness/run/replay.py) build windows with this one function."""
+    frames = list(entries[-window:])
+    n = len(frames)
+    frames = [frames[0]] * (window - n) + frames  # left-pad with the first observation
+    pad = np.arange(window) >= window - n  # (window,) False for padded slots
+    obs = {k: np.stack([f[k] for f in frames]) for k in keys}
+    obs["timestep_pad_mask"] = pad
+    obs["pad_mask_dict"] = {k: pad for k in keys}
+    return obs
+
+
+def input_digest(value: np.ndarray) -> int:
+    """64-bit blake2b of an input array's dtype, shape and bytes (the per-step fingerprint of what the policy saw)."""
+    array = np.ascontiguousarray(value)
+    h = hashlib.blake2b(digest_size=8)
+    h.update(f"{array.dtype.str}{array.shape}".encode())
+    h.update(array.tobytes())
+    return int.from_bytes(h.digest(), "little")
 
 
 class EpisodeState:
@@ -294,28 +353,23 @@ class EpisodeState:
         self._chunks: deque = deque(maxlen=int(action_horizon))
         self._pending: list[np.ndarray] = []
         self._last: PolicyStep | None = None
+        self._entry: dict | None = None  # the history entry of the current step
 
     def _observation_window(self) -> dict:
         """History -> image_* (window, H, W, 3), timestep_pad_mask (window,), pad_mask_dict; left-padded as HistoryWrapper."""
-        n = len(self._history)
-        frames = [self._history[0]] * (self.window - n) + list(self._history)  # left-pad with the first observation
-        pad = np.arange(self.window) >= self.window - n  # (window,) False for padded slots
-        keys = [*self.image_sizes, *self.lowdim_sizes]
-        obs = {k: np.stack([f[k] for f in frames]) for k in keys}  # (window, H, W, 3) uint8 / (window, dims) float32
-        obs["timestep_pad_mask"] = pad
-        obs["pad_mask_dict"] = {k: pad for k in keys}
-        return obs
+        return window_from_entries(list(self._history), self.window, [*self.image_sizes, *self.lowdim_sizes])
 
     def observe(self, observation: dict[str, np.ndarray]) -> "InferenceRequest | PolicyStep":
         check_observation(observation, self.image_sizes, self.lowdim_sizes)
         entry = {k: resize_frame(observation[k], s) for k, s in self.image_sizes.items()}
         entry.update({k: np.asarray(observation[k], np.float32) for k in self.lowdim_sizes})
         self._history.append(entry)
+        self._entry = entry
         if self.config.execution == "receding_horizon" and self._pending:
             self.t += 1
             last = self._last
             return PolicyStep(self._pending.pop(0), last.chunk, last.readout_attention, last.full_attention, False, 0.0,
-                              last.tokens)
+                              last.tokens, entry)
         return InferenceRequest(self._observation_window(), self.task, self.seed, self.t)
 
     def complete(self, result: InferenceResult, seconds: float | None = None) -> PolicyStep:
@@ -332,7 +386,10 @@ class EpisodeState:
             self._chunks.append(chunk)
             action = ensemble(list(self._chunks), self.config.ensemble_weight)
         elapsed = result.seconds if seconds is None else seconds
-        self._last = PolicyStep(action, chunk, result.readout_attention, result.full_attention, True, elapsed, result.tokens)
+        self._last = PolicyStep(action, chunk, result.readout_attention, result.full_attention, True, elapsed, result.tokens,
+                                self._entry)
+        if result.attribution is not None:
+            self._last = dataclasses.replace(self._last, attribution=result.attribution)
         return self._last
 
 

@@ -27,6 +27,11 @@ class StepRecord:
     timings: dict[str, float] = field(default_factory=dict)  # seconds: "simulation", "inference", "enqueue"
     inferred: bool = True  # False when this step executed a stored chunk action (receding horizon): attention is that chunk's
     tokens: TokenMap | None = None  # what each key of the attention is: the map of the very inference that produced it
+    policy_inputs: dict[str, np.ndarray] | None = None  # what the policy was fed at this step (PolicyStep.inputs), in the
+    # env's image convention: image_* (height, width, 3) uint8 resized, low-dim (dims,) float32
+    # --attribution / --faithfulness-every: {"maps": {method: {obs key: (rows, cols)}}, "faithfulness": [rows],
+    # "seconds"} of this step's inference (harness.analysis.attribution.Probe), maps upright; None otherwise
+    attribution: dict | None = None
 
 
 @dataclass(frozen=True)

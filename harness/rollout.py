@@ -80,6 +80,8 @@ def rollout(
             timings={"inference": decision.inference_seconds, "simulation": after_sim - after_policy},
             inferred=decision.inferred,
             tokens=upright_tokens(decision.tokens),
+            attribution=_upright_attribution(getattr(decision, "attribution", None), upright_tokens.flipped_keys),
+            policy_inputs=decision.inputs,
         )
         sink(record)
         end = time.perf_counter()
@@ -101,6 +103,14 @@ def rollout(
         actions_clipped=int(info.get("action_clipped", 0)),
         timings=totals,
     )
+
+
+def _upright_attribution(attribution: dict | None, flipped_keys: tuple[str, ...]) -> dict | None:
+    """Attribution maps of upside-down cameras (image convention "opengl") with their patch rows reversed."""
+    if attribution is None or not flipped_keys:
+        return attribution
+    maps = {m: {k: (v[::-1] if k in flipped_keys else v) for k, v in by.items()} for m, by in attribution["maps"].items()}
+    return {**attribution, "maps": maps}
 
 
 def _upright_masks(masks: dict | None, convention: str) -> dict | None:

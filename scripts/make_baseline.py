@@ -4,9 +4,9 @@
         --fast-render --png-every 0 --no-video --out /tmp/runs --run-name baseline
     .venv/bin/python scripts/make_baseline.py /tmp/runs/baseline results/baselines/reference-lift
 
-Keeps manifest.json, results.jsonl, results.json, summary.csv and per episode episode.json plus actions.npz and
-attention.npz cut to the first --steps steps (default 1: the step-0 arrays that isolate the model); drops PNG,
-MP4, GIF and metrics.jsonl. BASELINE.json records where it came from and how to find the model again
+Keeps manifest.json, results.jsonl, results.json, summary.csv and per episode episode.json plus actions.npz,
+attention.npz and (for runs made with --record-inputs) inputs.npz cut to the first --steps steps (default 20:
+what `octo-harness replay` compares the model on, on any machine); drops PNG, MP4, GIF and metrics.jsonl. BASELINE.json records where it came from and how to find the model again
 ("model_ref": "repo:<path inside the repository>" or "fixture:<name>"); harness.analysis.compare reads it to
 compare arrays over the stored steps only. The destination is replaced atomically (built next to it, renamed).
 """
@@ -69,13 +69,15 @@ def make_baseline(run_dir: Path, dest: Path, steps: int = 1) -> Path:
         rel = episode.directory.relative_to(run.path)
         (tmp / rel).mkdir(parents=True)
         shutil.copy2(episode.directory / "episode.json", tmp / rel / "episode.json")
-        for name in ("actions.npz", "attention.npz"):
-            cut_npz(episode.directory / name, tmp / rel / name, steps)
+        for name in ("actions.npz", "attention.npz", "inputs.npz"):
+            if (episode.directory / name).is_file():  # inputs.npz: runs made with --record-inputs (replay)
+                cut_npz(episode.directory / name, tmp / rel / name, steps)
     (tmp / BASELINE_MARKER).write_text(json.dumps({
         "source_run": str(run.path), "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "arrays_steps": steps, "model_ref": model_ref(run.model.source),
         "model_fingerprint": (run.manifest.get("protocol") or {}).get("model_fingerprint"),
-        "note": "arrays keep only the first steps; PNG, MP4 and metrics.jsonl are dropped",
+        "recorded_inputs": all((e.directory / "inputs.npz").is_file() for e in run.episodes),
+        "note": "arrays (and recorded inputs) keep only the first steps; PNG, MP4 and metrics.jsonl are dropped",
     }, indent=2) + "\n")
     if dest.exists():
         old = dest.with_name(dest.name + f".old.{os.getpid()}")
@@ -92,7 +94,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="a complete run folder")
     parser.add_argument("dest", type=Path, help="baseline folder, e.g. results/baselines/reference-lift")
-    parser.add_argument("--steps", type=int, default=1, help="steps of arrays to keep per episode [1]")
+    parser.add_argument("--steps", type=int, default=20, help="steps of arrays and recorded inputs to keep per episode [20]")
     args = parser.parse_args()
     dest = make_baseline(args.run, args.dest, args.steps)
     size = sum(p.stat().st_size for p in dest.rglob("*") if p.is_file())

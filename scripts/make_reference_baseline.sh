@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Regenerate the committed baseline of the reference policy: results/baselines/reference-lift
-# (2 Lift episodes on evaluation seeds 0 and 1, at most 80 steps, fast render, no PNG/MP4), made from a fresh run
-# of models/octo-reference-robosuite. Run it again whenever the reference checkpoint changes (the baseline gate,
+# (8 Lift episodes on evaluation seeds 0..7, at most 80 steps, fast render, no PNG/MP4, policy inputs recorded;
+# arrays and inputs of the first 20 steps kept for `octo-harness replay`), made from a fresh run of
+# models/octo-reference-robosuite. Run it again whenever the reference checkpoint changes (the baseline gate,
 # tests/test_compare_baseline.py, checks the model fingerprint and says so).
 #   bash scripts/make_reference_baseline.sh [MODEL] [NAME] [MAX_STEPS]
 set -euo pipefail
@@ -12,6 +13,6 @@ MAX_STEPS="${3:-80}"
 RUNS="$(mktemp -d)"
 trap 'rm -rf "$RUNS"' EXIT
 export HF_HUB_OFFLINE=1 MUJOCO_GL="${MUJOCO_GL:-egl}"
-.venv/bin/octo-harness run --task Lift --episodes 2 --seed 0 --max-steps "$MAX_STEPS" --model "$MODEL" \
-    --fast-render --png-every 0 --no-video --out "$RUNS" --run-name "$NAME"
+.venv/bin/octo-harness run --task Lift --episodes 8 --seed 0 --max-steps "$MAX_STEPS" --model "$MODEL" \
+    --fast-render --png-every 0 --no-video --record-inputs --out "$RUNS" --run-name "$NAME"
 .venv/bin/python scripts/make_baseline.py "$RUNS/$NAME" "results/baselines/$NAME"

@@ -16,7 +16,13 @@ to the rollout video. `finish()` writes the arrays and JSON. Files in `episode_d
                               so mask mass can be recomputed per head / layer from readout_attention;
                               measures/layer/<m> (steps, layers), measures/head/<m> (steps, layers, heads)
                               float32: shares, entropy, mask mass and lift per step (analysis.aggregate)
-  actions.npz                 predicted (steps, horizon, dim), executed (steps, dim), reward, success, step
+  actions.npz                 predicted (steps, horizon, dim), executed (steps, dim), reward, success, step,
+                              inferred (steps,) bool, input_hash/<key> (steps,) uint64: a 64-bit digest of what
+                              the policy was fed at each step (harness.policy.input_digest of its resized image
+                              or low-dim input), so two runs can tell for how many steps they saw the same inputs
+  inputs.npz                  with record_inputs: input/<key> (steps, H, W, 3) uint8 / (steps, dims) float32, the
+                              newest history entry the policy was fed at each step (env convention), step, inferred,
+                              seed, instruction: `octo-harness replay` rebuilds every observation window from it
   metrics.jsonl               one JSON object per step: run, task, episode, step, reward, success, shares, entropy,
                               mask mass per layer, timings; every row has the same keys (null where n/a)
   episode.json                metadata and summary; written LAST, so a directory holding it is complete
@@ -55,6 +61,7 @@ from harness.analysis.aggregate import measure_arrays
 from harness.analysis.attention import HEAD_FUSIONS, camera_maps, fuse_heads, mask_fractions, rollout_readout_rows, step_metrics
 from harness.octo.tokens import TokenMap
 from harness.outputs.overlays import colormap_lut, heatmap_overlay, layer_panel, mask_bbox, video_frame
+from harness.policy import input_digest
 from harness.records import EpisodeMeta, StepRecord
 from harness.files import atomic_write_json, json_safe, write_atomic
 from harness.outputs.video import GifWriter, Mp4Writer
@@ -85,6 +92,7 @@ class OutputOptions:
     queue_size: int = 4  # steps waiting for the writer before add_step blocks
     png_compress_level: int = 2  # zlib level 0-9 (low: fast, larger files)
     png_workers: int = 2  # threads compressing PNGs in parallel (zlib releases the GIL); 0 = in the writer thread
+    record_inputs: bool = False  # write inputs.npz: the policy's inputs at every step, for `octo-harness replay`
 
     def __post_init__(self) -> None:
         if self.png_every < 0:
@@ -219,6 +227,10 @@ class EpisodeWriter:
         self._metrics: list[dict[str, np.ndarray]] = []
         self._mask_fractions: list[dict[str, np.ndarray]] = []  # "<obs>/<name>" -> (rows, cols) per step
         self._timings: list[dict[str, float]] = []
+        self._attribution: list[tuple[int, dict]] = []  # (step, Probe result) at steps that carry one
+        self._inferred: list[bool] = []
+        self._input_hashes: list[dict[str, int]] = []  # obs key -> input_digest per step
+        self._inputs: list[dict[str, np.ndarray]] = []  # record_inputs: the policy's inputs per step
         self._pngs: list[str] = []
         self._deferred: list[tuple] = []  # episode normalisation: (step, frames, maps, boxes) rendered at finish
         self._ranges: dict[tuple[int, str], list[float]] = {}  # (layer, camera) -> [min, max] over the episode
@@ -397,6 +409,15 @@ class EpisodeWriter:
         self._metrics.append(step_metrics(attn, tokens, record.masks))
         self._mask_fractions.append(mask_fractions(tokens, record.masks))
         self._timings.append({k: float(v) for k, v in record.timings.items()})
+        if record.attribution is not None:
+            self._attribution.append((record.step, record.attribution))
+        inputs = record.policy_inputs or {}
+        self._inferred.append(bool(record.inferred))
+        self._input_hashes.append({k: input_digest(v) for k, v in inputs.items()})
+        if opts.record_inputs:
+            if not inputs:
+                raise ValueError("record_inputs needs the policy's inputs in every StepRecord (policy_inputs)")
+            self._inputs.append(inputs)
 
         frames = {cam: record.frames[cam] for cam in layout.cameras}
         # cam -> (layers, heads, rows, cols): readouts averaged
@@ -520,9 +541,19 @@ class EpisodeWriter:
             "executed": np.stack(self._executed) if self._executed else np.zeros((0, 0), np.float32),
             "reward": np.asarray(self._rewards, np.float32),
             "success": np.asarray(self._success, bool),
+            "inferred": np.asarray(self._inferred, bool),
+            **{f"input_hash/{k}": np.asarray([h.get(k, 0) for h in self._input_hashes], np.uint64)
+               for k in dict.fromkeys(k for h in self._input_hashes for k in h)},
         }
         write_atomic(self.dir / "actions.npz", lambda f: np.savez(f, **actions))
         files["actions"] = "actions.npz"
+        if self.options.record_inputs:
+            recorded = {f"input/{k}": np.stack([entry[k] for entry in self._inputs]) for k in self._inputs[0]} \
+                if self._inputs else {}
+            recorded.update(step=steps, inferred=np.asarray(self._inferred, bool), seed=np.asarray(self.meta.seed),
+                            instruction=np.asarray(self.meta.instruction))
+            write_atomic(self.dir / "inputs.npz", lambda f: np.savez_compressed(f, **recorded))
+            files["inputs"] = "inputs.npz"
 
         # every row has the same keys (null where a metric or timing does not apply at that step), plus its ids
         metric_names = list(dict.fromkeys(k for m in self._metrics for k in m))
@@ -537,6 +568,8 @@ class EpisodeWriter:
             lines.append(json.dumps(json_safe(entry)))
         write_atomic(self.dir / "metrics.jsonl", lambda f: f.write(("\n".join(lines) + "\n" if lines else "").encode()))
         files["metrics"] = "metrics.jsonl"
+        if self._attribution:
+            files.update(self._write_attribution())
 
         if self._mp4 is not None and self._mp4.frames:
             files["video"] = "rollout.mp4"
@@ -544,6 +577,25 @@ class EpisodeWriter:
             files["gif"] = "rollout.gif"
         files["png_count"] = len(self._pngs)
         files["png_pattern"] = PNG_NAME
+        return files
+
+    def _write_attribution(self) -> dict[str, str]:
+        """attribution.npz: step (n,), map/<method>/<obs key> (n, rows, cols) float32 at the steps that carry maps;
+        faithfulness.jsonl: one row per step x camera x method (harness.analysis.faithfulness), when measured."""
+        files = {}
+        steps = np.asarray([s for s, _ in self._attribution], np.int32)
+        names = list(dict.fromkeys((m, k) for _, a in self._attribution for m, by in a["maps"].items() for k in by))
+        arrays = {"step": steps, "seconds": np.asarray([a.get("seconds", np.nan) for _, a in self._attribution])}
+        for method, key in names:
+            arrays[f"map/{method}/{key}"] = np.stack([a["maps"][method][key] for _, a in self._attribution]).astype(np.float32)
+        write_atomic(self.dir / "attribution.npz", lambda f: np.savez(f, **arrays))
+        files["attribution"] = "attribution.npz"
+        lines = [json.dumps(json_safe({"run": self.meta.run, "task": self.meta.task, "episode": self.meta.episode,
+                                       "seed": self.meta.seed, "step": step, **row}))
+                 for step, a in self._attribution for row in a.get("faithfulness", [])]
+        if lines:
+            write_atomic(self.dir / "faithfulness.jsonl", lambda f: f.write(("\n".join(lines) + "\n").encode()))
+            files["faithfulness"] = "faithfulness.jsonl"
         return files
 
     def _summary(self, files: dict, summary: dict, finish_s: float) -> dict:

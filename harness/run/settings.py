@@ -39,13 +39,14 @@ DEFAULT_RECEDING_STEPS = 4
 # key -> expected TOML type(s); the same names as the `run` flags
 FILE_KEYS: dict[str, tuple[type, ...]] = {
     "intervene": (str,),  # harness/interventions.py; recorded as policy.intervention
+    "attribution": (str, list), "faithfulness_every": (int,), "faithfulness_fill": (str,),  # harness/analysis/attribution.py
     "task": (str, list), "episodes": (int,), "model": (str,), "max_steps": (int,), "out": (str,), "run_name": (str,),
     "seed": (int,), "instruction": (str,), "dataset_key": (str,), "execution": (str,), "receding_steps": (int,),
     "ensemble_weight": (int, float), "png_every": (int,), "layers": (str, list), "video_attention": (int, str),
     "normalisation": (str,), "no_video": (bool,), "gif": (bool,), "bbox": (bool,), "no_masks": (bool,),
     "goal_images": (str,), "fast_render": (bool,), "camera": (str, list, dict), "image_convention": (str,),
     "action_space": (str,), "ci_method": (str,), "sampler": (str,), "action_normalization": (str,),
-    "proprio_normalization": (str,),
+    "proprio_normalization": (str,), "inference_batch": (int,), "record_inputs": (bool,),
     "text_tokenizer": (str,),
 }
 POLICY_KEYS = ("execution", "receding_steps", "ensemble_weight", "dataset_key", "sampler", "action_normalization",
@@ -172,6 +173,11 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
     policy_given["full_attention"] = video_attention == "rollout"
     if "intervene" in s:
         policy_given["intervention"] = s["intervene"]
+    if "attribution" in s:
+        policy_given["attribution"] = ",".join(s["attribution"]) if isinstance(s["attribution"], list) else s["attribution"]
+    for key in ("faithfulness_every", "faithfulness_fill"):
+        if key in s:
+            policy_given[key] = s[key]
     policy = conventions.policy_config(policy_given) if conventions is not None else PolicyConfig(**policy_given)
 
     outputs = OutputOptions(
@@ -182,6 +188,7 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
         gif=bool(s.get("gif", False)),
         normalisation=s.get("normalisation", "frame"),
         bbox=bool(s.get("bbox", False)),
+        record_inputs=bool(s.get("record_inputs", False)),
     )
     goal_images = s.get("goal_images")
     return Protocol(

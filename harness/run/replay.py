@@ -1,0 +1,193 @@
+"""`octo-harness replay RUN [--model X]`: a model open loop on exactly the inputs a run recorded, against what
+the run recorded: the model change isolated from the simulator and the platform.
+
+A run made with `--record-inputs` keeps, per episode, the newest history entry the policy was fed at every
+step (inputs.npz: resized frames, raw proprio, in the env's image convention), the episode's seed and
+instruction. Replay rebuilds every observation window from those entries (harness.policy.window_from_entries,
+the function the closed loop uses), asks the model for the same step's chunk with the same rng key
+(`step_key(seed, step)`), the run's policy settings and a batch-1 call, and compares chunk and readout
+attention with actions.npz / attention.npz (harness.analysis.equivalence). Inferred steps only (a
+receding-horizon step that reused a chunk has nothing to replay).
+
+Verdict: EQUIVALENT (every step within the tolerances) or CHANGED (the first step beyond them, and how
+far); exit 0 / 1; 2 for invalid input (a run without recorded inputs, a model whose inputs differ).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from harness.analysis.equivalence import Tolerances, action_change, action_scale, attention_change, first_change
+from harness.analysis.runs import EpisodeRecord, load_run
+from harness.run.schema import protocol_from_manifest
+
+log = logging.getLogger(__name__)
+
+FORMAT = "octo-harness-replay/1"
+INPUTS = "inputs.npz"
+
+
+class ReplayInputError(ValueError):
+    """The run cannot be replayed (one line naming the fix)."""
+
+
+def recorded_inputs(episode: EpisodeRecord) -> dict[str, np.ndarray]:
+    """inputs.npz of an episode as {name: array}; ReplayInputError when the run did not record inputs."""
+    path = episode.directory / INPUTS
+    if not path.is_file():
+        raise ReplayInputError(f"{episode.directory} has no {INPUTS}; replay needs a run made with --record-inputs "
+                               "(run the protocol again with that flag)")
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _recorded_outputs(episode: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
+    """(predicted chunks (steps, horizon, dims), readout attention (steps, layers, heads, readouts, keys)) as stored."""
+    with np.load(episode.directory / "actions.npz") as a, np.load(episode.directory / "attention.npz") as b:
+        return a["predicted"], b["readout_attention"]
+
+
+def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolerances: Tolerances) -> dict:
+    """One episode: replay its inferred steps; returns per-step changes and the episode's verdict."""
+    from harness.policy import InferenceRequest, TaskSpec, window_from_entries
+
+    inputs = recorded_inputs(episode)
+    keys = [k[len("input/"):] for k in inputs if k.startswith("input/")]
+    sizes = inference.model.image_sizes
+    for key, (h, w) in sizes.items():
+        have = inputs.get(f"input/{key}")
+        if have is None or tuple(have.shape[1:3]) != (h, w):
+            raise ReplayInputError(f"the model reads {key} at {h}x{w} but the run recorded "
+                                   f"{'no ' + key if have is None else 'x'.join(map(str, have.shape[1:3]))}; "
+                                   "replay with a model of the run's input sizes")
+    wanted = [*sizes, *getattr(inference.model, "lowdim_sizes", {})]
+    missing = [k for k in wanted if k not in keys]
+    if missing:
+        raise ReplayInputError(f"the run recorded no {missing[0]!r} input, which the model reads; replay a model "
+                               "that reads the run's inputs")
+    predicted, attention = _recorded_outputs(episode)
+    steps = int(inputs["step"].shape[0])
+    stored = min(steps, predicted.shape[0], attention.shape[0])  # a committed baseline may keep fewer steps
+    task = TaskSpec.of(str(inputs["instruction"]), goals)
+    seed = int(inputs["seed"])
+    entries = [{k: inputs[f"input/{k}"][t] for k in wanted} for t in range(steps)]
+    inferred = [t for t in range(stored) if bool(inputs["inferred"][t])]
+    chunks, readout = [], []
+    for t in inferred:
+        obs = window_from_entries(entries[:t + 1], window, wanted)
+        (result,) = inference([InferenceRequest(obs, task, seed, int(inputs["step"][t]))])
+        chunks.append(result.chunk)
+        readout.append(result.readout_attention)
+    out = {"task": episode.task, "episode": episode.episode, "seed": seed, "steps": steps, "compared_steps": len(inferred)}
+    if not inferred:
+        return {**out, "verdict": "EQUIVALENT", "first_changed_step": None, "action_change_max": 0.0, "attention_js_max": 0.0}
+    recorded_chunks = predicted[inferred]
+    if recorded_chunks.shape[1:] != np.shape(chunks[0]):
+        return {**out, "verdict": "CHANGED", "first_changed_step": inferred[0], "action_change_max": None,
+                "attention_js_max": None, "note": f"action chunks differ in shape: {recorded_chunks.shape[1:]} recorded, "
+                                                  f"{np.shape(chunks[0])} replayed"}
+    scale = action_scale(inference.statistics, inference.config.action_normalization, recorded_chunks.shape[-1])
+    actions = action_change(recorded_chunks, np.stack(chunks), scale)  # (compared,)
+    recorded_attention = attention[inferred]
+    if recorded_attention.shape[1:] == np.shape(readout[0]):
+        js = attention_change(recorded_attention, np.stack(readout))  # (compared, layers, heads)
+        note = None
+    else:
+        js = np.full((len(inferred), 1, 1), np.inf)
+        note = f"attention shapes differ: {recorded_attention.shape[1:]} recorded, {np.shape(readout[0])} replayed"
+    first = first_change(actions, js, _tolerances_or_default(tolerances))
+    result = {**out, "verdict": "EQUIVALENT" if first is None else "CHANGED",
+              "first_changed_step": None if first is None else inferred[first],
+              "action_change_max": float(actions.max()), "attention_js_max": float(js.max()),
+              "action_change_step0": float(actions[0]), "attention_js_step0": float(js[0].max()),
+              "action_change_per_step": actions.tolist(), "attention_js_per_step": js.reshape(len(inferred), -1).max(axis=1).tolist()}
+    if first is not None:
+        result["change_at_first"] = {"action": float(actions[first]), "attention_js": float(js[first].max())}
+    if note:
+        result["note"] = note
+    return result
+
+
+def _tolerances_or_default(tolerances: Tolerances | None) -> Tolerances:
+    return tolerances if tolerances is not None else Tolerances()
+
+
+def replay_run(run_dir: str | Path, model_source: str | None = None, tolerances: Tolerances | None = None,
+               loaded_model=None) -> dict:
+    """Replay every finished episode of a run with recorded inputs (see the module docstring); returns replay.json."""
+    from harness.octo import load_pretrained
+    from harness.policy import BatchInference, resize_frame
+    from harness.run import checks
+
+    tolerances = _tolerances_or_default(tolerances)
+    run = load_run(run_dir)
+    if run.format == "legacy":
+        raise ReplayInputError(f"{run.path} was made before the run store and recorded no inputs; re-run it with "
+                               "--record-inputs")
+    protocol = protocol_from_manifest(run.manifest, run.path / "manifest.json")
+    episodes = [e for e in run.episodes if e.ok]
+    if not episodes:
+        raise ReplayInputError(f"{run.path} has no finished episode to replay; finish the run first")
+    for e in episodes:  # before the model loads: every episode must have its inputs
+        if not (e.directory / INPUTS).is_file():
+            recorded_inputs(e)
+    source = model_source or protocol.model
+    model = loaded_model if loaded_model is not None else load_pretrained(source)
+    config = protocol.policy.__class__(**{**vars(protocol.policy), "inference_batch": 1})
+    inference = BatchInference(model, config)
+    goals = None
+    if protocol.goal_images:
+        images = checks.decode_goal_images(protocol.goal_images)
+        goals = {k: resize_frame(v, model.goal_image_sizes[k]) for k, v in images.items() if k in model.goal_image_sizes}
+    results = [replay_episode(inference, e, int(model.window_size), goals, tolerances) for e in episodes]
+    changed = [r for r in results if r["verdict"] != "EQUIVALENT"]
+    first = min(changed, key=lambda r: (r["first_changed_step"] if r["first_changed_step"] is not None else 0)) if changed else None
+    finite = lambda xs: [x for x in xs if x is not None]  # noqa: E731
+    return {
+        "format": FORMAT,
+        "verdict": "CHANGED" if changed else "EQUIVALENT",
+        "run": str(run.path),
+        "recorded_model": run.model.source,
+        "recorded_model_fingerprint": protocol.model_fingerprint,
+        "model": source,
+        "tolerances": asdict(tolerances),
+        "units": {"action": "max |change| over the chunk, normalised action units",
+                  "attention": "max Jensen-Shannon divergence (bits) over layers and heads, float16"},
+        "platform_recorded": run.manifest.get("platform_fingerprint"),
+        "episodes": len(results),
+        "episodes_changed": len(changed),
+        "steps_compared": sum(r["compared_steps"] for r in results),
+        "action_change_max": max(finite([r["action_change_max"] for r in results]), default=None),
+        "attention_js_max": max(finite([r["attention_js_max"] for r in results]), default=None),
+        "first_change": None if first is None else {k: first.get(k) for k in ("task", "episode", "first_changed_step",
+                                                                              "change_at_first", "note")},
+        "episode_details": results,
+    }
+
+
+def summary_text(result: dict) -> str:
+    """A few lines for the terminal / CI log."""
+    tol = result["tolerances"]
+    lines = [f"replay: {result['verdict']}: {result['model']} on the inputs of {result['episodes']} episodes "
+             f"({result['steps_compared']} inferred steps) recorded by {result['recorded_model']}",
+             f"  largest change: action {_fmt(result['action_change_max'])} (tolerance {tol['action']:g} normalised units), "
+             f"attention JS {_fmt(result['attention_js_max'])} (tolerance {tol['attention_js']:g} bits)"]
+    first = result["first_change"]
+    if first is not None:
+        at = first.get("change_at_first") or {}
+        lines.append(f"  first change: {first['task']} episode {first['episode']} step {first['first_changed_step']}: "
+                     f"action {_fmt(at.get('action'))}, attention JS {_fmt(at.get('attention_js'))}"
+                     + (f" ({first['note']})" if first.get("note") else ""))
+    return "\n".join(lines)
+
+
+def _fmt(x) -> str:
+    return "n/a" if x is None else f"{x:.3g}"
+
+
+def exit_code(result: dict) -> int:
+    return 0 if result["verdict"] == "EQUIVALENT" else 1
