@@ -29,9 +29,13 @@ def check_environment(environ: Mapping[str, str] | None = None) -> None:
 
 
 def check_run_name(name: str) -> str:
-    """A run name is a plain folder name: no path separators, not '.'/'..', not hidden, not empty."""
+    """A run name is a plain folder name: no path separators, not '.'/'..', not hidden, not empty, no control
+    characters (a newline would split every line-based record and listing that names the run)."""
     if not isinstance(name, str) or not name.strip():
         raise ValueError("--run-name is empty; pass a plain folder name such as lift_eval")
+    if any(ord(c) < 32 or ord(c) == 127 for c in name) or name != name.strip():
+        raise ValueError(f"--run-name {name!r} holds control characters or surrounding spaces; pass a plain folder "
+                         "name such as lift_eval")
     if "/" in name or "\\" in name or "\0" in name or name in (".", "..") or name.startswith(".") or ".." in name:
         raise ValueError(f"--run-name {name!r} is not a plain folder name (no '/', no '..', not starting with '.'); "
                          "choose the parent folder with --out")

@@ -12,6 +12,7 @@ raise `Interrupted` (a KeyboardInterrupt) outside the store's critical sections;
 from __future__ import annotations
 
 import dataclasses
+import dataclasses
 import logging
 import platform
 import shutil
@@ -239,6 +240,9 @@ def execute(
                 log.warning("resuming run %s on another platform (differs: %s); its episodes record where they ran",
                             name, ", ".join(platform_differences(manifest.get("platform"), platform_now)) or "unknown")
             rows = store.load_rows({j.key for j in jobs}) if manifest is not None else {}
+            if manifest is not None and manifest.get("run") != name:  # a copied or renamed run folder
+                rows = _rename_run(store, manifest, rows, name)
+                manifest = store.read_manifest()
             done = {key for key, row in rows.items()
                     if (row.status == "ok" and (store.dir / row.directory / "episode.json").is_file())
                     or (row.status != "ok" and not retry_failed)}
@@ -247,6 +251,7 @@ def execute(
             if model is None and (pending or manifest is None):  # a finished run needs no model
                 from harness.octo import load_pretrained
 
+                log.info("loading %s", protocol.model)
                 model = load_pretrained(protocol.model, text_tokenizer=protocol.text_tokenizer)
             if model is not None:
                 task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)
@@ -315,6 +320,17 @@ def execute(
         ordered = tuple(rows[j.key] for j in jobs if j.key in rows)
         return RunSummary(store.dir, ordered, manifest, status, statistics(ordered, protocol.tasks, method=ci_method),
                           skipped=len(jobs) - len(pending))
+
+
+def _rename_run(store: RunStore, manifest: dict, rows: dict, name: str) -> dict:
+    """A run folder copied or moved to `name`: the manifest and every results.jsonl row take the folder's name (atomic
+    rewrites; the old name is kept as manifest["renamed_from"]), so the records never mix two names."""
+    old = manifest.get("run")
+    log.info("run folder %s was made as run %r; its records now name it %r", store.dir, old, name)
+    rows = {key: dataclasses.replace(row, run=name) for key, row in rows.items()}
+    store.rewrite_rows(rows.values())
+    store.write_manifest({**manifest, "run": name, "renamed_from": old})
+    return rows
 
 
 def _check_model(protocol: Protocol, model, goal_images) -> tuple[list[str], dict | None, str | None]:

@@ -91,7 +91,14 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
     episode_dir = context.episode_dir(job)
     meta = context.meta(job)
     writer = None
-    step_cb = (lambda t, record: on_step(job, t, record)) if on_step else None
+    steps = 0  # steps that ran, for the failed row when the episode fails after some (e.g. finishing its files)
+
+    def step_cb(t, record):
+        nonlocal steps
+        steps = t + 1
+        if on_step is not None:
+            on_step(job, t, record)
+
     try:
         writer = EpisodeWriter(episode_dir, tokens, meta, context.protocol.outputs)
         result = rollout(env, policy, writer.add_step, seed=job.seed, instruction=meta.instruction, goals=context.goals,
@@ -105,7 +112,7 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
     except Exception as exc:  # a failing episode is recorded and the run goes on
         if writer is not None:
             writer.abort()
-        return record_failure(context, job, exc, traceback.format_exc())
+        return record_failure(context, job, exc, traceback.format_exc(), steps)
     n = max(result.steps, 1)
     step = result.timings["step"] / n
     sim = result.timings["simulation"] / n
@@ -115,17 +122,18 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
                       job.directory)
 
 
-def record_failure(context: EpisodeContext, job: EpisodeJob, exc: BaseException, trace: str = "") -> EpisodeRow:
-    """Write the failed episode's episode.json where possible and return its "failed" row."""
+def record_failure(context: EpisodeContext, job: EpisodeJob, exc: BaseException, trace: str = "",
+                   steps: int = 0) -> EpisodeRow:
+    """Write the failed episode's episode.json where possible and return its "failed" row (`steps` that ran)."""
     error = f"{type(exc).__name__}: {exc}".splitlines()[0]
     log.error("episode %s failed: %s", job.directory, error)
     try:
         atomic_write_json(context.episode_dir(job) / "episode.json",
-                          {**asdict(context.meta(job)), "status": "failed", "success": False, "error": error,
-                           "traceback": trace})
+                          {**asdict(context.meta(job)), "status": "failed", "success": False, "steps": steps,
+                           "error": error, "traceback": trace})
     except OSError as write_error:  # the folder itself may be what failed; results.jsonl still records it
         log.error("could not write %s: %s", context.episode_dir(job) / "episode.json", write_error)
-    return EpisodeRow.failed(context.run, job, error)
+    return EpisodeRow.failed(context.run, job, error, steps=steps)
 
 
 class SequentialExecutor:

@@ -232,6 +232,11 @@ class RunStore:
             raise ResultsWriteError(f"cannot append to {path}: {e.strerror or e} (errno {e.errno}); "
                                     "free space or fix permissions, then run the same command again to resume") from None
 
+    def rewrite_rows(self, rows: Iterable[EpisodeRow]) -> None:
+        """Replace results.jsonl by `rows` in one atomic rename (a renamed run's rows take its new name)."""
+        data = "".join(json.dumps(row.to_dict(), sort_keys=True) + "\n" for row in rows).encode()
+        write_atomic(self.dir / RESULTS_JSONL, lambda f: f.write(data))
+
     def write_derived(self, manifest: dict, jobs: list[EpisodeJob], rows: dict[tuple[str, int], EpisodeRow],
                       status: str, method: str = "wilson") -> None:
         """results.json, summary.csv and statistics.csv from the rows (atomic; rows sorted by job order)."""
