@@ -100,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--gif", action="store_true", default=None, help="also write rollout.gif")
     r.add_argument("--bbox", action="store_true", default=None, help="draw the target object's bounding box on overlays")
     r.add_argument("--no-masks", action="store_true", default=None, help="do not render target/robot masks")
+    r.add_argument("--record-inputs", action="store_true", default=None,
+                   help="write each episode's policy inputs (inputs.npz: resized frames, proprio, seed, instruction; "
+                        "compressed) so `octo-harness replay` can run any model open loop on them")
     r.add_argument("--goal-images", type=Path, default=None,
                    help="folder with <obs key>.png goal images (image_primary.png, ...) for goal-conditioned models")
     r.add_argument("--fast-render", action="store_true", default=None,
@@ -166,6 +169,18 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--baseline", type=Path, required=True, metavar="RUN", help="baseline run folder")
     reg.add_argument("--model", required=True, help="candidate model (as for `run --model`)")
     reg.add_argument("--max-episodes", type=int, default=None, help="at most N episodes per task [the baseline's]")
+    rp = sub.add_parser("replay", help="run a model open loop on the inputs a run recorded (--record-inputs) and "
+                                       "compare its actions and attention with the run's",
+                        description="The model change isolated from the simulator and the platform: EQUIVALENT (every "
+                                    "inferred step within the tolerances) exit 0, CHANGED exit 1, invalid input exit 2.")
+    rp.add_argument("run", type=Path, metavar="RUN_DIR", help="a run made with --record-inputs (e.g. a committed baseline)")
+    rp.add_argument("--model", default=None, help="the model to replay [the run's own model]")
+    rp.add_argument("--action-tolerance", type=float, default=None,
+                    help="largest change of an action chunk, in normalised action units [3e-4]")
+    rp.add_argument("--attention-tolerance", type=float, default=None,
+                    help="largest Jensen-Shannon divergence (bits) of a layer's and head's readout attention [3.5e-7]")
+    rp.add_argument("--out", type=Path, default=None, help="output folder for replay.json [RUN_DIR/replay]")
+
     reg.add_argument("--max-drop", type=float, default=0.1, help="HELD rules out a larger drop in success rate [0.1]")
     reg.add_argument("--alpha", type=float, default=0.05, help="level of the sequential test [0.05]")
     reg.add_argument("--out", type=Path, default=Path("results/runs"), help="output root of the candidate run [results/runs]")
@@ -223,6 +238,22 @@ def _cmd_tasks() -> int:
 
 
 RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "executor", "ray_address", "policy_replicas")
+def _cmd_replay(args) -> int:
+    from harness.analysis.equivalence import Tolerances
+    from harness.files import atomic_write_json
+    from harness.run.replay import exit_code, replay_run, summary_text
+
+    defaults = Tolerances()
+    tolerances = Tolerances(action=defaults.action if args.action_tolerance is None else args.action_tolerance,
+                            attention_js=defaults.attention_js if args.attention_tolerance is None else args.attention_tolerance)
+    result = replay_run(args.run, args.model, tolerances)
+    out = args.out or args.run / "replay"
+    atomic_write_json(out / "replay.json", result)
+    print(summary_text(result))
+    print(f"replay: {out / 'replay.json'}")
+    return exit_code(result)
+
+
 
 
 def _cmd_run(args) -> int:
@@ -284,6 +315,8 @@ def main(argv: list[str] | None = None) -> int:
         return 128 + signum
     except _user_errors() as exc:
         if args.debug:
+        if args.command == "replay":
+            return _cmd_replay(args)
             raise
         message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"error: {message}", file=sys.stderr)
