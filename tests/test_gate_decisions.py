@@ -354,3 +354,40 @@ def test_held_error_by_exact_enumeration_stays_under_nominal():
     print(f"HELD error: new rule {worst_new:.4f}, Newcombe's limit alone {worst_newcombe:.4f} (nominal {ALPHA / 2})")
     assert worst_new <= ALPHA / 2
     assert worst_newcombe == pytest.approx(0.0896, abs=5e-4)  # the excess the audit reported, now closed
+
+
+def test_regress_on_an_all_errored_candidate_is_errored_and_stops_once_more_than_half_errored():
+    from harness.run.regress import _check_baseline, errored_tasks
+
+    tasks, seeds = ("Lift", "Stack"), 10
+    jobs = _jobs(tasks, seeds)
+    baseline = {(t, k): True for t in tasks for k in range(seeds)}
+    candidate = {**{("Lift", k): True for k in range(seeds)}, **{("Stack", k): None for k in range(seeds)}}
+    gate = gate_on_outcomes(baseline, candidate, jobs, tasks, ALPHA, MAX_DROP)
+    assert gate["test"].errored == {"Lift": 0, "Stack": 10} and gate["test"].tests["Stack"].units == 0
+    assert gate["compare_verdict"] == "ERRORED" and gate["verdict"] == "ERRORED"
+    assert gate_exit_code(gate["verdict"]) == 3 and gate_exit_code(gate["verdict"], "regressed") == 3
+    # the executor stops once the candidate errored on more than half of a task's pairs (5 of 10 is not more)
+    partial = {("Stack", k): None for k in range(5)}
+    assert errored_tasks(baseline, partial, jobs) == []
+    assert errored_tasks(baseline, {**partial, ("Stack", 5): None}, jobs) == ["Stack"]
+    # a baseline that errored on most of a task's episodes is refused before anything runs (exit 2)
+    broken = {**baseline, **{("Lift", k): None for k in range(6)}}
+    with pytest.raises(ValueError, match="errored on 6 of 10 episodes of Lift"):
+        _check_baseline(broken, jobs, "base")
+    _check_baseline({**baseline, **{("Lift", k): None for k in range(5)}}, jobs, "base")  # half: allowed
+
+
+def test_regress_never_exits_0_where_compare_on_the_same_pairs_does_not():
+    rng = np.random.default_rng(5)
+    tasks = ("Lift", "Stack")
+    for _ in range(100):
+        seeds = int(rng.integers(3, 40))
+        rates = rng.random((2, 2))
+        baseline = {(t, k): bool(rng.random() < rates[i, 0]) for i, t in enumerate(tasks) for k in range(seeds)}
+        candidate = {(t, k): (None if rng.random() < 0.05 else bool(rng.random() < rates[i, 1]))
+                     for i, t in enumerate(tasks) for k in range(seeds)}
+        gate = gate_on_outcomes(baseline, candidate, _jobs(tasks, seeds), tasks, ALPHA, MAX_DROP)
+        for fail_on in ("regressed", "suspect", "underpowered"):
+            if gate_exit_code(gate["compare_verdict"], fail_on) != 0:
+                assert gate_exit_code(gate["verdict"], fail_on) != 0, (gate["verdict"], gate["compare_verdict"])

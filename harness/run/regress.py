@@ -129,7 +129,7 @@ def gate_on_outcomes(baseline: dict, candidate: dict, jobs: Sequence[EpisodeJob]
                 "candidate_status": "failed" if candidate[(j.task, j.seed)] is None else "ok"}
                for paired in rounds for j in paired]
     tables, errored = outcome_tables(details)
-    outcomes = outcome_verdicts(tables, CompareConfig(max_drop=max_drop, alpha=alpha), errored)
+    outcomes = outcome_verdicts(tables, CompareConfig(max_drop=max_drop, alpha=alpha), errored, project=False)
     compared = overall_verdict(outcomes)
     sequential = test.summary()["verdict"]
     return {"verdict": gate_verdict(sequential, compared), "sequential_verdict": sequential,
