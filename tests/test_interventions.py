@@ -145,3 +145,28 @@ def test_intervention_runs_resume_and_compare_like_any_run(tmp_path, capsys):
     plain = np.load(tmp_path / "plain" / "Lift" / "episode_0" / "actions.npz")["predicted"]
     masked = np.load(tmp_path / "masked" / "Lift" / "episode_0" / "actions.npz")["predicted"]
     assert np.abs(plain[0] - masked[0]).max() > 1e-3
+
+
+@pytest.mark.slow
+def test_attribution_and_faithfulness_in_a_run_leave_the_actions_alone(tmp_path):
+    from harness import cli
+
+    common = ["run", "--model", str(REFERENCE), "--task", "Lift", "--episodes", "1", "--max-steps", "6", "--fast-render",
+              "--png-every", "0", "--no-video", "--out", str(tmp_path)]
+    assert cli.main([*common, "--run-name", "plain"]) == 0
+    assert cli.main([*common, "--run-name", "probed", "--faithfulness-every", "3", "--attribution", "attention:2,saliency"]) == 0
+    episode = tmp_path / "probed" / "Lift" / "episode_0"
+    plain = np.load(tmp_path / "plain" / "Lift" / "episode_0" / "actions.npz")["predicted"]
+    np.testing.assert_array_equal(np.load(episode / "actions.npz")["predicted"], plain)  # measured beside, same actions
+    maps = np.load(episode / "attribution.npz")
+    assert list(maps["step"]) == list(range(6))
+    assert maps["map/saliency/image_wrist"].shape == (6, 4, 4) and "map/random/image_primary" in maps
+    rows = [json.loads(line) for line in (episode / "faithfulness.jsonl").read_text().splitlines()]
+    assert sorted({r["step"] for r in rows}) == [0, 3]
+    assert {(r["camera"], r["method"]) for r in rows} == {(c, m) for c in ("image_primary", "image_wrist")
+                                                           for m in ("attention:2", "saliency", "random")}
+    for r in rows:
+        assert len(r["deletion_curve"]) == 17 and r["deletion_curve"][0] == pytest.approx(0, abs=1e-5)
+        assert r["deletion_curve"][-1] == pytest.approx(r["change_all"], rel=1e-3)
+    policy = json.loads((tmp_path / "probed" / "manifest.json").read_text())["protocol"]["policy"]
+    assert policy["faithfulness_every"] == 3 and policy["attribution"] == "attention:2,saliency"

@@ -171,8 +171,9 @@ def saliency_map(analysis: StepAnalysis) -> dict[str, np.ndarray]:
     return out
 
 
-def random_map(analysis: StepAnalysis, seed: int) -> dict[str, np.ndarray]:
-    """Uniform random scores per patch from `seed` (the control: a ranking that knows nothing)."""
+def random_map(analysis: StepAnalysis, seed) -> dict[str, np.ndarray]:
+    """Uniform random scores per patch from `seed` (an int or a sequence of ints; the control: a ranking that
+    knows nothing)."""
     rng = np.random.default_rng(seed)
     return {key: rng.random((r, c)) for _, key, r, c in analysis.tokens.image_groups}
 
@@ -213,7 +214,7 @@ def _layer_index(text: str, layers: int) -> int:
     return index % layers
 
 
-def attribute(analysis: StepAnalysis, method: str, seed: int = 0) -> dict[str, np.ndarray]:
+def attribute(analysis: StepAnalysis, method: str, seed=0) -> dict[str, np.ndarray]:
     """One method by name (see the module docstring) -> {obs key: (rows, cols)} scores (higher = more used)."""
     base, _, layer = method.partition(":")
     if base == "attention":
@@ -306,3 +307,45 @@ class OctoFunctions:
 
         return StepFunction(fn=fn, batch=batch, images=images, tokens=tokens,
                             shape=(self.layers, self.heads, tokens.num_keys))
+
+
+# ------------------------------------------------------------------------------------------- in a run
+
+
+class Probe:
+    """What a run with `--attribution` / `--faithfulness-every` computes at an inference step, for one model.
+
+    `__call__(observations, task, rng, seed, step)` (batch-1 inputs as `sample_actions` takes them) returns
+    {"maps": {method: {obs key: (rows, cols) float32}}, "faithfulness": [rows of step_faithfulness] (only
+    every `every`-th step; [] otherwise), "seconds": wall time}. The random map is seeded by (seed, step).
+    """
+
+    def __init__(self, model, methods: str | None, every: int = 0, fill: str = "mean"):
+        from harness.analysis.faithfulness import FILLS
+
+        if fill not in FILLS:
+            raise ValueError(f"unknown faithfulness fill {fill!r}; use one of {', '.join(FILLS)}")
+        self.functions = OctoFunctions(model)
+        self.methods = parse_methods(methods or DEFAULT_METHODS, self.functions.layers)
+        self.every = int(every)
+        self.fill = fill
+        self.gradients = any(m in ("grad-attention", "saliency") for m in self.methods)
+
+    def __call__(self, observations: Mapping, task: Mapping, rng, seed: int, step: int) -> dict:
+        import time
+
+        from harness.analysis.faithfulness import step_faithfulness
+
+        start = time.perf_counter()
+        fn = self.functions.at(observations, task, rng)
+        analysis = analyse(fn, gradients=self.gradients)
+        maps = {m: attribute(analysis, m, seed=[int(seed), int(step)]) for m in self.methods}
+        rows = []
+        if self.every > 0 and step % self.every == 0:
+            rows = step_faithfulness(fn.batch, fn.images, analysis.actions, maps, fill=self.fill,
+                                     seed=[int(seed), int(step), 1])
+        maps = {m: {k: v.astype(np.float32) for k, v in by.items()} for m, by in maps.items()}
+        return {"maps": maps, "faithfulness": rows, "seconds": time.perf_counter() - start}
+
+
+DEFAULT_METHODS = "attention,rollout,grad-attention,saliency"

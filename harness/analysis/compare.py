@@ -294,18 +294,19 @@ def _outcome_block(counts: PairedCounts, config: CompareConfig, errored: Errored
     }
 
 
-def _notes(label: str, block: dict, alpha: float) -> list[str]:
-    """The lines that say why a block's verdict is what it is (errors, an unreachable REGRESSED)."""
+def _notes(label: str, block: dict, alpha: float, pooled: bool = False) -> list[str]:
+    """The lines that say why a block's verdict is what it is (errors, an unreachable REGRESSED); the pooled
+    table's errors are its tasks' (already said)."""
     notes = []
     n, paired = block["pairs"], block["paired_episodes"]
     for arm in ("candidate", "baseline"):
         errored = block[arm]["errored"]
-        if errored_most(errored, paired):
+        if errored_most(errored, paired) and not pooled:
             tail = ("it cannot pass the gate" if arm == "candidate" else
                     "the baseline cannot serve as the reference, so the gate cannot pass; re-run the baseline")
             notes.append(f"ERRORED: the {arm} errored on {errored} of {paired} paired episodes in {label} "
                          f"(more than half): {tail}.")
-    if block["errored_pairs"] and block["verdict"] != "ERRORED":
+    if block["errored_pairs"] and block["verdict"] != "ERRORED" and not pooled:
         notes.append(f"{block['errored_pairs']} errored pair(s) in {label} left out of n = {n} (baseline errored "
                      f"{block['baseline']['errored']}, candidate {block['candidate']['errored']}): at best "
                      "UNDERPOWERED.")
@@ -357,7 +358,7 @@ def outcome_verdicts(tables: dict[str, PairedCounts], config: CompareConfig,
         block["regressed_reachable"] = regressed_reachable(counts.n, config.alpha, factor)
         block["pairs_for_regressed"] = pairs_for_regressed(config.alpha, factor)
         if name != POOLED or len(tables) > 1:
-            notes += _notes("pooled" if name == POOLED else name, block, config.alpha)
+            notes += _notes("pooled" if name == POOLED else name, block, config.alpha, pooled=name == POOLED)
     pooled = blocks.pop(POOLED)
     return {"tasks": blocks, "overall": pooled, "holm_family": factor, "notes": notes}
 

@@ -6,15 +6,17 @@ papers they implement:
 - `baseline_image`: what a deleted patch becomes: the image's per-channel mean ("mean") or a Gaussian blur
   of the image ("blur", sigma = one patch width).
 - Deletion and insertion curves (RISE, Petsiuk, Das & Saenko 2018; pixel flipping, Samek et al. 2017) on the
-  patch grid: delete the top-k patches of the ranking (k = 0..n), or insert them into the fully deleted
-  image, and measure the predicted chunk's change `action_change` (RMS over the chunk, normalised units,
-  same rng). Curves are in "action retained" units y(k) = 1 - change(k) / change(all patches deleted):
-  deletion starts at 1 and ends at 0 (a faithful map drops at once: low AUC); insertion starts at 0 and ends
-  at 1 (a faithful map rises at once: high AUC). AUC: trapezoid over the deleted fraction k/n.
+  patch grid, for a policy's continuous action: delete the top-k patches of the ranking (k = 0..n), or insert
+  them into the fully deleted image, and measure how far the predicted chunk moves from the one predicted on
+  the intact image (`action_change`: RMS over the chunk, normalised units, same rng). The deletion curve
+  starts at 0 and ends at change(all deleted); a faithful map makes it rise at once (HIGH AUC). The insertion
+  curve starts at change(all deleted) and ends at 0; a faithful map makes it fall at once (LOW AUC). AUC:
+  trapezoid over the deleted fraction k/n, in action units. (RISE's probability-retained form, 1 -
+  change/change(all), is not used: a camera whose full deletion changes the chunk little makes it explode.)
 - top-k / random-k / bottom-k: the change when the k highest-, randomly- or lowest-ranked patches are deleted.
-- `relative_to_random`: a method's AUC over the random map's on the same steps (sums over steps, so
-  1 = no better than random; deletion < 1 and insertion > 1 are better than random) with a percentile
-  bootstrap interval over episodes (over steps when there is one episode).
+- `relative_to_random`: a method's AUC over the random map's on the same steps (sums over steps, so 1 = no
+  better than random; deletion > 1 and insertion < 1 are better than random) with a percentile bootstrap
+  interval over episodes (over steps when there is one episode).
 
 A camera whose whole deletion changes the chunk by less than `MIN_CHANGE` has no curves (the policy does not
 use it at this step; nothing to rank): its rows carry `change_all` and NaN elsewhere.
@@ -153,10 +155,9 @@ def camera_faithfulness(
         at += len(topk)
 
     valid = change_all >= MIN_CHANGE
-    scale = change_all if valid else np.nan
-    retained = lambda c: 1.0 - np.asarray(c) / scale  # noqa: E731
-    control_del = np.mean([auc(fractions, retained(d)) for d, _ in curves[len(orders):]])
-    control_ins = np.mean([auc(fractions, retained(i)) for _, i in curves[len(orders):]])
+    area = lambda c: float(auc(fractions, c)) if valid else np.nan  # noqa: E731
+    control_del = np.mean([area(d) for d, _ in curves[len(orders):]])
+    control_ins = np.mean([area(i) for _, i in curves[len(orders):]])
     position = {k: int(np.searchsorted(ks, k)) for k in topk}  # every top-k count is on the curve
     random_k = {k: float(np.mean([d[position[k]] for d, _ in curves[len(orders):]])) for k in topk}
 
@@ -166,13 +167,13 @@ def camera_faithfulness(
             "method": name,
             "patches": n,
             "change_all": change_all,
-            "deletion_auc": float(auc(fractions, retained(d))),
-            "insertion_auc": float(auc(fractions, retained(i))),
+            "deletion_auc": area(d),
+            "insertion_auc": area(i),
             "random_deletion_auc": float(control_del),
             "random_insertion_auc": float(control_ins),
             "fractions": fractions.tolist(),
-            "deletion_curve": [float(x) for x in retained(d)],
-            "insertion_curve": [float(x) for x in retained(i)],
+            "deletion_curve": [float(x) for x in d],
+            "insertion_curve": [float(x) for x in i],
         }
         for j, k in enumerate(topk):
             row[f"top_k/{k}"] = float(d[position[k]])

@@ -15,7 +15,7 @@ from harness.analysis.attention import camera_maps
 from harness.files import atomic_write_json, write_atomic
 from harness.octo.tokens import TokenMap
 from harness.report import html as H
-from harness.report.compare_md import pairs_cell, to_decide
+from harness.report.compare_md import difference_label, pairs_cell, to_decide
 from harness.report.figures import _figure, _png, overlay_grid, run_colours, success_chart
 
 ARM_LABELS = ("baseline", "candidate")
@@ -182,9 +182,10 @@ def compare_page(result: dict, frames: dict | None = None, markdown: str | None 
     outcome_body = (
         H.table(["task", "pairs", "baseline success", "candidate success", "difference = candidate - baseline",
                  "McNemar p (Holm)", "verdict", "to decide"], _outcome_rows(result), numeric=(1,))
-        + H.note(f"Intervals at {100 * (1 - cfg['alpha']):g}%: Wilson for each arm, Newcombe (1998, method 10) for the "
-                 f"paired difference. HELD = the interval and an exact test rule out a drop larger than {cfg['max_drop']:g}; "
-                 "SUSPECT = the interval lies below 0 but the exact McNemar test (after Holm) does not reject; n counts "
+        + H.note(f"Intervals: Wilson at {100 * (1 - cfg['alpha']):g}% for each arm; for the paired difference "
+                 f"{difference_label(result)} (1998, method 10). HELD = the interval and an exact test rule out a "
+                 f"drop larger than {cfg['max_drop']:g}; SUSPECT = the interval lies below 0 but the exact McNemar test "
+                 "(after Holm) does not reject; n counts "
                  "pairs in which both arms ran to an outcome (errored pairs are left out and counted).")
         + H.image(success_chart(tasks, series), "success per task, both arms")
     )

@@ -49,6 +49,15 @@ def _row(name: str, block: dict) -> str:
             f"**{block['verdict']}** | {to_decide(block)} |")
 
 
+def difference_label(result: dict) -> str:
+    """The difference intervals' method and confidence, e.g. "95% Newcombe" or "98.3% Newcombe, simultaneous
+    over 3 tables" (Bonferroni over the Holm family)."""
+    outcomes = result["outcomes"]
+    level = outcomes["overall"].get("difference_confidence", 1 - result["config"]["alpha"])
+    family = outcomes.get("holm_family", 1)
+    return f"{100 * level:.3g}% Newcombe" + (f", simultaneous over {family} tables" if family > 1 else "")
+
+
 def _layers(values) -> str:
     return ", ".join(_num(float(v), 2) for v in values) if values is not None else "n/a"
 
@@ -76,7 +85,7 @@ def markdown_summary(result: dict, exit_code: int | None = None) -> str:
     lines += [
         "",
         f"| task | pairs | baseline success [{confidence} Wilson] | candidate success | difference = candidate - "
-        f"baseline [{confidence} Newcombe] | McNemar p (Holm) | verdict | to decide |",
+        f"baseline [{difference_label(result)}] | McNemar p (Holm) | verdict | to decide |",
         "|---|---:|---|---|---|---|---|---|",
     ]
     outcomes = result["outcomes"]
