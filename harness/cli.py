@@ -198,7 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", type=Path, default=None, help="output folder for replay.json [RUN_DIR/replay]")
 
     reg.add_argument("--max-drop", type=float, default=0.1, help="HELD rules out a larger drop in success rate [0.1]")
-    reg.add_argument("--alpha", type=float, default=0.05, help="level of the sequential test [0.05]")
+    reg.add_argument("--alpha", type=float, default=0.05,
+                     help="family-wise level; each task's sequential test runs at alpha / tasks [0.05]")
     reg.add_argument("--out", type=Path, default=Path("results/runs"), help="output root of the candidate run [results/runs]")
     reg.add_argument("--run-name", default=None, help="candidate run folder name [<model>_<protocol hash>]")
     reg.add_argument("--fail-on", choices=["regressed", "suspect", "underpowered", "changed"], default="suspect",
