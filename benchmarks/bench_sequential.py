@@ -2,7 +2,8 @@
 
 Prints, per scenario (baseline rate, candidate rate, correlation of the arms on a seed), the share of runs ending
 REGRESSED / IMPROVED / HELD / UNDERPOWERED within the pair budget, the pairs used (mean, median) and the pairs a
-fixed-size two-sided McNemar test needs for 80% / 95% power at the same discordance (Connor 1987).
+fixed-size two-sided exact McNemar test needs for 80% / 95% power at the same discordance (exact unconditional
+power, harness.analysis.paired.mcnemar_exact_sample_size; "-" above 5000 pairs).
 
     .venv/bin/python benchmarks/bench_sequential.py [--runs 2000] [--pairs 300]
 """
@@ -17,7 +18,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from harness.analysis.paired import mcnemar_sample_size  # noqa: E402
+from harness.analysis.paired import mcnemar_exact_sample_size  # noqa: E402
 from harness.analysis.sequential import SequentialConfig, first_decisions, simulate_pairs  # noqa: E402
 
 SCENARIOS = [(0.5, 0.5, 0.0), (0.8, 0.8, 0.5), (0.9, 0.9, 0.8), (0.8, 0.5, 0.0), (0.8, 0.5, 0.5), (0.8, 0.7, 0.0),
@@ -42,8 +43,8 @@ def main() -> int:
         verdict, used = first_decisions(y, config)
         share = {v: float(np.mean(verdict == v)) for v in ("REGRESSED", "IMPROVED", "HELD", "UNDERPOWERED")}
         pb, pc = float(np.mean(y == -1)), float(np.mean(y == 1))
-        fixed = [mcnemar_sample_size(pb, pc, args.alpha, power) for power in (0.8, 0.95)]
-        fixed = ["-" if f is None or f > 10**6 else str(f) for f in fixed]
+        fixed = [mcnemar_exact_sample_size(pb, pc, args.alpha, power, limit=5000) for power in (0.8, 0.95)]
+        fixed = ["-" if f is None else str(f) for f in fixed]
         print(f"{base:5.2f} {cand:5.2f} {corr:5.2f} | {share['REGRESSED']:6.3f} {share['IMPROVED']:6.3f} "
               f"{share['HELD']:6.3f} {share['UNDERPOWERED']:6.3f} | {used.mean():6.1f} {np.median(used):6.0f} | "
               f"{fixed[0]:>7} {fixed[1]:>7} | {time.perf_counter() - start:5.1f}")
