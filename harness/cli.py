@@ -132,14 +132,6 @@ def build_parser() -> argparse.ArgumentParser:
                         "method every K-th step, in faithfulness.jsonl [0 = never; methods default to all]")
     r.add_argument("--faithfulness-fill", choices=["mean", "blur"], default=None,
                    help="what a deleted patch becomes in the faithfulness curves [mean]")
-    r.add_argument("--attribution", default=None, metavar="METHODS",
-                   help="store attribution maps at every inference step in attribution.npz: comma-separated attention "
-                        "(every layer; attention:L one), rollout, grad-attention, saliency; random is always added")
-    r.add_argument("--faithfulness-every", type=int, default=None, metavar="K",
-                   help="open-loop faithfulness (deletion/insertion curves, top/random/bottom-k) of every attribution "
-                        "method every K-th step, in faithfulness.jsonl [0 = never; methods default to all]")
-    r.add_argument("--faithfulness-fill", choices=["mean", "blur"], default=None,
-                   help="what a deleted patch becomes in the faithfulness curves [mean]")
     r.add_argument("--text-tokenizer", default=None, metavar="auto|fallback|PATH",
                    help="text tokenizer: the checkpoint's own (t5-base from the Hugging Face cache), the deterministic "
                         "fallback (not T5), or a tokenizer.json / folder; part of the model fingerprint [auto]")
