@@ -253,6 +253,7 @@ def test_an_identical_task_row_says_identical(tmp_path, monkeypatch):
     result = compare_runs(base, base)
     lift = result["outcomes"]["tasks"]["Lift"]
     assert result["verdict"] == "IDENTICAL" and lift["verdict"] == "IDENTICAL" and lift["paired_verdict"] == "UNDERPOWERED"
+    assert lift["notes"] and result["outcomes"]["notes"] == []  # "REGRESSED is unreachable" is moot when identical
     text = markdown_summary(result, 0)
     assert "**IDENTICAL**" in text and "UNDERPOWERED" not in text
     assert "difference = candidate - baseline" in text

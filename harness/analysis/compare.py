@@ -46,6 +46,7 @@ from harness.analysis.paired import (
     regressed_reachable,
     worst,
 )
+from harness.analysis.provenance import input_agreement, provenance
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run
 from harness.analysis.stats import wilson_interval
 
@@ -59,7 +60,6 @@ EXIT_OK, EXIT_FAIL, EXIT_INVALID, EXIT_ERRORED = 0, 1, 2, 3
 MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "outputs", "harness_version",
               "policy.full_attention", "policy.dataset_key", "policy.inference_batch",
               "policy.intervention",  # an intervention run against a plain one: the change is what is measured
-              "policy.attribution", "policy.faithfulness_every", "policy.faithfulness_fill",  # measured beside, same actions
               # legacy manifests (before the run store) keep model facts at the top level
               "model_is_random", "model_note", "text_tokenizer", "dataset_key", "git_commit", "versions")
 ARRAY_FILES = ("actions.npz", "attention.npz")
@@ -75,7 +75,7 @@ class CompareConfig:
     max_drop: float = 0.1  # HELD needs the interval to rule out a drop larger than this
     alpha: float = 0.05  # family-wise level of the McNemar tests; intervals at 1 - alpha
     first_steps: int = 10  # per-step divergence over steps 0..first_steps-1
-    atol: float = 1e-6  # IDENTICAL: every paired array equal within this
+    atol: float = 0.0  # IDENTICAL: every paired array equal within this (0: bit-level)
 
     def __post_init__(self):
         if not 0 < self.alpha < 1:
@@ -247,6 +247,7 @@ def _compare_pair(task, seed, base: EpisodeRecord, cand: EpisodeRecord, truncate
     out["identical"] = difference is None
     out["difference"] = difference
     out["compared_steps"] = steps
+    out["inputs"] = input_agreement(a, b)  # leading steps both arms fed the policy identical inputs
 
     pa, pb = a.get("actions.npz:predicted"), b.get("actions.npz:predicted")
     ra, rb = a.get("attention.npz:readout_attention"), b.get("attention.npz:readout_attention")
@@ -258,6 +259,7 @@ def _compare_pair(task, seed, base: EpisodeRecord, cand: EpisodeRecord, truncate
     ) and ra is not None and rb is not None and ra.shape[1:] == rb.shape[1:]
     if tokens_equal and steps:
         out["js"] = attention_divergence(ra[:steps], rb[:steps])  # (steps, layers, heads)
+        out["js_step0_max"] = float(out["js"][0].max())
         la = target_lift({k.split(":", 1)[1]: v for k, v in a.items() if k.startswith("attention.npz:")})
         lb = target_lift({k.split(":", 1)[1]: v for k, v in b.items() if k.startswith("attention.npz:")})
         out["lift_change_step0"] = {obs: lb[obs][0] - la[obs][0] for obs in la if obs in lb}  # (layers,)
@@ -358,8 +360,9 @@ def outcome_verdicts(tables: dict[str, PairedCounts], config: CompareConfig,
         block["holm_factor"] = factor
         block["regressed_reachable"] = regressed_reachable(counts.n, config.alpha, factor)
         block["pairs_for_regressed"] = pairs_for_regressed(config.alpha, factor)
-        if name != POOLED or len(tables) > 1:
-            notes += _notes("pooled" if name == POOLED else name, block, config.alpha, pooled=name == POOLED)
+        block["notes"] = ([] if name == POOLED and len(tables) == 1 else
+                          _notes("pooled" if name == POOLED else name, block, config.alpha, pooled=name == POOLED))
+        notes += block["notes"]
     pooled = blocks.pop(POOLED)
     return {"tasks": blocks, "overall": pooled, "holm_family": factor, "notes": notes}
 
@@ -472,6 +475,8 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
     outcomes["overall"]["paired_verdict"] = outcomes["overall"]["verdict"]
     if identical:
         outcomes["overall"]["verdict"] = "IDENTICAL"
+    outcomes["notes"] = [note for block in [*outcomes["tasks"].values(), outcomes["overall"]]
+                         if block["verdict"] != "IDENTICAL" for note in block["notes"]]  # nothing to explain there
     verdict = overall_verdict(outcomes, identical)
     return {
         "format": FORMAT,
@@ -491,6 +496,7 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
         },
         "outcomes": outcomes,
         "drift": _drift(details, config),
+        "provenance": provenance(baseline.manifest, candidate.manifest, details),
         "pair_details": [
             {k: v for k, v in d.items() if k not in ("js", "action_l2", "lift_change_step0")}
             | {"step0_action_l2": float(d["action_l2"][0]) if "action_l2" in d else None,
