@@ -2,7 +2,8 @@
 
 Importing this package first chooses the headless GL backend (`envs.gl.configure`: EGL, else OSMesa)
 because MuJoCo reads it at import time, then registers every task with gymnasium as
-"octo_harness/<Task>-v0". robosuite itself is imported lazily by `make`.
+"octo_harness/<Task>-v0". robosuite itself is imported lazily by `make`; its import-time warnings about
+files and robots the harness does not use are dropped (`robosuite_env.quiet_robosuite_import`).
 
     import envs
     env = envs.make("Lift", masks=True)
@@ -28,6 +29,9 @@ from envs.gl import HeadlessGLError  # noqa: E402
 from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvOptions, parse_camera, to_convention  # noqa: E402
 from envs.render import UnknownCameraError  # noqa: E402
 from envs.robosuite_env import EnvConfig, EnvConfigError, RobosuiteEnv, WrongThreadError, parse_cameras  # noqa: E402
+from envs.robosuite_env import quiet_robosuite_import  # noqa: E402
+
+quiet_robosuite_import()
 from envs.tasks import TaskSpec, UnknownTaskError, get_task, list_tasks, task_table  # noqa: E402
 
 __all__ = [

@@ -28,6 +28,7 @@ size) are fixed at construction by `model_seed`, identical for all environments 
 
 from __future__ import annotations
 
+import os
 import threading
 from dataclasses import dataclass, field
 
@@ -89,10 +90,42 @@ def parse_cameras(cameras: dict[str, tuple[str, int]] | None, task: TaskSpec) ->
     return tuple(specs)
 
 
-def _import_robosuite():
-    """robosuite, imported after GL configuration, with its INFO chatter silenced."""
+# robosuite's import-time warnings that say nothing about a run: no private macros file (3 lines), robosuite_models
+# and mink (robots and an IK the harness does not use) not installed. Dropped at the source unless
+# OCTO_HARNESS_VERBOSE=1 (`octo-harness --verbose`).
+ROBOSUITE_IMPORT_NOISE = ("private macro file", "setup_macros.py", "import robosuite_models",
+                          "mink-based whole-body IK")
+
+
+class _DropImportNoise:
+    """A logging filter dropping records whose message holds one of `fragments`."""
+
+    def __init__(self, fragments: tuple[str, ...]):
+        self.fragments = fragments
+
+    def filter(self, record) -> bool:
+        message = record.getMessage()
+        return not any(fragment in message for fragment in self.fragments)
+
+
+def quiet_robosuite_import() -> None:
+    """Drop ROBOSUITE_IMPORT_NOISE from robosuite's logger (unless OCTO_HARNESS_VERBOSE=1); robosuite's own console
+    handler prints what is left, not passed on to the root logger as well. Run before robosuite is first imported
+    (`import envs` does); idempotent."""
     import logging
 
+    logger = logging.getLogger("robosuite_logs")
+    if os.environ.get("OCTO_HARNESS_VERBOSE", "") in ("", "0") \
+            and not any(isinstance(f, _DropImportNoise) for f in logger.filters):
+        logger.addFilter(_DropImportNoise(ROBOSUITE_IMPORT_NOISE))
+    logger.propagate = False
+
+
+def _import_robosuite():
+    """robosuite, imported after GL configuration, with its INFO chatter and known import-time warnings silenced."""
+    import logging
+
+    quiet_robosuite_import()
     import robosuite
 
     logging.getLogger("robosuite_logs").setLevel(logging.WARNING)

@@ -6,7 +6,6 @@ Only parses arguments into frozen configs, wires the runner and prints; user err
 from __future__ import annotations
 
 import argparse
-import logging
 import signal
 import sys
 import threading
@@ -62,6 +61,8 @@ def _execution(args):
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="octo-harness", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
+    parser.add_argument("--verbose", action="store_true",
+                        help="also show other libraries' INFO lines and start-up warnings (hidden by default)")
     sub = parser.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser("run", help="run (or resume) closed-loop episodes and record attention",
@@ -132,6 +133,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "method every K-th step, in faithfulness.jsonl [0 = never; methods default to all]")
     r.add_argument("--faithfulness-fill", choices=["mean", "blur"], default=None,
                    help="what a deleted patch becomes in the faithfulness curves [mean]")
+    r.add_argument("--verbose", action="store_true", default=argparse.SUPPRESS,
+                   help="also show other libraries' INFO lines and start-up warnings")
     r.add_argument("--text-tokenizer", default=None, metavar="auto|fallback|PATH",
                    help="text tokenizer: the checkpoint's own (t5-base from the Hugging Face cache), the deterministic "
                         "fallback (not T5), or a tokenizer.json / folder; part of the model fingerprint [auto]")
@@ -272,7 +275,7 @@ def _cmd_run(args) -> int:
 
     factory = _execution(args)
 
-    given = {k: v for k, v in vars(args).items() if v is not None and k not in ("command", "debug", *RUN_CONTROL)}
+    given = {k: v for k, v in vars(args).items() if v is not None and k not in ("command", "debug", "verbose", *RUN_CONTROL)}
     if args.resume is not None:
         if given or args.protocol is not None:
             raise ValueError(f"--resume takes the protocol from {args.resume}/manifest.json; drop "
@@ -304,7 +307,9 @@ def _cmd_run(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="[%(name)s] %(message)s")
+    from harness import console
+
+    console.configure(args.verbose)
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
     try:
