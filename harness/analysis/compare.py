@@ -88,29 +88,6 @@ class CompareConfig:
 
 # ------------------------------------------------------------------------------------------- pure maths
 
-def jensen_shannon(p: np.ndarray, q: np.ndarray, axis: int = -1) -> np.ndarray:
-    """Jensen-Shannon divergence in bits (0 = equal, 1 = disjoint support) between rows normalised along `axis`.
-
-    p, q (..., keys) >= 0 -> (...). JS = H(m) - (H(p) + H(q)) / 2 with m = (p + q) / 2.
-    """
-    p = np.asarray(p, np.float64)
-    q = np.asarray(q, np.float64)
-    p = p / np.maximum(p.sum(axis=axis, keepdims=True), 1e-300)
-    q = q / np.maximum(q.sum(axis=axis, keepdims=True), 1e-300)
-    m = 0.5 * (p + q)
-
-    def kl(a, b):
-        ratio = np.divide(a, b, out=np.ones_like(a), where=(a > 0) & (b > 0))
-        return (a * np.log2(ratio)).sum(axis=axis)
-
-    return np.clip(0.5 * kl(p, m) + 0.5 * kl(q, m), 0.0, 1.0)
-
-
-def attention_divergence(base: np.ndarray, cand: np.ndarray) -> np.ndarray:
-    """readout attention (..., layers, heads, readouts, keys) x2 -> (..., layers, heads) JS in bits, mean over readouts."""
-    return jensen_shannon(base, cand).mean(axis=-1)
-
-
 def action_difference(base: np.ndarray, cand: np.ndarray) -> np.ndarray:
     """predicted chunks (..., horizon, dim) x2 -> (...) L2 norm of the difference over the whole chunk."""
     diff = np.asarray(cand, np.float64) - np.asarray(base, np.float64)

@@ -262,7 +262,7 @@ def summary_text(result: dict, code: int) -> str:
         f"regress: {result['verdict']} after {result['pairs_used']} pairs ({result['rounds_used']} rounds"
         + (f", {result['errored_pairs']} errored pairs left out" if result.get("errored_pairs") else "")
         + f") of {result['baseline_pairs']} in the baseline",
-        f"  sequential test per task (alpha {seq['alpha']:g} / {len(seq['tasks'])} tasks = {seq['task_alpha']:.3g} each, "
+        f"  sequential test per task (alpha {seq['alpha']:g} / {len(seq['tasks'])} task(s) = {seq['task_alpha']:.3g} each, "
         f"max drop {seq['max_drop']:g}, reject at e-value {seq['threshold']:g}): {result['sequential_verdict']}",
     ]
     for task, t in seq["tasks"].items():
@@ -274,8 +274,9 @@ def summary_text(result: dict, code: int) -> str:
     lines += [
         f"  fixed-size comparison of the pairs run: {result['compare_verdict']}"
         + "".join(f"\n    {note}" for note in result["compare"]["outcomes"].get("notes", [])),
-        f"  an exact fixed-size McNemar test would need {result['fixed_size_pairs_80_power'] or 'n/a (no difference observed)'} "
-        f"pairs for 80% power at the observed discordance",
+        "  an exact fixed-size McNemar test would need " + (
+            f"{result['fixed_size_pairs_80_power']} pairs for 80% power at the observed discordance"
+            if result["fixed_size_pairs_80_power"] else "n/a pairs (no difference observed, or more than 20000)"),
         f"  verdict = worse of sequential and fixed-size: {result['verdict']}",
         f"exit code {code}",
     ]
