@@ -62,6 +62,9 @@ def rollout(
     while t < limit:
         start = time.perf_counter()
         decision = policy.step(observation)
+        if not np.all(np.isfinite(decision.action)):  # MuJoCo would integrate NaN silently: the episode errors instead
+            raise FloatingPointError(f"step {t}: the policy's action is not finite ({np.asarray(decision.action).tolist()}); "
+                                     "the model's weights or dataset statistics hold NaN or inf")
         after_policy = time.perf_counter()
         next_observation, reward, terminated, truncated, next_info = env.step(decision.action)
         after_sim = time.perf_counter()

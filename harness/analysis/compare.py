@@ -46,6 +46,7 @@ from harness.analysis.paired import (
     regressed_reachable,
     worst,
 )
+from harness.analysis.equivalence import attention_divergence
 from harness.analysis.provenance import input_agreement, provenance
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run
 from harness.analysis.stats import wilson_interval
@@ -60,6 +61,7 @@ EXIT_OK, EXIT_FAIL, EXIT_INVALID, EXIT_ERRORED = 0, 1, 2, 3
 MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "outputs", "harness_version",
               "policy.full_attention", "policy.dataset_key", "policy.inference_batch",
               "policy.intervention",  # an intervention run against a plain one: the change is what is measured
+              "policy.attribution", "policy.faithfulness_every", "policy.faithfulness_fill",  # measured beside, same actions
               # legacy manifests (before the run store) keep model facts at the top level
               "model_is_random", "model_note", "text_tokenizer", "dataset_key", "git_commit", "versions")
 ARRAY_FILES = ("actions.npz", "attention.npz")

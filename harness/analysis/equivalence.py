@@ -8,7 +8,7 @@ into another trajectory, is taken out. Per inferred step:
   for "normal", by half the p01..p99 range for "bounds"; dimensions the statistics' mask excludes, and
   models without statistics, raw), so one tolerance fits every action dimension and model;
 - attention change: Jensen-Shannon divergence (bits) of the readout attention per layer and head
-  (harness.analysis.compare.attention_divergence), both sides rounded to float16 as attention.npz stores them.
+  (`attention_divergence`), both sides rounded to float16 as attention.npz stores them.
 
 `Tolerances` are derived from measured float32 noise across instruction sets (README "Replay"): the
 reference policy's recorded Lift episodes (10 x up to 80 steps), recorded under AVX-512, `XLA_FLAGS=
@@ -26,11 +26,33 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from harness.analysis.compare import attention_divergence
 
 ACTION_NOISE = 3e-5  # measured max |change| (normalised units) across ISAs on the reference policy's episodes
 ATTENTION_NOISE = 3.5e-8  # measured max JS (bits) likewise (float16-rounded attention)
 EPS = 1e-8
+
+
+def jensen_shannon(p: np.ndarray, q: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Jensen-Shannon divergence in bits (0 = equal, 1 = disjoint support) between rows normalised along `axis`.
+
+    p, q (..., keys) >= 0 -> (...). JS = H(m) - (H(p) + H(q)) / 2 with m = (p + q) / 2.
+    """
+    p = np.asarray(p, np.float64)
+    q = np.asarray(q, np.float64)
+    p = p / np.maximum(p.sum(axis=axis, keepdims=True), 1e-300)
+    q = q / np.maximum(q.sum(axis=axis, keepdims=True), 1e-300)
+    m = 0.5 * (p + q)
+
+    def kl(a, b):
+        ratio = np.divide(a, b, out=np.ones_like(a), where=(a > 0) & (b > 0))
+        return (a * np.log2(ratio)).sum(axis=axis)
+
+    return np.clip(0.5 * kl(p, m) + 0.5 * kl(q, m), 0.0, 1.0)
+
+
+def attention_divergence(base: np.ndarray, cand: np.ndarray) -> np.ndarray:
+    """readout attention (..., layers, heads, readouts, keys) x2 -> (..., layers, heads) JS in bits, mean over readouts."""
+    return jensen_shannon(base, cand).mean(axis=-1)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,114 @@
+"""What two runs' numbers can and cannot say about each other: platforms, inputs and step-0 model numerics.
+
+compare's statistical verdict is about outcomes; this block says what else is known, from what the runs
+recorded (pure functions over manifests and the per-pair details of harness.analysis.compare):
+
+- platform: the two manifests' `platform_fingerprint`s (harness/run/platform.py) and the numerics-relevant
+  fields in which they differ. Same fingerprint: trajectories should be bit-identical, so a difference is
+  the candidate's. Different: float noise of the other CPU, XLA or renderer, amplified by contact-rich
+  simulation, can send an unchanged model down another trajectory, so diverging trajectories are expected
+  and are the platform's, not the model's.
+- inputs: per pair, for how many leading steps both arms fed the policy bit-identical inputs (the per-step
+  `input_hash/<key>` digests in actions.npz). At step 0 (same seed) they agree unless the renderers differ.
+- model numerics at step 0: where both arms saw identical step-0 inputs, the step-0 chunk and readout
+  attention differ only by the model and float noise: EQUIVALENT when within the replay tolerances
+  (harness.analysis.equivalence; the action change here is in the runs' own action units, as compare has no
+  model statistics; replay normalises), CHANGED beyond them, IDENTICAL when bit-equal, UNKNOWN when no pair saw
+  identical step-0 inputs (then `octo-harness replay` on recorded inputs decides).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from harness.analysis.equivalence import Tolerances
+from harness.run.platform import platform_differences
+
+
+def leading_equal(a: np.ndarray, b: np.ndarray) -> int:
+    """(steps,) x2 -> number of leading positions where they are equal (over the shorter length)."""
+    n = min(len(a), len(b))
+    unequal = np.flatnonzero(np.asarray(a[:n]) != np.asarray(b[:n]))
+    return int(unequal[0]) if unequal.size else n
+
+
+def input_agreement(a: dict, b: dict) -> dict | None:
+    """Arrays of two episodes ("actions.npz:input_hash/<key>" -> (steps,) uint64) -> {"keys", "leading_steps",
+    "step0_same"}, or None when either run recorded no input digests."""
+    prefix = "actions.npz:input_hash/"
+    keys = sorted(k for k in a if k.startswith(prefix))
+    if not keys or keys != sorted(k for k in b if k.startswith(prefix)):
+        return None
+    leading = min(leading_equal(a[k], b[k]) for k in keys)
+    steps = min(len(a[keys[0]]), len(b[keys[0]]))
+    return {"keys": [k[len(prefix):] for k in keys], "leading_steps": leading, "compared_steps": steps,
+            "step0_same": leading > 0}
+
+
+def platform_block(baseline_manifest: dict, candidate_manifest: dict) -> dict:
+    fa, fb = baseline_manifest.get("platform_fingerprint"), candidate_manifest.get("platform_fingerprint")
+    known = fa is not None and fb is not None
+    return {"baseline": fa, "candidate": fb, "same": known and fa == fb, "known": known,
+            "differs_in": platform_differences(baseline_manifest.get("platform"), candidate_manifest.get("platform"))
+            if known and fa != fb else []}
+
+
+def step0_numerics(pairs: list[dict], tolerances: Tolerances) -> dict:
+    """pairs: compare's per-pair details with "inputs" (input_agreement), "action_max_abs_step0" and
+    "js_step0_max" -> the step-0 model-numerics verdict (see the module docstring)."""
+    same = [p for p in pairs if (p.get("inputs") or {}).get("step0_same") and "action_max_abs_step0" in p]
+    if not same:
+        return {"verdict": "UNKNOWN", "pairs_same_step0_inputs": 0, "pairs": len(pairs),
+                "action_change_max": None, "attention_js_max": None, "tolerances": vars(tolerances).copy()}
+    action = max(p["action_max_abs_step0"] for p in same)
+    js = max(p.get("js_step0_max", 0.0) for p in same)
+    if action == 0.0 and js == 0.0:
+        verdict = "IDENTICAL"
+    elif action <= tolerances.action and js <= tolerances.attention_js:
+        verdict = "EQUIVALENT"
+    else:
+        verdict = "CHANGED"
+    return {"verdict": verdict, "pairs_same_step0_inputs": len(same), "pairs": len(pairs),
+            "action_change_max": action, "attention_js_max": js, "tolerances": vars(tolerances).copy()}
+
+
+def provenance(baseline_manifest: dict, candidate_manifest: dict, pairs: list[dict],
+               tolerances: Tolerances | None = None) -> dict:
+    """The provenance block of compare.json and the sentence its report leads with."""
+    tolerances = tolerances or Tolerances()
+    platform = platform_block(baseline_manifest, candidate_manifest)
+    numerics = step0_numerics(pairs, tolerances)
+    agreements = [p["inputs"] for p in pairs if p.get("inputs")]
+    inputs = {"pairs_with_digests": len(agreements), "pairs": len(pairs),
+              "step0_same": sum(a["step0_same"] for a in agreements),
+              "leading_steps_min": min((a["leading_steps"] for a in agreements), default=None),
+              "leading_steps_max": max((a["leading_steps"] for a in agreements), default=None)}
+    return {"platform": platform, "inputs": inputs, "step0_numerics": numerics,
+            "summary": summary_sentence(platform, inputs, numerics)}
+
+
+def summary_sentence(platform: dict, inputs: dict, numerics: dict) -> str:
+    """One plain line: what the model numerics are, and whose diverging trajectories are."""
+    if not inputs["pairs_with_digests"]:
+        seen = "the runs recorded no input digests (made before provenance), so whether both arms saw the same inputs is unknown"
+    else:
+        seen = (f"both arms fed the policy identical inputs at step 0 in {inputs['step0_same']}/{inputs['pairs_with_digests']} "
+                f"pairs, for {inputs['leading_steps_min']}-{inputs['leading_steps_max']} leading steps")
+    verdict = numerics["verdict"]
+    if verdict == "UNKNOWN":
+        model = "model numerics: UNKNOWN (no pair saw identical step-0 inputs; replay the baseline's recorded inputs " \
+                "with `octo-harness replay`)"
+    else:
+        tol = numerics["tolerances"]
+        model = (f"model numerics at step 0: {verdict} (largest change: action {numerics['action_change_max']:.3g}, "
+                 f"tolerance {tol['action']:g}; attention JS {numerics['attention_js_max']:.3g} bits, tolerance "
+                 f"{tol['attention_js']:g})")
+    if not platform["known"]:
+        where = "platform: unknown for one run (made before provenance)"
+    elif platform["same"]:
+        where = "platform: the same (bit-identical trajectories are expected; any difference is the candidate's)"
+    else:
+        where = (f"platform: different ({', '.join(platform['differs_in']) or 'fingerprint'}); trajectories that diverge "
+                 "after identical step-0 numerics are this float noise amplified by the closed loop, the platform's, "
+                 "not the model's")
+    return f"{model}; {seen}; {where}"
