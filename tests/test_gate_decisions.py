@@ -9,7 +9,6 @@
 """
 
 import itertools
-import json
 
 import numpy as np
 import pytest
@@ -252,7 +251,8 @@ def test_an_identical_task_row_says_identical(tmp_path, monkeypatch):
                         lambda *a, **k: {**original(*a, **k), "identical": True, "difference": None})
     result = compare_runs(base, base)
     lift = result["outcomes"]["tasks"]["Lift"]
-    assert result["verdict"] == "IDENTICAL" and lift["verdict"] == "IDENTICAL" and lift["paired_verdict"] == "UNDERPOWERED"
+    assert result["verdict"] == "IDENTICAL" and lift["verdict"] == "IDENTICAL"
+    assert lift["paired_verdict"] == "UNDERPOWERED"
     assert lift["notes"] and result["outcomes"]["notes"] == []  # "REGRESSED is unreachable" is moot when identical
     text = markdown_summary(result, 0)
     assert "**IDENTICAL**" in text and "UNDERPOWERED" not in text
@@ -317,7 +317,8 @@ def _newcombe(both, first, second, neither, confidence):
 
 def _verdicts(n):
     """Every 2x2 table of n pairs (k, 4) and its one-task verdict (k,) by the rules of `decide`."""
-    t = np.array([(a, b, c, n - a - b - c) for a in range(n + 1) for b in range(n + 1 - a) for c in range(n + 1 - a - b)])
+    t = np.array([(a, b, c, n - a - b - c)
+                  for a in range(n + 1) for b in range(n + 1 - a) for c in range(n + 1 - a - b)])
     both, b, c, neither = t.T.astype(float)
     low, high = _newcombe(both, c, b, neither, 1 - ALPHA)
     d = t[:, 1] + t[:, 2]

@@ -93,7 +93,8 @@ def _rounds(baseline: dict, jobs: Sequence[EpisodeJob], tasks: Sequence[str]) ->
     rounds: dict[int, list[EpisodeJob]] = {}
     for job in round_order(jobs, tasks):
         rounds.setdefault(job.episode, []).append(job)
-    return [paired for episode in sorted(rounds) if (paired := [j for j in rounds[episode] if (j.task, j.seed) in baseline])]
+    paired = ([j for j in rounds[episode] if (j.task, j.seed) in baseline] for episode in sorted(rounds))
+    return [group for group in paired if group]
 
 
 def errored_tasks(baseline: dict, candidate: dict, jobs: Sequence[EpisodeJob]) -> list[str]:
@@ -103,7 +104,8 @@ def errored_tasks(baseline: dict, candidate: dict, jobs: Sequence[EpisodeJob]) -
     for j in jobs:
         if (j.task, j.seed) in baseline:
             planned[j.task] = planned.get(j.task, 0) + 1
-            errored[j.task] = errored.get(j.task, 0) + ((j.task, j.seed) in candidate and candidate[(j.task, j.seed)] is None)
+            failed = (j.task, j.seed) in candidate and candidate[(j.task, j.seed)] is None
+            errored[j.task] = errored.get(j.task, 0) + failed
     return [t for t in planned if errored_most(errored[t], planned[t])]
 
 
@@ -175,7 +177,8 @@ def _check_baseline(baseline: dict, jobs: Sequence[EpisodeJob], path) -> None:
         errored = sum(o is None for o in outcomes)
         if errored_most(errored, len(outcomes)):
             raise ValueError(f"the baseline {path} errored on {errored} of {len(outcomes)} episodes of {task} (more "
-                             "than half): it cannot serve as the reference; re-run it (octo-harness run --retry-failed)")
+                             "than half): it cannot serve as the reference; re-run it "
+                             "(octo-harness run --retry-failed)")
 
 
 def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = None, out: str | Path = "results/runs",
@@ -262,7 +265,8 @@ def summary_text(result: dict, code: int) -> str:
         f"regress: {result['verdict']} after {result['pairs_used']} pairs ({result['rounds_used']} rounds"
         + (f", {result['errored_pairs']} errored pairs left out" if result.get("errored_pairs") else "")
         + f") of {result['baseline_pairs']} in the baseline",
-        f"  sequential test per task (alpha {seq['alpha']:g} / {len(seq['tasks'])} task(s) = {seq['task_alpha']:.3g} each, "
+        f"  sequential test per task (alpha {seq['alpha']:g} / {len(seq['tasks'])} task(s) = "
+        f"{seq['task_alpha']:.3g} each, "
         f"max drop {seq['max_drop']:g}, reject at e-value {seq['threshold']:g}): {result['sequential_verdict']}",
     ]
     for task, t in seq["tasks"].items():
