@@ -209,9 +209,11 @@ def _compare_pair(task, seed, base: EpisodeRecord, cand: EpisodeRecord, truncate
            "baseline_status": base.status, "candidate_status": cand.status}
     a = _load_arrays(base) if base.ok else None
     b = _load_arrays(cand) if cand.ok else None
-    if a is None or b is None:
+    if a is None or b is None:  # an errored pair is never identical (and not an outcome pair: see outcome_tables)
+        errored = [arm for arm, e in (("baseline", base), ("candidate", cand)) if not e.ok]
         out["identical"] = False
-        out["difference"] = "an episode failed or has no arrays"
+        out["difference"] = (f"the {' and '.join(errored)} episode errored (no outcome)" if errored
+                             else "an episode has no arrays")
         return out
     stored_a, stored_b = _step_count(a), _step_count(b)
     complete = (stored_a == base.steps or truncated[0]) and (stored_b == cand.steps or truncated[1])

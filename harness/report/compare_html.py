@@ -130,6 +130,11 @@ def _arm_cell(arm: dict) -> str:
     return H.fmt_ci(arm["rate"], arm["ci_low"], arm["ci_high"]) + (f" ({errored} errored)" if errored else "")
 
 
+def _pair_outcome(pair: dict, arm: str):
+    """An arm's success in one pair, or "errored" (the episode raised: no outcome)."""
+    return pair[f"{arm}_success"] if pair.get(f"{arm}_status", "ok") == "ok" else "errored"
+
+
 def _overlays(result: dict, frames: dict) -> str:
     parts = []
     pair_dirs = {}
@@ -217,7 +222,7 @@ def compare_page(result: dict, frames: dict | None = None, markdown: str | None 
     sections.append(("steps", "Divergence over the first steps", steps_body))
     sections.append(("overlays", "Step-0 overlays", _overlays(result, frames or {})))
 
-    pair_rows = [[p["task"], p["seed"], p["baseline_success"], p["candidate_success"], p["baseline_steps"],
+    pair_rows = [[p["task"], p["seed"], _pair_outcome(p, "baseline"), _pair_outcome(p, "candidate"), p["baseline_steps"],
                   p["candidate_steps"], H.fmt(p.get("step0_action_l2")), H.fmt(p.get("step0_js_mean")),
                   "yes" if p["identical"] else (p.get("difference") or "no")] for p in result["pair_details"]]
     sections.append(("pairs", "Pairs", H.details(f"{len(pair_rows)} pairs", H.table(
