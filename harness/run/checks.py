@@ -26,6 +26,37 @@ def check_environment(environ: Mapping[str, str] | None = None) -> None:
     if value and value not in GL_BACKENDS:
         raise ValueError(f"MUJOCO_GL={environ['MUJOCO_GL']!r} is not a rendering backend; use one of "
                          f"{', '.join(GL_BACKENDS)} (egl or osmesa on headless servers) or leave it unset")
+    check_accelerator(environ)
+
+
+def check_accelerator(environ: Mapping[str, str] | None = None) -> None:
+    """JAX_PLATFORMS=cuda (or gpu) on a machine where JAX finds no CUDA GPU: one line naming the fix, before the
+    model loads (JAX would fail deep inside loading). Without JAX_PLATFORMS, JAX uses a GPU where it finds one."""
+    environ = os.environ if environ is None else environ
+    value = environ.get("JAX_PLATFORMS", "").strip().lower()
+    if not {p.strip() for p in value.split(",")} & {"cuda", "gpu"}:
+        return
+    import jax
+
+    try:
+        jax.devices("gpu")
+    except Exception as e:  # RuntimeError, or (jax 0.7 without a CUDA plugin) a bare AssertionError
+        if not any(_module_exists(m) for m in ("jax_plugins.xla_cuda12", "jax_cuda12_plugin")):
+            cause = "jax's CUDA 12 plugin is not installed"
+        else:
+            cause = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ValueError(f"JAX_PLATFORMS={value} asks for a GPU but JAX finds none ({cause}); on an NVIDIA machine "
+                         "pip install 'octo-harness[cuda]' (and the NVIDIA driver), else unset JAX_PLATFORMS to run "
+                         "on the CPU") from None
+
+
+def _module_exists(name: str) -> bool:
+    import importlib.util
+
+    try:
+        return importlib.util.find_spec(name) is not None
+    except ModuleNotFoundError:  # its parent package is missing
+        return False
 
 
 def check_run_name(name: str) -> str:
