@@ -198,7 +198,9 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--out", type=Path, default=Path("results/runs"), help="output root of the candidate run [results/runs]")
     reg.add_argument("--run-name", default=None, help="candidate run folder name [<model>_<protocol hash>]")
     reg.add_argument("--fail-on", choices=["regressed", "suspect", "underpowered", "changed"], default="suspect",
-                     help="mildest verdict that exits 1, as for compare [suspect]")
+                     help="mildest verdict that exits 1, as for compare; 'changed' also fails a candidate whose numbers "
+                          "on the baseline's recorded inputs are not EQUIVALENT (replay): the gate for an unchanged "
+                          "model, on any machine [suspect]")
     reg.add_argument("--text-tokenizer", default=None, metavar="auto|fallback|PATH",
                      help="the candidate's text tokenizer (as for `run --text-tokenizer`) [the baseline's choice]")
     _add_execution_args(reg)

@@ -216,6 +216,7 @@ def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = 
     outcome_pairs = [k for k in used if base_outcomes[k] is not None and cand[k] is not None]
     counts = PairedCounts.from_outcomes([base_outcomes[k] for k in outcome_pairs], [cand[k] for k in outcome_pairs])
     comparison = compare_runs(baseline.path, candidate.path, compare_config)
+    replay = replay_baseline(baseline, model, loaded_model)
     sequential = test.summary()
     stopped_errored = errored_tasks(base_outcomes, cand, jobs)
     if stopped_errored:
@@ -243,7 +244,19 @@ def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = 
         "candidate_run": str(candidate.path),
         "candidate_status": candidate.status,
         "compare": comparison,
+        "replay": replay,
     }
+
+
+def replay_baseline(baseline, model: str, loaded_model=None) -> dict | None:
+    """The candidate on the baseline's recorded inputs (harness/run/replay.py): its model numerics, isolated from
+    the simulator and the platform; None when the baseline recorded no inputs."""
+    from harness.run.replay import INPUTS, replay_run
+
+    if not all((e.directory / INPUTS).is_file() for e in baseline.episodes if e.ok):
+        return None
+    result = replay_run(baseline.path, model, loaded_model=loaded_model)
+    return {k: v for k, v in result.items() if k != "episode_details"}
 
 
 def _fixed_size(counts: PairedCounts, alpha: float) -> int | None:
@@ -254,8 +267,16 @@ def _fixed_size(counts: PairedCounts, alpha: float) -> int | None:
 
 def exit_code(result: dict, fail_on: str = "suspect") -> int:
     """The gate verdict's exit code, as for compare: 0 pass, 1 REGRESSED/SUSPECT (or what --fail-on adds),
-    3 ERRORED."""
-    return gate_exit_code(result["verdict"], fail_on)
+    3 ERRORED. fail_on="changed" (the model must not change) also fails unless the outcomes are IDENTICAL or the
+    candidate's numbers on the baseline's recorded inputs are EQUIVALENT (replay): on another platform an unchanged
+    model passes, a changed one fails whatever its outcomes."""
+    if fail_on != "changed":
+        return gate_exit_code(result["verdict"], fail_on)
+    code = gate_exit_code(result["verdict"], "suspect")
+    if code or result["verdict"] == "IDENTICAL":
+        return code
+    replay = result.get("replay")
+    return 0 if replay is not None and replay["verdict"] == "EQUIVALENT" else 1
 
 
 def summary_text(result: dict, code: int) -> str:
@@ -282,9 +303,20 @@ def summary_text(result: dict, code: int) -> str:
             f"{result['fixed_size_pairs_80_power']} pairs for 80% power at the observed discordance"
             if result["fixed_size_pairs_80_power"] else "n/a pairs (no difference observed, or more than 20000)"),
         f"  verdict = worse of sequential and fixed-size: {result['verdict']}",
+        "  " + _numerics_line(result.get("replay")),
+        "  " + result["compare"]["provenance"]["summary"],
         f"exit code {code}",
     ]
     return "\n".join(lines)
+
+
+def _numerics_line(replay: dict | None) -> str:
+    if replay is None:
+        return "model numerics: not replayed (the baseline recorded no inputs; make it with --record-inputs)"
+    from harness.run.replay import summary_text as replay_summary
+
+    lines = replay_summary(replay).splitlines()
+    return "model numerics: " + lines[0].removeprefix("replay: ") + "".join(f"\n  {line}" for line in lines[1:])
 
 
 def write_regress(result: dict, code: int, write_comparison) -> dict:
