@@ -145,6 +145,10 @@ def test_intervention_runs_resume_and_compare_like_any_run(tmp_path, capsys):
     plain = np.load(tmp_path / "plain" / "Lift" / "episode_0" / "actions.npz")["predicted"]
     masked = np.load(tmp_path / "masked" / "Lift" / "episode_0" / "actions.npz")["predicted"]
     assert np.abs(plain[0] - masked[0]).max() > 1e-3
+    assert cli.main(["report", str(tmp_path / "plain"), str(tmp_path / "masked"), "--out", str(tmp_path / "report")]) == 0
+    table = (tmp_path / "report" / "tables" / "interventions.csv").read_text().splitlines()
+    assert len(table) == 2 and ",plain,mask-top:4:attention:2,Lift,2," in table[1]
+    assert "Closed loop: interventions" in (tmp_path / "report" / "report.html").read_text()
 
 
 @pytest.mark.slow
@@ -170,3 +174,8 @@ def test_attribution_and_faithfulness_in_a_run_leave_the_actions_alone(tmp_path)
         assert r["deletion_curve"][-1] == pytest.approx(r["change_all"], rel=1e-3)
     policy = json.loads((tmp_path / "probed" / "manifest.json").read_text())["protocol"]["policy"]
     assert policy["faithfulness_every"] == 3 and policy["attribution"] == "attention:2,saliency"
+    assert cli.main(["report", str(tmp_path / "probed"), "--out", str(tmp_path / "report")]) == 0
+    table = (tmp_path / "report" / "tables" / "faithfulness.csv").read_text().splitlines()
+    assert len(table) == 1 + 6  # 2 cameras x (attention:2, saliency, random)
+    html = (tmp_path / "report" / "report.html").read_text()
+    assert "Open loop: probed" in html and "ranks the patches the action depends on" in html

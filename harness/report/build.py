@@ -36,7 +36,7 @@ import numpy as np
 from harness.analysis import aggregate as agg
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays, load_run
 from harness.analysis.stats import success_summary
-from harness.report import figures, page
+from harness.report import faithfulness, figures, page
 from harness.report.rundata import RunData, episode_headline, representative
 
 VIDEO_DISPLAY = 256  # harness.outputs.overlays.video_frame's `display`: the camera frame fills the video's top-left display x w
@@ -266,6 +266,7 @@ def _tables(runs: list[RunData]) -> dict[str, bytes]:
         "progress.csv": _csv(agg.PROGRESS_COLUMNS, [r for run in runs for r in run.rows["progress"]]),
         "success.csv": _csv(success_cols, success_rows),
         "episodes.csv": _csv(episode_cols, episode_rows),
+        **faithfulness.tables(runs),  # faithfulness.csv, interventions.csv (harness/report/faithfulness.py)
     }
 
 

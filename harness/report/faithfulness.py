@@ -1,0 +1,271 @@
+"""The report's Faithfulness section: is the attention map telling the truth, open and closed loop?
+
+Open loop: every finished episode's `faithfulness.jsonl` (runs made with `--faithfulness-every k`) is summarised
+per run x task x camera x method: deletion and insertion AUC relative to the random map on the same steps
+(harness.analysis.faithfulness.relative_to_random: 1 = no better than random; deletion > 1 and insertion < 1
+are better) with 95% bootstrap intervals over episodes, and top-k change over random-k change at each k. A
+heatmap per task (methods x cameras, deletion ratio) and one plain sentence per task.
+
+Closed loop: runs given together whose protocols differ only in `policy.intervention` (same model, tasks,
+seeds) are paired with the plain run: success of each arm (Wilson), the paired difference (Newcombe's
+interval for paired proportions) and the exact McNemar p-value, per task.
+
+`tables(runs)` -> {"faithfulness.csv", "interventions.csv"}; `section(runs, plots)` -> HTML ("" when no run
+has either); `markdown(runs)` -> the same tables as Markdown (EVAL.md).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from collections import defaultdict
+
+import numpy as np
+
+from harness.analysis.faithfulness import relative_to_random
+from harness.analysis.paired import PairedCounts, mcnemar_exact, newcombe_paired_interval
+from harness.analysis.stats import wilson_interval
+from harness.report import html as H
+
+FAITH_COLUMNS = ("run", "task", "camera", "method", "steps", "episodes", "change_all_median",
+                 "deletion_rel", "deletion_ci_low", "deletion_ci_high", "insertion_rel", "insertion_ci_low",
+                 "insertion_ci_high", "top_over_random_k", "k")
+INTERVENTION_COLUMNS = ("run", "baseline_run", "intervention", "task", "pairs", "baseline_successes", "baseline_rate",
+                        "baseline_ci_low", "baseline_ci_high", "successes", "rate", "ci_low", "ci_high",
+                        "difference", "difference_ci_low", "difference_ci_high", "mcnemar_p")
+
+
+def read_rows(run) -> list[dict]:
+    """Every faithfulness row of a run's finished episodes (RunData or RunRecord), with its episode."""
+    record = getattr(run, "record", run)
+    rows = []
+    for episode in record.episodes:
+        path = episode.directory / "faithfulness.jsonl"
+        if episode.ok and path.is_file():
+            for line in path.read_text().splitlines():
+                if line.strip():
+                    row = json.loads(line)
+                    row["task"], row["episode"] = episode.task, episode.episode
+                    rows.append(row)
+    return rows
+
+
+def summarise(rows: list[dict], label: str, seed: int = 0) -> list[tuple]:
+    """Rows of FAITH_COLUMNS (one per task x camera x method) from faithfulness rows."""
+    groups: dict[tuple, list[dict]] = defaultdict(list)
+    for row in rows:
+        groups[(row["task"], row["camera"], row["method"])].append(row)
+    out = []
+    for (task, camera, method), items in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1], _order(kv[0][2]))):
+        episode = np.array([r["episode"] for r in items])
+        value = lambda key: np.array([np.nan if r.get(key) is None else r[key] for r in items], float)  # noqa: E731
+        dele = relative_to_random(value("deletion_auc"), value("random_deletion_auc"), episode, seed=seed)
+        ins = relative_to_random(value("insertion_auc"), value("random_insertion_auc"), episode, seed=seed)
+        ks = sorted({int(k.split("/")[1]) for r in items for k in r if k.startswith("top_k/")})
+        k = ks[len(ks) // 2] if ks else None
+        denominator = np.nansum(value(f"random_k/{k}")) if k else 0.0
+        top = np.nansum(value(f"top_k/{k}")) / denominator if denominator > 0 else np.nan
+        valid = np.isfinite(value("deletion_auc"))
+        change = value("change_all")
+        out.append((label, task, camera, method, int(valid.sum()), len(set(episode[valid].tolist())),
+                    float(np.median(change[np.isfinite(change)])) if np.isfinite(change).any() else np.nan,
+                    *dele[:3], *ins[:3], float(top), k))
+    return out
+
+
+def _order(method: str) -> tuple:
+    base, _, layer = method.partition(":")
+    rank = {"attention": 0, "rollout": 1, "grad-attention": 2, "saliency": 3, "random": 4}.get(base, 5)
+    return rank, int(layer) if layer.lstrip("-").isdigit() else 0
+
+
+def _policy(run) -> dict:
+    record = getattr(run, "record", run)
+    return dict((record.manifest.get("protocol") or {}).get("policy") or {})
+
+
+def _arm_key(run) -> tuple:
+    """What must agree for two runs to be arms of one intervention experiment (all but the intervention)."""
+    record = getattr(run, "record", run)
+    protocol = dict(record.manifest.get("protocol") or {})
+    policy = {k: v for k, v in (protocol.get("policy") or {}).items()
+              if k not in ("intervention", "attribution", "faithfulness_every", "faithfulness_fill")}
+    return json.dumps({"model_fingerprint": protocol.get("model_fingerprint"), "max_steps": protocol.get("max_steps"),
+                       "env": protocol.get("env"), "policy": policy}, sort_keys=True)
+
+
+def intervention_rows(runs) -> list[tuple]:
+    """Rows of INTERVENTION_COLUMNS: each run with an intervention against a plain run of the same experiment."""
+    plain = {}
+    for run in runs:
+        if not _policy(run).get("intervention"):
+            plain.setdefault(_arm_key(run), run)
+    out = []
+    for run in runs:
+        spec = _policy(run).get("intervention")
+        base = plain.get(_arm_key(run)) if spec else None
+        if base is None:
+            continue
+        b_rec, c_rec = getattr(base, "record", base), getattr(run, "record", run)
+        b_eps = {(e.task, e.seed): e for e in b_rec.episodes if e.ok}
+        c_eps = {(e.task, e.seed): e for e in c_rec.episodes if e.ok}
+        for task in c_rec.tasks:
+            keys = sorted(k for k in c_eps if k[0] == task and k in b_eps)
+            if not keys:
+                continue
+            b = [bool(b_eps[k].success) for k in keys]
+            c = [bool(c_eps[k].success) for k in keys]
+            counts = PairedCounts.from_outcomes(b, c)
+            n = len(keys)
+            lo, hi = newcombe_paired_interval(counts.both, counts.candidate_only, counts.baseline_only, counts.neither)
+            out.append((getattr(run, "label", c_rec.name), getattr(base, "label", b_rec.name), spec, task, n,
+                        sum(b), sum(b) / n, *wilson_interval(sum(b), n), sum(c), sum(c) / n, *wilson_interval(sum(c), n),
+                        (sum(c) - sum(b)) / n, lo, hi, mcnemar_exact(counts.baseline_only, counts.candidate_only)))
+    return out
+
+
+def _csv(columns, rows) -> bytes:
+    import csv
+
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(columns)
+    for row in rows:
+        writer.writerow(["" if isinstance(v, float) and not math.isfinite(v) else (f"{v:.6g}" if isinstance(v, float) else v)
+                         for v in row])
+    return buffer.getvalue().encode()
+
+
+def tables(runs) -> dict[str, bytes]:
+    """{"faithfulness.csv", "interventions.csv"} (header only when a run has none)."""
+    faith = [r for run in runs for r in summarise(read_rows(run), getattr(run, "label", getattr(run, "name", "")))]
+    return {"faithfulness.csv": _csv(FAITH_COLUMNS, faith), "interventions.csv": _csv(INTERVENTION_COLUMNS, intervention_rows(runs))}
+
+
+def sentence(task: str, rows: list[tuple]) -> str:
+    """One plain sentence: the method/layer/camera with the highest deletion ratio, and whether it beats random."""
+    ranked = [r for r in rows if r[1] == task and r[3] != "random" and math.isfinite(r[7])]
+    if not ranked:
+        return f"{task}: no faithfulness measured."
+    best = max(ranked, key=lambda r: r[7])
+    _, _, camera, method, steps, episodes, _, d, dlo, dhi, i, ilo, ihi, *_ = best
+    verdict = ("better than random" if math.isfinite(dlo) and dlo > 1 else
+               "worse than random" if math.isfinite(dhi) and dhi < 1 else "not distinguishable from random")
+    attention = [r for r in ranked if r[3].startswith("attention:") and r[2] == camera]
+    tail = ""
+    if attention and best not in attention:
+        a = max(attention, key=lambda r: r[7])
+        tail = (f"; the best raw attention layer ({a[3].split(':')[1]}) reaches {a[7]:.2f} "
+                f"[{a[8]:.2f}, {a[9]:.2f}]")
+    return (f"{task}, {camera}: {_name(method)} ranks the patches the action depends on {verdict}: deletion AUC "
+            f"{d:.2f}x random [{dlo:.2f}, {dhi:.2f}], insertion AUC {i:.2f}x random [{ilo:.2f}, {ihi:.2f}] "
+            f"({steps} steps, {episodes} episodes){tail}.")
+
+
+def _name(method: str) -> str:
+    base, _, layer = method.partition(":")
+    return f"layer {layer} attention" if base == "attention" else base
+
+
+def heatmap(task: str, rows: list[tuple]) -> bytes:
+    """PNG: methods (rows) x cameras (columns) of the deletion ratio (1 = random), annotated."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import TwoSlopeNorm
+
+    items = [r for r in rows if r[1] == task]
+    methods = sorted({r[3] for r in items}, key=_order)
+    cameras = sorted({r[2] for r in items})
+    grid = np.full((len(methods), len(cameras)), np.nan)
+    for r in items:
+        grid[methods.index(r[3]), cameras.index(r[2])] = r[7]
+    finite = grid[np.isfinite(grid)]
+    spread = max(0.05, float(np.max(np.abs(finite - 1))) if finite.size else 0.5)
+    fig, ax = plt.subplots(figsize=(1.6 + 1.5 * len(cameras), 0.9 + 0.36 * len(methods)), dpi=110)
+    im = ax.imshow(np.ma.masked_invalid(grid), cmap="RdBu_r", norm=TwoSlopeNorm(1.0, 1 - spread, 1 + spread), aspect="auto")
+    for (y, x), v in np.ndenumerate(grid):
+        ax.text(x, y, "n/a" if not np.isfinite(v) else f"{v:.2f}", ha="center", va="center", fontsize=8)
+    ax.set_xticks(range(len(cameras)), [c.removeprefix("image_") for c in cameras])
+    ax.set_yticks(range(len(methods)), methods)
+    ax.set_title(f"{task}: deletion AUC / random (>1 better)", fontsize=9)
+    fig.colorbar(im, ax=ax, fraction=0.05)
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png")
+    plt.close(fig)
+    return buffer.getvalue()
+
+
+def section(runs, plots) -> str:
+    """The page's Faithfulness section ("" when no run measured faithfulness or ran an intervention)."""
+    body = []
+    for run in runs:
+        rows = summarise(read_rows(run), run.label)
+        if not rows:
+            continue
+        body.append(H.section(f"Open loop: {run.label}", "", level=3))
+        for task in dict.fromkeys(r[1] for r in rows):
+            body.append(H.Raw(f"<p>{H.esc(sentence(task, rows))}</p>"))
+            body.append(plots.add(f"faithfulness_{H.anchor_id(task)[2:]}_{run.label}", heatmap(task, rows),
+                                  f"faithfulness {task}", "Deletion AUC relative to the random map per method and "
+                                  "camera (1 = random; higher: deleting the patches the map ranks first moves the "
+                                  "action sooner)."))
+            body.append(H.table(("camera", "method", "steps", "episodes", "deletion / random [95%]",
+                                 "insertion / random [95%]", "top-k / random-k (k)"),
+                                [(r[2], r[3], r[4], r[5], H.fmt_ci(r[7], r[8], r[9], 2), H.fmt_ci(r[10], r[11], r[12], 2),
+                                  f"{r[13]:.2f} ({r[14]})" if math.isfinite(r[13]) else "n/a")
+                                 for r in rows if r[1] == task], numeric=(2, 3)))
+    inter = intervention_rows(runs)
+    if inter:
+        body.append(H.section("Closed loop: interventions", "", level=3))
+        body.append(H.table(("intervention", "vs", "task", "pairs", "plain success [Wilson]", "with intervention",
+                             "difference [Newcombe]", "McNemar p"),
+                            [(r[2], r[1], r[3], r[4], H.fmt_ci(r[6], r[7], r[8], 2), H.fmt_ci(r[10], r[11], r[12], 2),
+                              H.fmt_ci(r[13], r[14], r[15], 2), f"{r[16]:.3g}") for r in inter], numeric=(3,)))
+    if not body:
+        return ""
+    intro = H.note("Is the attention map telling the truth? Open loop: patches are deleted (mean fill) in the order "
+                   "each method ranks them and the predicted chunk's change is measured (same rng); AUCs are divided by "
+                   "the random map's on the same steps, so 1 = no better than random (deletion: higher is better; "
+                   "insertion: lower is better). Closed loop: runs with --intervene against the plain run on the same "
+                   "seeds.")
+    return H.section("Faithfulness", intro + "".join(str(b) for b in body), anchor="faithfulness")
+
+
+def markdown(runs) -> str:
+    """The open-loop table and the intervention table as Markdown (EVAL.md), plus the sentences."""
+    lines = []
+    for run in runs:
+        rows = summarise(read_rows(run), getattr(run, "label", getattr(run, "name", "")))
+        if not rows:
+            continue
+        lines += ["| task | camera | method | steps | deletion AUC / random [95%] | insertion AUC / random [95%] | "
+                  "top-k / random-k (k) |", "|---|---|---|---:|---|---|---|"]
+        for r in rows:
+            top = f"{r[13]:.2f} ({r[14]})" if math.isfinite(r[13]) else "n/a"
+            lines.append(f"| {r[1]} | {r[2]} | {r[3]} | {r[4]} | {r[7]:.2f} [{r[8]:.2f}, {r[9]:.2f}] | "
+                         f"{r[10]:.2f} [{r[11]:.2f}, {r[12]:.2f}] | {top} |")
+        lines.append("")
+        for task in dict.fromkeys(r[1] for r in rows):
+            lines.append(f"- {sentence(task, rows)}")
+        lines.append("")
+    inter = intervention_rows(runs)
+    if inter:
+        lines += ["| task | intervention | pairs | plain success [Wilson] | with intervention [Wilson] | "
+                  "difference [Newcombe] | McNemar p |", "|---|---|---:|---|---|---|---|"]
+        for r in inter:
+            lines.append(f"| {r[3]} | `{r[2]}` | {r[4]} | {r[5]}/{r[4]} = {r[6]:.2f} [{r[7]:.2f}, {r[8]:.2f}] | "
+                         f"{r[9]}/{r[4]} = {r[10]:.2f} [{r[11]:.2f}, {r[12]:.2f}] | {r[13]:+.2f} [{r[14]:+.2f}, "
+                         f"{r[15]:+.2f}] | {r[16]:.3g} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":  # python -m harness.report.faithfulness RUN... : the Markdown tables
+    import sys
+
+    from harness.analysis.runs import load_run
+
+    print(markdown([load_run(p) for p in sys.argv[1:]]))
