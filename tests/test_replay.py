@@ -94,7 +94,7 @@ def test_the_baseline_records_what_the_policy_saw_and_its_digest():
 # ------------------------------------------------------------------------------------------- the command
 
 def test_replaying_the_baseline_with_its_own_model_is_equivalent(capsys, tmp_path):
-    code, result, out = _replay([str(BASELINE), "--out", str(tmp_path)], capsys)
+    code, result, out = _replay([str(BASELINE), "--model", str(MODEL), "--out", str(tmp_path)], capsys)
     assert code == 0 and result["verdict"] == "EQUIVALENT", out
     assert result["episodes"] == 8 and result["steps_compared"] >= 8 * 19
     tol = result["tolerances"]
@@ -108,7 +108,8 @@ def test_replaying_the_baseline_with_its_own_model_is_equivalent(capsys, tmp_pat
 def test_replay_is_equivalent_under_another_machines_numerics(tmp_path):
     """XLA capped at SSE4.2 compiles other code (other bits) for the same model: still EQUIVALENT, exit 0."""
     env = {**os.environ, "XLA_FLAGS": "--xla_cpu_max_isa=SSE4_2", "HF_HUB_OFFLINE": "1"}
-    proc = subprocess.run([sys.executable, "-m", "harness.cli", "replay", str(BASELINE), "--out", str(tmp_path)],
+    proc = subprocess.run([sys.executable, "-m", "harness.cli", "replay", str(BASELINE), "--model", str(MODEL),
+                           "--out", str(tmp_path)],
                           capture_output=True, text=True, env=env, cwd=REPO, timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     result = json.loads((tmp_path / "replay.json").read_text())
@@ -131,6 +132,17 @@ def test_a_run_without_recorded_inputs_is_one_line_and_exit_2(tmp_path, capsys):
     shutil.copytree(BASELINE, run)
     for path in run.glob("*/*/inputs.npz"):
         path.unlink()
-    assert main(["replay", str(run)]) == 2
+    assert main(["replay", str(run), "--model", str(MODEL)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "has no inputs.npz; replay needs a run made with --record-inputs" in err[0]
+
+
+def test_a_run_whose_model_is_not_here_names_the_fix(tmp_path, capsys):
+    run = tmp_path / "run"
+    shutil.copytree(BASELINE, run)
+    manifest = json.loads((run / "manifest.json").read_text())
+    manifest["protocol"]["model"] = str(tmp_path / "gone")
+    (run / "manifest.json").write_text(json.dumps(manifest))
+    assert main(["replay", str(run)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is not on this machine" in err[0] and "pass the model to replay with --model" in err[0]

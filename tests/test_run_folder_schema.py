@@ -51,8 +51,10 @@ ROW_DAMAGE = {
 @pytest.fixture()
 def runs(tmp_path):
     good, bad = tmp_path / "good", tmp_path / "bad"
-    shutil.copytree(BASELINE, good)
-    shutil.copytree(BASELINE, bad)
+    for run in (good, bad):
+        shutil.copytree(BASELINE, run)
+        # the committed manifest names the model where the baseline was made; this checkout's copy is the same files
+        _set(run, lambda m: m["protocol"].update(model=str(REPO / "models" / "octo-reference-robosuite")))
     return good, bad
 
 
@@ -64,7 +66,7 @@ def _commands(good: Path, bad: Path, tmp: Path) -> dict[str, list[str]]:
         "compare (baseline)": ["compare", str(bad), str(good), "--out", str(tmp / "cmp")],
         "regress --baseline": ["regress", "--baseline", str(bad), "--model", "models/octo-reference-robosuite",
                                "--out", str(tmp / "reg")],
-        "replay": ["replay", str(bad), "--out", str(tmp / "replay")],
+        "replay": ["replay", str(bad), "--model", str(REPO / "models" / "octo-reference-robosuite"), "--out", str(tmp / "replay")],
     }
 
 

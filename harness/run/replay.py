@@ -136,6 +136,9 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, tolerances:
         if not (e.directory / INPUTS).is_file():
             recorded_inputs(e)
     source = model_source or protocol.model
+    if model_source is None and Path(source).is_absolute() and not Path(source).exists():
+        raise ReplayInputError(f"the run's model {source} is not on this machine (a run copied from elsewhere); "
+                               "pass the model to replay with --model")
     model = loaded_model if loaded_model is not None else load_pretrained(source)
     config = protocol.policy.__class__(**{**vars(protocol.policy), "inference_batch": 1})
     inference = BatchInference(model, config)
