@@ -13,7 +13,6 @@ import argparse
 import os
 import tempfile
 import time
-from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
@@ -30,24 +29,24 @@ def main() -> None:
 
     from harness.octo import load_pretrained
     from harness.policy import PolicyConfig
-    from harness.runner import RunConfig, run
+    from harness.run import Protocol, execute
     from harness.outputs.writers import OutputOptions
 
     model = load_pretrained(args.model)
     rows = []
     with tempfile.TemporaryDirectory() as out:
         # warm-up: compiles sample_actions so the measured episodes show steady-state steps
-        run(RunConfig(tasks=(args.task,), model=args.model, max_steps=2, out_dir=Path(out), run_name="warmup"), model=model)
+        execute(Protocol(model=model.source, tasks=(args.task,), max_steps=2), out, "warmup", model=model,
+                progress=False)
         for label, outputs in [
             ("png every step + mp4", OutputOptions(png_every=args.png_every)),
             ("mp4 only", OutputOptions(png_every=0)),
             ("no png, no mp4", OutputOptions(png_every=0, video=False)),
         ]:
-            config = RunConfig(tasks=(args.task,), model=args.model, episodes=1, max_steps=args.steps,
-                               out_dir=Path(out), run_name=label.replace(" ", "_").replace("+", ""),
-                               policy=PolicyConfig(), outputs=outputs)
+            protocol = Protocol(model=model.source, tasks=(args.task,), episodes=1, max_steps=args.steps,
+                                policy=PolicyConfig(), outputs=outputs)
             start = time.perf_counter()
-            summary = run(config, model=model)
+            summary = execute(protocol, out, label.replace(" ", "_").replace("+", ""), model=model, progress=False)
             wall = time.perf_counter() - start
             r = summary.rows[0]
             rows.append((label, r, wall))

@@ -53,7 +53,7 @@ def _add_execution_args(parser: argparse.ArgumentParser) -> None:
 
 def _execution(args):
     """The executor factory the execution flags of `_add_execution_args` ask for (None: sequential)."""
-    from harness.run.workers import executor_factory
+    from harness.run.execution import executor_factory
 
     return executor_factory(args.workers, args.executor, args.ray_address, args.policy_replicas)
 

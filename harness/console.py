@@ -24,7 +24,8 @@ def is_verbose(environ: MutableMapping[str, str] | None = None) -> bool:
 
 
 def configure(verbose: bool, environ: MutableMapping[str, str] | None = None) -> None:
-    """One stderr handler on the root logger: our loggers at INFO, the others at WARNING (INFO when `verbose`).
+    """One stderr handler on the root logger (unless it has handlers already, as logging.basicConfig: e.g. under
+    pytest, which captures records itself): our loggers at INFO, the others at WARNING (INFO when `verbose`).
 
     Sets OCTO_HARNESS_VERBOSE in `environ` (default os.environ) so worker processes follow the same choice.
     """
@@ -33,10 +34,9 @@ def configure(verbose: bool, environ: MutableMapping[str, str] | None = None) ->
         environ[VERBOSE_ENV] = "1"
     verbose = is_verbose(environ)
     root = logging.getLogger()
-    if not any(getattr(h, "_octo_harness", False) for h in root.handlers):
+    if not root.handlers:
         handler = logging.StreamHandler(sys.stderr)
         handler.setFormatter(logging.Formatter(FORMAT))
-        handler._octo_harness = True  # type: ignore[attr-defined]
         root.addHandler(handler)
     root.setLevel(logging.INFO if verbose else logging.WARNING)
     for name in OWN_LOGGERS:

@@ -23,7 +23,7 @@ from harness.octo.diffusion import make_schedule, sample
 from harness.octo.normalization import normalize
 from harness.policy import BatchInference, EnvMismatchError, InferenceRequest, OctoPolicy, PolicyConfig, TaskSpec, step_key
 from harness.rollout import rollout
-from harness.runner import RunConfig, run
+from harness.run import Protocol, execute
 from harness.outputs.writers import OutputOptions
 from octo_reference import load_expected, observations, task, threefry_flag
 
@@ -112,10 +112,11 @@ def test_finetuned_checkpoint_runs_closed_loop_with_attention_drawn(finetuned, t
     assert set(finetuned.image_sizes) == {"image_primary"}
     conventions = CheckpointConventions.read(finetuned.checkpoint_dir)  # what the run reads from the checkpoint
     records = []
-    summary = run(RunConfig(tasks=("Lift",), model=finetuned.source, max_steps=STEPS, out_dir=tmp_path, run_name="ft",
-                            env=conventions.env_options({"masks": True, "fast_render": True}),
-                            policy=conventions.policy_config(), outputs=OutputOptions(png_every=1, video=True)),
-                  model=finetuned, on_step=lambda task, k, t, record: records.append(record))
+    protocol = Protocol(model=finetuned.source, tasks=("Lift",), max_steps=STEPS,
+                        env=conventions.env_options({"masks": True, "fast_render": True}),
+                        policy=conventions.policy_config(), outputs=OutputOptions(png_every=1, video=True))
+    summary = execute(protocol, tmp_path, "ft", model=finetuned, progress=False,
+                      on_step=lambda job, t, record: records.append(record))
     (row,) = summary.rows
     assert row.status == "ok", row.error
     episode = summary.episode_dir(row)

@@ -12,7 +12,7 @@ import envs
 from harness import cli
 from harness.octo import load_pretrained
 from harness.policy import OctoPolicy, PolicyConfig
-from harness.runner import RunConfig, run
+from harness.run import Protocol, execute
 from harness.outputs.writers import OutputOptions
 
 STEPS = 3
@@ -24,8 +24,8 @@ def tiny(fixtures_dir):
 
 
 def _run(model, out: Path, name: str, **kw):
-    config = RunConfig(tasks=("Lift",), model=model.source, max_steps=STEPS, out_dir=out, run_name=name, **kw)
-    return run(config, model=model)
+    protocol = Protocol(model=model.source, tasks=("Lift",), max_steps=STEPS, **kw)
+    return execute(protocol, out, name, model=model, progress=False)
 
 
 @pytest.fixture(scope="module")

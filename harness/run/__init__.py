@@ -9,6 +9,9 @@ settings.py  flags / protocol file (TOML) -> Protocol
 checks.py    checks before anything heavy (one-line errors)
 store.py     the run folder: lock, manifest, results.jsonl, derived tables, clean-up; EpisodeRow
 executor.py  the executor interface, run_episode, SequentialExecutor
+workers.py   WorkersExecutor: spawned env workers, inference batched in the driver
+ray_executor.py  RayExecutor: env-worker actors and policy replicas on a Ray cluster
+execution.py executor_factory: the execution flags -> which executor runs the episodes (the one place choosing)
 driver.py    execute(): the pipeline, resume, signals, RunSummary
 progress.py  progress bar
 """
@@ -20,7 +23,7 @@ _EXPORTS = {
     "execute": "driver", "EpisodeContext": "executor", "Executor": "executor", "SequentialExecutor": "executor",
     "make_env": "executor", "record_failure": "executor", "run_episode": "executor", "EpisodeJob": "jobs",
     "Protocol": "protocol", "diff": "protocol", "model_fingerprint": "protocol", "EpisodeRow": "store",
-    "ResultsWriteError": "store", "RunLockedError": "store", "RunStore": "store",
+    "ResultsWriteError": "store", "RunLockedError": "store", "RunStore": "store", "executor_factory": "execution",
 }
 __all__ = sorted(_EXPORTS)
 

@@ -470,30 +470,3 @@ class WorkersExecutor:
 
     def close(self) -> None:
         self.pool.shutdown()
-
-
-def executor_factory(workers: int | None, executor: str | None = None, ray_address: str | None = None,
-                     policy_replicas: int | None = None):
-    """Command-line execution options -> an executor factory for `execute` (None = the sequential executor).
-
-    Checked before anything heavy: one line naming the fix for an impossible combination, or Ray missing.
-    """
-    executor = executor or "local"
-    if workers is not None and workers < 1:
-        raise ValueError(f"--workers must be at least 1, got {workers}")
-    if workers is not None and workers > max_workers():
-        raise ValueError(f"--workers {workers} is more than this machine can use ({os.cpu_count()} CPU cores, "
-                         f"memory for {max_workers()} env workers); use --workers {max_workers()} or fewer")
-    if executor != "ray" and (ray_address is not None or policy_replicas is not None):
-        raise ValueError("--ray-address and --policy-replicas need --executor ray")
-    if policy_replicas is not None and policy_replicas < 1:
-        raise ValueError(f"--policy-replicas must be at least 1, got {policy_replicas}")
-    if executor == "ray":
-        from harness.run.ray_executor import RayExecutor, import_ray
-
-        import_ray()
-        return functools.partial(RayExecutor, workers=workers, address=ray_address,
-                                 replicas=policy_replicas or 1)
-    if workers is None:
-        return None
-    return functools.partial(WorkersExecutor, workers=workers)
