@@ -38,7 +38,7 @@ def tiny(fixtures_dir):
 def _protocol(model, episodes: int = 2, **kw) -> Protocol:
     return Protocol(model=model.source, tasks=("Lift",), episodes=episodes, seed=3, max_steps=STEPS,
                     env=envs.EnvOptions(masks=True, fast_render=True, cameras=CAMERAS),
-                    outputs=OutputOptions(png_every=0, video=False), **kw)
+                    outputs=OutputOptions(png_every=0, video=False, record_inputs=True), **kw)
 
 
 def _actions(summary, row) -> np.ndarray:
@@ -65,6 +65,15 @@ def _assert_same_episodes(reference, other) -> None:
         np.testing.assert_array_equal(_actions(other, b), _actions(reference, a))
         with np.load(reference.episode_dir(a) / "attention.npz") as za, np.load(other.episode_dir(b) / "attention.npz") as zb:
             np.testing.assert_array_equal(zb["readout_attention"], za["readout_attention"])
+
+
+def _assert_replay_is_exact(summary, model) -> None:
+    """Replay of a run on its own recorded inputs, with its own model on this machine: EQUIVALENT, and exactly 0."""
+    from harness.run.replay import replay_run
+
+    result = replay_run(summary.run_dir, loaded_model=model)
+    assert result["verdict"] == "EQUIVALENT" and result["steps_compared"] == sum(r.steps for r in summary.rows)
+    assert result["action_change_max"] == 0.0 and result["attention_js_max"] == 0.0
 
 
 def _run_three_while(tiny, tmp_path, name, factory, killer):
@@ -98,6 +107,8 @@ def test_two_worker_processes_give_the_sequential_episodes_without_recompiling(t
 
     summary = execute(_protocol(tiny), tmp_path, "w2", model=tiny, executor=factory, progress=False)
     _assert_same_episodes(sequential, summary)
+    _assert_replay_is_exact(sequential, tiny)
+    _assert_replay_is_exact(summary, tiny)
     # one inference shape (the protocol's inference_batch 1, shared with the sequential run), compiled once
     assert tiny.sample_cache_size == 1
     pool = executors[0].pool
@@ -364,6 +375,7 @@ def test_ray_executor_with_two_workers_gives_the_sequential_episodes(tiny, seque
 
     summary = execute(_protocol(tiny), tmp_path, "ray2", model=tiny, executor=factory, progress=False)
     _assert_same_episodes(sequential, summary)
+    _assert_replay_is_exact(summary, tiny)
     (stats,) = executors[0].replica_stats
     assert stats["sample_cache_size"] == 1  # the replica compiled its one shape during warm-up only
     assert sum(stats["batches"]) == 2 * STEPS
