@@ -93,7 +93,11 @@ def main(argv: list[str] | None = None) -> int:
     rows = summarise_runs(args.runs)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "eval.json").write_text(json.dumps({"note": args.note, "tasks": rows}, indent=2))
-    (args.out / "EVAL.md").write_text(markdown(rows, args.note))
+    eval_md = args.out / "EVAL.md"
+    kept = ""  # sections written by other scripts (e.g. "## Faithfulness", scripts/faithfulness_reference.sh) stay
+    if eval_md.is_file() and "\n## " in eval_md.read_text():
+        kept = "\n## " + eval_md.read_text().split("\n## ", 1)[1]
+    eval_md.write_text(markdown(rows, args.note) + kept)
     print(markdown(rows, args.note))
     return 0
 
