@@ -99,6 +99,7 @@ def make(
         fast_render=options.fast_render,
         image_convention=options.image_convention,
         action_space=options.action_space,
+        hold_gripper=options.hold_gripper,
         model_seed=model_seed,
         render_mode=render_mode,
         robosuite_options=tuple(sorted(robosuite_options.items())),

@@ -18,6 +18,10 @@ Fields:
   action_space     "octo-delta": Octo's 7-D end-effector delta (Bridge convention, see envs.actions);
                    "robosuite": the controller's own 7-D input (OSC_POSE delta: 6 arm values in [-1, 1],
                    gripper -1 open / +1 closed), as robosuite and robomimic datasets store actions.
+  hold_gripper     None, or the gripper value held at every step for a model without a gripper dimension (6-D
+                   arm-only actions): the env then takes 6-D actions and appends it. Given as "open", "closed"
+                   or a number in the action space's own units (octo-delta: 1 open, 0 closed; robosuite: -1 open,
+                   +1 closed), recorded as that number.
 """
 
 from __future__ import annotations
@@ -30,6 +34,9 @@ import numpy as np
 
 IMAGE_CONVENTIONS = ("upright", "opengl")
 ACTION_SPACES = ("octo-delta", "robosuite")
+# the gripper value of "open" / "closed" and its range, per action space
+GRIPPER_VALUES = {"octo-delta": {"open": 1.0, "closed": 0.0, "range": (0.0, 1.0)},
+                  "robosuite": {"open": -1.0, "closed": 1.0, "range": (-1.0, 1.0)}}
 
 _CAMERA_SPEC = re.compile(r"^([A-Za-z_][\w]*)=([^:=\s]+):(\d+)$")
 
@@ -86,6 +93,22 @@ def _camera_tuple(cameras: Any) -> tuple[tuple[str, str, int], ...] | None:
     return tuple(out)
 
 
+def _gripper_value(value: Any, action_space: str) -> float:
+    """"open" | "closed" | a number (also as text) -> the gripper value in `action_space`'s units, range-checked."""
+    values = GRIPPER_VALUES[action_space]
+    low, high = values["range"]
+    if isinstance(value, str) and value.strip().lower() in ("open", "closed"):
+        return values[value.strip().lower()]
+    try:
+        number = float(value) if not isinstance(value, bool) else float("nan")
+    except (TypeError, ValueError):
+        number = float("nan")
+    if not low <= number <= high:
+        raise EnvConfigError(f"--hold-gripper {value!r}: use open, closed or a number in [{low:g}, {high:g}] "
+                             f"(the {action_space} action space: open = {values['open']:g}, closed = {values['closed']:g})")
+    return number
+
+
 @dataclass(frozen=True)
 class EnvOptions:
     masks: bool = False
@@ -93,6 +116,7 @@ class EnvOptions:
     cameras: tuple[tuple[str, str, int], ...] | None = None  # None: the task's default cameras; () renders nothing
     image_convention: str = "upright"  # "upright" | "opengl"
     action_space: str = "octo-delta"  # "octo-delta" | "robosuite"
+    hold_gripper: float | None = None  # gripper value held for 6-D (arm-only) models; the env then takes 6-D actions
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "cameras", _camera_tuple(self.cameras))
@@ -102,6 +126,8 @@ class EnvOptions:
             raise EnvConfigError(f"action space {self.action_space!r} unknown; use one of {', '.join(ACTION_SPACES)}")
         if self.masks and self.cameras == ():
             raise EnvConfigError("masks need at least one camera; add --camera KEY=camera:size or turn masks off")
+        if self.hold_gripper is not None:
+            object.__setattr__(self, "hold_gripper", _gripper_value(self.hold_gripper, self.action_space))
 
     @property
     def camera_dict(self) -> dict[str, tuple[str, int]] | None:
@@ -111,13 +137,14 @@ class EnvOptions:
     def to_dict(self) -> dict:
         """Plain JSON/TOML data; cameras as {key: [camera, size]} (None when the task's defaults are used)."""
         cameras = None if self.cameras is None else {k: [c, s] for k, c, s in self.cameras}
+        held = {} if self.hold_gripper is None else {"hold_gripper": self.hold_gripper}  # only when set: hashes stay
         return {"masks": self.masks, "fast_render": self.fast_render, "cameras": cameras,
-                "image_convention": self.image_convention, "action_space": self.action_space}
+                "image_convention": self.image_convention, "action_space": self.action_space, **held}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "EnvOptions":
         """Inverse of `to_dict`; unknown keys raise (a typo in a protocol file must not be ignored)."""
-        known = {"masks", "fast_render", "cameras", "image_convention", "action_space"}
+        known = {"masks", "fast_render", "cameras", "image_convention", "action_space", "hold_gripper"}
         unknown = sorted(set(data) - known)
         if unknown:
             raise EnvConfigError(f"unknown env option(s) {unknown}; known: {sorted(known)}")

@@ -11,7 +11,8 @@ Observations (dict):
 Actions (`action_space`): "octo-delta" (default): (7,) float32 in Octo's convention (see `envs.actions`),
 mapped to robosuite OSC_POSE; "robosuite": (7,) the OSC_POSE input itself (arm values in [-1, 1], gripper
 -1 open / +1 closed), clipped to [-1, 1]. Wipe ignores the gripper value. Out-of-range values are
-clipped and counted (`info["action_clipped"]`).
+clipped and counted (`info["action_clipped"]`). With `hold_gripper` the env takes the 6 arm values and
+appends that gripper value (models without a gripper dimension).
 Image convention (`image_convention`): "upright" (default) or "opengl" (row 0 = bottom, as robosuite
 renders and robomimic stores frames); images, masks and target pixels all follow it; `render()` is
 always upright (it is for people). With robosuite's default OSC (kp 150, goal set from the achieved pose),
@@ -69,6 +70,7 @@ class EnvConfig:
     robosuite_options: tuple[tuple[str, object], ...] = field(default_factory=tuple)  # extra robosuite.make kwargs
     image_convention: str = "upright"  # "upright" | "opengl" (see envs.options)
     action_space: str = "octo-delta"  # "octo-delta" | "robosuite" (see envs.options)
+    hold_gripper: float | None = None  # 6-D actions (arm only), this gripper value appended (see envs.options)
 
 
 def default_cameras(task: TaskSpec) -> tuple[CameraSpec, ...]:
@@ -207,6 +209,9 @@ class RobosuiteEnv(gym.Env):
             high = np.array([self.adapter.position_max] * 3 + [self.adapter.rotation_max] * 3 + [1.0], dtype=np.float32)
             low = np.concatenate([-high[:6], [0.0]]).astype(np.float32)
             self.action_space = gym.spaces.Box(low, high, dtype=np.float32)
+        if config.hold_gripper is not None:  # arm-only actions; the gripper is held at the given value
+            space = self.action_space
+            self.action_space = gym.spaces.Box(space.low[:6], space.high[:6], dtype=np.float32)
 
         self._step_index = 0
         self._clipped = 0
@@ -230,6 +235,12 @@ class RobosuiteEnv(gym.Env):
         self._check_thread()
         if self._last_obs is None:
             raise gym.error.ResetNeeded("call reset() before step()")
+        if self.config.hold_gripper is not None:
+            arm = np.asarray(action, np.float32).reshape(-1)
+            if arm.shape != (6,):
+                raise ValueError(f"this env holds the gripper at {self.config.hold_gripper:g} and takes 6-D actions, "
+                                 f"got {arm.shape[0]}-D")
+            action = np.append(arm, np.float32(self.config.hold_gripper))
         if self.config.action_space == "robosuite":
             osc, clipped = passthrough_action(np.asarray(action))
         else:

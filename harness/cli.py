@@ -115,6 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="orientation of the frames the model was trained on [upright]")
     r.add_argument("--action-space", choices=["octo-delta", "robosuite"], default=None,
                    help="what the model's actions mean [octo-delta, or the checkpoint's harness.toml]")
+    r.add_argument("--hold-gripper", default=None, metavar="open|closed|VALUE",
+                   help="for a 6-D (arm-only) model: the env takes 6-D actions and holds the gripper at this value "
+                        "(octo-delta: 1 open, 0 closed; robosuite: -1 open, +1 closed); part of the protocol")
     r.add_argument("--sampler", choices=["latest", "v0.1.0"], default=None,
                    help="diffusion sampling as the latest original Octo code does, or as v0.1.0 did [latest]")
     r.add_argument("--action-normalization", choices=["normal", "bounds"], default=None,

@@ -41,7 +41,7 @@ from envs.options import EnvConfigError, EnvOptions
 
 CONVENTIONS_FILE = "harness.toml"
 FORMAT = "octo-harness-conventions/1"
-ENV_KEYS = ("cameras", "image_convention", "action_space")  # masks and fast_render are run choices, not model conventions
+ENV_KEYS = ("cameras", "image_convention", "action_space", "hold_gripper")  # masks and fast_render are run choices, not model conventions
 
 
 class ConventionsError(ValueError):

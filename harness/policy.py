@@ -482,7 +482,15 @@ def check_env(image_sizes: dict, lowdim_sizes: dict, action_dim: int | None, env
                           {k: s for k, s in image_sizes.items()}, lowdim_sizes)
     env_dim = getattr(getattr(env, "action_space", None), "shape", None)
     if action_dim is not None and env_dim is not None and tuple(env_dim) != (action_dim,):
-        kind = getattr(getattr(getattr(env, "unwrapped", env), "config", None), "action_space", "this")
+        config = getattr(getattr(env, "unwrapped", env), "config", None)
+        kind = getattr(config, "action_space", "this")
+        held = getattr(config, "hold_gripper", None)
+        if held is not None and action_dim == env_dim[0] + 1:
+            fix = "drop --hold-gripper (the model has its own gripper dimension)"
+        elif held is None and action_dim == 6 and tuple(env_dim) == (7,):
+            fix = ("run it with --hold-gripper open|closed|VALUE: the env then takes the 6 arm values and holds the "
+                   "gripper there (recorded in the protocol)")
+        else:
+            fix = f"evaluate with a {env_dim[0]}-D action head (or statistics)"
         raise EnvMismatchError(f"the model's actions are {action_dim}-D but the env's {kind!r} action space takes "
-                               f"{env_dim[0]}-D; evaluate with a {env_dim[0]}-D action head (or statistics), or choose "
-                               "--action-space to match how the model was trained")
+                               f"{env_dim[0]}-D; {fix}")

@@ -47,7 +47,7 @@ FILE_KEYS: dict[str, tuple[type, ...]] = {
     "goal_images": (str,), "fast_render": (bool,), "camera": (str, list, dict), "image_convention": (str,),
     "action_space": (str,), "ci_method": (str,), "sampler": (str,), "action_normalization": (str,),
     "proprio_normalization": (str,), "inference_batch": (int,), "record_inputs": (bool,),
-    "text_tokenizer": (str,),
+    "text_tokenizer": (str,), "hold_gripper": (str, int, float),
 }
 POLICY_KEYS = ("execution", "receding_steps", "ensemble_weight", "dataset_key", "sampler", "action_normalization",
                "proprio_normalization", "inference_batch")
@@ -160,7 +160,7 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
     env_given: dict[str, Any] = {"masks": not s.get("no_masks", False), "fast_render": bool(s.get("fast_render", False))}
     if s.get("camera"):
         env_given["cameras"] = tuple(parse_camera(c) for c in s["camera"])
-    for key in ("image_convention", "action_space"):
+    for key in ("image_convention", "action_space", "hold_gripper"):
         if key in s:
             env_given[key] = s[key]
     env = conventions.env_options(env_given) if conventions is not None else EnvOptions.from_dict(env_given)
