@@ -176,6 +176,8 @@ def compare_page(result: dict, frames: dict | None = None, markdown: str | None 
                        + ("every paired array and outcome is equal" if ident["identical"] else
                           f"{ident['pairs_identical']}/{result['pairs']} pairs identical; first difference: "
                           f"{ident['first_difference']}")))
+    if result.get("provenance"):
+        body.append(H.note("Provenance: " + result["provenance"]["summary"]))
 
     colours = run_colours(2)
     tasks = list(result["outcomes"]["tasks"])

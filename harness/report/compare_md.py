@@ -77,11 +77,14 @@ def markdown_summary(result: dict, exit_code: int | None = None) -> str:
             lines.append(f"> NOTE: `{arm['run']}` uses RANDOM weights ({arm['model']}).")
     ident = result["identical"]
     if ident["identical"]:
-        lines += ["", f"Every paired array is equal within {ident['atol']:g} and every outcome is the same "
-                      f"({ident['steps_compared']})."]
+        lines += ["", ("Every paired array is bit-equal" if not ident["atol"] else
+                       f"Every paired array is equal within {ident['atol']:g}")
+                  + f" and every outcome is the same ({ident['steps_compared']})."]
     else:
         lines += ["", f"Not identical: {ident['pairs_identical']}/{result['pairs']} pairs identical; first difference: "
                       f"{ident['first_difference']}."]
+    if result.get("provenance"):
+        lines += ["", "**Provenance:** " + result["provenance"]["summary"] + "."]
     lines += [
         "",
         f"| task | pairs | baseline success [{confidence} Wilson] | candidate success | difference = candidate - "

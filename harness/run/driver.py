@@ -12,9 +12,7 @@ raise `Interrupted` (a KeyboardInterrupt) outside the store's critical sections;
 from __future__ import annotations
 
 import dataclasses
-import dataclasses
 import logging
-import platform
 import shutil
 import signal
 import threading
@@ -180,15 +178,6 @@ def _model_info(model, policy_dataset_key, fingerprint: dict) -> dict:
     }
 
 
-def _versions() -> dict:
-    import jax
-    import mujoco
-    import robosuite
-
-    return {"jax": jax.__version__, "robosuite": robosuite.__version__, "mujoco": mujoco.__version__,
-            "numpy": np.__version__, "python": platform.python_version()}
-
-
 def execute(
     protocol: Protocol,
     out: str | Path,
@@ -264,7 +253,8 @@ def execute(
                     "format": FORMAT, "run": name, "created": now_utc(), "protocol": protocol_dict,
                     "protocol_hash": protocol.hash(), "jobs": [[j.task, j.episode, j.seed] for j in jobs],
                     "model": _model_info(model, dataset_key, fingerprint_details), "task_inputs": task_inputs,
-                    "goal_images": protocol.goal_images, "git_commit": _git_commit(), "versions": _versions(),
+                    "goal_images": protocol.goal_images, "git_commit": _git_commit(),
+                    "versions": {"jax": platform_now["jax"]["version"], **platform_now["versions"]},
                     "platform": platform_now, "platform_fingerprint": platform_fp,
                 }
                 store.write_manifest(manifest)
