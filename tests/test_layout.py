@@ -40,3 +40,15 @@ def test_one_place_chooses_the_executor_and_no_compatibility_layer():
     assert not (HARNESS / "runner.py").exists()
     benchmarks = "".join(p.read_text() for p in (HARNESS.parent / "benchmarks").glob("*.py"))
     assert "harness.runner" not in benchmarks and "RunConfig" not in benchmarks
+
+
+def test_every_module_imports_and_states_its_job():
+    """The quick subset (`pytest -m "not slow"`) imports every module of harness/ and envs/ here, so none is left
+    out of it; each module's docstring states its job."""
+    import importlib
+
+    root = HARNESS.parent
+    names = sorted(".".join(p.relative_to(root).with_suffix("").parts).removesuffix(".__init__")
+                   for package in ("harness", "envs") for p in (root / package).rglob("*.py"))
+    undocumented = [name for name in names if not (importlib.import_module(name).__doc__ or "").strip()]
+    assert len(names) > 60 and undocumented == []

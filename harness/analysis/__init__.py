@@ -1,0 +1,1 @@
+"""Analysis: attention maths, success statistics, paired and sequential tests, run reading, aggregation, comparison."""
