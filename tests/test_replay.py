@@ -146,3 +146,17 @@ def test_a_run_whose_model_is_not_here_names_the_fix(tmp_path, capsys):
     assert main(["replay", str(run)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "is not on this machine" in err[0] and "pass the model to replay with --model" in err[0]
+
+
+@pytest.mark.parametrize("intervention", ["mask-top:4:attention:2", "ablate-heads:1:0"])
+def test_intervention_runs_replay_exactly_on_the_inputs_the_policy_saw(intervention, tmp_path, capsys):
+    """A masking intervention records the masked frames (what the policy saw), so replay does not mask again; a head
+    ablation is part of the model the replay runs."""
+    common = ["run", "--model", str(MODEL), "--task", "Lift", "--episodes", "1", "--max-steps", "5", "--fast-render",
+              "--png-every", "0", "--no-video", "--record-inputs", "--out", str(tmp_path), "--run-name", "iv",
+              "--intervene", intervention]
+    assert main(common) == 0
+    capsys.readouterr()
+    code, result, out = _replay([str(tmp_path / "iv"), "--out", str(tmp_path / "r")], capsys)
+    assert code == 0 and result["verdict"] == "EQUIVALENT" and result["steps_compared"] == 5, out
+    assert result["action_change_max"] == 0.0 and result["attention_js_max"] == 0.0

@@ -141,6 +141,11 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, tolerances:
                                "pass the model to replay with --model")
     model = loaded_model if loaded_model is not None else load_pretrained(source)
     config = protocol.policy.__class__(**{**vars(protocol.policy), "inference_batch": 1})
+    if config.intervention is not None:
+        from harness.interventions import parse_intervention
+
+        if parse_intervention(config.intervention).masks:  # the recorded inputs are the masked frames already
+            config = config.__class__(**{**vars(config), "intervention": None})
     inference = BatchInference(model, config)
     goals = None
     if protocol.goal_images:
