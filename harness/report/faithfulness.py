@@ -168,12 +168,8 @@ def _name(method: str) -> str:
     return f"layer {layer} attention" if base == "attention" else base
 
 
-def heatmap(task: str, rows: list[tuple]) -> bytes:
-    """PNG: methods (rows) x cameras (columns) of the deletion ratio (1 = random), annotated."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def _draw(ax, task: str, rows: list[tuple]):
+    """methods (rows) x cameras (columns) of the deletion ratio on `ax`; returns the image artist."""
     from matplotlib.colors import TwoSlopeNorm
 
     items = [r for r in rows if r[1] == task]
@@ -182,19 +178,43 @@ def heatmap(task: str, rows: list[tuple]) -> bytes:
     grid = np.full((len(methods), len(cameras)), np.nan)
     for r in items:
         grid[methods.index(r[3]), cameras.index(r[2])] = r[7]
-    finite = grid[np.isfinite(grid)]
-    spread = max(0.05, float(np.max(np.abs(finite - 1))) if finite.size else 0.5)
-    fig, ax = plt.subplots(figsize=(1.6 + 1.5 * len(cameras), 0.9 + 0.36 * len(methods)), dpi=110)
-    im = ax.imshow(np.ma.masked_invalid(grid), cmap="RdBu_r", norm=TwoSlopeNorm(1.0, 1 - spread, 1 + spread), aspect="auto")
+    im = ax.imshow(np.ma.masked_invalid(grid), cmap="RdBu_r", norm=TwoSlopeNorm(1.0, 0.5, 1.5), aspect="auto")
     for (y, x), v in np.ndenumerate(grid):
         ax.text(x, y, "n/a" if not np.isfinite(v) else f"{v:.2f}", ha="center", va="center", fontsize=8)
     ax.set_xticks(range(len(cameras)), [c.removeprefix("image_") for c in cameras])
     ax.set_yticks(range(len(methods)), methods)
-    ax.set_title(f"{task}: deletion AUC / random (>1 better)", fontsize=9)
-    fig.colorbar(im, ax=ax, fraction=0.05)
-    fig.tight_layout()
+    ax.set_title(task, fontsize=9)
+    return im
+
+
+def heatmap(task: str, rows: list[tuple]) -> bytes:
+    """PNG: methods (rows) x cameras (columns) of the deletion ratio (1 = random; colours clipped to 0.5..1.5)."""
+    return figure([(task, rows)])
+
+
+def figure(panels: list[tuple[str, list[tuple]]]) -> bytes:
+    """PNG of one heatmap per (task, rows) side by side, one colour bar (deletion AUC / random, >1 better)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    height = max(len({r[3] for r in rows if r[1] == task}) for task, rows in panels)
+    fig, axes = plt.subplots(1, len(panels), figsize=(1.4 + 2.2 * len(panels), 1.2 + 0.34 * height), dpi=110,
+                             squeeze=False)
+    im = None
+    methods = None
+    for ax, (task, rows) in zip(axes[0], panels):
+        im = _draw(ax, task, rows)
+        shown = [t.get_text() for t in ax.get_yticklabels()]
+        if methods == shown:  # the same rows as the panel on its left: label them once
+            ax.tick_params(labelleft=False)
+        methods = shown
+    fig.suptitle("deletion AUC / random map's (1 = random, > 1: deleting the top-ranked patches moves the action sooner)",
+                 fontsize=8)
+    fig.colorbar(im, ax=list(axes[0]), fraction=0.03)
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png")
+    fig.savefig(buffer, format="png", bbox_inches="tight")
     plt.close(fig)
     return buffer.getvalue()
 
@@ -263,9 +283,19 @@ def markdown(runs) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":  # python -m harness.report.faithfulness RUN... : the Markdown tables
-    import sys
+if __name__ == "__main__":  # python -m harness.report.faithfulness RUN... [--figure PNG]: the Markdown tables
+    import argparse
 
     from harness.analysis.runs import load_run
 
-    print(markdown([load_run(p) for p in sys.argv[1:]]))
+    parser = argparse.ArgumentParser(prog="python -m harness.report.faithfulness")
+    parser.add_argument("runs", nargs="+")
+    parser.add_argument("--figure", default=None, help="also write the deletion-ratio heatmaps of every task here")
+    args = parser.parse_args()
+    records = [load_run(p) for p in args.runs]
+    print(markdown(records))
+    if args.figure:
+        rows = [r for record in records for r in summarise(read_rows(record), record.name)]
+        tasks = list(dict.fromkeys(r[1] for r in rows))
+        with open(args.figure, "wb") as f:
+            f.write(figure([(task, rows) for task in tasks]))
