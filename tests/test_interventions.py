@@ -179,3 +179,20 @@ def test_attribution_and_faithfulness_in_a_run_leave_the_actions_alone(tmp_path)
     assert len(table) == 1 + 6  # 2 cameras x (attention:2, saliency, random)
     html = (tmp_path / "report" / "report.html").read_text()
     assert "Open loop: probed" in html and "ranks the patches the action depends on" in html
+
+
+def test_settings_and_protocol_files_carry_the_options(tmp_path):
+    from harness.run.settings import build_protocol, read_protocol_file
+
+    path = tmp_path / "eval.toml"
+    path.write_text('task = "Lift"\nintervene = "mask-bottom:2:rollout@image_wrist"\nfaithfulness-every = 5\n'
+                    'attribution = ["attention:1", "saliency"]\nfaithfulness-fill = "blur"\n')
+    protocol = build_protocol({**read_protocol_file(path), "model": str(REFERENCE)})
+    assert protocol.policy.intervention == "mask-bottom:2:rollout@image_wrist"
+    assert (protocol.policy.faithfulness_every, protocol.policy.faithfulness_fill) == (5, "blur")
+    assert protocol.policy.attribution == "attention:1,saliency"
+    with pytest.raises(ValueError, match="faithfulness-every must be an integer >= 0"):
+        PolicyConfig(faithfulness_every=-1)
+    with pytest.raises(ValueError, match="unknown attribution method"):
+        PolicyConfig(attribution="attention,lime")
+    assert PolicyConfig(faithfulness_every=10).attribution == "attention,rollout,grad-attention,saliency"
