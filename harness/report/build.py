@@ -209,29 +209,57 @@ def _overlay_png(run: RunData, episode: EpisodeRecord, options: ReportOptions) -
     if steps == 0 or not tokens.image_groups:
         return None
     meta = episode.read_json()
-    camera = (meta.get("options") or {}).get("video_camera") or tokens.image_groups[0][1]
-    if camera not in {k for _, k, _, _ in tokens.image_groups}:
-        camera = tokens.image_groups[0][1]
+    video_camera = (meta.get("options") or {}).get("video_camera") or tokens.image_groups[0][1]
     picked = _evenly(steps, options.overlay_steps)
     shown_layers = _evenly(layers, options.overlay_layers)
     rows = attn[picked].astype(np.float32).mean(axis=(2, 3))  # (t, layers, keys): head and readout mean
-    maps = camera_maps(rows, tokens, camera)[:, shown_layers].transpose(1, 0, 2, 3)  # (layers, t, rows, cols)
-    grid_rows, grid_cols = tokens.grid(tokens.camera_group(camera))
-    frames: dict[int, np.ndarray] = {}
-    video_camera = (meta.get("options") or {}).get("video_camera") or tokens.image_groups[0][1]
-    if episode.video_path is not None and camera == video_camera:
-        step_numbers = [int(arrays.step[i]) for i in picked]
-        width = max(1, int(round(VIDEO_DISPLAY * grid_cols / grid_rows)))
-        by_index = read_video_frames(episode.video_path, picked, VIDEO_DISPLAY, width)
-        frames = {step_numbers[j]: by_index[i] for j, i in enumerate(picked) if i in by_index}
+    last = attn[:, -1].astype(np.float32).mean(axis=(1, 2))  # (steps, keys): last layer, head and readout mean
+    total = last.sum(axis=-1)
     step_numbers = [int(arrays.step[i]) for i in picked]
-    title = (f"{run.label} | {episode.task} episode {episode.episode} | {camera} | head-mean attention (each cell its own "
-             "range) | green: target patches")
-    coverage = arrays.mask_fractions.get(f"{camera}/target")  # (steps, rows, cols) or None
-    boxes = [_patch_box(coverage[i]) if coverage is not None else None for i in picked]
-    png = figures.overlay_grid([frames.get(s) for s in step_numbers], maps, shown_layers, step_numbers, title, boxes)
-    note = "" if frames else " (no rollout.mp4 frames: attention maps without the camera image)"
-    return png, f"{camera}, episode {episode.episode}{note}"
+    faith = faithfulness.summarise([r for r in faithfulness.read_rows(run) if r["task"] == episode.task], run.label)
+    panels, notes = [], []
+    for group, camera, grid_rows, grid_cols in tokens.image_groups:  # every camera the model reads, side by side
+        maps = camera_maps(rows, tokens, camera)[:, shown_layers].transpose(1, 0, 2, 3)  # (layers, t, rows, cols)
+        frames: dict[int, np.ndarray] = {}
+        if episode.video_path is not None and camera == video_camera:  # the MP4 holds the video camera's frames
+            width = max(1, int(round(VIDEO_DISPLAY * grid_cols / grid_rows)))
+            by_index = read_video_frames(episode.video_path, picked, VIDEO_DISPLAY, width)
+            frames = {step_numbers[j]: by_index[i] for j, i in enumerate(picked) if i in by_index}
+        share = float(np.mean(last[:, tokens.group == group].sum(axis=-1) / np.where(total > 0, total, 1)))
+        title = (f"{run.label} | {episode.task} ep. {episode.episode} | {camera} | {share:.0%} of the last layer's "
+                 "readout attention | head mean (each cell its own range) | green: target patches")
+        coverage = arrays.mask_fractions.get(f"{camera}/target")  # (steps, rows, cols) or None
+        boxes = [_patch_box(coverage[i]) if coverage is not None else None for i in picked]
+        panels.append(figures.overlay_grid([frames.get(s) for s in step_numbers], maps, shown_layers, step_numbers,
+                                           title, boxes))
+        note = f"{camera}: {share:.0%} of the last layer's readout attention"
+        ranked = [r for r in faith if r[2] == camera and r[3] != "random" and math.isfinite(r[7])]
+        if ranked:
+            best = max(ranked, key=lambda r: r[7])
+            note += f", most faithful: {best[3]} (deletion {best[7]:.2f}x random [{best[8]:.2f}, {best[9]:.2f}])"
+        if not frames:
+            note += (" (maps without the camera image: no rollout.mp4)" if episode.video_path is None else
+                     f" (maps without the camera image: the MP4 shows {video_camera})" if camera != video_camera else
+                     " (maps without the camera image: rollout.mp4 unreadable)")
+        notes.append(note)
+    return _side_by_side(panels), f"episode {episode.episode}; " + "; ".join(notes)
+
+
+def _side_by_side(pngs: list[bytes]) -> bytes:
+    """PNG images placed left to right on white (top-aligned)."""
+    from PIL import Image
+
+    if len(pngs) == 1:
+        return pngs[0]
+    images = [Image.open(io.BytesIO(p)).convert("RGB") for p in pngs]
+    canvas = Image.new("RGB", (sum(i.width for i in images), max(i.height for i in images)), "white")
+    x = 0
+    for image in images:
+        canvas.paste(image, (x, 0))
+        x += image.width
+    out = io.BytesIO()
+    canvas.save(out, format="PNG")
+    return out.getvalue()
 
 
 # ---- tables --------------------------------------------------------------------------------------------------------

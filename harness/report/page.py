@@ -241,7 +241,8 @@ def _task_section(runs: list[RunData], task: str, out: Path, plots: _Plots, over
             overlay = future.result()
             if overlay is not None:
                 body.append(plots.add(f"overlays_{safe}_{run.label}", overlay[0], f"overlays {task} {run.label}",
-                                      f"{run.label}: layer x time grid of head-mean readout attention over {overlay[1]}; "
+                                      f"{run.label}: layer x time grids of head-mean readout attention, every camera the model "
+                                      f"reads side by side ({overlay[1]}); "
                                       "the representative episode is the one whose target lift (last layer) is closest "
                                       "to the task's median (the first analysed episode without masks)."))
     head_panels = []
