@@ -57,3 +57,15 @@ def test_intervention_rows_pair_by_seed_with_the_plain_run(tmp_path):
     assert row["difference_ci_high"] < 0 < row["baseline_rate"]
     assert row["mcnemar_p"] == pytest.approx(2 / 2 ** 8)  # 8 discordant pairs, all baseline-only: 2 * 0.5^8
     assert "mask-all" in R.markdown([plain, masked])
+
+
+def test_mask_top_is_also_paired_with_mask_random_of_the_same_k(tmp_path):
+    plain = _record("plain", {}, [True] * 10, tmp_path)
+    top = _record("top", {"intervention": "mask-top:2:saliency"}, [False] * 5 + [True] * 5, tmp_path)
+    rand = _record("rand", {"intervention": "mask-random:2"}, [True] * 9 + [False], tmp_path)
+    other_k = _record("rand3", {"intervention": "mask-random:3"}, [False] * 10, tmp_path)
+    rows = [dict(zip(R.INTERVENTION_COLUMNS, r)) for r in R.intervention_rows([plain, top, rand, other_k])]
+    pairs = {(r["run"], r["baseline_run"]) for r in rows}
+    assert pairs == {("top", "plain"), ("top", "rand"), ("rand", "plain"), ("rand3", "plain")}
+    versus_random = next(r for r in rows if r["baseline_run"] == "rand")
+    assert versus_random["difference"] == pytest.approx(-0.4) and versus_random["baseline_successes"] == 9

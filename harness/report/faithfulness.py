@@ -7,8 +7,9 @@ are better) with 95% bootstrap intervals over episodes, and top-k change over ra
 heatmap per task (methods x cameras, deletion ratio) and one plain sentence per task.
 
 Closed loop: runs given together whose protocols differ only in `policy.intervention` (same model, tasks,
-seeds) are paired with the plain run: success of each arm (Wilson), the paired difference (Newcombe's
-interval for paired proportions) and the exact McNemar p-value, per task.
+seeds) are paired with the plain run, and each mask-top:K run with the mask-random:K run (is the map better than
+chance at finding what the policy needs?): success of each arm (Wilson), the paired difference (Newcombe's interval
+for paired proportions) and the exact McNemar p-value, per task.
 
 `tables(runs)` -> {"faithfulness.csv", "interventions.csv"}; `section(runs, plots)` -> HTML ("" when no run
 has either); `markdown(runs)` -> the same tables as Markdown (EVAL.md).
@@ -96,32 +97,52 @@ def _arm_key(run) -> tuple:
 
 
 def intervention_rows(runs) -> list[tuple]:
-    """Rows of INTERVENTION_COLUMNS: each run with an intervention against a plain run of the same experiment."""
-    plain = {}
+    """Rows of INTERVENTION_COLUMNS: each run with an intervention against the plain run of the same experiment,
+    and each mask-top:K run against the mask-random:K run of the same experiment (is the map better than chance?)."""
+    plain, random_k = {}, {}
     for run in runs:
-        if not _policy(run).get("intervention"):
+        spec = _policy(run).get("intervention")
+        if not spec:
             plain.setdefault(_arm_key(run), run)
+        elif spec.startswith("mask-random:"):
+            random_k.setdefault((_arm_key(run), _masked_count(spec)), run)
     out = []
     for run in runs:
         spec = _policy(run).get("intervention")
-        base = plain.get(_arm_key(run)) if spec else None
-        if base is None:
+        if not spec:
             continue
-        b_rec, c_rec = getattr(base, "record", base), getattr(run, "record", run)
-        b_eps = {(e.task, e.seed): e for e in b_rec.episodes if e.ok}
-        c_eps = {(e.task, e.seed): e for e in c_rec.episodes if e.ok}
-        for task in c_rec.tasks:
-            keys = sorted(k for k in c_eps if k[0] == task and k in b_eps)
-            if not keys:
-                continue
-            b = [bool(b_eps[k].success) for k in keys]
-            c = [bool(c_eps[k].success) for k in keys]
-            counts = PairedCounts.from_outcomes(b, c)
-            n = len(keys)
-            lo, hi = newcombe_paired_interval(counts.both, counts.candidate_only, counts.baseline_only, counts.neither)
-            out.append((getattr(run, "label", c_rec.name), getattr(base, "label", b_rec.name), spec, task, n,
-                        sum(b), sum(b) / n, *wilson_interval(sum(b), n), sum(c), sum(c) / n, *wilson_interval(sum(c), n),
-                        (sum(c) - sum(b)) / n, lo, hi, mcnemar_exact(counts.baseline_only, counts.candidate_only)))
+        bases = [plain.get(_arm_key(run))]
+        if spec.startswith("mask-top:"):
+            bases.append(random_k.get((_arm_key(run), _masked_count(spec))))
+        for base in bases:
+            if base is not None:
+                out += _paired_rows(base, run, spec)
+    return out
+
+
+def _masked_count(spec: str) -> tuple[str, str]:
+    """(K, camera) of a mask spec: mask-top:4:attention:2@image_wrist -> ("4", "image_wrist")."""
+    body, _, camera = spec.partition("@")
+    return body.split(":")[1], camera
+
+
+def _paired_rows(base, run, spec: str) -> list[tuple]:
+    b_rec, c_rec = getattr(base, "record", base), getattr(run, "record", run)
+    b_eps = {(e.task, e.seed): e for e in b_rec.episodes if e.ok}
+    c_eps = {(e.task, e.seed): e for e in c_rec.episodes if e.ok}
+    out = []
+    for task in c_rec.tasks:
+        keys = sorted(k for k in c_eps if k[0] == task and k in b_eps)
+        if not keys:
+            continue
+        b = [bool(b_eps[k].success) for k in keys]
+        c = [bool(c_eps[k].success) for k in keys]
+        counts = PairedCounts.from_outcomes(b, c)
+        n = len(keys)
+        lo, hi = newcombe_paired_interval(counts.both, counts.candidate_only, counts.baseline_only, counts.neither)
+        out.append((getattr(run, "label", c_rec.name), getattr(base, "label", b_rec.name), spec, task, n,
+                    sum(b), sum(b) / n, *wilson_interval(sum(b), n), sum(c), sum(c) / n, *wilson_interval(sum(c), n),
+                    (sum(c) - sum(b)) / n, lo, hi, mcnemar_exact(counts.baseline_only, counts.candidate_only)))
     return out
 
 
@@ -241,7 +262,7 @@ def section(runs, plots) -> str:
     inter = intervention_rows(runs)
     if inter:
         body.append(H.section("Closed loop: interventions", "", level=3))
-        body.append(H.table(("intervention", "vs", "task", "pairs", "plain success [Wilson]", "with intervention",
+        body.append(H.table(("intervention", "against", "task", "pairs", "against: success [Wilson]", "with intervention",
                              "difference [Newcombe]", "McNemar p"),
                             [(r[2], r[1], r[3], r[4], H.fmt_ci(r[6], r[7], r[8], 2), H.fmt_ci(r[10], r[11], r[12], 2),
                               H.fmt_ci(r[13], r[14], r[15], 2), f"{r[16]:.3g}") for r in inter], numeric=(3,)))
@@ -274,10 +295,10 @@ def markdown(runs) -> str:
         lines.append("")
     inter = intervention_rows(runs)
     if inter:
-        lines += ["| task | intervention | pairs | plain success [Wilson] | with intervention [Wilson] | "
-                  "difference [Newcombe] | McNemar p |", "|---|---|---:|---|---|---|---|"]
+        lines += ["| task | intervention | against | pairs | against: success [Wilson] | with intervention [Wilson] | "
+                  "difference [Newcombe] | McNemar p |", "|---|---|---|---:|---|---|---|---|"]
         for r in inter:
-            lines.append(f"| {r[3]} | `{r[2]}` | {r[4]} | {r[5]}/{r[4]} = {r[6]:.2f} [{r[7]:.2f}, {r[8]:.2f}] | "
+            lines.append(f"| {r[3]} | `{r[2]}` | {r[1]} | {r[4]} | {r[5]}/{r[4]} = {r[6]:.2f} [{r[7]:.2f}, {r[8]:.2f}] | "
                          f"{r[9]}/{r[4]} = {r[10]:.2f} [{r[11]:.2f}, {r[12]:.2f}] | {r[13]:+.2f} [{r[14]:+.2f}, "
                          f"{r[15]:+.2f}] | {r[16]:.3g} |")
     return "\n".join(lines)
