@@ -100,7 +100,7 @@ def parse_intervention(spec: str) -> Intervention:
     base, _, layer = method.partition(":")
     if base not in A.BASE_METHODS or base == "random":
         raise ValueError(f"intervention {text!r}: unknown method {method!r}; use attention[:LAYER], rollout, "
-                         "grad-attention or saliency (mask-random:K for random patches)")
+                         "grad-attention, saliency or occlusion (mask-random:K for random patches)")
     if base != "attention" and layer:
         raise ValueError(f"intervention {text!r}: only attention takes a layer")
     if base == "attention" and layer:
@@ -168,7 +168,7 @@ class Intervener:
         scores = None
         if self._functions is not None:
             step_fn = self._functions.at(observation, task, rng)
-            analysis = A.analyse(step_fn, gradients=self._needs_gradient)
+            analysis = A.analyse(step_fn, gradients=self._needs_gradient, occlusion=iv.method == "occlusion")
             scores = A.attribute(analysis, iv.method)
         out = {}
         for key in cameras:

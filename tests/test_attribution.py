@@ -57,7 +57,11 @@ def toy_step(seed: int = 0) -> A.StepFunction:
 
 
 def test_saliency_and_grad_attention_rank_the_one_patch_first():
-    analysis = A.analyse(toy_step())
+    analysis = A.analyse(toy_step(), occlusion=True)
+    occlusion = A.attribute(analysis, "occlusion")["image_primary"].ravel()
+    assert occlusion[TARGET] > 1e-4 and np.allclose(np.delete(occlusion, TARGET), 0.0, atol=1e-6)
+    with pytest.raises(ValueError, match="occlusion needs"):
+        A.attribute(A.analyse(toy_step()), "occlusion")
     for method in ("saliency", "grad-attention"):
         scores = A.attribute(analysis, method)["image_primary"]
         assert scores.shape == (ROWS, COLS)
@@ -162,6 +166,7 @@ def test_pure_helpers_known_answers():
 def test_parse_methods():
     assert A.parse_methods("attention,saliency", 3) == ("attention:0", "attention:1", "attention:2", "saliency", "random")
     assert A.parse_methods("attention:-1,rollout", 3) == ("attention:2", "rollout", "random")
+    assert A.parse_methods("occlusion,random", 3) == ("occlusion", "random")
     with pytest.raises(ValueError, match="unknown attribution method 'lime'"):
         A.parse_methods("lime", 3)
     with pytest.raises(ValueError, match="outside the model's 3 layers"):

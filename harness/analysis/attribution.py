@@ -14,6 +14,9 @@ what every method needs (`StepAnalysis`); the methods are then pure numpy functi
                       R = I; per layer R <- R + mean_heads[(dS/dA ⊙ A)^+] @ R; the readout rows of R
   saliency            |dS/d pixels| summed over the channels and pixels of each patch (through the image
                       tokenizer; Simonyan et al. 2014)
+  occlusion           the chunk's change when that one patch alone is deleted (mean fill; Zeiler & Fergus 2014):
+                      one forward pass per patch; what a deletion curve's first point measures, so the reference
+                      a faithful map is compared with (costly on large grids)
   random              uniform random scores, seeded: the control every method is measured against
 
 The scalar S differentiated is the action chunk's projection on its own direction, S = <a, stop(a)/|a|>
@@ -35,7 +38,7 @@ import numpy as np
 from harness.analysis.attention import _patch_index, camera_keys, rollout_readout_rows
 from harness.octo.tokens import TokenMap
 
-BASE_METHODS = ("attention", "rollout", "grad-attention", "saliency", "random")
+BASE_METHODS = ("attention", "rollout", "grad-attention", "saliency", "occlusion", "random")
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,6 +68,7 @@ class StepAnalysis:
     grad_attention: np.ndarray  # (layers, heads, keys, keys) dS/dA
     grad_images: dict[str, np.ndarray]  # {key: (window, H, W, 3)} dS/dpixels
     tokens: TokenMap
+    occlusion: dict[str, np.ndarray] | None = None  # {key: (rows, cols)} single-patch deletion change, when computed
 
 
 def direction_score(actions: jax.Array) -> jax.Array:
@@ -75,10 +79,11 @@ def direction_score(actions: jax.Array) -> jax.Array:
     return jnp.where(norm > 0, jnp.dot(a, u) / jnp.where(norm > 0, norm, 1.0), 0.0)
 
 
-def analyse(step: StepFunction, gradients: bool = True) -> StepAnalysis:
+def analyse(step: StepFunction, gradients: bool = True, occlusion: bool = False) -> StepAnalysis:
     """Forward + one vjp of S with respect to the images and the attention perturbation.
 
     gradients=False: the forward pass only (enough for attention and rollout; the gradients are zeros).
+    occlusion=True: also one forward pass per patch of every camera (the `occlusion` method).
     """
     zeros = jnp.zeros(step.shape[:2] + (step.shape[2], step.shape[2]), jnp.float32)
 
@@ -93,13 +98,29 @@ def analyse(step: StepFunction, gradients: bool = True) -> StepAnalysis:
         actions, attention = step.fn(images, zeros)
         g_images = {k: np.zeros_like(v) for k, v in step.images.items()}
         g_attention = np.zeros(zeros.shape, np.float32)
+    actions = np.asarray(actions, np.float32)
     return StepAnalysis(
-        actions=np.asarray(actions, np.float32),
+        actions=actions,
         attention=np.asarray(attention, np.float32),
         grad_attention=np.asarray(g_attention, np.float32),
         grad_images={k: np.asarray(v, np.float32) for k, v in g_images.items()},
         tokens=step.tokens,
+        occlusion=occlusion_maps(step, actions) if occlusion else None,
     )
+
+
+def occlusion_maps(step: StepFunction, reference: np.ndarray, fill: str = "mean") -> dict[str, np.ndarray]:
+    """{obs key: (rows, cols)} RMS change of the chunk when that patch alone of the current frame is deleted."""
+    from harness.analysis.faithfulness import action_change, baseline_image, compose
+
+    out = {}
+    for _, key, rows, cols in step.tokens.image_groups:
+        frame = np.asarray(step.images[key][-1], np.float32)
+        single = np.eye(rows * cols, dtype=bool).reshape(rows * cols, rows, cols)
+        inputs = {k: np.repeat(np.asarray(v, np.float32)[None], rows * cols, axis=0) for k, v in step.images.items()}
+        inputs[key][:, -1] = compose(frame, baseline_image(frame, fill, rows, cols), single)
+        out[key] = action_change(step.batch(inputs), reference).reshape(rows, cols)
+    return out
 
 
 def _value_and_grad(score):
@@ -227,6 +248,10 @@ def attribute(analysis: StepAnalysis, method: str, seed=0) -> dict[str, np.ndarr
         return saliency_map(analysis)
     if base == "random":
         return random_map(analysis, seed)
+    if base == "occlusion":
+        if analysis.occlusion is None:
+            raise ValueError("occlusion needs analyse(step, occlusion=True) (one forward pass per patch)")
+        return {k: np.asarray(v, np.float64) for k, v in analysis.occlusion.items()}
     raise ValueError(f"unknown attribution method {method!r}; use {', '.join(BASE_METHODS)}")
 
 
@@ -338,7 +363,7 @@ class Probe:
 
         start = time.perf_counter()
         fn = self.functions.at(observations, task, rng)
-        analysis = analyse(fn, gradients=self.gradients)
+        analysis = analyse(fn, gradients=self.gradients, occlusion="occlusion" in self.methods)
         maps = {m: attribute(analysis, m, seed=[int(seed), int(step)]) for m in self.methods}
         rows = []
         if self.every > 0 and step % self.every == 0:
