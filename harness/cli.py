@@ -30,12 +30,15 @@ def _interrupt(signum, frame):
 
 
 def _video_attention(text: str):
-    if text == "rollout":
-        return "rollout"
+    from harness.outputs.writers import ATTRIBUTION_VIDEO
+
+    if text in ("rollout", *ATTRIBUTION_VIDEO):
+        return text
     try:
         return int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--video-attention takes 'rollout' or a layer index, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"--video-attention takes a layer index, 'rollout' or one of "
+                                         f"{', '.join(ATTRIBUTION_VIDEO)}, got {text!r}") from None
 
 
 def _add_execution_args(parser: argparse.ArgumentParser) -> None:
@@ -95,7 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--png-every", type=int, default=None, help="write overlays every n-th step (0 = none) [1]")
     r.add_argument("--layers", default=None, help="overlay layers, e.g. 0,5,11 [all]")
     r.add_argument("--video-attention", type=_video_attention, default=None,
-                   help="attention shown in the MP4: a layer index (default -1 = last) or 'rollout'")
+                   help="attention shown in the MP4: a layer index (default -1 = last), 'rollout', or an attribution "
+                        "map: grad-attention, saliency, occlusion (computed at every step, as --attribution)")
     r.add_argument("--normalisation", choices=["frame", "episode"], default=None, help="[frame]")
     r.add_argument("--no-video", action="store_true", default=None)
     r.add_argument("--gif", action="store_true", default=None, help="also write rollout.gif")

@@ -196,3 +196,30 @@ def test_settings_and_protocol_files_carry_the_options(tmp_path):
     with pytest.raises(ValueError, match="unknown attribution method"):
         PolicyConfig(attribution="attention,lime")
     assert PolicyConfig(faithfulness_every=10).attribution == "attention,rollout,grad-attention,saliency"
+
+
+def test_video_attention_takes_attribution_methods():
+    from harness.outputs.writers import OutputOptions
+    from harness.run.settings import build_protocol
+
+    assert OutputOptions(video_attention="saliency").video_attention == "saliency"
+    with pytest.raises(ValueError, match="grad-attention, saliency, occlusion"):
+        OutputOptions(video_attention="lime")
+    protocol = build_protocol({"task": ["Lift"], "model": str(REFERENCE), "video_attention": "occlusion"})
+    assert protocol.policy.attribution == "occlusion"  # the maps the video shows are computed
+    protocol = build_protocol({"task": ["Lift"], "model": str(REFERENCE), "video_attention": "saliency",
+                               "faithfulness_every": 5})
+    assert protocol.policy.attribution == "attention,rollout,grad-attention,saliency"
+
+
+@pytest.mark.slow
+def test_the_video_shows_an_attribution_map(tmp_path):
+    from harness import cli
+
+    assert cli.main(["run", "--model", str(REFERENCE), "--task", "Lift", "--episodes", "1", "--max-steps", "3",
+                     "--fast-render", "--png-every", "0", "--video-attention", "grad-attention", "--out", str(tmp_path),
+                     "--run-name", "v"]) == 0
+    episode = tmp_path / "v" / "Lift" / "episode_0"
+    assert json.loads((episode / "episode.json").read_text())["success"] is not None
+    assert (episode / "rollout.mp4").stat().st_size > 0
+    assert np.load(episode / "attribution.npz")["map/grad-attention/image_primary"].shape == (3, 4, 4)

@@ -70,6 +70,9 @@ PNG_NAME = "step_{step:04d}_layer_{layer:02d}.png"
 _STOP = object()
 
 
+ATTRIBUTION_VIDEO = ("grad-attention", "saliency", "occlusion")  # attribution maps the MP4 can show (--video-attention)
+
+
 class WriterError(RuntimeError):
     """The background writer failed; the cause is chained."""
 
@@ -79,7 +82,9 @@ class OutputOptions:
     png_every: int = 1  # PNG panels every n-th step; 0 = none
     layers: tuple[int, ...] | None = None  # layers to render as PNG (negative counts from the end); None = all
     video: bool = True  # write rollout.mp4
-    video_attention: str | int = -1  # overlay in the video: "rollout" (needs full attention) or a layer index
+    # overlay in the video: a layer index, "rollout" (needs full attention) or an attribution method of ATTRIBUTION_VIDEO
+    # (its maps come with the records: the run computes them, --attribution)
+    video_attention: str | int = -1
     video_camera: str | None = None  # observation key shown in the video; None = the first image group's camera
     gif: bool = False  # also write rollout.gif (every gif_every-th frame, half size)
     gif_every: int = 2
@@ -101,8 +106,9 @@ class OutputOptions:
             object.__setattr__(self, "layers", tuple(int(layer) for layer in self.layers))
         if isinstance(self.video_attention, str) and self.video_attention.lstrip("-").isdigit():
             object.__setattr__(self, "video_attention", int(self.video_attention))  # "11" from a command line
-        if not (self.video_attention == "rollout" or isinstance(self.video_attention, int)):
-            raise ValueError(f"video_attention must be 'rollout' or a layer index; got {self.video_attention!r}")
+        if not (self.video_attention in ("rollout", *ATTRIBUTION_VIDEO) or isinstance(self.video_attention, int)):
+            raise ValueError(f"video_attention must be a layer index, 'rollout' or one of {', '.join(ATTRIBUTION_VIDEO)}; "
+                             f"got {self.video_attention!r}")
         if self.normalisation not in ("frame", "episode"):
             raise ValueError(f"normalisation must be 'frame' or 'episode'; got {self.normalisation!r}")
         if self.head_fusion not in HEAD_FUSIONS:
@@ -377,7 +383,7 @@ class EpisodeWriter:
         video_camera = opts.video_camera or (cameras[0] if cameras else None)
         if (opts.video or opts.gif) and video_camera not in cameras:
             raise ValueError(f"video camera {video_camera!r} has no frame or image group; choose one of {list(cameras)}")
-        video_layer = None if opts.video_attention == "rollout" else layer_index(int(opts.video_attention))
+        video_layer = None if opts.video_attention in ("rollout", *ATTRIBUTION_VIDEO) else layer_index(int(opts.video_attention))
         return _Layout(layers, heads, png_layers, cameras, video_camera, video_layer)
 
     def _process(self, record: StepRecord) -> None:
@@ -499,7 +505,14 @@ class EpisodeWriter:
         cam = layout.video_camera
         frame = frames[cam]
         fused = fuse_heads(maps[cam], opts.head_fusion, axis=1)  # (layers, rows, cols)
-        if rollout is not None:
+        if opts.video_attention in ATTRIBUTION_VIDEO:
+            by_camera = ((record.attribution or {}).get("maps") or {}).get(opts.video_attention)
+            if by_camera is None or cam not in by_camera:
+                raise ValueError(f"video_attention={opts.video_attention!r} needs its maps in the records: run with "
+                                 f"--attribution {opts.video_attention}")
+            shown = np.asarray(by_camera[cam], np.float32)
+            what = f"{opts.video_attention} attribution"
+        elif rollout is not None:
             shown = camera_maps(rollout.mean(axis=0), self.tokens, cam)
             what = "attention rollout"
         else:

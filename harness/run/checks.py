@@ -125,7 +125,7 @@ def check_model(protocol: Protocol, model, goal_images: Mapping[str, np.ndarray]
             raise ValueError(f"--layers {layer} is out of range: {model.source} has {layers} layers (0..{layers - 1}, "
                              "or negative from the end)")
     va = protocol.outputs.video_attention
-    if va != "rollout" and not -layers <= int(va) < layers:
+    if isinstance(va, int) and not -layers <= va < layers:
         raise ValueError(f"--video-attention {va} is out of range: {model.source} has {layers} layers (0..{layers - 1}) "
                          "or use 'rollout'")
     policy = protocol.policy

@@ -29,6 +29,8 @@ from typing import Any, Mapping
 
 from envs.options import EnvOptions, parse_camera
 from harness.policy import PolicyConfig
+from harness.analysis.attribution import DEFAULT_METHODS
+from harness.outputs.writers import ATTRIBUTION_VIDEO
 from harness.run.protocol import Protocol
 from harness.outputs.writers import OutputOptions
 
@@ -173,6 +175,15 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
     policy_given["full_attention"] = video_attention == "rollout"
     if "intervene" in s:
         policy_given["intervention"] = s["intervene"]
+    if video_attention in ATTRIBUTION_VIDEO:  # the MP4 shows an attribution map: the run computes it
+        methods = policy_given.get("attribution") or s.get("attribution")
+        methods = ",".join(methods) if isinstance(methods, list) else methods
+        if not methods and s.get("faithfulness_every"):
+            methods = DEFAULT_METHODS
+        if not methods:
+            policy_given["attribution"] = video_attention
+        elif video_attention not in methods.split(","):
+            policy_given["attribution"] = f"{methods},{video_attention}"
     if "attribution" in s:
         policy_given["attribution"] = ",".join(s["attribution"]) if isinstance(s["attribution"], list) else s["attribution"]
     for key in ("faithfulness_every", "faithfulness_fill"):
