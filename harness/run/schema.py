@@ -45,7 +45,7 @@ def _short(value: Any) -> str:
 def check_protocol(protocol: Any, path: Path | str) -> dict:
     """The manifest's "protocol" block: types of the fields every reader uses."""
     _expect(path, "protocol", protocol, (dict,), "an object")
-    _expect(path, "protocol.model", protocol.get("model"), (str,), "a model source string")
+    _expect(path, "protocol.model", protocol.get("model"), (str,), "a model source string", optional=True)
     tasks = protocol.get("tasks")
     if not isinstance(tasks, list) or not tasks or not all(isinstance(t, str) and t for t in tasks):
         raise _fail(path, f"protocol.tasks must be a non-empty list of task names, got {_short(tasks)}")
