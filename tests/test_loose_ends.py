@@ -51,6 +51,18 @@ def test_one_error_prefix_for_every_user_error():
     assert 'print(f"Error' not in source and "print('Error" not in source
 
 
+def test_headless_gl_failure_is_one_error_line_not_a_traceback(tmp_path):
+    """PyOpenGL told another platform than MuJoCo's EGL: the GL check's message, as every user error, exit 2."""
+    env = dict(os.environ, HF_HUB_OFFLINE="1", MUJOCO_GL="egl", PYOPENGL_PLATFORM="glfw", PYTHONPATH=str(REPO))
+    result = subprocess.run([sys.executable, "-m", "harness.cli", "run", "--task", "Lift", "--model",
+                             str(REPO / "models" / "octo-reference-robosuite"), "--max-steps", "1", "--out",
+                             str(tmp_path), "--run-name", "gl"], cwd=REPO, env=env, capture_output=True, text=True,
+                            timeout=300)
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    assert lines[-1].startswith("error: headless OpenGL unavailable") and "apt-get install" in lines[-1]
+
+
 def test_copied_run_folder_takes_its_new_name_in_every_record(fixtures_dir, tmp_path, capsys):
     args = ["run", "--task", "Lift", "--model", str(fixtures_dir / "tiny"), "--episodes", "2", "--max-steps", "1",
             "--png-every", "0", "--no-video", "--fast-render", "--out", str(tmp_path)]
