@@ -208,6 +208,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="mildest verdict that exits 1, as for compare; 'changed' also fails a candidate whose numbers "
                           "on the baseline's recorded inputs are not EQUIVALENT (replay): the gate for an unchanged "
                           "model, on any machine [suspect]")
+    reg.add_argument("--verbose", action="store_true", default=argparse.SUPPRESS,
+                     help="also show other libraries' INFO lines and start-up warnings")
     reg.add_argument("--text-tokenizer", default=None, metavar="auto|fallback|PATH",
                      help="the candidate's text tokenizer (as for `run --text-tokenizer`) [the baseline's choice]")
     _add_execution_args(reg)
