@@ -37,8 +37,11 @@ def threefry_flag(e: dict) -> str:
     normal = np.asarray(jax.random.normal(jax.random.PRNGKey(0), (8,)))
     split = np.asarray(jax.random.key_data(jax.random.split(jax.random.PRNGKey(0))))
     for flag in ("true", "false"):
-        if np.array_equal(normal, e[f"rng_probe/threefry_partitionable_{flag}/normal_key0_8"]) and np.array_equal(
-            split, e[f"rng_probe/threefry_partitionable_{flag}/split_key0"]
+        # the key bits are integer arithmetic (equal on every machine); the normal draws go through float code that XLA
+        # compiles per instruction set (XLA_FLAGS=--xla_cpu_max_isa=SSE4_2 moves them by an ulp), so they compare
+        # within 1e-6: the two recorded streams differ by O(1)
+        if np.array_equal(split, e[f"rng_probe/threefry_partitionable_{flag}/split_key0"]) and np.allclose(
+            normal, e[f"rng_probe/threefry_partitionable_{flag}/normal_key0_8"], rtol=0, atol=1e-6
         ):
             return flag
     raise AssertionError("PRNGKey(0) matches neither recorded threefry stream")
