@@ -179,14 +179,6 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_.add_argument("--out", type=Path, default=None, help="output folder [CANDIDATE_RUN/compare_<baseline name>]")
     cmp_.add_argument("--no-frames", action="store_true", help="do not render step-0 camera frames for the overlays")
 
-    reg = sub.add_parser("regress", help="run a candidate on a baseline's protocol and seeds until a sequential test decides",
-                         description="Pair by pair (round by round over tasks) through the run store (resumable); "
-                                     "one anytime-valid test per task (alpha / tasks each); stops as soon as a task "
-                                     "regressed or every task decided. Exit codes as for compare, from the worse "
-                                     "of the sequential verdict and compare's verdict on the pairs run.")
-    reg.add_argument("--baseline", type=Path, required=True, metavar="RUN", help="baseline run folder")
-    reg.add_argument("--model", required=True, help="candidate model (as for `run --model`)")
-    reg.add_argument("--max-episodes", type=int, default=None, help="at most N episodes per task [the baseline's]")
     rp = sub.add_parser("replay", help="run a model open loop on the inputs a run recorded (--record-inputs) and "
                                        "compare its actions and attention with the run's",
                         description="The model change isolated from the simulator and the platform: EQUIVALENT (every "
@@ -199,6 +191,14 @@ def build_parser() -> argparse.ArgumentParser:
                     help="largest Jensen-Shannon divergence (bits) of a layer's and head's readout attention [3.5e-7]")
     rp.add_argument("--out", type=Path, default=None, help="output folder for replay.json [RUN_DIR/replay]")
 
+    reg = sub.add_parser("regress", help="run a candidate on a baseline's protocol and seeds until a sequential test decides",
+                         description="Pair by pair (round by round over tasks) through the run store (resumable); "
+                                     "one anytime-valid test per task (alpha / tasks each); stops as soon as a task "
+                                     "regressed or every task decided. Exit codes as for compare, from the worse "
+                                     "of the sequential verdict and compare's verdict on the pairs run.")
+    reg.add_argument("--baseline", type=Path, required=True, metavar="RUN", help="baseline run folder")
+    reg.add_argument("--model", required=True, help="candidate model (as for `run --model`)")
+    reg.add_argument("--max-episodes", type=int, default=None, help="at most N episodes per task [the baseline's]")
     reg.add_argument("--max-drop", type=float, default=0.1, help="HELD rules out a larger drop in success rate [0.1]")
     reg.add_argument("--alpha", type=float, default=0.05,
                      help="family-wise level; each task's sequential test runs at alpha / tasks [0.05]")
@@ -253,14 +253,6 @@ def _cmd_regress(args) -> int:
     return code
 
 
-def _cmd_tasks() -> int:
-    import envs
-
-    print(envs.task_table())
-    return 0
-
-
-RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "executor", "ray_address", "policy_replicas")
 def _cmd_replay(args) -> int:
     from harness.analysis.equivalence import Tolerances
     from harness.files import atomic_write_json
@@ -277,6 +269,14 @@ def _cmd_replay(args) -> int:
     return exit_code(result)
 
 
+def _cmd_tasks() -> int:
+    import envs
+
+    print(envs.task_table())
+    return 0
+
+
+RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "executor", "ray_address", "policy_replicas")
 
 
 def _cmd_run(args) -> int:
