@@ -189,12 +189,11 @@ def _name(method: str) -> str:
     return f"layer {layer} attention" if base == "attention" else base
 
 
-def _draw(ax, task: str, rows: list[tuple]):
-    """methods (rows) x cameras (columns) of the deletion ratio on `ax`; returns the image artist."""
+def _draw(ax, task: str, rows: list[tuple], methods: list[str]):
+    """methods (rows) x cameras (columns) of the deletion ratio on `ax` (n/a where absent); returns the image artist."""
     from matplotlib.colors import TwoSlopeNorm
 
     items = [r for r in rows if r[1] == task]
-    methods = sorted({r[3] for r in items}, key=_order)
     cameras = sorted({r[2] for r in items})
     grid = np.full((len(methods), len(cameras)), np.nan)
     for r in items:
@@ -220,17 +219,15 @@ def figure(panels: list[tuple[str, list[tuple]]]) -> bytes:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    height = max(len({r[3] for r in rows if r[1] == task}) for task, rows in panels)
+    methods = sorted({r[3] for task, rows in panels for r in rows if r[1] == task}, key=_order)  # every panel's rows
+    height = len(methods)
     fig, axes = plt.subplots(1, len(panels), figsize=(1.4 + 2.2 * len(panels), 1.2 + 0.34 * height), dpi=110,
                              squeeze=False)
     im = None
-    methods = None
-    for ax, (task, rows) in zip(axes[0], panels):
-        im = _draw(ax, task, rows)
-        shown = [t.get_text() for t in ax.get_yticklabels()]
-        if methods == shown:  # the same rows as the panel on its left: label them once
+    for i, (ax, (task, rows)) in enumerate(zip(axes[0], panels)):
+        im = _draw(ax, task, rows, methods)
+        if i:  # the same rows in every panel: labelled once, on the left
             ax.tick_params(labelleft=False)
-        methods = shown
     fig.suptitle("deletion AUC / random map's (1 = random, > 1: deleting the top-ranked patches moves the action sooner)",
                  fontsize=8)
     fig.colorbar(im, ax=list(axes[0]), fraction=0.03)
