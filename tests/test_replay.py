@@ -160,3 +160,14 @@ def test_intervention_runs_replay_exactly_on_the_inputs_the_policy_saw(intervent
     code, result, out = _replay([str(tmp_path / "iv"), "--out", str(tmp_path / "r")], capsys)
     assert code == 0 and result["verdict"] == "EQUIVALENT" and result["steps_compared"] == 5, out
     assert result["action_change_max"] == 0.0 and result["attention_js_max"] == 0.0
+
+
+def test_replay_tokenizes_the_instruction_as_the_run_did(tmp_path, capsys):
+    """A run made with --text-tokenizer fallback replays with that tokenizer (else the comparison measures the
+    tokenizer, not the model)."""
+    assert main(["run", "--model", str(MODEL), "--task", "Lift", "--episodes", "1", "--max-steps", "3", "--fast-render",
+                 "--png-every", "0", "--no-video", "--record-inputs", "--out", str(tmp_path), "--run-name", "fb",
+                 "--text-tokenizer", "fallback"]) == 0
+    capsys.readouterr()
+    code, result, out = _replay([str(tmp_path / "fb"), "--out", str(tmp_path / "r")], capsys)
+    assert code == 0 and result["action_change_max"] == 0.0, out

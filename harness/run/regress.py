@@ -216,7 +216,7 @@ def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = 
     outcome_pairs = [k for k in used if base_outcomes[k] is not None and cand[k] is not None]
     counts = PairedCounts.from_outcomes([base_outcomes[k] for k in outcome_pairs], [cand[k] for k in outcome_pairs])
     comparison = compare_runs(baseline.path, candidate.path, compare_config)
-    replay = replay_baseline(baseline, model, loaded_model)
+    replay = replay_baseline(baseline, model, loaded_model, protocol.text_tokenizer)
     sequential = test.summary()
     stopped_errored = errored_tasks(base_outcomes, cand, jobs)
     if stopped_errored:
@@ -248,14 +248,14 @@ def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = 
     }
 
 
-def replay_baseline(baseline, model: str, loaded_model=None) -> dict | None:
+def replay_baseline(baseline, model: str, loaded_model=None, text_tokenizer: str | None = None) -> dict | None:
     """The candidate on the baseline's recorded inputs (harness/run/replay.py): its model numerics, isolated from
     the simulator and the platform; None when the baseline recorded no inputs."""
     from harness.run.replay import INPUTS, replay_run
 
     if not all((e.directory / INPUTS).is_file() for e in baseline.episodes if e.ok):
         return None
-    result = replay_run(baseline.path, model, loaded_model=loaded_model)
+    result = replay_run(baseline.path, model, loaded_model=loaded_model, text_tokenizer=text_tokenizer)
     return {k: v for k, v in result.items() if k != "episode_details"}
 
 

@@ -117,8 +117,10 @@ def _tolerances_or_default(tolerances: Tolerances | None) -> Tolerances:
 
 
 def replay_run(run_dir: str | Path, model_source: str | None = None, tolerances: Tolerances | None = None,
-               loaded_model=None) -> dict:
-    """Replay every finished episode of a run with recorded inputs (see the module docstring); returns replay.json."""
+               loaded_model=None, text_tokenizer: str | None = None) -> dict:
+    """Replay every finished episode of a run with recorded inputs (see the module docstring); returns replay.json.
+
+    text_tokenizer: auto|fallback|PATH for the replayed model (None: the run's own choice)."""
     from harness.octo import load_pretrained
     from harness.policy import BatchInference, resize_frame
     from harness.run import checks
@@ -139,7 +141,10 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, tolerances:
     if model_source is None and Path(source).is_absolute() and not Path(source).exists():
         raise ReplayInputError(f"the run's model {source} is not on this machine (a run copied from elsewhere); "
                                "pass the model to replay with --model")
-    model = loaded_model if loaded_model is not None else load_pretrained(source)
+    # the run's text tokenizer choice (auto, fallback or a file) with whichever model is replayed: the same instruction
+    # must become the same tokens, or the comparison measures the tokenizer
+    tokenizer = text_tokenizer if text_tokenizer is not None else protocol.text_tokenizer
+    model = loaded_model if loaded_model is not None else load_pretrained(source, text_tokenizer=tokenizer)
     config = protocol.policy.__class__(**{**vars(protocol.policy), "inference_batch": 1})
     if config.intervention is not None:
         from harness.interventions import parse_intervention
