@@ -69,3 +69,21 @@ def test_mask_top_is_also_paired_with_mask_random_of_the_same_k(tmp_path):
     assert pairs == {("top", "plain"), ("top", "rand"), ("rand", "plain"), ("rand3", "plain")}
     versus_random = next(r for r in rows if r["baseline_run"] == "rand")
     assert versus_random["difference"] == pytest.approx(-0.4) and versus_random["baseline_successes"] == 9
+
+
+def test_an_intervention_run_on_several_tasks_gets_a_pooled_row(tmp_path):
+    def on(task, record):
+        record.tasks = (task,)
+        record.episodes = tuple(SimpleNamespace(**{**vars(e), "task": task}) for e in record.episodes)
+        return record
+
+    lift_plain = on("Lift", _record("lp", {}, [True] * 10, tmp_path))
+    lift_top = on("Lift", _record("lt", {"intervention": "mask-all"}, [False] * 10, tmp_path))
+    stack_plain = on("Stack", _record("sp", {}, [True] * 5 + [False] * 5, tmp_path))
+    stack_top = on("Stack", _record("st", {"intervention": "mask-all"}, [False] * 10, tmp_path))
+    rows = [dict(zip(R.INTERVENTION_COLUMNS, r)) for r in R.intervention_rows([lift_plain, lift_top, stack_plain, stack_top])]
+    pooled = next(r for r in rows if r["task"] == "pooled")
+    assert pooled["pairs"] == 20 and pooled["baseline_successes"] == 15 and pooled["successes"] == 0
+    assert pooled["run"] == "lt+st" and pooled["baseline_run"] == "lp+sp"
+    assert pooled["mcnemar_p"] == pytest.approx(2 * 0.5 ** 15)
+    assert len(rows) == 3

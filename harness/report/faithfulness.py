@@ -98,26 +98,46 @@ def _arm_key(run) -> tuple:
 
 def intervention_rows(runs) -> list[tuple]:
     """Rows of INTERVENTION_COLUMNS: each run with an intervention against the plain run of the same experiment,
-    and each mask-top:K run against the mask-random:K run of the same experiment (is the map better than chance?)."""
-    plain, random_k = {}, {}
+    and each mask-top:K run against the mask-random:K run of the same experiment (is the map better than chance?).
+    When an intervention was run on several tasks (one run per task or one run of several), a "pooled" row per
+    (intervention, comparison) pools its pairs over the tasks (task "pooled", run and baseline_run joined by '+')."""
+    plain, random_k = {}, {}  # (experiment, task) -> the run holding that task
     for run in runs:
         spec = _policy(run).get("intervention")
-        if not spec:
-            plain.setdefault(_arm_key(run), run)
-        elif spec.startswith("mask-random:"):
-            random_k.setdefault((_arm_key(run), _masked_count(spec)), run)
-    out = []
+        for task in getattr(run, "record", run).tasks:
+            if not spec:
+                plain.setdefault((_arm_key(run), task), run)
+            elif spec.startswith("mask-random:"):
+                random_k.setdefault((_arm_key(run), _masked_count(spec), task), run)
+    out, pooled = [], {}
     for run in runs:
         spec = _policy(run).get("intervention")
         if not spec:
             continue
-        bases = [plain.get(_arm_key(run))]
-        if spec.startswith("mask-top:"):
-            bases.append(random_k.get((_arm_key(run), _masked_count(spec))))
-        for base in bases:
-            if base is not None:
-                out += _paired_rows(base, run, spec)
+        for task in getattr(run, "record", run).tasks:
+            bases = [("plain", plain.get((_arm_key(run), task)))]
+            if spec.startswith("mask-top:"):
+                bases.append((f"mask-random:{_masked_count(spec)[0]}",
+                              random_k.get((_arm_key(run), _masked_count(spec), task))))
+            for kind, base in bases:
+                if base is None:
+                    continue
+                for _, b, c in _paired_outcomes(base, run, task):
+                    out.append(_row(_name_of(run), _name_of(base), spec, task, b, c))
+                    entry = pooled.setdefault((spec, kind), ([], [], [], [], set()))
+                    entry[0].append(_name_of(run))
+                    entry[1].append(_name_of(base))
+                    entry[2].extend(b)
+                    entry[3].extend(c)
+                    entry[4].add(task)
+    for (spec, _), (names, base_names, b, c, tasks) in pooled.items():
+        if len(tasks) > 1:
+            out.append(_row("+".join(dict.fromkeys(names)), "+".join(dict.fromkeys(base_names)), spec, "pooled", b, c))
     return out
+
+
+def _name_of(run) -> str:
+    return getattr(run, "label", None) or getattr(run, "record", run).name
 
 
 def _masked_count(spec: str) -> tuple[str, str]:
@@ -126,24 +146,23 @@ def _masked_count(spec: str) -> tuple[str, str]:
     return body.split(":")[1], camera
 
 
-def _paired_rows(base, run, spec: str) -> list[tuple]:
-    b_rec, c_rec = getattr(base, "record", base), getattr(run, "record", run)
-    b_eps = {(e.task, e.seed): e for e in b_rec.episodes if e.ok}
-    c_eps = {(e.task, e.seed): e for e in c_rec.episodes if e.ok}
-    out = []
-    for task in c_rec.tasks:
-        keys = sorted(k for k in c_eps if k[0] == task and k in b_eps)
-        if not keys:
-            continue
-        b = [bool(b_eps[k].success) for k in keys]
-        c = [bool(c_eps[k].success) for k in keys]
-        counts = PairedCounts.from_outcomes(b, c)
-        n = len(keys)
-        lo, hi = newcombe_paired_interval(counts.both, counts.candidate_only, counts.baseline_only, counts.neither)
-        out.append((getattr(run, "label", c_rec.name), getattr(base, "label", b_rec.name), spec, task, n,
-                    sum(b), sum(b) / n, *wilson_interval(sum(b), n), sum(c), sum(c) / n, *wilson_interval(sum(c), n),
-                    (sum(c) - sum(b)) / n, lo, hi, mcnemar_exact(counts.baseline_only, counts.candidate_only)))
-    return out
+def _paired_outcomes(base, run, task: str) -> list[tuple[str, list[bool], list[bool]]]:
+    """[(task, baseline successes, run successes)] over the task's seeds both runs finished without error ([] if none)."""
+    b_eps = {e.seed: e for e in getattr(base, "record", base).episodes if e.ok and e.task == task}
+    c_eps = {e.seed: e for e in getattr(run, "record", run).episodes if e.ok and e.task == task}
+    seeds = sorted(set(b_eps) & set(c_eps))
+    if not seeds:
+        return []
+    return [(task, [bool(b_eps[s].success) for s in seeds], [bool(c_eps[s].success) for s in seeds])]
+
+
+def _row(name: str, base_name: str, spec: str, task: str, b: list[bool], c: list[bool]) -> tuple:
+    counts = PairedCounts.from_outcomes(b, c)
+    n = len(b)
+    lo, hi = newcombe_paired_interval(counts.both, counts.candidate_only, counts.baseline_only, counts.neither)
+    return (name, base_name, spec, task, n, sum(b), sum(b) / n, *wilson_interval(sum(b), n), sum(c), sum(c) / n,
+            *wilson_interval(sum(c), n), (sum(c) - sum(b)) / n, lo, hi,
+            mcnemar_exact(counts.baseline_only, counts.candidate_only))
 
 
 def _csv(columns, rows) -> bytes:
