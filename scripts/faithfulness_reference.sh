@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Is the reference policy's attention telling the truth? The runs behind EVAL.md's "Faithfulness" section.
-#   Open loop: 6 episodes per task (seeds 100..105, at most 120 steps), faithfulness every 10th step, every method.
+#   Open loop: 6 episodes per task (seeds 100..105, at most 120 steps), faithfulness every 10th step, every method;
+#   Lift and Stack again with occlusion.
 #   Closed loop: 30 episodes per task on the held-out seeds 0..29 (Lift at most 150 steps, Stack 250), plain and with
 #   --intervene mask-top:4:attention:2 / mask-top:4:saliency / mask-random:4 / mask-all (4 of each camera's 16 patches).
 # Then the Markdown tables (python -m harness.report.faithfulness) and an HTML report with the Faithfulness section.
@@ -16,6 +17,11 @@ for task in Lift Stack PickPlaceCan; do
     run --task "$task" --episodes 6 --seed 100 --max-steps 120 --faithfulness-every 10 --run-name "open_$task"
     open+=("$OUT/open_$task")
 done
+for task in Lift Stack; do  # the same episodes with occlusion, the reference a faithful map is measured against
+    run --task "$task" --episodes 6 --seed 100 --max-steps 120 --faithfulness-every 10 \
+        --attribution attention:2,saliency,occlusion --run-name "occ_$task"
+    open+=("$OUT/occ_$task")
+done
 closed=()
 for spec in "Lift 150" "Stack 250"; do
     set -- $spec
@@ -28,5 +34,5 @@ for spec in "Lift 150" "Stack 250"; do
         closed+=("$OUT/${task}_$name")
     done
 done
-.venv/bin/python -m harness.report.faithfulness "${open[@]}" "${closed[@]}"
+.venv/bin/python -m harness.report.faithfulness "${open[@]}" "${closed[@]}" --figure docs/faithfulness_reference.png
 .venv/bin/octo-harness report "${open[@]}" --out "$OUT/report_open"
