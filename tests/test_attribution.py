@@ -215,3 +215,26 @@ def test_octo_step_function_is_the_policy(reference):
         maps = A.attribute(analysis, method)
         assert set(maps) == set(model.image_sizes)
         assert all(m.shape == (4, 4) and np.isfinite(m).all() for m in maps.values())
+
+
+def test_the_diffusion_head_is_differentiated_with_the_steps_rng(fixtures_dir):
+    from harness.octo import load_pretrained
+
+    model = load_pretrained(str(fixtures_dir / "tiny"))  # a DiffusionHead checkpoint of the original code
+    rng = np.random.default_rng(1)
+    obs = {k: rng.integers(0, 255, (1, model.window_size, h, w, 3), dtype=np.uint8) for k, (h, w) in model.image_sizes.items()}
+    obs["timestep_pad_mask"] = np.ones((1, model.window_size), bool)
+    task = model.create_task(texts=["pick up the cube"])
+    key = jax.random.PRNGKey(5)
+    actions, _ = model.sample_actions(obs, task, key[None], None)  # a per-example key: what a run uses
+    functions = A.OctoFunctions(model)
+    step = functions.at(obs, task, key)
+    analysis = A.analyse(step)
+    np.testing.assert_allclose(analysis.actions, np.asarray(actions)[0], atol=2e-5)
+    direction = {k: v / np.linalg.norm(v) for k, v in analysis.grad_images.items()}
+    zeros = jnp.zeros((functions.layers, functions.heads, step.tokens.num_keys, step.tokens.num_keys))
+    eps = 0.5
+    shifted = lambda s: float(A.direction_score(step.fn(  # noqa: E731
+        {k: jnp.asarray(step.images[k] + s * eps * direction[k]) for k in step.images}, zeros)[0]))
+    analytic = sum(float((analysis.grad_images[k] * direction[k]).sum()) for k in step.images)
+    assert analytic > 0 and (shifted(1) - shifted(-1)) / (2 * eps) == pytest.approx(analytic, rel=0.05)
