@@ -19,13 +19,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
-import time
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import numpy as np  # noqa: E402
 
+from bench_octo import median_seconds  # noqa: E402  (one timing rule for the benchmarks)
 from harness.octo import load_pretrained  # noqa: E402
 from harness.policy import BatchInference, InferenceRequest, PolicyConfig, TaskSpec  # noqa: E402
 
@@ -40,16 +39,6 @@ def request(model) -> InferenceRequest:
     obs["timestep_pad_mask"] = np.ones((window,), bool)
     obs["pad_mask_dict"] = {k: np.ones((window,), bool) for k in keys}
     return InferenceRequest(obs, TaskSpec.of("pick up the red cube"), 0, 0)
-
-
-def median(fn, reps: int) -> float:
-    fn()  # compile
-    times = []
-    for _ in range(reps):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
 
 
 def main() -> None:
@@ -73,10 +62,10 @@ def main() -> None:
         key = None if model.is_random else "robosuite_reference" if "robosuite_reference" in model.dataset_statistics else None
         plain = BatchInference(model, PolicyConfig(dataset_key=key))
         probed = BatchInference(model, PolicyConfig(dataset_key=key, attribution=methods, faithfulness_every=args.every))
-        infer = median(lambda: plain([req]), args.reps)
+        infer = median_seconds(lambda: plain([req]), args.reps)
         observations, tasks, keys = probed._inputs([req])
-        maps = median(lambda: probed.probe(observations, tasks, keys[0], 0, 1), args.reps)  # step 1: maps only
-        faith = median(lambda: probed.probe(observations, tasks, keys[0], 0, 0), max(1, args.reps // 3 if large else args.reps))
+        maps = median_seconds(lambda: probed.probe(observations, tasks, keys[0], 0, 1), args.reps)  # step 1: maps only
+        faith = median_seconds(lambda: probed.probe(observations, tasks, keys[0], 0, 0), max(1, args.reps // 3 if large else args.reps))
         added = maps + (faith - maps) / args.every
         print(f"{source:<36} {methods:<44} {infer:8.3f} {maps:8.3f} {faith:8.2f} {added:12.3f} "
               f"{added / infer:8.2f} {added / (infer + args.sim):7.2f}")
