@@ -125,6 +125,9 @@ def test_workers_are_bounded_by_the_machine_before_anything_compiles():
     with pytest.raises(ValueError, match=r"^--workers 100000 is more than this machine can use .*use --workers \d+ or fewer$"):
         executor_factory(100000)
     assert executor_factory(max_workers()) is not None
+    assert executor_factory(100000, "ray", "head-node:6379") is not None  # a cluster's CPUs are checked when joined
+    with pytest.raises(ValueError, match=r"^--workers 100000 is more than this machine can use"):
+        executor_factory(100000, "ray")  # a local Ray instance runs on this machine
 
 
 def test_an_episode_gets_the_same_bits_whatever_shares_its_inference_call(tiny):

@@ -23,7 +23,8 @@ def executor_factory(workers: int | None, executor: str | None = None, ray_addre
     executor = executor or "local"
     if workers is not None and workers < 1:
         raise ValueError(f"--workers must be at least 1, got {workers}")
-    if workers is not None and workers > max_workers():
+    on_this_machine = not (executor == "ray" and ray_address is not None)  # a cluster's CPUs are checked when it is joined
+    if workers is not None and on_this_machine and workers > max_workers():
         raise ValueError(f"--workers {workers} is more than this machine can use ({os.cpu_count()} CPU cores, "
                          f"memory for {max_workers()} env workers); use --workers {max_workers()} or fewer")
     if executor != "ray" and (ray_address is not None or policy_replicas is not None):
