@@ -76,6 +76,10 @@ def test_attention_change_is_float16_js_and_the_first_change_is_found():
     assert first_change(np.zeros(3), js, tol) == 2
     assert first_change(np.array([0.0, 5e-4, 0.0]), np.zeros((3, 2, 2)), tol) == 1
     assert first_change(np.zeros(3), np.zeros((3, 2, 2)), tol) is None
+    assert first_change(np.array([0.0, np.nan, 0.0]), np.zeros((3, 2, 2)), tol) == 1  # NaN actions: changed
+    nan_js = np.zeros((3, 2, 2))
+    nan_js[2, 0, 1] = np.nan
+    assert first_change(np.zeros(3), nan_js, tol) == 2
     with pytest.raises(ValueError, match="tolerances must be >= 0"):
         Tolerances(action=-1.0)
 
@@ -171,3 +175,10 @@ def test_replay_tokenizes_the_instruction_as_the_run_did(tmp_path, capsys):
     capsys.readouterr()
     code, result, out = _replay([str(tmp_path / "fb"), "--out", str(tmp_path / "r")], capsys)
     assert code == 0 and result["action_change_max"] == 0.0, out
+
+
+def test_a_candidate_that_outputs_nan_is_changed_not_equivalent(capsys, tmp_path):
+    """NaN compares false with any tolerance; replay must count it as a change."""
+    candidate = perturbed_model(tmp_path / "nan", std=float("nan"))
+    code, result, out = _replay([str(BASELINE), "--model", str(candidate), "--out", str(tmp_path / "r")], capsys)
+    assert code == 1 and result["verdict"] == "CHANGED" and result["first_change"]["first_changed_step"] == 0, out

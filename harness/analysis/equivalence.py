@@ -97,7 +97,9 @@ def attention_change(recorded: np.ndarray, replayed: np.ndarray) -> np.ndarray:
 
 
 def first_change(actions: np.ndarray, js: np.ndarray, tolerances: Tolerances) -> int | None:
-    """actions (steps,), js (steps, layers, heads) -> index of the first step beyond a tolerance, or None."""
-    beyond = (actions > tolerances.action) | (js.reshape(js.shape[0], -1).max(axis=1, initial=0.0) > tolerances.attention_js)
+    """actions (steps,), js (steps, layers, heads) -> index of the first step beyond a tolerance (NaN counts as
+    beyond: a model that outputs NaN has changed), or None."""
+    js_max = np.max(js.reshape(js.shape[0], -1), axis=1, initial=0.0)  # NaN propagates: a NaN output is a change
+    beyond = ~(actions <= tolerances.action) | ~(js_max <= tolerances.attention_js)
     hits = np.flatnonzero(beyond)
     return int(hits[0]) if hits.size else None
