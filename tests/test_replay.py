@@ -182,3 +182,14 @@ def test_a_candidate_that_outputs_nan_is_changed_not_equivalent(capsys, tmp_path
     candidate = perturbed_model(tmp_path / "nan", std=float("nan"))
     code, result, out = _replay([str(BASELINE), "--model", str(candidate), "--out", str(tmp_path / "r")], capsys)
     assert code == 1 and result["verdict"] == "CHANGED" and result["first_change"]["first_changed_step"] == 0, out
+
+
+@pytest.mark.parametrize("name", ["inputs.npz", "attention.npz"])
+def test_a_damaged_recorded_file_is_one_line_and_exit_2(name, tmp_path, capsys):
+    run = tmp_path / "run"
+    shutil.copytree(BASELINE, run)
+    path = run / "Lift" / "episode_3" / name
+    path.write_bytes(path.read_bytes()[:200])  # cut short, as a full disk leaves it
+    assert main(["replay", str(run), "--model", str(MODEL)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"episode_3/{name} is damaged or incomplete" in err[0]

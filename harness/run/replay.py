@@ -16,6 +16,7 @@ far); exit 0 / 1; 2 for invalid input (a run without recorded inputs, a model wh
 from __future__ import annotations
 
 import logging
+import zipfile
 from dataclasses import asdict
 from pathlib import Path
 
@@ -41,14 +42,24 @@ def recorded_inputs(episode: EpisodeRecord) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise ReplayInputError(f"{episode.directory} has no {INPUTS}; replay needs a run made with --record-inputs "
                                "(run the protocol again with that flag)")
-    with np.load(path) as z:
-        return {k: z[k] for k in z.files}
+    return _read_npz(path)
+
+
+def _read_npz(path: Path, *names: str) -> dict[str, np.ndarray]:
+    """An episode's .npz as {name: array} (only `names` when given); a damaged or incomplete file is one line, exit 2."""
+    try:
+        with np.load(path) as z:
+            return {k: z[k] for k in (names or z.files)}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        raise ReplayInputError(f"{path} is damaged or incomplete ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else 'unreadable'}); "
+                               "re-run that episode (octo-harness run --resume ... --retry-failed, or --overwrite)") from None
 
 
 def _recorded_outputs(episode: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
     """(predicted chunks (steps, horizon, dims), readout attention (steps, layers, heads, readouts, keys)) as stored."""
-    with np.load(episode.directory / "actions.npz") as a, np.load(episode.directory / "attention.npz") as b:
-        return a["predicted"], b["readout_attention"]
+    actions = _read_npz(episode.directory / "actions.npz", "predicted")
+    attention = _read_npz(episode.directory / "attention.npz", "readout_attention")
+    return actions["predicted"], attention["readout_attention"]
 
 
 def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolerances: Tolerances) -> dict:
