@@ -119,3 +119,12 @@ def test_the_schema_accepts_what_the_store_writes_and_names_the_field_it_refuses
     assert check_row(row, "r", 1, {("Lift", 0), ("Lift", 1)}) is row
     with pytest.raises(MalformedRunError, match=r"^r line 4: success must be true or false, got str 'yes'"):
         check_row({**row, "success": "yes"}, "r", 4)
+
+
+def test_a_cut_short_episode_array_is_one_line_and_exit_2_in_compare(runs, tmp_path, capsys):
+    """A damaged attention.npz (a full disk, a killed copy) must not read as a regression (exit 1)."""
+    good, bad = runs
+    path = bad / "Lift" / "episode_2" / "attention.npz"
+    path.write_bytes(path.read_bytes()[:300])
+    _one_line_exit_2(["compare", str(good), str(bad), "--out", str(tmp_path / "cmp")], capsys,
+                     "episode_2/attention.npz is damaged or incomplete")

@@ -48,7 +48,7 @@ from harness.analysis.paired import (
 )
 from harness.analysis.equivalence import attention_divergence
 from harness.analysis.provenance import input_agreement, provenance
-from harness.analysis.runs import EpisodeRecord, RunRecord, load_run
+from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
 from harness.analysis.stats import wilson_interval
 
 FORMAT = "octo-harness-compare/1"
@@ -150,8 +150,7 @@ def _load_arrays(episode: EpisodeRecord) -> dict[str, np.ndarray] | None:
         path = episode.directory / name
         if not path.is_file():
             return None
-        with np.load(path) as z:
-            out.update({f"{name}:{key}": z[key] for key in z.files})
+        out.update({f"{name}:{key}": value for key, value in read_npz(path).items()})
     return out
 
 

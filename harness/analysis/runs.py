@@ -15,12 +15,13 @@ not a run raises `NotARunError` with one line naming the fix.
 from __future__ import annotations
 
 import json
+import zipfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from harness.run.schema import check_manifest, check_row, parse_row
+from harness.run.schema import MalformedRunError, check_manifest, check_row, parse_row
 
 RUN_FORMAT = "octo-harness-run/1"
 
@@ -287,3 +288,15 @@ def load_episode_arrays(episode: EpisodeRecord) -> EpisodeArrays:
             mask_mass=group("metrics/mask_mass/"),
             step=z["step"] if "step" in files else np.arange(z["readout_attention"].shape[0]),
         )
+
+
+def read_npz(path: Path, *names: str) -> dict[str, np.ndarray]:
+    """An episode's .npz as {name: array} (only `names` when given). A damaged or cut-short file (a full disk, a
+    killed copy) is a MalformedRunError naming it and the fix (one line, exit 2), not a traceback."""
+    try:
+        with np.load(path) as z:
+            return {k: z[k] for k in (names or z.files)}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        detail = str(exc).splitlines()[0] if str(exc) else "unreadable"
+        raise MalformedRunError(f"{path} is damaged or incomplete ({type(exc).__name__}: {detail}); re-run that "
+                                "episode (octo-harness run --resume ... --retry-failed, or --overwrite)") from None

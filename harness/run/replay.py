@@ -16,14 +16,13 @@ far); exit 0 / 1; 2 for invalid input (a run without recorded inputs, a model wh
 from __future__ import annotations
 
 import logging
-import zipfile
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from harness.analysis.equivalence import Tolerances, action_change, action_scale, attention_change, first_change
-from harness.analysis.runs import EpisodeRecord, load_run
+from harness.analysis.runs import EpisodeRecord, load_run, read_npz
 from harness.run.schema import protocol_from_manifest
 
 log = logging.getLogger(__name__)
@@ -42,23 +41,13 @@ def recorded_inputs(episode: EpisodeRecord) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise ReplayInputError(f"{episode.directory} has no {INPUTS}; replay needs a run made with --record-inputs "
                                "(run the protocol again with that flag)")
-    return _read_npz(path)
-
-
-def _read_npz(path: Path, *names: str) -> dict[str, np.ndarray]:
-    """An episode's .npz as {name: array} (only `names` when given); a damaged or incomplete file is one line, exit 2."""
-    try:
-        with np.load(path) as z:
-            return {k: z[k] for k in (names or z.files)}
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-        raise ReplayInputError(f"{path} is damaged or incomplete ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else 'unreadable'}); "
-                               "re-run that episode (octo-harness run --resume ... --retry-failed, or --overwrite)") from None
+    return read_npz(path)
 
 
 def _recorded_outputs(episode: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
     """(predicted chunks (steps, horizon, dims), readout attention (steps, layers, heads, readouts, keys)) as stored."""
-    actions = _read_npz(episode.directory / "actions.npz", "predicted")
-    attention = _read_npz(episode.directory / "attention.npz", "readout_attention")
+    actions = read_npz(episode.directory / "actions.npz", "predicted")
+    attention = read_npz(episode.directory / "attention.npz", "readout_attention")
     return actions["predicted"], attention["readout_attention"]
 
 
