@@ -271,23 +271,29 @@ def _load_legacy_run(path: Path) -> RunRecord:
 
 
 def load_episode_arrays(episode: EpisodeRecord) -> EpisodeArrays:
-    """Read attention.npz of a finished episode. Raises FileNotFoundError / ValueError when it is absent or damaged."""
-    with np.load(episode.attention_path) as z:
-        files = z.files
-        if "readout_attention" not in files:
-            raise ValueError(f"{episode.attention_path} has no readout_attention")
+    """Read attention.npz of a finished episode. Raises FileNotFoundError when it is absent, MalformedRunError (a
+    ValueError, one line) when it is damaged."""
+    try:
+        with np.load(episode.attention_path) as z:
+            files = z.files
+            if "readout_attention" not in files:
+                raise ValueError(f"{episode.attention_path} has no readout_attention")
 
-        def group(prefix: str) -> dict[str, np.ndarray]:
-            return {name[len(prefix):]: z[name] for name in files if name.startswith(prefix)}
+            def group(prefix: str) -> dict[str, np.ndarray]:
+                return {name[len(prefix):]: z[name] for name in files if name.startswith(prefix)}
 
-        return EpisodeArrays(
-            readout_attention=z["readout_attention"],
-            tokens={name: z[name] for name in files if name.startswith("tokens/")},
-            mask_fractions=group("mask_fraction/"),
-            mask_areas=group("metrics/mask_area/"),
-            mask_mass=group("metrics/mask_mass/"),
-            step=z["step"] if "step" in files else np.arange(z["readout_attention"].shape[0]),
-        )
+            return EpisodeArrays(
+                readout_attention=z["readout_attention"],
+                tokens={name: z[name] for name in files if name.startswith("tokens/")},
+                mask_fractions=group("mask_fraction/"),
+                mask_areas=group("metrics/mask_area/"),
+                mask_mass=group("metrics/mask_mass/"),
+                step=z["step"] if "step" in files else np.arange(z["readout_attention"].shape[0]),
+            )
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        raise _damaged(episode.attention_path, exc) from None
 
 
 def read_npz(path: Path, *names: str) -> dict[str, np.ndarray]:
@@ -297,6 +303,10 @@ def read_npz(path: Path, *names: str) -> dict[str, np.ndarray]:
         with np.load(path) as z:
             return {k: z[k] for k in (names or z.files)}
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-        detail = str(exc).splitlines()[0] if str(exc) else "unreadable"
-        raise MalformedRunError(f"{path} is damaged or incomplete ({type(exc).__name__}: {detail}); re-run that "
-                                "episode (octo-harness run --resume ... --retry-failed, or --overwrite)") from None
+        raise _damaged(path, exc) from None
+
+
+def _damaged(path: Path, exc: BaseException) -> MalformedRunError:
+    detail = str(exc).splitlines()[0] if str(exc) else "unreadable"
+    return MalformedRunError(f"{path} is damaged or incomplete ({type(exc).__name__}: {detail}); re-run that "
+                             "episode (octo-harness run --resume ... --retry-failed, or --overwrite)")
