@@ -19,6 +19,7 @@ workers' requests can save per step; the bound assumes it saves nothing).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import os
 import tempfile
@@ -66,7 +67,7 @@ def batch_core_seconds(model, protocol, sizes=(1, 2), calls: int = 6) -> dict[in
 
     out = {}
     for b in sizes:  # one BatchInference per shape: a run compiles exactly its protocol's inference_batch
-        inference = BatchInference(model, protocol.policy.__class__(**{**vars(protocol.policy), "inference_batch": b}))
+        inference = BatchInference(model, dataclasses.replace(protocol.policy, inference_batch=b))
         request = warmup_request(PolicyShape.of(model, inference.dataset_key), TaskSpec.of("pick up the red cube"))
         rng = np.random.default_rng(0)
         for value in request.observation.values():

@@ -15,6 +15,7 @@ far); exit 0 / 1; 2 for invalid input (a run without recorded inputs, a model wh
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import asdict
 from pathlib import Path
@@ -37,11 +38,16 @@ class ReplayInputError(ValueError):
 
 def recorded_inputs(episode: EpisodeRecord) -> dict[str, np.ndarray]:
     """inputs.npz of an episode as {name: array}; ReplayInputError when the run did not record inputs."""
+    return read_npz(_inputs_path(episode))
+
+
+def _inputs_path(episode: EpisodeRecord) -> Path:
+    """The episode's inputs.npz; ReplayInputError when the run did not record inputs."""
     path = episode.directory / INPUTS
     if not path.is_file():
         raise ReplayInputError(f"{episode.directory} has no {INPUTS}; replay needs a run made with --record-inputs "
                                "(run the protocol again with that flag)")
-    return read_npz(path)
+    return path
 
 
 def _recorded_outputs(episode: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
@@ -99,7 +105,7 @@ def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolera
     else:
         js = np.full((len(inferred), 1, 1), np.inf)
         note = f"attention shapes differ: {recorded_attention.shape[1:]} recorded, {np.shape(readout[0])} replayed"
-    first = first_change(actions, js, _tolerances_or_default(tolerances))
+    first = first_change(actions, js, tolerances)
     result = {**out, "verdict": "EQUIVALENT" if first is None else "CHANGED",
               "first_changed_step": None if first is None else inferred[first],
               "action_change_max": float(actions.max()), "attention_js_max": float(js.max()),
@@ -112,10 +118,6 @@ def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolera
     return result
 
 
-def _tolerances_or_default(tolerances: Tolerances | None) -> Tolerances:
-    return tolerances if tolerances is not None else Tolerances()
-
-
 def replay_run(run_dir: str | Path, model_source: str | None = None, tolerances: Tolerances | None = None,
                loaded_model=None, text_tokenizer: str | None = None) -> dict:
     """Replay every finished episode of a run with recorded inputs (see the module docstring); returns replay.json.
@@ -125,7 +127,7 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, tolerances:
     from harness.policy import BatchInference, resize_frame
     from harness.run import checks
 
-    tolerances = _tolerances_or_default(tolerances)
+    tolerances = tolerances if tolerances is not None else Tolerances()
     run = load_run(run_dir)
     if run.format == "legacy":
         raise ReplayInputError(f"{run.path} was made before the run store and recorded no inputs; re-run it with "
@@ -135,8 +137,7 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, tolerances:
     if not episodes:
         raise ReplayInputError(f"{run.path} has no finished episode to replay; finish the run first")
     for e in episodes:  # before the model loads: every episode must have its inputs
-        if not (e.directory / INPUTS).is_file():
-            recorded_inputs(e)
+        _inputs_path(e)
     source = model_source or protocol.model
     if model_source is None and Path(source).is_absolute() and not Path(source).exists():
         raise ReplayInputError(f"the run's model {source} is not on this machine (a run copied from elsewhere); "
@@ -145,12 +146,12 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, tolerances:
     # must become the same tokens, or the comparison measures the tokenizer
     tokenizer = text_tokenizer if text_tokenizer is not None else protocol.text_tokenizer
     model = loaded_model if loaded_model is not None else load_pretrained(source, text_tokenizer=tokenizer)
-    config = protocol.policy.__class__(**{**vars(protocol.policy), "inference_batch": 1})
+    config = dataclasses.replace(protocol.policy, inference_batch=1)
     if config.intervention is not None:
         from harness.interventions import parse_intervention
 
         if parse_intervention(config.intervention).masks:  # the recorded inputs are the masked frames already
-            config = config.__class__(**{**vars(config), "intervention": None})
+            config = dataclasses.replace(config, intervention=None)
     inference = BatchInference(model, config)
     goals = None
     if protocol.goal_images:
