@@ -217,9 +217,18 @@ def test_the_video_shows_an_attribution_map(tmp_path):
     from harness import cli
 
     assert cli.main(["run", "--model", str(REFERENCE), "--task", "Lift", "--episodes", "1", "--max-steps", "3",
-                     "--fast-render", "--png-every", "0", "--video-attention", "grad-attention", "--out", str(tmp_path),
-                     "--run-name", "v"]) == 0
+                     "--fast-render", "--png-every", "2", "--layers", "2", "--video-attention", "grad-attention",
+                     "--out", str(tmp_path), "--run-name", "v"]) == 0
     episode = tmp_path / "v" / "Lift" / "episode_0"
-    assert json.loads((episode / "episode.json").read_text())["success"] is not None
+    info = json.loads((episode / "episode.json").read_text())
+    assert info["success"] is not None
+    # the PNG steps show the attribution maps too, every camera the model reads, beside the attention panels
+    assert sorted(p.name for p in episode.glob("*.png")) == [
+        "step_0000_attribution.png", "step_0000_layer_02.png", "step_0002_attribution.png", "step_0002_layer_02.png"]
+    assert info["files"]["png_count"] == 4 and info["files"]["attribution_png_pattern"] == "step_{step:04d}_attribution.png"
+    from PIL import Image
+
+    panel = np.asarray(Image.open(episode / "step_0002_attribution.png"))
+    assert panel.shape[0] > 2 * 128 and panel.std() > 10  # two camera rows of real frames
     assert (episode / "rollout.mp4").stat().st_size > 0
     assert np.load(episode / "attribution.npz")["map/grad-attention/image_primary"].shape == (3, 4, 4)

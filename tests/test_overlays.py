@@ -6,6 +6,7 @@ import pytest
 from harness.analysis.attention import upsample_map
 from harness.outputs.overlays import (
     BOX,
+    attribution_panel,
     colormap_lut,
     heatmap_overlay,
     heatmap_overlays,
@@ -106,6 +107,27 @@ def test_layer_panel_draws_every_head_and_the_mean():
     assert boxed.shape == panel.shape  # constant size, whatever the data
     with pytest.raises(ValueError, match="no frame"):
         layer_panel({"image_primary": frames["image_primary"]}, maps, caption)
+
+
+def test_attribution_panel_colours_each_method_over_its_own_range():
+    lut = colormap_lut("jet")
+    frames = {"image_primary": np.zeros((64, 64, 3), np.uint8), "image_wrist": np.zeros((32, 32, 3), np.uint8)}
+    maps = {  # units differ by orders of magnitude: each cell still shows its own hottest patch
+        "attention:2": {"image_primary": onehot(4, 4, 0, 0) * 1e-3, "image_wrist": onehot(2, 2, 1, 1) * 1e-3},
+        "saliency": {"image_primary": onehot(4, 4, 3, 3) * 50.0, "image_wrist": onehot(2, 2, 0, 1) * 50.0},
+        "occlusion": {"image_primary": onehot(4, 4, 2, 1)},  # no wrist map: that cell is the bare frame
+    }
+    panel = attribution_panel(frames, maps, {"task": "Lift", "step": 3}, alpha=1.0)
+    hot = np.all(panel == lut[255], axis=-1).sum()
+    # primary at 128 px (x2): one 32x32 patch per method (3); wrist at 128 px (x4): one 64x64 patch in 2 methods;
+    # each colour bar has one hottest row of 12 pixels
+    assert hot == 3 * 32 * 32 + 2 * 64 * 64 + 2 * 12
+    cold = np.all(panel == lut[0], axis=-1).sum()
+    assert cold == 3 * 15 * 32 * 32 + 2 * 3 * 64 * 64 + 2 * 12  # the bare wrist frame (black) is not colour 0
+    with pytest.raises(ValueError, match="one \\(rows, cols\\) grid"):
+        attribution_panel(frames, {"saliency": {"image_primary": np.zeros((2, 4, 4))}}, {})
+    with pytest.raises(ValueError, match="at least one method"):
+        attribution_panel(frames, {}, {})
 
 
 def test_video_frame_layout():

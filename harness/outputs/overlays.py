@@ -8,6 +8,7 @@ orientation.
 
 - `heatmap_overlay`: one map over one frame.
 - `layer_panel`: one step and layer, every head and the fused head per camera, captions, colour bars.
+- `attribution_panel`: one step, every attribution method per camera (each map over its own range).
 - `video_frame`: camera frame | attention overlay | captions, over a strip of per-layer overlays.
 """
 
@@ -192,14 +193,63 @@ def layer_panel(
       until at least `min_cell` pixels high, so small model inputs stay legible and patches stay sharp.
     Returns (H, W, 3) uint8.
     """
-    cameras = list(maps)
-    if not cameras:
+    if not maps:
         raise ValueError("layer_panel needs at least one camera map")
+    heads = int(np.asarray(next(iter(maps.values()))).shape[0])
+    stacks = {}
+    for cam, m in maps.items():
+        cam_maps = np.asarray(m, dtype=np.float32)  # (heads, rows, cols)
+        if cam_maps.ndim != 3 or cam_maps.shape[0] != heads:
+            raise ValueError(f"maps[{cam!r}] must be (heads={heads}, rows, cols); got {cam_maps.shape}")
+        stacks[cam] = np.concatenate([cam_maps, fuse_heads(cam_maps, head_fusion, axis=0)[None]])  # (heads + 1, r, c)
+    title = f"{caption.get('task', '')} | step {caption.get('step', '?')} | layer {caption.get('layer', '?')}"
+    columns = [f"head {h}" for h in range(heads)] + [head_fusion]
+    return _grid_panel(frames, stacks, columns, title, caption.get("note"), ranges, boxes, False, cmap, alpha, min_cell)
+
+
+def attribution_panel(
+    frames: dict[str, np.ndarray],
+    maps: dict[str, dict[str, np.ndarray]],
+    caption: dict,
+    boxes: dict[str, tuple[int, int, int, int] | None] | None = None,
+    cmap: str = "jet",
+    alpha: float = 0.5,
+    min_cell: int = 128,
+) -> np.ndarray:
+    """One step: rows = cameras, columns = attribution methods (`harness.analysis.attribution`).
+
+    maps: method -> observation key -> (rows, cols) scores on that camera's patch grid. Methods have
+    unrelated units (attention mass, gradient magnitudes, action change), so each cell is coloured
+    from its own minimum to its own maximum: compare where each method puts its mass, not its values.
+    A camera a method has no map for is left blank. Other arguments as `layer_panel`. Returns (H, W, 3) uint8.
+    """
+    methods = list(maps)
+    cameras = list(dict.fromkeys(cam for m in methods for cam in maps[m]))
+    if not cameras:
+        raise ValueError("attribution_panel needs at least one method with a camera map")
+    stacks = {}
+    for cam in cameras:
+        grids = [np.asarray(maps[m][cam], np.float32) for m in methods if cam in maps[m]]
+        shape = grids[0].shape
+        if any(g.ndim != 2 or g.shape != shape for g in grids):
+            raise ValueError(f"every method's map of {cam!r} must be one (rows, cols) grid; got "
+                             f"{[g.shape for g in grids]}")
+        stacks[cam] = np.stack([np.asarray(maps[m][cam], np.float32) if cam in maps[m] else np.full(shape, np.nan)
+                                for m in methods])  # (methods, rows, cols)
+    title = f"{caption.get('task', '')} | step {caption.get('step', '?')} | attribution (each map min..max)"
+    return _grid_panel(frames, stacks, methods, title, caption.get("note"), None, boxes, True, cmap, alpha, min_cell)
+
+
+def _grid_panel(frames, stacks, columns, title, note, ranges, boxes, per_cell, cmap, alpha, min_cell) -> np.ndarray:
+    """Rows = cameras, columns = `columns`; stacks: observation key -> (columns, rows, cols) maps.
+
+    per_cell: colour each cell over its own range (a NaN cell shows the bare frame); otherwise one range
+    per row (`ranges[cam]`, or the row's min / max), printed beside the row with a colour bar.
+    """
+    cameras = list(stacks)
     missing = [c for c in cameras if c not in frames]
     if missing:
         raise ValueError(f"no frame for camera(s) {missing}; pass a frame for every camera with a map")
-    heads = int(np.asarray(maps[cameras[0]]).shape[0])
-    columns = [f"head {h}" for h in range(heads)] + [head_fusion]
     font = _font(13)
     small = _font(11)
     line = 17
@@ -210,47 +260,49 @@ def layer_panel(
         k = max(1, -(-min_cell // h))
         sizes[c] = (h * k, w * k)
     column_width = max(w for _, w in sizes.values()) + PAD  # common pitch; narrower frames are centred
-    grid_width = len(columns) * column_width
     left = PAD
-    bar_left = left + grid_width + PAD
+    bar_left = left + len(columns) * column_width + PAD
     width = bar_left + COLORBAR_WIDTH + 60
     title_h = 3 * line + PAD
     row_tops = np.cumsum([0] + [line + sizes[c][0] + PAD for c in cameras])
     height = title_h + int(row_tops[-1]) + PAD
     canvas = np.full((height, width, 3), BACKGROUND, np.uint8)
 
-    labels = []  # (xy, text, font)
+    labels = [((left, 2), title, font)]  # (xy, text, font)
     rects = []  # (box, top, left, sy, sx)
-    title = f"{caption.get('task', '')} | step {caption.get('step', '?')} | layer {caption.get('layer', '?')}"
-    labels.append(((left, 2), title, font))
-    if caption.get("note"):
-        labels.append(((left, 2 + line), str(caption["note"]), font))
+    if note:
+        labels.append(((left, 2 + line), str(note), font))
     for k, name in enumerate(columns):  # column titles, under the caption
         labels.append(((left + k * column_width, 2 + 2 * line), name, font))
     for r, cam in enumerate(cameras):
         frame = _check_frame(frames[cam])
-        cam_maps = np.asarray(maps[cam], dtype=np.float32)  # (heads, rows, cols)
-        if cam_maps.ndim != 3 or cam_maps.shape[0] != heads:
-            raise ValueError(f"maps[{cam!r}] must be (heads={heads}, rows, cols); got {cam_maps.shape}")
-        stack = np.concatenate([cam_maps, fuse_heads(cam_maps, head_fusion, axis=0)[None]])  # (heads + 1, rows, cols)
-        if ranges is not None and cam in ranges:
-            vmin, vmax = ranges[cam]
-        else:
-            vmin, vmax = float(stack.min()), float(stack.max())
+        stack = stacks[cam]
         ch, cw = sizes[cam]
         shown = resize_nearest(frame, ch, cw)
         top = title_h + int(row_tops[r]) + line
-        labels.append(((left, top - line + 2), f"{cam}   range [{_fmt(vmin)}, {_fmt(vmax)}]", small))
+        if per_cell:
+            overlays = [shown if not np.isfinite(m).any() else
+                        heatmap_overlays(shown, m[None], float(np.nanmin(m)), float(np.nanmax(m)), alpha, cmap)[0]
+                        for m in stack]
+            labels.append(((left, top - line + 2), cam, small))
+            low, high = "min", "max"
+        else:
+            if ranges is not None and cam in ranges:
+                vmin, vmax = ranges[cam]
+            else:
+                vmin, vmax = float(stack.min()), float(stack.max())
+            overlays = heatmap_overlays(shown, stack, vmin, vmax, alpha, cmap)  # (columns, ch, cw, 3)
+            labels.append(((left, top - line + 2), f"{cam}   range [{_fmt(vmin)}, {_fmt(vmax)}]", small))
+            low, high = _fmt(vmin), _fmt(vmax)
         box = (boxes or {}).get(cam)
-        overlays = heatmap_overlays(shown, stack, vmin, vmax, alpha, cmap)  # (heads + 1, ch, cw, 3)
-        for k in range(len(stack)):
+        for k, overlay in enumerate(overlays):
             x = left + k * column_width + (column_width - PAD - cw) // 2
-            canvas[top : top + ch, x : x + cw] = overlays[k]
+            canvas[top : top + ch, x : x + cw] = overlay
             if box is not None:
                 rects.append((box, top, x, ch / frame.shape[0], cw / frame.shape[1]))
         canvas[top : top + ch, bar_left : bar_left + COLORBAR_WIDTH] = _colorbar(ch, cmap)
-        labels.append(((bar_left + COLORBAR_WIDTH + 3, top), _fmt(vmax), small))
-        labels.append(((bar_left + COLORBAR_WIDTH + 3, top + ch - 13), _fmt(vmin), small))
+        labels.append(((bar_left + COLORBAR_WIDTH + 3, top), high, small))
+        labels.append(((bar_left + COLORBAR_WIDTH + 3, top + ch - 13), low, small))
 
     image = Image.fromarray(canvas)
     draw = ImageDraw.Draw(image)

@@ -7,6 +7,8 @@ to the rollout video. `finish()` writes the arrays and JSON. Files in `episode_d
   step_<tttt>_layer_<ll>.png  one panel per selected step and layer (step zero-padded to 4 digits,
                               layer to 2, e.g. step_0003_layer_11.png): rows = cameras, columns =
                               heads and the fused head, colour bars, optional target box
+  step_<tttt>_attribution.png at PNG steps that carry attribution maps (--attribution, --faithfulness-every):
+                              rows = cameras, columns = methods, each map coloured over its own range
   rollout.mp4 (rollout.gif)   camera | attention overlay | captions, over a per-layer strip
   attention.npz               readout_attention (steps, layers, heads, readouts, keys) float16,
                               tokens/* (TokenMap.to_arrays), metrics/<name> (steps, ...) float32,
@@ -60,13 +62,15 @@ import numpy as np
 from harness.analysis.aggregate import measure_arrays
 from harness.analysis.attention import HEAD_FUSIONS, camera_maps, fuse_heads, mask_fractions, rollout_readout_rows, step_metrics
 from harness.octo.tokens import TokenMap
-from harness.outputs.overlays import colormap_lut, heatmap_overlay, layer_panel, mask_bbox, video_frame
+from harness.outputs.overlays import (attribution_panel, colormap_lut, heatmap_overlay, layer_panel, mask_bbox,
+                                      video_frame)
 from harness.policy import input_digest
 from harness.records import EpisodeMeta, StepRecord
 from harness.files import atomic_write_json, json_safe, write_atomic
 from harness.outputs.video import GifWriter, Mp4Writer
 
 PNG_NAME = "step_{step:04d}_layer_{layer:02d}.png"
+ATTRIBUTION_PNG_NAME = "step_{step:04d}_attribution.png"  # every method side by side, at PNG steps that carry maps
 _STOP = object()
 
 
@@ -442,6 +446,9 @@ class EpisodeWriter:
             else:
                 selected = {c: m[list(layout.png_layers)] for c, m in maps.items()}
                 self._deferred.append((record.step, frames, selected, boxes))
+            by_method = (record.attribution or {}).get("maps")
+            if by_method:
+                self._save_attribution_panel(record.step, frames, by_method, boxes)
         if opts.normalisation == "episode":
             for cam, m in maps.items():
                 for layer in layout.png_layers:
@@ -472,7 +479,10 @@ class EpisodeWriter:
             frames, maps, self._caption(step, layer), ranges=ranges, boxes=boxes,
             head_fusion=opts.head_fusion, cmap=opts.cmap, alpha=opts.alpha,
         )
-        name = PNG_NAME.format(step=step, layer=layer)
+        self._write_png(PNG_NAME.format(step=step, layer=layer), panel)
+
+    def _write_png(self, name: str, panel: np.ndarray) -> None:
+        opts = self.options
         path, level = self.dir / name, opts.png_compress_level
 
         def save() -> None:
@@ -486,6 +496,13 @@ class EpisodeWriter:
             self._png_pending.append(self._png_pool.submit(save))
             self._drain_png(4 * opts.png_workers)
         self._pngs.append(name)
+
+    def _save_attribution_panel(self, step, frames, by_method, boxes) -> None:
+        opts = self.options
+        shown = {m: {cam: v for cam, v in by.items() if cam in frames} for m, by in by_method.items()}
+        panel = attribution_panel(frames, {m: by for m, by in shown.items() if by}, self._caption(step, -1),
+                                  boxes=boxes, cmap=opts.cmap, alpha=opts.alpha)
+        self._write_png(ATTRIBUTION_PNG_NAME.format(step=step), panel)
 
     def _drain_png(self, keep: int) -> None:
         """Wait for the oldest PNG jobs until at most `keep` are pending; re-raises their errors."""
@@ -590,6 +607,8 @@ class EpisodeWriter:
             files["gif"] = "rollout.gif"
         files["png_count"] = len(self._pngs)
         files["png_pattern"] = PNG_NAME
+        if any(n.endswith("_attribution.png") for n in self._pngs):
+            files["attribution_png_pattern"] = ATTRIBUTION_PNG_NAME
         return files
 
     def _write_attribution(self) -> dict[str, str]:
