@@ -137,3 +137,50 @@ def _read_curve(path):
 
     with open(path) as f:
         return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def test_grid_embedding_resize_known_answer():
+    from harness.reference.warm_start import resize_grid_embedding
+
+    # a 2x2 grid (row-major tokens) whose value is the row index: 4x4 bilinear (half-pixel centres, edges held)
+    old = np.array([0.0, 0.0, 1.0, 1.0], np.float32).reshape(1, 4, 1)
+    new = resize_grid_embedding(old, 16)[0, :, 0].reshape(4, 4)
+    np.testing.assert_allclose(new, np.repeat([[0.0], [0.25], [0.75], [1.0]], 4, axis=1), atol=1e-6)
+    flat = np.full((1, 10, 16, 8), 0.3, np.float32)  # (1, horizon, tokens, D): a constant stays constant
+    np.testing.assert_allclose(resize_grid_embedding(flat, 64), 0.3, atol=1e-6)
+    with pytest.raises(ValueError, match="not square"):
+        resize_grid_embedding(np.zeros((1, 6, 8)), 16)
+
+
+def test_warm_start_copies_an_earlier_checkpoint_and_resamples_the_patch_grid(tmp_path):
+    """A 32-px model warm-starts a 64-px one: every parameter copied, the primary position embeddings
+    resampled from 2x2 to 4x4 patches (lr 0: the saved model is the warm start itself)."""
+    from flax import traverse_util
+
+    from harness.octo.checkpoint import read_params
+    from harness.reference.warm_start import resize_grid_embedding
+
+    demo = _toy_demos(lengths=(12, 10))
+    demo["image_wrist"] = demo["image_primary"][:, :16, :16].copy()
+    small = dict(batch_size=4, log_every=1, checkpoint_every=10, warmup_steps=1, width=32, layers=1, heads=2, mlp_dim=64,
+                 stem_features=(32, 32, 32, 32), t5_width=16, action_horizon=2)
+    train({"Lift": demo}, tmp_path / "a", TrainConfig(steps=2, image_sizes=(("image_primary", 32), ("image_wrist", 16)),
+                                                       **small))
+    big = dict(demo, image_primary=np.repeat(np.repeat(demo["image_primary"], 2, axis=1), 2, axis=2))
+    summary = train({"Lift": big}, tmp_path / "b", TrainConfig(
+        steps=1, learning_rate=0.0, weight_decay=0.0, image_sizes=(("image_primary", 64), ("image_wrist", 16)),
+        init_from=str(tmp_path / "a"), **small))
+    a = traverse_util.flatten_dict(read_params(tmp_path / "a", 2))
+    b = traverse_util.flatten_dict(read_params(tmp_path / "b", 1))
+    assert a.keys() == b.keys()
+    key = ("octo_transformer", "obs_primary_pos_embedding")
+    assert a[key].shape[-2:] == (4, 32) and b[key].shape[-2:] == (16, 32)
+    np.testing.assert_allclose(b[key], resize_grid_embedding(a[key], 16), atol=1e-6)
+    for k in a:
+        if k != key:
+            np.testing.assert_array_equal(a[k], b[k], err_msg="/".join(k))
+    assert summary["warm_start"]["resized"] and summary["warm_start"]["copied"] == len(a) - 1
+    with pytest.raises(ValueError, match="only patch-grid position embeddings can change size"):
+        train({"Lift": demo}, tmp_path / "c", TrainConfig(
+            steps=1, image_sizes=(("image_primary", 32), ("image_wrist", 16)), init_from=str(tmp_path / "a"),
+            **{**small, "mlp_dim": 128}))

@@ -44,6 +44,7 @@ from harness.octo.config import DiffusionHeadConfig
 from harness.octo.heads import ContinuousHead, ScoreNetwork, pool_readouts
 from harness.octo.network import LanguageTokenizer, OctoTransformer, init_params
 from harness.octo.t5 import T5Config
+from harness.reference.warm_start import warm_start
 
 log = logging.getLogger(__name__)
 
@@ -75,11 +76,16 @@ class TrainConfig:
     heads: int = 4
     mlp_dim: int = 256
     stem_features: tuple[int, ...] = (32, 32, 64, 128)
-    image_sizes: tuple[tuple[str, int], ...] = (("image_primary", 64), ("image_wrist", 64))
+    # primary 128 px -> 8x8 patches of 16 px, wrist 64 px -> 4x4 (DemoConfig.image_sizes matches)
+    image_sizes: tuple[tuple[str, int], ...] = (("image_primary", 128), ("image_wrist", 64))
     action_horizon: int = 4
     head: str = "l1"  # "l1" (Octo's L1ActionHead) or "diffusion" (DiffusionActionHead; see the module docstring)
     head_hidden: int = 256  # diffusion head only
     t5_width: int = 64
+    # batches sample tasks in these proportions (then frames uniformly within a task)
+    task_weights: tuple[tuple[str, float], ...] = (("Lift", 1.0), ("Stack", 1.5), ("PickPlaceCan", 2.0))
+    # warm start: copy an earlier checkpoint's parameters (harness.reference.warm_start); None = from scratch
+    init_from: str | None = None
 
 
 # ----------------------------------------------------------------------------- config and text
@@ -122,11 +128,13 @@ def model_config(cfg: TrainConfig) -> dict:
     }
 
 
-def conventions_toml() -> str:
+def conventions_toml(cfg: TrainConfig = TrainConfig()) -> str:
     """harness.toml: how octo-harness evaluates this checkpoint (see harness.conventions)."""
+    sizes = dict(cfg.image_sizes)
     return (
         '# How octo-harness evaluates this checkpoint (trained on robosuite OSC_POSE inputs, default cameras\n'
-        '# agentview 256 px and eye-in-hand 128 px resized to 64 px, upright images, fast render).\n'
+        f'# agentview 256 px resized to {sizes["image_primary"]} px and eye-in-hand 128 px resized to {sizes["image_wrist"]} px,\n'
+        '# upright images, fast render).\n'
         'format = "octo-harness-conventions/1"\n\n'
         '[env]\naction_space = "robosuite"\nimage_convention = "upright"\n\n'
         f'[policy]\ndataset_key = "{DATASET_KEY}"\naction_normalization = "normal"\nproprio_normalization = "normal"\n'
@@ -400,6 +408,9 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     init_key, key = jax.random.split(key)
     params = init_params(init_key, config, {k: (s, s) for k, s in sizes.items()}, 1, t5_config=t5,
                          lowdim_sizes={"proprio": PROPRIO_DIM}, language_tokens=LANGUAGE_TOKENS)
+    warm = None
+    if cfg.init_from:
+        params, warm = warm_start(params, cfg.init_from)
     trainable, t5_params = split_t5(params)
     n_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(params))
     log.info("reference model: %d parameters (%.1f MB float32), %d frames, vocab %d", n_params, n_params * 4 / 2**20,
@@ -426,11 +437,12 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
         "action": np.zeros((1, 1, cfg.action_horizon, ACTION_DIM), np.float32),
     }
     write_static_files(out_dir, config_dict, tokenizer, t5_dict, data.statistics, example_batch)
-    (out_dir / "harness.toml").write_text(conventions_toml())
+    (out_dir / "harness.toml").write_text(conventions_toml(cfg))
     for name, content in (extra_files or {}).items():
         (out_dir / name).write_text(content)
 
-    schedule = optax.warmup_cosine_decay_schedule(0.0, cfg.learning_rate, cfg.warmup_steps, cfg.steps,
+    warmup = min(cfg.warmup_steps, cfg.steps - 1)  # optax needs a decay phase of at least one step
+    schedule = optax.warmup_cosine_decay_schedule(0.0, cfg.learning_rate, warmup, cfg.steps,
                                                   cfg.learning_rate * 0.05)
     optimizer = optax.chain(optax.clip_by_global_norm(cfg.grad_clip),
                             optax.adamw(schedule, weight_decay=cfg.weight_decay))
@@ -453,8 +465,12 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     rng = np.random.default_rng(cfg.seed)
     by_task = [np.flatnonzero(data.task == i) for i in range(len(tasks))]
 
+    weights = dict(cfg.task_weights)
+    p_task = np.array([weights.get(t, 1.0) for t in tasks], np.float64)
+    p_task /= p_task.sum()
+
     def sample_batch():
-        task = rng.integers(0, len(tasks), cfg.batch_size)  # task-balanced
+        task = rng.choice(len(tasks), cfg.batch_size, p=p_task)
         idx = np.array([by_task[t][rng.integers(0, len(by_task[t]))] for t in task])
         phrase = np.where(rng.random(cfg.batch_size) < cfg.paraphrase_probability,
                           rng.integers(1, per_task, cfg.batch_size), 0)
@@ -484,6 +500,7 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
             log.info("checkpoint %d written", step)
     plot_curve(out_dir, rows, cfg.head)
     summary = {"parameters": n_params, "frames": int(len(data.actions)), "train_seconds": time.perf_counter() - t0,
-               "total_seconds": time.perf_counter() - start, "final_loss": rows[-1]["loss"], "config": asdict(cfg)}
+               "total_seconds": time.perf_counter() - start, "final_loss": rows[-1]["loss"], "config": asdict(cfg),
+               "warm_start": warm}
     (out_dir / "training_summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary

@@ -1,0 +1,65 @@
+"""Warm start: initialise a new reference model from an earlier checkpoint's parameters.
+
+Every parameter whose path and shape match is copied. A patch-grid position embedding whose grid changed
+size (a camera now resized to more pixels, so more patches) is resampled bilinearly over the grid: the
+SmallStem16 convolutions, the transformer and the heads do not depend on the image size, so after this the
+new model computes on a finer grid what the old one computed on the coarse one, and training starts from
+a policy that already acts. Anything else that differs (a new parameter, a changed width) is an error:
+warm-starting across architectures would silently keep a random part.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import jax
+import numpy as np
+from flax import traverse_util
+
+from harness.octo.checkpoint import read_params, select_step
+
+log = logging.getLogger(__name__)
+
+
+def resize_grid_embedding(embedding: np.ndarray, tokens: int) -> np.ndarray:
+    """(..., n, D) position embedding over a square sqrt(n) x sqrt(n) patch grid (row-major, as the image
+    tokenizer flattens it) -> (..., tokens, D) over a sqrt(tokens) grid, bilinear (align-corners=False)."""
+    embedding = np.asarray(embedding, np.float32)
+    *lead, n, width = embedding.shape
+    side, new_side = math.isqrt(n), math.isqrt(tokens)
+    if side * side != n or new_side * new_side != tokens:
+        raise ValueError(f"position embeddings over {n} -> {tokens} tokens are not square patch grids")
+    grid = embedding.reshape(*lead, side, side, width)
+    resized = jax.image.resize(grid, (*lead, new_side, new_side, width), method="bilinear")
+    return np.asarray(resized, np.float32).reshape(*lead, tokens, width)
+
+
+def warm_start(params: dict, folder: str | Path) -> tuple[dict, dict]:
+    """`params` (a freshly initialised tree) with the checkpoint in `folder` (latest step) copied in.
+
+    Returns (params, {"copied": n, "resized": [paths]}). Raises ValueError naming the first parameter
+    that is missing from the checkpoint or has a shape it cannot be resampled from.
+    """
+    folder = Path(folder)
+    source = traverse_util.flatten_dict(read_params(folder, select_step(folder, None)))  # {(key, ...): array}
+    target = traverse_util.flatten_dict(params)
+    out, resized = {}, []
+    for key, value in target.items():
+        path = "/".join(key)
+        if key not in source:
+            raise ValueError(f"--init-from {folder}: it has no parameter {path}; warm-start from a checkpoint of the "
+                             "same architecture (or train from scratch without --init-from)")
+        old = np.asarray(source[key], np.float32)
+        if old.shape == value.shape:
+            out[key] = old
+        elif path.endswith("_pos_embedding") and old.shape[:-2] == value.shape[:-2] and old.shape[-1] == value.shape[-1]:
+            out[key] = resize_grid_embedding(old, value.shape[-2])
+            resized.append(f"{path} {old.shape} -> {value.shape}")
+        else:
+            raise ValueError(f"--init-from {folder}: {path} has shape {old.shape}, the new model needs {value.shape}; "
+                             "only patch-grid position embeddings can change size")
+    log.info("warm start from %s: %d parameters copied, %d resized (%s)", folder, len(out) - len(resized),
+             len(resized), "; ".join(resized) or "none")
+    return traverse_util.unflatten_dict(out), {"copied": len(out) - len(resized), "resized": resized}
