@@ -2,7 +2,8 @@
 # Is the reference policy's attention telling the truth? The runs behind EVAL.md's "Faithfulness" section.
 #   Open loop: 6 episodes per task (seeds 100..105, at most 120 steps), faithfulness every 10th step, every method;
 #   Lift and Stack again with occlusion.
-#   Closed loop: 30 episodes per task on the held-out seeds 0..29 (Lift at most 150 steps, Stack 250), plain and with
+#   Closed loop: 30 episodes per task on the held-out seeds 0..29 (Lift at most 150 steps, Stack 250, PickPlaceCan
+#   at its own limit, 400; PickPlaceCan with 2 env workers, the same episodes as sequential), plain and with
 #   --intervene mask-top:4:attention:2 / mask-top:4:saliency / mask-random:4 / mask-all (4 of each camera's 16 patches).
 # Then the Markdown tables (python -m harness.report.faithfulness) and an HTML report with the Faithfulness section.
 #   bash scripts/faithfulness_reference.sh [OUT]        (resumable: re-running finishes what a killed one left)
@@ -23,13 +24,13 @@ for task in Lift Stack; do  # the same episodes with occlusion, the reference a 
     open+=("$OUT/occ_$task")
 done
 closed=()
-for spec in "Lift 150" "Stack 250"; do
+for spec in "Lift 150 1" "Stack 250 1" "PickPlaceCan 400 2"; do
     set -- $spec
-    task=$1 steps=$2
+    task=$1 steps=$2 workers=$3
     for arm in plain "top-attn2 mask-top:4:attention:2" "top-saliency mask-top:4:saliency" "random mask-random:4" "all mask-all"; do
         set -- $arm
         name=$1 intervention=${2:-}
-        run --task "$task" --episodes 30 --seed 0 --max-steps "$steps" --run-name "${task}_$name" \
+        run --task "$task" --episodes 30 --seed 0 --max-steps "$steps" --workers "$workers" --run-name "${task}_$name" \
             ${intervention:+--intervene "$intervention"}
         closed+=("$OUT/${task}_$name")
     done

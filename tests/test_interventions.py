@@ -164,7 +164,7 @@ def test_attribution_and_faithfulness_in_a_run_leave_the_actions_alone(tmp_path)
     np.testing.assert_array_equal(np.load(episode / "actions.npz")["predicted"], plain)  # measured beside, same actions
     maps = np.load(episode / "attribution.npz")
     assert list(maps["step"]) == list(range(6))
-    assert maps["map/saliency/image_wrist"].shape == (6, 4, 4) and "map/random/image_primary" in maps
+    assert maps["map/saliency/image_wrist"].shape == (6, 4, 4) and "map/random/image_primary" in maps  # wrist: 4x4
     rows = [json.loads(line) for line in (episode / "faithfulness.jsonl").read_text().splitlines()]
     assert sorted({r["step"] for r in rows}) == [0, 3]
     assert {(r["camera"], r["method"]) for r in rows} == {(c, m) for c in ("image_primary", "image_wrist")
@@ -231,4 +231,6 @@ def test_the_video_shows_an_attribution_map(tmp_path):
     panel = np.asarray(Image.open(episode / "step_0002_attribution.png"))
     assert panel.shape[0] > 2 * 128 and panel.std() > 10  # two camera rows of real frames
     assert (episode / "rollout.mp4").stat().st_size > 0
-    assert np.load(episode / "attribution.npz")["map/grad-attention/image_primary"].shape == (3, 4, 4)
+    tokens = np.load(episode / "attention.npz")
+    grids = dict(zip(tokens["tokens/image_keys"], map(tuple, tokens["tokens/image_grids"])))
+    assert np.load(episode / "attribution.npz")["map/grad-attention/image_primary"].shape == (3, *grids["image_primary"])
