@@ -500,8 +500,10 @@ class EpisodeWriter:
     def _save_attribution_panel(self, step, frames, by_method, boxes) -> None:
         opts = self.options
         shown = {m: {cam: v for cam, v in by.items() if cam in frames} for m, by in by_method.items()}
-        panel = attribution_panel(frames, {m: by for m, by in shown.items() if by}, self._caption(step, -1),
-                                  boxes=boxes, cmap=opts.cmap, alpha=opts.alpha)
+        shown = {m: by for m, by in shown.items() if by}
+        if not shown:  # maps only of cameras this episode has no frame for
+            return
+        panel = attribution_panel(frames, shown, self._caption(step, -1), boxes=boxes, cmap=opts.cmap, alpha=opts.alpha)
         self._write_png(ATTRIBUTION_PNG_NAME.format(step=step), panel)
 
     def _drain_png(self, keep: int) -> None:
