@@ -9,7 +9,7 @@
 #   bash scripts/faithfulness_reference.sh [OUT]        (resumable: re-running finishes what a killed one left)
 set -euo pipefail
 cd "$(dirname "$0")/.."
-MODEL=models/octo-reference-robosuite
+MODEL="${MODEL:-models/octo-reference-robosuite-64px}"  # the policy the published results were measured on; MODEL=... for another
 OUT="${1:-results/runs/faith}"
 export HF_HUB_OFFLINE=1 MUJOCO_GL="${MUJOCO_GL:-egl}"
 run() { .venv/bin/octo-harness run --model "$MODEL" --fast-render --png-every 0 --no-video --out "$OUT" "$@"; }

@@ -49,7 +49,8 @@ def test_there_is_a_committed_baseline_with_recorded_inputs():
     manifest = json.loads((REFERENCE / "manifest.json").read_text())
     assert manifest["platform_fingerprint"].startswith("sha256:") and manifest["platform"]["gl"]["renderer"]
     size = sum(p.stat().st_size for p in REFERENCE.rglob("*") if p.is_file())
-    assert size < 3 * 2 ** 20, f"the committed baseline is {size / 2 ** 20:.1f} MB"
+    # 6 MB: 8 episodes x 20 steps of recorded inputs, the primary camera at 128 px (8x8 patches) is most of it
+    assert size < 6 * 2 ** 20, f"the committed baseline is {size / 2 ** 20:.1f} MB"
 
 
 @pytest.mark.parametrize("name", NAMES)

@@ -169,8 +169,14 @@ def test_attribution_and_faithfulness_in_a_run_leave_the_actions_alone(tmp_path)
     assert sorted({r["step"] for r in rows}) == [0, 3]
     assert {(r["camera"], r["method"]) for r in rows} == {(c, m) for c in ("image_primary", "image_wrist")
                                                            for m in ("attention:2", "saliency", "random")}
+    from harness.analysis.faithfulness import _ks_with, k_values
+
+    grids = {k: tuple(g) for k, g in zip(np.load(episode / "attention.npz")["tokens/image_keys"],
+                                         np.load(episode / "attention.npz")["tokens/image_grids"])}
     for r in rows:
-        assert len(r["deletion_curve"]) == 17 and r["deletion_curve"][0] == pytest.approx(0, abs=1e-5)
+        n = int(np.prod(grids[r["camera"]]))  # 16 wrist patches; the primary camera's 64
+        assert len(r["deletion_curve"]) == len(_ks_with(n, k_values(n), 17))
+        assert r["deletion_curve"][0] == pytest.approx(0, abs=1e-5)
         assert r["deletion_curve"][-1] == pytest.approx(r["change_all"], rel=1e-3)
     policy = json.loads((tmp_path / "probed" / "manifest.json").read_text())["protocol"]["policy"]
     assert policy["faithfulness_every"] == 3 and policy["attribution"] == "attention:2,saliency"

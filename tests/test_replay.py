@@ -89,7 +89,7 @@ def test_the_baseline_records_what_the_policy_saw_and_its_digest():
             np.load(BASELINE / "Lift" / "episode_1" / "actions.npz") as actions:
         assert int(inputs["seed"]) == 1 and str(inputs["instruction"])
         frames = inputs["input/image_primary"]  # (steps, H, W, 3) uint8 at the model's size
-        assert frames.dtype == np.uint8 and frames.shape[1:] == (64, 64, 3) and frames.shape[0] == 20
+        assert frames.dtype == np.uint8 and frames.shape[1:] == (128, 128, 3) and frames.shape[0] == 20  # primary
         hashes = actions["input_hash/image_primary"]
         assert [input_digest(f) for f in frames] == [int(h) for h in hashes[:20]]
         assert len(set(int(h) for h in hashes[:20])) == 20  # a new frame every step
