@@ -56,6 +56,12 @@ def reference():
     return model, InferenceRequest(obs, TaskSpec.of("lift the red cube"), 0, 0)
 
 
+def _patch_grids(episode) -> dict[str, tuple[int, int]]:
+    """{camera: (rows, cols)} of the model's patch grids, from the episode's stored token map."""
+    with np.load(episode / "attention.npz") as tokens:
+        return {str(k): tuple(int(x) for x in g) for k, g in zip(tokens["tokens/image_keys"], tokens["tokens/image_grids"])}
+
+
 def _changed_patches(frame: np.ndarray, original: np.ndarray, patch: int = 16) -> set[int]:
     diff = (frame != original).any(axis=-1)
     rows = diff.shape[0] // patch
@@ -171,8 +177,7 @@ def test_attribution_and_faithfulness_in_a_run_leave_the_actions_alone(tmp_path)
                                                            for m in ("attention:2", "saliency", "random")}
     from harness.analysis.faithfulness import _ks_with, k_values
 
-    grids = {k: tuple(g) for k, g in zip(np.load(episode / "attention.npz")["tokens/image_keys"],
-                                         np.load(episode / "attention.npz")["tokens/image_grids"])}
+    grids = _patch_grids(episode)
     for r in rows:
         n = int(np.prod(grids[r["camera"]]))  # 16 wrist patches; the primary camera's 64
         assert len(r["deletion_curve"]) == len(_ks_with(n, k_values(n), 17))
@@ -237,6 +242,5 @@ def test_the_video_shows_an_attribution_map(tmp_path):
     panel = np.asarray(Image.open(episode / "step_0002_attribution.png"))
     assert panel.shape[0] > 2 * 128 and panel.std() > 10  # two camera rows of real frames
     assert (episode / "rollout.mp4").stat().st_size > 0
-    tokens = np.load(episode / "attention.npz")
-    grids = dict(zip(tokens["tokens/image_keys"], map(tuple, tokens["tokens/image_grids"])))
+    grids = _patch_grids(episode)
     assert np.load(episode / "attribution.npz")["map/grad-attention/image_primary"].shape == (3, *grids["image_primary"])

@@ -229,13 +229,12 @@ def attribution_panel(
         raise ValueError("attribution_panel needs at least one method with a camera map")
     stacks = {}
     for cam in cameras:
-        grids = [np.asarray(maps[m][cam], np.float32) for m in methods if cam in maps[m]]
-        shape = grids[0].shape
-        if any(g.ndim != 2 or g.shape != shape for g in grids):
+        grids = {m: np.asarray(maps[m][cam], np.float32) for m in methods if cam in maps[m]}
+        shape = next(iter(grids.values())).shape
+        if any(g.ndim != 2 or g.shape != shape for g in grids.values()):
             raise ValueError(f"every method's map of {cam!r} must be one (rows, cols) grid; got "
-                             f"{[g.shape for g in grids]}")
-        stacks[cam] = np.stack([np.asarray(maps[m][cam], np.float32) if cam in maps[m] else np.full(shape, np.nan)
-                                for m in methods])  # (methods, rows, cols)
+                             f"{[g.shape for g in grids.values()]}")
+        stacks[cam] = np.stack([grids.get(m, np.full(shape, np.nan)) for m in methods])  # (methods, rows, cols)
     title = f"{caption.get('task', '')} | step {caption.get('step', '?')} | attribution (each map min..max)"
     return _grid_panel(frames, stacks, methods, title, caption.get("note"), None, boxes, True, cmap, alpha, min_cell)
 

@@ -128,7 +128,7 @@ def model_config(cfg: TrainConfig) -> dict:
     }
 
 
-def conventions_toml(cfg: TrainConfig = TrainConfig()) -> str:
+def conventions_toml(cfg: TrainConfig) -> str:
     """harness.toml: how octo-harness evaluates this checkpoint (see harness.conventions)."""
     sizes = dict(cfg.image_sizes)
     return (
