@@ -322,6 +322,21 @@ class RobosuiteEnv(gym.Env):
             return {}
         return {obj.name: np.array(placements[env.object_to_id[obj.name.lower()]]) for obj in env.objects}
 
+    def grasping(self, name: str) -> bool:
+        """Whether the gripper holds robosuite object `name` (robosuite's own grasp check; for demonstrators)."""
+        env = self._env
+        objects = {obj.name: obj for obj in getattr(env.model, "mujoco_objects", ())}
+        if name not in objects:
+            raise KeyError(f"no object {name!r} in {self.task.name}; objects: {', '.join(objects)}")
+        return bool(env._check_grasp(gripper=env.robots[0].gripper, object_geoms=objects[name].contact_geoms))
+
+    def over_placement(self, name: str) -> bool:
+        """Whether object `name`'s centre lies over its target bin in x and y, at any height (PickPlace tasks)."""
+        env = self._env
+        bin_id = env.object_to_id[name.lower()]
+        x, y, _ = env.sim.data.body_xpos[env.obj_body_id[name]]
+        return not env.not_in_bin(np.array([x, y, env.bin2_pos[2] + 0.05]), bin_id)
+
     def target_pixels(self) -> dict[str, np.ndarray]:
         """{image key: (n_targets, 2) float32 (row, col)} projected target centres in each image (env's convention)."""
         data = self._env.sim.data

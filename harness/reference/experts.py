@@ -151,11 +151,7 @@ class ScriptedExpert:
             self._steps_in_phase = 0
             return self.act(obs, env)
         self._steps_in_phase += 1
-        position = np.clip(self.config.position_gain * error / POSITION_MAX, -1.0, 1.0)
-        current = Rotation.from_euler("xyz", obs["proprio"][3:6])
-        rotvec = (self._orientation * current.inv()).as_rotvec()
-        rotation = np.clip(self.config.rotation_gain * rotvec / ROTATION_MAX, -1.0, 1.0)
-        return np.concatenate([position, rotation, [phase.gripper]]).astype(np.float32)
+        return _command(error, obs["proprio"], self._orientation, phase.gripper, self.config)
 
     def _enter(self, phase: str, eef: np.ndarray, env) -> None:
         """Freeze what a phase needs from the moment it starts."""
@@ -165,6 +161,83 @@ class ScriptedExpert:
             self._lift_target = eef + np.array([0.0, 0.0, self.config.lift])
         if phase in ("release", "retreat"):
             self._hold = eef.copy() if phase == "release" else self._hold
+
+
+def _command(error: np.ndarray, proprio: np.ndarray, orientation: Rotation, gripper: float,
+             config: ExpertConfig) -> np.ndarray:
+    """(7,) float32 OSC_POSE input: the saturated proportional law towards a position `error` (3,) metres and
+    the `orientation`, with the gripper command."""
+    position = np.clip(config.position_gain * error / POSITION_MAX, -1.0, 1.0)
+    current = Rotation.from_euler("xyz", proprio[3:6])
+    rotvec = (orientation * current.inv()).as_rotvec()
+    rotation = np.clip(config.rotation_gain * rotvec / ROTATION_MAX, -1.0, 1.0)
+    return np.concatenate([position, rotation, [gripper]]).astype(np.float32)
+
+
+class CanLabeller:
+    """PickPlaceCan's expert as a function of the simulator state, for labelling states a policy visits (DAgger).
+
+    `ScriptedExpert`'s phase follows its own progress, so it cannot say what to do from a state it did not
+    lead to (a can carried past the bin, a missed grasp). This labeller reads the phase off the state with
+    the same waypoints and control law:
+      can over its bin and not held   -> retreat up and back from the release point, gripper open;
+      can held, not over its bin      -> rise to carrying height, then carry to the expert's point over the bin;
+      can held over its bin           -> centre on that point while high, lower, then open where the hand is;
+      can elsewhere, not held         -> the descend funnel towards the can (hover height while off-centre),
+                                         gripper open; close once the fingers are around the can; open again
+                                         if they closed on nothing.
+    """
+
+    task = "PickPlaceCan"
+    OBJECT = "Can"
+    CLOSE_RADIUS = 0.015  # metres from the can's centre within which the fingers close (the expert stops at 0.008)
+    EMPTY_FINGERS = 0.01  # summed finger opening below which closed fingers hold nothing (around the can: ~0.05)
+
+    def __init__(self, config: ExpertConfig = ExpertConfig()):
+        self.config = config
+        self._orientation: Rotation | None = None
+
+    def reset(self, obs: dict, env) -> None:
+        """New episode: hold the reset orientation (the can is round: no yaw to align)."""
+        self._orientation = Rotation.from_euler("xyz", obs["proprio"][3:6])
+
+    def waypoint(self, obs: dict, env) -> tuple[np.ndarray, float]:
+        """((3,) end-effector target, gripper command) for the current state."""
+        cfg = self.config
+        up = np.array([0.0, 0.0, 1.0])
+        eef = np.asarray(obs["proprio"][:3], np.float64)
+        fingers = float(np.abs(np.asarray(obs["proprio"][6:8])).sum())
+        can = env.object_poses()[self.OBJECT][0]
+        bin_centre = env.placement_targets()[self.OBJECT]
+        above = np.array([bin_centre[0], bin_centre[1] - 0.04, bin_centre[2] + 0.20])  # ScriptedExpert's carry point
+        if env.grasping(self.OBJECT):
+            above = above + (eef - can)  # the can, not the hand, goes over the bin
+            lowered = above - up * 0.06
+            off_bin = float(np.linalg.norm((above - eef)[:2]))
+            if not env.over_placement(self.OBJECT):  # away from the bin: rise (as after the expert's lift), then carry
+                if eef[2] < above[2] - 0.04:
+                    return np.array([eef[0], eef[1], above[2]]), CLOSED
+                return above, CLOSED
+            if eef[2] > lowered[2] + 0.008:  # over the bin: centre at carrying height, then lower
+                if off_bin > 0.012 and eef[2] > above[2] - 0.02:
+                    return above, CLOSED
+                return lowered, CLOSED
+            return eef, OPEN  # lowered: release where the hand is
+        if env.over_placement(self.OBJECT):
+            return above - up * 0.06 + np.array([0.0, -0.10, 0.05]), OPEN  # retreat from the release point
+        off_centre = float(np.linalg.norm((can - eef)[:2]))
+        near = float(np.linalg.norm(can - eef)) < self.CLOSE_RADIUS
+        if near and fingers > self.EMPTY_FINGERS:
+            return can, CLOSED
+        return can + up * min(cfg.hover, cfg.funnel * max(off_centre - 0.004, 0.0)), OPEN
+
+    def act(self, obs: dict, env) -> np.ndarray:
+        """(7,) float32 OSC_POSE input the expert gives in this state."""
+        if self._orientation is None:
+            raise RuntimeError("call reset(obs, env) at the start of each episode")
+        target, gripper = self.waypoint(obs, env)
+        return _command(target - np.asarray(obs["proprio"][:3], np.float64), obs["proprio"], self._orientation,
+                        gripper, self.config)
 
 
 def _phases(task: str) -> tuple[Phase, ...]:

@@ -1,10 +1,18 @@
-"""One command that builds the reference policy: record demonstrations, then train and save the model.
+"""One command that builds the reference policy: record demonstrations, train, then optionally a DAgger round.
 
-    python -m harness.reference.pipeline --out models/octo-reference-robosuite --data data/reference_demos
+    python -m harness.reference.pipeline --out models/octo-reference-robosuite --data data/reference_demos \
+        [--dagger-episodes 64]
 
-Everything is seeded (demonstration seeds, batch sampling, initialisation, noise), so the same command on
-the same software gives the same demonstrations and the same training run. A recording that already
-exists in `--data` with the same configuration is reused (its recording time is reported from its summary).
+Stages: (1) scripted-expert demonstrations into `--data`; (2) behaviour cloning for `--steps`; with
+`--dagger-episodes N`, (2) writes `<data>/stage1` and two more stages follow: (3) that checkpoint runs N
+PickPlaceCan episodes and the state-based expert labels every state it visits (`harness.reference.dagger`,
+into `<data>/dagger`); (4) fine-tuning from (2) on demonstrations + corrections for `--dagger-steps` at
+`--dagger-learning-rate`, normalised with the demonstrations' statistics, into `--out`.
+
+Everything is seeded (demonstration and episode seeds, batch sampling, initialisation, noise), so the same
+command on the same software gives the same data and the same training runs. A recording or a collection
+that already exists with the same configuration (and, for corrections, the same acting checkpoint) is
+reused; its time is reported from its summary.
 """
 
 from __future__ import annotations
@@ -16,6 +24,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from harness.reference import dagger
 from harness.reference.demos import DemoConfig, existing_demos, load_demos, record_demos
 from harness.reference.train import TrainConfig, train
 
@@ -30,8 +39,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="demonstrations per task, the same for every task [Lift 96, Stack 128, PickPlaceCan 192]")
     parser.add_argument("--steps", type=int, default=TrainConfig.steps, help="training steps")
     parser.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
+    parser.add_argument("--learning-rate", type=float, default=TrainConfig.learning_rate,
+                        help="peak learning rate of the warm-up + cosine schedule")
     parser.add_argument("--workers", type=int, default=2, help="recording processes (spawned)")
     parser.add_argument("--seed", type=int, default=TrainConfig.seed, help="training seed")
+    parser.add_argument("--dagger-episodes", type=int, default=0,
+                        help="PickPlaceCan episodes of the trained policy to label for a DAgger round (0 = no round)")
+    parser.add_argument("--dagger-steps", type=int, default=3000, help="fine-tuning steps of the DAgger round")
+    parser.add_argument("--dagger-learning-rate", type=float, default=3e-4,
+                        help="peak learning rate of the DAgger round")
     parser.add_argument("--init-from", default=None, metavar="CHECKPOINT",
                         help="warm start from this checkpoint folder (same architecture; patch-grid position embeddings "
                              "are resampled to the new image sizes) instead of random initialisation")
@@ -39,11 +55,20 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     for noisy in ("jax._src.xla_bridge", "robosuite_logs"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
-    if (args.episodes is not None and args.episodes < 4) or args.steps < 1 or args.batch_size < 1:
-        parser.error("--episodes must be >= 4 (one per recording job), --steps and --batch-size >= 1")
+    if (args.episodes is not None and args.episodes < 4) or args.steps < 1 or args.batch_size < 1 \
+            or not args.learning_rate > 0 or args.dagger_steps < 1 or not args.dagger_learning_rate > 0:
+        parser.error("--episodes must be >= 4 (one per recording job), --steps, --dagger-steps and --batch-size "
+                     ">= 1, learning rates > 0")
+    dagger_config = None
+    if args.dagger_episodes:
+        try:
+            dagger_config = dagger.DaggerConfig(episodes=args.dagger_episodes)
+        except ValueError as e:
+            parser.error(str(e))
 
     start = time.perf_counter()
-    train_config = TrainConfig(steps=args.steps, batch_size=args.batch_size, seed=args.seed, init_from=args.init_from)
+    train_config = TrainConfig(steps=args.steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
+                               seed=args.seed, init_from=args.init_from)
     demo_config = DemoConfig(image_sizes=train_config.image_sizes)
     if args.episodes is not None:
         demo_config = replace(demo_config, episodes=tuple((t, args.episodes) for t in demo_config.tasks))
@@ -53,7 +78,27 @@ def main(argv: list[str] | None = None) -> int:
         summary = record_demos(demo_config, args.data, workers=args.workers)
     else:
         log.info("reusing the demonstrations in %s (recorded in %.0f s)", args.data, summary["seconds"])
-    result = train(load_demos(args.data, demo_config.tasks), args.out, train_config)
+    demos = load_demos(args.data, demo_config.tasks)
+    if dagger_config is None:
+        result = train(demos, args.out, train_config)
+    else:
+        stage1 = Path(args.data) / "stage1"
+        first = train(demos, stage1, train_config)
+        corrections = Path(args.data) / "dagger"
+        collected = dagger.existing(dagger_config, stage1, corrections)
+        if collected is None:
+            log.info("DAgger: %d %s episodes of %s, labelled by the expert", dagger_config.episodes,
+                     dagger_config.task, stage1)
+            collected = dagger.collect(stage1, corrections, dagger_config, workers=args.workers)
+        else:
+            log.info("reusing the corrections in %s (collected in %.0f s)", corrections, collected["seconds"])
+        fine_tune = replace(train_config, steps=args.dagger_steps, learning_rate=args.dagger_learning_rate,
+                            seed=args.seed + 1, init_from=str(stage1))
+        result = train(dagger.append_corrections(demos, corrections, dagger_config.task), args.out, fine_tune,
+                       normalise_with=demos)
+        result["stage1"] = {k: first[k] for k in ("frames", "train_seconds", "final_loss", "config", "warm_start")}
+        result["dagger"] = collected
+        result["total_seconds"] += first["total_seconds"] + collected["seconds"]
     result["demonstrations"] = summary
     result["pipeline_seconds_this_run"] = time.perf_counter() - start
     Path(args.out, "training_summary.json").write_text(json.dumps(result, indent=2, default=str))

@@ -209,8 +209,13 @@ def _stats(x: np.ndarray, mask: np.ndarray) -> dict:
             "p99": np.percentile(x, 99, axis=0), "p01": np.percentile(x, 1, axis=0), "mask": mask}
 
 
-def build_dataset(demos: dict[str, dict[str, np.ndarray]], horizon: int) -> Dataset:
-    """Concatenate all tasks; action chunks a[t:t+horizon] (masked past the end); mean/std normalisation."""
+def build_dataset(demos: dict[str, dict[str, np.ndarray]], horizon: int,
+                  normalise_with: dict[str, dict[str, np.ndarray]] | None = None) -> Dataset:
+    """Concatenate all tasks; action chunks a[t:t+horizon] (masked past the end); mean/std normalisation.
+
+    `normalise_with` (default `demos`): the data whose action and proprio statistics normalise (DAgger
+    fine-tuning keeps the demonstrations' statistics, so the warm-started head's units do not move).
+    """
     tasks = list(demos)
     keys = [k for k in demos[tasks[0]] if k.startswith("image_")]
     images = {k: np.concatenate([demos[t][k] for t in tasks]) for k in keys}
@@ -227,8 +232,10 @@ def build_dataset(demos: dict[str, dict[str, np.ndarray]], horizon: int) -> Data
     chunks = actions[last]
     action_mask = np.ones(ACTION_DIM, bool)
     action_mask[-1] = False  # gripper stays as is (-1 open / +1 closed), as Octo leaves it unnormalised
-    action_stats = _stats(actions, action_mask)
-    proprio_stats = _stats(proprio, np.ones(PROPRIO_DIM, bool))
+    reference = demos if normalise_with is None else normalise_with
+    action_stats = _stats(np.concatenate([reference[t]["action"] for t in reference]).astype(np.float32), action_mask)
+    proprio_stats = _stats(np.concatenate([reference[t]["proprio"] for t in reference]).astype(np.float32),
+                           np.ones(PROPRIO_DIM, bool))
     norm_actions = np.where(action_mask, (chunks - action_stats["mean"]) / action_stats["std"], chunks)
     norm_proprio = (proprio - proprio_stats["mean"]) / proprio_stats["std"]
     statistics = {DATASET_KEY: {
@@ -387,8 +394,12 @@ def plot_curve(folder: Path, rows: list[dict], head: str = "l1") -> None:
 
 
 def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: TrainConfig = TrainConfig(),
-          extra_files: dict[str, str] | None = None) -> dict:
-    """Train on `demos` ({task: arrays from demos.load_demos}) and save into `out_dir`; returns a summary."""
+          extra_files: dict[str, str] | None = None,
+          normalise_with: dict[str, dict[str, np.ndarray]] | None = None) -> dict:
+    """Train on `demos` ({task: arrays from demos.load_demos}) and save into `out_dir`; returns a summary.
+
+    `normalise_with`: the data whose statistics normalise actions and proprio (default `demos`).
+    """
     out_dir = Path(out_dir)
     start = time.perf_counter()
     instructions = task_instructions()
@@ -401,7 +412,7 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     t5 = T5Config.from_hf_dict(t5_dict)
     config_dict = model_config(cfg)
     config = OctoConfig.from_dict(config_dict)
-    data = build_dataset(demos, cfg.action_horizon)
+    data = build_dataset(demos, cfg.action_horizon, normalise_with)
     sizes = dict(cfg.image_sizes)
 
     key = jax.random.PRNGKey(cfg.seed)

@@ -1,0 +1,191 @@
+"""DAgger corrections: run a reference checkpoint in closed loop and label every state it visits with the expert.
+
+    python -m harness.reference.dagger --model CHECKPOINT --out data/reference_dagger [--episodes 64]
+
+Behaviour cloning learns the expert's states only; a policy that drifts (a can carried past its bin, to the
+arm's reach limit) meets states no demonstration shows and keeps drifting. Here the checkpoint acts exactly
+as the evaluation runs it (its harness.toml conventions, temporal ensembling, fast render), and at every step
+the state-based expert (`CanLabeller`) says what it would do there. Those labels, on the policy's own
+inputs, are added to the demonstrations for a fine-tuning stage (`pipeline --dagger`).
+
+Seeds: episode k uses DAGGER_SEED_BASE + k, apart from the demonstration seeds (100000..) and the
+evaluation seeds 0..49. Episodes run in spawned processes (never fork after rendering), in a fixed split
+of jobs, so the data do not depend on the number of workers. An episode stops at success or `max_steps`.
+
+Output: `<out>/<task>.npz` with the arrays of `harness.reference.demos` (the policy's resized inputs,
+proprio, the expert's label as `action`, episode, step, seeds, lengths) plus `success` (episodes,) bool,
+and `<out>/summary.json` (counts, policy success, seconds, configuration and checkpoint fingerprint).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import multiprocessing
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+DAGGER_SEED_BASE = 400_000
+LABELLERS = ("PickPlaceCan",)  # tasks with a state-based expert (harness.reference.experts.CanLabeller)
+
+
+@dataclass(frozen=True)
+class DaggerConfig:
+    task: str = "PickPlaceCan"
+    episodes: int = 64
+    max_steps: int = 300  # the demonstrations' limit for PickPlaceCan
+    jobs: int = 4  # fixed split (not the worker count), so the data do not depend on the workers
+
+    def __post_init__(self) -> None:
+        if self.task not in LABELLERS:
+            raise ValueError(f"no state-based expert for {self.task!r}; DAgger labels {', '.join(LABELLERS)}")
+        if self.episodes < self.jobs or self.max_steps < 1:
+            raise ValueError(f"--episodes must be >= {self.jobs} (one per job) and --max-steps >= 1")
+
+
+def checkpoint_fingerprint(model_dir: str | Path) -> str:
+    """sha256 over a checkpoint folder's config, statistics and parameter files (which policy collected the data)."""
+    digest = hashlib.sha256()
+    root = Path(model_dir)
+    files = [root / "config.json", root / "dataset_statistics.json", *sorted(root.glob("*/default/checkpoint"))]
+    for path in files:
+        digest.update(path.relative_to(root).as_posix().encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _collect_job(args: tuple) -> list[dict]:
+    """Spawned worker: the episodes of seeds `seeds`, each {arrays..., "seed", "success"}."""
+    model_dir, config, seeds = args
+    import envs
+    from harness.conventions import CheckpointConventions
+    from harness.octo import load_pretrained
+    from harness.policy import OctoPolicy
+    from harness.reference.experts import CanLabeller
+
+    conventions = CheckpointConventions.read(model_dir)
+    options = conventions.env_options({"fast_render": True, "masks": False})
+    env = envs.make(config.task, options, max_episode_steps=config.max_steps)
+    model = load_pretrained(str(model_dir), text_tokenizer=conventions.text_tokenizer)
+    policy = OctoPolicy(model, conventions.policy_config())
+    policy.check_env(env)
+    labeller = CanLabeller()
+    episodes = []
+    for seed in seeds:
+        obs, info = env.reset(seed=seed)
+        policy.reset(info.get("instruction", ""), seed=seed)
+        labeller.reset(obs, env)
+        steps: dict[str, list] = {}
+        success = False
+        for _ in range(config.max_steps):
+            decision = policy.step(obs)
+            label = labeller.act(obs, env)
+            for key, value in {**decision.inputs, "action": label}.items():
+                steps.setdefault(key, []).append(value)
+            obs, _, terminated, truncated, info = env.step(decision.action)
+            success = bool(info["success"])
+            if success or terminated or truncated:
+                break
+        episode = {k: np.stack(v) for k, v in steps.items()}
+        episode["proprio"] = episode["proprio"].astype(np.float32)
+        episode["action"] = episode["action"].astype(np.float32)
+        episodes.append({**episode, "seed": seed, "success": success})
+    env.close()
+    return episodes
+
+
+def collect(model_dir: str | Path, out_dir: str | Path, config: DaggerConfig = DaggerConfig(), workers: int = 2) -> dict:
+    """Run the checkpoint on `config.episodes` seeds, label every visited state; write `<out>/<task>.npz`."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    seeds = [DAGGER_SEED_BASE + k for k in range(config.episodes)]
+    jobs = [(str(model_dir), config, seeds[j::config.jobs]) for j in range(config.jobs)]
+    start = time.perf_counter()
+    if workers > 1:
+        with multiprocessing.get_context("spawn").Pool(workers) as pool:
+            results = pool.map(_collect_job, jobs, chunksize=1)
+    else:
+        results = [_collect_job(job) for job in jobs]
+    episodes = sorted((e for part in results for e in part), key=lambda e: e["seed"])
+    lengths = np.array([len(e["action"]) for e in episodes], np.int32)
+    keys = [k for k in episodes[0] if k not in ("seed", "success")]
+    arrays = {key: np.concatenate([e[key] for e in episodes]) for key in keys}
+    arrays["episode"] = np.repeat(np.arange(len(episodes), dtype=np.int32), lengths)
+    arrays["step"] = np.concatenate([np.arange(n, dtype=np.int32) for n in lengths])
+    arrays["seeds"] = np.array([e["seed"] for e in episodes], np.int64)
+    arrays["lengths"] = lengths
+    arrays["success"] = np.array([e["success"] for e in episodes], bool)
+    path = out_dir / f"{config.task}.npz"
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(path)
+    summary = {config.task: {"episodes": len(episodes), "steps": int(lengths.sum()),
+                             "policy_successes": int(arrays["success"].sum()), "mean_length": float(lengths.mean())},
+               "seconds": time.perf_counter() - start,
+               "config": fingerprint(config, model_dir)}
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    log.info("%s: %s", config.task, summary[config.task])
+    return summary
+
+
+def fingerprint(config: DaggerConfig, model_dir: str | Path) -> dict:
+    """JSON-able description of a collection: its configuration and the checkpoint that acted."""
+    return {**asdict(config), "checkpoint": checkpoint_fingerprint(model_dir)}
+
+
+def existing(config: DaggerConfig, model_dir: str | Path, out_dir: str | Path) -> dict | None:
+    """The summary of a finished collection with this configuration and checkpoint in `out_dir`, else None."""
+    path = Path(out_dir) / "summary.json"
+    if not path.is_file() or not (Path(out_dir) / f"{config.task}.npz").is_file():
+        return None
+    summary = json.loads(path.read_text())
+    return summary if summary.get("config") == fingerprint(config, model_dir) else None
+
+
+def append_corrections(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path,
+                       task: str) -> dict[str, dict[str, np.ndarray]]:
+    """`demos` with the corrections of `task` in `out_dir` appended as further episodes of that task."""
+    with np.load(Path(out_dir) / f"{task}.npz") as data:
+        extra = {k: data[k] for k in data.files}
+    base = demos[task]
+    first = int(base["episode"].max()) + 1
+    merged = {}
+    for key, value in base.items():
+        if key == "episode":
+            merged[key] = np.concatenate([value, extra[key] + first])
+        elif key in extra:
+            merged[key] = np.concatenate([value, extra[key].astype(value.dtype)])
+        else:
+            raise ValueError(f"{out_dir}/{task}.npz lacks {key!r}; collect the corrections again")
+    return {**demos, task: merged}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m harness.reference.dagger", description=__doc__.splitlines()[0])
+    parser.add_argument("--model", required=True, help="checkpoint folder that acts")
+    parser.add_argument("--out", required=True, help="folder for the labelled states (not committed)")
+    parser.add_argument("--task", default=DaggerConfig.task, choices=LABELLERS)
+    parser.add_argument("--episodes", type=int, default=DaggerConfig.episodes)
+    parser.add_argument("--max-steps", type=int, default=DaggerConfig.max_steps)
+    parser.add_argument("--workers", type=int, default=2, help="processes (spawned)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    try:
+        config = DaggerConfig(task=args.task, episodes=args.episodes, max_steps=args.max_steps)
+    except ValueError as e:
+        parser.error(str(e))
+    if not (Path(args.model) / "config.json").is_file():
+        parser.error(f"{args.model} is not a checkpoint folder (no config.json); pass --model a saved reference policy")
+    collect(args.model, args.out, config, workers=args.workers)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
