@@ -8,4 +8,4 @@
 # --init-from); they override these defaults.
 source "$(dirname "$0")/_bootstrap.sh"
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
-exec .venv/bin/python -m harness.reference.pipeline --init-from models/octo-reference-robosuite-64px "$@"
+exec .venv/bin/python -m harness.reference.pipeline --init-from models/octo-reference-robosuite-64px --dagger-episodes 64 "$@"

@@ -165,3 +165,22 @@ def test_pipeline_rejects_a_dagger_round_too_small_to_split(capsys):
         pipeline_main(["--dagger-episodes", "2", "--out", "/nonexistent/x"])
     assert exit_info.value.code == 2
     assert "--episodes must be >= 4" in capsys.readouterr().err
+
+
+def test_a_finished_stage_one_is_reused_only_with_the_same_configuration(tmp_path):
+    from dataclasses import asdict, replace
+
+    from harness.reference.pipeline import finished_training
+    from harness.reference.train import TrainConfig
+
+    cfg = TrainConfig(steps=5, init_from="parent")
+    demos = {"PickPlaceCan": _toy(2, 3, 0.0)}
+    folder = tmp_path / "stage1"
+    (folder / "5" / "default").mkdir(parents=True)
+    summary = {"config": json.loads(json.dumps(asdict(cfg))), "frames": 6, "train_seconds": 1.0}
+    (folder / "training_summary.json").write_text(json.dumps(summary))
+    assert finished_training(folder, cfg, demos) is None  # no checkpoint of the last step yet
+    (folder / "5" / "default" / "checkpoint").write_bytes(b"x")
+    assert finished_training(folder, cfg, demos) == summary
+    assert finished_training(folder, replace(cfg, learning_rate=1e-3), demos) is None
+    assert finished_training(folder, cfg, {"PickPlaceCan": _toy(3, 3, 0.0)}) is None  # other demonstrations

@@ -23,12 +23,13 @@ import argparse
 import hashlib
 import json
 import logging
-import multiprocessing
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+
+from harness.reference.demos import run_jobs, save_episodes
 
 log = logging.getLogger(__name__)
 
@@ -108,26 +109,12 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: DaggerConfig = D
     seeds = [DAGGER_SEED_BASE + k for k in range(config.episodes)]
     jobs = [(str(model_dir), config, seeds[j::config.jobs]) for j in range(config.jobs)]
     start = time.perf_counter()
-    if workers > 1:
-        with multiprocessing.get_context("spawn").Pool(workers) as pool:
-            results = pool.map(_collect_job, jobs, chunksize=1)
-    else:
-        results = [_collect_job(job) for job in jobs]
-    episodes = sorted((e for part in results for e in part), key=lambda e: e["seed"])
-    lengths = np.array([len(e["action"]) for e in episodes], np.int32)
-    keys = [k for k in episodes[0] if k not in ("seed", "success")]
-    arrays = {key: np.concatenate([e[key] for e in episodes]) for key in keys}
-    arrays["episode"] = np.repeat(np.arange(len(episodes), dtype=np.int32), lengths)
-    arrays["step"] = np.concatenate([np.arange(n, dtype=np.int32) for n in lengths])
-    arrays["seeds"] = np.array([e["seed"] for e in episodes], np.int64)
-    arrays["lengths"] = lengths
-    arrays["success"] = np.array([e["success"] for e in episodes], bool)
-    path = out_dir / f"{config.task}.npz"
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **arrays)
-    tmp.replace(path)
+    episodes = sorted((e for part in run_jobs(_collect_job, jobs, workers) for e in part), key=lambda e: e["seed"])
+    success = np.array([e.pop("success") for e in episodes], bool)
+    seeds = [e.pop("seed") for e in episodes]
+    lengths = save_episodes(out_dir / f"{config.task}.npz", episodes, seeds, {"success": success})
     summary = {config.task: {"episodes": len(episodes), "steps": int(lengths.sum()),
-                             "policy_successes": int(arrays["success"].sum()), "mean_length": float(lengths.mean())},
+                             "policy_successes": int(success.sum()), "mean_length": float(lengths.mean())},
                "seconds": time.perf_counter() - start,
                "config": fingerprint(config, model_dir)}
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))

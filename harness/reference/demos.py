@@ -123,26 +123,13 @@ def record_demos(config: DemoConfig, out_dir: str | Path, workers: int = 2) -> d
         for j, count in enumerate(counts):
             jobs.append((task, config.task_seed_base(task) + j * SEEDS_PER_JOB, int(count), config))
     start = time.perf_counter()
-    if workers > 1:
-        with multiprocessing.get_context("spawn").Pool(workers) as pool:
-            results = pool.map(_record_job, jobs, chunksize=1)
-    else:
-        results = [_record_job(job) for job in jobs]
+    results = run_jobs(_record_job, jobs, workers)
     summary = {}
     for task in config.tasks:
         parts = [r for job, r in zip(jobs, results) if job[0] == task]
         episodes = [e for p in parts for e in p[0]]
         seeds = [s for p in parts for s in p[1]]
-        lengths = np.array([len(e["action"]) for e in episodes], np.int32)
-        arrays = {key: np.concatenate([e[key] for e in episodes]) for key in episodes[0]}
-        arrays["episode"] = np.repeat(np.arange(len(episodes), dtype=np.int32), lengths)
-        arrays["step"] = np.concatenate([np.arange(n, dtype=np.int32) for n in lengths])
-        arrays["seeds"] = np.array(seeds, np.int64)
-        arrays["lengths"] = lengths
-        path = out_dir / f"{task}.npz"
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, **arrays)
-        tmp.replace(path)
+        lengths = save_episodes(out_dir / f"{task}.npz", episodes, seeds)
         summary[task] = {"episodes": len(episodes), "steps": int(lengths.sum()), "mean_length": float(lengths.mean()),
                          "dropped": int(sum(p[2] for p in parts)), "seed_min": int(min(seeds)), "seed_max": int(max(seeds))}
         log.info("%s: %s", task, summary[task])
@@ -150,6 +137,30 @@ def record_demos(config: DemoConfig, out_dir: str | Path, workers: int = 2) -> d
     summary["config"] = config_fingerprint(config)
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def run_jobs(function, jobs: list, workers: int) -> list:
+    """`function` over `jobs`, in `workers` spawned processes (never fork after rendering) or in this one."""
+    if workers > 1:
+        with multiprocessing.get_context("spawn").Pool(workers) as pool:
+            return pool.map(function, jobs, chunksize=1)
+    return [function(job) for job in jobs]
+
+
+def save_episodes(path: Path, episodes: list[dict], seeds: list[int], extra: dict | None = None) -> np.ndarray:
+    """Concatenate per-episode arrays into `path` (the layout of the module docstring, plus `extra` arrays),
+    written whole or not at all; returns the (episodes,) int32 lengths."""
+    lengths = np.array([len(e["action"]) for e in episodes], np.int32)
+    arrays = {key: np.concatenate([e[key] for e in episodes]) for key in episodes[0]}
+    arrays["episode"] = np.repeat(np.arange(len(episodes), dtype=np.int32), lengths)
+    arrays["step"] = np.concatenate([np.arange(n, dtype=np.int32) for n in lengths])
+    arrays["seeds"] = np.array(seeds, np.int64)
+    arrays["lengths"] = lengths
+    arrays.update(extra or {})
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **arrays)
+    tmp.replace(path)
+    return lengths
 
 
 def config_fingerprint(config: DemoConfig) -> dict:

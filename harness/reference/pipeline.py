@@ -12,7 +12,8 @@ into `<data>/dagger`); (4) fine-tuning from (2) on demonstrations + corrections 
 Everything is seeded (demonstration and episode seeds, batch sampling, initialisation, noise), so the same
 command on the same software gives the same data and the same training runs. A recording or a collection
 that already exists with the same configuration (and, for corrections, the same acting checkpoint) is
-reused; its time is reported from its summary.
+reused, and so is a finished stage 1 with the same training configuration and frame count; times are
+reported from their summaries.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import argparse
 import json
 import logging
 import time
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 from harness.reference import dagger
@@ -83,7 +84,11 @@ def main(argv: list[str] | None = None) -> int:
         result = train(demos, args.out, train_config)
     else:
         stage1 = Path(args.data) / "stage1"
-        first = train(demos, stage1, train_config)
+        first = finished_training(stage1, train_config, demos)
+        if first is None:
+            first = train(demos, stage1, train_config)
+        else:
+            log.info("reusing the stage-1 checkpoint in %s (trained in %.0f s)", stage1, first["train_seconds"])
         corrections = Path(args.data) / "dagger"
         collected = dagger.existing(dagger_config, stage1, corrections)
         if collected is None:
@@ -104,6 +109,18 @@ def main(argv: list[str] | None = None) -> int:
     Path(args.out, "training_summary.json").write_text(json.dumps(result, indent=2, default=str))
     log.info("done: %s (demonstrations %.0f s, training %.0f s)", args.out, summary["seconds"], result["total_seconds"])
     return 0
+
+
+def finished_training(folder: Path, cfg: TrainConfig, demos: dict) -> dict | None:
+    """The training summary in `folder` when a run with exactly `cfg` on as many frames as `demos` finished there."""
+    path = folder / "training_summary.json"
+    if not path.is_file() or not (folder / str(cfg.steps) / "default" / "checkpoint").is_file():
+        return None
+    summary = json.loads(path.read_text())
+    frames = sum(len(arrays["action"]) for arrays in demos.values())
+    if summary.get("config") != json.loads(json.dumps(asdict(cfg))) or summary.get("frames") != frames:
+        return None
+    return summary
 
 
 if __name__ == "__main__":
