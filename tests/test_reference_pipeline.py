@@ -65,6 +65,23 @@ def test_recorded_episode_is_what_the_policy_sees():
     assert episode["image_primary"].std() > 5  # a rendered scene, not a blank frame
 
 
+def test_recording_writes_whole_episodes_and_is_found_again(tmp_path):
+    config = demos_mod.DemoConfig(tasks=("Lift",), episodes=(("Lift", 2),), jobs_per_task=2,
+                                  image_sizes=(("image_primary", 32), ("image_wrist", 32)))
+    summary = demos_mod.record_demos(config, tmp_path, workers=1)
+    (arrays,) = demos_mod.load_demos(tmp_path, ("Lift",)).values()
+    lengths = arrays["lengths"]
+    assert summary["Lift"]["episodes"] == 2 and summary["Lift"]["steps"] == lengths.sum() == len(arrays["action"])
+    # one seed from each job's block; episode ids and steps restart per episode
+    assert list(arrays["seeds"]) == [config.task_seed_base("Lift"), config.task_seed_base("Lift") + 1000]
+    assert list(arrays["episode"]) == [0] * lengths[0] + [1] * lengths[1]
+    assert list(arrays["step"][lengths[0] - 1:lengths[0] + 1]) == [lengths[0] - 1, 0]
+    assert arrays["image_primary"].shape == (lengths.sum(), 32, 32, 3)
+    assert not list(tmp_path.glob("*.tmp.npz"))
+    assert demos_mod.existing_demos(config, tmp_path) == summary
+    assert demos_mod.existing_demos(demos_mod.DemoConfig(), tmp_path) is None  # another configuration
+
+
 def _toy_demos(lengths=(3, 2), seed=0):
     """Two episodes with actions a[t] = (episode*10 + t) in every arm dim, gripper alternating."""
     rng = np.random.default_rng(seed)

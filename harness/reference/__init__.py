@@ -1,1 +1,1 @@
-"""The reference policy: scripted experts, demonstrations and training of models/octo-reference-robosuite."""
+"""The reference policy: scripted experts, demonstrations, training and DAgger corrections of models/octo-reference-robosuite."""
