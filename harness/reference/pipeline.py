@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
                             seed=args.seed + 1, init_from=str(stage1))
         result = train(dagger.append_corrections(demos, corrections, dagger_config.task), args.out, fine_tune,
                        normalise_with=demos)
-        result["stage1"] = {k: first[k] for k in ("frames", "train_seconds", "final_loss", "config", "warm_start")}
+        result["stage1"] = {k: first.get(k) for k in ("frames", "train_seconds", "final_loss", "config", "warm_start")}
         result["dagger"] = collected
         result["total_seconds"] += first["total_seconds"] + collected["seconds"]
     result["demonstrations"] = summary
