@@ -184,3 +184,11 @@ def test_a_finished_stage_one_is_reused_only_with_the_same_configuration(tmp_pat
     assert finished_training(folder, cfg, demos) == summary
     assert finished_training(folder, replace(cfg, learning_rate=1e-3), demos) is None
     assert finished_training(folder, cfg, {"PickPlaceCan": _toy(3, 3, 0.0)}) is None  # other demonstrations
+
+
+def test_collection_command_names_a_folder_that_is_not_a_checkpoint(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        dagger.main(["--model", str(tmp_path), "--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 2
+    assert "not a checkpoint folder" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()  # nothing written before the check

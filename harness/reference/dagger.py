@@ -6,7 +6,7 @@ Behaviour cloning learns the expert's states only; a policy that drifts (a can c
 arm's reach limit) meets states no demonstration shows and keeps drifting. Here the checkpoint acts exactly
 as the evaluation runs it (its harness.toml conventions, temporal ensembling, fast render), and at every step
 the state-based expert (`CanLabeller`) says what it would do there. Those labels, on the policy's own
-inputs, are added to the demonstrations for a fine-tuning stage (`pipeline --dagger`).
+inputs, are added to the demonstrations for a fine-tuning stage (`pipeline --dagger-episodes N`).
 
 Seeds: episode k uses DAGGER_SEED_BASE + k, apart from the demonstration seeds (100000..) and the
 evaluation seeds 0..49. Episodes run in spawned processes (never fork after rendering), in a fixed split
