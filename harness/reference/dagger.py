@@ -29,12 +29,13 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.reference.demos import run_jobs, save_episodes
+from harness.reference.demos import finished_recording, run_jobs, save_episodes
+from harness.reference.experts import CanLabeller
 
 log = logging.getLogger(__name__)
 
 DAGGER_SEED_BASE = 400_000
-LABELLERS = ("PickPlaceCan",)  # tasks with a state-based expert (harness.reference.experts.CanLabeller)
+LABELLERS = {CanLabeller.task: CanLabeller}  # task -> its state-based expert
 
 
 @dataclass(frozen=True)
@@ -69,7 +70,6 @@ def _collect_job(args: tuple) -> list[dict]:
     from harness.conventions import CheckpointConventions
     from harness.octo import load_pretrained
     from harness.policy import OctoPolicy
-    from harness.reference.experts import CanLabeller
 
     conventions = CheckpointConventions.read(model_dir)
     options = conventions.env_options({"fast_render": True, "masks": False})
@@ -77,7 +77,7 @@ def _collect_job(args: tuple) -> list[dict]:
     model = load_pretrained(str(model_dir), text_tokenizer=conventions.text_tokenizer)
     policy = OctoPolicy(model, conventions.policy_config())
     policy.check_env(env)
-    labeller = CanLabeller()
+    labeller = LABELLERS[config.task]()
     episodes = []
     for seed in seeds:
         obs, info = env.reset(seed=seed)
@@ -94,10 +94,8 @@ def _collect_job(args: tuple) -> list[dict]:
             success = bool(info["success"])
             if success or terminated or truncated:
                 break
-        episode = {k: np.stack(v) for k, v in steps.items()}
-        episode["proprio"] = episode["proprio"].astype(np.float32)
-        episode["action"] = episode["action"].astype(np.float32)
-        episodes.append({**episode, "seed": seed, "success": success})
+        # inputs as the policy was fed them (proprio float32), labels float32 from the expert's control law
+        episodes.append({**{k: np.stack(v) for k, v in steps.items()}, "seed": seed, "success": success})
     env.close()
     return episodes
 
@@ -129,11 +127,7 @@ def fingerprint(config: DaggerConfig, model_dir: str | Path) -> dict:
 
 def existing(config: DaggerConfig, model_dir: str | Path, out_dir: str | Path) -> dict | None:
     """The summary of a finished collection with this configuration and checkpoint in `out_dir`, else None."""
-    path = Path(out_dir) / "summary.json"
-    if not path.is_file() or not (Path(out_dir) / f"{config.task}.npz").is_file():
-        return None
-    summary = json.loads(path.read_text())
-    return summary if summary.get("config") == fingerprint(config, model_dir) else None
+    return finished_recording(out_dir, fingerprint(config, model_dir), (config.task,))
 
 
 def append_corrections(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path,

@@ -168,17 +168,19 @@ def config_fingerprint(config: DemoConfig) -> dict:
     return json.loads(json.dumps(asdict(config)))
 
 
-def existing_demos(config: DemoConfig, out_dir: str | Path) -> dict | None:
-    """The summary of a finished recording with exactly this configuration in `out_dir`, else None."""
+def finished_recording(out_dir: str | Path, fingerprint: dict, tasks: tuple[str, ...]) -> dict | None:
+    """The summary in `out_dir` when a recording with this configuration `fingerprint` finished there (its
+    summary.json and every task's file exist), else None."""
     path = Path(out_dir) / "summary.json"
-    if not path.is_file():
+    if not path.is_file() or not all((Path(out_dir) / f"{t}.npz").is_file() for t in tasks):
         return None
     summary = json.loads(path.read_text())
-    if summary.get("config") != config_fingerprint(config):
-        return None
-    if not all((Path(out_dir) / f"{t}.npz").is_file() for t in config.tasks):
-        return None
-    return summary
+    return summary if summary.get("config") == fingerprint else None
+
+
+def existing_demos(config: DemoConfig, out_dir: str | Path) -> dict | None:
+    """The summary of a finished recording with exactly this configuration in `out_dir`, else None."""
+    return finished_recording(out_dir, config_fingerprint(config), config.tasks)
 
 
 def load_demos(out_dir: str | Path, tasks: tuple[str, ...] = EXPERT_TASKS) -> dict[str, dict[str, np.ndarray]]:

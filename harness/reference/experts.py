@@ -101,9 +101,8 @@ class ScriptedExpert:
         up = np.array([0.0, 0.0, 1.0])
         if phase == "hover":
             return obj + up * cfg.hover
-        if phase == "descend":  # a funnel: stay higher while off-centre, so a misaligned gripper rises and re-centres
-            off_centre = float(np.linalg.norm((obj - eef)[:2]))
-            return obj + up * min(cfg.hover, cfg.funnel * max(off_centre - 0.004, 0.0))
+        if phase == "descend":
+            return _funnel(obj, eef, cfg)
         if phase == "close":
             return obj
         if phase == "lift":
@@ -121,18 +120,15 @@ class ScriptedExpert:
             if phase == "retreat":
                 return self._hold + up * 0.08
         if self.task == "PickPlaceCan":
-            target = env.placement_targets()[name]
-            # the bin's centre is near the edge of the Panda's reach: aim 4 cm nearer the robot (the bin's
-            # region is +-6 cm around its centre), carry high over the walls, retreat up and back
-            above = np.array([target[0], target[1] - 0.04, target[2] + 0.20]) + self._grasp_offset
+            above = _bin_carry_point(env, name) + self._grasp_offset
             if phase == "carry":
                 return above
             if phase == "lower":
-                return above - up * 0.06
+                return above - up * BIN_LOWER
             if phase == "release":
                 return self._hold
             if phase == "retreat":
-                return self._hold + np.array([0.0, -0.10, 0.05])
+                return self._hold + BIN_RETREAT
         return eef  # "hold": stay
 
     def act(self, obs: dict, env) -> np.ndarray:
@@ -161,6 +157,24 @@ class ScriptedExpert:
             self._lift_target = eef + np.array([0.0, 0.0, self.config.lift])
         if phase in ("release", "retreat"):
             self._hold = eef.copy() if phase == "release" else self._hold
+
+
+BIN_LOWER = 0.06  # PickPlaceCan: metres the hand descends from the carry point before releasing
+BIN_RETREAT = np.array([0.0, -0.10, 0.05])  # PickPlaceCan: from the release point, up and back towards the robot
+
+
+def _bin_carry_point(env, name: str) -> np.ndarray:
+    """(3,) point over object `name`'s target bin to carry it to. The bin's centre is near the edge of the Panda's
+    reach: aim 4 cm nearer the robot (the bin's region is +-6 cm around its centre), high over the walls."""
+    target = env.placement_targets()[name]
+    return np.array([target[0], target[1] - 0.04, target[2] + 0.20])
+
+
+def _funnel(obj: np.ndarray, eef: np.ndarray, config: ExpertConfig) -> np.ndarray:
+    """(3,) descend target: above the object by up to `hover`, higher while off-centre, so a misaligned gripper
+    rises and re-centres before it reaches the object."""
+    off_centre = float(np.linalg.norm((obj - eef)[:2]))
+    return obj + np.array([0.0, 0.0, 1.0]) * min(config.hover, config.funnel * max(off_centre - 0.004, 0.0))
 
 
 def _command(error: np.ndarray, proprio: np.ndarray, orientation: Rotation, gripper: float,
@@ -203,16 +217,14 @@ class CanLabeller:
 
     def waypoint(self, obs: dict, env) -> tuple[np.ndarray, float]:
         """((3,) end-effector target, gripper command) for the current state."""
-        cfg = self.config
         up = np.array([0.0, 0.0, 1.0])
         eef = np.asarray(obs["proprio"][:3], np.float64)
         fingers = float(np.abs(np.asarray(obs["proprio"][6:8])).sum())
         can = env.object_poses()[self.OBJECT][0]
-        bin_centre = env.placement_targets()[self.OBJECT]
-        above = np.array([bin_centre[0], bin_centre[1] - 0.04, bin_centre[2] + 0.20])  # ScriptedExpert's carry point
+        above = _bin_carry_point(env, self.OBJECT)
         if env.grasping(self.OBJECT):
             above = above + (eef - can)  # the can, not the hand, goes over the bin
-            lowered = above - up * 0.06
+            lowered = above - up * BIN_LOWER
             off_bin = float(np.linalg.norm((above - eef)[:2]))
             if not env.over_placement(self.OBJECT):  # away from the bin: rise (as after the expert's lift), then carry
                 if eef[2] < above[2] - 0.04:
@@ -224,12 +236,11 @@ class CanLabeller:
                 return lowered, CLOSED
             return eef, OPEN  # lowered: release where the hand is
         if env.over_placement(self.OBJECT):
-            return above - up * 0.06 + np.array([0.0, -0.10, 0.05]), OPEN  # retreat from the release point
-        off_centre = float(np.linalg.norm((can - eef)[:2]))
+            return above - up * BIN_LOWER + BIN_RETREAT, OPEN  # retreat from the release point
         near = float(np.linalg.norm(can - eef)) < self.CLOSE_RADIUS
         if near and fingers > self.EMPTY_FINGERS:
             return can, CLOSED
-        return can + up * min(cfg.hover, cfg.funnel * max(off_centre - 0.004, 0.0)), OPEN
+        return _funnel(can, eef, self.config), OPEN
 
     def act(self, obs: dict, env) -> np.ndarray:
         """(7,) float32 OSC_POSE input the expert gives in this state."""

@@ -232,10 +232,13 @@ def build_dataset(demos: dict[str, dict[str, np.ndarray]], horizon: int,
     chunks = actions[last]
     action_mask = np.ones(ACTION_DIM, bool)
     action_mask[-1] = False  # gripper stays as is (-1 open / +1 closed), as Octo leaves it unnormalised
-    reference = demos if normalise_with is None else normalise_with
-    action_stats = _stats(np.concatenate([reference[t]["action"] for t in reference]).astype(np.float32), action_mask)
-    proprio_stats = _stats(np.concatenate([reference[t]["proprio"] for t in reference]).astype(np.float32),
-                           np.ones(PROPRIO_DIM, bool))
+    if normalise_with is None:
+        reference_actions, reference_proprio = actions, proprio
+    else:
+        reference_actions = np.concatenate([a["action"] for a in normalise_with.values()]).astype(np.float32)
+        reference_proprio = np.concatenate([a["proprio"] for a in normalise_with.values()]).astype(np.float32)
+    action_stats = _stats(reference_actions, action_mask)
+    proprio_stats = _stats(reference_proprio, np.ones(PROPRIO_DIM, bool))
     norm_actions = np.where(action_mask, (chunks - action_stats["mean"]) / action_stats["std"], chunks)
     norm_proprio = (proprio - proprio_stats["mean"]) / proprio_stats["std"]
     statistics = {DATASET_KEY: {
