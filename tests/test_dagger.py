@@ -164,7 +164,7 @@ def test_pipeline_rejects_a_dagger_round_too_small_to_split(capsys):
     with pytest.raises(SystemExit) as exit_info:
         pipeline_main(["--dagger-episodes", "2", "--out", "/nonexistent/x"])
     assert exit_info.value.code == 2
-    assert "--episodes must be >= 4" in capsys.readouterr().err
+    assert "--dagger-episodes must be 0 (no DAgger round) or >= 4 (one per collection job)" in capsys.readouterr().err
 
 
 def test_a_finished_stage_one_is_reused_only_with_the_same_configuration(tmp_path):

@@ -62,10 +62,10 @@ def main(argv: list[str] | None = None) -> int:
                      ">= 1, learning rates > 0")
     dagger_config = None
     if args.dagger_episodes:
-        try:
-            dagger_config = dagger.DaggerConfig(episodes=args.dagger_episodes)
-        except ValueError as e:
-            parser.error(str(e))
+        if args.dagger_episodes < dagger.DaggerConfig.jobs:
+            parser.error(f"--dagger-episodes must be 0 (no DAgger round) or >= {dagger.DaggerConfig.jobs} "
+                         "(one per collection job)")
+        dagger_config = dagger.DaggerConfig(episodes=args.dagger_episodes)
 
     start = time.perf_counter()
     train_config = TrainConfig(steps=args.steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
