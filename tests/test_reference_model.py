@@ -14,7 +14,7 @@ from harness.octo.checkpoint import check_param_tree, read_params, select_step
 from harness.octo.config import OctoConfig
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "octo-reference-robosuite"
-LIFT_SEED = 1  # an evaluation seed (0..49) on which the committed model lifts the cube (26 steps in the evaluation run)
+LIFT_SEED = 1  # an evaluation seed (0..49) on which the committed model lifts the cube (27 steps in the evaluation run)
 
 
 @pytest.fixture(scope="module")

@@ -1,12 +1,14 @@
 """Reference policy pipeline: scripted experts in the real simulator, demonstration recording, dataset
 chunks and statistics, and a tiny training run that reduces the loss and saves a loadable Octo checkpoint."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 import envs
 from harness.reference import demos as demos_mod
-from harness.reference.experts import EXPERT_TASKS, ScriptedExpert
+from harness.reference.experts import EXPERT_TASKS, ExpertConfig, ScriptedExpert
 from harness.reference.train import DATASET_KEY, TrainConfig, build_dataset, build_tokenizer, train
 
 
@@ -80,6 +82,32 @@ def test_recording_writes_whole_episodes_and_is_found_again(tmp_path):
     assert not list(tmp_path.glob("*.tmp.npz"))
     assert demos_mod.existing_demos(config, tmp_path) == summary
     assert demos_mod.existing_demos(demos_mod.DemoConfig(), tmp_path) is None  # another configuration
+    changed_expert = replace(config, expert=ExpertConfig(bin_inset=(0.0, 0.04)))
+    assert demos_mod.existing_demos(changed_expert, tmp_path) is None  # another demonstrator records afresh
+
+
+def _stuck_frames(episode: dict) -> int:
+    """Frames where the hand holds something and the label pushes +x at saturation while the hand does not
+    move in x over the next 5 frames (pushing against the arm's reach)."""
+    a, p = episode["action"], episode["proprio"]
+    return sum(1 for i in range(len(a) - 5) if a[i, 6] > 0 and a[i, 0] > 0.9 and abs(p[i + 5, 0] - p[i, 0]) < 0.002)
+
+
+def test_can_expert_carries_to_a_point_the_arm_reaches():
+    """The carry point over the can's bin is inside the arm's reach, so the carry phase ends on arrival (a
+    state), not by timing out while pushing against the reach limit (a label the policy cannot read off the
+    frame). Aiming at the bin's centre, as the first expert did, pushes for 20 frames on this seed."""
+    env = envs.make("PickPlaceCan", fast_render=True, action_space="robosuite", max_episode_steps=300)
+    try:
+        record = lambda cfg: demos_mod.record_episode(env, ScriptedExpert("PickPlaceCan", cfg), 300_000,  # noqa: E731
+                                                      {"image_primary": 32}, noise=0.3, max_steps=300)
+        inset, centre = record(ExpertConfig()), record(ExpertConfig(bin_inset=(0.0, 0.04)))
+    finally:
+        env.close()
+    assert inset is not None and centre is not None
+    assert _stuck_frames(inset) == 0
+    assert _stuck_frames(centre) >= 10
+    assert len(inset["action"]) < len(centre["action"])
 
 
 def _toy_demos(lengths=(3, 2), seed=0):

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.reference.experts import EXPERT_TASKS, ScriptedExpert
+from harness.reference.experts import EXPERT_TASKS, ExpertConfig, ScriptedExpert
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,7 @@ class DemoConfig:
     fast_render: bool = True
     noise: float = 0.3  # std of the Gaussian noise added to the executed position input (OSC units)
     max_steps: dict = field(default_factory=lambda: {"Lift": 120, "Stack": 250, "PickPlaceCan": 300})
+    expert: ExpertConfig = ExpertConfig()  # part of the fingerprint: a changed expert records afresh
 
     def episodes_of(self, task: str) -> int:
         return dict(self.episodes)[task]
@@ -93,7 +94,7 @@ def _record_job(args: tuple) -> tuple[list[dict], list[int], int]:
 
     env = envs.make(task, fast_render=config.fast_render, action_space="robosuite",
                     max_episode_steps=config.max_steps[task])
-    expert = ScriptedExpert(task)
+    expert = ScriptedExpert(task, config.expert)
     sizes = dict(config.image_sizes)
     episodes, seeds, dropped = [], [], 0
     seed = first_seed
