@@ -11,7 +11,7 @@ import pytest
 import envs
 from harness.reference import dagger
 from harness.reference.demos import TRAIN_SEED_BASE, EVAL_SEEDS
-from harness.reference.experts import CLOSED, OPEN, CanLabeller
+from harness.reference.experts import CLOSED, OPEN, CanLabeller, ExpertConfig
 from harness.reference.pipeline import main as pipeline_main
 from harness.reference.train import DATASET_KEY, build_dataset
 
@@ -114,6 +114,8 @@ def test_collection_labels_the_policys_own_states(tmp_path):
     other = ROOT / "models" / "octo-reference-robosuite-64px"
     assert dagger.existing(config, other, tmp_path / "c") is None
     assert dagger.existing(dagger.DaggerConfig(episodes=8, max_steps=12), MODEL, tmp_path / "c") is None
+    relabelled = dagger.DaggerConfig(episodes=4, max_steps=12, expert=ExpertConfig(bin_inset=(0.0, 0.04)))
+    assert dagger.existing(relabelled, MODEL, tmp_path / "c") is None  # labels from another carry point
 
 
 def _toy(n_episodes: int, length: int, offset: float) -> dict:

@@ -24,13 +24,13 @@ import hashlib
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from harness.reference.demos import finished_recording, run_jobs, save_episodes
-from harness.reference.experts import CanLabeller
+from harness.reference.demos import config_fingerprint, finished_recording, run_jobs, save_episodes
+from harness.reference.experts import CanLabeller, ExpertConfig
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +44,7 @@ class DaggerConfig:
     episodes: int = 64
     max_steps: int = 300  # the demonstrations' limit for PickPlaceCan
     jobs: int = 4  # fixed split (not the worker count), so the data do not depend on the workers
+    expert: ExpertConfig = ExpertConfig()  # the labeller's waypoints (the demonstrations' expert's); fingerprinted
 
     def __post_init__(self) -> None:
         if self.task not in LABELLERS:
@@ -77,7 +78,7 @@ def _collect_job(args: tuple) -> list[dict]:
     model = load_pretrained(str(model_dir), text_tokenizer=conventions.text_tokenizer)
     policy = OctoPolicy(model, conventions.policy_config())
     policy.check_env(env)
-    labeller = LABELLERS[config.task]()
+    labeller = LABELLERS[config.task](config.expert)
     episodes = []
     for seed in seeds:
         obs, info = env.reset(seed=seed)
@@ -122,7 +123,7 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: DaggerConfig = D
 
 def fingerprint(config: DaggerConfig, model_dir: str | Path) -> dict:
     """JSON-able description of a collection: its configuration and the checkpoint that acted."""
-    return {**asdict(config), "checkpoint": checkpoint_fingerprint(model_dir)}
+    return {**config_fingerprint(config), "checkpoint": checkpoint_fingerprint(model_dir)}
 
 
 def existing(config: DaggerConfig, model_dir: str | Path, out_dir: str | Path) -> dict | None:

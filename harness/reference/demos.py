@@ -164,8 +164,9 @@ def save_episodes(path: Path, episodes: list[dict], seeds: list[int], extra: dic
     return lengths
 
 
-def config_fingerprint(config: DemoConfig) -> dict:
-    """JSON-able description of a recording configuration (to reuse matching recordings)."""
+def config_fingerprint(config) -> dict:
+    """JSON-able description of a recording configuration dataclass (DemoConfig, DaggerConfig), as it reads back
+    from summary.json (tuples become lists), to reuse matching recordings."""
     return json.loads(json.dumps(asdict(config)))
 
 
