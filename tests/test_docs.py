@@ -197,6 +197,39 @@ def test_the_exit_codes_of_run_are_documented():
         assert re.search(rf"^\| \*\*{code}\*\* \|", section, re.M), f"exit code {code} of run is not in the table"
 
 
+REPO_PATH = re.compile(r"(?<![\w/.-])((?:harness|envs|tests|benchmarks|scripts|models|docs|\.ci)/[\w./-]*\w)")
+DOTTED = re.compile(r"(?<![\w/.-])((?:harness|envs)(?:\.\w+)+)")
+
+
+def stale_names(text: str, root: Path = REPO) -> list[str]:
+    """Repository paths (`harness/run/schema.py`, `scripts/demo.sh`) and dotted names (`harness.run.execute`,
+    `envs.make`) a page mentions that no longer exist: a path that is missing, or a name whose longest module
+    prefix does not exist or does not mention the next part. Placeholders (`<run>`, `*.png`) are skipped."""
+    stale = []
+    for path in REPO_PATH.findall(text):
+        if "<" not in path and "*" not in path and not (root / path).exists():
+            stale.append(path)
+    for dotted in DOTTED.findall(text):
+        if dotted == "harness.toml":  # a checkpoint's file, not a module
+            continue
+        parts = dotted.split(".")
+        for n in range(len(parts), 0, -1):
+            base = root.joinpath(*parts[:n])
+            module = next((f for f in (base.with_suffix(".py"), base / "__init__.py") if f.is_file()), None)
+            if module is not None:
+                if parts[n:] and not re.search(rf"\b{re.escape(parts[n])}\b", module.read_text()):
+                    stale.append(dotted)
+                break
+        else:
+            stale.append(dotted)
+    return sorted(set(stale))
+
+
+@pytest.mark.parametrize("page", doc_files(), ids=lambda p: str(p.relative_to(REPO)))
+def test_the_files_and_modules_a_page_names_exist(page):
+    assert stale_names(page.read_text()) == []
+
+
 # ---- the checker itself, on hand-made pages (each can fail) -----------------------------------------------------
 
 def test_anchors_follow_github(tmp_path):
@@ -254,3 +287,11 @@ def test_the_python_api_examples_run(tmp_path):
     assert "complete results/runs/notebook-lift" in done.stdout
     assert (tmp_path / "results" / "runs" / "notebook-lift" / "results.jsonl").is_file()
     assert "(8, 8)" in done.stdout  # the camera map of the reference policy's primary camera
+
+
+def test_stale_names_are_found():
+    text = ("`harness/run/schema.py`, `scripts/demo.sh`, `results/runs/<run>`, `docs/*.png`, `harness.run.execute`, "
+            "`envs.make`, `harness.toml`, `harness/run/gone.py`, `harness.run.gone`, `harness.nowhere.thing`, "
+            "`envs.no_such_function`")
+    assert stale_names(text) == ["envs.no_such_function", "harness.nowhere.thing", "harness.run.gone",
+                                 "harness/run/gone.py"]
