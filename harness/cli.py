@@ -281,7 +281,7 @@ RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "ex
 
 def _cmd_run(args) -> int:
     from harness.run import ResultsWriteError, RunStore, execute
-    from harness.run.schema import protocol_from_manifest
+    from harness.run.protocol import protocol_from_manifest
     from harness.run.settings import build_protocol, out_dir, read_protocol_file
 
     factory = _execution(args)

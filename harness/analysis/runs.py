@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.run.schema import MalformedRunError, check_manifest, check_row, parse_row
+from harness.runfolder.schema import MalformedRunError, check_manifest, check_row, parse_row
 
 RUN_FORMAT = "octo-harness-run/1"
 

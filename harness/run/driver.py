@@ -24,8 +24,8 @@ from typing import Callable
 import numpy as np
 
 from harness.run import checks
-from harness.run.schema import protocol_from_manifest
-from harness.run.platform import platform_differences, platform_fingerprint, platform_info
+from harness.run.protocol import protocol_from_manifest
+from harness.runfolder.platform import platform_differences, platform_fingerprint, platform_info
 from harness.run.executor import EpisodeContext, Executor, SequentialExecutor, StepCallback
 from harness.run.progress import Progress
 from harness.run.protocol import FORMAT, EpisodeJob, Protocol, diff, goal_fingerprint, model_fingerprint

@@ -44,7 +44,8 @@ def candidate_protocol(baseline_manifest: dict, model: str, max_episodes: int | 
                        where: str = "the baseline's manifest.json", text_tokenizer: str | None = None) -> Protocol:
     """The baseline's protocol with the model (and the text tokenizer, when given: auto|fallback|PATH) replaced
     (fingerprints recomputed by the run)."""
-    from harness.run.schema import check_protocol, protocol_from_manifest
+    from harness.run.protocol import protocol_from_manifest
+    from harness.runfolder.schema import check_protocol
 
     data = baseline_manifest.get("protocol")
     if not data:

@@ -32,7 +32,7 @@ from typing import Any, Iterable
 from harness.analysis.stats import success_summary
 from harness.files import atomic_write_json, json_safe, write_atomic
 from harness.run.jobs import FORMAT, EpisodeJob
-from harness.run.schema import check_manifest, check_row, parse_row
+from harness.runfolder.schema import check_manifest, check_row, parse_row
 
 LOCK = ".lock"
 MANIFEST = "manifest.json"
@@ -69,7 +69,7 @@ class EpisodeRow:
     overhead_fraction: float | None  # (step - simulation - inference) / step
     directory: str  # relative to the run folder: "<task>/episode_<k>"
     error: str | None = None
-    platform: str | None = None  # platform_fingerprint of the driver that recorded it (harness/run/platform.py)
+    platform: str | None = None  # platform_fingerprint of the driver that recorded it (harness/runfolder/platform.py)
 
     @property
     def key(self) -> tuple[str, int]:

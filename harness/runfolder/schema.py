@@ -119,20 +119,3 @@ def check_row(row: Any, path: Path | str, line: int, jobs: set[tuple[str, int]] 
     if jobs is not None and (row["task"], row["episode"]) not in jobs:
         raise _fail(where, f"({row['task']!r}, episode {row['episode']}) is not one of the manifest's jobs")
     return row
-
-
-def protocol_from_manifest(manifest: dict, path: Path | str, **overrides):
-    """The manifest's protocol as a `Protocol` (with `overrides` applied to its fields first); a value no Protocol
-    accepts is a MalformedRunError naming the manifest, not a traceback."""
-    from harness.run.protocol import Protocol
-
-    protocol = manifest.get("protocol")
-    if not protocol:
-        raise MalformedRunError(f"{path} has no protocol (a run made before the run store); re-run it with this "
-                                "octo-harness")
-    check_protocol(protocol, path)
-    try:
-        return Protocol.from_dict({**protocol, **overrides})
-    except (TypeError, ValueError, AttributeError, KeyError) as exc:
-        message = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).splitlines()[0]
-        raise _fail(path, f"its protocol is not valid ({message})") from None
