@@ -280,3 +280,116 @@ def test_the_schema_refuses_a_malformed_digest_and_a_task_that_is_a_path():
     manifest["protocol"]["tasks"] = ["../../elsewhere"]
     with pytest.raises(MalformedRunError, match=r"not a task name"):
         check_manifest(manifest, "m")
+
+
+# ---- a gate that cannot be emptied -------------------------------------------------------------------------------
+
+def _two_task_copy(run: Path, dest: Path) -> Path:
+    """`run` (Lift only) as a Lift + Stack run: Stack's episodes are Lift's files under Stack's folders, with rows
+    and jobs to match (every reader accepts it: the digests are those of the copied files)."""
+    shutil.copytree(run, dest)
+    manifest = json.loads((dest / "manifest.json").read_text())
+    manifest["protocol"]["tasks"] = ["Lift", "Stack"]
+    manifest["jobs"] = manifest["jobs"] + [["Stack", k, s] for _, k, s in manifest["jobs"]]
+    (dest / "manifest.json").write_text(json.dumps(manifest))
+    shutil.copytree(dest / "Lift", dest / "Stack")
+    rows = _rows(dest)
+    _write_rows(dest, rows + [{**r, "task": "Stack", "directory": r["directory"].replace("Lift", "Stack")} for r in rows])
+    return dest
+
+
+@pytest.mark.slow
+def test_a_candidate_that_drops_a_task_is_incomplete_exit_4(made, tmp_path, capsys):
+    baseline = _two_task_copy(made, tmp_path / "lift_stack")
+    for fail_on in ("suspect", "regressed"):
+        code = cli.main(["compare", str(baseline), str(made), "--no-frames", "--out", str(tmp_path / "cmp"),
+                         "--fail-on", fail_on])
+        out = capsys.readouterr().out
+        assert code == 4 and "compare: INCOMPLETE" in out and "lacks 2 finished episode(s)" in out and "(Stack 2)" in out
+    result = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert result["verdict"] == "INCOMPLETE" and result["exit_code"] == 4 and result["incomplete"]["tasks"] == {"Stack": 2}
+
+
+@pytest.mark.slow
+def test_a_candidate_missing_jobs_is_incomplete(runs, tmp_path, capsys):
+    good, bad, _ = runs
+    _write_rows(bad, _rows(bad)[:1])  # episode 1 never finished
+    code = cli.main(["compare", str(good), str(bad), "--no-frames", "--out", str(tmp_path / "cmp")])
+    assert code == 4 and "compare: INCOMPLETE" in capsys.readouterr().out
+    # the other way round the candidate has more than the baseline: its extra episode is left out, not a failure
+    assert cli.main(["compare", str(bad), str(good), "--no-frames", "--out", str(tmp_path / "cmp2")]) == 0
+
+
+@pytest.mark.slow
+def test_regress_whose_candidate_never_ran_a_task_is_incomplete(made, fixtures_dir, tmp_path):
+    """An executor that loses a task's jobs (a lost worker, a node gone) must not leave the gate passing."""
+    from harness.run.executor import SequentialExecutor
+    from harness.run.regress import exit_code, regress
+
+    class LosesStack(SequentialExecutor):
+        def run(self, jobs, on_step=None):
+            return super().run([j for j in jobs if j.task != "Stack"], on_step)
+
+    baseline = _two_task_copy(made, tmp_path / "lift_stack")
+    result = regress(baseline, str(fixtures_dir / "tiny"), out=tmp_path / "out", run_name="cand", executor=LosesStack,
+                     progress=False)
+    assert result["verdict"] == "INCOMPLETE" and result["incomplete"]["tasks"] == {"Stack": 2}
+    assert exit_code(result) == exit_code(result, "regressed") == 4
+
+
+# ---- exit codes that lie -----------------------------------------------------------------------------------------
+
+def _small_disk(path: Path, size: str):
+    """A tmpfs of `size` at `path` (root only); None where it cannot be mounted."""
+    import subprocess
+
+    path.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True)
+    return path if mounted.returncode == 0 else None
+
+
+def _unmount(path: Path) -> None:
+    import subprocess
+
+    subprocess.run(["umount", str(path)], check=True)
+
+
+@pytest.mark.slow
+def test_compare_with_its_output_on_a_full_disk_is_exit_2_not_regressed(runs, tmp_path, capsys, monkeypatch):
+    good, bad, _ = runs
+    disk = _small_disk(tmp_path / "full", "8k")
+    if disk is None:  # not root: the same OSError, injected where compare writes compare.json
+        import errno
+
+        import harness.report.compare_html as compare_html
+
+        def full(*args, **kwargs):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+        monkeypatch.setattr(compare_html, "atomic_write_json", full)
+        disk = tmp_path / "full"
+    try:
+        _one_line_exit_2(["compare", str(good), str(bad), "--no-frames", "--out", str(disk / "cmp")], capsys,
+                         "could not write compare's outputs", "No space left on device", "the verdict was IDENTICAL")
+    finally:
+        if disk.is_mount():
+            _unmount(disk)
+
+
+def test_an_array_file_cut_by_a_full_disk_leaves_no_zipfile_trace(tmp_path):
+    """np.savez leaves its ZipFile open when the disk fills; its __del__ used to print a 7-line trace at exit."""
+    import subprocess
+    import sys
+
+    disk = _small_disk(tmp_path / "full", "64k")
+    if disk is None:
+        pytest.skip("needs root to mount a small tmpfs")  # not counted: the CI container runs as root
+    script = ("import numpy as np, gc\nfrom harness.files import write_atomic\n"
+              f"try:\n    write_atomic({str(disk / 'a.npz')!r}, lambda f: np.savez(f, x=np.zeros(100000)))\n"
+              "except OSError as e:\n    print('refused:', e.strerror)\ngc.collect()\n")
+    try:
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO, timeout=120)
+    finally:
+        _unmount(disk)
+    assert done.stdout.strip() == "refused: No space left on device"
+    assert done.stderr == "" and not list((tmp_path / "full").glob("*"))
