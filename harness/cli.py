@@ -17,9 +17,10 @@ USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, KeyError, FileNotFou
 def _user_errors() -> tuple[type[BaseException], ...]:
     from envs.gl import HeadlessGLError
     from harness.octo.errors import OctoError
-    from harness.run.store import RunLockedError
+    from harness.run.store import ResultsWriteError, RunLockedError
 
-    return (*USER_ERRORS, RunLockedError, OctoError, HeadlessGLError)
+    # ResultsWriteError: a full disk under regress's candidate run is exit 2, never 1 (REGRESSED)
+    return (*USER_ERRORS, RunLockedError, OctoError, HeadlessGLError, OutputsNotWritten, ResultsWriteError)
 
 
 def _interrupt(signum, frame):
@@ -167,7 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_ = sub.add_parser("compare", help="paired verdict of a candidate run against a baseline run (same seeds)",
                           description="Pair episodes by (task, seed); write compare.json, compare.md and compare.html. "
                                       "Exit 0 pass, 1 REGRESSED or SUSPECT (see --fail-on), 2 incompatible or invalid "
-                                      "input, 3 ERRORED (an arm errored on more than half of its paired episodes).")
+                                      "input, or outputs that could not be written, 3 ERRORED (an arm errored on more "
+                                      "than half of its paired episodes), 4 INCOMPLETE (the candidate lacks episodes "
+                                      "the baseline finished).")
     cmp_.add_argument("baseline", type=Path, metavar="BASELINE_RUN")
     cmp_.add_argument("candidate", type=Path, metavar="CANDIDATE_RUN")
     cmp_.add_argument("--max-drop", type=float, default=0.1, help="HELD rules out a larger drop in success rate [0.1]")
@@ -182,7 +185,8 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser("replay", help="run a model open loop on the inputs a run recorded (--record-inputs) and "
                                        "compare its actions and attention with the run's",
                         description="The model change isolated from the simulator and the platform: EQUIVALENT (every "
-                                    "inferred step within the tolerances) exit 0, CHANGED exit 1, invalid input exit 2.")
+                                    "inferred step within the tolerances) exit 0, CHANGED exit 1, invalid input or "
+                                    "replay.json not written exit 2.")
     rp.add_argument("run", type=Path, metavar="RUN_DIR", help="a run made with --record-inputs (e.g. a committed baseline)")
     rp.add_argument("--model", default=None, help="the model to replay [the run's own model]")
     rp.add_argument("--action-tolerance", type=float, default=None,
@@ -216,6 +220,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class OutputsNotWritten(RuntimeError):
+    """A gate's verdict was reached but its output files could not be written (exit 2: never read as a verdict)."""
+
+
+def _writing(what: str, verdict: str, write):
+    """`write()`, or OutputsNotWritten (one line, exit 2) when the disk refuses (full, read-only, permissions): exit 1
+    would read as REGRESSED / CHANGED."""
+    try:
+        return write()
+    except OSError as exc:
+        reason = exc.strerror or str(exc).splitlines()[0] or type(exc).__name__
+        raise OutputsNotWritten(f"could not write {what}: {reason}; the verdict was {verdict}, but without its files "
+                                "it does not count: free space or pass --out on another disk, then run it again") from None
+
+
 def _cmd_report(args) -> int:
     from harness.report.build import ReportOptions, build_report
 
@@ -233,7 +252,7 @@ def _cmd_compare(args) -> int:
     code = exit_code(result, args.fail_on)
     frames = {} if args.no_frames or result["env"] is None else step0_frames(result, result["env"])
     out = args.out or Path(result["candidate"]["path"]) / f"compare_{result['baseline']['run']}"
-    paths = write_comparison(result, out, frames, code)
+    paths = _writing(f"compare's outputs in {out}", result["verdict"], lambda: write_comparison(result, out, frames, code))
     print(paths["markdown"].read_text(), end="")
     print(f"compare: {paths['html']}")
     return code
@@ -247,7 +266,8 @@ def _cmd_regress(args) -> int:
     result = regress(args.baseline, args.model, max_episodes=args.max_episodes, out=args.out, run_name=args.run_name,
                      alpha=args.alpha, max_drop=args.max_drop, executor=factory, text_tokenizer=args.text_tokenizer)
     code = exit_code(result, args.fail_on)
-    paths = write_regress(result, code, write_comparison)
+    paths = _writing(f"regress's outputs in {result['candidate_run']}/regress", result["verdict"],
+                     lambda: write_regress(result, code, write_comparison))
     print(paths["summary"])
     print(f"regress: {paths['json']}")
     return code
@@ -263,7 +283,7 @@ def _cmd_replay(args) -> int:
                             attention_js=defaults.attention_js if args.attention_tolerance is None else args.attention_tolerance)
     result = replay_run(args.run, args.model, tolerances)
     out = args.out or args.run / "replay"
-    atomic_write_json(out / "replay.json", result)
+    _writing(f"{out / 'replay.json'}", result["verdict"], lambda: atomic_write_json(out / "replay.json", result))
     print(summary_text(result))
     print(f"replay: {out / 'replay.json'}")
     return exit_code(result)
@@ -281,7 +301,7 @@ RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "ex
 
 def _cmd_run(args) -> int:
     from harness.run import ResultsWriteError, RunStore, execute
-    from harness.run.schema import protocol_from_manifest
+    from harness.run.protocol import protocol_from_manifest
     from harness.run.settings import build_protocol, out_dir, read_protocol_file
 
     factory = _execution(args)

@@ -19,8 +19,11 @@ Outcomes: n is the pairs in which both arms ran to an outcome (as in the run sto
 which either arm errored (status "failed") is left out of the table and counted beside n ("errored pairs").
 A task whose pairs are all identical shows IDENTICAL; the overall verdict is IDENTICAL if every pair is, else
 the worst verdict of the tasks and the pooled table (harness.analysis.paired.VERDICTS: ERRORED > REGRESSED >
-SUSPECT > UNDERPOWERED > HELD > IMPROVED), so no task's verdict is hidden by a pooled one. `exit_code` maps it
-to 0 (pass), 1 (REGRESSED or SUSPECT, or what --fail-on adds), 3 (ERRORED); 2 is invalid input (the CLI).
+SUSPECT > UNDERPOWERED > HELD > IMPROVED), so no task's verdict is hidden by a pooled one. A candidate that lacks
+finished episodes the baseline has (a task it did not run, jobs it did not finish) is INCOMPLETE whatever its
+pairs say, unless they already say ERRORED or REGRESSED: a gate cannot be passed by leaving work out. `exit_code`
+maps the verdict to 0 (pass), 1 (REGRESSED or SUSPECT, or what --fail-on adds), 3 (ERRORED), 4 (INCOMPLETE,
+whatever --fail-on); 2 is invalid input or outputs that could not be written (the CLI).
 A committed baseline keeps only step-0 arrays (BASELINE.json says so): arrays are then compared over the
 steps both arms stored.
 """
@@ -55,7 +58,8 @@ FORMAT = "octo-harness-compare/1"
 BASELINE_MARKER = "BASELINE.json"  # written by scripts/make_baseline.py into a committed baseline
 # --fail-on: the mildest verdict that fails the gate (exit 1); each level also fails on everything worse
 FAIL_ON = ("regressed", "suspect", "underpowered", "changed")
-EXIT_OK, EXIT_FAIL, EXIT_INVALID, EXIT_ERRORED = 0, 1, 2, 3
+EXIT_OK, EXIT_FAIL, EXIT_INVALID, EXIT_ERRORED, EXIT_INCOMPLETE = 0, 1, 2, 3, 4
+INCOMPLETE = "INCOMPLETE"  # the candidate lacks finished episodes the baseline has; outranked by ERRORED, REGRESSED
 # protocol fields that may differ between the arms (the model is what a comparison changes); any other
 # difference changes outcomes (env options, max steps, execution, action space, cameras, instruction, goals...)
 MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "outputs", "harness_version",
@@ -428,8 +432,27 @@ def outcome_tables(details: list[dict]) -> tuple[dict[str, PairedCounts], dict[s
     return tables, errored
 
 
-def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig()) -> dict:
-    """Compare two run folders (see the module docstring). Raises IncompatibleRuns / NotARunError (exit 2)."""
+def incompleteness(lacking: list, baseline_path, candidate_path) -> dict | None:
+    """[[task, seed]] the baseline finished and the candidate did not -> {"pairs", "tasks": {task: count},
+    "note"}, or None when it lacks none."""
+    if not lacking:
+        return None
+    tasks: dict[str, int] = {}
+    for task, _ in lacking:
+        tasks[task] = tasks.get(task, 0) + 1
+    listed = ", ".join(f"{task} {count}" for task, count in tasks.items())
+    return {"pairs": len(lacking), "tasks": tasks,
+            "note": f"INCOMPLETE: the candidate {candidate_path} lacks {len(lacking)} finished episode(s) the baseline "
+                    f"{baseline_path} has ({listed}); it cannot pass the gate until it runs them (the baseline's tasks "
+                    "and seeds: `octo-harness run --resume` on the candidate, or `octo-harness regress`)."}
+
+
+def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig(),
+                 require_complete: bool = True) -> dict:
+    """Compare two run folders (see the module docstring). Raises IncompatibleRuns / NotARunError (exit 2).
+
+    require_complete=False: a candidate lacking the baseline's episodes is compared on the pairs it has (regress,
+    whose sequential test may stop early, decides incompleteness itself)."""
     baseline, candidate = load_run(baseline_dir), load_run(candidate_dir)
     fields = incompatible_fields(_protocol(baseline), _protocol(candidate))
     if fields:
@@ -458,6 +481,11 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
     outcomes["notes"] = [note for block in [*outcomes["tasks"].values(), outcomes["overall"]]
                          if block["verdict"] != "IDENTICAL" for note in block["notes"]]  # nothing to explain there
     verdict = overall_verdict(outcomes, identical)
+    incomplete = incompleteness(missing["candidate"], baseline.path, candidate.path)
+    if require_complete and incomplete is not None:
+        outcomes["notes"].insert(0, incomplete["note"])
+        if verdict not in ("ERRORED", "REGRESSED"):
+            verdict = INCOMPLETE
     return {
         "format": FORMAT,
         "verdict": verdict,
@@ -467,6 +495,7 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
         "env": _protocol(baseline).get("env") if isinstance(_protocol(baseline).get("env"), dict) else None,
         "pairs": len(details),
         "missing_pairs": missing,
+        "incomplete": incomplete,
         "identical": {
             "identical": identical,
             "pairs_identical": sum(d["identical"] for d in details),
@@ -487,12 +516,14 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
 
 
 def gate_exit_code(verdict: str, fail_on: str = "suspect") -> int:
-    """Exit code of an overall verdict: 3 ERRORED; 1 REGRESSED, SUSPECT (unless fail_on="regressed"),
+    """Exit code of an overall verdict: 3 ERRORED; 4 INCOMPLETE; 1 REGRESSED, SUSPECT (unless fail_on="regressed"),
     UNDERPOWERED (fail_on="underpowered" or "changed"), HELD/IMPROVED (fail_on="changed"); else 0."""
     if fail_on not in FAIL_ON:
         raise ValueError(f"unknown --fail-on {fail_on!r}; use one of {FAIL_ON}")
     if verdict == "ERRORED":
         return EXIT_ERRORED
+    if verdict == INCOMPLETE:
+        return EXIT_INCOMPLETE
     if verdict == "IDENTICAL":
         return EXIT_OK
     failing = {"regressed": ("REGRESSED",), "suspect": ("REGRESSED", "SUSPECT"),
@@ -503,5 +534,6 @@ def gate_exit_code(verdict: str, fail_on: str = "suspect") -> int:
 
 
 def exit_code(result: dict, fail_on: str = "suspect") -> int:
-    """0 pass, 1 regression (REGRESSED, SUSPECT, or what --fail-on adds), 3 ERRORED (see `gate_exit_code`)."""
+    """0 pass, 1 regression (REGRESSED, SUSPECT, or what --fail-on adds), 3 ERRORED, 4 INCOMPLETE (see
+    `gate_exit_code`)."""
     return gate_exit_code(result["verdict"], fail_on)

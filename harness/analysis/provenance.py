@@ -3,7 +3,7 @@
 compare's statistical verdict is about outcomes; this block says what else is known, from what the runs
 recorded (pure functions over manifests and the per-pair details of harness.analysis.compare):
 
-- platform: the two manifests' `platform_fingerprint`s (harness/run/platform.py) and the numerics-relevant
+- platform: the two manifests' `platform_fingerprint`s (harness/runfolder/platform.py) and the numerics-relevant
   fields in which they differ. Same fingerprint: trajectories should be bit-identical, so a difference is
   the candidate's. Different: float noise of the other CPU, XLA or renderer, amplified by contact-rich
   simulation, can send an unchanged model down another trajectory, so diverging trajectories are expected
@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from harness.analysis.equivalence import Tolerances
-from harness.run.platform import platform_differences
+from harness.runfolder.platform import platform_differences
 
 
 def leading_equal(a: np.ndarray, b: np.ndarray) -> int:

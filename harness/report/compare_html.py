@@ -166,7 +166,7 @@ def compare_page(result: dict, frames: dict | None = None, markdown: str | None 
     """The whole HTML document for a comparison result (see module docstring)."""
     base, cand = result["baseline"], result["candidate"]
     verdict = result["verdict"]
-    body = [H.banner(f"Verdict: {verdict}", danger=verdict in ("REGRESSED", "SUSPECT", "ERRORED"))]
+    body = [H.banner(f"Verdict: {verdict}", danger=verdict in ("REGRESSED", "SUSPECT", "ERRORED", "INCOMPLETE"))]
     body += [H.note(note) for note in result["outcomes"].get("notes") or []]
     for arm in (base, cand):
         if arm["random_weights"]:

@@ -25,6 +25,7 @@ from harness.files import json_safe
 from harness.policy import PolicyConfig
 from harness.run.jobs import FORMAT, EpisodeJob  # noqa: F401  (re-exported)
 from harness.outputs.writers import OutputOptions
+from harness.runfolder.schema import FIX, MalformedRunError, check_protocol
 
 
 
@@ -251,3 +252,18 @@ def goal_fingerprint(folder: str | Path) -> str | None:
     folder = Path(folder)
     files = sorted(folder.glob("*.png")) if folder.is_dir() else []
     return _files_fingerprint(folder, files)[0] if files else None
+
+
+def protocol_from_manifest(manifest: dict, path: Path | str, **overrides):
+    """The manifest's protocol as a `Protocol` (with `overrides` applied to its fields first); a value no Protocol
+    accepts is a MalformedRunError naming the manifest, not a traceback."""
+    protocol = manifest.get("protocol")
+    if not protocol:
+        raise MalformedRunError(f"{path} has no protocol (a run made before the run store); re-run it with this "
+                                "octo-harness")
+    check_protocol(protocol, path)
+    try:
+        return Protocol.from_dict({**protocol, **overrides})
+    except (TypeError, ValueError, AttributeError, KeyError) as exc:
+        message = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).splitlines()[0]
+        raise MalformedRunError(f"{path}: its protocol is not valid ({message}); {FIX}") from None
