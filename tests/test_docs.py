@@ -202,7 +202,7 @@ DOTTED = re.compile(r"(?<![\w/.-])((?:harness|envs)(?:\.\w+)+)")
 
 
 def stale_names(text: str, root: Path = REPO) -> list[str]:
-    """Repository paths (`harness/run/schema.py`, `scripts/demo.sh`) and dotted names (`harness.run.execute`,
+    """Repository paths (`harness/runfolder/schema.py`, `scripts/demo.sh`) and dotted names (`harness.run.execute`,
     `envs.make`) a page mentions that no longer exist: a path that is missing, or a name whose longest module
     prefix does not exist or does not mention the next part. Placeholders (`<run>`, `*.png`) are skipped."""
     stale = []
@@ -291,7 +291,7 @@ def test_the_python_api_examples_run(tmp_path):
 
 
 def test_stale_names_are_found():
-    text = ("`harness/run/schema.py`, `scripts/demo.sh`, `results/runs/<run>`, `docs/*.png`, `harness.run.execute`, "
+    text = ("`harness/runfolder/schema.py`, `scripts/demo.sh`, `results/runs/<run>`, `docs/*.png`, `harness.run.execute`, "
             "`envs.make`, `harness.toml`, `harness/run/gone.py`, `harness.run.gone`, `harness.nowhere.thing`, "
             "`envs.no_such_function`")
     assert stale_names(text) == ["envs.no_such_function", "harness.nowhere.thing", "harness.run.gone",
