@@ -62,8 +62,20 @@ def _execution(args):
     return executor_factory(args.workers, args.executor, args.ray_address, args.policy_replicas)
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors as one line naming the option and the fix (exit 2), not a usage block."""
+
+    FIXES = (("invalid int value", "pass a whole number"), ("invalid float value", "pass a number"),
+             ("invalid choice", "pick one of the choices listed"), ("expected one argument", "give it a value"),
+             ("required", "add them"), ("unrecognized arguments", "drop them or check the spelling"))
+
+    def error(self, message: str):
+        fix = next((fix for text, fix in self.FIXES if text in message), "fix that option")
+        self.exit(2, f"error: {self.prog}: {message.splitlines()[0]}; {fix} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="octo-harness", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="octo-harness", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
     parser.add_argument("--verbose", action="store_true",
                         help="also show other libraries' INFO lines and start-up warnings (hidden by default)")
