@@ -470,3 +470,41 @@ def test_a_checkpoint_too_big_for_the_machine_is_refused_before_initialising(fix
 def test_k_larger_than_the_cameras_patch_grid_is_refused(fixtures_dir, tmp_path, capsys):
     _run_refused(["--model", str(fixtures_dir / "tiny"), "--intervene", "mask-top:99999:attention"], capsys, tmp_path,
                  "K=99999 is more than the", "choose K <=")
+
+
+# ---- compare says what differs -----------------------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_compare_of_an_intervention_run_names_the_intervention_not_the_model(made, fixtures_dir, tmp_path, capsys):
+    manifest = json.loads((made / "manifest.json").read_text())
+    protocol = Protocol.from_dict(manifest["protocol"]).replace(model_fingerprint=None)
+    intervened = protocol.replace(policy=protocol.policy.__class__(**{**vars(protocol.policy),
+                                                                      "intervention": "mask-all"}))
+    execute(intervened, tmp_path, "masked", progress=False)
+    code = cli.main(["compare", str(made), str(tmp_path / "masked"), "--no-frames", "--out", str(tmp_path / "cmp"),
+                     "--fail-on", "regressed"])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "the model change alone" not in out and "any difference is the candidate's" not in out
+    assert "**Step-0 drift** (same seed and scene; the arms differ in policy.intervention (none -> mask-all), not in " \
+           "the model" in out
+    result = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert result["differs"]["model"] is False and [o["field"] for o in result["differs"]["other"]] == ["policy.intervention"]
+    assert "not the model's alone (the protocols differ in policy.intervention" in result["provenance"]["summary"]
+    html = (tmp_path / "cmp" / "compare.html").read_text()
+    assert "differ in policy.intervention (none -&gt; mask-all), not in the model" in html
+
+
+def test_what_differs_separates_the_model_from_other_settings():
+    from harness.analysis.compare import what_differs
+
+    base = {"model": "/m/a", "model_fingerprint": "sha256:1", "tasks": ["Lift"], "policy": {"intervention": None,
+                                                                                           "inference_batch": 1}}
+    model_only = what_differs(base, {**base, "model": "/m/b", "model_fingerprint": "sha256:2"})
+    assert model_only["model"] and not model_only["other"] and model_only["drift_label"].endswith("the model change alone")
+    both = what_differs(base, {**base, "model": "/m/b", "policy": {"intervention": "mask-all@image_wrist",
+                                                                   "inference_batch": 1}})
+    assert both["model"] and "the model and in policy.intervention (none -> mask-all@image_wrist)" in both["drift_label"]
+    neutral = what_differs(base, {**base, "tasks": ["Lift", "Stack"], "policy": {"intervention": None,
+                                                                                  "inference_batch": 8}})
+    assert not neutral["model"] and not neutral["other"] and "float noise" in neutral["drift_label"]
