@@ -42,6 +42,39 @@ def _video_attention(text: str):
                                          f"{', '.join(ATTRIBUTION_VIDEO)}, got {text!r}") from None
 
 
+def _render_device(text: str) -> str:
+    value = text.strip().lower()
+    if value in ("cpu", "gpu") or value.isdigit():
+        return value
+    raise argparse.ArgumentTypeError(f"--render-device takes cpu, gpu or an EGL device number, got {text!r}")
+
+
+def _add_render_arg(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--render-device", type=_render_device, default=None, metavar="cpu|gpu|N",
+                        help="where MuJoCo renders, whatever device JAX computes on: cpu (Mesa llvmpipe: the safe choice "
+                             "when JAX uses the GPU), gpu (EGL on the first GPU) or N (EGL device N); recorded in the "
+                             "manifest's platform.gl [MuJoCo's choice]")
+
+
+def _apply_render_device(choice: str | None) -> None:
+    """Before anything imports MuJoCo: OCTO_HARNESS_RENDER_DEVICE for envs.gl (worker processes inherit it); a
+    device that cannot be set up is one line (HeadlessGLError, exit 2)."""
+    if choice is None:
+        return
+    import os
+
+    if "envs" in sys.modules:  # already configured (an in-process caller): configure again with the choice
+        os.environ["OCTO_HARNESS_RENDER_DEVICE"] = choice
+        from envs import gl
+
+        gl.configure()
+    else:
+        os.environ["OCTO_HARNESS_RENDER_DEVICE"] = choice
+        from envs import gl
+    if gl.render_device_error is not None:
+        raise gl.HeadlessGLError(gl.render_device_error)
+
+
 def _add_execution_args(parser: argparse.ArgumentParser) -> None:
     """Where a run's episodes execute (not part of the protocol: a run may resume with another worker count)."""
     parser.add_argument("--workers", type=int, default=None,
@@ -62,8 +95,20 @@ def _execution(args):
     return executor_factory(args.workers, args.executor, args.ray_address, args.policy_replicas)
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors as one line naming the option and the fix (exit 2), not a usage block."""
+
+    FIXES = (("invalid int value", "pass a whole number"), ("invalid float value", "pass a number"),
+             ("invalid choice", "pick one of the choices listed"), ("expected one argument", "give it a value"),
+             ("required", "add them"), ("unrecognized arguments", "drop them or check the spelling"))
+
+    def error(self, message: str):
+        fix = next((fix for text, fix in self.FIXES if text in message), "fix that option")
+        self.exit(2, f"error: {self.prog}: {message.splitlines()[0]}; {fix} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="octo-harness", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="octo-harness", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
     parser.add_argument("--verbose", action="store_true",
                         help="also show other libraries' INFO lines and start-up warnings (hidden by default)")
@@ -152,6 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--ci-method", choices=["wilson", "clopper-pearson"], default=None,
                    help="confidence interval of success rates (95%%) [wilson]")
     _add_execution_args(r)
+    _add_render_arg(r)
 
     sub.add_parser("tasks", help="list the registered tasks")
 
@@ -181,6 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
                            "the exact test does not confirm); also UNDERPOWERED; anything but IDENTICAL [suspect]")
     cmp_.add_argument("--out", type=Path, default=None, help="output folder [CANDIDATE_RUN/compare_<baseline name>]")
     cmp_.add_argument("--no-frames", action="store_true", help="do not render step-0 camera frames for the overlays")
+    _add_render_arg(cmp_)
 
     rp = sub.add_parser("replay", help="run a model open loop on the inputs a run recorded (--record-inputs) and "
                                        "compare its actions and attention with the run's",
@@ -217,6 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--text-tokenizer", default=None, metavar="auto|fallback|PATH",
                      help="the candidate's text tokenizer (as for `run --text-tokenizer`) [the baseline's choice]")
     _add_execution_args(reg)
+    _add_render_arg(reg)
     return parser
 
 
@@ -296,7 +344,8 @@ def _cmd_tasks() -> int:
     return 0
 
 
-RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "executor", "ray_address", "policy_replicas")
+RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "executor", "ray_address", "policy_replicas",
+               "render_device")
 
 
 def _cmd_run(args) -> int:
@@ -344,6 +393,7 @@ def main(argv: list[str] | None = None) -> int:
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
     try:
+        _apply_render_device(getattr(args, "render_device", None))
         if args.command == "tasks":
             return _cmd_tasks()
         if args.command == "report":

@@ -72,7 +72,10 @@ def _commands(good: Path, bad: Path, tmp: Path, model: str) -> dict[str, list[st
 
 
 def _one_line_exit_2(argv, capsys, *expected: str) -> str:
-    code = cli.main(argv)
+    try:
+        code = cli.main(argv)
+    except SystemExit as exc:  # argparse's own errors end the process (exit 2)
+        code = exc.code
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2, (argv[0], code, err)
     assert len(err) == 1 and err[0].startswith("error: "), (argv[0], err)
@@ -393,3 +396,115 @@ def test_an_array_file_cut_by_a_full_disk_leaves_no_zipfile_trace(tmp_path):
         _unmount(disk)
     assert done.stdout.strip() == "refused: No space left on device"
     assert done.stderr == "" and not list((tmp_path / "full").glob("*"))
+
+
+# ---- bounds before anything heavy --------------------------------------------------------------------------------
+
+def _run_refused(argv, capsys, tmp_path, *expected: str) -> None:
+    """`run argv` is one line naming the bound, exit 2, and leaves no run folder behind."""
+    out = tmp_path / "runs"
+    _one_line_exit_2(["run", "--task", "Lift", "--out", str(out), *argv], capsys, *expected)
+    assert not out.exists() or not any(out.iterdir())
+
+
+BOUNDS = {
+    "huge episodes": (["--episodes", "99999999999999999999"], ["episode jobs, more than one run holds (100000)"]),
+    "jobs over the maximum": (["--task", "Stack", "--episodes", "60000"], ["120000 episode jobs", "at most 50000"]),
+    "huge seed": (["--seed", "99999999999999999999"], ["outside the simulator's seed range 0..4294967295"]),
+    "last seed over the range": (["--seed", "4294967295", "--episodes", "2"], ["choose --seed <= 4294967294"]),
+    "huge camera": (["--camera", "image_primary=agentview:100000"], ["larger than 2048 px"]),
+    "long run name": (["--run-name", "r" * 300], ["--run-name is 300 bytes long", "choose a shorter name"]),
+    "huge max steps": (["--max-steps", "10000000"], ["--max-steps 10000000 is more than an episode may run"]),
+    "episodes 1.5": (["--episodes", "1.5"], ["argument --episodes: invalid int value: '1.5'; pass a whole number"]),
+    "episodes nan": (["--episodes", "nan"], ["argument --episodes: invalid int value: 'nan'"]),
+    "max steps inf": (["--max-steps", "inf"], ["argument --max-steps: invalid int value: 'inf'"]),
+}
+
+
+@pytest.mark.parametrize("bound", sorted(BOUNDS))
+def test_a_bound_is_one_line_before_anything_heavy(bound, capsys, tmp_path, fixtures_dir):
+    argv, expected = BOUNDS[bound]
+    _run_refused(["--model", str(fixtures_dir / "tiny"), *argv], capsys, tmp_path, *expected)
+
+
+def test_argparse_errors_of_every_command_are_one_line(capsys):
+    for argv, expected in ((["compare", "a"], "required: CANDIDATE_RUN"), (["replay"], "required: RUN_DIR"),
+                           (["regress", "--model", "m", "--baseline", "b", "--max-episodes", "x"],
+                            "--max-episodes: invalid int value"),
+                           (["compare", "a", "b", "--fail-on", "never"], "invalid choice: 'never'")):
+        with pytest.raises(SystemExit) as exit_info:
+            cli.main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert exit_info.value.code == 2 and len(err) == 1 and expected in err[0] and "--help" in err[0], err
+
+
+def _tiny_copy(fixtures_dir: Path, dest: Path, change) -> Path:
+    shutil.copytree(fixtures_dir / "tiny", dest)
+    config = json.loads((dest / "config.json").read_text())
+    change(config["model"]["transformer_kwargs"])
+    (dest / "config.json").write_text(json.dumps(config))
+    return dest
+
+
+def test_a_config_with_a_word_for_a_number_is_one_line_naming_the_field(fixtures_dir, tmp_path, capsys):
+    model = _tiny_copy(fixtures_dir, tmp_path / "two", lambda tk: tk.update(num_layers="two"))
+    _run_refused(["--model", str(model)], capsys, tmp_path,
+                 "config.json model.transformer_kwargs.num_layers must be a positive whole number, got 'two'")
+
+
+def test_a_checkpoint_too_big_for_the_machine_is_refused_before_initialising(fixtures_dir, tmp_path, capsys):
+    from harness.octo.config import OctoConfig, parameter_estimate
+    from harness.octo.loading import check_memory
+
+    model = _tiny_copy(fixtures_dir, tmp_path / "huge", lambda tk: tk.update(num_layers=10000, mlp_dim=5e7))
+    config = OctoConfig.from_json(model / "config.json")
+    assert parameter_estimate(config) > 10000 * 2 * config.token_embedding_size * 50_000_000
+    _run_refused(["--model", str(model)], capsys, tmp_path, "GiB of parameters (10000 layers, mlp_dim 50000000",
+                 "this machine has")
+    tiny = OctoConfig.from_json(fixtures_dir / "tiny" / "config.json")
+    check_memory(tiny, "tiny", available=4 * parameter_estimate(tiny))  # exactly enough passes
+    with pytest.raises(ValueError, match="GiB of parameters"):
+        check_memory(tiny, "tiny", available=4 * parameter_estimate(tiny) - 1)
+
+
+def test_k_larger_than_the_cameras_patch_grid_is_refused(fixtures_dir, tmp_path, capsys):
+    _run_refused(["--model", str(fixtures_dir / "tiny"), "--intervene", "mask-top:99999:attention"], capsys, tmp_path,
+                 "K=99999 is more than the", "choose K <=")
+
+
+# ---- compare says what differs -----------------------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_compare_of_an_intervention_run_names_the_intervention_not_the_model(made, fixtures_dir, tmp_path, capsys):
+    manifest = json.loads((made / "manifest.json").read_text())
+    protocol = Protocol.from_dict(manifest["protocol"]).replace(model_fingerprint=None)
+    intervened = protocol.replace(policy=protocol.policy.__class__(**{**vars(protocol.policy),
+                                                                      "intervention": "mask-all"}))
+    execute(intervened, tmp_path, "masked", progress=False)
+    code = cli.main(["compare", str(made), str(tmp_path / "masked"), "--no-frames", "--out", str(tmp_path / "cmp"),
+                     "--fail-on", "regressed"])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert "the model change alone" not in out and "any difference is the candidate's" not in out
+    assert "**Step-0 drift** (same seed and scene; the arms differ in policy.intervention (none -> mask-all), not in " \
+           "the model" in out
+    result = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert result["differs"]["model"] is False and [o["field"] for o in result["differs"]["other"]] == ["policy.intervention"]
+    assert "not the model's alone (the protocols differ in policy.intervention" in result["provenance"]["summary"]
+    html = (tmp_path / "cmp" / "compare.html").read_text()
+    assert "differ in policy.intervention (none -&gt; mask-all), not in the model" in html
+
+
+def test_what_differs_separates_the_model_from_other_settings():
+    from harness.analysis.compare import what_differs
+
+    base = {"model": "/m/a", "model_fingerprint": "sha256:1", "tasks": ["Lift"], "policy": {"intervention": None,
+                                                                                           "inference_batch": 1}}
+    model_only = what_differs(base, {**base, "model": "/m/b", "model_fingerprint": "sha256:2"})
+    assert model_only["model"] and not model_only["other"] and model_only["drift_label"].endswith("the model change alone")
+    both = what_differs(base, {**base, "model": "/m/b", "policy": {"intervention": "mask-all@image_wrist",
+                                                                   "inference_batch": 1}})
+    assert both["model"] and "the model and in policy.intervention (none -> mask-all@image_wrist)" in both["drift_label"]
+    neutral = what_differs(base, {**base, "tasks": ["Lift", "Stack"], "policy": {"intervention": None,
+                                                                                  "inference_batch": 8}})
+    assert not neutral["model"] and not neutral["other"] and "float noise" in neutral["drift_label"]

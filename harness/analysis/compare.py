@@ -10,7 +10,8 @@ finished episodes by (task, seed) and returns one JSON-ready dict (what compare.
   number of pairs the current rates would need to decide an UNDERPOWERED verdict;
 - drift: at step 0 both arms saw the identical observation (same seed), so the difference of the step-0
   action chunks, the Jensen-Shannon divergence of the step-0 readout attention per layer and head and the
-  change of target lift measure the model change alone; the same per step over the first k steps; and over
+  change of target lift measure the model change alone, when the model is all that differs (`what_differs`:
+  an intervention or another policy setting that differs is named, as what the drift measures); the same per step over the first k steps; and over
   whole episodes, marked confounded (trajectories diverge once actions differ);
 - identical: every array of every pair (actions.npz, attention.npz) equal within `atol`, with the same
   outcomes: the overall verdict is then IDENTICAL.
@@ -68,6 +69,13 @@ MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "output
               "policy.attribution", "policy.faithfulness_every", "policy.faithfulness_fill",  # measured beside, same actions
               # legacy manifests (before the run store) keep model facts at the top level
               "model_is_random", "model_note", "text_tokenizer", "dataset_key", "git_commit", "versions")
+# fields of MAY_DIFFER that are the model (what a comparison is usually about), and those that change neither the
+# policy's inputs nor its actions (measured beside, or bit-identical by design); every other field that differs
+# (an intervention, a dataset key) changes what the policy computes, and the drift and provenance lines name it
+MODEL_FIELDS = ("model", "model_fingerprint", "text_tokenizer", "model_is_random", "model_note")
+NEUTRAL_FIELDS = ("tasks", "episodes", "seed", "outputs", "harness_version", "git_commit", "versions",
+                  "policy.full_attention", "policy.inference_batch", "policy.attribution", "policy.faithfulness_every",
+                  "policy.faithfulness_fill")
 ARRAY_FILES = ("actions.npz", "attention.npz")
 POOLED = "\0pooled"  # key of the pooled table while verdicts are computed (cannot clash with a task name)
 
@@ -140,6 +148,44 @@ def incompatible_fields(baseline: dict, candidate: dict) -> list[str]:
         differ.append("execution")  # legacy manifests have no policy block
     differ = [k for k in differ if not any(k.startswith(d + ".") for d in differ)]  # None vs {...}: name the parent
     return [k for k in differ if not any(k == m or k.startswith(m + ".") for m in MAY_DIFFER)]
+
+
+def _shown(value) -> str:
+    return "none" if value is None else json.dumps(value) if not isinstance(value, str) else value
+
+
+def what_differs(baseline: dict, candidate: dict) -> dict:
+    """What the protocols of two comparable runs differ in, for the drift and provenance lines: {"model": the model
+    differs, "other": [{"field", "baseline", "candidate"}] (fields that change the policy's inputs or actions but are
+    not the model: an intervention, ...), "cause": who a difference belongs to, "drift_label": what the step-0 drift
+    measures}."""
+    a, b = _flatten(json.loads(json.dumps(baseline))), _flatten(json.loads(json.dumps(candidate)))
+    missing = object()
+    differ = sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, missing) != b.get(k, missing))
+
+    def under(key, fields):
+        return any(key == f or key.startswith(f + ".") for f in fields)
+
+    model = any(under(k, MODEL_FIELDS) for k in differ)
+    parents = {k.rsplit(".", 1)[0] for k in differ if "." in k}
+    other = [{"field": k, "baseline": a.get(k), "candidate": b.get(k)} for k in differ
+             if not under(k, MODEL_FIELDS) and not under(k, NEUTRAL_FIELDS) and k not in parents]
+    named = ", ".join(f"{o['field']} ({_shown(o['baseline'])} -> {_shown(o['candidate'])})" for o in other)
+    if other and model:
+        cause = f"the candidate's model and {named} together"
+        drift = (f"same seed and scene; the arms differ in the model and in {named}: these numbers measure both "
+                 "together, not the model alone")
+    elif other:
+        cause = f"{named}, not the model (both arms run the same model)"
+        drift = (f"same seed and scene; the arms differ in {named}, not in the model: these numbers measure that "
+                 "difference, not a model change")
+    elif model:
+        cause = "the candidate's"
+        drift = "same seed, identical observation: the model change alone"
+    else:
+        cause = "float noise or the platform's (the protocols differ in nothing that changes actions)"
+        drift = "same seed, identical observation, same model: any difference is float noise or the platform's"
+    return {"model": model, "other": other, "cause": cause, "drift_label": drift}
 
 
 def _truncated(run: RunRecord) -> bool:
@@ -458,6 +504,7 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
     if fields:
         raise IncompatibleRuns(f"the runs' protocols differ in fields that change outcomes: {', '.join(fields)}; "
                                "re-run the candidate with the baseline's settings (or use `octo-harness regress`)")
+    differs = what_differs(_protocol(baseline), _protocol(candidate))
     pairs, missing = pair_episodes(baseline, candidate)
     if not pairs:
         raise IncompatibleRuns(f"no (task, seed) pair is finished in both {baseline.path} and {candidate.path}; "
@@ -505,7 +552,8 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
         },
         "outcomes": outcomes,
         "drift": _drift(details, config),
-        "provenance": provenance(baseline.manifest, candidate.manifest, details),
+        "differs": differs,
+        "provenance": provenance(baseline.manifest, candidate.manifest, details, differs=differs),
         "pair_details": [
             {k: v for k, v in d.items() if k not in ("js", "action_l2", "lift_change_step0")}
             | {"step0_action_l2": float(d["action_l2"][0]) if "action_l2" in d else None,

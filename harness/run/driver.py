@@ -201,6 +201,8 @@ def execute(
     """
     checks.check_environment()
     out = checks.check_destination(Path(out))
+    if run_name is not None:
+        checks.check_run_name(run_name)  # before hashing the checkpoint
     fingerprint, fingerprint_details = model_fingerprint(protocol.model, protocol.text_tokenizer)
     goals_fp = goal_fingerprint(protocol.goal_images) if protocol.goal_images else None
     protocol = protocol.replace(model_fingerprint=fingerprint, goal_fingerprint=goals_fp)

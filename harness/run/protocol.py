@@ -29,6 +29,13 @@ from harness.runfolder.schema import FIX, MalformedRunError, check_protocol
 
 
 
+# Bounds checked before anything heavy (docs/run-integrity.md): a run's jobs (tasks x episodes), the largest seed
+# any episode resets with (numpy's legacy RandomState and robosuite take seeds below 2**32), and an episode's steps.
+MAX_JOBS = 100_000
+MAX_SEED = 2**32 - 1
+MAX_STEPS = 100_000
+
+
 def harness_version() -> str:
     try:
         from importlib.metadata import version
@@ -65,6 +72,18 @@ class Protocol:
             raise ValueError(f"--max-steps must be at least 1, got {self.max_steps}")
         if not _is_int(self.seed) or self.seed < 0:
             raise ValueError(f"--seed must be a non-negative integer, got {self.seed}")
+        jobs = len(self.tasks) * self.episodes
+        if jobs > MAX_JOBS:
+            raise ValueError(f"--episodes {self.episodes} x {len(self.tasks)} task(s) is {jobs} episode jobs, more than "
+                             f"one run holds ({MAX_JOBS}); split it into runs of at most {MAX_JOBS // len(self.tasks)} "
+                             "episodes per task (--seed continues where the last one ended)")
+        if self.seed + self.episodes - 1 > MAX_SEED:
+            raise ValueError(f"--seed {self.seed} with --episodes {self.episodes} reaches seed "
+                             f"{self.seed + self.episodes - 1}, outside the simulator's seed range 0..{MAX_SEED} "
+                             f"(2**32 - 1, numpy's and robosuite's); choose --seed <= {MAX_SEED - self.episodes + 1}")
+        if self.max_steps is not None and self.max_steps > MAX_STEPS:
+            raise ValueError(f"--max-steps {self.max_steps} is more than an episode may run ({MAX_STEPS} control steps: "
+                             "its arrays are held in memory until it ends); choose a smaller --max-steps")
         weight = float(self.policy.ensemble_weight)
         if weight != weight or weight in (float("inf"), float("-inf")):
             raise ValueError(f"--ensemble-weight must be a finite number, got {self.policy.ensemble_weight}")
