@@ -232,6 +232,18 @@ def test_corrupt_attention_and_half_truncated_actions_are_rerun_on_resume(runs, 
 
 
 @pytest.mark.slow
+def test_digests_stripped_from_a_row_do_not_hide_a_deleted_array(runs, tmp_path, capsys):
+    """files = {} would verify nothing: a row with digests must record those of the arrays every episode writes."""
+    good, bad, _ = runs
+    rows = _rows(bad)
+    rows[0]["files"] = {}
+    _write_rows(bad, rows)
+    (bad / "Lift" / "episode_0" / "attention.npz").unlink()
+    _one_line_exit_2(["compare", str(good), str(bad), "--no-frames", "--out", str(tmp_path / "cmp")], capsys,
+                     "its row records no digest of attention.npz")
+
+
+@pytest.mark.slow
 def test_an_episode_folder_replaced_by_a_self_symlink_is_rerun(runs, capsys, caplog):
     _, bad, _ = runs
     episode = bad / "Lift" / "episode_0"

@@ -22,6 +22,7 @@ from pathlib import Path
 from harness.runfolder.schema import FIX, MalformedRunError
 
 DATA_SUFFIXES = (".npz", ".jsonl")
+RECORDED = ("attention.npz", "actions.npz")  # written by every finished episode: a row with digests names them
 LEGACY_RESUME = ("episode.json",)  # what resume requires of a finished episode whose row records no digests
 RERUN = "re-run that episode: octo-harness run --resume RUN_DIR (it runs damaged episodes again)"
 
@@ -101,6 +102,10 @@ def episode_problem(run_dir: Path, directory: str, row: dict, where: str | None 
             entry = Path(root) / name
             if entry.is_symlink():
                 inside(run_dir, entry)
+    if files is not None:  # a row with digests records those of the arrays every finished episode writes
+        for name in RECORDED:
+            if name not in files:
+                return f"{folder}: its row records no digest of {name} (every finished episode has one)"
     for name in legacy if files is None else ("episode.json", *files):
         path = folder / name
         if not path.is_file():
