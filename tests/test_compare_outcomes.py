@@ -53,13 +53,16 @@ def test_a_significant_drop_is_regressed_with_holm_across_tasks_and_exits_1(tmp_
     assert (cand / "compare_base" / "compare.html").is_file()
 
 
-def test_missing_pairs_are_reported_and_left_out_and_underpowered_can_fail(tmp_path):
+def test_missing_pairs_are_reported_and_make_the_candidate_incomplete(tmp_path):
+    """A candidate lacking the baseline's episodes cannot pass (issue 28: it used to be UNDERPOWERED, exit 0)."""
     base = write_run(tmp_path / "base", {"Lift": [True, False, True, True]})
     cand = write_run(tmp_path / "cand", {"Lift": [True, False]}, model="m2")  # still running: 2 of 4 episodes
     result = compare_runs(base, cand)
     assert result["pairs"] == 2 and result["missing_pairs"] == {"candidate": [["Lift", 2], ["Lift", 3]], "baseline": []}
-    assert result["verdict"] == "UNDERPOWERED"
-    assert exit_code(result) == 0 and exit_code(result, "underpowered") == 1 and exit_code(result, "changed") == 1
+    assert result["verdict"] == "INCOMPLETE" and result["outcomes"]["overall"]["verdict"] == "UNDERPOWERED"
+    assert {exit_code(result, fail_on) for fail_on in ("regressed", "suspect", "underpowered", "changed")} == {4}
+    lenient = compare_runs(base, cand, require_complete=False)  # regress's view: the pairs that ran
+    assert lenient["verdict"] == "UNDERPOWERED" and exit_code(lenient) == 0 and exit_code(lenient, "underpowered") == 1
 
 
 def test_only_outcome_changing_protocol_fields_are_incompatible():

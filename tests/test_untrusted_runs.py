@@ -232,6 +232,18 @@ def test_corrupt_attention_and_half_truncated_actions_are_rerun_on_resume(runs, 
 
 
 @pytest.mark.slow
+def test_digests_stripped_from_a_row_do_not_hide_a_deleted_array(runs, tmp_path, capsys):
+    """files = {} would verify nothing: a row with digests must record those of the arrays every episode writes."""
+    good, bad, _ = runs
+    rows = _rows(bad)
+    rows[0]["files"] = {}
+    _write_rows(bad, rows)
+    (bad / "Lift" / "episode_0" / "attention.npz").unlink()
+    _one_line_exit_2(["compare", str(good), str(bad), "--no-frames", "--out", str(tmp_path / "cmp")], capsys,
+                     "its row records no digest of attention.npz")
+
+
+@pytest.mark.slow
 def test_an_episode_folder_replaced_by_a_self_symlink_is_rerun(runs, capsys, caplog):
     _, bad, _ = runs
     episode = bad / "Lift" / "episode_0"
@@ -259,14 +271,18 @@ def test_a_failed_episode_whose_folder_is_a_self_symlink_is_retried(runs, capsys
 
 # ---- old rows (no digests): the committed baseline ----------------------------------------------------------------
 
-def test_legacy_rows_are_read_checking_presence_and_counted_unverified(tmp_path, capsys):
+def test_legacy_rows_are_read_unverified_and_compare_says_so(tmp_path, capsys):
+    """Rows made before digests were recorded (the committed baseline) are still read; compare says which were not
+    verified."""
     run = load_run(BASELINE)
     assert run.status == "complete" and run.unverified == len(run.episodes) == 8
-    bad = tmp_path / "bad"
-    shutil.copytree(BASELINE, bad)
-    (bad / "Lift" / "episode_3" / "actions.npz").unlink()
-    _one_line_exit_2(["compare", str(BASELINE), str(bad), "--no-frames", "--out", str(tmp_path / "cmp")], capsys,
-                     "episode_3/actions.npz is missing")
+    copy = tmp_path / "copy"
+    shutil.copytree(BASELINE, copy)
+    assert cli.main(["compare", str(BASELINE), str(copy), "--no-frames", "--out", str(tmp_path / "cmp")]) == 0
+    out = capsys.readouterr().out
+    assert "compare: IDENTICAL" in out
+    assert "Files read unverified (rows made before sizes and digests were recorded): reference-lift 8, " \
+           "reference-lift 8 episodes." in out
 
 
 def test_the_schema_refuses_a_malformed_digest_and_a_task_that_is_a_path():

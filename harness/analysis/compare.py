@@ -459,6 +459,7 @@ def _arm(run: RunRecord) -> dict:
     return {"run": run.name, "path": str(run.path), "model": run.model.source, "random_weights": run.model.is_random,
             "status": run.status, "episodes": len(run.episodes), "missing_jobs": run.missing,
             "errors": sum(not e.ok for e in run.episodes), "git_commit": run.git_commit,
+            "unverified": run.unverified,  # finished episodes whose rows record no file digests (older runs)
             "arrays": "first steps only (committed baseline)" if _truncated(run) else "all steps"}
 
 

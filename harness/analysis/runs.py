@@ -13,7 +13,7 @@ not a run raises `NotARunError` with one line naming the fix.
 
 A run folder is untrusted input: `load_run` checks (harness/runfolder/) that the run's files and every finished
 episode's folder and files lie inside the run folder, and that each finished episode's data files match the size
-and sha256 its row records (rows written before digests were recorded: that the files exist; they are counted in
+and sha256 its row records (rows written before digests were recorded are read unverified and counted in
 `RunRecord.unverified`). What fails is a MalformedRunError naming the file (one line, exit 2).
 """
 
@@ -230,7 +230,7 @@ def _load_store_run(path: Path) -> RunRecord:
             unverified += row.get("files") is None
     if unverified:
         log.info("%s: %d finished episodes record no file digests (rows made before digests were recorded); their "
-                 "files were checked for presence only", path, unverified)
+                 "files are read unverified", path, unverified)
     episodes = [_episode(row, path) for row, _ in rows.values()]
     status = None
     if (path / "results.json").is_file():

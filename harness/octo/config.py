@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Union
 
-from harness.octo.errors import ConfigError, UnsupportedModuleError
+from harness.octo.errors import ConfigError, OctoError, UnsupportedModuleError
 
 _TOKENIZERS = "octo.model.components.tokenizers"
 _ENCODERS = "octo.model.components.vit_encoders"
@@ -205,7 +205,7 @@ class OctoConfig:
         """A config.json's content -> OctoConfig; a value of the wrong type or range is a ConfigError (one line)."""
         try:
             return cls._from_dict(data)
-        except ConfigError:
+        except OctoError:  # already one line naming the field (ConfigError, UnsupportedModuleError)
             raise
         except (TypeError, ValueError, AttributeError, KeyError) as e:
             detail = f"missing {e}" if isinstance(e, KeyError) else str(e).splitlines()[0]

@@ -123,6 +123,10 @@ def markdown_summary(result: dict, exit_code: int | None = None) -> str:
     if missing["candidate"] or missing["baseline"]:
         lines += ["", f"Left out: {len(missing['candidate'])} pairs missing from the candidate, "
                       f"{len(missing['baseline'])} missing from the baseline."]
+    unverified = [f"{arm['run']} {arm['unverified']}" for arm in (base, cand) if arm.get("unverified")]
+    if unverified:
+        lines.append("Files read unverified (rows made before sizes and digests were recorded): "
+                     + ", ".join(unverified) + " episodes.")
     errors = (base["errors"], cand["errors"])
     if any(errors):
         lines.append(f"Episodes that raised (no outcome; their pairs are left out of n and counted as errored): "

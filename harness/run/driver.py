@@ -31,7 +31,7 @@ from harness.run.executor import EpisodeContext, Executor, SequentialExecutor, S
 from harness.run.progress import Progress
 from harness.run.protocol import FORMAT, EpisodeJob, Protocol, diff, goal_fingerprint, model_fingerprint
 from harness.run.store import MANIFEST, EpisodeRow, RunStore, now_utc, statistics
-from harness.runfolder.integrity import episode_problem
+from harness.runfolder.integrity import LEGACY_RESUME, episode_problem
 from harness.runfolder.schema import MalformedRunError
 
 log = logging.getLogger(__name__)
@@ -328,7 +328,8 @@ def _verified(store: RunStore, rows: dict, retry_failed: bool) -> set[tuple[str,
             continue
         directory = f"{row.task}/episode_{row.episode}"
         try:
-            problem = episode_problem(store.dir, directory, row.to_dict(), f"{store.dir / 'results.jsonl'}")
+            problem = episode_problem(store.dir, directory, row.to_dict(), f"{store.dir / 'results.jsonl'}",
+                                      legacy=LEGACY_RESUME)
         except MalformedRunError as exc:  # leads out of the run folder or loops: the run's own folder is rewritten
             problem = str(exc).split("; ")[0]
         if problem is None:

@@ -10,7 +10,7 @@ of its data files (`DATA_SUFFIXES`: the .npz arrays and the .jsonl tables), comp
 them. `episode_problem` says what is wrong with a finished episode (a file missing, a size or digest that differs
 from the row's, a folder that is a symlink); readers raise it as a MalformedRunError naming the file, and
 `run --resume` runs that episode again instead. Rows written before digests were recorded ("legacy rows") are
-checked for the files every finished episode has (`REQUIRED`), and are counted as unverified.
+read unverified (confinement only; resume requires their episode.json, as it always did) and counted by readers.
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ from pathlib import Path
 from harness.runfolder.schema import FIX, MalformedRunError
 
 DATA_SUFFIXES = (".npz", ".jsonl")
-REQUIRED = ("episode.json", "attention.npz", "actions.npz")  # every finished ("ok") episode holds these
+RECORDED = ("attention.npz", "actions.npz")  # written by every finished episode: a row with digests names them
+LEGACY_RESUME = ("episode.json",)  # what resume requires of a finished episode whose row records no digests
 RERUN = "re-run that episode: octo-harness run --resume RUN_DIR (it runs damaged episodes again)"
 
 
@@ -77,18 +78,23 @@ def check_run_files(run_dir: Path, names) -> None:
             inside(run_dir, path)
 
 
-def episode_problem(run_dir: Path, directory: str, row: dict, where: str | None = None) -> str | None:
+def episode_problem(run_dir: Path, directory: str, row: dict, where: str | None = None,
+                    legacy: tuple[str, ...] = ()) -> str | None:
     """What is wrong with a finished episode's folder `run_dir/directory` as its `row` describes it, or None.
 
     A problem is a phrase starting with the path (e.g. ".../attention.npz is missing"). Confinement (a folder or a
     file that leads outside the run folder or loops) is raised as a MalformedRunError instead, except for the
     episode folder itself being a symlink, which is a problem (resume replaces it by a real folder). `where`: the row's
-    place (e.g. "results.jsonl line 3"), named in a confinement error."""
+    place (e.g. "results.jsonl line 3"), named in a confinement error. `legacy`: the files required of a row that
+    records no digests (readers: none, such a row is unverified; resume: episode.json, its completion mark)."""
     folder = Path(run_dir) / directory
     for link in (folder.parent, folder):
         if link.is_symlink():
             return f"{link} is a symlink, not a folder the run wrote"
     folder = inside(run_dir, folder, named_by=where)
+    files = row.get("files")
+    if files is None and not legacy:
+        return None  # unverified: nothing recorded to check against
     if not folder.is_dir():
         return f"{folder} is missing"
     for root, dirs, names in os.walk(folder, followlinks=False):
@@ -96,8 +102,11 @@ def episode_problem(run_dir: Path, directory: str, row: dict, where: str | None 
             entry = Path(root) / name
             if entry.is_symlink():
                 inside(run_dir, entry)
-    files = row.get("files")
-    for name in REQUIRED if files is None else ("episode.json", *files):
+    if files is not None:  # a row with digests records those of the arrays every finished episode writes
+        for name in RECORDED:
+            if name not in files:
+                return f"{folder}: its row records no digest of {name} (every finished episode has one)"
+    for name in legacy if files is None else ("episode.json", *files):
         path = folder / name
         if not path.is_file():
             return f"{path} is missing"
