@@ -115,9 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--camera", action="append", default=None, metavar="KEY=camera:size",
                    help="observation key fed by a robosuite camera at a square size, e.g. image_primary=agentview:84 "
                         "(repeat; default: the task's cameras or the checkpoint's harness.toml)")
-    r.add_argument("--image-convention", choices=["upright", "opengl"], default=None,
-                   help="orientation of the frames the model was trained on [upright]")
-    r.add_argument("--action-space", choices=["octo-delta", "robosuite"], default=None,
+    r.add_argument("--image-convention", choices=["upright", "opengl", "rot180"], default=None,
+                   help="orientation of the frames the model was trained on (rot180: OpenVLA's LIBERO datasets) [upright]")
+    r.add_argument("--action-space", choices=["octo-delta", "robosuite", "libero"], default=None,
                    help="what the model's actions mean [octo-delta, or the checkpoint's harness.toml]")
     r.add_argument("--hold-gripper", default=None, metavar="open|closed|VALUE",
                    help="for a 6-D (arm-only) model: the env takes 6-D actions and holds the gripper at this value "
