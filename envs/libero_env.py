@@ -332,6 +332,11 @@ class LiberoEnv(gym.Env):
         """{object instance: {"pos" (3,), "quat" (4,) (x, y, z, w), "low"/"high" (3,) extent, "geom_centre" (3,)}}."""
         return self._server.call("object_poses")["poses"]
 
+    def place_object(self, name: str, position) -> tuple[dict, dict]:
+        """Put movable object `name` at world `position` (3,), at rest, and re-observe -> (obs, info)."""
+        raw = self._server.call("place_object", name=name, pos=np.asarray(position, np.float64))["obs"]
+        return self._observe(raw), self._info(raw)
+
     def grasping(self, name: str) -> bool:
         """Whether both finger pads touch object instance `name` (robosuite's grasp check)."""
         return bool(self._server.call("grasping", name=name)["grasping"])

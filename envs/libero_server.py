@@ -12,6 +12,9 @@ Messages (`libero_wire`): the driver sends {"op": ..., ...}, the server answers 
   reset state_index, settle_steps   -> observation after set_init_state(state k) and `settle_steps` no-op actions
   step  action (7,)                 -> observation, reward, success
   get_state / set_state state       -> the flattened MuJoCo state (set_state also re-observes)
+  init_state state_index            -> the task's stored initial state
+  object_poses / grasping name / place_object name, pos
+                                    -> state for demonstrators and known-answer tests
   close                             -> the server exits
 
 Observation: images {key: (size, size, 3) uint8 as rendered (OpenGL rows: bottom row first)}, segmentation
@@ -186,7 +189,18 @@ class Task:
         if not 0 <= state_index < len(self.init_states):
             raise ValueError(f"initial state {state_index} does not exist: this task stores {len(self.init_states)} "
                              f"(0..{len(self.init_states) - 1})")
+        # LIBERO places fixtures (bodies without joints, which the stored states do not hold) by sampling numpy's
+        # global RNG at every reset; seeding it before each reset makes the scene a function of the state index
+        # alone, whatever ran before (OpenVLA seeds 0 once per task and draws on from there).
+        self.env.seed(0)
         self.env.reset()
+        # A soft reset (hard_reset=False) keeps the model, so robosuite's Panda gripper keeps its `current_action`
+        # (an integrator of the commands it received) from the previous episode; a hard reset (OpenVLA's) builds a
+        # fresh gripper, whose integrator starts at zero. Zero it, so every episode starts as after a hard reset
+        # whatever ran before (tests/test_libero.py checks the state after a different episode in between).
+        for robot in self.env.env.robots:
+            if getattr(robot, "gripper", None) is not None and hasattr(robot.gripper, "current_action"):
+                robot.gripper.current_action = np.zeros_like(robot.gripper.current_action)
         raw = self.env.set_init_state(self.init_states[state_index])
         for _ in range(settle_steps):
             raw, _, _, _ = self.env.step(NOOP_ACTION.copy())
@@ -206,22 +220,39 @@ class Task:
         return self.observe(self.env.set_init_state(np.asarray(state, np.float64)))
 
     def object_poses(self) -> dict:
+        """{instance: pos, quat (x, y, z, w), low/high (world axis-aligned box over its geoms' boxes), geom_centre}."""
         inner = self.env.env
-        data = inner.sim.data
+        model, data = inner.sim.model, inner.sim.data
+        signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)  # (8, 3)
+        bodies = getattr(inner, "obj_body_id", {})
         poses = {}
         for name in self.objects:
             geoms = np.asarray(inner.model.instances_to_ids[name]["geom"], int)
-            body = inner.obj_body_id.get(name) if hasattr(inner, "obj_body_id") else None
-            pos = np.array(data.body_xpos[body]) if body is not None else data.geom_xpos[geoms].mean(axis=0)
-            w, x, y, z = (data.body_xquat[body] if body is not None else (1.0, 0.0, 0.0, 0.0))
-            # the object's axis-aligned extent from its geoms' bounding spheres (for demonstrators)
-            radius = inner.sim.model.geom_rbound[geoms]
-            centres = data.geom_xpos[geoms]
-            low = (centres - radius[:, None]).min(axis=0)
-            high = (centres + radius[:, None]).max(axis=0)
-            poses[name] = {"pos": pos, "quat": np.array([x, y, z, w]), "low": low, "high": high,
-                           "geom_centre": centres.mean(axis=0)}
+            corners = []
+            for g in geoms:
+                centre, half = model.geom_aabb[g][:3], model.geom_aabb[g][3:]
+                local = centre + signs * half  # (8, 3) in the geom's frame
+                corners.append(data.geom_xpos[g] + local @ np.asarray(data.geom_xmat[g]).reshape(3, 3).T)
+            corners = np.concatenate(corners)
+            body = bodies.get(name)
+            pos = np.array(data.body_xpos[body]) if body is not None else corners.mean(axis=0)
+            w, x, y, z = data.body_xquat[body] if body is not None else (1.0, 0.0, 0.0, 0.0)
+            poses[name] = {"pos": pos, "quat": np.array([x, y, z, w]), "low": corners.min(axis=0),
+                           "high": corners.max(axis=0), "geom_centre": data.geom_xpos[geoms].mean(axis=0)}
         return poses
+
+    def place_object(self, name: str, pos) -> dict:
+        """Move object `name` (its free joint) to world position `pos`, at rest, and re-observe (for known answers)."""
+        inner = self.env.env
+        joints = list(getattr(inner.objects_dict.get(name), "joints", None) or [])
+        if not joints:
+            raise ValueError(f"{name!r} is not a movable object of this scene")
+        qpos = np.array(inner.sim.data.get_joint_qpos(joints[0]), np.float64)
+        qpos[:3] = np.asarray(pos, np.float64)
+        inner.sim.data.set_joint_qpos(joints[0], qpos)
+        inner.sim.data.set_joint_qvel(joints[0], np.zeros(6))
+        inner.sim.forward()
+        return self.set_state(self.get_state())
 
     def grasping(self, name: str) -> bool:
         inner = self.env.env
@@ -267,6 +298,8 @@ def serve(stdin, stdout) -> None:
                 reply = {"state": np.asarray(task.init_states[int(message["state_index"])], np.float64)}
             elif op == "object_poses":
                 reply = {"poses": task.object_poses()}
+            elif op == "place_object":
+                reply = {"obs": task.place_object(str(message["name"]), message["pos"])}
             elif op == "grasping":
                 reply = {"grasping": task.grasping(str(message["name"]))}
             else:
