@@ -211,6 +211,7 @@ class LiberoEnv(gym.Env):
             self.action_space = gym.spaces.Box(space.low[:6], space.high[:6], dtype=np.float32)
         self._step_index = 0
         self._clipped = 0
+        self.last_server_seconds = 0.0  # time the last step spent in the server (the rest crossed the boundary)
         self._raw: dict | None = None
         self._last_obs: dict | None = None
 
@@ -244,7 +245,8 @@ class LiberoEnv(gym.Env):
             osc, clipped = libero_action(np.asarray(action))
         else:
             osc, clipped = adapt_action(np.asarray(action), self.adapter)
-        raw = self._server.call("step", action=np.asarray(osc, np.float64))["obs"]
+        reply = self._server.call("step", action=np.asarray(osc, np.float64))
+        raw, self.last_server_seconds = reply["obs"], float(reply.get("seconds", 0.0))
         self._step_index += 1
         self._clipped += int(clipped)
         success = bool(raw["success"])

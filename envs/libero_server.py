@@ -40,6 +40,7 @@ sys.stdout = sys.stderr
 
 import ctypes  # noqa: E402
 import signal  # noqa: E402
+import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
@@ -272,6 +273,7 @@ def serve(stdin, stdout) -> None:
         except EOFError:
             break
         op = message.get("op")
+        started = time.perf_counter()
         try:
             if op == "versions":
                 reply = {"versions": versions()}
@@ -305,6 +307,7 @@ def serve(stdin, stdout) -> None:
             else:
                 raise ValueError(f"unknown operation {op!r}")
             reply["ok"] = True
+            reply["seconds"] = time.perf_counter() - started  # time spent in the server (benchmarks/bench_libero.py)
         except Exception as exc:  # noqa: BLE001 - every error goes back to the driver as one line + traceback
             reply = {"ok": False, "error": f"{type(exc).__name__}: {exc}".splitlines()[0],
                      "traceback": traceback.format_exc()}

