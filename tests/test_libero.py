@@ -359,7 +359,7 @@ def test_random_octo_small_runs_a_libero_task_from_the_command_line_and_resumes(
     folder = tmp_path / "small" / "libero_goal" / "2" / "episode_0"
     assert (folder / "rollout.mp4").stat().st_size > 0 and list(folder.glob("step_0002_layer_*.png"))
     meta = json.loads((folder / "episode.json").read_text())
-    assert meta["status"] == "ok" and meta["steps"] == 3 and meta["instruction"] == envs.get_task("libero_goal/2").instruction
+    assert "error" not in meta and meta["steps"] == 3 and meta["instruction"] == envs.get_task("libero_goal/2").instruction
     mtime = (folder / "episode.json").stat().st_mtime_ns
     assert cli.main(args) == 0  # resume: nothing left to do, nothing rewritten
     assert (folder / "episode.json").stat().st_mtime_ns == mtime
