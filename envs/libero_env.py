@@ -167,6 +167,9 @@ class LiberoEnv(gym.Env):
     def __init__(self, task: TaskSpec, config) -> None:
         if config.render_mode not in (None, "rgb_array"):
             raise EnvConfigError(f"render_mode {config.render_mode!r} unsupported; use None or 'rgb_array'")
+        if config.fast_render:
+            raise EnvConfigError("--fast-render is not available for LIBERO tasks: they render as LIBERO renders (the "
+                                 "published protocol's images); drop --fast-render")
         if config.robosuite_options:
             raise EnvConfigError(f"LIBERO tasks take no robosuite options; got {dict(config.robosuite_options)}")
         self.task = task

@@ -345,6 +345,13 @@ def test_tiny_fixture_runs_a_libero_task_and_two_workers_equal_sequential_bit_fo
 
     result = replay_run(sequential.run_dir, loaded_model=tiny)
     assert result["verdict"] == "EQUIVALENT" and result["action_change_max"] == 0.0
+    from harness import cli
+
+    assert cli.main(["report", str(sequential.run_dir), "--out", str(tmp_path / "report")]) == 0
+    layers = (tmp_path / "report" / "tables" / "layers.csv").read_text()
+    for metric in ("mask_lift/image_primary/target", "mask_mass/image_primary/distractors",
+                   "mask_mass/image_wrist/object.alphabet_soup_1", "share/wrist"):
+        assert f",{metric}," in layers, metric
 
 
 @pytest.mark.slow
@@ -354,7 +361,7 @@ def test_random_octo_small_runs_a_libero_task_from_the_command_line_and_resumes(
 
     args = ["run", "--task", "libero_goal/2", "--model", "random:octo-small-1.5", "--out", str(tmp_path),
             "--run-name", "small", "--max-steps", "3", "--episodes", "1", "--png-every", "2",
-            "--image-convention", "rot180", "--action-space", "libero"]
+            "--image-convention", "rot180", "--action-space", "libero", "--intervene", "mask-random:2"]
     assert cli.main(args) == 0
     folder = tmp_path / "small" / "libero_goal" / "2" / "episode_0"
     assert (folder / "rollout.mp4").stat().st_size > 0 and list(folder.glob("step_0002_layer_*.png"))
