@@ -180,17 +180,10 @@ class LiberoEnv(gym.Env):
         self.image_convention = config.image_convention
         self.settle_steps = SETTLE_STEPS
         suite, index = suite_and_index(task.name)
+        self._make_args = {"suite": suite, "task": index, "masks": bool(config.masks),
+                           "cameras": [[spec.key, spec.camera, spec.size] for spec in config.cameras]}
         self._server = None
-        self._server = LiberoServer()
-        cameras = [[spec.key, spec.camera, spec.size] for spec in config.cameras]
-        try:
-            self.description = self._server.call("make", suite=suite, task=index, cameras=cameras,
-                                                 masks=bool(config.masks))["task"]
-        except LiberoServerError as exc:
-            self.close()
-            if "camera" in str(exc):
-                raise EnvConfigError(str(exc).replace("LIBERO make: ValueError: ", "")) from exc
-            raise
+        self.description = self._start_server()
         output_max = np.asarray(self.description["output_max"], np.float64)
         self.adapter = config.action_adapter or ActionAdapterConfig(position_max=float(output_max[0]),
                                                                     rotation_max=float(output_max[3]))
@@ -218,6 +211,17 @@ class LiberoEnv(gym.Env):
         self._raw: dict | None = None
         self._last_obs: dict | None = None
 
+    def _start_server(self) -> dict:
+        """(Re)start the server and make the task in it -> its description."""
+        self._server = LiberoServer()
+        try:
+            return self._server.call("make", **self._make_args)["task"]
+        except LiberoServerError as exc:
+            self.close()
+            if "camera" in str(exc):
+                raise EnvConfigError(str(exc).replace("LIBERO make: ValueError: ", "")) from exc
+            raise
+
     # ---------------------------------------------------------------- gymnasium API
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -228,6 +232,10 @@ class LiberoEnv(gym.Env):
             raise EnvConfigError(f"{self.task.name} stores initial states 0..{count - 1}; episode seed {state_index} "
                                  f"has none (use --seed S --episodes N with S + N <= {count})")
         settle = self.settle_steps if options is None else int(options.get("settle_steps", self.settle_steps))
+        if self._server is None or self._server.process is None or self._server.process.poll() is not None:
+            if self._server is not None:  # it died (its episode was recorded as failed): a fresh one for this episode
+                self._server.close()
+            self.description = self._start_server()
         raw = self._server.call("reset", state_index=state_index, settle_steps=settle)["obs"]
         self._step_index = 0
         self._clipped = 0

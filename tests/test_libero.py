@@ -271,6 +271,23 @@ def test_success_predicate_true_with_the_object_in_the_basket_false_at_the_start
 
 
 @pytest.mark.slow
+def test_a_killed_server_fails_its_step_in_one_line_and_the_next_reset_starts_a_fresh_one(object_env):
+    import signal
+
+    from envs.libero_env import LiberoServerError
+
+    before, _ = object_env.reset(seed=2)
+    state = object_env.sim_state()
+    os.kill(object_env._server.process.pid, signal.SIGKILL)
+    with pytest.raises(LiberoServerError, match=r"the LIBERO server died during 'step' \(exit code -9\)"):
+        object_env.step(np.zeros(7, np.float32))
+    obs, info = object_env.reset(seed=2)
+    assert info["step"] == 0
+    np.testing.assert_array_equal(object_env.sim_state(), state)  # a fresh server gives the same episode start
+    np.testing.assert_array_equal(obs["image_primary"], before["image_primary"])
+
+
+@pytest.mark.slow
 def test_spatial_task_5_bowl_sits_on_the_ramekin_after_reset():
     """The premise MuJoCo >= 3.4 breaks (box-box contacts): the stored state must settle with the bowl on the
     ramekin, or libero_spatial/5 is another task."""
