@@ -33,6 +33,7 @@ Masks (masks=True), per camera: "target" (the instruction's BDDL objects of inte
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -120,9 +121,21 @@ class LiberoServer:
             libero_wire.write_message(self.process.stdin, {"op": op, **fields})
             reply = libero_wire.read_message(self.process.stdout)
         except (EOFError, BrokenPipeError, OSError, ValueError) as exc:
-            code = self.process.poll()
-            raise LiberoServerError(f"the LIBERO server died during {op!r} (exit code {code}): "
-                                    f"{(self.stderr_tail(1) or type(exc).__name__)}", self.stderr_tail()) from exc
+            try:
+                code = self.process.wait(timeout=5)
+            except subprocess.TimeoutExpired:  # alive but its stream is broken: end it
+                self.process.kill()
+                code = self.process.wait()
+            if code is not None and code < 0:
+                try:
+                    cause = f"signal {-code} ({signal.Signals(-code).name})"
+                except ValueError:
+                    cause = f"signal {-code}"
+            else:
+                cause = f"exit code {code}"
+            last = [line for line in self.stderr_tail().splitlines() if "Error" in line or "error" in line][-1:]
+            raise LiberoServerError(f"the LIBERO server died during {op!r} ({cause})" + (f": {last[0]}" if last else ""),
+                                    self.stderr_tail()) from exc
         if not reply.get("ok"):
             raise LiberoServerError(f"LIBERO {op}: {reply.get('error')}", reply.get("traceback", ""))
         return reply
