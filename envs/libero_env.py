@@ -233,6 +233,8 @@ class LiberoEnv(gym.Env):
             self.close()
             if "camera" in str(exc):
                 raise EnvConfigError(str(exc).replace("LIBERO make: ValueError: ", "")) from exc
+            if any(word in str(exc) for word in ("ImportError", "ModuleNotFoundError", "died")):
+                raise LiberoEnvironmentMissing(f"LIBERO's environment is broken ({exc}); rerun: {SETUP_COMMAND}") from exc
             raise
 
     # ---------------------------------------------------------------- gymnasium API

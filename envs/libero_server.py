@@ -123,15 +123,26 @@ class Task:
         if len(set(names)) != len(names):
             raise ValueError(f"each LIBERO camera can feed one observation key; got {names}")
         render = bool(self.cameras)
-        self.env = OffScreenRenderEnv(
-            bddl_file_name=bddl,
-            camera_names=names or ["agentview"],
-            camera_heights=[s for _, _, s in self.cameras] or 8,
-            camera_widths=[s for _, _, s in self.cameras] or 8,
-            use_camera_obs=render,
-            has_offscreen_renderer=render,
-            hard_reset=False,  # see docs/libero.md: every reset restores a full stored state after mj_resetData
-        )
+
+        def make(names, sizes, render):
+            return OffScreenRenderEnv(
+                bddl_file_name=bddl, camera_names=names, camera_heights=sizes, camera_widths=sizes,
+                use_camera_obs=render, has_offscreen_renderer=render,
+                hard_reset=False,  # see docs/libero.md (Resets): reseeded and re-zeroed before every reset
+            )
+
+        try:
+            self.env = make(names or ["agentview"], [s for _, _, s in self.cameras] or 8, render)
+        except ValueError as exc:
+            if "sensor for observable" not in str(exc):
+                raise
+            probe = make(["agentview"], 8, False)  # which cameras the scene has, for the error
+            model = probe.env.sim.model
+            available = [model.camera_id2name(i) for i in range(model.ncam)]
+            probe.close()
+            unknown = [c for c in names if c not in available]
+            raise ValueError(f"LIBERO scene has no camera {unknown[0] if unknown else names!r}; cameras: "
+                             f"{', '.join(available)}") from None
         self.env.seed(0)  # OpenVLA's evaluation seeds every env with 0
         inner = self.env.env
         model = inner.sim.model

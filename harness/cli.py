@@ -16,10 +16,11 @@ USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, KeyError, FileNotFou
 
 def _user_errors() -> tuple[type[BaseException], ...]:
     from envs.gl import HeadlessGLError
+    from envs.libero_env import LiberoServerError
     from harness.octo.errors import OctoError
     from harness.run.store import RunLockedError
 
-    return (*USER_ERRORS, RunLockedError, OctoError, HeadlessGLError)
+    return (*USER_ERRORS, RunLockedError, OctoError, HeadlessGLError, LiberoServerError)
 
 
 def _interrupt(signum, frame):

@@ -166,6 +166,27 @@ def test_missing_libero_environment_is_one_line_naming_the_set_up_command(tmp_pa
     assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").iterdir())
 
 
+def test_a_libero_environment_without_libero_is_one_line_naming_the_set_up_command(tmp_path, monkeypatch):
+    venv = tmp_path / "broken"
+    (venv / "bin").mkdir(parents=True)
+    (venv / "bin" / "python").symlink_to(sys.executable)  # a Python without LIBERO
+    (venv / ".step-check-000000000000").touch()
+    monkeypatch.setenv("OCTO_HARNESS_LIBERO_VENV", str(venv))
+    with pytest.raises(LiberoEnvironmentMissing, match=r"^LIBERO's environment is broken \(LIBERO make: "
+                                                       r"ModuleNotFoundError: .*\); rerun: bash scripts/setup_libero.sh$"):
+        envs.make("libero_object/0", cameras={})
+
+
+def test_run_folders_nest_libero_tasks_and_a_foreign_folder_is_still_refused(tmp_path):
+    from harness.run.store import RunStore
+
+    run = tmp_path / "run"
+    (run / "libero_object" / "3").mkdir(parents=True)
+    assert RunStore(run).foreign_content(["libero_object/3"]) == []
+    (run / "stray").mkdir()
+    assert RunStore(run).foreign_content(["libero_object/3"]) == ["stray"]
+
+
 def test_fingerprints_of_runs_without_libero_are_unchanged_and_libero_versions_count():
     from harness.run.platform import NUMERICS, numerics, platform_differences, platform_fingerprint
 
@@ -285,6 +306,15 @@ def test_a_killed_server_fails_its_step_in_one_line_and_the_next_reset_starts_a_
     assert info["step"] == 0
     np.testing.assert_array_equal(object_env.sim_state(), state)  # a fresh server gives the same episode start
     np.testing.assert_array_equal(obs["image_primary"], before["image_primary"])
+
+
+@pytest.mark.slow
+def test_a_camera_the_scene_lacks_or_fast_render_is_one_line():
+    _needs_libero()
+    with pytest.raises(EnvConfigError, match=r"^LIBERO scene has no camera 'frontcam'; cameras: .*agentview"):
+        envs.make("libero_object/0", cameras={"image_primary": ("frontcam", 64)})
+    with pytest.raises(EnvConfigError, match="--fast-render is not available for LIBERO"):
+        envs.make("libero_object/0", cameras={}, fast_render=True)
 
 
 @pytest.mark.slow
