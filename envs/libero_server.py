@@ -22,29 +22,26 @@ Observation: images {key: (size, size, 3) uint8 as rendered (OpenGL rows: bottom
 (x, y, z, w), gripper_qpos (2,), target_centres (n_targets, 3), camera poses {key: [pos (3,), xmat (9,)]},
 success.
 
-The process's real stdout carries messages only: fd 1 is pointed at stderr before anything is imported, so
+The process's real stdout carries messages only: `main` points fd 1 at stderr before LIBERO is imported, so
 robosuite's prints cannot corrupt the stream. The server exits when stdin closes, and (Linux) when its
 parent dies.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
+import signal
 import sys
+import time
 import traceback
 
-# messages go to a private copy of stdout; anything printed goes to stderr
-_OUT = os.fdopen(os.dup(1), "wb", buffering=0)
-os.dup2(2, 1)
-sys.stdout = sys.stderr
+import numpy as np
 
-import ctypes  # noqa: E402
-import signal  # noqa: E402
-import time  # noqa: E402
-
-import numpy as np  # noqa: E402
-
-import libero_wire  # noqa: E402  (sibling file: this script's folder is sys.path[0])
+try:
+    import libero_wire  # run as a script: this file's folder is sys.path[0]
+except ImportError:  # imported as envs.libero_server (tests, docs): nothing runs until main()
+    from envs import libero_wire
 
 MJOBJ_GEOM = 5  # mujoco.mjtObj.mjOBJ_GEOM
 NOOP_ACTION = np.array([0.0] * 6 + [-1.0])  # OpenVLA's settle action: arm still, gripper open
@@ -331,10 +328,14 @@ def serve(stdin, stdout) -> None:
 
 
 def main() -> None:
+    # messages go to a private copy of stdout; anything printed (robosuite prints) goes to stderr
+    out = os.fdopen(os.dup(1), "wb", buffering=0)
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the driver handles Ctrl-C and closes our stdin
     _die_with_parent()
-    serve(sys.stdin.buffer, _OUT)
-    _OUT.flush()
+    serve(sys.stdin.buffer, out)
+    out.flush()
     os._exit(0)  # skip interpreter teardown: robosuite's EGL destructors raise during it
 
 

@@ -171,7 +171,7 @@ def get_task(name: str) -> TaskSpec:
                            "libero_spatial, libero_object, libero_goal, libero_10, libero_90 (see `octo-harness tasks`)")
 
 
-def task_table(tasks: list[TaskSpec] | None = None, libero: bool = True) -> str:
+def task_table(tasks: list[TaskSpec] | None = None, libero: bool = False) -> str:
     """A plain-text table of tasks (name, max steps, targets, instruction) for `octo-harness tasks`, followed by
     LIBERO's suites and tasks when `libero` (they run in LIBERO's own environment: docs/libero.md)."""
     if libero and tasks is None:

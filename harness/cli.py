@@ -273,7 +273,7 @@ def _cmd_replay(args) -> int:
 def _cmd_tasks() -> int:
     import envs
 
-    print(envs.task_table())
+    print(envs.task_table(libero=True))
     return 0
 
 

@@ -117,7 +117,7 @@ def test_quat_to_axis_angle_known_values():
     np.testing.assert_allclose(quat_to_axis_angle(np.array([1.0, 0, 0, 0])), [np.pi, 0, 0], atol=1e-12)
 
 
-def test_suites_are_tasks_with_the_published_step_limits_and_expand_on_the_command_line():
+def test_suites_are_tasks_with_the_published_step_limits_and_expand_on_the_command_line(capsys):
     from harness.run.settings import resolve_tasks
 
     assert resolve_tasks(["libero_object"]) == tuple(f"libero_object/{i}" for i in range(10))
@@ -132,9 +132,13 @@ def test_suites_are_tasks_with_the_published_step_limits_and_expand_on_the_comma
                           ("libero_object", "is a LIBERO suite"), ("liber_object", "LIBERO suites")):
         with pytest.raises(envs.UnknownTaskError, match=fragment):
             envs.get_task(bad)
-    table = envs.task_table()
+    from harness import cli
+
+    assert cli.main(["tasks"]) == 0
+    table = capsys.readouterr().out
     assert "libero_object/3" in table and "pick up the bbq sauce and place it in the basket" in table
-    assert all(suite in table for suite in libero_tasks.SUITES)
+    assert all(suite in table for suite in libero_tasks.SUITES) and "Lift" in table
+    assert sum(line.strip().startswith("libero_") and "/" in line.split()[0] for line in table.splitlines()) == 130
 
 
 def test_initial_state_beyond_the_stored_fifty_is_one_line_before_anything_loads(tmp_path):
