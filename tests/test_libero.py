@@ -421,3 +421,26 @@ def test_random_octo_small_runs_a_libero_task_from_the_command_line_and_resumes(
     mtime = (folder / "episode.json").stat().st_mtime_ns
     assert cli.main(args) == 0  # resume: nothing left to do, nothing rewritten
     assert (folder / "episode.json").stat().st_mtime_ns == mtime
+
+
+@pytest.mark.slow
+def test_ray_env_workers_run_libero_tasks_with_the_sequential_bits(fixtures_dir, tmp_path):
+    """Each Ray env actor starts its own LIBERO server; the episodes equal a sequential run's bit for bit."""
+    _needs_libero()
+    from harness.octo import load_pretrained
+    from harness.outputs.writers import OutputOptions
+    from harness.run import execute
+    from harness.run.protocol import Protocol
+    from harness.run.ray_executor import RayExecutor
+
+    tiny = load_pretrained(str(fixtures_dir / "tiny"))
+    protocol = Protocol(model=tiny.source, tasks=("libero_object/2",), episodes=1, seed=9, max_steps=3,
+                        env=EnvOptions(masks=True, cameras=CAMERAS), outputs=OutputOptions(png_every=0, video=False))
+    sequential = execute(protocol, tmp_path, "seq", model=tiny, progress=False)
+    ray = execute(protocol, tmp_path, "ray", model=tiny, progress=False,
+                  executor=lambda context, model: RayExecutor(context, model, workers=1))
+    (a,), (b,) = sequential.rows, ray.rows
+    assert (a.status, b.status, a.steps, b.steps) == ("ok", "ok", 3, 3)
+    with np.load(sequential.episode_dir(a) / "attention.npz") as za, np.load(ray.episode_dir(b) / "attention.npz") as zb:
+        np.testing.assert_array_equal(za["readout_attention"], zb["readout_attention"])
+        np.testing.assert_array_equal(za["metrics/mask_mass/image_primary/target"], zb["metrics/mask_mass/image_primary/target"])
