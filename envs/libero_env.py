@@ -97,7 +97,9 @@ class LiberoServer:
     def __init__(self, python: Path | None = None):
         python = python or libero_python()
         environ = dict(os.environ)
-        environ.setdefault("LIBERO_CONFIG_PATH", str(Path(python).parents[1] / "libero-config"))
+        # always the set-up script's (empty) path configuration: neither ~/.config nor a LIBERO_CONFIG_PATH left in
+        # the shell for another LIBERO install can move tasks, initial states or assets
+        environ["LIBERO_CONFIG_PATH"] = str(Path(python).parents[1] / "libero-config")
         environ.setdefault("MUJOCO_GL", "egl")
         environ.setdefault("PYOPENGL_PLATFORM", environ["MUJOCO_GL"])
         for key in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV"):  # the server's imports are its environment's only
