@@ -76,7 +76,8 @@ def make(
     render_mode: str | None = None,
     **robosuite_options,
 ) -> RobosuiteEnv:
-    """A gymnasium environment for registered task `task` (see `list_tasks()`).
+    """A gymnasium environment for registered task `task` (see `list_tasks()`; LIBERO tasks such as "libero_object/3"
+    run in LIBERO's own environment through `envs.libero_env.LiberoEnv`).
 
     options: masks, fast_render, cameras, image_convention, action_space (see envs.options); the keyword
     arguments of the same names override it when given. cameras: {observation key: (robosuite camera,
@@ -104,6 +105,10 @@ def make(
         render_mode=render_mode,
         robosuite_options=tuple(sorted(robosuite_options.items())),
     )
+    if spec.simulator == "libero":
+        from envs.libero_env import LiberoEnv
+
+        return LiberoEnv(spec, config)
     return RobosuiteEnv(spec, config)
 
 

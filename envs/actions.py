@@ -105,3 +105,21 @@ def passthrough_action(action: np.ndarray) -> tuple[np.ndarray, bool]:
         raise ActionAdapterError(f"action contains NaN or inf: {action.tolist()}")
     clipped = bool(np.any(np.abs(action) > 1.0))
     return np.clip(action, -1.0, 1.0), clipped
+
+
+def libero_action(action: np.ndarray) -> tuple[np.ndarray, bool]:
+    """(7,) action in the convention of OpenVLA's LIBERO datasets -> (robosuite OSC_POSE input, clipped?).
+
+    The 6 arm values are the OSC_POSE input itself (clipped to [-1, 1]); the gripper is 1 open / 0 closed and is
+    binarised at 0.5 to LIBERO's -1 open / +1 closed, as OpenVLA's evaluation does (normalize_gripper_action with
+    binarize, then the sign flip). A gripper of exactly 0.5 gives 0 (no command), as there.
+    """
+    action = np.asarray(action, dtype=np.float64)
+    if action.shape != (7,):
+        raise ActionAdapterError(f"expected a (7,) LIBERO action (6 arm values, gripper), got shape {action.shape}")
+    if not np.all(np.isfinite(action)):
+        raise ActionAdapterError(f"action contains NaN or inf: {action.tolist()}")
+    clipped = bool(np.any(np.abs(action[:6]) > 1.0) or not 0.0 <= action[6] <= 1.0)
+    osc = np.clip(action, -1.0, 1.0)
+    osc[6] = -np.sign(2.0 * np.clip(action[6], 0.0, 1.0) - 1.0)
+    return osc, clipped

@@ -13,11 +13,15 @@ Fields:
   cameras          ((observation key, robosuite camera, square size), ...) in observation order;
                    None = the task's defaults (image_primary = agentview 256, image_wrist = eye-in-hand 128).
   image_convention "upright" (row 0 = top, what Octo's datasets hold) or "opengl" (row 0 = bottom: frames
-                   stored upside down, as robosuite renders them and robomimic datasets store them). It
-                   applies to every pixel-indexed thing the env returns: images, masks, target pixels.
+                   stored upside down, as robosuite renders them and robomimic datasets store them) or
+                   "rot180" (the rendered frame turned 180 degrees = upright mirrored left to right: OpenVLA's
+                   LIBERO datasets, which Octo's LIBERO finetunes were trained on). It applies to every
+                   pixel-indexed thing the env returns: images, masks, target pixels.
   action_space     "octo-delta": Octo's 7-D end-effector delta (Bridge convention, see envs.actions);
                    "robosuite": the controller's own 7-D input (OSC_POSE delta: 6 arm values in [-1, 1],
-                   gripper -1 open / +1 closed), as robosuite and robomimic datasets store actions.
+                   gripper -1 open / +1 closed), as robosuite and robomimic datasets store actions;
+                   "libero": OpenVLA's LIBERO datasets' convention (6 OSC_POSE values in [-1, 1], gripper
+                   1 open / 0 closed, binarised at 0.5 as OpenVLA's evaluation does; envs.actions.libero_action).
   hold_gripper     None, or the gripper value held at every step for a model without a gripper dimension (6-D
                    arm-only actions): the env then takes 6-D actions and appends it. Given as "open", "closed"
                    or a number in the action space's own units (octo-delta: 1 open, 0 closed; robosuite: -1 open,
@@ -32,11 +36,12 @@ from typing import Any, Mapping
 
 import numpy as np
 
-IMAGE_CONVENTIONS = ("upright", "opengl")
-ACTION_SPACES = ("octo-delta", "robosuite")
+IMAGE_CONVENTIONS = ("upright", "opengl", "rot180")
+ACTION_SPACES = ("octo-delta", "robosuite", "libero")
 # the gripper value of "open" / "closed" and its range, per action space
 GRIPPER_VALUES = {"octo-delta": {"open": 1.0, "closed": 0.0, "range": (0.0, 1.0)},
-                  "robosuite": {"open": -1.0, "closed": 1.0, "range": (-1.0, 1.0)}}
+                  "robosuite": {"open": -1.0, "closed": 1.0, "range": (-1.0, 1.0)},
+                  "libero": {"open": 1.0, "closed": 0.0, "range": (0.0, 1.0)}}
 
 _CAMERA_SPEC = re.compile(r"^([A-Za-z_][\w]*)=([^:=\s]+):(\d+)$")
 
@@ -46,9 +51,12 @@ class EnvConfigError(ValueError):
 
 
 def to_convention(image: np.ndarray, convention: str) -> np.ndarray:
-    """(height, width, ...) upright pixels -> the same in `convention` ("opengl": rows reversed). Its own inverse."""
+    """(height, width, ...) upright pixels -> the same in `convention` ("opengl": rows reversed; "rot180": the
+    rendered (opengl) frame turned 180 degrees, i.e. columns reversed). Its own inverse."""
     if convention == "opengl":
         return np.ascontiguousarray(np.asarray(image)[::-1])
+    if convention == "rot180":
+        return np.ascontiguousarray(np.asarray(image)[:, ::-1])
     if convention == "upright":
         return image
     raise EnvConfigError(f"image convention {convention!r} unknown; use one of {', '.join(IMAGE_CONVENTIONS)}")

@@ -38,7 +38,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from envs import gl
-from envs.actions import ActionAdapterConfig, adapt_action, passthrough_action
+from envs.actions import ActionAdapterConfig, adapt_action, libero_action, passthrough_action
 from envs.camera import project_points
 from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvConfigError, to_convention
 from envs.render import CameraSpec, SceneRenderer
@@ -205,6 +205,8 @@ class RobosuiteEnv(gym.Env):
         self.image_convention = config.image_convention
         if config.action_space == "robosuite":  # the controller's own input range
             self.action_space = gym.spaces.Box(-1.0, 1.0, (7,), dtype=np.float32)
+        elif config.action_space == "libero":  # OSC input, gripper 1 open / 0 closed (envs.actions.libero_action)
+            self.action_space = gym.spaces.Box(np.array([-1.0] * 6 + [0.0], np.float32), np.ones(7, np.float32))
         else:  # the range the adapter passes unclipped: +-position_max metres, about +-rotation_max radians, gripper [0, 1]
             high = np.array([self.adapter.position_max] * 3 + [self.adapter.rotation_max] * 3 + [1.0], dtype=np.float32)
             low = np.concatenate([-high[:6], [0.0]]).astype(np.float32)
@@ -243,6 +245,8 @@ class RobosuiteEnv(gym.Env):
             action = np.append(arm, np.float32(self.config.hold_gripper))
         if self.config.action_space == "robosuite":
             osc, clipped = passthrough_action(np.asarray(action))
+        elif self.config.action_space == "libero":
+            osc, clipped = libero_action(np.asarray(action))
         else:
             osc, clipped = adapt_action(np.asarray(action), self.adapter)
         raw, reward, _, _ = self._env.step(osc[: self._env.action_dim])  # Wipe's gripper-less arm takes 6 values
@@ -347,6 +351,8 @@ class RobosuiteEnv(gym.Env):
             rc = project_points(centres, data.cam_xpos[cam], data.cam_xmat[cam], self._camera_fovy[key], size, size)
             if self.image_convention == "opengl":
                 rc[:, 0] = (size - 1) - rc[:, 0]
+            elif self.image_convention == "rot180":
+                rc[:, 1] = (size - 1) - rc[:, 1]
             pixels[key] = rc.astype(np.float32)
         return pixels
 

@@ -22,6 +22,8 @@ class TaskSpec:
     max_episode_steps: int  # truncation limit at 20 Hz control
     primary_camera: str = "agentview"  # robosuite camera behind the default image_primary
     robosuite_options: tuple[tuple[str, object], ...] = ()  # fixed extra kwargs for robosuite.make
+    simulator: str = "robosuite"  # "robosuite" (robosuite 1.5 in this environment) | "libero" (envs.libero_env)
+    initial_states: int = 0  # LIBERO: stored initial states (episode seed s starts from state s)
 
     @property
     def gym_id(self) -> str:
@@ -149,19 +151,34 @@ def list_tasks() -> list[TaskSpec]:
 
 
 def get_task(name: str) -> TaskSpec:
-    """The task called `name`; an unknown name raises `UnknownTaskError` listing the known ones and the closest."""
+    """The task called `name` (a robosuite task, or a LIBERO task "libero_object/3"); an unknown name raises
+    `UnknownTaskError` listing the known ones and the closest."""
     if name in _BY_NAME:
         return _BY_NAME[name]
+    from envs import libero_tasks
+
+    if libero_tasks.is_libero(name):
+        if "/" not in name:
+            raise UnknownTaskError(f"{name!r} is a LIBERO suite, not one task; name a task ({name}/0) or pass the suite "
+                                   "to --task, which runs all its tasks")
+        return libero_tasks.get_libero_task(name)
     lowered = {task.lower(): task for task in _BY_NAME}
     if name.lower() in lowered:
         return _BY_NAME[lowered[name.lower()]]
     close = difflib.get_close_matches(name.lower(), list(lowered), n=1, cutoff=0.4)
     hint = f"did you mean {lowered[close[0]]!r}? " if close else ""
-    raise UnknownTaskError(f"unknown task {name!r}; {hint}known tasks: {', '.join(_BY_NAME)}")
+    raise UnknownTaskError(f"unknown task {name!r}; {hint}known tasks: {', '.join(_BY_NAME)}; LIBERO suites: "
+                           "libero_spatial, libero_object, libero_goal, libero_10, libero_90 (see `octo-harness tasks`)")
 
 
-def task_table(tasks: list[TaskSpec] | None = None) -> str:
-    """A plain-text table of tasks (name, max steps, targets, instruction) for `octo-harness tasks`."""
+def task_table(tasks: list[TaskSpec] | None = None, libero: bool = False) -> str:
+    """A plain-text table of tasks (name, max steps, targets, instruction) for `octo-harness tasks`, followed by
+    LIBERO's suites and tasks when `libero` (they run in LIBERO's own environment: docs/libero.md)."""
+    if libero and tasks is None:
+        from envs import libero_tasks
+
+        return task_table(list_tasks(), libero=False) + "\n\nLIBERO (its own simulator stack; set up with " \
+            "`bash scripts/setup_libero.sh`)\n" + libero_tasks.suite_table()
     tasks = list_tasks() if tasks is None else tasks
     rows = [("task", "max steps", "targets", "instruction")]
     rows += [(t.name, str(t.max_episode_steps), ", ".join(t.targets), t.instruction) for t in tasks]

@@ -16,11 +16,13 @@ USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, KeyError, FileNotFou
 
 def _user_errors() -> tuple[type[BaseException], ...]:
     from envs.gl import HeadlessGLError
+    from envs.libero_env import LiberoServerError
     from harness.octo.errors import OctoError
     from harness.run.store import ResultsWriteError, RunLockedError
 
     # ResultsWriteError: a full disk under regress's candidate run is exit 2, never 1 (REGRESSED)
-    return (*USER_ERRORS, RunLockedError, OctoError, HeadlessGLError, OutputsNotWritten, ResultsWriteError)
+    return (*USER_ERRORS, RunLockedError, OctoError, HeadlessGLError, OutputsNotWritten, ResultsWriteError,
+            LiberoServerError)
 
 
 def _interrupt(signum, frame):
@@ -161,9 +163,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--camera", action="append", default=None, metavar="KEY=camera:size",
                    help="observation key fed by a robosuite camera at a square size, e.g. image_primary=agentview:84 "
                         "(repeat; default: the task's cameras or the checkpoint's harness.toml)")
-    r.add_argument("--image-convention", choices=["upright", "opengl"], default=None,
-                   help="orientation of the frames the model was trained on [upright]")
-    r.add_argument("--action-space", choices=["octo-delta", "robosuite"], default=None,
+    r.add_argument("--image-convention", choices=["upright", "opengl", "rot180"], default=None,
+                   help="orientation of the frames the model was trained on (rot180: OpenVLA's LIBERO datasets) [upright]")
+    r.add_argument("--action-space", choices=["octo-delta", "robosuite", "libero"], default=None,
                    help="what the model's actions mean [octo-delta, or the checkpoint's harness.toml]")
     r.add_argument("--hold-gripper", default=None, metavar="open|closed|VALUE",
                    help="for a 6-D (arm-only) model: the env takes 6-D actions and holds the gripper at this value "
@@ -340,7 +342,7 @@ def _cmd_replay(args) -> int:
 def _cmd_tasks() -> int:
     import envs
 
-    print(envs.task_table())
+    print(envs.task_table(libero=True))
     return 0
 
 

@@ -9,8 +9,8 @@ normalisation statistics. `harness.toml` (TOML, read with the standard library's
     format = "octo-harness-conventions/1"
 
     [env]                              # envs.EnvOptions fields a model depends on
-    action_space = "robosuite"         # "octo-delta" | "robosuite"
-    image_convention = "upright"       # "upright" | "opengl"
+    action_space = "robosuite"         # "octo-delta" | "robosuite" | "libero"
+    image_convention = "upright"       # "upright" | "opengl" | "rot180"
 
     [env.cameras]                      # observation key = [robosuite camera, square size]
     image_primary = ["agentview", 84]

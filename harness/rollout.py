@@ -5,10 +5,11 @@
 work in the background.
 
 Image convention: the policy sees the frames exactly as the env gives them (for an env with
-image_convention "opengl", upside down, as the model was trained). Records are for people and for
-the attention analysis, so they are upright: frames and masks are flipped back and the token map's
-patch rows are reversed for those cameras (`TokenMap.with_rows_flipped`), so maps, overlays and
-mask mass all live in the upright frame.
+image_convention "opengl", upside down, as the model was trained; "rot180", mirrored left to right).
+Records are for people and for the attention analysis, so they are upright: frames and masks are
+flipped back and the token map's patch rows (opengl) or columns (rot180) are reversed for those
+cameras (`TokenMap.with_rows_flipped` / `with_cols_flipped`), so maps, overlays and mask mass all
+live in the upright frame.
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ def rollout(
     """
     policy.check_env(env)  # a model/env mismatch is one line, before the episode starts
     convention = getattr(getattr(env, "unwrapped", env), "image_convention", "upright")
-    upright_tokens = _UprightTokens(tuple(policy.image_sizes) if convention == "opengl" else ())
+    upright_tokens = _UprightTokens(tuple(policy.image_sizes) if convention != "upright" else (), convention)
     observation, info = env.reset(seed=seed)
     instruction = instruction or info.get("instruction", "")
     policy.reset(instruction, seed=seed, goals=goals)
@@ -83,7 +84,8 @@ def rollout(
             timings={"inference": decision.inference_seconds, "simulation": after_sim - after_policy},
             inferred=decision.inferred,
             tokens=upright_tokens(decision.tokens),
-            attribution=_upright_attribution(getattr(decision, "attribution", None), upright_tokens.flipped_keys),
+            attribution=_upright_attribution(getattr(decision, "attribution", None), upright_tokens.flipped_keys,
+                                             convention),
             policy_inputs=decision.inputs,
         )
         sink(record)
@@ -108,11 +110,13 @@ def rollout(
     )
 
 
-def _upright_attribution(attribution: dict | None, flipped_keys: tuple[str, ...]) -> dict | None:
-    """Attribution maps of upside-down cameras (image convention "opengl") with their patch rows reversed."""
+def _upright_attribution(attribution: dict | None, flipped_keys: tuple[str, ...], convention: str = "opengl") -> dict | None:
+    """Attribution maps of upside-down cameras (image convention "opengl": patch rows reversed) or mirrored ones
+    ("rot180": patch columns reversed), upright."""
     if attribution is None or not flipped_keys:
         return attribution
-    maps = {m: {k: (v[::-1] if k in flipped_keys else v) for k, v in by.items()} for m, by in attribution["maps"].items()}
+    flip = (lambda v: v[:, ::-1]) if convention == "rot180" else (lambda v: v[::-1])  # noqa: E731
+    maps = {m: {k: (flip(v) if k in flipped_keys else v) for k, v in by.items()} for m, by in attribution["maps"].items()}
     return {**attribution, "maps": maps}
 
 
@@ -127,13 +131,16 @@ def _upright_masks(masks: dict | None, convention: str) -> dict | None:
 class _UprightTokens:
     """Token map of an inference -> the same with the rows of upside-down cameras reversed (one copy per map)."""
 
-    def __init__(self, flipped_keys: tuple[str, ...]):
+    def __init__(self, flipped_keys: tuple[str, ...], convention: str = "opengl"):
         self.flipped_keys = flipped_keys
+        self.convention = convention
         self._last: tuple = (None, None)
 
     def __call__(self, tokens):
         if tokens is None or not self.flipped_keys:
             return tokens
         if self._last[0] is not tokens:
-            self._last = (tokens, tokens.with_rows_flipped(self.flipped_keys))
+            flipped = (tokens.with_cols_flipped(self.flipped_keys) if self.convention == "rot180"
+                       else tokens.with_rows_flipped(self.flipped_keys))
+            self._last = (tokens, flipped)
         return self._last[1]

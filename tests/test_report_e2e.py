@@ -16,6 +16,7 @@ from PIL import Image
 
 from harness import cli
 from harness.analysis.aggregate import TABLE_COLUMNS
+from runfolder_edits import redigest
 
 STEPS = 3
 
@@ -53,6 +54,7 @@ def runs(fixtures_dir, tmp_path_factory):
             kept = {k: z[k] for k in z.files
                     if not k.startswith(("mask_fraction/", "metrics/mask_", "measures/layer/mask_", "measures/head/mask_"))}
         np.savez(npz, **kept)
+    redigest(nomask)
     # an interrupted copy of `full`: the last job has no result yet, one episode failed, and the model is marked random
     partial = _copy(full, out / "partial")
     rows = [json.loads(line) for line in (partial / "results.jsonl").read_text().splitlines()][:3]
@@ -156,6 +158,7 @@ def test_runs_without_stored_measures_give_the_same_tables(runs, report, tmp_pat
                 assert any(k.startswith("measures/head/") for k in z.files)  # the writers store them
                 kept = {k: z[k] for k in z.files if not k.startswith("measures/")}
             np.savez(npz, **kept)
+        redigest(copy)
         copies.append(copy)
     out = tmp_path / "again"
     assert cli.main(["report", *map(str, copies), "--out", str(out), "--resamples", "500", "--workers", "1"]) == 0

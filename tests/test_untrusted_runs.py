@@ -295,10 +295,22 @@ def test_the_schema_refuses_a_malformed_digest_and_a_task_that_is_a_path():
         check_row({**row, "files": {"../x.npz": {"size": 1, "sha256": "0" * 64}}}, "r", 1)
     with pytest.raises(MalformedRunError, match=r"task '\.\./Lift' is not a task name"):
         check_row({**row, "task": "../Lift"}, "r", 1)
+    for climbing in ("libero_object/../../x", "libero_object/..", "/abs/Lift", "Lift/"):
+        with pytest.raises(MalformedRunError, match=r"is not a task name"):
+            check_row({**row, "task": climbing}, "r", 1)
     manifest = json.loads((BASELINE / "manifest.json").read_text())
-    manifest["protocol"]["tasks"] = ["../../elsewhere"]
-    with pytest.raises(MalformedRunError, match=r"not a task name"):
-        check_manifest(manifest, "m")
+    for bad in ("../../elsewhere", "libero_object/../../elsewhere"):
+        manifest["protocol"]["tasks"] = [bad]
+        with pytest.raises(MalformedRunError, match=r"not a task name"):
+            check_manifest(manifest, "m")
+
+
+def test_a_libero_task_name_nests_one_folder_inside_the_run():
+    """LIBERO tasks are '<suite>/<index>': the schema takes plain names joined by '/', and no other path."""
+    from harness.runfolder.schema import TASK_NAME
+
+    assert TASK_NAME.match("libero_object/3") and TASK_NAME.match("Lift")
+    assert not any(TASK_NAME.match(t) for t in ("../Lift", "a/../b", "a//b", ".hidden", "a/.x", "a\\b", ""))
 
 
 # ---- a gate that cannot be emptied -------------------------------------------------------------------------------

@@ -71,6 +71,20 @@ class TokenMap:
         row.flags.writeable = False
         return TokenMap(self.group, self.timestep, row, self.col, self.image_groups, self.readout_index)
 
+    def with_cols_flipped(self, observation_keys) -> "TokenMap":
+        """The same map with the patch columns of the cameras fed by `observation_keys` reversed (col c -> cols-1-c).
+
+        For models that see frames mirrored left to right (image convention "rot180", LIBERO finetunes).
+        """
+        keys = set(observation_keys)
+        col = self.col.copy()
+        for name, key, _, cols in self.image_groups:
+            if key in keys:
+                sel = self.group == name
+                col[sel] = cols - 1 - col[sel]
+        col.flags.writeable = False
+        return TokenMap(self.group, self.timestep, self.row, col, self.image_groups, self.readout_index)
+
     def to_arrays(self, prefix: str = "tokens/") -> dict[str, np.ndarray]:
         """Flat dict of arrays suitable for np.savez (no pickled objects)."""
         return {

@@ -26,7 +26,7 @@ import numpy as np
 
 from harness.run import checks
 from harness.run.protocol import protocol_from_manifest
-from harness.runfolder.platform import platform_differences, platform_fingerprint, platform_info
+from harness.runfolder.platform import libero_platform, platform_differences, platform_fingerprint, platform_info
 from harness.run.executor import EpisodeContext, Executor, SequentialExecutor, StepCallback
 from harness.run.progress import Progress
 from harness.run.protocol import FORMAT, EpisodeJob, Protocol, diff, goal_fingerprint, model_fingerprint
@@ -200,6 +200,7 @@ def execute(
     executor: factory(context, model) -> Executor (default SequentialExecutor).
     """
     checks.check_environment()
+    checks.check_libero(protocol)
     out = checks.check_destination(Path(out))
     if run_name is not None:
         checks.check_run_name(run_name)  # before hashing the checkpoint
@@ -228,7 +229,7 @@ def execute(
                         f"run {store.dir} was started with a different protocol (differs: {', '.join(differs)}); "
                         "run the same command to resume it, --overwrite to start it afresh, or choose another --run-name")
 
-            platform_now = platform_info()
+            platform_now = platform_info(libero=libero_platform(protocol.tasks))
             platform_fp = platform_fingerprint(platform_now)
             if manifest is not None and manifest.get("platform_fingerprint") not in (None, platform_fp):
                 log.warning("resuming run %s on another platform (differs: %s); its episodes record where they ran",

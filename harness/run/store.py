@@ -177,7 +177,8 @@ class RunStore:
 
     def foreign_content(self, tasks: Iterable[str] = ()) -> list[str]:
         """Names in a folder without manifest that a run would not write (guards --run-name against a wrong folder)."""
-        ours = {LOCK, MANIFEST, RESULTS_JSONL, RESULTS_JSON, SUMMARY_CSV, STATISTICS_CSV, *tasks}
+        ours = {LOCK, MANIFEST, RESULTS_JSONL, RESULTS_JSON, SUMMARY_CSV, STATISTICS_CSV,
+                *(t.split("/")[0] for t in tasks)}  # a LIBERO task "libero_object/3" lives in libero_object/3/
         if not self.dir.is_dir() or (self.dir / MANIFEST).exists():
             return []
         return sorted(p.name for p in self.dir.iterdir() if p.name not in ours and ".tmp." not in p.name)

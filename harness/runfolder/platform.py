@@ -26,6 +26,9 @@ NUMERIC_CPU_FLAGS = ("sse4_1", "sse4_2", "avx", "avx2", "fma", "f16c", "avx512f"
 NUMERICS = ("machine", "cpu.vendor", "cpu.model", "cpu.numeric_flags", "jax.version", "jax.jaxlib", "jax.backend",
             "jax.device_kind", "xla_flags", "versions.mujoco", "versions.robosuite", "versions.numpy",
             "gl.backend", "gl.vendor", "gl.renderer", "gl.version")
+# the LIBERO side (its own environment: envs/libero_server.py), fingerprinted only for runs that have one
+LIBERO_NUMERICS = ("libero.libero_package", "libero.robosuite", "libero.mujoco", "libero.numpy", "libero.gl.backend",
+                   "libero.gl.vendor", "libero.gl.renderer", "libero.gl.version")
 
 
 def cpu_info(cpuinfo: str | None = None) -> dict:
@@ -90,10 +93,28 @@ def versions() -> dict:
             "python": _platform.python_version()}
 
 
-def platform_info(gl: dict | None = None) -> dict:
-    """Everything `NUMERICS` names, plus OS, kernel and Python (see the module docstring)."""
+def libero_platform(tasks) -> dict | None:
+    """The LIBERO side of a run with LIBERO tasks (None without): its package, robosuite, MuJoCo, numpy and Python
+    versions and its GL renderer, as its own environment reports them (a server started for the purpose)."""
+    import envs
+
+    if not any(envs.get_task(t).simulator == "libero" for t in tasks):
+        return None
+    from envs.libero_env import libero_versions
+
+    try:
+        return libero_versions()
+    except Exception as exc:  # noqa: BLE001 - provenance must never stop a run (the env itself reports the fault)
+        return {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
+
+
+def platform_info(gl: dict | None = None, libero: dict | None = None) -> dict:
+    """Everything `NUMERICS` names, plus OS, kernel and Python (see the module docstring); `libero`: the LIBERO
+    side's versions (`libero_platform`), recorded under "libero" and fingerprinted (LIBERO_NUMERICS) when given."""
     uname = _platform.uname()
+    extra = {"libero": libero} if libero is not None else {}
     return {
+        **extra,
         "machine": uname.machine,
         "os": f"{uname.system} {uname.release}",
         "kernel": uname.version,
@@ -114,8 +135,10 @@ def _get(info: dict, dotted: str):
 
 
 def numerics(info: dict) -> dict:
-    """The numerics-relevant part of a platform_info dict: {dotted key: value}."""
-    return {key: _get(info, key) for key in NUMERICS}
+    """The numerics-relevant part of a platform_info dict: {dotted key: value} (LIBERO_NUMERICS too when the run has
+    a LIBERO side, so the fingerprints of runs without one are unchanged)."""
+    keys = NUMERICS + (LIBERO_NUMERICS if isinstance(info.get("libero"), dict) else ())
+    return {key: _get(info, key) for key in keys}
 
 
 def platform_fingerprint(info: dict) -> str:
@@ -129,4 +152,4 @@ def platform_differences(a: dict | None, b: dict | None) -> list[str]:
     if not isinstance(a, dict) or not isinstance(b, dict):
         return list(NUMERICS)
     na, nb = numerics(a), numerics(b)
-    return [key for key in NUMERICS if na[key] != nb[key]]
+    return [key for key in dict.fromkeys([*na, *nb]) if na.get(key) != nb.get(key)]

@@ -18,6 +18,9 @@ from typing import Any
 FIX = "repair the file or re-create the run (octo-harness run ... --overwrite)"
 ROW_STATUSES = ("ok", "failed")
 FILE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+# a task name: plain names joined by "/" (LIBERO tasks are "<suite>/<index>", their folders nest); no segment starts
+# with "." so no ".." can climb out of the run
+TASK_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*(/[A-Za-z0-9_][A-Za-z0-9_.-]*)*$")
 SHA256 = re.compile(r"^[0-9a-f]{64}$")
 
 
@@ -54,7 +57,7 @@ def check_protocol(protocol: Any, path: Path | str) -> dict:
     if not isinstance(tasks, list) or not tasks or not all(isinstance(t, str) and t for t in tasks):
         raise _fail(path, f"protocol.tasks must be a non-empty list of task names, got {_short(tasks)}")
     for task in tasks:
-        if not FILE_NAME.match(task):
+        if not TASK_NAME.match(task):
             raise _fail(path, f"protocol.tasks holds {_short(task)}, not a task name (a task's folder lies inside the run)")
     for name in ("episodes", "seed"):
         _expect(path, f"protocol.{name}", protocol.get(name), (int,), "an integer")
@@ -82,7 +85,7 @@ def check_manifest(manifest: Any, path: Path | str) -> dict:
     tasks = set(protocol["tasks"]) if protocol is not None else None
     seen = set()
     for job in jobs:
-        if not (isinstance(job, list) and len(job) == 3 and isinstance(job[0], str) and FILE_NAME.match(job[0])
+        if not (isinstance(job, list) and len(job) == 3 and isinstance(job[0], str) and TASK_NAME.match(job[0])
                 and _is_int(job[1]) and job[1] >= 0
                 and (job[2] is None or _is_int(job[2]))):
             raise _fail(path, f"every job must be [task, episode >= 0, seed], got {_short(job)}")
@@ -131,7 +134,7 @@ def check_row(row: Any, path: Path | str, line: int, jobs: set[tuple[str, int]] 
     where = f"{path} line {line}"
     _expect(where, "the row", row, (dict,), "a JSON object")
     _expect(where, "task", row.get("task"), (str,), "a task name")
-    if not FILE_NAME.match(row["task"]):
+    if not TASK_NAME.match(row["task"]):
         raise _fail(where, f"task {_short(row['task'])} is not a task name (its folder must lie inside the run)")
     _expect(where, "episode", row.get("episode"), (int,), "an integer")
     _expect(where, "seed", row.get("seed"), (int,), "an integer or null", optional=True)

@@ -1,0 +1,83 @@
+"""LIBERO's suites as harness tasks: "libero_object/3" is task 3 of LIBERO-Object, "libero_object" the whole suite.
+
+The table (suites, task names, instructions, BDDL objects of interest, stored initial states) is
+envs/libero_tasks.json, written from the installed package by scripts/libero_tasks.py and checked against it by
+tests/test_libero.py, so listing and validating tasks needs no LIBERO environment. Step limits are the published
+evaluation's (OpenVLA's run_libero_eval.py: the longest training demonstration plus a margin), counted after the
+settle steps.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from pathlib import Path
+
+from envs.tasks import TaskSpec, UnknownTaskError
+
+# policy steps per episode, after the settle steps (OpenVLA's LIBERO evaluation)
+STEP_LIMITS = {"libero_spatial": 220, "libero_object": 280, "libero_goal": 300, "libero_10": 520, "libero_90": 400}
+SUITES = tuple(STEP_LIMITS)  # in listing order; libero_90 last
+SETTLE_STEPS = 10  # no-op actions (arm still, gripper open) after restoring the initial state: objects drop and settle
+TABLE_PATH = Path(__file__).with_name("libero_tasks.json")
+
+
+@functools.lru_cache(maxsize=1)
+def _table() -> dict:
+    return json.loads(TABLE_PATH.read_text())
+
+
+@functools.lru_cache(maxsize=1)
+def libero_tasks() -> tuple[TaskSpec, ...]:
+    """Every LIBERO task of the five suites as a TaskSpec (targets: the BDDL objects of interest)."""
+    specs = []
+    for suite in SUITES:
+        for index, task in enumerate(_table()["suites"][suite]):
+            specs.append(TaskSpec(
+                name=f"{suite}/{index}", robosuite_env="libero", instruction=task["instruction"], paraphrases=(),
+                targets=tuple(task["objects_of_interest"]), max_episode_steps=STEP_LIMITS[suite],
+                simulator="libero", initial_states=int(task["initial_states"])))
+    return tuple(specs)
+
+
+def is_libero(name: str) -> bool:
+    """Whether `name` names a LIBERO suite or task (by its prefix; it may still be out of range)."""
+    return name.strip().lower().split("/")[0] in SUITES
+
+
+def suite_and_index(name: str) -> tuple[str, int]:
+    """"libero_object/3" -> ("libero_object", 3)."""
+    suite, _, index = name.partition("/")
+    return suite, int(index)
+
+
+def expand(name: str) -> list[str]:
+    """A suite name -> its task names in order; a task name -> [itself]; anything wrong -> UnknownTaskError."""
+    text = name.strip().lower()
+    suite, slash, index = text.partition("/")
+    if suite not in SUITES:
+        raise UnknownTaskError(f"unknown LIBERO suite {suite!r}; suites: {', '.join(SUITES)}")
+    count = len(_table()["suites"][suite])
+    if not slash:
+        return [f"{suite}/{i}" for i in range(count)]
+    if not index.isdigit() or int(index) >= count:
+        raise UnknownTaskError(f"{name!r}: {suite} has tasks {suite}/0 to {suite}/{count - 1}")
+    return [f"{suite}/{int(index)}"]
+
+
+def get_libero_task(name: str) -> TaskSpec:
+    (canonical,) = expand(name)
+    suite, index = suite_and_index(canonical)
+    offset = sum(len(_table()["suites"][s]) for s in SUITES[:SUITES.index(suite)])
+    return libero_tasks()[offset + index]
+
+
+def suite_table() -> str:
+    """Plain-text listing of the LIBERO suites and their tasks for `octo-harness tasks`."""
+    lines = []
+    for suite in SUITES:
+        tasks = _table()["suites"][suite]
+        lines.append(f"{suite} ({len(tasks)} tasks, {STEP_LIMITS[suite]} steps; --task {suite} runs them all)")
+        for index, task in enumerate(tasks):
+            lines.append(f"  {suite}/{index:<3} {task['instruction']}  [targets: {', '.join(task['objects_of_interest'])}]")
+    return "\n".join(lines)

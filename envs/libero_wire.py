@@ -1,0 +1,112 @@
+"""The LIBERO env server's message format: nested data with numpy arrays over a byte stream (pure numpy + json).
+
+One message = 8-byte big-endian header length, a JSON header, then the raw bytes of every array in order.
+The header holds the data with each array replaced by {"__array__": i, "dtype": str, "shape": [...]}; arrays
+are C-contiguous little-endian copies, so both sides of the pipe may run different numpy versions (no pickle:
+the two processes live in two Python environments). Values allowed: dict (str keys), list/tuple (as lists),
+str, int, float, bool, None and numpy arrays or scalars.
+
+    write_message(stream, {"op": "step", "action": np.zeros(7)})
+    message = read_message(stream)   # EOFError when the other side closed the stream
+
+This file is imported by the driver (`envs.libero_wire`) and by the server (as a sibling module), so it imports
+nothing from the harness.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+
+_HEADER = struct.Struct(">Q")
+MAX_HEADER_BYTES = 64 << 20  # a header above this is a corrupt stream, not a message
+
+
+def _encode(value, buffers: list) -> object:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        array = np.ascontiguousarray(value)
+        if array.dtype.hasobject:
+            raise TypeError("object arrays cannot cross the LIBERO process boundary")
+        array = array.astype(array.dtype.newbyteorder("<"), copy=False)
+        buffers.append(array.tobytes())
+        return {"__array__": len(buffers) - 1, "dtype": array.dtype.str, "shape": list(array.shape)}
+    if isinstance(value, dict):
+        if "__array__" in value:
+            raise ValueError("the key '__array__' is reserved by the wire format")
+        return {str(k): _encode(v, buffers) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_encode(v, buffers) for v in value]
+    if value is None or isinstance(value, (str, bool, int, float)):
+        return value
+    raise TypeError(f"cannot send {type(value).__name__} across the LIBERO process boundary")
+
+
+def _decode(value, arrays: list):
+    if isinstance(value, dict):
+        if "__array__" in value:
+            return arrays[value["__array__"]]
+        return {k: _decode(v, arrays) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_decode(v, arrays) for v in value]
+    return value
+
+
+def encode_message(data) -> bytes:
+    """data -> one message's bytes."""
+    buffers: list[bytes] = []
+    tree = _encode(data, buffers)
+    header = json.dumps({"data": tree, "sizes": [len(b) for b in buffers]}, separators=(",", ":")).encode()
+    return _HEADER.pack(len(header)) + header + b"".join(buffers)
+
+
+def write_message(stream, data) -> None:
+    """Send one message on a binary stream and flush it."""
+    stream.write(encode_message(data))
+    stream.flush()
+
+
+def _read_exact(stream, size: int) -> bytes:
+    chunks, left = [], size
+    while left > 0:
+        chunk = stream.read(left)
+        if not chunk:
+            raise EOFError("the other side of the LIBERO pipe closed")
+        chunks.append(chunk)
+        left -= len(chunk)
+    return b"".join(chunks)
+
+
+def read_message(stream):
+    """Receive one message from a binary stream; EOFError if it closed, ValueError if it is corrupt."""
+    (length,) = _HEADER.unpack(_read_exact(stream, _HEADER.size))
+    if length > MAX_HEADER_BYTES:
+        raise ValueError(f"LIBERO message header of {length} bytes: the stream is corrupt")
+    header = json.loads(_read_exact(stream, length))
+    arrays = []
+    specs: list = []
+    _array_specs(header["data"], specs)
+    specs.sort(key=lambda s: s["__array__"])
+    if [s["__array__"] for s in specs] != list(range(len(header["sizes"]))):
+        raise ValueError("LIBERO message: array references do not match its buffers")
+    for spec, size in zip(specs, header["sizes"]):
+        raw = _read_exact(stream, size)
+        dtype = np.dtype(spec["dtype"])
+        array = np.frombuffer(raw, dtype=dtype).reshape(spec["shape"])
+        arrays.append(array.astype(dtype.newbyteorder("="), copy=True))
+    return _decode(header["data"], arrays)
+
+
+def _array_specs(tree, out: list) -> None:
+    if isinstance(tree, dict):
+        if "__array__" in tree:
+            out.append(tree)
+            return
+        for v in tree.values():
+            _array_specs(v, out)
+    elif isinstance(tree, list):
+        for v in tree:
+            _array_specs(v, out)

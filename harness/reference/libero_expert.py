@@ -1,0 +1,121 @@
+"""A scripted, state-based demonstrator for LIBERO-Object: pick the named object, place it in the basket.
+
+It drives a LIBERO task through the same path a policy does (`envs.make("libero_object/k", ...)`, the server
+process, the "libero" action space: 6 OSC_POSE values in [-1, 1], gripper 1 open / 0 closed) and reads the
+state a demonstrator may see: the end effector from `proprio`, the objects' boxes from `LiberoEnv.object_poses`.
+Its success rate (scripts/libero_expert.py) checks the controller, the action and gripper conventions and
+LIBERO's success predicate end to end; it is not a policy anyone should learn from.
+
+Phases: hover above the object, descend to the grasp height, close, lift, carry above the basket, lower,
+release, retreat. Within a phase the hand follows a waypoint with a saturated proportional law (OSC_POSE's
+delta input is 0.05 m per unit; the arm realises a fraction of a commanded step each control step).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+POSITION_MAX = 0.05  # metres per unit OSC input (robosuite 1.4 OSC_POSE output_max)
+OPEN, CLOSED = 1.0, 0.0  # the "libero" action space's gripper
+
+
+@dataclass(frozen=True)
+class LiberoExpertConfig:
+    gain: float = 10.0  # OSC units per (error / POSITION_MAX)
+    hover: float = 0.10  # metres above the object's top before descending
+    finger_depth: float = 0.03  # metres the fingertips reach below the object's top (capped at its middle)
+    floor_clearance: float = 0.012  # lowest grasp height above the object's bottom
+    carry_clearance: float = 0.08  # metres between the object's bottom and the basket's rim while carrying
+    release_above_rim: float = 0.03
+
+
+@dataclass(frozen=True)
+class _Phase:
+    name: str
+    gripper: float
+    tolerance: float
+    min_steps: int = 0
+    max_steps: int = 80
+
+
+PHASES = (
+    _Phase("hover", OPEN, 0.015),
+    _Phase("descend", OPEN, 0.008, max_steps=60),
+    _Phase("close", CLOSED, 1.0, min_steps=12, max_steps=12),
+    _Phase("lift", CLOSED, 0.02, max_steps=60),
+    _Phase("carry", CLOSED, 0.02, max_steps=100),
+    _Phase("lower", CLOSED, 0.02, max_steps=40),
+    _Phase("release", OPEN, 1.0, min_steps=10, max_steps=10),
+    _Phase("retreat", OPEN, 0.02, max_steps=200),
+)
+
+
+class LiberoObjectExpert:
+    """`act(env, obs) -> (7,) float32` in the "libero" action space for one episode of a LIBERO-Object task."""
+
+    def __init__(self, target: str, basket: str = "basket_1", config: LiberoExpertConfig = LiberoExpertConfig()):
+        self.target = target
+        self.basket = basket
+        self.config = config
+        self.phase = 0
+        self.steps_in_phase = 0
+        self.grasp_offset: np.ndarray | None = None  # object's bottom minus hand position, fixed when lifted
+
+    @property
+    def phase_name(self) -> str:
+        return PHASES[min(self.phase, len(PHASES) - 1)].name
+
+    def _waypoint(self, name: str, hand: np.ndarray, poses: dict) -> np.ndarray:
+        c = self.config
+        obj, basket = poses[self.target], poses[self.basket]
+        centre = (obj["low"] + obj["high"]) / 2
+        top, bottom = obj["high"][2], obj["low"][2]
+        grasp_z = max(top - c.finger_depth, (top + bottom) / 2, bottom + c.floor_clearance)
+        rim = basket["high"][2]
+        basket_xy = (basket["low"][:2] + basket["high"][:2]) / 2
+        below_hand = hand[2] - bottom  # the object's bottom sits this far below the hand while held
+        if name == "hover":
+            return np.array([centre[0], centre[1], max(top + c.hover, hand[2])])
+        if name in ("descend", "close"):
+            return np.array([centre[0], centre[1], grasp_z])
+        if name == "lift":
+            return np.array([hand[0], hand[1], rim + c.carry_clearance + below_hand])
+        if name == "carry":
+            return np.array([basket_xy[0], basket_xy[1], rim + c.carry_clearance + below_hand])
+        if name in ("lower", "release"):
+            return np.array([basket_xy[0], basket_xy[1], rim + c.release_above_rim + below_hand])
+        return np.array([basket_xy[0], basket_xy[1], rim + 0.15])
+
+    def act(self, env, obs: dict) -> np.ndarray:
+        hand = np.asarray(obs["proprio"][:3], np.float64)
+        poses = env.object_poses()
+        while True:
+            phase = PHASES[min(self.phase, len(PHASES) - 1)]
+            goal = self._waypoint(phase.name, hand, poses)
+            error = goal - hand
+            reached = np.linalg.norm(error) <= phase.tolerance and self.steps_in_phase >= phase.min_steps
+            if self.phase < len(PHASES) - 1 and (reached or self.steps_in_phase >= phase.max_steps):
+                self.phase += 1
+                self.steps_in_phase = 0
+                continue
+            break
+        self.steps_in_phase += 1
+        arm = np.clip(self.config.gain * error / POSITION_MAX, -1.0, 1.0)
+        return np.concatenate([arm, np.zeros(3), [phase.gripper]]).astype(np.float32)
+
+
+def run_expert_episode(env, target: str, seed: int, max_steps: int | None = None) -> dict:
+    """One episode of the expert on a LIBERO-Object env made with action_space="libero" -> {success, steps, phase}."""
+    obs, info = env.reset(seed=seed)
+    expert = LiberoObjectExpert(target)
+    limit = max_steps if max_steps is not None else env.max_episode_steps
+    steps, success = 0, False
+    while steps < limit:
+        obs, _, terminated, truncated, info = env.step(expert.act(env, obs))
+        steps += 1
+        success = bool(info["success"])
+        if terminated or truncated:
+            break
+    return {"success": success, "steps": steps, "phase": expert.phase_name}
