@@ -24,4 +24,10 @@ done
 "$PY" -m harness.cli report "${runs[@]}" --out "$OUT/report"
 "$PY" -m harness.report.phases "${runs[@]}" > "$OUT/phases.md"
 "$PY" -m harness.report.position "${runs[@]}" > "$OUT/position.md"
+# the figures docs/phases-and-position.md shows
+for task in Lift Stack PickPlaceCan; do
+    lower=$(echo "$task" | tr '[:upper:]' '[:lower:]')
+    cp "$OUT/report/plots/position_${lower}_phases_${task}.png" "docs/phases_position_${lower}.png"
+    cp "$OUT/report/plots/phase_events_${lower}_phases_${task}.png" "docs/phases_events_${lower}.png"
+done
 echo "report: $OUT/report/report.html; tables: $OUT/phases.md, $OUT/position.md"
