@@ -150,3 +150,31 @@ def test_a_run_without_phases_or_controls_has_neither_section(tmp_path, fixtures
     html = (tmp_path / "report" / "report.html").read_text()
     assert "id='phases'" not in html and "id='position'" not in html
     assert _rows(tmp_path / "report" / "tables" / "position_bound.csv") == []
+
+
+def test_two_env_workers_give_the_same_phases_and_controls_bit_for_bit(run, tmp_path):
+    code = cli.main(["run", "--model", str(MODEL), "--task", "Lift", "--episodes", "2", "--seed", "1", "--max-steps", "40",
+                     "--attention-controls", "blank,mirror", "--controls-every", str(EVERY), "--record-inputs",
+                     "--png-every", "0", "--no-video", "--fast-render", "--out", str(tmp_path), "--run-name", "workers",
+                     "--workers", "2"])
+    assert code == 0
+    for directory in sorted(run.glob("Lift/episode_*")):
+        other = tmp_path / "workers" / directory.relative_to(run)
+        for name, keys in (("controls.npz", ("step", "blank", "mirror")), ("attention.npz", ("phase", "readout_attention"))):
+            with np.load(directory / name) as a, np.load(other / name) as b:
+                for key in keys:
+                    assert np.array_equal(a[key], b[key]), (directory.name, name, key)
+
+
+def test_a_run_without_masks_reports_its_phases_and_says_why_nothing_is_tested(run, tmp_path):
+    copy = tmp_path / "nomask"
+    shutil.copytree(run, copy)
+    for npz in copy.glob("*/episode_*/attention.npz"):
+        with np.load(npz) as z:
+            kept = {k: z[k] for k in z.files
+                    if not k.startswith(("mask_fraction/", "metrics/mask_", "measures/layer/mask_", "measures/head/mask_"))}
+        np.savez(npz, **kept)
+    assert cli.main(["report", str(copy), "--out", str(tmp_path / "report"), "--resamples", "50"]) == 0
+    assert len(_rows(tmp_path / "report" / "tables" / "phase_steps.csv")) == 3
+    assert _rows(tmp_path / "report" / "tables" / "phase_tests.csv") == []
+    assert "no mask measures (a run with --no-masks)" in (tmp_path / "report" / "report.html").read_text()

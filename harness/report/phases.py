@@ -188,6 +188,8 @@ def sentence(task: str, summary: dict[str, list[tuple]], alpha: float = 0.05) ->
     """One plain sentence: which measures change across phases on the headline camera's last layer (the test)."""
     head = _headline(summary["tests"], task)
     if head is None:
+        if any(r[1] == task for r in summary["steps"]):
+            return f"{task}: phases recorded but no mask measures (a run with --no-masks): nothing to test."
         return f"{task}: no phases recorded."
     camera, layer = head
     tests = [r for r in summary["tests"] if r[1] == task and r[2] == camera and r[4] == layer and r[5] != "none"]
