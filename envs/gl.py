@@ -5,6 +5,10 @@ has to be made before `robosuite` is imported: `configure()` runs when `envs` is
 in variables the user left unset (EGL when an EGL display initialises in a short-lived child process,
 else OSMesa when its library is present). `ensure_context()` then imports MuJoCo and creates and frees one real GL context whenever an
 environment is made, turning a missing driver into a `HeadlessGLError` that names the apt packages.
+
+`OCTO_HARNESS_RENDER_DEVICE` (`--render-device cpu|gpu|N`) chooses where MuJoCo renders, independently of where JAX
+computes: `cpu` renders with Mesa's llvmpipe while JAX uses the GPU (EGL rendering and CUDA compute on one GPU
+aborted in 4 of 4 runs in another harness's measurements), `N` renders on EGL device N (another GPU).
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import os
 import subprocess
 import sys
 from collections.abc import Callable, MutableMapping
+from pathlib import Path
 
 APT_EGL = "apt-get install -y libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0 libgl1 libglib2.0-0"
 APT_OSMESA = "apt-get install -y libosmesa6"
@@ -99,9 +104,61 @@ def choose_backend(
     return "egl"  # nothing works; `ensure_context` will raise the actionable error
 
 
+RENDER_DEVICE = "OCTO_HARNESS_RENDER_DEVICE"  # cpu | gpu | N (`--render-device`); unset: MuJoCo's own choice
+MESA_EGL_VENDOR = "/usr/share/glvnd/egl_vendor.d/50_mesa.json"  # libglvnd's file for Mesa's EGL (libegl-mesa0)
+render_device_error: str | None = None  # why the asked-for render device could not be set up (ensure_context raises it)
+
+
+def render_device_settings(choice: str, environ: MutableMapping[str, str],
+                           mesa_vendor: str = MESA_EGL_VENDOR, osmesa_found: Callable[[], bool] | None = None
+                           ) -> dict[str, str]:
+    """The variables that make MuJoCo render on `choice`, checked against what the user set (HeadlessGLError, one line):
+
+    cpu   Mesa's llvmpipe: EGL through libglvnd's Mesa vendor only (a GPU's EGL driver is never loaded) with
+          LIBGL_ALWAYS_SOFTWARE=1, else OSMesa (always the CPU); JAX keeps whatever device it computes on.
+    gpu   EGL on the first EGL device (robosuite's default; CUDA_VISIBLE_DEVICES narrows it).
+    N     EGL on EGL device N (MUJOCO_EGL_DEVICE_ID=N): render on another GPU than the one JAX computes on.
+    """
+    choice = str(choice).strip().lower()
+    user = environ.get("MUJOCO_GL", "").strip().lower()
+    if choice == "cpu":
+        if user == "osmesa" or (user in ("", "egl") and not Path(mesa_vendor).is_file()
+                                and (osmesa_found or osmesa_library_found)()):
+            return {"MUJOCO_GL": "osmesa", "PYOPENGL_PLATFORM": "osmesa"}
+        if user in ("", "egl") and Path(mesa_vendor).is_file():
+            return {"MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "egl", "__EGL_VENDOR_LIBRARY_FILENAMES": mesa_vendor,
+                    "LIBGL_ALWAYS_SOFTWARE": "1"}
+        if user not in ("", "egl"):
+            raise HeadlessGLError(f"--render-device cpu renders with Mesa (EGL or OSMesa) but MUJOCO_GL={user} is set; "
+                                  "unset MUJOCO_GL or drop --render-device")
+        raise HeadlessGLError(f"--render-device cpu needs Mesa's EGL ({mesa_vendor}) or OSMesa; fix: "
+                              f"`apt-get install -y libegl-mesa0` or `{APT_OSMESA}`")
+    if choice == "gpu" or choice.isdigit():
+        if user not in ("", "egl"):
+            raise HeadlessGLError(f"--render-device {choice} renders with EGL on a GPU but MUJOCO_GL={user} is set; "
+                                  "unset MUJOCO_GL, or use --render-device cpu to render with Mesa")
+        settings = {"MUJOCO_GL": "egl", "PYOPENGL_PLATFORM": "egl"}
+        if choice.isdigit():
+            given = environ.get("MUJOCO_EGL_DEVICE_ID")
+            if given not in (None, "", choice):
+                raise HeadlessGLError(f"--render-device {choice} but MUJOCO_EGL_DEVICE_ID={given} is set; keep one of them")
+            settings["MUJOCO_EGL_DEVICE_ID"] = choice
+        return settings
+    raise HeadlessGLError(f"render device {choice!r}: use cpu, gpu or an EGL device number (0, 1, ...)")
+
+
 def configure(environ: MutableMapping[str, str] | None = None) -> str:
-    """Fill in `MUJOCO_GL` and `PYOPENGL_PLATFORM` where unset; returns the backend in use."""
+    """Fill in `MUJOCO_GL` and `PYOPENGL_PLATFORM` where unset (or, with OCTO_HARNESS_RENDER_DEVICE, set what that
+    device needs: `render_device_settings`); returns the backend in use. Never raises: a render device that cannot
+    be set up is kept in `render_device_error` for `ensure_context` (and the command line) to report."""
+    global render_device_error
     environ = os.environ if environ is None else environ
+    render_device_error = None
+    if environ.get(RENDER_DEVICE, "").strip():
+        try:
+            environ.update(render_device_settings(environ[RENDER_DEVICE], environ))
+        except HeadlessGLError as exc:
+            render_device_error = str(exc)
     backend = choose_backend(environ)
     environ.setdefault("MUJOCO_GL", backend)
     if backend in ("egl", "osmesa"):
@@ -122,6 +179,8 @@ def ensure_context(backend: str | None = None, create: bool = True) -> None:
 
     MuJoCo loads the `MUJOCO_GL` backend at import time, so a missing library already fails there.
     """
+    if render_device_error is not None:
+        raise HeadlessGLError(render_device_error)
     backend = (backend or os.environ.get("MUJOCO_GL", "egl")).strip().lower()
     try:
         import mujoco  # noqa: F401
@@ -138,4 +197,8 @@ def ensure_context(backend: str | None = None, create: bool = True) -> None:
         context.make_current()
         context.free()
     except Exception as exc:  # any driver/library failure becomes the one actionable line
+        if "MUJOCO_EGL_DEVICE_ID" in str(exc):  # --render-device N names a device this machine lacks
+            raise HeadlessGLError(f"render device {os.environ.get('MUJOCO_EGL_DEVICE_ID')}: {str(exc).splitlines()[0]} "
+                                  "choose an EGL device this machine has (--render-device 0, 1, ...) or "
+                                  "--render-device cpu") from exc
         raise HeadlessGLError(error_message(backend, exc)) from exc

@@ -54,11 +54,17 @@ def to_convention(image: np.ndarray, convention: str) -> np.ndarray:
     raise EnvConfigError(f"image convention {convention!r} unknown; use one of {', '.join(IMAGE_CONVENTIONS)}")
 
 
+MAX_CAMERA_SIZE = 2048  # px per side: rendered, masked and stored at every step
+
+
 def parse_camera(text: str) -> tuple[str, str, int]:
-    """"KEY=camera:size" (e.g. "image_primary=agentview:84") -> (key, camera, size)."""
+    """"KEY=camera:size" (e.g. "image_primary=agentview:84") -> (key, camera, size), size 1..MAX_CAMERA_SIZE."""
     match = _CAMERA_SPEC.match(text.strip())
     if not match or int(match.group(3)) <= 0:
         raise EnvConfigError(f"camera {text!r}: expected KEY=camera:size with a positive size, e.g. image_primary=agentview:84")
+    if int(match.group(3)) > MAX_CAMERA_SIZE:
+        raise EnvConfigError(f"camera {text!r}: size {int(match.group(3))} is larger than {MAX_CAMERA_SIZE} px; choose "
+                             f"a size up to {MAX_CAMERA_SIZE}, e.g. {match.group(1)}={match.group(2)}:256")
     return match.group(1), match.group(2), int(match.group(3))
 
 
@@ -84,6 +90,9 @@ def _camera_tuple(cameras: Any) -> tuple[tuple[str, str, int], ...] | None:
         key, camera, size = item
         if isinstance(size, bool) or not isinstance(size, int) or size <= 0:
             raise EnvConfigError(f"camera {key!r}: size must be a positive integer, got {size!r}")
+        if size > MAX_CAMERA_SIZE:
+            raise EnvConfigError(f"camera {key!r}: size {size} is larger than {MAX_CAMERA_SIZE} px (a {size}x{size} "
+                                 f"frame per step); choose a size up to {MAX_CAMERA_SIZE}, e.g. {key}={camera}:256")
         if key == "proprio":
             raise EnvConfigError("camera key 'proprio' is reserved for the proprioceptive state; choose another key")
         out.append((str(key), str(camera), int(size)))

@@ -17,9 +17,10 @@ USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, KeyError, FileNotFou
 def _user_errors() -> tuple[type[BaseException], ...]:
     from envs.gl import HeadlessGLError
     from harness.octo.errors import OctoError
-    from harness.run.store import RunLockedError
+    from harness.run.store import ResultsWriteError, RunLockedError
 
-    return (*USER_ERRORS, RunLockedError, OctoError, HeadlessGLError)
+    # ResultsWriteError: a full disk under regress's candidate run is exit 2, never 1 (REGRESSED)
+    return (*USER_ERRORS, RunLockedError, OctoError, HeadlessGLError, OutputsNotWritten, ResultsWriteError)
 
 
 def _interrupt(signum, frame):
@@ -39,6 +40,39 @@ def _video_attention(text: str):
     except ValueError:
         raise argparse.ArgumentTypeError(f"--video-attention takes a layer index, 'rollout' or one of "
                                          f"{', '.join(ATTRIBUTION_VIDEO)}, got {text!r}") from None
+
+
+def _render_device(text: str) -> str:
+    value = text.strip().lower()
+    if value in ("cpu", "gpu") or value.isdigit():
+        return value
+    raise argparse.ArgumentTypeError(f"--render-device takes cpu, gpu or an EGL device number, got {text!r}")
+
+
+def _add_render_arg(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--render-device", type=_render_device, default=None, metavar="cpu|gpu|N",
+                        help="where MuJoCo renders, whatever device JAX computes on: cpu (Mesa llvmpipe: the safe choice "
+                             "when JAX uses the GPU), gpu (EGL on the first GPU) or N (EGL device N); recorded in the "
+                             "manifest's platform.gl [MuJoCo's choice]")
+
+
+def _apply_render_device(choice: str | None) -> None:
+    """Before anything imports MuJoCo: OCTO_HARNESS_RENDER_DEVICE for envs.gl (worker processes inherit it); a
+    device that cannot be set up is one line (HeadlessGLError, exit 2)."""
+    if choice is None:
+        return
+    import os
+
+    if "envs" in sys.modules:  # already configured (an in-process caller): configure again with the choice
+        os.environ["OCTO_HARNESS_RENDER_DEVICE"] = choice
+        from envs import gl
+
+        gl.configure()
+    else:
+        os.environ["OCTO_HARNESS_RENDER_DEVICE"] = choice
+        from envs import gl
+    if gl.render_device_error is not None:
+        raise gl.HeadlessGLError(gl.render_device_error)
 
 
 def _add_execution_args(parser: argparse.ArgumentParser) -> None:
@@ -61,8 +95,20 @@ def _execution(args):
     return executor_factory(args.workers, args.executor, args.ray_address, args.policy_replicas)
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its errors as one line naming the option and the fix (exit 2), not a usage block."""
+
+    FIXES = (("invalid int value", "pass a whole number"), ("invalid float value", "pass a number"),
+             ("invalid choice", "pick one of the choices listed"), ("expected one argument", "give it a value"),
+             ("required", "add them"), ("unrecognized arguments", "drop them or check the spelling"))
+
+    def error(self, message: str):
+        fix = next((fix for text, fix in self.FIXES if text in message), "fix that option")
+        self.exit(2, f"error: {self.prog}: {message.splitlines()[0]}; {fix} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="octo-harness", description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="octo-harness", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
     parser.add_argument("--verbose", action="store_true",
                         help="also show other libraries' INFO lines and start-up warnings (hidden by default)")
@@ -157,6 +203,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--ci-method", choices=["wilson", "clopper-pearson"], default=None,
                    help="confidence interval of success rates (95%%) [wilson]")
     _add_execution_args(r)
+    _add_render_arg(r)
 
     sub.add_parser("tasks", help="list the registered tasks")
 
@@ -173,7 +220,9 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_ = sub.add_parser("compare", help="paired verdict of a candidate run against a baseline run (same seeds)",
                           description="Pair episodes by (task, seed); write compare.json, compare.md and compare.html. "
                                       "Exit 0 pass, 1 REGRESSED or SUSPECT (see --fail-on), 2 incompatible or invalid "
-                                      "input, 3 ERRORED (an arm errored on more than half of its paired episodes).")
+                                      "input, or outputs that could not be written, 3 ERRORED (an arm errored on more "
+                                      "than half of its paired episodes), 4 INCOMPLETE (the candidate lacks episodes "
+                                      "the baseline finished).")
     cmp_.add_argument("baseline", type=Path, metavar="BASELINE_RUN")
     cmp_.add_argument("candidate", type=Path, metavar="CANDIDATE_RUN")
     cmp_.add_argument("--max-drop", type=float, default=0.1, help="HELD rules out a larger drop in success rate [0.1]")
@@ -184,11 +233,13 @@ def build_parser() -> argparse.ArgumentParser:
                            "the exact test does not confirm); also UNDERPOWERED; anything but IDENTICAL [suspect]")
     cmp_.add_argument("--out", type=Path, default=None, help="output folder [CANDIDATE_RUN/compare_<baseline name>]")
     cmp_.add_argument("--no-frames", action="store_true", help="do not render step-0 camera frames for the overlays")
+    _add_render_arg(cmp_)
 
     rp = sub.add_parser("replay", help="run a model open loop on the inputs a run recorded (--record-inputs) and "
                                        "compare its actions and attention with the run's",
                         description="The model change isolated from the simulator and the platform: EQUIVALENT (every "
-                                    "inferred step within the tolerances) exit 0, CHANGED exit 1, invalid input exit 2.")
+                                    "inferred step within the tolerances) exit 0, CHANGED exit 1, invalid input or "
+                                    "replay.json not written exit 2.")
     rp.add_argument("run", type=Path, metavar="RUN_DIR", help="a run made with --record-inputs (e.g. a committed baseline)")
     rp.add_argument("--model", default=None, help="the model to replay [the run's own model]")
     rp.add_argument("--action-tolerance", type=float, default=None,
@@ -219,7 +270,23 @@ def build_parser() -> argparse.ArgumentParser:
     reg.add_argument("--text-tokenizer", default=None, metavar="auto|fallback|PATH",
                      help="the candidate's text tokenizer (as for `run --text-tokenizer`) [the baseline's choice]")
     _add_execution_args(reg)
+    _add_render_arg(reg)
     return parser
+
+
+class OutputsNotWritten(RuntimeError):
+    """A gate's verdict was reached but its output files could not be written (exit 2: never read as a verdict)."""
+
+
+def _writing(what: str, verdict: str, write):
+    """`write()`, or OutputsNotWritten (one line, exit 2) when the disk refuses (full, read-only, permissions): exit 1
+    would read as REGRESSED / CHANGED."""
+    try:
+        return write()
+    except OSError as exc:
+        reason = exc.strerror or str(exc).splitlines()[0] or type(exc).__name__
+        raise OutputsNotWritten(f"could not write {what}: {reason}; the verdict was {verdict}, but without its files "
+                                "it does not count: free space or pass --out on another disk, then run it again") from None
 
 
 def _cmd_report(args) -> int:
@@ -239,7 +306,7 @@ def _cmd_compare(args) -> int:
     code = exit_code(result, args.fail_on)
     frames = {} if args.no_frames or result["env"] is None else step0_frames(result, result["env"])
     out = args.out or Path(result["candidate"]["path"]) / f"compare_{result['baseline']['run']}"
-    paths = write_comparison(result, out, frames, code)
+    paths = _writing(f"compare's outputs in {out}", result["verdict"], lambda: write_comparison(result, out, frames, code))
     print(paths["markdown"].read_text(), end="")
     print(f"compare: {paths['html']}")
     return code
@@ -253,7 +320,8 @@ def _cmd_regress(args) -> int:
     result = regress(args.baseline, args.model, max_episodes=args.max_episodes, out=args.out, run_name=args.run_name,
                      alpha=args.alpha, max_drop=args.max_drop, executor=factory, text_tokenizer=args.text_tokenizer)
     code = exit_code(result, args.fail_on)
-    paths = write_regress(result, code, write_comparison)
+    paths = _writing(f"regress's outputs in {result['candidate_run']}/regress", result["verdict"],
+                     lambda: write_regress(result, code, write_comparison))
     print(paths["summary"])
     print(f"regress: {paths['json']}")
     return code
@@ -269,7 +337,7 @@ def _cmd_replay(args) -> int:
                             attention_js=defaults.attention_js if args.attention_tolerance is None else args.attention_tolerance)
     result = replay_run(args.run, args.model, tolerances)
     out = args.out or args.run / "replay"
-    atomic_write_json(out / "replay.json", result)
+    _writing(f"{out / 'replay.json'}", result["verdict"], lambda: atomic_write_json(out / "replay.json", result))
     print(summary_text(result))
     print(f"replay: {out / 'replay.json'}")
     return exit_code(result)
@@ -282,12 +350,13 @@ def _cmd_tasks() -> int:
     return 0
 
 
-RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "executor", "ray_address", "policy_replicas")
+RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "executor", "ray_address", "policy_replicas",
+               "render_device")
 
 
 def _cmd_run(args) -> int:
     from harness.run import ResultsWriteError, RunStore, execute
-    from harness.run.schema import protocol_from_manifest
+    from harness.run.protocol import protocol_from_manifest
     from harness.run.settings import build_protocol, out_dir, read_protocol_file
 
     factory = _execution(args)
@@ -330,6 +399,7 @@ def main(argv: list[str] | None = None) -> int:
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
     try:
+        _apply_render_device(getattr(args, "render_device", None))
         if args.command == "tasks":
             return _cmd_tasks()
         if args.command == "report":

@@ -22,14 +22,53 @@ def temp_path(path: Path) -> Path:
     return path.with_name(f"{path.stem}.tmp.{os.getpid()}{path.suffix}")
 
 
+class _Settled:
+    """A file handed to a writer callback; once the callback is over (it returned or raised), the writer objects it
+    leaves behind can no longer touch it. np.savez leaves its ZipFile unclosed when a write fails (a full disk);
+    the ZipFile's __del__ later closes it, writing to the closed file, and Python printed a 7-line "Exception
+    ignored in ZipFile.__del__" trace beside the command's own one-line error. After `settle()` every call is a
+    harmless no-op."""
+
+    def __init__(self, f: IO[bytes]):
+        self._f, self._settled, self._pos = f, False, 0
+
+    def settle(self) -> None:
+        try:
+            self._pos = self._f.tell()
+        except (OSError, ValueError):
+            pass
+        self._settled = True
+
+    def write(self, data) -> int:
+        return len(data) if self._settled else self._f.write(data)
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._pos if self._settled else self._f.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._pos if self._settled else self._f.tell()
+
+    def flush(self) -> None:
+        if not self._settled:
+            self._f.flush()
+
+    def __getattr__(self, name):
+        return getattr(self._f, name)
+
+
 def write_atomic(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
-    """Call `write(file)` on `<name>.tmp.<pid>.<ext>` in the same directory, then os.replace it onto `path`."""
+    """Call `write(file)` on `<name>.tmp.<pid>.<ext>` in the same directory, then os.replace it onto `path`.
+    What `write` leaves behind holding the file (an unclosed ZipFile after a full disk) cannot write to it later."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temp_path(path)
     try:
         with open(tmp, "wb") as f:
-            write(f)
+            handle = _Settled(f)
+            try:
+                write(handle)
+            finally:
+                handle.settle()
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)

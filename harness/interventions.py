@@ -136,6 +136,14 @@ class Intervener:
         if iv.camera is not None and iv.camera not in model.image_sizes:
             raise ValueError(f"--intervene {iv.spec()}: the model reads no camera {iv.camera!r}; "
                              f"its cameras: {', '.join(model.image_sizes)}")
+        if iv.k:
+            tokens = model.token_map()
+            for camera in [iv.camera] if iv.camera else list(model.image_sizes):
+                rows, cols = tokens.grid(tokens.camera_group(camera))
+                if iv.k > rows * cols:
+                    raise ValueError(f"--intervene {iv.spec()}: K={iv.k} is more than the {rows * cols} patches "
+                                     f"({rows}x{cols}) of camera {camera}; choose K <= {rows * cols} (mask-all"
+                                     f"{'@' + camera if iv.camera else ''} masks every patch)")
         if iv.method and iv.method.startswith("attention:"):
             layer = int(iv.method.split(":")[1])
             if not -cfg.num_layers <= layer < cfg.num_layers:

@@ -8,7 +8,7 @@ Keeps manifest.json, results.jsonl, results.json, summary.csv and per episode ep
 attention.npz and (for runs made with --record-inputs) inputs.npz cut to the first --steps steps (default 20:
 what `octo-harness replay` compares the model on, on any machine); drops PNG, MP4, GIF and metrics.jsonl. BASELINE.json records where it came from and how to find the model again
 ("model_ref": "repo:<path inside the repository>" or "fixture:<name>"); harness.analysis.compare reads it to
-compare arrays over the stored steps only. The destination is replaced atomically (built next to it, renamed).
+compare arrays over the stored steps only. The rows record the size and sha256 of the cut files. The destination is replaced atomically (built next to it, renamed).
 """
 from __future__ import annotations
 
@@ -28,6 +28,7 @@ sys.path.insert(0, str(REPO))
 
 from harness.analysis.compare import BASELINE_MARKER  # noqa: E402
 from harness.analysis.runs import load_run  # noqa: E402
+from harness.runfolder.integrity import data_digests  # noqa: E402
 
 KEEP_RUN_FILES = ("manifest.json", "results.jsonl", "results.json", "summary.csv", "statistics.csv")
 
@@ -53,6 +54,23 @@ def cut_npz(src: Path, dst: Path, steps: int) -> None:
     dst.write_bytes(buffer.getvalue())
 
 
+def _record_digests(run: Path) -> None:
+    """The rows (results.jsonl, and results.json's copy) record the size and sha256 of the files kept here (the cut
+    arrays), so readers verify the baseline as they verify any run (harness/runfolder/integrity.py)."""
+    def digests(row: dict) -> dict:
+        if (row.get("status") or "ok") != "ok":
+            return row
+        folder = run / row["task"] / f"episode_{row['episode']}"
+        return {**row, "files": data_digests(folder, [p.name for p in folder.iterdir()])}
+
+    lines = [json.loads(line) for line in (run / "results.jsonl").read_text().splitlines() if line.strip()]
+    (run / "results.jsonl").write_text("".join(json.dumps(digests(r), sort_keys=True) + "\n" for r in lines))
+    if (run / "results.json").is_file():
+        data = json.loads((run / "results.json").read_text())
+        data["episodes"] = [digests(r) for r in data.get("episodes", [])]
+        (run / "results.json").write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+
+
 def make_baseline(run_dir: Path, dest: Path, steps: int = 1) -> Path:
     run = load_run(run_dir)
     if run.format == "legacy":
@@ -72,6 +90,7 @@ def make_baseline(run_dir: Path, dest: Path, steps: int = 1) -> Path:
         for name in ("actions.npz", "attention.npz", "inputs.npz"):
             if (episode.directory / name).is_file():  # inputs.npz: runs made with --record-inputs (replay)
                 cut_npz(episode.directory / name, tmp / rel / name, steps)
+    _record_digests(tmp)
     (tmp / BASELINE_MARKER).write_text(json.dumps({
         "source_run": str(run.path), "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "arrays_steps": steps, "model_ref": model_ref(run.model.source),

@@ -24,7 +24,7 @@ import pytest
 
 from harness.analysis.compare import compare_runs, exit_code
 from harness.run import execute
-from harness.run.platform import platform_fingerprint, platform_info
+from harness.runfolder.platform import platform_fingerprint, platform_info
 from harness.run.regress import candidate_protocol
 
 REPO = Path(__file__).resolve().parents[1]

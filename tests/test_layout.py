@@ -1,15 +1,48 @@
-"""Layout: no two harness modules import each other (one place chooses the executor), no compatibility layer."""
+"""Layout: an explicit stage order that no import runs back up, no two harness modules import each other (one place
+chooses the executor), no compatibility layer."""
 
 import ast
 from pathlib import Path
 
 HARNESS = Path(__file__).resolve().parents[1] / "harness"
+ENVS = HARNESS.parent / "envs"
+
+# The data path, lowest stage first. A module may import its own stage and the stages before it, never a later one.
+# `policy` sits above `analysis` because the policy computes attributions (harness.analysis.attribution) and the
+# interventions mask by them; `runfolder` (a run folder's schema, integrity and platform record) sits below both
+# `analysis` (which reads run folders) and `run` (which writes them). `reference` trains the reference policies
+# with the closed loop and the statistics; nothing but the command line sits above `report`.
+STAGES = (
+    ("envs", ("envs",)),
+    ("base", ("harness", "harness.files", "harness.console")),
+    ("octo", ("harness.octo",)),
+    ("runfolder", ("harness.runfolder",)),
+    ("analysis", ("harness.analysis",)),
+    ("policy", ("harness.interventions", "harness.policy", "harness.conventions")),
+    ("rollout", ("harness.records", "harness.rollout")),
+    ("outputs", ("harness.outputs",)),
+    ("run", ("harness.run",)),
+    ("reference", ("harness.reference",)),
+    ("report", ("harness.report",)),
+    ("cli", ("harness.cli",)),
+)
 
 
-def import_graph() -> dict[str, set[str]]:
+def stage_of(module: str) -> int:
+    """Index in STAGES of the longest prefix naming `module` (a package holds its modules)."""
+    best = None
+    for index, (_, prefixes) in enumerate(STAGES):
+        for prefix in prefixes:
+            if (module == prefix or module.startswith(prefix + ".")) and (best is None or len(prefix) > best[1]):
+                best = (index, len(prefix))
+    assert best is not None, f"{module} is in no stage of tests/test_layout.py's STAGES; add it where it belongs"
+    return best[0]
+
+
+def import_graph(roots=(HARNESS,)) -> dict[str, set[str]]:
     """module -> harness modules it imports anywhere in its file (top level or inside functions)."""
     modules = {}
-    for path in HARNESS.rglob("*.py"):
+    for path in (p for root in roots for p in root.rglob("*.py")):
         parts = path.relative_to(HARNESS.parent).with_suffix("").parts
         modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
     graph = {name: set() for name in modules}
@@ -23,6 +56,21 @@ def import_graph() -> dict[str, set[str]]:
                 continue
             graph[name] |= {t for t in targets if t in modules and t != name}
     return graph
+
+
+def test_no_module_imports_a_later_stage():
+    graph = import_graph((HARNESS, ENVS))
+    assert "harness.runfolder.schema" in graph and "envs" in graph
+    upward = sorted(f"{a} ({STAGES[stage_of(a)][0]}) imports {b} ({STAGES[stage_of(b)][0]})"
+                    for a in graph for b in graph[a] if stage_of(b) > stage_of(a))
+    assert upward == []
+
+
+def test_the_stage_check_sees_an_upward_import():
+    """The check above can fail: analysis reading the run package (what issue 28 found) is reported."""
+    assert stage_of("harness.analysis.runs") < stage_of("harness.run.store")
+    assert stage_of("harness.runfolder.schema") < stage_of("harness.analysis.runs") < stage_of("harness.report.build")
+    assert [name for name, _ in STAGES].index("cli") == len(STAGES) - 1
 
 
 def test_no_two_modules_import_each_other():

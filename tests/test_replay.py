@@ -103,7 +103,7 @@ def test_replaying_the_baseline_with_its_own_model_is_equivalent(capsys, tmp_pat
     assert result["episodes"] == 8 and result["steps_compared"] >= 8 * 19
     tol = result["tolerances"]
     assert result["action_change_max"] <= tol["action"] and result["attention_js_max"] <= tol["attention_js"]
-    from harness.run.platform import platform_fingerprint, platform_info
+    from harness.runfolder.platform import platform_fingerprint, platform_info
 
     if platform_fingerprint(platform_info()) == result["platform_recorded"]:
         assert result["action_change_max"] == 0.0 and result["attention_js_max"] == 0.0  # the recording platform: bits

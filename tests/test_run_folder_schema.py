@@ -1,5 +1,5 @@
 """Every malformed run folder is one line and exit 2, from every command that reads one (run --resume, report,
-compare, regress, replay): the manifest and the rows are checked in one place (harness/run/schema.py)."""
+compare, regress, replay): the manifest and the rows are checked in one place (harness/runfolder/schema.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from harness.cli import main
-from harness.run.schema import MalformedRunError, check_manifest, check_row
+from harness.runfolder.schema import MalformedRunError, check_manifest, check_row
 
 REPO = Path(__file__).resolve().parents[1]
 BASELINE = REPO / "results" / "baselines" / "reference-lift"

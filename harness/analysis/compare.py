@@ -10,7 +10,8 @@ finished episodes by (task, seed) and returns one JSON-ready dict (what compare.
   number of pairs the current rates would need to decide an UNDERPOWERED verdict;
 - drift: at step 0 both arms saw the identical observation (same seed), so the difference of the step-0
   action chunks, the Jensen-Shannon divergence of the step-0 readout attention per layer and head and the
-  change of target lift measure the model change alone; the same per step over the first k steps; and over
+  change of target lift measure the model change alone, when the model is all that differs (`what_differs`:
+  an intervention or another policy setting that differs is named, as what the drift measures); the same per step over the first k steps; and over
   whole episodes, marked confounded (trajectories diverge once actions differ);
 - identical: every array of every pair (actions.npz, attention.npz) equal within `atol`, with the same
   outcomes: the overall verdict is then IDENTICAL.
@@ -19,8 +20,11 @@ Outcomes: n is the pairs in which both arms ran to an outcome (as in the run sto
 which either arm errored (status "failed") is left out of the table and counted beside n ("errored pairs").
 A task whose pairs are all identical shows IDENTICAL; the overall verdict is IDENTICAL if every pair is, else
 the worst verdict of the tasks and the pooled table (harness.analysis.paired.VERDICTS: ERRORED > REGRESSED >
-SUSPECT > UNDERPOWERED > HELD > IMPROVED), so no task's verdict is hidden by a pooled one. `exit_code` maps it
-to 0 (pass), 1 (REGRESSED or SUSPECT, or what --fail-on adds), 3 (ERRORED); 2 is invalid input (the CLI).
+SUSPECT > UNDERPOWERED > HELD > IMPROVED), so no task's verdict is hidden by a pooled one. A candidate that lacks
+finished episodes the baseline has (a task it did not run, jobs it did not finish) is INCOMPLETE whatever its
+pairs say, unless they already say ERRORED or REGRESSED: a gate cannot be passed by leaving work out. `exit_code`
+maps the verdict to 0 (pass), 1 (REGRESSED or SUSPECT, or what --fail-on adds), 3 (ERRORED), 4 (INCOMPLETE,
+whatever --fail-on); 2 is invalid input or outputs that could not be written (the CLI).
 A committed baseline keeps only step-0 arrays (BASELINE.json says so): arrays are then compared over the
 steps both arms stored.
 """
@@ -55,7 +59,8 @@ FORMAT = "octo-harness-compare/1"
 BASELINE_MARKER = "BASELINE.json"  # written by scripts/make_baseline.py into a committed baseline
 # --fail-on: the mildest verdict that fails the gate (exit 1); each level also fails on everything worse
 FAIL_ON = ("regressed", "suspect", "underpowered", "changed")
-EXIT_OK, EXIT_FAIL, EXIT_INVALID, EXIT_ERRORED = 0, 1, 2, 3
+EXIT_OK, EXIT_FAIL, EXIT_INVALID, EXIT_ERRORED, EXIT_INCOMPLETE = 0, 1, 2, 3, 4
+INCOMPLETE = "INCOMPLETE"  # the candidate lacks finished episodes the baseline has; outranked by ERRORED, REGRESSED
 # protocol fields that may differ between the arms (the model is what a comparison changes); any other
 # difference changes outcomes (env options, max steps, execution, action space, cameras, instruction, goals...)
 MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "outputs", "harness_version",
@@ -64,6 +69,13 @@ MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "output
               "policy.attribution", "policy.faithfulness_every", "policy.faithfulness_fill",  # measured beside, same actions
               # legacy manifests (before the run store) keep model facts at the top level
               "model_is_random", "model_note", "text_tokenizer", "dataset_key", "git_commit", "versions")
+# fields of MAY_DIFFER that are the model (what a comparison is usually about), and those that change neither the
+# policy's inputs nor its actions (measured beside, or bit-identical by design); every other field that differs
+# (an intervention, a dataset key) changes what the policy computes, and the drift and provenance lines name it
+MODEL_FIELDS = ("model", "model_fingerprint", "text_tokenizer", "model_is_random", "model_note")
+NEUTRAL_FIELDS = ("tasks", "episodes", "seed", "outputs", "harness_version", "git_commit", "versions",
+                  "policy.full_attention", "policy.inference_batch", "policy.attribution", "policy.faithfulness_every",
+                  "policy.faithfulness_fill")
 ARRAY_FILES = ("actions.npz", "attention.npz")
 POOLED = "\0pooled"  # key of the pooled table while verdicts are computed (cannot clash with a task name)
 
@@ -136,6 +148,44 @@ def incompatible_fields(baseline: dict, candidate: dict) -> list[str]:
         differ.append("execution")  # legacy manifests have no policy block
     differ = [k for k in differ if not any(k.startswith(d + ".") for d in differ)]  # None vs {...}: name the parent
     return [k for k in differ if not any(k == m or k.startswith(m + ".") for m in MAY_DIFFER)]
+
+
+def _shown(value) -> str:
+    return "none" if value is None else json.dumps(value) if not isinstance(value, str) else value
+
+
+def what_differs(baseline: dict, candidate: dict) -> dict:
+    """What the protocols of two comparable runs differ in, for the drift and provenance lines: {"model": the model
+    differs, "other": [{"field", "baseline", "candidate"}] (fields that change the policy's inputs or actions but are
+    not the model: an intervention, ...), "cause": who a difference belongs to, "drift_label": what the step-0 drift
+    measures}."""
+    a, b = _flatten(json.loads(json.dumps(baseline))), _flatten(json.loads(json.dumps(candidate)))
+    missing = object()
+    differ = sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, missing) != b.get(k, missing))
+
+    def under(key, fields):
+        return any(key == f or key.startswith(f + ".") for f in fields)
+
+    model = any(under(k, MODEL_FIELDS) for k in differ)
+    parents = {k.rsplit(".", 1)[0] for k in differ if "." in k}
+    other = [{"field": k, "baseline": a.get(k), "candidate": b.get(k)} for k in differ
+             if not under(k, MODEL_FIELDS) and not under(k, NEUTRAL_FIELDS) and k not in parents]
+    named = ", ".join(f"{o['field']} ({_shown(o['baseline'])} -> {_shown(o['candidate'])})" for o in other)
+    if other and model:
+        cause = f"the candidate's model and {named} together"
+        drift = (f"same seed and scene; the arms differ in the model and in {named}: these numbers measure both "
+                 "together, not the model alone")
+    elif other:
+        cause = f"{named}, not the model (both arms run the same model)"
+        drift = (f"same seed and scene; the arms differ in {named}, not in the model: these numbers measure that "
+                 "difference, not a model change")
+    elif model:
+        cause = "the candidate's"
+        drift = "same seed, identical observation: the model change alone"
+    else:
+        cause = "float noise or the platform's (the protocols differ in nothing that changes actions)"
+        drift = "same seed, identical observation, same model: any difference is float noise or the platform's"
+    return {"model": model, "other": other, "cause": cause, "drift_label": drift}
 
 
 def _truncated(run: RunRecord) -> bool:
@@ -428,13 +478,33 @@ def outcome_tables(details: list[dict]) -> tuple[dict[str, PairedCounts], dict[s
     return tables, errored
 
 
-def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig()) -> dict:
-    """Compare two run folders (see the module docstring). Raises IncompatibleRuns / NotARunError (exit 2)."""
+def incompleteness(lacking: list, baseline_path, candidate_path) -> dict | None:
+    """[[task, seed]] the baseline finished and the candidate did not -> {"pairs", "tasks": {task: count},
+    "note"}, or None when it lacks none."""
+    if not lacking:
+        return None
+    tasks: dict[str, int] = {}
+    for task, _ in lacking:
+        tasks[task] = tasks.get(task, 0) + 1
+    listed = ", ".join(f"{task} {count}" for task, count in tasks.items())
+    return {"pairs": len(lacking), "tasks": tasks,
+            "note": f"INCOMPLETE: the candidate {candidate_path} lacks {len(lacking)} finished episode(s) the baseline "
+                    f"{baseline_path} has ({listed}); it cannot pass the gate until it runs them (the baseline's tasks "
+                    "and seeds: `octo-harness run --resume` on the candidate, or `octo-harness regress`)."}
+
+
+def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig(),
+                 require_complete: bool = True) -> dict:
+    """Compare two run folders (see the module docstring). Raises IncompatibleRuns / NotARunError (exit 2).
+
+    require_complete=False: a candidate lacking the baseline's episodes is compared on the pairs it has (regress,
+    whose sequential test may stop early, decides incompleteness itself)."""
     baseline, candidate = load_run(baseline_dir), load_run(candidate_dir)
     fields = incompatible_fields(_protocol(baseline), _protocol(candidate))
     if fields:
         raise IncompatibleRuns(f"the runs' protocols differ in fields that change outcomes: {', '.join(fields)}; "
                                "re-run the candidate with the baseline's settings (or use `octo-harness regress`)")
+    differs = what_differs(_protocol(baseline), _protocol(candidate))
     pairs, missing = pair_episodes(baseline, candidate)
     if not pairs:
         raise IncompatibleRuns(f"no (task, seed) pair is finished in both {baseline.path} and {candidate.path}; "
@@ -458,6 +528,11 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
     outcomes["notes"] = [note for block in [*outcomes["tasks"].values(), outcomes["overall"]]
                          if block["verdict"] != "IDENTICAL" for note in block["notes"]]  # nothing to explain there
     verdict = overall_verdict(outcomes, identical)
+    incomplete = incompleteness(missing["candidate"], baseline.path, candidate.path)
+    if require_complete and incomplete is not None:
+        outcomes["notes"].insert(0, incomplete["note"])
+        if verdict not in ("ERRORED", "REGRESSED"):
+            verdict = INCOMPLETE
     return {
         "format": FORMAT,
         "verdict": verdict,
@@ -467,6 +542,7 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
         "env": _protocol(baseline).get("env") if isinstance(_protocol(baseline).get("env"), dict) else None,
         "pairs": len(details),
         "missing_pairs": missing,
+        "incomplete": incomplete,
         "identical": {
             "identical": identical,
             "pairs_identical": sum(d["identical"] for d in details),
@@ -476,7 +552,8 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
         },
         "outcomes": outcomes,
         "drift": _drift(details, config),
-        "provenance": provenance(baseline.manifest, candidate.manifest, details),
+        "differs": differs,
+        "provenance": provenance(baseline.manifest, candidate.manifest, details, differs=differs),
         "pair_details": [
             {k: v for k, v in d.items() if k not in ("js", "action_l2", "lift_change_step0")}
             | {"step0_action_l2": float(d["action_l2"][0]) if "action_l2" in d else None,
@@ -487,12 +564,14 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
 
 
 def gate_exit_code(verdict: str, fail_on: str = "suspect") -> int:
-    """Exit code of an overall verdict: 3 ERRORED; 1 REGRESSED, SUSPECT (unless fail_on="regressed"),
+    """Exit code of an overall verdict: 3 ERRORED; 4 INCOMPLETE; 1 REGRESSED, SUSPECT (unless fail_on="regressed"),
     UNDERPOWERED (fail_on="underpowered" or "changed"), HELD/IMPROVED (fail_on="changed"); else 0."""
     if fail_on not in FAIL_ON:
         raise ValueError(f"unknown --fail-on {fail_on!r}; use one of {FAIL_ON}")
     if verdict == "ERRORED":
         return EXIT_ERRORED
+    if verdict == INCOMPLETE:
+        return EXIT_INCOMPLETE
     if verdict == "IDENTICAL":
         return EXIT_OK
     failing = {"regressed": ("REGRESSED",), "suspect": ("REGRESSED", "SUSPECT"),
@@ -503,5 +582,6 @@ def gate_exit_code(verdict: str, fail_on: str = "suspect") -> int:
 
 
 def exit_code(result: dict, fail_on: str = "suspect") -> int:
-    """0 pass, 1 regression (REGRESSED, SUSPECT, or what --fail-on adds), 3 ERRORED (see `gate_exit_code`)."""
+    """0 pass, 1 regression (REGRESSED, SUSPECT, or what --fail-on adds), 3 ERRORED, 4 INCOMPLETE (see
+    `gate_exit_code`)."""
     return gate_exit_code(result["verdict"], fail_on)

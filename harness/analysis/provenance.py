@@ -3,7 +3,7 @@
 compare's statistical verdict is about outcomes; this block says what else is known, from what the runs
 recorded (pure functions over manifests and the per-pair details of harness.analysis.compare):
 
-- platform: the two manifests' `platform_fingerprint`s (harness/run/platform.py) and the numerics-relevant
+- platform: the two manifests' `platform_fingerprint`s (harness/runfolder/platform.py) and the numerics-relevant
   fields in which they differ. Same fingerprint: trajectories should be bit-identical, so a difference is
   the candidate's. Different: float noise of the other CPU, XLA or renderer, amplified by contact-rich
   simulation, can send an unchanged model down another trajectory, so diverging trajectories are expected
@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from harness.analysis.equivalence import Tolerances
-from harness.run.platform import platform_differences
+from harness.runfolder.platform import platform_differences
 
 
 def leading_equal(a: np.ndarray, b: np.ndarray) -> int:
@@ -73,8 +73,9 @@ def step0_numerics(pairs: list[dict], tolerances: Tolerances) -> dict:
 
 
 def provenance(baseline_manifest: dict, candidate_manifest: dict, pairs: list[dict],
-               tolerances: Tolerances | None = None) -> dict:
-    """The provenance block of compare.json and the sentence its report leads with."""
+               tolerances: Tolerances | None = None, differs: dict | None = None) -> dict:
+    """The provenance block of compare.json and the sentence its report leads with. differs: compare's
+    `what_differs` (None: the model is what differs)."""
     tolerances = tolerances or Tolerances()
     platform = platform_block(baseline_manifest, candidate_manifest)
     numerics = step0_numerics(pairs, tolerances)
@@ -84,18 +85,26 @@ def provenance(baseline_manifest: dict, candidate_manifest: dict, pairs: list[di
               "leading_steps_min": min((a["leading_steps"] for a in agreements), default=None),
               "leading_steps_max": max((a["leading_steps"] for a in agreements), default=None)}
     return {"platform": platform, "inputs": inputs, "step0_numerics": numerics,
-            "summary": summary_sentence(platform, inputs, numerics)}
+            "summary": summary_sentence(platform, inputs, numerics, differs)}
 
 
-def summary_sentence(platform: dict, inputs: dict, numerics: dict) -> str:
-    """One plain line: what the model numerics are, and whose diverging trajectories are."""
+def summary_sentence(platform: dict, inputs: dict, numerics: dict, differs: dict | None = None) -> str:
+    """One plain line: what the model numerics are, and whose diverging trajectories are. With `differs` naming
+    settings other than the model that differ (an intervention), the numerics and the differences are said to be
+    theirs, not the model's alone."""
+    cause = (differs or {}).get("cause", "the candidate's")
+    other = (differs or {}).get("other") or []
     if not inputs["pairs_with_digests"]:
         seen = "the runs recorded no input digests (made before provenance), so whether both arms saw the same inputs is unknown"
     else:
         seen = (f"both arms fed the policy identical inputs at step 0 in {inputs['step0_same']}/{inputs['pairs_with_digests']} "
                 f"pairs, for {inputs['leading_steps_min']}-{inputs['leading_steps_max']} leading steps")
     verdict = numerics["verdict"]
-    if verdict == "UNKNOWN":
+    if other:
+        names = ", ".join(o["field"] for o in other)
+        model = (f"step-0 numerics: {verdict} but not the model's alone (the protocols differ in {names}; "
+                 "`octo-harness replay` isolates a model change)")
+    elif verdict == "UNKNOWN":
         model = "model numerics: UNKNOWN (no pair saw identical step-0 inputs; replay the baseline's recorded inputs " \
                 "with `octo-harness replay`)"
     else:
@@ -106,9 +115,9 @@ def summary_sentence(platform: dict, inputs: dict, numerics: dict) -> str:
     if not platform["known"]:
         where = "platform: unknown for one run (made before provenance)"
     elif platform["same"]:
-        where = "platform: the same (bit-identical trajectories are expected; any difference is the candidate's)"
+        where = f"platform: the same (bit-identical trajectories are expected; any difference is {cause})"
     else:
         where = (f"platform: different ({', '.join(platform['differs_in']) or 'fingerprint'}); trajectories that diverge "
                  "after identical step-0 numerics are this float noise amplified by the closed loop, the platform's, "
-                 "not the model's")
+                 "not the model's" + (f"; other differences are {cause}" if other else ""))
     return f"{model}; {seen}; {where}"

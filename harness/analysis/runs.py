@@ -10,20 +10,30 @@ reads one episode's attention.npz into an `EpisodeArrays`. Two layouts are read:
 Readers must tolerate a run in progress or interrupted (fewer episodes than jobs: `RunRecord.missing`),
 failed episodes (status "failed", no arrays) and runs without masks (no mask arrays). A folder that is
 not a run raises `NotARunError` with one line naming the fix.
+
+A run folder is untrusted input: `load_run` checks (harness/runfolder/) that the run's files and every finished
+episode's folder and files lie inside the run folder, and that each finished episode's data files match the size
+and sha256 its row records (rows written before digests were recorded: that the files exist; they are counted in
+`RunRecord.unverified`). What fails is a MalformedRunError naming the file (one line, exit 2).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import zipfile
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from harness.run.schema import MalformedRunError, check_manifest, check_row, parse_row
+from harness.runfolder.integrity import check_run_files, inside, verify_episode
+from harness.runfolder.schema import MalformedRunError, check_manifest, check_row, parse_row
 
 RUN_FORMAT = "octo-harness-run/1"
+RUN_FILES = ("manifest.json", "results.jsonl", "results.json")
+
+log = logging.getLogger(__name__)
 
 
 class NotARunError(ValueError):
@@ -88,6 +98,7 @@ class RunRecord:
     versions: dict = field(default_factory=dict, compare=False)
     git_commit: str | None = None
     created: str | None = None
+    unverified: int = 0  # finished episodes whose rows record no file digests (made before digests were recorded)
 
     @property
     def missing(self) -> int:
@@ -143,6 +154,7 @@ def is_run_dir(path: str | Path) -> bool:
 def load_run(path: str | Path) -> RunRecord:
     """Read a run folder's manifest and results (not the arrays). Raises NotARunError for anything else."""
     path = Path(path).resolve()
+    check_run_files(path, RUN_FILES)  # a symlink loop or a link out of the folder is named, not read as "no file"
     if (path / "manifest.json").is_file():
         return _load_store_run(path)
     if (path / "results.json").is_file():
@@ -151,9 +163,9 @@ def load_run(path: str | Path) -> RunRecord:
 
 
 def _episode(row: dict, run_dir: Path) -> EpisodeRecord:
+    """The row as a record; its folder is `<run>/<task>/episode_<k>` (the schema holds a row's directory to it)."""
     task, k = str(row["task"]), int(row["episode"])
-    directory = Path(row.get("directory") or f"{task}/episode_{k}")
-    directory = directory if directory.is_absolute() else run_dir / directory
+    directory = run_dir / task / f"episode_{k}"
     seed = row.get("seed")
     return EpisodeRecord(
         task=task,
@@ -210,8 +222,16 @@ def _load_store_run(path: Path) -> RunRecord:
                 except ValueError:
                     continue
             row = check_row(parse_row(line, results, number), results, number, keys)
-            rows[(row["task"], row["episode"])] = row  # the last line of a job wins
-    episodes = [_episode(row, path) for row in rows.values()]
+            rows[(row["task"], row["episode"])] = (row, number)  # the last line of a job wins
+    unverified = 0
+    for row, number in rows.values():
+        if (row.get("status") or "ok") == "ok":
+            verify_episode(path, f"{row['task']}/episode_{row['episode']}", row, f"{results} line {number}")
+            unverified += row.get("files") is None
+    if unverified:
+        log.info("%s: %d finished episodes record no file digests (rows made before digests were recorded); their "
+                 "files were checked for presence only", path, unverified)
+    episodes = [_episode(row, path) for row, _ in rows.values()]
     status = None
     if (path / "results.json").is_file():
         try:
@@ -237,6 +257,7 @@ def _load_store_run(path: Path) -> RunRecord:
         versions=dict(manifest.get("versions") or {}),
         git_commit=manifest.get("git_commit"),
         created=manifest.get("created"),
+        unverified=unverified,
     )
 
 
@@ -249,9 +270,8 @@ def _load_legacy_run(path: Path) -> RunRecord:
     seed0 = int(manifest.get("seed") or 0)
     jobs = [(t, k, seed0 + k) for t in tasks for k in range(int(manifest.get("episodes") or 0))]
     episodes = {(str(r["task"]), int(r["episode"])): _episode(r, path) for r in data["episodes"]}
-    for key, ep in list(episodes.items()):  # absolute paths of a moved run folder: look next to results.json
-        if not ep.directory.exists() and (path / ep.task / f"episode_{ep.episode}").exists():
-            episodes[key] = replace(ep, directory=path / ep.task / f"episode_{ep.episode}")
+    for ep in episodes.values():  # recorded paths (absolute, of a moved folder) are not followed: <run>/<task>/episode_<k>
+        inside(path, ep.directory, named_by=str(path / "results.json"))
     done = set(episodes)
     status = "complete" if all((t, k) in done for t, k, _ in jobs) else "incomplete"
     return RunRecord(

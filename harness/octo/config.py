@@ -202,6 +202,18 @@ class OctoConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "OctoConfig":
+        """A config.json's content -> OctoConfig; a value of the wrong type or range is a ConfigError (one line)."""
+        try:
+            return cls._from_dict(data)
+        except ConfigError:
+            raise
+        except (TypeError, ValueError, AttributeError, KeyError) as e:
+            detail = f"missing {e}" if isinstance(e, KeyError) else str(e).splitlines()[0]
+            raise ConfigError(f"config.json holds a value Octo cannot use ({type(e).__name__}: {detail}); restore "
+                              "the checkpoint's config.json") from None
+
+    @classmethod
+    def _from_dict(cls, data: Mapping[str, Any]) -> "OctoConfig":
         if "model" not in data:
             raise ConfigError("config.json has no 'model' entry; is this an Octo checkpoint's config.json?")
         m = data["model"]
@@ -221,17 +233,37 @@ class OctoConfig:
             task_tokenizers=tuple(_task_tokenizer(name, spec) for name, spec in (m.get("task_tokenizers") or {}).items()),
             readouts=tuple((str(k), int(v)) for k, v in m["readouts"].items()),
             heads=tuple((name, _head(name, spec)) for name, spec in m["heads"].items()),
-            token_embedding_size=int(m["token_embedding_size"]),
+            token_embedding_size=_count(m["token_embedding_size"], "model.token_embedding_size"),
             transformer=TransformerConfig(
-                num_layers=int(tk["num_layers"]), mlp_dim=int(tk["mlp_dim"]), num_heads=int(heads_count)
+                num_layers=_count(tk["num_layers"], "model.transformer_kwargs.num_layers"),
+                mlp_dim=_count(tk["mlp_dim"], "model.transformer_kwargs.mlp_dim"),
+                num_heads=_count(heads_count, "model.transformer_kwargs.num_attention_heads"),
             ),
             max_horizon=int(m.get("max_horizon", 10)),
             repeat_task_tokens=bool(m.get("repeat_task_tokens", False)),
             use_correct_attention=bool(m.get("use_correct_attention", False)),
-            window_size=int(data.get("window_size", 2)),
+            window_size=_count(data.get("window_size", 2), "window_size"),
             text_processor=_text_processor(data.get("text_processor")),
             checkpoint_format="1.0" if _is_octo_1_0(m) else "1.5",
         )
+
+
+def _count(value: Any, name: str) -> int:
+    """A positive whole number from config.json (an integral float such as 2048.0 too), or a ConfigError naming it."""
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"config.json {name} must be a positive whole number, got {value!r}; restore the "
+                          "checkpoint's config.json")
+    return value
+
+
+def parameter_estimate(config: "OctoConfig") -> int:
+    """A lower bound on the parameters of the transformer `config` describes (attention, MLP and layer norms of its
+    blocks), computed from the numbers alone so it can be checked before any array is made."""
+    d, layers, mlp = config.token_embedding_size, config.transformer.num_layers, config.transformer.mlp_dim
+    per_block = 4 * d * d + 4 * d + 2 * d * mlp + mlp + d + 4 * d
+    return layers * per_block
 
 
 def _is_octo_1_0(model: Mapping[str, Any]) -> bool:

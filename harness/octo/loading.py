@@ -11,6 +11,7 @@ checkpoint, checks every path and shape against it, and only then moves arrays t
 from __future__ import annotations
 
 import logging
+import os
 import time
 from pathlib import Path
 from typing import Any, Mapping
@@ -20,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from harness.octo import checkpoint, presets
-from harness.octo.config import LowdimTokenizerConfig, OctoConfig
+from harness.octo.config import LowdimTokenizerConfig, OctoConfig, parameter_estimate
 from harness.octo.errors import ConfigError, HubUnavailableError
 from harness.octo.model import OctoModel, example_lowdim_sizes, example_observation_sizes
 from harness.octo.network import init_params, random_params
@@ -45,6 +46,7 @@ def load_pretrained(uri: str, step: int | None = None, *, text_tokenizer: str | 
         return _random_model(uri, text_tokenizer, cache_dir)
     ckpt = checkpoint.resolve_checkpoint_dir(uri, cache_dir)
     config = OctoConfig.from_json(checkpoint.require_file(ckpt, "config.json"))
+    check_memory(config, uri)
     example = checkpoint.read_example_batch(ckpt)
     statistics = checkpoint.read_dataset_statistics(ckpt)
     step = checkpoint.select_step(ckpt, step)
@@ -61,6 +63,33 @@ def load_pretrained(uri: str, step: int | None = None, *, text_tokenizer: str | 
     return OctoModel(config=config, params=params, example_batch=example, dataset_statistics=statistics,
                      text_tokenizer=_text_tokenizer(config, text_tokenizer, t5, False, cache_dir, ckpt), t5_config=t5,
                      source=uri, is_random=False, checkpoint_dir=ckpt)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory this machine can still give (MemAvailable of /proc/meminfo; None where unknown)."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def check_memory(config: OctoConfig, uri: str, available: int | None = None) -> None:
+    """Refuse, before any array is made, a config whose parameters alone (float32, a lower bound from its numbers)
+    would not fit in the memory this machine has available: one line naming the numbers and the fix."""
+    available = available_memory() if available is None else available
+    need = 4 * parameter_estimate(config)
+    if available is not None and need > available:
+        t = config.transformer
+        raise ConfigError(f"{uri}: its config.json describes at least {need / 2**30:.1f} GiB of parameters "
+                          f"({t.num_layers} layers, mlp_dim {t.mlp_dim}, token_embedding_size "
+                          f"{config.token_embedding_size}) but this machine has {available / 2**30:.1f} GiB available; "
+                          "check the checkpoint's config.json, or load it on a machine with more memory")
 
 
 def _random_config(uri: str) -> tuple[OctoConfig, Path | None]:
@@ -93,6 +122,7 @@ def resolve_text_tokenizer(uri: str, text_tokenizer: str | None = None, *, cache
 def _random_model(uri: str, text_tokenizer: str | None, cache_dir) -> OctoModel:
     statistics: dict = {}
     config, ckpt = _random_config(uri)
+    check_memory(config, uri)
     if ckpt is None:
         example = _synthetic_example_batch(config, presets.IMAGE_SIZES, presets.WINDOW_SIZE)
     else:

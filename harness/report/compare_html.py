@@ -166,7 +166,7 @@ def compare_page(result: dict, frames: dict | None = None, markdown: str | None 
     """The whole HTML document for a comparison result (see module docstring)."""
     base, cand = result["baseline"], result["candidate"]
     verdict = result["verdict"]
-    body = [H.banner(f"Verdict: {verdict}", danger=verdict in ("REGRESSED", "SUSPECT", "ERRORED"))]
+    body = [H.banner(f"Verdict: {verdict}", danger=verdict in ("REGRESSED", "SUSPECT", "ERRORED", "INCOMPLETE"))]
     body += [H.note(note) for note in result["outcomes"].get("notes") or []]
     for arm in (base, cand):
         if arm["random_weights"]:
@@ -213,8 +213,8 @@ def compare_page(result: dict, frames: dict | None = None, markdown: str | None 
     for png, alt in ((_js_by_layer(result), "step-0 JS per layer"), (_js_layer_head(result), "step-0 JS per layer and head")):
         if png is not None:
             drift_body += H.image(png, alt)
-    drift_body += H.note("At step 0 both arms saw the identical observation (same seed): these numbers measure the "
-                         "model change alone.")
+    label = (result.get("differs") or {}).get("drift_label", "same seed, identical observation: the model change alone")
+    drift_body += H.note(f"At step 0: {label}.")
     sections.append(("drift", "Step-0 drift", drift_body))
 
     whole = result["drift"]["whole_episode"]

@@ -102,7 +102,8 @@ def markdown_summary(result: dict, exit_code: int | None = None) -> str:
 
     drift = result["drift"]
     s0 = drift["step0"]["overall"]
-    lines += ["", "**Step-0 drift** (same seed, identical observation: the model change alone):",
+    label = (result.get("differs") or {}).get("drift_label", "same seed, identical observation: the model change alone")
+    lines += ["", f"**Step-0 drift** ({label}):",
               f"- action chunk: mean L2 {_num(s0['action_l2'])}, max |difference| {_num(s0['action_max_abs'])}"]
     if s0["js_layer"] is not None:
         lines.append(f"- readout attention Jensen-Shannon (bits, mean over heads) per layer: {_layers(s0['js_layer'])}")

@@ -17,6 +17,7 @@ from harness.run.protocol import Protocol
 
 # MuJoCo's rendering backends on Linux: egl and osmesa are headless, glfw/glx need a display
 GL_BACKENDS = ("egl", "osmesa", "glfw", "glx")
+MAX_RUN_NAME = 255  # bytes: NAME_MAX of ext4, xfs, btrfs, tmpfs and NFS
 
 
 def check_environment(environ: Mapping[str, str] | None = None) -> None:
@@ -70,6 +71,9 @@ def check_run_name(name: str) -> str:
     if "/" in name or "\\" in name or "\0" in name or name in (".", "..") or name.startswith(".") or ".." in name:
         raise ValueError(f"--run-name {name!r} is not a plain folder name (no '/', no '..', not starting with '.'); "
                          "choose the parent folder with --out")
+    if len(name.encode()) > MAX_RUN_NAME:
+        raise ValueError(f"--run-name is {len(name.encode())} bytes long, more than a folder name may be "
+                         f"({MAX_RUN_NAME} bytes on common filesystems); choose a shorter name")
     return name
 
 

@@ -3,7 +3,8 @@
 `execute(protocol, out)` is the whole pipeline of `octo-harness run`. It owns every write to the run store:
 each row the executor yields is appended to results.jsonl (fsynced), then results.json / summary.csv /
 statistics.csv are rewritten. Running it again with the same protocol resumes (finished jobs are skipped,
-leftover temporaries and incomplete episode folders are deleted first); a different protocol under the same
+unless their files are missing or differ from the sizes and digests their rows record; leftover temporaries
+and incomplete episode folders are deleted first); a different protocol under the same
 run name raises `ProtocolMismatchError` naming the differing fields unless `overwrite`. SIGINT and SIGTERM
 raise `Interrupted` (a KeyboardInterrupt) outside the store's critical sections; the results then say
 "interrupted".
@@ -24,12 +25,14 @@ from typing import Callable
 import numpy as np
 
 from harness.run import checks
-from harness.run.schema import protocol_from_manifest
-from harness.run.platform import platform_differences, platform_fingerprint, platform_info
+from harness.run.protocol import protocol_from_manifest
+from harness.runfolder.platform import platform_differences, platform_fingerprint, platform_info
 from harness.run.executor import EpisodeContext, Executor, SequentialExecutor, StepCallback
 from harness.run.progress import Progress
 from harness.run.protocol import FORMAT, EpisodeJob, Protocol, diff, goal_fingerprint, model_fingerprint
 from harness.run.store import MANIFEST, EpisodeRow, RunStore, now_utc, statistics
+from harness.runfolder.integrity import episode_problem
+from harness.runfolder.schema import MalformedRunError
 
 log = logging.getLogger(__name__)
 
@@ -198,6 +201,8 @@ def execute(
     """
     checks.check_environment()
     out = checks.check_destination(Path(out))
+    if run_name is not None:
+        checks.check_run_name(run_name)  # before hashing the checkpoint
     fingerprint, fingerprint_details = model_fingerprint(protocol.model, protocol.text_tokenizer)
     goals_fp = goal_fingerprint(protocol.goal_images) if protocol.goal_images else None
     protocol = protocol.replace(model_fingerprint=fingerprint, goal_fingerprint=goals_fp)
@@ -232,9 +237,7 @@ def execute(
             if manifest is not None and manifest.get("run") != name:  # a copied or renamed run folder
                 rows = _rename_run(store, manifest, rows, name)
                 manifest = store.read_manifest()
-            done = {key for key, row in rows.items()
-                    if (row.status == "ok" and (store.dir / row.directory / "episode.json").is_file())
-                    or (row.status != "ok" and not retry_failed)}
+            done = _verified(store, rows, retry_failed)
             pending = [j for j in jobs if j.key not in done]
             goals = None
             if model is None and (pending or manifest is None):  # a finished run needs no model
@@ -310,6 +313,29 @@ def execute(
         ordered = tuple(rows[j.key] for j in jobs if j.key in rows)
         return RunSummary(store.dir, ordered, manifest, status, statistics(ordered, protocol.tasks, method=ci_method),
                           skipped=len(jobs) - len(pending))
+
+
+def _verified(store: RunStore, rows: dict, retry_failed: bool) -> set[tuple[str, int]]:
+    """Jobs whose rows stand: failed ones (unless retried) and finished ones whose folder holds the files its row
+    records, unchanged (harness/runfolder/integrity.py). A finished episode whose files are missing or damaged, or
+    whose folder is a symlink or leads out of the run, is said on stderr and run again (its folder is removed as
+    an incomplete one: a symlink as a link, never followed)."""
+    done = set()
+    for key, row in rows.items():
+        if row.status != "ok":
+            if not retry_failed:
+                done.add(key)
+            continue
+        directory = f"{row.task}/episode_{row.episode}"
+        try:
+            problem = episode_problem(store.dir, directory, row.to_dict(), f"{store.dir / 'results.jsonl'}")
+        except MalformedRunError as exc:  # leads out of the run folder or loops: the run's own folder is rewritten
+            problem = str(exc).split("; ")[0]
+        if problem is None:
+            done.add(key)
+        else:
+            log.warning("%s; running episode %s again", problem, directory)
+    return done
 
 
 def _rename_run(store: RunStore, manifest: dict, rows: dict, name: str) -> dict:

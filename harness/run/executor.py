@@ -10,7 +10,7 @@ The interface (all an executor has to provide):
   finishes, in any order. A job that fails (an exception in the env, the policy or the writer) yields a row
   with status "failed" and its error; the executor goes on with the other jobs.
 - Episode files are written by `EpisodeWriter` into `<run_dir>/<job.directory>` only (`run_episode` does all
-  of it); an executor never touches results.jsonl, results.json, summary.csv or the manifest: the driver
+  of it, and records the size and sha256 of the data files in the row, harness/runfolder/integrity.py); an executor never touches results.jsonl, results.json, summary.csv or the manifest: the driver
   appends each yielded row and rewrites the derived files, so every executor leaves the same run folder.
 - Episodes are independent given (task, seed): `env.reset(seed=seed)` and `OctoPolicy.reset(..., seed=seed)`
   restore everything an episode depends on, so a job gives the same files whichever process runs it and
@@ -44,6 +44,7 @@ from harness.records import EpisodeMeta, StepRecord
 from harness.rollout import rollout
 from harness.run.protocol import EpisodeJob, Protocol
 from harness.run.store import EpisodeRow
+from harness.runfolder.integrity import data_digests
 from harness.outputs.writers import EpisodeWriter
 
 log = logging.getLogger(__name__)
@@ -103,9 +104,10 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
         writer = EpisodeWriter(episode_dir, tokens, meta, context.protocol.outputs)
         result = rollout(env, policy, writer.add_step, seed=job.seed, instruction=meta.instruction, goals=context.goals,
                          max_steps=context.protocol.max_steps, on_step=step_cb)
-        writer.finish({"success": result.success, "steps": result.steps, "total_reward": result.total_reward,
-                       "actions_clipped": result.actions_clipped, "timings": result.timings,
-                       **({"phases": result.phases} if result.phases is not None else {})})
+        written = writer.finish({"success": result.success, "steps": result.steps, "total_reward": result.total_reward,
+                                 "actions_clipped": result.actions_clipped, "timings": result.timings,
+                                 **({"phases": result.phases} if result.phases is not None else {})})
+        files = data_digests(episode_dir, (Path(p).name for p in written["paths"].values()))  # size and sha256
     except (KeyboardInterrupt, EnvMismatchError):  # a model/env mismatch is the protocol's error: refuse the run
         if writer is not None:
             writer.abort()
@@ -120,7 +122,7 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
     inf = result.timings["inference"] / n
     return EpisodeRow(context.run, job.task, job.episode, job.seed, "ok", bool(result.success), result.steps,
                       float(result.total_reward), step, sim, inf, (step - sim - inf) / step if step > 0 else 0.0,
-                      job.directory, furthest_phase=(result.phases or {}).get("furthest"))
+                      job.directory, files=files, furthest_phase=(result.phases or {}).get("furthest"))
 
 
 def record_failure(context: EpisodeContext, job: EpisodeJob, exc: BaseException, trace: str = "",

@@ -25,7 +25,15 @@ from harness.files import json_safe
 from harness.policy import PolicyConfig
 from harness.run.jobs import FORMAT, EpisodeJob  # noqa: F401  (re-exported)
 from harness.outputs.writers import OutputOptions
+from harness.runfolder.schema import FIX, MalformedRunError, check_protocol
 
+
+
+# Bounds checked before anything heavy (docs/run-integrity.md): a run's jobs (tasks x episodes), the largest seed
+# any episode resets with (numpy's legacy RandomState and robosuite take seeds below 2**32), and an episode's steps.
+MAX_JOBS = 100_000
+MAX_SEED = 2**32 - 1
+MAX_STEPS = 100_000
 
 
 def harness_version() -> str:
@@ -64,6 +72,18 @@ class Protocol:
             raise ValueError(f"--max-steps must be at least 1, got {self.max_steps}")
         if not _is_int(self.seed) or self.seed < 0:
             raise ValueError(f"--seed must be a non-negative integer, got {self.seed}")
+        jobs = len(self.tasks) * self.episodes
+        if jobs > MAX_JOBS:
+            raise ValueError(f"--episodes {self.episodes} x {len(self.tasks)} task(s) is {jobs} episode jobs, more than "
+                             f"one run holds ({MAX_JOBS}); split it into runs of at most {MAX_JOBS // len(self.tasks)} "
+                             "episodes per task (--seed continues where the last one ended)")
+        if self.seed + self.episodes - 1 > MAX_SEED:
+            raise ValueError(f"--seed {self.seed} with --episodes {self.episodes} reaches seed "
+                             f"{self.seed + self.episodes - 1}, outside the simulator's seed range 0..{MAX_SEED} "
+                             f"(2**32 - 1, numpy's and robosuite's); choose --seed <= {MAX_SEED - self.episodes + 1}")
+        if self.max_steps is not None and self.max_steps > MAX_STEPS:
+            raise ValueError(f"--max-steps {self.max_steps} is more than an episode may run ({MAX_STEPS} control steps: "
+                             "its arrays are held in memory until it ends); choose a smaller --max-steps")
         weight = float(self.policy.ensemble_weight)
         if weight != weight or weight in (float("inf"), float("-inf")):
             raise ValueError(f"--ensemble-weight must be a finite number, got {self.policy.ensemble_weight}")
@@ -251,3 +271,18 @@ def goal_fingerprint(folder: str | Path) -> str | None:
     folder = Path(folder)
     files = sorted(folder.glob("*.png")) if folder.is_dir() else []
     return _files_fingerprint(folder, files)[0] if files else None
+
+
+def protocol_from_manifest(manifest: dict, path: Path | str, **overrides):
+    """The manifest's protocol as a `Protocol` (with `overrides` applied to its fields first); a value no Protocol
+    accepts is a MalformedRunError naming the manifest, not a traceback."""
+    protocol = manifest.get("protocol")
+    if not protocol:
+        raise MalformedRunError(f"{path} has no protocol (a run made before the run store); re-run it with this "
+                                "octo-harness")
+    check_protocol(protocol, path)
+    try:
+        return Protocol.from_dict({**protocol, **overrides})
+    except (TypeError, ValueError, AttributeError, KeyError) as exc:
+        message = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).splitlines()[0]
+        raise MalformedRunError(f"{path}: its protocol is not valid ({message}); {FIX}") from None

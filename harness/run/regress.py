@@ -13,7 +13,8 @@ new episodes. A baseline that errored on more than half of a task's episodes is 
 
 Afterwards the pairs run are compared with the fixed-size statistics (harness.analysis.compare), and the verdict
 is the worse of the sequential verdict and that comparison's (`gate_verdict`): regress never exits 0 where
-`compare` on the same pairs exits non-zero. `gate_on_outcomes` is the same decision on outcome dicts.
+`compare` on the same pairs exits non-zero. A test that ends undecided while the candidate lacks baseline pairs of
+its jobs is INCOMPLETE (exit 4), as in compare. `gate_on_outcomes` is the same decision on outcome dicts.
 """
 from __future__ import annotations
 
@@ -23,9 +24,11 @@ from pathlib import Path
 from typing import Iterator, Sequence
 
 from harness.analysis.compare import (
+    INCOMPLETE,
     CompareConfig,
     compare_runs,
     gate_exit_code,
+    incompleteness,
     outcome_tables,
     outcome_verdicts,
     overall_verdict,
@@ -44,7 +47,8 @@ def candidate_protocol(baseline_manifest: dict, model: str, max_episodes: int | 
                        where: str = "the baseline's manifest.json", text_tokenizer: str | None = None) -> Protocol:
     """The baseline's protocol with the model (and the text tokenizer, when given: auto|fallback|PATH) replaced
     (fingerprints recomputed by the run)."""
-    from harness.run.schema import check_protocol, protocol_from_manifest
+    from harness.run.protocol import protocol_from_manifest
+    from harness.runfolder.schema import check_protocol
 
     data = baseline_manifest.get("protocol")
     if not data:
@@ -215,15 +219,24 @@ def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = 
     used = [(j.task, j.seed) for paired in _rounds(base_outcomes, jobs, protocol.tasks)[: test.rounds] for j in paired]
     outcome_pairs = [k for k in used if base_outcomes[k] is not None and cand[k] is not None]
     counts = PairedCounts.from_outcomes([base_outcomes[k] for k in outcome_pairs], [cand[k] for k in outcome_pairs])
-    comparison = compare_runs(baseline.path, candidate.path, compare_config)
+    comparison = compare_runs(baseline.path, candidate.path, compare_config, require_complete=False)
     replay = replay_baseline(baseline, model, loaded_model, protocol.text_tokenizer)
     sequential = test.summary()
     stopped_errored = errored_tasks(base_outcomes, cand, jobs)
     if stopped_errored:
         sequential["errored_tasks"] = stopped_errored
+    verdict = gate_verdict(sequential["verdict"], comparison["verdict"])
+    # the test stopped undecided although the candidate lacks baseline pairs of its jobs: it did not run them all
+    lacking = [[j.task, j.seed] for j in jobs if (j.task, j.seed) in base_outcomes and (j.task, j.seed) not in cand]
+    incomplete = incompleteness(lacking, baseline.path, candidate.path) if not sequential["decided"] else None
+    if incomplete is not None:
+        comparison["outcomes"]["notes"].insert(0, incomplete["note"])
+        if verdict not in ("ERRORED", "REGRESSED"):
+            verdict = INCOMPLETE
     return {
         "format": "octo-harness-regress/2",
-        "verdict": gate_verdict(sequential["verdict"], comparison["verdict"]),
+        "verdict": verdict,
+        "incomplete": incomplete,
         "sequential_verdict": sequential["verdict"],
         "compare_verdict": comparison["verdict"],
         "sequential": sequential,
@@ -267,7 +280,7 @@ def _fixed_size(counts: PairedCounts, alpha: float) -> int | None:
 
 def exit_code(result: dict, fail_on: str = "suspect") -> int:
     """The gate verdict's exit code, as for compare: 0 pass, 1 REGRESSED/SUSPECT (or what --fail-on adds),
-    3 ERRORED. fail_on="changed" (the model must not change) also fails unless the outcomes are IDENTICAL or the
+    3 ERRORED, 4 INCOMPLETE. fail_on="changed" (the model must not change) also fails unless the outcomes are IDENTICAL or the
     candidate's numbers on the baseline's recorded inputs are EQUIVALENT (replay): on another platform an unchanged
     model passes, a changed one fails whatever its outcomes."""
     if fail_on != "changed":

@@ -24,7 +24,7 @@ import numpy as np
 
 from harness.analysis.equivalence import Tolerances, action_change, action_scale, attention_change, first_change
 from harness.analysis.runs import EpisodeRecord, load_run, read_npz
-from harness.run.schema import protocol_from_manifest
+from harness.run.protocol import protocol_from_manifest
 
 log = logging.getLogger(__name__)
 

@@ -32,7 +32,8 @@ from typing import Any, Iterable
 from harness.analysis.stats import success_summary
 from harness.files import atomic_write_json, json_safe, write_atomic
 from harness.run.jobs import FORMAT, EpisodeJob
-from harness.run.schema import check_manifest, check_row, parse_row
+from harness.runfolder.integrity import check_run_files
+from harness.runfolder.schema import check_manifest, check_row, parse_row
 
 LOCK = ".lock"
 MANIFEST = "manifest.json"
@@ -69,9 +70,9 @@ class EpisodeRow:
     overhead_fraction: float | None  # (step - simulation - inference) / step
     directory: str  # relative to the run folder: "<task>/episode_<k>"
     error: str | None = None
-    platform: str | None = None  # platform_fingerprint of the driver that recorded it (harness/run/platform.py)
+    platform: str | None = None  # platform_fingerprint of the driver that recorded it (harness/runfolder/platform.py)
+    files: dict | None = None  # {name: {"size", "sha256"}} of the episode's data files (harness/runfolder/integrity.py)
     furthest_phase: str | None = None  # the furthest task phase the episode reached (envs.phases); left out when None
-
 
     @property
     def key(self) -> tuple[str, int]:
@@ -164,6 +165,7 @@ class RunStore:
 
     def read_manifest(self) -> dict | None:
         path = self.dir / MANIFEST
+        check_run_files(self.dir, (MANIFEST, RESULTS_JSONL))  # a link out of the folder or a loop: one line, exit 2
         if not path.is_file():
             return None
         try:
@@ -202,6 +204,7 @@ class RunStore:
         """Rows of results.jsonl by job (last line wins). A torn last line (killed mid-append) is cut off; any other
         malformed line, or a row of a job not in `jobs` (when given), is a MalformedRunError."""
         path = self.dir / RESULTS_JSONL
+        check_run_files(self.dir, (RESULTS_JSONL,))
         if not path.is_file():
             return {}
         data = path.read_bytes()
@@ -279,17 +282,30 @@ class RunStore:
         return removed
 
     def remove_incomplete(self, tasks: Iterable[str], keep: set[tuple[str, int]]) -> list[Path]:
-        """Delete every `<task>/episode_<k>` folder whose job is not in `keep` (not finished, or to be rerun)."""
+        """Delete every `<task>/episode_<k>` folder whose job is not in `keep` (not finished, or to be rerun). A
+        symlink in their place (the run never writes one; a loop, or a link out of the folder) is removed as a
+        link, never followed; so is a task folder that is a symlink (its episodes are then not kept: see the
+        driver)."""
         removed = []
         for task in tasks:
             task_dir = self.dir / task
+            if task_dir.is_symlink():
+                task_dir.unlink()
+                removed.append(task_dir)
+                continue
             if not task_dir.is_dir():
                 continue
             for path in task_dir.iterdir():
                 match = _EPISODE_DIR.match(path.name)
-                if match and path.is_dir() and (task, int(match.group(1))) not in keep:
+                if not match or (task, int(match.group(1))) in keep:
+                    continue
+                if path.is_symlink() or (path.exists() and not path.is_dir()):
+                    path.unlink()
+                elif path.is_dir():
                     shutil.rmtree(path)
-                    removed.append(path)
+                else:
+                    continue
+                removed.append(path)
         return removed
 
 

@@ -6,7 +6,7 @@ instruction set (`XLA_FLAGS=--xla_cpu_max_isa=...` changes the bits), MuJoCo rep
 build and architecture, and llvmpipe renders differently across CPUs and Mesa versions. So every manifest
 records `platform` (CPU vendor, model, the ISA flags that change numerics, cores, OS and kernel, Python,
 jax/jaxlib and the XLA device, `XLA_FLAGS`, MuJoCo/robosuite/numpy, the GL backend with its vendor,
-renderer and version strings) and `platform_fingerprint`, a sha256 over the numerics-relevant part
+renderer and version strings, the render device asked for and the EGL device) and `platform_fingerprint`, a sha256 over the numerics-relevant part
 (`NUMERICS`): two runs with equal fingerprints should give bit-identical episodes; with different ones only
 replayed inputs and statistics can be compared (`octo-harness replay`, `compare`).
 """
@@ -51,7 +51,10 @@ def gl_info(backend: str | None = None) -> dict:
     """{backend, vendor, renderer, version} of an offscreen GL context made with MuJoCo's backend (MUJOCO_GL);
     `error` instead of the strings when no context can be made (the run fails later with the fix)."""
     backend = (backend if backend is not None else os.environ.get("MUJOCO_GL", "")).strip().lower() or "default"
-    out: dict = {"backend": backend}
+    out: dict = {"backend": backend,
+                 # where rendering was asked to happen (--render-device; "auto": MuJoCo's choice) and the EGL device
+                 "render_device": os.environ.get("OCTO_HARNESS_RENDER_DEVICE", "").strip().lower() or "auto",
+                 "egl_device_id": os.environ.get("MUJOCO_EGL_DEVICE_ID") or None}
     try:
         import mujoco
         from OpenGL import GL

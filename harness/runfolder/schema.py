@@ -5,16 +5,20 @@
 of letting a wrong type surface later as a traceback (exit 1, which for compare and regress means
 "regression"). They check types and the consistency a reader relies on (jobs are (task, episode, seed)
 triples of the protocol's tasks; a row's job is one of the manifest's jobs), not values a newer harness may
-add: unknown keys pass.
+add: unknown keys pass. What the files on disk hold against what the rows record (confinement, digests) is
+checked by harness/runfolder/integrity.py, called by the same readers.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
 FIX = "repair the file or re-create the run (octo-harness run ... --overwrite)"
 ROW_STATUSES = ("ok", "failed")
+FILE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
+SHA256 = re.compile(r"^[0-9a-f]{64}$")
 
 
 class MalformedRunError(ValueError):
@@ -49,6 +53,9 @@ def check_protocol(protocol: Any, path: Path | str) -> dict:
     tasks = protocol.get("tasks")
     if not isinstance(tasks, list) or not tasks or not all(isinstance(t, str) and t for t in tasks):
         raise _fail(path, f"protocol.tasks must be a non-empty list of task names, got {_short(tasks)}")
+    for task in tasks:
+        if not FILE_NAME.match(task):
+            raise _fail(path, f"protocol.tasks holds {_short(task)}, not a task name (a task's folder lies inside the run)")
     for name in ("episodes", "seed"):
         _expect(path, f"protocol.{name}", protocol.get(name), (int,), "an integer")
     if protocol["episodes"] < 1 or protocol["seed"] < 0:
@@ -75,7 +82,8 @@ def check_manifest(manifest: Any, path: Path | str) -> dict:
     tasks = set(protocol["tasks"]) if protocol is not None else None
     seen = set()
     for job in jobs:
-        if not (isinstance(job, list) and len(job) == 3 and isinstance(job[0], str) and _is_int(job[1]) and job[1] >= 0
+        if not (isinstance(job, list) and len(job) == 3 and isinstance(job[0], str) and FILE_NAME.match(job[0])
+                and _is_int(job[1]) and job[1] >= 0
                 and (job[2] is None or _is_int(job[2]))):
             raise _fail(path, f"every job must be [task, episode >= 0, seed], got {_short(job)}")
         if tasks is not None and job[0] not in tasks:
@@ -92,6 +100,19 @@ def check_manifest(manifest: Any, path: Path | str) -> dict:
     return manifest
 
 
+def check_files_field(files, where: str) -> None:
+    """The row's `files` value: {plain file name: {"size": int >= 0, "sha256": 64 hex digits}} (MalformedRunError)."""
+    if not isinstance(files, dict):
+        raise MalformedRunError(f"{where}: files must be an object of file digests, got {type(files).__name__}; {FIX}")
+    for name, entry in files.items():
+        if not (isinstance(name, str) and FILE_NAME.match(name) and name not in (".", "..")):
+            raise MalformedRunError(f"{where}: files names {name!r}, not a file name inside the episode folder; {FIX}")
+        if not (isinstance(entry, dict) and isinstance(entry.get("size"), int) and not isinstance(entry["size"], bool)
+                and entry["size"] >= 0 and isinstance(entry.get("sha256"), str) and SHA256.match(entry["sha256"])):
+            raise MalformedRunError(f"{where}: files[{name!r}] must be {{\"size\": bytes, \"sha256\": 64 hex digits}}; "
+                                    f"{FIX}")
+
+
 def parse_row(line: str, path: Path | str, number: int) -> Any:
     """One results.jsonl line (1-based `number`) -> its JSON value, or a MalformedRunError naming the line."""
     import json
@@ -103,10 +124,15 @@ def parse_row(line: str, path: Path | str, number: int) -> Any:
 
 
 def check_row(row: Any, path: Path | str, line: int, jobs: set[tuple[str, int]] | None = None) -> dict:
-    """One results.jsonl row (1-based `line`): returns it unchanged or raises MalformedRunError."""
+    """One results.jsonl row (1-based `line`): returns it unchanged or raises MalformedRunError. Its `directory`
+    must be the folder the run writes for its job, `<task>/episode_<k>` (relative, so it cannot name a folder
+    outside the run); its `files` digests are checked for form here and against the files by
+    harness.runfolder.integrity."""
     where = f"{path} line {line}"
     _expect(where, "the row", row, (dict,), "a JSON object")
     _expect(where, "task", row.get("task"), (str,), "a task name")
+    if not FILE_NAME.match(row["task"]):
+        raise _fail(where, f"task {_short(row['task'])} is not a task name (its folder must lie inside the run)")
     _expect(where, "episode", row.get("episode"), (int,), "an integer")
     _expect(where, "seed", row.get("seed"), (int,), "an integer or null", optional=True)
     _expect(where, "steps", row.get("steps"), (int,), "an integer", optional=True)
@@ -118,21 +144,10 @@ def check_row(row: Any, path: Path | str, line: int, jobs: set[tuple[str, int]] 
         raise _fail(where, f"steps must be >= 0, got {row['steps']}")
     if jobs is not None and (row["task"], row["episode"]) not in jobs:
         raise _fail(where, f"({row['task']!r}, episode {row['episode']}) is not one of the manifest's jobs")
+    directory = row.get("directory")
+    if directory is not None and directory != f"{row['task']}/episode_{row['episode']}":
+        raise _fail(where, f"directory must be the job's folder {row['task']}/episode_{row['episode']!s} inside the run "
+                           f"folder, got {_short(directory)}")
+    if row.get("files") is not None:
+        check_files_field(row["files"], where)
     return row
-
-
-def protocol_from_manifest(manifest: dict, path: Path | str, **overrides):
-    """The manifest's protocol as a `Protocol` (with `overrides` applied to its fields first); a value no Protocol
-    accepts is a MalformedRunError naming the manifest, not a traceback."""
-    from harness.run.protocol import Protocol
-
-    protocol = manifest.get("protocol")
-    if not protocol:
-        raise MalformedRunError(f"{path} has no protocol (a run made before the run store); re-run it with this "
-                                "octo-harness")
-    check_protocol(protocol, path)
-    try:
-        return Protocol.from_dict({**protocol, **overrides})
-    except (TypeError, ValueError, AttributeError, KeyError) as exc:
-        message = str(exc.args[0] if isinstance(exc, KeyError) and exc.args else exc).splitlines()[0]
-        raise _fail(path, f"its protocol is not valid ({message})") from None

@@ -1,0 +1,119 @@
+"""Confinement and integrity of a run folder's files: a run folder is untrusted input (it may be copied, edited,
+half-deleted or made by someone else), so every reader goes through these checks before using what it names.
+
+Confinement: every path a run's files name (the run's own files, each row's episode folder, the files in it)
+resolves, symlinks followed, inside the run folder. A path that leaves it or a symlink loop is a
+`MalformedRunError` naming the file (one line, exit 2). The harness itself never writes a symlink.
+
+Integrity: each finished episode's row in results.jsonl records `files`: {name: {"size": bytes, "sha256": hex}}
+of its data files (`DATA_SUFFIXES`: the .npz arrays and the .jsonl tables), computed by the process that wrote
+them. `episode_problem` says what is wrong with a finished episode (a file missing, a size or digest that differs
+from the row's, a folder that is a symlink); readers raise it as a MalformedRunError naming the file, and
+`run --resume` runs that episode again instead. Rows written before digests were recorded ("legacy rows") are
+checked for the files every finished episode has (`REQUIRED`), and are counted as unverified.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+from harness.runfolder.schema import FIX, MalformedRunError
+
+DATA_SUFFIXES = (".npz", ".jsonl")
+REQUIRED = ("episode.json", "attention.npz", "actions.npz")  # every finished ("ok") episode holds these
+RERUN = "re-run that episode: octo-harness run --resume RUN_DIR (it runs damaged episodes again)"
+
+
+def file_digest(path: str | os.PathLike, chunk: int = 1 << 20) -> dict:
+    """{"size": bytes, "sha256": hex digest} of one file."""
+    h = hashlib.sha256()
+    size = 0
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+            size += len(block)
+    return {"size": size, "sha256": h.hexdigest()}
+
+
+def data_digests(directory: str | os.PathLike, names) -> dict[str, dict]:
+    """{name: file_digest} of the data files (`DATA_SUFFIXES`) among `names` in `directory`, sorted by name."""
+    return {name: file_digest(Path(directory) / name) for name in sorted(set(names)) if name.endswith(DATA_SUFFIXES)}
+
+
+def _resolve(path: Path) -> tuple[Path | None, str | None]:
+    """(the path with every symlink followed, None) or (None, why it cannot be: a loop)."""
+    try:
+        return Path(os.path.realpath(path, strict=True)), None
+    except FileNotFoundError:  # absent, or a symlink to nothing: where it points is still checked
+        try:
+            return path.resolve(strict=False), None
+        except (RuntimeError, OSError):
+            return None, "is a symlink loop"
+    except (RuntimeError, OSError) as exc:
+        return None, "is a symlink loop" if getattr(exc, "errno", None) in (None, 40) else f"cannot be read ({exc})"
+
+
+def inside(run_dir: Path, path: Path, named_by: str | None = None) -> Path:
+    """`path` resolved (symlinks followed), or a MalformedRunError naming it when it loops or leaves `run_dir`
+    (itself resolved). `named_by`: the file that names `path` (a row), said in the message."""
+    root = Path(os.path.realpath(run_dir))
+    resolved, why = _resolve(path)
+    by = f" (named by {named_by})" if named_by else ""
+    if resolved is None:
+        raise MalformedRunError(f"{path}{by} {why}; {FIX}")
+    if resolved != root and root not in resolved.parents:
+        raise MalformedRunError(f"{path}{by} leads outside the run folder {root} (to {resolved}); {FIX}")
+    return resolved
+
+
+def check_run_files(run_dir: Path, names) -> None:
+    """The run's own files (manifest.json, results.jsonl, ...): each that exists, even as a broken link, resolves
+    inside the run folder."""
+    for name in names:
+        path = Path(run_dir) / name
+        if os.path.lexists(path):
+            inside(run_dir, path)
+
+
+def episode_problem(run_dir: Path, directory: str, row: dict, where: str | None = None) -> str | None:
+    """What is wrong with a finished episode's folder `run_dir/directory` as its `row` describes it, or None.
+
+    A problem is a phrase starting with the path (e.g. ".../attention.npz is missing"). Confinement (a folder or a
+    file that leads outside the run folder or loops) is raised as a MalformedRunError instead, except for the
+    episode folder itself being a symlink, which is a problem (resume replaces it by a real folder). `where`: the row's
+    place (e.g. "results.jsonl line 3"), named in a confinement error."""
+    folder = Path(run_dir) / directory
+    for link in (folder.parent, folder):
+        if link.is_symlink():
+            return f"{link} is a symlink, not a folder the run wrote"
+    folder = inside(run_dir, folder, named_by=where)
+    if not folder.is_dir():
+        return f"{folder} is missing"
+    for root, dirs, names in os.walk(folder, followlinks=False):
+        for name in dirs + names:
+            entry = Path(root) / name
+            if entry.is_symlink():
+                inside(run_dir, entry)
+    files = row.get("files")
+    for name in REQUIRED if files is None else ("episode.json", *files):
+        path = folder / name
+        if not path.is_file():
+            return f"{path} is missing"
+        if files is None or name not in files:
+            continue
+        expected, found = files[name], file_digest(path)
+        if found["size"] != expected["size"]:
+            return f"{path} is damaged ({found['size']} bytes, its row records {expected['size']})"
+        if found["sha256"] != expected["sha256"]:
+            return f"{path} is damaged (its sha256 differs from the one its row records)"
+    return None
+
+
+def verify_episode(run_dir: Path, directory: str, row: dict, where: str | None = None) -> None:
+    """A reader's check of a finished episode: a MalformedRunError (one line, naming the file and the fix) when
+    `episode_problem` finds one."""
+    problem = episode_problem(run_dir, directory, row, where)
+    if problem is not None:
+        raise MalformedRunError(f"{problem}; {RERUN}")
