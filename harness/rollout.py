@@ -123,7 +123,7 @@ def _phase_names(env, info: dict) -> tuple[str, ...]:
         return ()
     from envs.phases import phase_names
 
-    return phase_names(getattr(getattr(env, "unwrapped", env), "task", None).name)
+    return phase_names(str(info.get("task", "")))
 
 
 def _phase_summary(names: tuple[str, ...], recorded: list, every: list) -> dict | None:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import io
 import math
+import warnings
 from collections import defaultdict
 
 import numpy as np
@@ -91,7 +92,6 @@ def summarise(run) -> dict:
     label = _label(run)
     record = getattr(run, "record", run)
     pooled: dict[tuple[str, str], list] = defaultdict(lambda: [[], [], [], []])
-    fractions: dict[tuple[str, str, str], list] = defaultdict(list)
     frames: dict[tuple[str, str], np.ndarray] = {}
     for e in record.episodes:
         data = _episode_maps(e)
@@ -131,11 +131,10 @@ def summarise(run) -> dict:
             if not parts:
                 continue
             fraction = np.concatenate([np.broadcast_to(f[:, None], (len(f), layers, rows, cols)) for _, f in parts])
-            take = np.concatenate([np.full(len(f), i) for i, f in parts])
-            # the steps of the episodes that have this mask, in the pooled order
-            offsets = np.cumsum([0] + [len(x) for x in reals])
-            idx = np.concatenate([np.arange(offsets[i], offsets[i + 1]) for i in dict.fromkeys(take)])
-            with np.errstate(all="ignore"):
+            offsets = np.cumsum([0] + [len(x) for x in reals])  # each episode's control steps in the pooled arrays
+            idx = np.concatenate([np.arange(offsets[i], offsets[i + 1]) for i, _ in parts])
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # a layer without any value: nan, said as "n/a"
                 lr = np.nanmean(Q.mask_lift(real_mean[idx], fraction), axis=0)
                 lc = np.nanmean(Q.mask_lift(content[idx], fraction), axis=0)
             for layer in range(layers):
