@@ -19,8 +19,10 @@ always upright (it is for people). With robosuite's default OSC (kp 150, goal se
 the arm realises about 25% of a commanded position delta (measured: 5 steps of 0.02 m move it
 0.024-0.026 m after settling).
 info: success (robosuite's own check), instruction, task, step, action_clipped (steps clipped so far
-this episode), target_pixels {image key: (n_targets, 2) float32 (row, col)}, and masks
-{image key: {"target", "robot": (h, w) bool}} when masks are on.
+this episode), target_pixels {image key: (n_targets, 2) float32 (row, col)}, phase (the task phase of this
+state, `envs.phases`; None for tasks without a phase function), and masks {image key: {"target", "robot",
+"gripper", "arm"[, "goal"]: (h, w) bool}} when masks are on: "robot" is the whole robot (arm, hand and fingers,
+mount), "gripper" its hand and fingers, "arm" the rest, "goal" the task's goal region (TaskSpec.goal) where it has one.
 
 Seeding: every reset draws the episode's robosuite seed from the gymnasium `np_random` stream, so
 `reset(seed=s)` gives the same episode whatever ran before; randomised model properties (e.g. cube
@@ -42,10 +44,12 @@ from envs.actions import ActionAdapterConfig, adapt_action, libero_action, passt
 from envs.camera import project_points
 from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvConfigError, to_convention
 from envs.render import CameraSpec, SceneRenderer
+from envs.phases import PHASE_SPECS, PhaseState, phase_of
 from envs.segmentation import TARGET, geom_categories, masks_from_segmentation, scene_lookup
 from envs.tasks import TaskSpec
 
 ROBOT_BODY_PREFIXES = ("robot0_", "gripper0_", "fixed_mount0_", "mount0_")
+GRIPPER_BODY_PREFIXES = ("robot0_right_hand", "gripper0_")  # the Panda's hand link and the gripper's bodies
 CONTROL_FREQUENCY_HZ = 20
 # proprio bounds: position within 10 m of the origin, Euler angles in [-pi, pi], finger joints within 0.1 m
 _PROPRIO_HIGH = np.array([10.0] * 3 + [np.pi] * 3 + [0.1] * 2, dtype=np.float32)
@@ -187,7 +191,8 @@ class RobosuiteEnv(gym.Env):
 
         model = sim.model
         body_names = [model.body_id2name(i) or "" for i in range(model.nbody)]
-        self._geom_category = geom_categories(model.geom_bodyid, body_names, model.body_parentid, task.targets, ROBOT_BODY_PREFIXES)
+        self._geom_category = geom_categories(model.geom_bodyid, body_names, model.body_parentid, task.targets,
+                                              ROBOT_BODY_PREFIXES, GRIPPER_BODY_PREFIXES, task.goal)
         # per target prefix: visual geoms (group 1) whose centres average to the target's centre
         target_geoms = []
         for prefix in task.targets:
@@ -218,6 +223,8 @@ class RobosuiteEnv(gym.Env):
         self._step_index = 0
         self._clipped = 0
         self._last_obs: dict[str, np.ndarray] | None = None
+        self._phase_spec = PHASE_SPECS.get(task.name)
+        self._rest_height = 0.0  # the phase object's height at reset
 
     # ---------------------------------------------------------------- gymnasium API
 
@@ -227,6 +234,8 @@ class RobosuiteEnv(gym.Env):
         episode_seed = int(self.np_random.integers(0, 2**63 - 1))
         self._env.rng.bit_generator.state = np.random.default_rng(episode_seed).bit_generator.state
         raw = self._env.reset()
+        if self._phase_spec is not None:
+            self._rest_height = float(self.object_poses()[self._phase_spec.obj][0][2])
         self._step_index = 0
         self._clipped = 0
         success = bool(self._env._check_success())
@@ -341,6 +350,34 @@ class RobosuiteEnv(gym.Env):
         x, y, _ = env.sim.data.body_xpos[env.obj_body_id[name]]
         return not env.not_in_bin(np.array([x, y, env.bin2_pos[2] + 0.05]), bin_id)
 
+    def phase_state(self) -> PhaseState | None:
+        """The privileged state the task's phase function reads (None for tasks without one; see envs.phases)."""
+        spec = self._phase_spec
+        if spec is None:
+            return None
+        env = self._env
+        obj = {o.name: o for o in env.model.mujoco_objects}[spec.obj]
+        position = np.asarray(env.sim.data.body_xpos[env.sim.model.body_name2id(obj.root_body)])
+        grasped = bool(env._check_grasp(gripper=env.robots[0].gripper, object_geoms=obj.contact_geoms))
+        over, on = False, False
+        if spec.goal == "cubeB":
+            goal = env.sim.data.body_xpos[env.cubeB_body_id]
+            over = bool(np.all(np.abs(position[:2] - goal[:2]) < 0.025))  # within cubeB's half size
+            on = bool(env.check_contact(env.cubeA, env.cubeB))
+        elif spec.goal == "bin":
+            over = self.over_placement(spec.obj)
+            on = not env.not_in_bin(position, env.object_to_id[spec.obj.lower()])
+        elif spec.goal in ("peg1", "peg2"):
+            peg = env.sim.data.body_xpos[env.peg1_body_id if spec.goal == "peg1" else env.peg2_body_id]
+            over = bool(np.all(np.abs(position[:2] - peg[:2]) < 0.03))
+            on = bool(env.on_peg(position, 0 if spec.goal == "peg1" else 1))
+        return PhaseState(grasped=grasped, lift=float(position[2]) - self._rest_height, over_goal=over, on_goal=on)
+
+    def phase(self) -> str | None:
+        """The task phase of the current state (envs.phases); None for tasks without a phase function."""
+        state = self.phase_state()
+        return None if state is None else phase_of(self._phase_spec.names, state)
+
     def target_pixels(self) -> dict[str, np.ndarray]:
         """{image key: (n_targets, 2) float32 (row, col)} projected target centres in each image (env's convention)."""
         data = self._env.sim.data
@@ -357,11 +394,12 @@ class RobosuiteEnv(gym.Env):
         return pixels
 
     def masks(self) -> dict[str, dict[str, np.ndarray]]:
-        """{image key: {"target": (h, w) bool, "robot": (h, w) bool}} for the current state."""
+        """{image key: {"target", "robot", "gripper", "arm"[, "goal"]: (h, w) bool}} for the current state."""
         out = {}
         for spec in self.config.cameras:
             image, segids, objtypes, objids = self._renderer.segmentation(spec.key)
-            named = masks_from_segmentation(image, scene_lookup(segids, objtypes, objids, self._geom_category))
+            named = masks_from_segmentation(image, scene_lookup(segids, objtypes, objids, self._geom_category),
+                                            gripper=True, goal=bool(self.task.goal))
             out[spec.key] = {name: self._in_convention(mask) for name, mask in named.items()}
         return out
 
@@ -373,6 +411,7 @@ class RobosuiteEnv(gym.Env):
             "step": self._step_index,
             "action_clipped": self._clipped,
             "target_pixels": self.target_pixels(),
+            "phase": self.phase(),
         }
         if self.config.masks:
             info["masks"] = self.masks()

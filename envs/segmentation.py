@@ -1,9 +1,9 @@
-"""Target and robot masks from MuJoCo segmentation renders, through lookup tables (pure numpy).
+"""Target, robot, gripper and goal masks from MuJoCo segmentation renders, through lookup tables (pure numpy).
 
 A segmentation render (mjRND_SEGMENT + mjRND_IDCOLOR) paints every pixel with `segid + 1` of the scene
 geom that covers it, encoded as r + 256 g + 65536 b (0 = background). Each scene geom names the model
 object it came from (objtype, objid). `geom_categories` labels every model geom once per model
-(target / robot / other); `scene_lookup` turns one render's scene into a `segid + 1 -> category` table;
+(target / goal / gripper / robot / other); `scene_lookup` turns one render's scene into a `segid + 1 -> category` table;
 `masks_from_segmentation` is then a single numpy gather per image, with no per-pixel Python.
 """
 
@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-OTHER, TARGET, ROBOT = 0, 1, 2
+OTHER, TARGET, ROBOT, GRIPPER, GOAL = 0, 1, 2, 3, 4  # GRIPPER: the hand and fingers, part of the robot
 MJOBJ_GEOM = 5  # mujoco.mjtObj.mjOBJ_GEOM
 
 
@@ -30,12 +30,19 @@ def body_ancestry_matches(body_names: Sequence[str], body_parentid: np.ndarray, 
 
 
 def geom_categories(
-    geom_bodyid: np.ndarray, body_names: Sequence[str], body_parentid: np.ndarray, target_prefixes: Sequence[str], robot_prefixes: Sequence[str]
+    geom_bodyid: np.ndarray, body_names: Sequence[str], body_parentid: np.ndarray, target_prefixes: Sequence[str],
+    robot_prefixes: Sequence[str], gripper_prefixes: Sequence[str] = (), goal_prefixes: Sequence[str] = (),
 ) -> np.ndarray:
-    """(ngeom,) uint8 category of every model geom: TARGET, ROBOT or OTHER (target wins over robot)."""
+    """(ngeom,) uint8 category of every model geom: TARGET, GOAL, GRIPPER, ROBOT or OTHER, in that precedence.
+
+    GRIPPER marks robot bodies (the hand and its fingers) under `gripper_prefixes`; a body there that is not
+    also under a robot prefix stays OTHER, so the gripper always lies inside the robot."""
     target_bodies = body_ancestry_matches(body_names, body_parentid, target_prefixes)
+    goal_bodies = body_ancestry_matches(body_names, body_parentid, goal_prefixes)
     robot_bodies = body_ancestry_matches(body_names, body_parentid, robot_prefixes)
-    body_category = np.where(target_bodies, TARGET, np.where(robot_bodies, ROBOT, OTHER)).astype(np.uint8)  # (nbody,)
+    gripper_bodies = body_ancestry_matches(body_names, body_parentid, gripper_prefixes) & robot_bodies
+    body_category = np.select([target_bodies, goal_bodies, gripper_bodies, robot_bodies],
+                              [TARGET, GOAL, GRIPPER, ROBOT], OTHER).astype(np.uint8)  # (nbody,)
     return body_category[np.asarray(geom_bodyid)]
 
 
@@ -59,9 +66,18 @@ def decode_ids(segmentation_rgb: np.ndarray) -> np.ndarray:
     return rgb[..., 0] + (rgb[..., 1] << 8) + (rgb[..., 2] << 16)
 
 
-def masks_from_segmentation(segmentation_rgb: np.ndarray, table: np.ndarray) -> dict[str, np.ndarray]:
-    """(h, w, 3) id-colour render + lookup table -> {"target": (h, w) bool, "robot": (h, w) bool}."""
+def masks_from_segmentation(segmentation_rgb: np.ndarray, table: np.ndarray, gripper: bool = False,
+                            goal: bool = False) -> dict[str, np.ndarray]:
+    """(h, w, 3) id-colour render + lookup table -> {"target": (h, w) bool, "robot": (h, w) bool} (the robot with
+    its gripper), plus "gripper" (hand and fingers) and "arm" (the robot without them) when `gripper`, and "goal"
+    when `goal` (the task has a goal region)."""
     ids = decode_ids(segmentation_rgb)
     ids = np.where(ids < len(table), ids, 0)
     category = table[ids]  # (h, w) uint8
-    return {"target": category == TARGET, "robot": category == ROBOT}
+    out = {"target": category == TARGET, "robot": (category == ROBOT) | (category == GRIPPER)}
+    if gripper:
+        out["gripper"] = category == GRIPPER
+        out["arm"] = category == ROBOT
+    if goal:
+        out["goal"] = category == GOAL
+    return out

@@ -3,7 +3,10 @@
 Every single-arm robosuite 1.5 manipulation task that loads with a Panda is listed. `targets` are
 body-name prefixes: a MuJoCo geom belongs to a target when its body or one of the body's ancestors has
 a name starting with one of them (robosuite names an object's bodies `<object>_...`). Targets are the
-object(s) the robot has to grasp, push or move, so that attention on them can be measured.
+object(s) the robot has to grasp, push or move, so that attention on them can be measured. `goal` prefixes
+name where the target has to go (Stack: cubeB; the PickPlace tasks: bin2, the bin the objects go to; the nut
+tasks: the nut's peg), for the goal mask; empty where the task has no goal region. A task's phases (approach,
+grasp, ...) are read off the simulator state by `envs.phases`.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ class TaskSpec:
     robosuite_options: tuple[tuple[str, object], ...] = ()  # fixed extra kwargs for robosuite.make
     simulator: str = "robosuite"  # "robosuite" (robosuite 1.5 in this environment) | "libero" (envs.libero_env)
     initial_states: int = 0  # LIBERO: stored initial states (episode seed s starts from state s)
+    goal: tuple[str, ...] = ()  # body-name prefixes of the goal region (where the target goes), for the goal mask
 
     @property
     def gym_id(self) -> str:
@@ -50,6 +54,7 @@ _TASKS: tuple[TaskSpec, ...] = (
         ("put the red block on top of the green block", "place the red cube onto the green cube", "stack red on green"),
         ("cubeA_",),
         400,
+        goal=("cubeB_",),
     ),
     TaskSpec(
         "PickPlaceCan",
@@ -58,6 +63,7 @@ _TASKS: tuple[TaskSpec, ...] = (
         ("pick up the can and place it in the bin", "move the soda can into the right bin", "place the can in the bin"),
         ("Can_",),
         400,
+        goal=("bin2",),
     ),
     TaskSpec(
         "PickPlaceMilk",
@@ -66,6 +72,7 @@ _TASKS: tuple[TaskSpec, ...] = (
         ("pick up the milk and place it in the bin", "move the milk carton into the right bin", "place the milk in the bin"),
         ("Milk_",),
         400,
+        goal=("bin2",),
     ),
     TaskSpec(
         "PickPlaceBread",
@@ -74,6 +81,7 @@ _TASKS: tuple[TaskSpec, ...] = (
         ("pick up the bread and place it in the bin", "move the loaf of bread into the right bin", "place the bread in the bin"),
         ("Bread_",),
         400,
+        goal=("bin2",),
     ),
     TaskSpec(
         "PickPlaceCereal",
@@ -82,6 +90,7 @@ _TASKS: tuple[TaskSpec, ...] = (
         ("pick up the cereal box and place it in the bin", "move the cereal into the right bin", "place the cereal in the bin"),
         ("Cereal_",),
         400,
+        goal=("bin2",),
     ),
     TaskSpec(
         "PickPlace",
@@ -90,6 +99,7 @@ _TASKS: tuple[TaskSpec, ...] = (
         ("sort the milk, bread, cereal and can into the bins", "place every object in its bin", "move all four objects into the bins"),
         ("Milk_", "Bread_", "Cereal_", "Can_"),
         1000,
+        goal=("bin2",),
     ),
     TaskSpec(
         "NutAssemblySquare",
@@ -98,6 +108,7 @@ _TASKS: tuple[TaskSpec, ...] = (
         ("place the square nut onto the square peg", "fit the square nut over the square peg", "move the square nut to its peg"),
         ("SquareNut_",),
         500,
+        goal=("peg1",),
     ),
     TaskSpec(
         "NutAssemblyRound",
@@ -106,6 +117,7 @@ _TASKS: tuple[TaskSpec, ...] = (
         ("place the round nut onto the round peg", "fit the round nut over the round peg", "move the round nut to its peg"),
         ("RoundNut_",),
         500,
+        goal=("peg2",),
     ),
     TaskSpec(
         "NutAssembly",
@@ -114,6 +126,7 @@ _TASKS: tuple[TaskSpec, ...] = (
         ("place the square nut and the round nut on their pegs", "fit both nuts over their pegs", "assemble the nuts onto the pegs"),
         ("SquareNut_", "RoundNut_"),
         800,
+        goal=("peg1", "peg2"),
     ),
     TaskSpec(
         "Door",

@@ -188,6 +188,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "method every K-th step, in faithfulness.jsonl [0 = never; methods default to all]")
     r.add_argument("--faithfulness-fill", choices=["mean", "blur"], default=None,
                    help="what a deleted patch becomes in the faithfulness curves [mean]")
+    r.add_argument("--attention-controls", default=None, metavar="blank,mirror",
+                   help="position-against-content controls: ask the model each control step again with every camera's "
+                        "frames blanked to their mean colour and/or mirrored left-right; attention in controls.npz "
+                        "(docs/phases-and-position.md)")
+    r.add_argument("--controls-every", type=int, default=None, metavar="N",
+                   help="run the attention controls at every N-th inference step [1 with --attention-controls]")
     r.add_argument("--verbose", action="store_true", default=argparse.SUPPRESS,
                    help="also show other libraries' INFO lines and start-up warnings")
     r.add_argument("--text-tokenizer", default=None, metavar="auto|fallback|PATH",

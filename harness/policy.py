@@ -65,6 +65,11 @@ class PolicyConfig:
     attribution: str | None = None
     faithfulness_every: int = 0
     faithfulness_fill: str = "mean"
+    # position-against-content controls (harness/analysis/position.py): every `controls_every`-th inference step is
+    # asked again, open loop, with every camera's frames blanked to their mean colour / mirrored left-right; the
+    # control attention goes to controls.npz. They do not change actions; recorded only when set
+    attention_controls: str | None = None
+    controls_every: int = 0
 
     def __post_init__(self) -> None:
         if self.execution not in ("temporal_ensemble", "receding_horizon"):
@@ -97,11 +102,22 @@ class PolicyConfig:
             from harness.analysis.attribution import parse_methods
 
             parse_methods(self.attribution, 1 << 16)  # names checked here; layers against the model at start
+        if isinstance(self.controls_every, bool) or not isinstance(self.controls_every, int) or self.controls_every < 0:
+            raise ValueError(f"--controls-every must be an integer >= 1, got {self.controls_every!r}")
+        if self.attention_controls is not None:
+            from harness.analysis.position import parse_controls
+
+            object.__setattr__(self, "attention_controls", ",".join(parse_controls(self.attention_controls)))
+            if self.controls_every == 0:
+                object.__setattr__(self, "controls_every", 1)
+        elif self.controls_every:
+            raise ValueError("--controls-every needs --attention-controls (e.g. --attention-controls blank,mirror)")
 
     def to_dict(self) -> dict:
         """The fields as plain data; `intervention` only when set (protocols without one keep their hash)."""
         data = dataclasses.asdict(self)
-        defaults = {"intervention": None, "attribution": None, "faithfulness_every": 0, "faithfulness_fill": "mean"}
+        defaults = {"intervention": None, "attribution": None, "faithfulness_every": 0, "faithfulness_fill": "mean",
+                    "attention_controls": None, "controls_every": 0}
         for key, default in defaults.items():
             if data[key] == default:
                 del data[key]
@@ -126,6 +142,7 @@ class PolicyStep:
     # low-dim keys (dims,) float32 raw, exactly as they enter the observation window (harness.replay rebuilds it)
     inputs: dict | None = None
     attribution: dict | None = None  # attribution maps / faithfulness rows of this step's inference (or None)
+    controls: dict | None = None  # {control: (layers, heads, readouts, keys)} of this step's inference (or None)
 
 
 def default_dataset_key(model) -> str | None:
@@ -200,6 +217,7 @@ class InferenceResult:
     tokens: TokenMap | None = None  # what each attention key is
     observed: dict | None = None  # {obs key: (H, W, 3) uint8} current frames an intervention changed (masked)
     attribution: dict | None = None  # attribution maps / faithfulness rows (harness.analysis.attribution.Probe)
+    controls: dict | None = None  # {control: (layers, heads, readouts, keys) float32} at control steps (--attention-controls)
 
 
 def make_task(model, spec: TaskSpec) -> dict:
@@ -247,6 +265,11 @@ class BatchInference:
             from harness.analysis.attribution import Probe
 
             self.probe = Probe(self._model, config.attribution, config.faithfulness_every, config.faithfulness_fill)
+        self.controls: dict = {}  # control name -> frame transform (harness.analysis.position.CONTROLS)
+        if config.attention_controls is not None:
+            from harness.analysis.position import CONTROLS, parse_controls
+
+            self.controls = {name: CONTROLS[name] for name in parse_controls(config.attention_controls)}
 
     def task(self, spec: TaskSpec) -> dict:
         if spec.key not in self._tasks:
@@ -306,8 +329,35 @@ class BatchInference:
             for i, request in enumerate(requests):
                 observations, tasks, keys = self._inputs([request])
                 probes[i] = self.probe(observations, tasks, keys[0], request.seed, request.step)
+        controls = [None] * n
+        if self.controls:
+            due = [i for i, r in enumerate(requests) if r.step % self.config.controls_every == 0]
+            if due:
+                by_control = self.control_attention([requests[i] for i in due], self.controls)
+                for j, i in enumerate(due):
+                    controls[i] = {name: values[j] for name, values in by_control.items()}
         return [InferenceResult(chunks[i], readout[i], None if full is None else full[i], elapsed, attention.tokens,
-                                changed[i][1], probes[i]) for i in range(n)]
+                                changed[i][1], probes[i], controls[i]) for i in range(n)]
+
+    def control_attention(self, requests: list[InferenceRequest], transforms: dict) -> dict[str, np.ndarray]:
+        """{name: (len(requests), layers, heads, readouts, keys) float32}: the requests' readout attention with every
+        camera's window frames under `transforms[name]` ((..., H, W, 3) -> same), each as its own forward pass of the
+        compiled batch shape with the request's own rng key (actions discarded): open loop on the step's own inputs."""
+        out = {}
+        for name, transform in transforms.items():
+            changed = [dataclasses.replace(r, observation={k: (transform(v) if k.startswith("image_") else v)
+                                                           for k, v in r.observation.items()}) for r in requests]
+            rows = []
+            for i in range(0, len(changed), self.batch_size):
+                part = changed[i:i + self.batch_size]
+                observations, tasks, keys = self._inputs(part + [part[0]] * (self.batch_size - len(part)))
+                _, attention = self._model.sample_actions(observations, tasks, keys, self.statistics,
+                                                          full_attention=self.config.full_attention,
+                                                          normalization_type=self.config.action_normalization,
+                                                          sampler=self.config.sampler)
+                rows.append(np.asarray(attention.readout, dtype=np.float32)[:len(part)])
+            out[name] = np.concatenate(rows)
+        return out
 
 
 def window_from_entries(entries: list[dict], window: int, keys: list[str]) -> dict:
@@ -390,6 +440,8 @@ class EpisodeState:
                                 self._entry)
         if result.attribution is not None:
             self._last = dataclasses.replace(self._last, attribution=result.attribution)
+        if result.controls is not None:
+            self._last = dataclasses.replace(self._last, controls=result.controls)
         return self._last
 
 

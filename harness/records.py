@@ -32,6 +32,11 @@ class StepRecord:
     # --attribution / --faithfulness-every: {"maps": {method: {obs key: (rows, cols)}}, "faithfulness": [rows],
     # "seconds"} of this step's inference (harness.analysis.attribution.Probe), maps upright; None otherwise
     attribution: dict | None = None
+    phase: str | None = None  # the task phase of the state the model saw (envs.phases; None: the task has no phases)
+    # --attention-controls: {"blank": (layers, heads, readouts, keys) float32, "mirror": ...} readout attention of
+    # the same inference with every camera's frames replaced by their mean colour / mirrored left-right (upright);
+    # None at steps without controls
+    controls: dict | None = None
 
 
 @dataclass(frozen=True)

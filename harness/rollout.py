@@ -34,6 +34,9 @@ class EpisodeResult:
     instruction: str
     actions_clipped: int
     timings: dict[str, float] = field(default_factory=dict)  # seconds summed over steps: simulation, inference, enqueue, step
+    # the task's phases (envs.phases), None for tasks without a phase function: {"names": [...], "steps": {phase:
+    # recorded steps in it}, "furthest": the furthest phase of any state, the final one (after the last step) included}
+    phases: dict | None = None
 
 
 def rollout(
@@ -60,6 +63,8 @@ def rollout(
     limit = max_steps if max_steps is not None else math.inf
     totals = {"simulation": 0.0, "inference": 0.0, "enqueue": 0.0, "step": 0.0}
     total_reward, success, t = 0.0, False, 0
+    names = _phase_names(env, info)
+    seen_phases = [info.get("phase")]
     while t < limit:
         start = time.perf_counter()
         decision = policy.step(observation)
@@ -87,6 +92,8 @@ def rollout(
             attribution=_upright_attribution(getattr(decision, "attribution", None), upright_tokens.flipped_keys,
                                              convention),
             policy_inputs=decision.inputs,
+            phase=info.get("phase"),
+            controls=getattr(decision, "controls", None),  # over keys, as readout_attention: the token map is flipped
         )
         sink(record)
         end = time.perf_counter()
@@ -98,6 +105,7 @@ def rollout(
             on_step(t, record)
         t += 1
         observation, info = next_observation, next_info
+        seen_phases.append(info.get("phase"))
         if terminated or truncated:
             break
     return EpisodeResult(
@@ -107,7 +115,26 @@ def rollout(
         instruction=instruction,
         actions_clipped=int(info.get("action_clipped", 0)),
         timings=totals,
+        phases=_phase_summary(names, seen_phases[:-1], seen_phases),
     )
+
+
+def _phase_names(env, info: dict) -> tuple[str, ...]:
+    """The env's task phases in order, () when it has none (or no phase in its info)."""
+    if info.get("phase") is None:
+        return ()
+    from envs.phases import phase_names
+
+    return phase_names(str(info.get("task", "")))
+
+
+def _phase_summary(names: tuple[str, ...], recorded: list, every: list) -> dict | None:
+    """{"names", "steps": {phase: recorded steps}, "furthest"} or None without phases."""
+    if not names:
+        return None
+    reached = [names.index(p) for p in every if p in names]
+    return {"names": list(names), "steps": {n: sum(p == n for p in recorded) for n in names},
+            "furthest": names[max(reached)] if reached else None}
 
 
 def _upright_attribution(attribution: dict | None, flipped_keys: tuple[str, ...], convention: str = "opengl") -> dict | None:

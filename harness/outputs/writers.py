@@ -17,7 +17,8 @@ to the rollout video. `finish()` writes the arrays and JSON. Files in `episode_d
                               coverage by the mask (attention.mask_fractions; nan where a step lacks it),
                               so mask mass can be recomputed per head / layer from readout_attention;
                               measures/layer/<m> (steps, layers), measures/head/<m> (steps, layers, heads)
-                              float32: shares, entropy, mask mass and lift per step (analysis.aggregate)
+                              float32: shares, entropy, mask mass and lift per step (analysis.aggregate);
+                              phase (steps,) int8 index into phase_names (-1: none) for tasks with phases
   actions.npz                 predicted (steps, horizon, dim), executed (steps, dim), reward, success, step,
                               inferred (steps,) bool, input_hash/<key> (steps,) uint64: a 64-bit digest of what
                               the policy was fed at each step (harness.policy.input_digest of its resized image
@@ -26,7 +27,11 @@ to the rollout video. `finish()` writes the arrays and JSON. Files in `episode_d
                               newest history entry the policy was fed at each step (env convention), step, inferred,
                               seed, instruction: `octo-harness replay` rebuilds every observation window from it
   metrics.jsonl               one JSON object per step: run, task, episode, step, reward, success, shares, entropy,
-                              mask mass per layer, timings; every row has the same keys (null where n/a)
+                              mask mass per layer, timings; every row has the same keys (null where n/a); "phase"
+                              (the task phase of the state the model saw, envs.phases) for tasks with phases
+  controls.npz                with --attention-controls, at the control steps: step (n,), <control>
+                              (n, layers, heads, readouts, keys) float16 readout attention of the same inference on
+                              the control frames (blank: each frame its mean colour; mirror: mirrored left-right)
   episode.json                metadata and summary; written LAST, so a directory holding it is complete
 
 Every file is written to `<name>.tmp.<pid>.<ext>` in the same directory and moved into place with
@@ -239,6 +244,8 @@ class EpisodeWriter:
         self._timings: list[dict[str, float]] = []
         self._attribution: list[tuple[int, dict]] = []  # (step, Probe result) at steps that carry one
         self._inferred: list[bool] = []
+        self._phases: list[str | None] = []  # the task phase of each step's state
+        self._controls: list[tuple[int, dict]] = []  # (step, {control: (layers, heads, readouts, keys)}) at control steps
         self._input_hashes: list[dict[str, int]] = []  # obs key -> input_digest per step
         self._inputs: list[dict[str, np.ndarray]] = []  # record_inputs: the policy's inputs per step
         self._pngs: list[str] = []
@@ -421,6 +428,14 @@ class EpisodeWriter:
         self._timings.append({k: float(v) for k, v in record.timings.items()})
         if record.attribution is not None:
             self._attribution.append((record.step, record.attribution))
+        self._phases.append(record.phase)
+        if record.controls:
+            for name, value in record.controls.items():
+                if np.shape(value) != attn.shape:
+                    raise ValueError(f"step {record.step}: control {name!r} attention has shape {np.shape(value)}, "
+                                     f"the step's attention {attn.shape}")
+            self._controls.append((record.step, {k: np.asarray(v, np.float32).astype(np.float16)
+                                                 for k, v in record.controls.items()}))
         inputs = record.policy_inputs or {}
         self._inferred.append(bool(record.inferred))
         self._input_hashes.append({k: input_digest(v) for k, v in inputs.items()})
@@ -564,6 +579,10 @@ class EpisodeWriter:
             arrays.update(measure_arrays(arrays, self.tokens))  # per-head measures the report aggregates
         if self._rollout:
             arrays["rollout_readout"] = np.stack(self._rollout)
+        names = self._phase_names()
+        if names:
+            arrays["phase"] = np.asarray([names.index(p) if p in names else -1 for p in self._phases], np.int8)
+            arrays["phase_names"] = np.asarray(names)
         write_atomic(self.dir / "attention.npz", lambda f: np.savez(f, **arrays))
         files["attention"] = "attention.npz"
 
@@ -595,6 +614,7 @@ class EpisodeWriter:
             timings = {**self._timings[i], **({"blocked": self._blocked[i]} if i < len(self._blocked) else {})}
             entry = {"run": self.meta.run, "task": self.meta.task, "episode": self.meta.episode, "step": step,
                      "reward": self._rewards[i], "success": self._success[i],
+                     **({"phase": self._phases[i]} if names else {}),
                      **_nest({name: self._metrics[i].get(name) for name in metric_names}),
                      "timings": {name: timings.get(name) for name in timing_names}}
             lines.append(json.dumps(json_safe(entry)))
@@ -602,6 +622,14 @@ class EpisodeWriter:
         files["metrics"] = "metrics.jsonl"
         if self._attribution:
             files.update(self._write_attribution())
+        if self._controls:
+            controls = {"step": np.asarray([s for s, _ in self._controls], np.int32)}
+            for name in dict.fromkeys(k for _, c in self._controls for k in c):
+                if any(name not in c for _, c in self._controls):
+                    raise ValueError(f"control {name!r} is missing at some control steps")
+                controls[name] = np.stack([c[name] for _, c in self._controls])
+            write_atomic(self.dir / "controls.npz", lambda f: np.savez(f, **controls))
+            files["controls"] = "controls.npz"
 
         if self._mp4 is not None and self._mp4.frames:
             files["video"] = "rollout.mp4"
@@ -612,6 +640,18 @@ class EpisodeWriter:
         if any(n.endswith("_attribution.png") for n in self._pngs):
             files["attribution_png_pattern"] = ATTRIBUTION_PNG_NAME
         return files
+
+    def _phase_names(self) -> tuple[str, ...]:
+        """The task's phases when any step recorded one (else ())."""
+        if not any(p is not None for p in self._phases):
+            return ()
+        from envs.phases import phase_names
+
+        names = phase_names(self.meta.task)
+        unknown = sorted({p for p in self._phases if p is not None and p not in names})
+        if unknown:
+            raise ValueError(f"phases {unknown} are not phases of task {self.meta.task} ({', '.join(names) or 'none'})")
+        return names
 
     def _write_attribution(self) -> dict[str, str]:
         """attribution.npz: step (n,), map/<method>/<obs key> (n, rows, cols) float32 at the steps that carry maps;

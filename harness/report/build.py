@@ -11,6 +11,9 @@ page (harness.report.page) -> files. Output folder:
   tables/progress.csv  per layer along normalised episode progress (+ bin, progress_from, progress_to)
   tables/success.csv   per run and task: episodes, errors, missing, successes, rate and Wilson interval
   tables/episodes.csv  one row per finished job (status, success, steps, headline lift, error)
+  tables/faithfulness.csv, interventions.csv   harness/report/faithfulness.py
+  tables/phase_*.csv   task phases: phase x layer table, steps, tests, event-aligned views, failures (report/phases.py)
+  tables/position_bound.csv, position_share.csv, position_lift.csv   attention controls (report/position.py)
   plots/*.png        every figure of the page
 
 The folder is built under a temporary name next to `out` and swapped in at the end, so a report folder is
@@ -36,7 +39,7 @@ import numpy as np
 from harness.analysis import aggregate as agg
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays, load_run
 from harness.analysis.stats import success_summary
-from harness.report import faithfulness, figures, page
+from harness.report import faithfulness, figures, page, phases, position
 from harness.report.rundata import RunData, episode_headline, representative
 
 VIDEO_DISPLAY = 256  # harness.outputs.overlays.video_frame's `display`: the camera frame fills the video's top-left display x w
@@ -275,7 +278,7 @@ def _csv(columns, rows) -> bytes:
     return buffer.getvalue().encode()
 
 
-def _tables(runs: list[RunData]) -> dict[str, bytes]:
+def _tables(runs: list[RunData], summaries: dict | None = None) -> dict[str, bytes]:
     success_cols = ("run", "task", "jobs", "missing", "errored", "n", "successes", "success_rate", "ci_low", "ci_high", "method")
     success_rows = [(run.label, t, s["jobs"], s["missing"], s["errored"], s["n"], s["successes"], s["success_rate"],
                      s["ci_low"], s["ci_high"], s["method"]) for run in runs for t, s in run.success.items()]
@@ -295,6 +298,8 @@ def _tables(runs: list[RunData]) -> dict[str, bytes]:
         "success.csv": _csv(success_cols, success_rows),
         "episodes.csv": _csv(episode_cols, episode_rows),
         **faithfulness.tables(runs),  # faithfulness.csv, interventions.csv (harness/report/faithfulness.py)
+        **phases.tables(runs, (summaries or {}).get("phases")),  # phase_*.csv (harness/report/phases.py)
+        **position.tables(runs, (summaries or {}).get("position")),  # position_*.csv (harness/report/position.py)
     }
 
 
@@ -356,6 +361,8 @@ def build_report(run_dirs: list[str | Path], out: str | Path | None = None, opti
     for run in runs:
         _aggregate(run, options)
     tasks = list(dict.fromkeys(t for run in runs for t in run.record.tasks))
+    summaries = {"phases": [phases.summarise(run, options.resamples, options.seed) for run in runs],
+                 "position": [position.summarise(run) for run in runs]}
 
     with ThreadPoolExecutor(max_workers=3) as pool:  # overlay grids decode videos in ffmpeg processes meanwhile
         overlays = {}
@@ -364,9 +371,9 @@ def build_report(run_dirs: list[str | Path], out: str | Path | None = None, opti
                 rep = representative(run, task)
                 if rep is not None:
                     overlays[(run.label, task)] = pool.submit(_overlay_png, run, rep, options)
-        document, plot_files = page.render(runs, tasks, out, overlays)
+        document, plot_files = page.render(runs, tasks, out, overlays, summaries)
 
-    tables = _tables(runs)
+    tables = _tables(runs, summaries)
     _remove_stale_staging(out)
     staging = out.parent / f".{out.name}.tmp-{os.getpid()}"
     shutil.rmtree(staging, ignore_errors=True)

@@ -105,7 +105,8 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
         result = rollout(env, policy, writer.add_step, seed=job.seed, instruction=meta.instruction, goals=context.goals,
                          max_steps=context.protocol.max_steps, on_step=step_cb)
         written = writer.finish({"success": result.success, "steps": result.steps, "total_reward": result.total_reward,
-                                 "actions_clipped": result.actions_clipped, "timings": result.timings})
+                                 "actions_clipped": result.actions_clipped, "timings": result.timings,
+                                 **({"phases": result.phases} if result.phases is not None else {})})
         files = data_digests(episode_dir, (Path(p).name for p in written["paths"].values()))  # size and sha256
     except (KeyboardInterrupt, EnvMismatchError):  # a model/env mismatch is the protocol's error: refuse the run
         if writer is not None:
@@ -121,7 +122,7 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
     inf = result.timings["inference"] / n
     return EpisodeRow(context.run, job.task, job.episode, job.seed, "ok", bool(result.success), result.steps,
                       float(result.total_reward), step, sim, inf, (step - sim - inf) / step if step > 0 else 0.0,
-                      job.directory, files=files)
+                      job.directory, files=files, furthest_phase=(result.phases or {}).get("furthest"))
 
 
 def record_failure(context: EpisodeContext, job: EpisodeJob, exc: BaseException, trace: str = "",

@@ -42,6 +42,7 @@ DEFAULT_RECEDING_STEPS = 4
 FILE_KEYS: dict[str, tuple[type, ...]] = {
     "intervene": (str,),  # harness/interventions.py; recorded as policy.intervention
     "attribution": (str, list), "faithfulness_every": (int,), "faithfulness_fill": (str,),  # harness/analysis/attribution.py
+    "attention_controls": (str, list), "controls_every": (int,),  # harness/analysis/position.py
     "task": (str, list), "episodes": (int,), "model": (str,), "max_steps": (int,), "out": (str,), "run_name": (str,),
     "seed": (int,), "instruction": (str,), "dataset_key": (str,), "execution": (str,), "receding_steps": (int,),
     "ensemble_weight": (int, float), "png_every": (int,), "layers": (str, list), "video_attention": (int, str),
@@ -192,9 +193,12 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
             policy_given["attribution"] = f"{methods},{video_attention}"
     if "attribution" in s:
         policy_given["attribution"] = ",".join(s["attribution"]) if isinstance(s["attribution"], list) else s["attribution"]
-    for key in ("faithfulness_every", "faithfulness_fill"):
+    for key in ("faithfulness_every", "faithfulness_fill", "controls_every"):
         if key in s:
             policy_given[key] = s[key]
+    if "attention_controls" in s:
+        controls = s["attention_controls"]
+        policy_given["attention_controls"] = ",".join(controls) if isinstance(controls, list) else controls
     policy = conventions.policy_config(policy_given) if conventions is not None else PolicyConfig(**policy_given)
 
     outputs = OutputOptions(

@@ -72,6 +72,7 @@ class EpisodeRow:
     error: str | None = None
     platform: str | None = None  # platform_fingerprint of the driver that recorded it (harness/runfolder/platform.py)
     files: dict | None = None  # {name: {"size", "sha256"}} of the episode's data files (harness/runfolder/integrity.py)
+    furthest_phase: str | None = None  # the furthest task phase the episode reached (envs.phases); left out when None
 
     @property
     def key(self) -> tuple[str, int]:
@@ -80,6 +81,8 @@ class EpisodeRow:
     def to_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in fields(self)}
         d["return"] = d.pop("total_return")
+        if d["furthest_phase"] is None:  # rows of tasks without phases (and of older runs) keep their keys
+            del d["furthest_phase"]
         return json_safe(d)
 
     @classmethod
