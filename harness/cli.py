@@ -100,6 +100,20 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--video-attention", type=_video_attention, default=None,
                    help="attention shown in the MP4: a layer index (default -1 = last), 'rollout', or an attribution "
                         "map: grad-attention, saliency, occlusion (computed at every step, as --attribution)")
+    r.add_argument("--video-cameras", default=None, metavar="KEYS",
+                   help="cameras shown in the MP4, one row each (frame | overlay), e.g. image_primary or "
+                        "image_primary,image_wrist [all: every camera the model reads]")
+    r.add_argument("--overlay-interpolation", choices=["nearest", "bilinear"], default=None,
+                   help="how patch-grid maps are enlarged in PNGs, MP4 and recording: nearest (the honest patch grid) "
+                        "or bilinear (smooth, as the original attention-visualisation scripts) [nearest]")
+    r.add_argument("--rerun", default=None, metavar="save|spawn|serve",
+                   help="Rerun recording of every episode (pip install 'octo-harness[viewer]'): save writes "
+                        "episode.rrd beside its files (part of the protocol); spawn streams live to a viewer on this "
+                        "machine; serve hosts the web viewer for a headless server and prints its URL once "
+                        "(save,spawn / save,serve: both); see docs/viewer.md")
+    r.add_argument("--viewer-port", type=int, default=None, metavar="PORT",
+                   help="--rerun spawn/serve: the viewer's gRPC port [9876]; serve's web viewer uses --web-port")
+    r.add_argument("--web-port", type=int, default=None, metavar="PORT", help="--rerun serve: the web viewer's HTTP port [9090]")
     r.add_argument("--normalisation", choices=["frame", "episode"], default=None, help="[frame]")
     r.add_argument("--no-video", action="store_true", default=None)
     r.add_argument("--gif", action="store_true", default=None, help="also write rollout.gif")
@@ -276,7 +290,29 @@ def _cmd_tasks() -> int:
     return 0
 
 
-RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "executor", "ray_address", "policy_replicas")
+RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "executor", "ray_address", "policy_replicas",
+               "viewer_port", "web_port")
+
+
+def _live_viewer(args, modes: tuple[str, ...]):
+    """--rerun modes -> the live viewer started for spawn / serve, or None. A missing viewer extra is one line."""
+    from harness.outputs.rerun_sink import import_rerun, start_viewer
+
+    if (args.viewer_port is not None or args.web_port is not None) and not {"spawn", "serve"} & set(modes):
+        raise ValueError("--viewer-port and --web-port need --rerun spawn or --rerun serve")
+    if modes:
+        import_rerun()
+    live = next((m for m in modes if m in ("spawn", "serve")), None)
+    if live is None:
+        return None
+    viewer = start_viewer(live, args.viewer_port, args.web_port)
+    if live == "serve":
+        print(f"Rerun web viewer: {viewer.web_url}  (on a remote server: ssh -L {args.web_port or 9090}:localhost:"
+              f"{args.web_port or 9090} -L {args.viewer_port or 9876}:localhost:{args.viewer_port or 9876} <server>)",
+              flush=True)
+    else:
+        print(f"Rerun viewer spawned; episodes stream to {viewer.url}", flush=True)
+    return viewer
 
 
 def _cmd_run(args) -> int:
@@ -285,8 +321,13 @@ def _cmd_run(args) -> int:
     from harness.run.settings import build_protocol, out_dir, read_protocol_file
 
     factory = _execution(args)
+    from harness.outputs.rerun_sink import parse_modes
 
-    given = {k: v for k, v in vars(args).items() if v is not None and k not in ("command", "debug", "verbose", *RUN_CONTROL)}
+    modes = parse_modes(args.rerun)  # a bad --rerun is one line, before anything heavy
+    given = {k: v for k, v in vars(args).items() if v is not None and k not in ("command", "debug", "verbose", "rerun",
+                                                                                   *RUN_CONTROL)}
+    if "save" in modes:
+        given["rerun"] = True  # an output option of the protocol (spawn and serve are not)
     if args.resume is not None:
         if given or args.protocol is not None:
             raise ValueError(f"--resume takes the protocol from {args.resume}/manifest.json; drop "
@@ -301,9 +342,10 @@ def _cmd_run(args) -> int:
         settings = {**(read_protocol_file(args.protocol) if args.protocol else {}), **given}
         protocol = build_protocol(settings)
         out, name, method = out_dir(settings), settings.get("run_name"), settings.get("ci_method", "wilson")
+    viewer = _live_viewer(args, modes)
     try:
         summary = execute(protocol, out, name, overwrite=args.overwrite, retry_failed=args.retry_failed, ci_method=method,
-                          executor=factory)
+                          executor=factory, viewer=viewer.url if viewer is not None else None)
     except ResultsWriteError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -313,7 +355,22 @@ def _cmd_run(args) -> int:
     if summary.manifest["model"].get("is_random"):
         print(f"NOTE: {summary.manifest['model']['source']} has random weights; this run checks the pipeline, not Octo's behaviour.")
     print(f"results: {summary.run_dir}")
-    return 0 if all(r.status == "ok" for r in summary.rows) else 1
+    code = 0 if all(r.status == "ok" for r in summary.rows) else 1
+    if viewer is not None and viewer.mode == "serve":
+        _keep_serving(viewer)
+    return code
+
+
+def _keep_serving(viewer) -> None:
+    """The web viewer lives in this process: keep it until Ctrl-C (as `rerun --serve-web` does)."""
+    import time
+
+    print(f"still serving the recordings at {viewer.web_url}; Ctrl-C to stop", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
 
 
 def main(argv: list[str] | None = None) -> int:

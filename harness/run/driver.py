@@ -190,13 +190,19 @@ def execute(
     on_step: StepCallback | None = None,
     progress: bool = True,
     ci_method: str = "wilson",
+    viewer: str | None = None,
 ) -> RunSummary:
     """Run (or resume) the protocol's episodes into `<out>/<run_name>` and return the summary.
 
     model: an already loaded model of `protocol.model` (else it is loaded after the cheap checks).
     executor: factory(context, model) -> Executor (default SequentialExecutor).
+    viewer: gRPC url of a live Rerun viewer every episode streams to (harness.outputs.rerun_sink.start_viewer).
     """
     checks.check_environment()
+    if protocol.outputs.rerun or viewer is not None:
+        from harness.outputs.rerun_sink import import_rerun
+
+        import_rerun()  # the optional viewer extra: one line naming the install command, before anything heavy
     out = checks.check_destination(Path(out))
     fingerprint, fingerprint_details = model_fingerprint(protocol.model, protocol.text_tokenizer)
     goals_fp = goal_fingerprint(protocol.goal_images) if protocol.goal_images else None
@@ -268,7 +274,7 @@ def execute(
             log.info("resuming run %s: %d of %d episodes already finished", name, len(jobs) - len(pending), len(jobs))
 
         context = EpisodeContext(protocol=protocol, run_dir=str(store.dir.resolve()), run=name, model=manifest["model"],
-                                 goals=goals)
+                                 goals=goals, viewer=viewer)
         status = "interrupted"
         bar = Progress(len(jobs), done=len(done), successes=sum(rows[k].status == "ok" and bool(rows[k].success)
                                                                 for k in done)) if progress else None
