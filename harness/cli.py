@@ -205,6 +205,24 @@ def build_parser() -> argparse.ArgumentParser:
                     help="largest Jensen-Shannon divergence (bits) of a layer's and head's readout attention [3.5e-7]")
     rp.add_argument("--out", type=Path, default=None, help="output folder for replay.json [RUN_DIR/replay]")
 
+    vw = sub.add_parser("view", help="open an episode of a finished run in the Rerun viewer (pip install 'octo-harness[viewer]')",
+                        description="Scrub one episode: frames, every layer's and head's attention, attribution maps, "
+                                    "actions, rewards and measures on one timeline. A run made with --rerun save is "
+                                    "opened as recorded; otherwise the recording is rebuilt from the run's files and the "
+                                    "frames re-simulated from the episode's seed (checked bit for bit against the "
+                                    "recorded actions). See docs/viewer.md.")
+    vw.add_argument("run", type=Path, metavar="RUN_DIR")
+    vw.add_argument("--task", default=None, help="task of the episode [the run's first]")
+    vw.add_argument("--episode", type=int, default=None, help="episode index within the task [the first finished]")
+    vw.add_argument("--save", type=Path, default=None, metavar="PATH",
+                    help="write the recording to PATH (.rrd; open later with `rerun PATH`) instead of opening a viewer")
+    vw.add_argument("--serve", action="store_true",
+                    help="serve the web viewer from this machine (a headless server) and print its URL; Ctrl-C stops it")
+    vw.add_argument("--no-simulate", action="store_true",
+                    help="do not re-simulate the episode for its frames: maps and measures only")
+    vw.add_argument("--viewer-port", type=int, default=None, metavar="PORT", help="the viewer's gRPC port [9876]")
+    vw.add_argument("--web-port", type=int, default=None, metavar="PORT", help="--serve: the web viewer's HTTP port [9090]")
+
     reg = sub.add_parser("regress", help="run a candidate on a baseline's protocol and seeds until a sequential test decides",
                          description="Pair by pair (round by round over tasks) through the run store (resumable); "
                                      "one anytime-valid test per task (alpha / tasks each); stops as soon as a task "
@@ -283,6 +301,46 @@ def _cmd_replay(args) -> int:
     return exit_code(result)
 
 
+def _has_display() -> bool:
+    import os
+
+    return sys.platform != "linux" or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def _cmd_view(args) -> int:
+    import tempfile
+
+    from harness.outputs.rerun_sink import import_rerun, serve_file, start_viewer
+    from harness.run.view import build_recording
+
+    rr = import_rerun()
+    if args.save is not None and args.save.suffix != ".rrd":
+        raise ValueError(f"--save {args.save}: a Rerun recording's name ends in .rrd")
+    if args.save is None and not args.serve and not _has_display():
+        raise ValueError("no display here for a viewer window; pass --serve (web viewer, prints its URL) or --save PATH.rrd")
+    simulate = not args.no_simulate
+    if args.save is not None or args.serve:
+        with tempfile.TemporaryDirectory() as scratch:
+            target = args.save or Path(scratch) / "episode.rrd"
+            result = build_recording(args.run, args.task, args.episode, save=target, simulate=simulate)
+            print(f"{result.episode.task} episode {result.episode.episode}: frames: {result.frames}")
+            if args.save is not None:
+                print(f"recording: {result.path}  (open it with: rerun {result.path})")
+            if args.serve:
+                viewer = serve_file(result.path, args.viewer_port, args.web_port)
+                _keep_serving(viewer, f"Rerun web viewer: {viewer.web_url}")
+        return 0
+    viewer = start_viewer("spawn", args.viewer_port)
+    result = build_recording(args.run, args.task, args.episode, connect=viewer.url, simulate=simulate)
+    if result.source == "recording":
+        stream = rr.RecordingStream("octo-harness", recording_id=f"file:{result.path}")
+        stream.connect_grpc(viewer.url)
+        stream.log_file_from_path(result.path)
+        stream.flush(blocking=True)
+    print(f"{result.episode.task} episode {result.episode.episode} sent to the viewer; frames: {result.frames}")
+    return 0
+
+
 def _cmd_tasks() -> int:
     import envs
 
@@ -357,15 +415,15 @@ def _cmd_run(args) -> int:
     print(f"results: {summary.run_dir}")
     code = 0 if all(r.status == "ok" for r in summary.rows) else 1
     if viewer is not None and viewer.mode == "serve":
-        _keep_serving(viewer)
+        _keep_serving(viewer, "run finished; the web viewer keeps serving its recordings")
     return code
 
 
-def _keep_serving(viewer) -> None:
+def _keep_serving(viewer, what: str = "the web viewer keeps serving") -> None:
     """The web viewer lives in this process: keep it until Ctrl-C (as `rerun --serve-web` does)."""
     import time
 
-    print(f"still serving the recordings at {viewer.web_url}; Ctrl-C to stop", flush=True)
+    print(f"{what}; Ctrl-C to stop", flush=True)
     try:
         while True:
             time.sleep(3600)
@@ -391,6 +449,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_regress(args)
         if args.command == "replay":
             return _cmd_replay(args)
+        if args.command == "view":
+            return _cmd_view(args)
         return _cmd_run(args)
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", 2)

@@ -177,9 +177,10 @@ def blueprint(cameras: list[str], layers: int, methods: list[str] = (), interven
 
     image_rows = []
     for cam in cameras:
-        layer_tabs = rrb.Tabs(*[rrb.Spatial2DView(origin=entity("attention", cam, f"layer_{layer:02d}"),
-                                                  name=f"{cam} layer {layer}") for layer in range(layers)],
-                              active_tab=max(layers - 1, 0), name=f"{cam} attention by layer")
+        names = [f"{cam} layer {layer}" for layer in range(layers)]
+        layer_tabs = rrb.Tabs(*[rrb.Spatial2DView(origin=entity("attention", cam, f"layer_{layer:02d}"), name=name)
+                                for layer, name in enumerate(names)],
+                              active_tab=names[-1] if names else None, name=f"{cam} attention by layer")
         extra = []
         for method in methods:
             extra.append(rrb.Spatial2DView(origin=entity("attribution", method, cam), name=f"{cam} {method}"))
@@ -197,11 +198,20 @@ def blueprint(cameras: list[str], layers: int, methods: list[str] = (), interven
         if extra:
             views.append(rrb.Tabs(*extra, name=f"{cam} attribution"))
         image_rows.append(rrb.Horizontal(*views))
+    measures = rrb.Tabs(
+        rrb.TimeSeriesView(origin="measures/mask_lift", contents="$origin/*/target",
+                           name="target lift per layer (1 = chance)"),
+        rrb.TimeSeriesView(origin="measures/share", name="modality shares per layer"),
+        rrb.TimeSeriesView(origin="measures/timestep_share", name="timestep shares per layer"),
+        rrb.TimeSeriesView(origin="measures/entropy", name="entropy per layer"),
+        rrb.TimeSeriesView(origin="measures/mask_mass", name="mask mass per layer"),
+        active_tab="target lift per layer (1 = chance)", name="attention measures")
     plots = rrb.Vertical(
-        rrb.TimeSeriesView(origin="measures", name="attention measures (per layer)"),
-        rrb.TimeSeriesView(origin="actions", name="actions"),
+        measures,
+        rrb.TimeSeriesView(origin="actions", name="actions (executed; first of the predicted chunk)"),
         rrb.TimeSeriesView(origin="scalars", name="reward, success, new chunks"),
-        rrb.TextDocumentView(origin="episode", name="episode"),
+        rrb.Horizontal(rrb.TextDocumentView(origin="episode/instruction", name="episode"),
+                       rrb.TextDocumentView(origin="episode/outcome", name="outcome")),
         row_shares=[3, 2, 1.5, 1.5],
     )
     return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*image_rows), plots, column_shares=[3, 2]),
@@ -352,6 +362,8 @@ class RerunSink:
         if self.intervention:
             header.append(f"- intervention: {meta.extra.get('intervention')}")
         header.append("- green over the frames: the target object's mask")
+        if meta.extra.get("frames_note"):
+            header.append(f"- frames: {meta.extra['frames_note']}")
         self._static("episode/instruction", rr.TextDocument("\n".join(header), media_type="text/markdown"))
         self._static("episode/outcome", rr.TextDocument("(episode running)"))
 
@@ -366,7 +378,7 @@ class RerunSink:
             raise ValueError(f"readout_attention must be (layers, heads, readouts, keys={tokens.num_keys}); "
                              f"got {attn.shape}")
         layers = attn.shape[0]
-        cameras = [key for _, key, _, _ in tokens.image_groups if key in record.frames]
+        cameras = [key for _, key, _, _ in tokens.image_groups]  # maps of every camera; frames where the record has them
         if not self._started:
             self._start(record, layers, cameras)
             self._started = True
@@ -378,6 +390,10 @@ class RerunSink:
                 self.live.set_time("sim_time", duration=step / self.control_hz)
 
         for cam in cameras:
+            heads = camera_maps(attn, tokens, cam).mean(axis=2)  # (layers, heads, rows, cols)
+            self._emit(entity("attention", cam, "heads"), "tensor", (heads, TENSOR_DIMS))
+            if cam not in record.frames:
+                continue
             frame = np.asarray(record.frames[cam])
             self._image(entity("camera", cam), frame)
             target = ((record.masks or {}).get(cam) or {}).get("target")
@@ -387,8 +403,6 @@ class RerunSink:
                 if previous is None or not np.array_equal(previous, target):  # logged when it changes (latest-at holds it)
                     self._targets[cam] = target
                     self._emit(entity("camera", cam, "target"), "png", mask_png(target))
-            heads = camera_maps(attn, tokens, cam).mean(axis=2)  # (layers, heads, rows, cols)
-            self._emit(entity("attention", cam, "heads"), "tensor", (heads, TENSOR_DIMS))
             fused = fuse_heads(heads, opts.head_fusion, axis=1)  # (layers, rows, cols)
             shown = overlay_base(frame)
             overlays = heatmap_overlays(shown, fused, alpha=opts.alpha, cmap=opts.cmap, interpolation=opts.interpolation)
