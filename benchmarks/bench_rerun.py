@@ -6,9 +6,9 @@ real renderer, masks on) in one process, alternating two arms episode by episode
   baseline   the run's outputs without a recording (--png-every 0: arrays, metrics and the MP4)
   rerun      the same plus --rerun save (episode.rrd, written by the writer's background thread)
 
-and prints each arm's mean seconds per step, the overhead of the rerun arm over the baseline, the recording sink's
-own time per step (CPU time in the background thread, from episode.json timings.rerun), and the size of episode.rrd
-per 100 steps. Target (issue 30): at most 10% added to a step; the size is stated, not bounded.
+and prints each arm's mean seconds per step, the overhead of the rerun arm over the baseline, the process CPU time per
+step of each arm (all threads: less sensitive to other processes' load than wall time), the recording sink's own
+wall time per step in the background thread (episode.json timings.rerun), and the size of episode.rrd per 100 steps. Target (issue 30): at most 10% added to a step; the size is stated, not bounded.
 
     .venv/bin/python benchmarks/bench_rerun.py [--steps 100] [--episodes 3] [--fast-render] [--json OUT.json]
 """
@@ -55,15 +55,15 @@ def main() -> None:
             execute(protocol(rerun, 0, 3), out, f"warmup_{rerun}", model=model, progress=False)
         for k in range(args.episodes):
             for arm in ("baseline", "rerun") if k % 2 == 0 else ("rerun", "baseline"):
-                start = time.perf_counter()
+                start, cpu = time.perf_counter(), time.process_time()
                 summary = execute(protocol(arm == "rerun", k, args.steps), out, f"{arm}_{k}", model=model,
                                   progress=False)
-                wall = time.perf_counter() - start
+                wall, cpu = time.perf_counter() - start, time.process_time() - cpu
                 row = summary.rows[0]
                 folder = summary.episode_dir(row)
                 meta = json.loads((folder / "episode.json").read_text())
                 rrd = folder / "episode.rrd"
-                arms[arm].append({"steps": row.steps, "step_s": row.seconds_per_step, "wall_s": wall,
+                arms[arm].append({"steps": row.steps, "step_s": row.seconds_per_step, "wall_s": wall, "cpu_s": cpu,
                                   "sink_s": meta["timings"].get("rerun", 0.0),
                                   "rrd_bytes": rrd.stat().st_size if rrd.is_file() else 0})
 
@@ -80,6 +80,8 @@ def main() -> None:
         "fast_render": args.fast_render,
         "baseline_s_per_step": base, "rerun_s_per_step": rec, "overhead": rec / base - 1,
         "sink_s_per_step": mean("rerun", "sink_s", per_step=True),
+        "baseline_cpu_s_per_step": mean("baseline", "cpu_s", per_step=True),
+        "rerun_cpu_s_per_step": mean("rerun", "cpu_s", per_step=True),
         "rrd_bytes_per_100_steps": 100 * mean("rerun", "rrd_bytes", per_step=True),
         "episodes": arms,
     }
@@ -88,7 +90,10 @@ def main() -> None:
     print(f"{'arm':<10} {'s/step':>8}")
     print(f"{'baseline':<10} {base:>8.4f}")
     print(f"{'rerun':<10} {rec:>8.4f}   overhead {result['overhead']:+.1%} (target <= +10%)")
-    print(f"recording sink (background thread): {result['sink_s_per_step'] * 1000:.1f} ms per step")
+    cpu_base, cpu_rec = result["baseline_cpu_s_per_step"], result["rerun_cpu_s_per_step"]
+    print(f"process CPU per step (all threads, episode incl. finishing its files): baseline {cpu_base:.4f} s, "
+          f"rerun {cpu_rec:.4f} s ({cpu_rec / cpu_base - 1:+.1%})")
+    print(f"recording sink (background thread, wall): {result['sink_s_per_step'] * 1000:.1f} ms per step")
     print(f"episode.rrd: {result['rrd_bytes_per_100_steps'] / 1e6:.2f} MB per 100 steps")
     if args.json is not None:
         args.json.write_text(json.dumps(result, indent=2) + "\n")

@@ -358,3 +358,26 @@ def _rendered(shot: Path) -> bool:
 
     image = np.asarray(Image.open(shot).convert("RGB")).astype(int)
     return image.std() > 20 and len(np.unique(image.reshape(-1, 3) // 8, axis=0)) > 200
+
+
+def test_live_streaming_to_a_served_viewer_with_and_without_saving(tmp_path):
+    """--rerun serve / save,serve through the writer: streaming to a gRPC viewer in this process does not disturb the
+    episode; with save too, the file holds the same entities as a save-only recording."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_writers import meta, records, tiny_tokens
+
+    from harness.outputs.rerun_sink import start_viewer
+    from harness.outputs.writers import EpisodeWriter, OutputOptions
+
+    viewer = start_viewer("serve", grpc_port=9889, web_port=9099)
+    assert viewer.url == "rerun+http://127.0.0.1:9889/proxy" and viewer.web_url.startswith("http://127.0.0.1:9099/?url=")
+    results = {}
+    for name, save, live in (("live", False, viewer.url), ("both", True, viewer.url), ("saved", True, None)):
+        writer = EpisodeWriter(tmp_path / name, tiny_tokens(), meta(episode=len(results)),
+                               OutputOptions(rerun=save, png_every=0, video=False), viewer=live)
+        for r in records(3):
+            writer.add_step(r)
+        results[name] = writer.finish({"success": True})
+    assert "rerun" not in results["live"]["files"] and not (tmp_path / "live" / RRD_NAME).exists()
+    assert _entities(tmp_path / "both" / RRD_NAME) == _entities(tmp_path / "saved" / RRD_NAME)
+    assert "/attention/image_wrist/heads" in _entities(tmp_path / "both" / RRD_NAME)
