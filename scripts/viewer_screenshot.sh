@@ -20,12 +20,16 @@ SERVER=$!
 for _ in $(seq 120); do grep -q "Rerun web viewer: " "$TMP/serve.log" && break; sleep 1; done
 URL="$(sed -n 's/.*Rerun web viewer: \([^ ;]*\).*/\1/p' "$TMP/serve.log" | head -1)"
 [ -n "$URL" ] || { cat "$TMP/serve.log" >&2; exit 1; }
-for budget in 30000 90000; do  # the viewer's WebAssembly compiles in real CPU time; a second try hits the code cache
+RENDERED=0
+for budget in 30000 90000 180000; do  # the viewer's WebAssembly compiles in real CPU time; later tries hit the code cache
     chromium --headless --no-sandbox --use-angle=swiftshader --enable-unsafe-swiftshader --ignore-gpu-blocklist \
         --no-first-run --disable-background-networking --user-data-dir="$TMP/profile" --window-size=1600,1000 \
         --virtual-time-budget=$budget --screenshot="$TMP/shot.png" "$URL" 2>/dev/null
-    "$PY" -c "import sys, numpy as np; from PIL import Image; a = np.asarray(Image.open(sys.argv[1]).convert('RGB')); sys.exit(0 if a.std() > 20 else 1)" "$TMP/shot.png" && break
+    if "$PY" -c "import sys, numpy as np; from PIL import Image; a = np.asarray(Image.open(sys.argv[1]).convert('RGB')).astype(int); sys.exit(0 if a.std() > 20 and len(np.unique(a.reshape(-1, 3) // 8, axis=0)) > 200 else 1)" "$TMP/shot.png"; then
+        RENDERED=1; break
+    fi
 done
+[ "$RENDERED" = 1 ] || { echo "the web viewer did not render in headless Chromium (the screenshot shows its loading screen)" >&2; exit 1; }
 "$PY" - "$TMP/shot.png" "$ROOT/docs/viewer_screenshot.png" <<'PY'
 import sys
 from PIL import Image

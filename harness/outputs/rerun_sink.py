@@ -199,7 +199,8 @@ def blueprint(cameras: list[str], layers: int, methods: list[str] = (), interven
             views.append(rrb.Tabs(*extra, name=f"{cam} attribution"))
         image_rows.append(rrb.Horizontal(*views))
     measures = rrb.Tabs(
-        rrb.TimeSeriesView(origin="measures/mask_lift", contents="$origin/*/target",
+        rrb.TimeSeriesView(origin="measures/mask_lift", contents=[entity("measures", "mask_lift", cam, "target")
+                                                                  for cam in cameras],
                            name="target lift per layer (1 = chance)"),
         rrb.TimeSeriesView(origin="measures/share", name="modality shares per layer"),
         rrb.TimeSeriesView(origin="measures/timestep_share", name="timestep shares per layer"),
