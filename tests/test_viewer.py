@@ -381,3 +381,20 @@ def test_live_streaming_to_a_served_viewer_with_and_without_saving(tmp_path):
     assert "rerun" not in results["live"]["files"] and not (tmp_path / "live" / RRD_NAME).exists()
     assert _entities(tmp_path / "both" / RRD_NAME) == _entities(tmp_path / "saved" / RRD_NAME)
     assert "/attention/image_wrist/heads" in _entities(tmp_path / "both" / RRD_NAME)
+
+
+def test_bad_viewer_options_are_one_line_before_anything_heavy(fixtures_dir, tmp_path, capsys):
+    base = ["run", "--task", "Lift", "--model", str(fixtures_dir / "tiny"), "--out", str(tmp_path)]
+    for extra, message in ((["--viewer-port", "9000"], "need --rerun spawn or --rerun serve"),
+                           (["--rerun", "spawn,serve"], "exclude each other"),
+                           (["--rerun", "record"], "--rerun takes save, spawn or serve"),
+                           (["--video-cameras", ","], "--video-cameras takes"),
+                           (["--overlay-interpolation", "cubic"], None)):
+        if message is None:
+            with pytest.raises(SystemExit):  # argparse's choices
+                cli.main(base + extra)
+            continue
+        assert cli.main(base + extra) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
+    assert not list(tmp_path.iterdir())  # no run folder started
