@@ -25,7 +25,7 @@ from harness.outputs.rerun_sink import RRD_NAME, parse_modes
 from harness.run import execute
 from harness.run.settings import build_protocol
 
-rr = pytest.importorskip("rerun", reason="never skipped in CI: scripts/_bootstrap.sh installs the viewer extra")
+import rerun as rr  # noqa: E402  the viewer extra (scripts/_bootstrap.sh installs it): missing is an error, not a skip
 STEPS = 4
 REPO = Path(__file__).resolve().parents[1]
 
@@ -82,6 +82,7 @@ def _heads(path: Path, cam: str) -> tuple[np.ndarray, list[np.ndarray]]:
     return steps, arrays
 
 
+@pytest.mark.slow
 def test_recording_holds_the_entity_tree_every_step_and_the_attention_values(runs):
     episode = runs["saved"]
     rrd = episode / RRD_NAME
@@ -113,6 +114,7 @@ def test_recording_holds_the_entity_tree_every_step_and_the_attention_values(run
         np.testing.assert_array_equal(np.asarray(executed, np.float32), z["executed"])
 
 
+@pytest.mark.slow
 def test_view_of_a_run_without_rerun_equals_the_saved_recording(runs, tiny, tmp_path):
     from harness.run.view import build_recording
 
@@ -135,6 +137,7 @@ def test_view_of_a_run_without_rerun_equals_the_saved_recording(runs, tiny, tmp_
     assert a == b
 
 
+@pytest.mark.slow
 def test_view_without_simulation_names_the_option_and_keeps_the_maps(runs, tiny, tmp_path):
     from harness.run.view import build_recording
 
@@ -144,6 +147,7 @@ def test_view_without_simulation_names_the_option_and_keeps_the_maps(runs, tiny,
     assert "/attention/image_primary/heads" in entities and "/camera/image_primary" not in entities
 
 
+@pytest.mark.slow
 def test_view_reports_when_the_resimulated_actions_differ(runs, tiny, tmp_path):
     """Another platform's numerics, simulated: the recorded actions no longer match; view says so and from which step."""
     from harness.run.view import build_recording
@@ -159,6 +163,7 @@ def test_view_reports_when_the_resimulated_actions_differ(runs, tiny, tmp_path):
     assert result.identical is False and "from step 2" in result.frames
 
 
+@pytest.mark.slow
 def test_view_opens_a_saved_recording_and_rebuilds_a_damaged_one(runs, tiny, tmp_path):
     from harness.run.view import build_recording
 
@@ -174,6 +179,7 @@ def test_view_opens_a_saved_recording_and_rebuilds_a_damaged_one(runs, tiny, tmp
     assert "/camera/image_primary" in _entities(tmp_path / "rebuilt.rrd")
 
 
+@pytest.mark.slow
 def test_mp4_has_a_row_per_camera(runs, tiny):
     """Both cameras the tiny model reads are in rollout.mp4, one row each; the wrist row shows the wrist frame."""
     from harness.analysis.runs import load_run
@@ -198,6 +204,7 @@ def test_mp4_has_a_row_per_camera(runs, tiny):
     assert np.abs(shown - top).mean() > 20  # two different cameras, not one twice
 
 
+@pytest.mark.slow
 def test_video_cameras_and_interpolation_options(tiny, tmp_path):
     episode = _run(tiny, tmp_path, "one", video_cameras="image_wrist", overlay_interpolation="bilinear", png_every=1)
     meta = json.loads((episode / "episode.json").read_text())
@@ -224,6 +231,7 @@ def test_bilinear_interpolation_is_smooth_and_nearest_is_the_patch_grid():
         heatmap_overlays(frame, grid[None], interpolation="cubic")
 
 
+@pytest.mark.slow
 def test_protocols_without_the_new_options_keep_their_hash(tiny):
     plain = build_protocol({"task": ["Lift"], "model": tiny.source})
     outputs = plain.to_dict()["outputs"]
@@ -261,6 +269,7 @@ def test_without_the_extra_rerun_is_one_line_naming_the_install(fixtures_dir, tm
     assert done.returncode == 0, done.stderr
 
 
+@pytest.mark.slow
 def test_view_rejects_what_is_not_a_run_or_an_episode(runs, tmp_path):
     assert cli.main(["view", str(tmp_path), "--save", str(tmp_path / "a.rrd")]) == 2  # not a run folder
     assert cli.main(["view", str(runs["plain"].parents[1]), "--task", "Stack", "--save", str(tmp_path / "a.rrd")]) == 2
@@ -291,6 +300,7 @@ def test_aborted_episode_leaves_no_recording(tmp_path):
     assert not (tmp_path / RRD_NAME).exists() and not list(tmp_path.glob("*.tmp*"))
 
 
+@pytest.mark.slow
 def test_report_links_each_episode_recording(runs, tmp_path):
     out = tmp_path / "report"
     assert cli.main(["report", str(runs["saved"].parents[1]), str(runs["plain"].parents[1]), "--out", str(out),
@@ -309,6 +319,7 @@ def _chromium() -> str:
                             "chromium; scripts/test.sh does it)")
 
 
+@pytest.mark.slow
 def test_headless_chromium_renders_the_web_viewer_on_a_recording(runs, tmp_path):
     """`view --serve` on a recording, screenshotted by headless Chromium (WebGL on SwiftShader, the CPU rasteriser):
     the viewer's panels and the episode's frames are drawn, not a blank or an error page."""
