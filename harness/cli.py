@@ -148,6 +148,20 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--video-attention", type=_video_attention, default=None,
                    help="attention shown in the MP4: a layer index (default -1 = last), 'rollout', or an attribution "
                         "map: grad-attention, saliency, occlusion (computed at every step, as --attribution)")
+    r.add_argument("--video-cameras", default=None, metavar="KEYS",
+                   help="cameras shown in the MP4, one row each (frame | overlay), e.g. image_primary or "
+                        "image_primary,image_wrist [all: every camera the model reads]")
+    r.add_argument("--overlay-interpolation", choices=["nearest", "bilinear"], default=None,
+                   help="how patch-grid maps are enlarged in PNGs, MP4 and recording: nearest (the honest patch grid) "
+                        "or bilinear (smooth, as the original attention-visualisation scripts) [nearest]")
+    r.add_argument("--rerun", default=None, metavar="save|spawn|serve",
+                   help="Rerun recording of every episode (pip install 'octo-harness[viewer]'): save writes "
+                        "episode.rrd beside its files (part of the protocol); spawn streams live to a viewer on this "
+                        "machine; serve hosts the web viewer for a headless server and prints its URL once "
+                        "(save,spawn / save,serve: both); see docs/viewer.md")
+    r.add_argument("--viewer-port", type=int, default=None, metavar="PORT",
+                   help="--rerun spawn/serve: the viewer's gRPC port [9876]; serve's web viewer uses --web-port")
+    r.add_argument("--web-port", type=int, default=None, metavar="PORT", help="--rerun serve: the web viewer's HTTP port [9090]")
     r.add_argument("--normalisation", choices=["frame", "episode"], default=None, help="[frame]")
     r.add_argument("--no-video", action="store_true", default=None)
     r.add_argument("--gif", action="store_true", default=None, help="also write rollout.gif")
@@ -250,6 +264,24 @@ def build_parser() -> argparse.ArgumentParser:
                     help="largest Jensen-Shannon divergence (bits) of a layer's and head's readout attention [3.5e-7]")
     rp.add_argument("--out", type=Path, default=None, help="output folder for replay.json [RUN_DIR/replay]")
 
+    vw = sub.add_parser("view", help="open an episode of a finished run in the Rerun viewer (pip install 'octo-harness[viewer]')",
+                        description="Scrub one episode: frames, every layer's and head's attention, attribution maps, "
+                                    "actions, rewards and measures on one timeline. A run made with --rerun save is "
+                                    "opened as recorded; otherwise the recording is rebuilt from the run's files and the "
+                                    "frames re-simulated from the episode's seed (checked bit for bit against the "
+                                    "recorded actions). See docs/viewer.md.")
+    vw.add_argument("run", type=Path, metavar="RUN_DIR")
+    vw.add_argument("--task", default=None, help="task of the episode [the run's first]")
+    vw.add_argument("--episode", type=int, default=None, help="episode index within the task [the first finished]")
+    vw.add_argument("--save", type=Path, default=None, metavar="PATH",
+                    help="write the recording to PATH (.rrd; open later with `rerun PATH`) instead of opening a viewer")
+    vw.add_argument("--serve", action="store_true",
+                    help="serve the web viewer from this machine (a headless server) and print its URL; Ctrl-C stops it")
+    vw.add_argument("--no-simulate", action="store_true",
+                    help="do not re-simulate the episode for its frames: maps and measures only")
+    vw.add_argument("--viewer-port", type=int, default=None, metavar="PORT", help="the viewer's gRPC port [9876]")
+    vw.add_argument("--web-port", type=int, default=None, metavar="PORT", help="--serve: the web viewer's HTTP port [9090]")
+
     reg = sub.add_parser("regress", help="run a candidate on a baseline's protocol and seeds until a sequential test decides",
                          description="Pair by pair (round by round over tasks) through the run store (resumable); "
                                      "one anytime-valid test per task (alpha / tasks each); stops as soon as a task "
@@ -345,6 +377,46 @@ def _cmd_replay(args) -> int:
     return exit_code(result)
 
 
+def _has_display() -> bool:
+    import os
+
+    return sys.platform != "linux" or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def _cmd_view(args) -> int:
+    import tempfile
+
+    from harness.outputs.rerun_sink import import_rerun, serve_file, start_viewer
+    from harness.run.view import build_recording
+
+    rr = import_rerun()
+    if args.save is not None and args.save.suffix != ".rrd":
+        raise ValueError(f"--save {args.save}: a Rerun recording's name ends in .rrd")
+    if args.save is None and not args.serve and not _has_display():
+        raise ValueError("no display here for a viewer window; pass --serve (web viewer, prints its URL) or --save PATH.rrd")
+    simulate = not args.no_simulate
+    if args.save is not None or args.serve:
+        with tempfile.TemporaryDirectory() as scratch:
+            target = args.save or Path(scratch) / "episode.rrd"
+            result = build_recording(args.run, args.task, args.episode, save=target, simulate=simulate)
+            print(f"{result.episode.task} episode {result.episode.episode}: frames: {result.frames}")
+            if args.save is not None:
+                print(f"recording: {result.path}  (open it with: rerun {result.path})")
+            if args.serve:
+                viewer = serve_file(result.path, args.viewer_port, args.web_port)
+                _keep_serving(viewer, f"Rerun web viewer: {viewer.web_url}")
+        return 0
+    viewer = start_viewer("spawn", args.viewer_port)
+    result = build_recording(args.run, args.task, args.episode, connect=viewer.url, simulate=simulate)
+    if result.source == "recording":
+        stream = rr.RecordingStream("octo-harness", recording_id=f"file:{result.path}")
+        stream.connect_grpc(viewer.url)
+        stream.log_file_from_path(result.path)
+        stream.flush(blocking=True)
+    print(f"{result.episode.task} episode {result.episode.episode} sent to the viewer; frames: {result.frames}")
+    return 0
+
+
 def _cmd_tasks() -> int:
     import envs
 
@@ -353,7 +425,28 @@ def _cmd_tasks() -> int:
 
 
 RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "executor", "ray_address", "policy_replicas",
-               "render_device")
+               "render_device", "viewer_port", "web_port")
+
+
+def _live_viewer(args, modes: tuple[str, ...]):
+    """--rerun modes -> the live viewer started for spawn / serve, or None. A missing viewer extra is one line."""
+    from harness.outputs.rerun_sink import import_rerun, start_viewer
+
+    if (args.viewer_port is not None or args.web_port is not None) and not {"spawn", "serve"} & set(modes):
+        raise ValueError("--viewer-port and --web-port need --rerun spawn or --rerun serve")
+    if modes:
+        import_rerun()
+    live = next((m for m in modes if m in ("spawn", "serve")), None)
+    if live is None:
+        return None
+    viewer = start_viewer(live, args.viewer_port, args.web_port)
+    if live == "serve":
+        print(f"Rerun web viewer: {viewer.web_url}  (on a remote server: ssh -L {args.web_port or 9090}:localhost:"
+              f"{args.web_port or 9090} -L {args.viewer_port or 9876}:localhost:{args.viewer_port or 9876} <server>)",
+              flush=True)
+    else:
+        print(f"Rerun viewer spawned; episodes stream to {viewer.url}", flush=True)
+    return viewer
 
 
 def _cmd_run(args) -> int:
@@ -362,8 +455,13 @@ def _cmd_run(args) -> int:
     from harness.run.settings import build_protocol, out_dir, read_protocol_file
 
     factory = _execution(args)
+    from harness.outputs.rerun_sink import parse_modes
 
-    given = {k: v for k, v in vars(args).items() if v is not None and k not in ("command", "debug", "verbose", *RUN_CONTROL)}
+    modes = parse_modes(args.rerun)  # a bad --rerun is one line, before anything heavy
+    given = {k: v for k, v in vars(args).items() if v is not None and k not in ("command", "debug", "verbose", "rerun",
+                                                                                   *RUN_CONTROL)}
+    if "save" in modes:
+        given["rerun"] = True  # an output option of the protocol (spawn and serve are not)
     if args.resume is not None:
         if given or args.protocol is not None:
             raise ValueError(f"--resume takes the protocol from {args.resume}/manifest.json; drop "
@@ -378,9 +476,10 @@ def _cmd_run(args) -> int:
         settings = {**(read_protocol_file(args.protocol) if args.protocol else {}), **given}
         protocol = build_protocol(settings)
         out, name, method = out_dir(settings), settings.get("run_name"), settings.get("ci_method", "wilson")
+    viewer = _live_viewer(args, modes)
     try:
         summary = execute(protocol, out, name, overwrite=args.overwrite, retry_failed=args.retry_failed, ci_method=method,
-                          executor=factory)
+                          executor=factory, viewer=viewer.url if viewer is not None else None)
     except ResultsWriteError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -390,7 +489,22 @@ def _cmd_run(args) -> int:
     if summary.manifest["model"].get("is_random"):
         print(f"NOTE: {summary.manifest['model']['source']} has random weights; this run checks the pipeline, not Octo's behaviour.")
     print(f"results: {summary.run_dir}")
-    return 0 if all(r.status == "ok" for r in summary.rows) else 1
+    code = 0 if all(r.status == "ok" for r in summary.rows) else 1
+    if viewer is not None and viewer.mode == "serve":
+        _keep_serving(viewer, "run finished; the web viewer keeps serving its recordings")
+    return code
+
+
+def _keep_serving(viewer, what: str = "the web viewer keeps serving") -> None:
+    """The web viewer lives in this process: keep it until Ctrl-C (as `rerun --serve-web` does)."""
+    import time
+
+    print(f"{what}; Ctrl-C to stop", flush=True)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        pass
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -412,6 +526,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_regress(args)
         if args.command == "replay":
             return _cmd_replay(args)
+        if args.command == "view":
+            return _cmd_view(args)
         return _cmd_run(args)
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", 2)

@@ -25,7 +25,7 @@ if [ ! -f "$STAMP" ]; then
     echo "[setup] creating .venv and installing octo-harness (first run takes a few minutes)"
     python3 -m venv .venv
     .venv/bin/pip install -q --upgrade pip
-    .venv/bin/pip install -q -e ".[test,ray]"
+    .venv/bin/pip install -q -e ".[test,ray,viewer]"
     rm -f .venv/.installed-*
     touch "$STAMP"
 fi

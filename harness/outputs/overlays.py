@@ -2,14 +2,16 @@
 
 Fast enough to run every control step: colours come from a 256-entry lookup table built once per
 colormap from matplotlib's colormaps (no figures), blending is integer numpy, text and boxes are
-drawn with Pillow's ImageDraw. Maps are patch-constant (`harness.analysis.attention.upsample_map`), so a
-patch of the model's grid lights exactly the block of pixels it was cut from, in the frame's own
-orientation.
+drawn with Pillow's ImageDraw. Maps are drawn patch-constant by default (interpolation "nearest",
+`harness.analysis.attention.upsample_map`: a patch of the model's grid lights exactly the block of pixels it was
+cut from, in the frame's own orientation); interpolation "bilinear" interpolates the map's values between patch
+centres before colouring (the smooth look of the original attention-visualisation scripts; it shows no detail the
+patch grid does not have).
 
 - `heatmap_overlay`: one map over one frame.
 - `layer_panel`: one step and layer, every head and the fused head per camera, captions, colour bars.
 - `attribution_panel`: one step, every attribution method per camera (each map over its own range).
-- `video_frame`: camera frame | attention overlay | captions, over a strip of per-layer overlays.
+- `video_frame`: one row per camera, camera frame | attention overlay | captions, over a strip of per-layer overlays.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from PIL import Image, ImageDraw, ImageFont
 
 from harness.analysis.attention import fuse_heads
 
+INTERPOLATIONS = ("nearest", "bilinear")  # how a patch-grid map is enlarged to its frame (--overlay-interpolation)
 BACKGROUND = 255
 TEXT = (0, 0, 0)
 BOX = (0, 255, 0)
@@ -91,6 +94,32 @@ def _upsample_colours(colours: np.ndarray, height: int, width: int) -> np.ndarra
     return resize_nearest(colours, height, width)
 
 
+def check_interpolation(interpolation: str) -> str:
+    if interpolation not in INTERPOLATIONS:
+        raise ValueError(f"overlay interpolation must be one of {', '.join(INTERPOLATIONS)}; got {interpolation!r}")
+    return interpolation
+
+
+def _bilinear_weights(size: int, cells: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lower cell, upper cell, weight of the upper) for each of `size` pixels over `cells` cells, cell centres at
+    (i + 0.5) * size / cells (half-pixel centres, as PIL and OpenCV); clamped at the borders."""
+    position = (np.arange(size) + 0.5) * cells / size - 0.5
+    low = np.clip(np.floor(position), 0, cells - 1).astype(np.intp)
+    high = np.minimum(low + 1, cells - 1)
+    weight = np.clip(position - low, 0.0, 1.0).astype(np.float32)
+    return low, high, weight
+
+
+def upsample_bilinear(maps: np.ndarray, height: int, width: int) -> np.ndarray:
+    """maps (..., rows, cols) -> (..., height, width) float32, bilinear between patch centres (edges held)."""
+    maps = np.asarray(maps, dtype=np.float32)
+    rows, cols = maps.shape[-2:]
+    y0, y1, wy = _bilinear_weights(height, rows)
+    x0, x1, wx = _bilinear_weights(width, cols)
+    columns = maps[..., x0] * (1 - wx) + maps[..., x1] * wx  # (..., rows, width)
+    return columns[..., y0, :] * (1 - wy)[:, None] + columns[..., y1, :] * wy[:, None]
+
+
 def heatmap_overlays(
     frame: np.ndarray,
     maps: np.ndarray,
@@ -98,14 +127,17 @@ def heatmap_overlays(
     vmax: float | np.ndarray | None = None,
     alpha: float = 0.5,
     cmap: str = "jet",
+    interpolation: str = "nearest",
 ) -> np.ndarray:
     """frame (H, W, 3) uint8, maps (n, rows, cols) -> (n, H, W, 3) uint8 overlays of each map on the frame.
 
     vmin / vmax: scalars or (n,) per map; None = each map's own min / max. Each map is coloured per
-    patch, upsampled patch-constant to the frame, and blended as (1 - alpha) * frame + alpha * colour
-    in integer arithmetic (the frame part is computed once for all maps).
+    patch and upsampled patch-constant to the frame ("nearest"), or interpolated bilinearly to the frame
+    and coloured per pixel ("bilinear"), then blended as (1 - alpha) * frame + alpha * colour in integer
+    arithmetic (the frame part is computed once for all maps).
     """
     frame = _check_frame(frame)
+    check_interpolation(interpolation)
     maps = np.asarray(maps, dtype=np.float32)
     n = maps.shape[0]
     lo = maps.min(axis=(1, 2)) if vmin is None else np.broadcast_to(np.asarray(vmin, np.float32), (n,))
@@ -118,6 +150,13 @@ def heatmap_overlays(
     base = frame.astype(np.uint16) * (256 - a) + 128  # (H, W, 3); max total 255 * 256 + 128 fits uint16
     height, width = frame.shape[:2]
     out = np.empty((n, height, width, 3), np.uint8)
+    if interpolation == "bilinear":  # values between patch centres, then coloured per pixel (range as above)
+        smooth = upsample_bilinear(maps, height, width)
+        scaled = np.divide((smooth - lo[:, None, None]) * 255.0, span, out=np.zeros_like(smooth), where=span > 0)
+        index = np.clip(np.rint(scaled), 0, 255).astype(np.uint8)  # (n, H, W)
+        for i in range(n):
+            out[i] = (base + lut[index[i]]) >> 8
+        return out
     for i in range(n):
         out[i] = (base + _upsample_colours(lut[index[i]], height, width)) >> 8
     return out
@@ -130,13 +169,14 @@ def heatmap_overlay(
     vmax: float | None = None,
     alpha: float = 0.5,
     cmap: str = "jet",
+    interpolation: str = "nearest",
 ) -> np.ndarray:
     """frame (H, W, 3) uint8, attn_map (rows, cols) -> (H, W, 3) uint8 overlay in the frame's orientation.
 
-    The map is coloured per patch with [vmin, vmax] (default: the map's own range), upsampled
-    patch-constant to the frame and alpha-blended over it (alpha = weight of the heatmap).
+    The map is coloured with [vmin, vmax] (default: the map's own range), enlarged to the frame
+    (`interpolation`, see heatmap_overlays) and alpha-blended over it (alpha = weight of the heatmap).
     """
-    return heatmap_overlays(frame, np.asarray(attn_map)[None], vmin, vmax, alpha, cmap)[0]
+    return heatmap_overlays(frame, np.asarray(attn_map)[None], vmin, vmax, alpha, cmap, interpolation)[0]
 
 
 def mask_bbox(mask: np.ndarray | None) -> tuple[int, int, int, int] | None:
@@ -180,6 +220,7 @@ def layer_panel(
     cmap: str = "jet",
     alpha: float = 0.5,
     min_cell: int = 128,
+    interpolation: str = "nearest",
 ) -> np.ndarray:
     """One step and layer: rows = cameras, columns = head 0..H-1 then the fused head.
 
@@ -191,7 +232,7 @@ def layer_panel(
     boxes: observation key -> (top, left, bottom, right) in that frame's pixels (target bounding box).
     min_cell: frames are shown at their own size, enlarged by an integer factor (pixel repetition)
       until at least `min_cell` pixels high, so small model inputs stay legible and patches stay sharp.
-    Returns (H, W, 3) uint8.
+    interpolation: how maps are enlarged to the frames (heatmap_overlays). Returns (H, W, 3) uint8.
     """
     if not maps:
         raise ValueError("layer_panel needs at least one camera map")
@@ -204,7 +245,8 @@ def layer_panel(
         stacks[cam] = np.concatenate([cam_maps, fuse_heads(cam_maps, head_fusion, axis=0)[None]])  # (heads + 1, r, c)
     title = f"{caption.get('task', '')} | step {caption.get('step', '?')} | layer {caption.get('layer', '?')}"
     columns = [f"head {h}" for h in range(heads)] + [head_fusion]
-    return _grid_panel(frames, stacks, columns, title, caption.get("note"), ranges, boxes, False, cmap, alpha, min_cell)
+    return _grid_panel(frames, stacks, columns, title, caption.get("note"), ranges, boxes, False, cmap, alpha, min_cell,
+                       interpolation)
 
 
 def attribution_panel(
@@ -215,6 +257,7 @@ def attribution_panel(
     cmap: str = "jet",
     alpha: float = 0.5,
     min_cell: int = 128,
+    interpolation: str = "nearest",
 ) -> np.ndarray:
     """One step: rows = cameras, columns = attribution methods (`harness.analysis.attribution`).
 
@@ -236,10 +279,12 @@ def attribution_panel(
                              f"{[g.shape for g in grids.values()]}")
         stacks[cam] = np.stack([grids.get(m, np.full(shape, np.nan)) for m in methods])  # (methods, rows, cols)
     title = f"{caption.get('task', '')} | step {caption.get('step', '?')} | attribution (each map min..max)"
-    return _grid_panel(frames, stacks, methods, title, caption.get("note"), None, boxes, True, cmap, alpha, min_cell)
+    return _grid_panel(frames, stacks, methods, title, caption.get("note"), None, boxes, True, cmap, alpha, min_cell,
+                       interpolation)
 
 
-def _grid_panel(frames, stacks, columns, title, note, ranges, boxes, per_cell, cmap, alpha, min_cell) -> np.ndarray:
+def _grid_panel(frames, stacks, columns, title, note, ranges, boxes, per_cell, cmap, alpha, min_cell,
+                interpolation="nearest") -> np.ndarray:
     """Rows = cameras, columns = `columns`; stacks: observation key -> (columns, rows, cols) maps.
 
     per_cell: colour each cell over its own range (a NaN cell shows the bare frame); otherwise one range
@@ -281,7 +326,8 @@ def _grid_panel(frames, stacks, columns, title, note, ranges, boxes, per_cell, c
         top = title_h + int(row_tops[r]) + line
         if per_cell:
             overlays = [shown if not np.isfinite(m).any() else
-                        heatmap_overlays(shown, m[None], float(np.nanmin(m)), float(np.nanmax(m)), alpha, cmap)[0]
+                        heatmap_overlays(shown, m[None], float(np.nanmin(m)), float(np.nanmax(m)), alpha, cmap,
+                                         interpolation)[0]
                         for m in stack]
             labels.append(((left, top - line + 2), cam, small))
             low, high = "min", "max"
@@ -290,7 +336,7 @@ def _grid_panel(frames, stacks, columns, title, note, ranges, boxes, per_cell, c
                 vmin, vmax = ranges[cam]
             else:
                 vmin, vmax = float(stack.min()), float(stack.max())
-            overlays = heatmap_overlays(shown, stack, vmin, vmax, alpha, cmap)  # (columns, ch, cw, 3)
+            overlays = heatmap_overlays(shown, stack, vmin, vmax, alpha, cmap, interpolation)  # (columns, ch, cw, 3)
             labels.append(((left, top - line + 2), f"{cam}   range [{_fmt(vmin)}, {_fmt(vmax)}]", small))
             low, high = _fmt(vmin), _fmt(vmax)
         box = (boxes or {}).get(cam)
@@ -317,67 +363,87 @@ def _round_up(n: int, multiple: int) -> int:
 
 
 def video_frame(
-    frame: np.ndarray,
-    overlay: np.ndarray,
-    layer_strip_maps: np.ndarray,
+    frame: np.ndarray | Sequence[np.ndarray],
+    overlay: np.ndarray | Sequence[np.ndarray],
+    layer_strip_maps: np.ndarray | Sequence[np.ndarray],
     captions: Sequence[str],
     cmap: str = "jet",
     alpha: float = 0.5,
     display: int = 256,
     strip_columns: int = 6,
-    box: tuple[int, int, int, int] | None = None,
+    box: tuple[int, int, int, int] | None | Sequence[tuple[int, int, int, int] | None] = None,
+    labels: Sequence[str] = (),
+    interpolation: str = "nearest",
 ) -> np.ndarray:
-    """One video frame: [camera frame | attention overlay | captions] above a strip of per-layer overlays.
+    """One video frame: one row per camera, [camera frame | attention overlay | text] above a strip of per-layer overlays.
 
-    frame, overlay: (h, w, 3) uint8 (overlay e.g. from heatmap_overlay on this frame); shown at
-      `display` pixels high (nearest neighbour).
-    layer_strip_maps: (layers, rows, cols) one (fused-head) map per layer, each coloured with its own range.
-    captions: text lines (step, action, success, ...), wrapped to the caption panel.
-    box: optional (top, left, bottom, right) target box in frame pixels, drawn on the overlay.
-    The size depends only on the frame size and the number of layers (constant for an episode) and
+    frame, overlay: (h, w, 3) uint8 per camera row (a single array: one row; overlay e.g. from heatmap_overlay on
+      that frame); shown at `display` pixels high (nearest neighbour). The first row's frame fills the top-left
+      `display` x w pixels (harness.report.build reads it back from there).
+    layer_strip_maps: (layers, rows, cols) per camera row, one (fused-head) map per layer, each coloured with its own
+      range (`interpolation` as heatmap_overlays).
+    captions: text lines (step, action, success, ...) beside the first row, wrapped; labels: the text beside each
+      further row (e.g. which camera and map it shows).
+    box: optional (top, left, bottom, right) target box in frame pixels per row, drawn on the overlay.
+    The size depends only on the frame sizes, the number of cameras and of layers (constant for an episode) and
     is padded to multiples of 16 so video encoders need no resampling. Returns (H, W, 3) uint8.
     """
-    frame = _check_frame(frame)
-    overlay = _check_frame(overlay)
-    layer_strip_maps = np.asarray(layer_strip_maps, dtype=np.float32)
-    h, w = frame.shape[:2]
-    dh, dw = display, max(1, int(round(display * w / h)))
-    layers = layer_strip_maps.shape[0]
-    ncol = max(1, min(layers, strip_columns))
-    nrow = -(-layers // ncol)
-    top_width = 3 * dw + 2 * PAD
-    thumb_w = min((top_width - (ncol - 1) * PAD) // ncol, dw // 2)
-    thumb_h = max(1, int(round(thumb_w * h / w)))
+    one = isinstance(frame, np.ndarray) and frame.ndim == 3
+    frames = [_check_frame(f) for f in ([frame] if one else frame)]
+    overlays = [_check_frame(o) for o in ([overlay] if one else overlay)]
+    strips = [np.asarray(m, dtype=np.float32) for m in ([layer_strip_maps] if one else layer_strip_maps)]
+    boxes = [box] if one else list(box or [None] * len(frames))
+    if not frames or not len(frames) == len(overlays) == len(strips) == len(boxes):
+        raise ValueError(f"video_frame needs one overlay, strip and box per camera row; got {len(frames)} frames, "
+                         f"{len(overlays)} overlays, {len(strips)} strips, {len(boxes)} boxes")
+    shapes = []  # per row: (h, w, dw, thumb_w, thumb_h, strip rows)
+    dw_max = max(max(1, int(round(display * f.shape[1] / f.shape[0]))) for f in frames)
+    top_width = 3 * dw_max + 2 * PAD
+    for f, m in zip(frames, strips):
+        h, w = f.shape[:2]
+        dw = max(1, int(round(display * w / h)))
+        ncol = max(1, min(m.shape[0], strip_columns))
+        thumb_w = min((top_width - (ncol - 1) * PAD) // ncol, dw // 2)
+        shapes.append((h, w, dw, thumb_w, max(1, int(round(thumb_w * h / w))), ncol, -(-m.shape[0] // ncol)))
+    row_heights = [display + PAD + nrow * (th + PAD) for _, _, _, _, th, _, nrow in shapes]
     width = _round_up(top_width, 16)
-    height = _round_up(dh + PAD + nrow * (thumb_h + PAD), 16)
+    height = _round_up(sum(row_heights), 16)
     canvas = np.full((height, width, 3), BACKGROUND, np.uint8)
+    dh = display
 
-    canvas[:dh, :dw] = resize_nearest(frame, dh, dw)
-    canvas[:dh, dw + PAD : 2 * dw + PAD] = resize_nearest(overlay, dh, dw)
-    small_frame = resize_nearest(frame, thumb_h, thumb_w)
-    thumbs_top = dh + PAD
-    positions = []
-    thumbs = heatmap_overlays(small_frame, layer_strip_maps, alpha=alpha, cmap=cmap)  # (layers, th, tw, 3)
-    for i in range(layers):
-        y = thumbs_top + (i // ncol) * (thumb_h + PAD)
-        x = (i % ncol) * (thumb_w + PAD)
-        canvas[y : y + thumb_h, x : x + thumb_w] = thumbs[i]
-        positions.append((x, y))
+    strip_labels, rects, texts = [], [], []  # (x, y, layer), (box, top, left, sy, sx), (x, y, lines)
+    top = 0
+    for r, (f, o, m, (h, w, dw, thumb_w, thumb_h, ncol, _)) in enumerate(zip(frames, overlays, strips, shapes)):
+        canvas[top : top + dh, :dw] = resize_nearest(f, dh, dw)
+        canvas[top : top + dh, dw + PAD : 2 * dw + PAD] = resize_nearest(o, dh, dw)
+        thumbs = heatmap_overlays(resize_nearest(f, thumb_h, thumb_w), m, alpha=alpha, cmap=cmap,
+                                  interpolation=interpolation)  # (layers, th, tw, 3)
+        for i in range(m.shape[0]):
+            y = top + dh + PAD + (i // ncol) * (thumb_h + PAD)
+            x = (i % ncol) * (thumb_w + PAD)
+            canvas[y : y + thumb_h, x : x + thumb_w] = thumbs[i]
+            strip_labels.append((x, y, i))
+        if boxes[r] is not None:
+            rects.append((boxes[r], top, dw + PAD, dh / h, dw / w))
+        lines = list(captions) if r == 0 else ([labels[r - 1]] if r - 1 < len(labels) else [])
+        texts.append((2 * dw + 3 * PAD, top, dw, lines))
+        top += row_heights[r]
 
     image = Image.fromarray(canvas)
     draw = ImageDraw.Draw(image)
-    if box is not None:
-        _draw_box(draw, box, 0, dw + PAD, dh / h, dw / w)
+    for rect in rects:
+        _draw_box(draw, *rect)
     font = _font(13)
     small = _font(11)
-    for i, (x, y) in enumerate(positions):
+    for x, y, i in strip_labels:
         draw.text((x + 3, y + 2), f"layer {i}", fill=(255, 255, 255), font=small, stroke_width=2, stroke_fill=(0, 0, 0))
-    chars = max(8, int((dw - 2 * PAD) / 7))
-    y = PAD
-    for text in captions:
-        for piece in textwrap.wrap(str(text), chars) or [""]:
-            if y + 16 > dh:
-                break
-            draw.text((2 * dw + 2 * PAD + PAD, y), piece, fill=TEXT, font=font)
-            y += 16
+    for x, top, dw, lines in texts:
+        chars = max(8, int((dw - 2 * PAD) / 7))
+        y = top + PAD
+        for text in lines:
+            for piece in textwrap.wrap(str(text), chars) or [""]:
+                if y + 16 > top + dh:
+                    break
+                draw.text((x, y), piece, fill=TEXT, font=font)
+                y += 16
     return np.asarray(image)

@@ -9,7 +9,9 @@ to the rollout video. `finish()` writes the arrays and JSON. Files in `episode_d
                               heads and the fused head, colour bars, optional target box
   step_<tttt>_attribution.png at PNG steps that carry attribution maps (--attribution, --faithfulness-every):
                               rows = cameras, columns = methods, each map coloured over its own range
-  rollout.mp4 (rollout.gif)   camera | attention overlay | captions, over a per-layer strip
+  rollout.mp4 (rollout.gif)   one row per camera (OutputOptions.video_camera: every camera the model reads by
+                              default): camera | attention overlay | captions, over a per-layer strip
+  episode.rrd                 with OutputOptions.rerun: the episode as a Rerun recording (harness.outputs.rerun_sink)
   attention.npz               readout_attention (steps, layers, heads, readouts, keys) float16,
                               tokens/* (TokenMap.to_arrays), metrics/<name> (steps, ...) float32,
                               step (steps,), rollout_readout (steps, readouts, keys) float16 if used,
@@ -67,8 +69,8 @@ import numpy as np
 from harness.analysis.aggregate import measure_arrays
 from harness.analysis.attention import HEAD_FUSIONS, camera_maps, fuse_heads, mask_fractions, rollout_readout_rows, step_metrics
 from harness.octo.tokens import TokenMap
-from harness.outputs.overlays import (attribution_panel, colormap_lut, heatmap_overlay, layer_panel, mask_bbox,
-                                      video_frame)
+from harness.outputs.overlays import (attribution_panel, check_interpolation, colormap_lut, heatmap_overlay, layer_panel,
+                                      mask_bbox, video_frame)
 from harness.policy import input_digest
 from harness.records import EpisodeMeta, StepRecord
 from harness.files import atomic_write_json, json_safe, write_atomic
@@ -94,7 +96,9 @@ class OutputOptions:
     # overlay in the video: a layer index, "rollout" (needs full attention) or an attribution method of ATTRIBUTION_VIDEO
     # (its maps come with the records: the run computes them, --attribution)
     video_attention: str | int = -1
-    video_camera: str | None = None  # observation key shown in the video; None = the first image group's camera
+    # observation key(s) shown in the video, one row each (--video-cameras); None = every camera the model reads, in
+    # the model's order (a single key, as older protocols hold it, is one row)
+    video_camera: str | tuple[str, ...] | None = None
     gif: bool = False  # also write rollout.gif (every gif_every-th frame, half size)
     gif_every: int = 2
     normalisation: str = "frame"  # PNG colour range: "frame" (this step) or "episode" (rendered at finish)
@@ -107,6 +111,17 @@ class OutputOptions:
     png_compress_level: int = 2  # zlib level 0-9 (low: fast, larger files)
     png_workers: int = 2  # threads compressing PNGs in parallel (zlib releases the GIL); 0 = in the writer thread
     record_inputs: bool = False  # write inputs.npz: the policy's inputs at every step, for `octo-harness replay`
+    overlay_interpolation: str = "nearest"  # how patch maps are enlarged in PNGs, MP4 and recording: nearest | bilinear
+    rerun: bool = False  # write episode.rrd, a Rerun recording of the episode (--rerun save; needs the viewer extra)
+
+    def to_dict(self) -> dict:
+        """The fields as plain data; the fields added since protocols were first hashed only when not at their default
+        (protocols that do not use them keep their hash and their run name)."""
+        data = dataclasses.asdict(self)
+        for key, default in {"overlay_interpolation": "nearest", "rerun": False}.items():
+            if data[key] == default:
+                del data[key]
+        return data
 
     def __post_init__(self) -> None:
         if self.png_every < 0:
@@ -129,6 +144,17 @@ class OutputOptions:
         if not 0 <= self.png_compress_level <= 9:
             raise ValueError(f"png_compress_level must be 0..9; got {self.png_compress_level}")
         colormap_lut(self.cmap)  # unknown colormap: clear error now, not in the thread
+        check_interpolation(self.overlay_interpolation)
+        if isinstance(self.video_camera, (list, tuple)):
+            cameras = tuple(str(c) for c in self.video_camera)
+            if not cameras or len(set(cameras)) < len(cameras):
+                raise ValueError(f"video cameras must be distinct observation keys, at least one; got {list(cameras)}")
+            object.__setattr__(self, "video_camera", cameras)
+
+    @property
+    def video_cameras(self) -> tuple[str, ...] | None:
+        """The cameras chosen for the video rows (None: every camera the model reads)."""
+        return (self.video_camera,) if isinstance(self.video_camera, str) else self.video_camera
 
 
 def encode_png(image: np.ndarray, level: int = 2) -> bytes:
@@ -200,7 +226,7 @@ class _Layout:
     heads: int
     png_layers: tuple[int, ...]
     cameras: tuple[str, ...]  # observation keys with an image group and a frame
-    video_camera: str | None
+    video_cameras: tuple[str, ...]  # the video's rows
     video_layer: int | None  # None when the video shows the rollout
 
 
@@ -211,9 +237,10 @@ class EpisodeWriter:
     """
 
     def __init__(self, episode_dir: str | os.PathLike, tokens: TokenMap | None, meta: EpisodeMeta,
-                 options: OutputOptions | None = None):
+                 options: OutputOptions | None = None, viewer: str | None = None):
         """tokens: the token map of the attention; a record's own `StepRecord.tokens` (the map of the
-        inference that produced it) takes precedence, so None is fine when the records carry one."""
+        inference that produced it) takes precedence, so None is fine when the records carry one.
+        viewer: gRPC url of a live Rerun viewer to stream the episode to (harness.outputs.rerun_sink.start_viewer)."""
         self.dir = Path(episode_dir)
         self.tokens = tokens
         self.meta = meta
@@ -231,6 +258,17 @@ class EpisodeWriter:
         self._gif = (
             GifWriter(self.dir / "rollout.gif", fps=self.options.fps, every=self.options.gif_every) if self.options.gif else None
         )
+        # the Rerun recording (harness.outputs.rerun_sink): episode.rrd with options.rerun, and/or a live viewer's url
+        self._rerun = None
+        if self.options.rerun or viewer is not None:
+            from harness.outputs.rerun_sink import RRD_NAME, RerunSink, SinkOptions
+
+            (self.dir / RRD_NAME).unlink(missing_ok=True)  # never a stale recording beside a new episode
+            self._rerun = RerunSink(
+                meta, SinkOptions(cmap=self.options.cmap, alpha=self.options.alpha, head_fusion=self.options.head_fusion,
+                                  interpolation=self.options.overlay_interpolation),
+                save=self.dir / RRD_NAME if self.options.rerun else None, connect=viewer,
+                intervention=bool(meta.extra.get("intervention")), control_hz=meta.extra.get("control_hz"))
         # accumulated per step (background thread only, read after join)
         self._steps: list[int] = []
         self._attention: list[np.ndarray] = []  # (layers, heads, readouts, keys) float16
@@ -256,6 +294,7 @@ class EpisodeWriter:
         self._png_pool = ThreadPoolExecutor(workers, thread_name_prefix="png") if workers else None
         self._png_pending: list[Future] = []  # oldest first; bounded so rendered panels do not pile up
         self._png_seconds: list[float] = []  # encode + write time of each PNG (in the pool)
+        self._rerun_seconds = 0.0  # logging the recording (in the writer thread)
 
         self._thread = threading.Thread(target=self._run, name=f"episode-writer-{meta.task}-{meta.episode}", daemon=True)
         self._thread.start()
@@ -285,6 +324,8 @@ class EpisodeWriter:
             self._thread.join()
             self._raise_if_failed()
             files = self._write_files()
+            if self._rerun is not None:
+                files.update(self._finish_rerun(summary or {}))
             result = self._summary(files, summary or {}, time.perf_counter() - start)
             atomic_write_json(self.dir / "episode.json", result)
         except BaseException:
@@ -344,7 +385,7 @@ class EpisodeWriter:
     def _abort_outputs(self) -> None:
         if self._png_pool is not None:
             self._png_pool.shutdown(wait=True, cancel_futures=True)
-        for sink in (self._mp4, self._gif):
+        for sink in (self._mp4, self._gif, self._rerun):
             if sink is not None:
                 sink.abort()
         for tmp in self.dir.glob("*.tmp.*"):
@@ -391,11 +432,12 @@ class EpisodeWriter:
         if not cameras and (opts.png_every or opts.video or opts.gif):
             raise ValueError(f"no frame for any camera of the model {[k for _, k, _, _ in self.tokens.image_groups]}; "
                              "put the frames the model saw in StepRecord.frames")
-        video_camera = opts.video_camera or (cameras[0] if cameras else None)
-        if (opts.video or opts.gif) and video_camera not in cameras:
-            raise ValueError(f"video camera {video_camera!r} has no frame or image group; choose one of {list(cameras)}")
+        video_cameras = opts.video_cameras or cameras
+        unknown = [c for c in video_cameras if c not in cameras]
+        if (opts.video or opts.gif) and unknown:
+            raise ValueError(f"video camera(s) {unknown} have no frame or image group; choose from {list(cameras)}")
         video_layer = None if opts.video_attention in ("rollout", *ATTRIBUTION_VIDEO) else layer_index(int(opts.video_attention))
-        return _Layout(layers, heads, png_layers, cameras, video_camera, video_layer)
+        return _Layout(layers, heads, png_layers, cameras, tuple(video_cameras), video_layer)
 
     def _process(self, record: StepRecord) -> None:
         if record.tokens is not None:
@@ -424,6 +466,10 @@ class EpisodeWriter:
         self._rewards.append(float(record.reward))
         self._success.append(bool(record.success))
         self._metrics.append(step_metrics(attn, tokens, record.masks))
+        if self._rerun is not None:
+            start = time.perf_counter()
+            self._rerun.log_step(record, tokens, self._metrics[-1])
+            self._rerun_seconds += time.perf_counter() - start
         self._mask_fractions.append(mask_fractions(tokens, record.masks))
         self._timings.append({k: float(v) for k, v in record.timings.items()})
         if record.attribution is not None:
@@ -492,7 +538,7 @@ class EpisodeWriter:
         opts = self.options
         panel = layer_panel(
             frames, maps, self._caption(step, layer), ranges=ranges, boxes=boxes,
-            head_fusion=opts.head_fusion, cmap=opts.cmap, alpha=opts.alpha,
+            head_fusion=opts.head_fusion, cmap=opts.cmap, alpha=opts.alpha, interpolation=opts.overlay_interpolation,
         )
         self._write_png(PNG_NAME.format(step=step, layer=layer), panel)
 
@@ -518,7 +564,8 @@ class EpisodeWriter:
         shown = {m: by for m, by in shown.items() if by}
         if not shown:  # maps only of cameras this episode has no frame for
             return
-        panel = attribution_panel(frames, shown, self._caption(step, -1), boxes=boxes, cmap=opts.cmap, alpha=opts.alpha)
+        panel = attribution_panel(frames, shown, self._caption(step, -1), boxes=boxes, cmap=opts.cmap, alpha=opts.alpha,
+                                  interpolation=opts.overlay_interpolation)
         self._write_png(ATTRIBUTION_PNG_NAME.format(step=step), panel)
 
     def _drain_png(self, keep: int) -> None:
@@ -536,33 +583,39 @@ class EpisodeWriter:
 
     def _video_frame(self, record, frames, maps, boxes, rollout) -> np.ndarray:
         opts, layout = self.options, self._layout
-        cam = layout.video_camera
-        frame = frames[cam]
-        fused = fuse_heads(maps[cam], opts.head_fusion, axis=1)  # (layers, rows, cols)
-        if opts.video_attention in ATTRIBUTION_VIDEO:
-            by_camera = ((record.attribution or {}).get("maps") or {}).get(opts.video_attention)
-            if by_camera is None or cam not in by_camera:
-                raise ValueError(f"video_attention={opts.video_attention!r} needs its maps in the records: run with "
-                                 f"--attribution {opts.video_attention}")
-            shown = np.asarray(by_camera[cam], np.float32)
-            what = f"{opts.video_attention} attribution"
-        elif rollout is not None:
-            shown = camera_maps(rollout.mean(axis=0), self.tokens, cam)
-            what = "attention rollout"
-        else:
-            shown = fused[layout.video_layer]
-            what = f"layer {layout.video_layer} ({opts.head_fusion} of heads)"
-        overlay = heatmap_overlay(frame, shown, alpha=opts.alpha, cmap=opts.cmap)
+        shown_frames, overlays, strips, row_boxes, labels = [], [], [], [], []
+        for cam in layout.video_cameras:
+            fused = fuse_heads(maps[cam], opts.head_fusion, axis=1)  # (layers, rows, cols)
+            if opts.video_attention in ATTRIBUTION_VIDEO:
+                by_camera = ((record.attribution or {}).get("maps") or {}).get(opts.video_attention)
+                if by_camera is None or cam not in by_camera:
+                    raise ValueError(f"video_attention={opts.video_attention!r} needs its maps in the records: run with "
+                                     f"--attribution {opts.video_attention}")
+                shown = np.asarray(by_camera[cam], np.float32)
+                what = f"{opts.video_attention} attribution"
+            elif rollout is not None:
+                shown = camera_maps(rollout.mean(axis=0), self.tokens, cam)
+                what = "attention rollout"
+            else:
+                shown = fused[layout.video_layer]
+                what = f"layer {layout.video_layer} ({opts.head_fusion} of heads)"
+            shown_frames.append(frames[cam])
+            overlays.append(heatmap_overlay(frames[cam], shown, alpha=opts.alpha, cmap=opts.cmap,
+                                            interpolation=opts.overlay_interpolation))
+            strips.append(fused)
+            row_boxes.append(boxes.get(cam))
+            labels.append(f"{cam}: {what}; below: every layer")
         action = np.asarray(record.action_executed, np.float32)
         captions = [
             f"{self.meta.task} | episode {self.meta.episode} | step {record.step}",
-            f"{cam}: {what}",
+            labels[0],
             "action: " + " ".join(f"{a:+.3f}" for a in action),
             f"reward {float(record.reward):.3f} | success {'YES' if record.success else 'no'}",
             f'"{self.meta.instruction}"',
             f"RANDOM WEIGHTS: {self.meta.model}" if self.meta.model_is_random else f"model: {self.meta.model}",
         ]
-        return video_frame(frame, overlay, fused, captions, cmap=opts.cmap, alpha=opts.alpha, box=boxes.get(cam))
+        return video_frame(shown_frames, overlays, strips, captions, cmap=opts.cmap, alpha=opts.alpha, box=row_boxes,
+                           labels=labels[1:], interpolation=opts.overlay_interpolation)
 
     # ---- files at finish ---------------------------------------------------------------------
 
@@ -653,6 +706,18 @@ class EpisodeWriter:
             raise ValueError(f"phases {unknown} are not phases of task {self.meta.task} ({', '.join(names) or 'none'})")
         return names
 
+    def _finish_rerun(self, summary: dict) -> dict[str, str]:
+        """Close the recording with the episode's outcome; episode.rrd when it was saved."""
+        start = time.perf_counter()
+        outcome = {"success": bool(summary.get("success", any(self._success))), "steps": len(self._steps),
+                   "return": float(np.sum(self._rewards)) if self._steps else 0.0}
+        for key in ("actions_clipped",):
+            if key in summary:
+                outcome[key] = summary[key]
+        path = self._rerun.finish(outcome)
+        self._rerun_seconds += time.perf_counter() - start
+        return {"rerun": path.name} if path is not None else {}
+
     def _write_attribution(self) -> dict[str, str]:
         """attribution.npz: step (n,), map/<method>/<obs key> (n, rows, cols) float32 at the steps that carry maps;
         faithfulness.jsonl: one row per step x camera x method (harness.analysis.faithfulness), when measured."""
@@ -685,6 +750,7 @@ class EpisodeWriter:
             "mean": {k: float(np.mean(v)) for k, v in per_step.items()},
             "finish": finish_s,
             "png_encode": {"total": float(np.sum(self._png_seconds)), "count": len(self._png_seconds)},
+            **({"rerun": self._rerun_seconds} if self._rerun is not None else {}),
         }
         layout = self._layout
         result = {

@@ -212,7 +212,9 @@ def _overlay_png(run: RunData, episode: EpisodeRecord, options: ReportOptions) -
     if steps == 0 or not tokens.image_groups:
         return None
     meta = episode.read_json()
-    video_camera = (meta.get("options") or {}).get("video_camera") or tokens.image_groups[0][1]
+    chosen = (meta.get("options") or {}).get("video_camera")  # a key, the keys of the video's rows, or null (every camera)
+    chosen = chosen[0] if isinstance(chosen, list) and chosen else chosen
+    video_camera = chosen if isinstance(chosen, str) else tokens.image_groups[0][1]  # the MP4's first row
     picked = _evenly(steps, options.overlay_steps)
     shown_layers = _evenly(layers, options.overlay_layers)
     rows = attn[picked].astype(np.float32).mean(axis=(2, 3))  # (t, layers, keys): head and readout mean

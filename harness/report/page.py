@@ -85,6 +85,20 @@ def _task_table(runs: list[RunData], task: str) -> str:
     return H.table(header, rows, numeric=(2, 3))
 
 
+def _recording_cell(run: RunData, e, out: Path):
+    """The episode's episode.rrd (--rerun save) as a link with the command that opens it; else the command that builds
+    one from the run's files."""
+    view = f"octo-harness view {run.record.path} --task {e.task} --episode {e.episode}"
+    if not e.ok:
+        return ""
+    rrd = e.directory / "episode.rrd"
+    if rrd.is_file():
+        rel = os.path.relpath(rrd, out)
+        return H.Raw(f"<a href='{H.esc(rel)}'>episode.rrd</a><br><code>rerun {H.esc(rrd)}</code><br>"
+                     f"or <code>{H.esc(view)}</code>")
+    return H.Raw(f"<span class='absent'>none recorded;</span> <code>{H.esc(view)}</code>")
+
+
 def _episode_rows(run: RunData, task: str, out: Path) -> tuple[str, str]:
     """(table html, videos html) for the episodes of a task."""
     rows, videos = [], []
@@ -98,11 +112,12 @@ def _episode_rows(run: RunData, task: str, out: Path) -> tuple[str, str]:
             note = "representative episode (overlays)" if rep is not None and e.episode == rep.episode else ""
         value = episode_headline(run, e)
         rows.append([e.episode, "" if e.seed is None else e.seed, e.status, "yes" if e.success else "no", e.steps,
-                     H.fmt(value) if math.isfinite(value) else H.absent("n/a"), note])
+                     H.fmt(value) if math.isfinite(value) else H.absent("n/a"), note, _recording_cell(run, e, out)])
         if e.ok and e.video_path is not None:
             rel = os.path.relpath(e.video_path, out)
             videos.append(H.video(rel, f"episode {e.episode} (seed {e.seed}) — {'success' if e.success else 'no success'}"))
-    table = H.table(["episode", "seed", "status", "success", "steps", "target lift (last layer, mean over steps)", "note"],
+    table = H.table(["episode", "seed", "status", "success", "steps", "target lift (last layer, mean over steps)", "note",
+                     "recording (Rerun)"],
                     rows, numeric=(0, 1, 4, 5))
     return table, "".join(videos)
 

@@ -152,6 +152,11 @@ def check_model(protocol: Protocol, model, goal_images: Mapping[str, np.ndarray]
     if isinstance(va, int) and not -layers <= va < layers:
         raise ValueError(f"--video-attention {va} is out of range: {model.source} has {layers} layers (0..{layers - 1}) "
                          "or use 'rollout'")
+    cameras = list(model.image_sizes)
+    unknown = [c for c in protocol.outputs.video_cameras or () if c not in cameras]
+    if unknown and (protocol.outputs.video or protocol.outputs.gif):
+        raise ValueError(f"--video-cameras {','.join(unknown)}: {model.source} reads no such camera; choose from "
+                         f"{','.join(cameras)} (or 'all')")
     policy = protocol.policy
     if policy.execution == "receding_horizon" and policy.receding_steps > model.action_horizon:
         raise ValueError(f"--receding-steps {policy.receding_steps} exceeds the action horizon of {model.source} "

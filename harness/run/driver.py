@@ -193,14 +193,20 @@ def execute(
     on_step: StepCallback | None = None,
     progress: bool = True,
     ci_method: str = "wilson",
+    viewer: str | None = None,
 ) -> RunSummary:
     """Run (or resume) the protocol's episodes into `<out>/<run_name>` and return the summary.
 
     model: an already loaded model of `protocol.model` (else it is loaded after the cheap checks).
     executor: factory(context, model) -> Executor (default SequentialExecutor).
+    viewer: gRPC url of a live Rerun viewer every episode streams to (harness.outputs.rerun_sink.start_viewer).
     """
     checks.check_environment()
     checks.check_libero(protocol)
+    if protocol.outputs.rerun or viewer is not None:
+        from harness.outputs.rerun_sink import import_rerun
+
+        import_rerun()  # the optional viewer extra: one line naming the install command, before anything heavy
     out = checks.check_destination(Path(out))
     if run_name is not None:
         checks.check_run_name(run_name)  # before hashing the checkpoint
@@ -272,7 +278,7 @@ def execute(
             log.info("resuming run %s: %d of %d episodes already finished", name, len(jobs) - len(pending), len(jobs))
 
         context = EpisodeContext(protocol=protocol, run_dir=str(store.dir.resolve()), run=name, model=manifest["model"],
-                                 goals=goals)
+                                 goals=goals, viewer=viewer)
         status = "interrupted"
         bar = Progress(len(jobs), done=len(done), successes=sum(rows[k].status == "ok" and bool(rows[k].success)
                                                                 for k in done)) if progress else None

@@ -29,6 +29,7 @@ picklable (protocol, run folder, model description, goal images), so worker proc
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import traceback
 from dataclasses import asdict, dataclass
@@ -61,6 +62,7 @@ class EpisodeContext:
     run: str  # run name
     model: dict  # manifest["model"]: source, is_random, text_tokenizer, dataset_key, ...
     goals: dict[str, np.ndarray] | None  # {obs key: (height, width, 3) uint8} at the model's goal sizes
+    viewer: str | None = None  # gRPC url of a live Rerun viewer every episode streams to (--rerun spawn/serve)
 
     def episode_dir(self, job: EpisodeJob) -> Path:
         return Path(self.run_dir) / job.directory
@@ -91,6 +93,9 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
     """Roll out one job with `env` and `policy` and write its episode folder; a failure gives a "failed" row."""
     episode_dir = context.episode_dir(job)
     meta = context.meta(job)
+    extra = {"control_hz": (getattr(env, "metadata", None) or {}).get("render_fps"),  # the recording's sim_time
+             "intervention": context.protocol.policy.intervention}
+    meta = dataclasses.replace(meta, extra={**meta.extra, **{k: v for k, v in extra.items() if v is not None}})
     writer = None
     steps = 0  # steps that ran, for the failed row when the episode fails after some (e.g. finishing its files)
 
@@ -101,7 +106,7 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
             on_step(job, t, record)
 
     try:
-        writer = EpisodeWriter(episode_dir, tokens, meta, context.protocol.outputs)
+        writer = EpisodeWriter(episode_dir, tokens, meta, context.protocol.outputs, viewer=context.viewer)
         result = rollout(env, policy, writer.add_step, seed=job.seed, instruction=meta.instruction, goals=context.goals,
                          max_steps=context.protocol.max_steps, on_step=step_cb)
         written = writer.finish({"success": result.success, "steps": result.steps, "total_reward": result.total_reward,

@@ -51,6 +51,8 @@ FILE_KEYS: dict[str, tuple[type, ...]] = {
     "action_space": (str,), "ci_method": (str,), "sampler": (str,), "action_normalization": (str,),
     "proprio_normalization": (str,), "inference_batch": (int,), "record_inputs": (bool,),
     "text_tokenizer": (str,), "hold_gripper": (str, int, float),
+    "video_cameras": (str, list), "overlay_interpolation": (str,),
+    "rerun": (bool,),  # true: write each episode's episode.rrd (live viewers are chosen on the command line)
 }
 POLICY_KEYS = ("execution", "receding_steps", "ensemble_weight", "dataset_key", "sampler", "action_normalization",
                "proprio_normalization", "inference_batch")
@@ -210,6 +212,9 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
         normalisation=s.get("normalisation", "frame"),
         bbox=bool(s.get("bbox", False)),
         record_inputs=bool(s.get("record_inputs", False)),
+        video_camera=_cameras(s.get("video_cameras")),
+        overlay_interpolation=s.get("overlay_interpolation", "nearest"),
+        rerun=bool(s.get("rerun", False)),
     )
     goal_images = s.get("goal_images")
     return Protocol(
@@ -241,6 +246,17 @@ def text_tokenizer_choice(value: str | None) -> str | None:
         raise FileNotFoundError(f"--text-tokenizer {value}: no such file; pass a tokenizer.json (or a folder holding "
                                 "one), 'fallback' or 'auto'")
     return value
+
+
+def _cameras(value) -> tuple[str, ...] | None:
+    """--video-cameras image_primary,image_wrist (or a list) -> the keys; None / 'all' -> None (every camera)."""
+    if value is None or value == "all":
+        return None
+    keys = [k.strip() for v in ([value] if isinstance(value, str) else value) for k in str(v).split(",") if k.strip()]
+    if not keys:
+        raise ValueError(f"--video-cameras takes comma-separated observation keys (e.g. image_primary,image_wrist) or "
+                         f"'all'; got {value!r}")
+    return tuple(keys)
 
 
 def _layers(value) -> tuple[int, ...] | None:

@@ -1,0 +1,492 @@
+"""The Rerun viewer sink: one episode's finished step records as a Rerun recording (`episode.rrd`), or live.
+
+Optional: it needs the `viewer` extra (`pip install 'octo-harness[viewer]'`, rerun-sdk 0.23.x), imported only
+when a recording is asked for; without it `import_rerun` raises one line naming that command. A Rerun viewer reads
+only recordings of its own minor version, so the version is pinned and checked.
+
+`RerunSink(meta, options, save=PATH, connect=URL)` receives the same `StepRecord`s as `EpisodeWriter` (which calls
+it from its background thread, with the step's metrics it already computed) and logs them with Rerun's own APIs:
+compressed images (JPEG, with the encoder `rr.Image(...).compress()` uses; the target mask as a transparent PNG),
+tensors, scalars (`rr.Scalars`, sent as columns with
+`rr.send_columns` at the end of a saved episode), text documents, and a default blueprint (`rerun.blueprint`) that
+lays out the first view. `save`: the recording goes to `<name>.tmp.<pid>.rrd` and is moved onto `PATH` by
+`finish()` (never half-written under its final name; `abort()` deletes it). `connect`: streamed to a live viewer's
+gRPC address (`start_viewer`: a local native viewer, `spawn`, or a web viewer served for a headless machine,
+`serve`). Both at once log every step to both.
+
+Timelines: `step` (the control step) and `sim_time` (step / control frequency, seconds). Entity tree:
+
+  camera/<obs key>                     the frame the model saw (JPEG), upright
+  camera/<obs key>/target              the target object's mask (class 1) over it, logged when it changes
+  attention/<obs key>/layer_<ll>       that layer's head-mean readout attention drawn over the frame (JPEG; the frame
+                                       shrunk by an integer factor to at most 128 px high, `overlay_base`)
+  attention/<obs key>/heads            (layer, head, row, col) float32 tensor: every head's map, readouts averaged,
+                                       from the attention rounded to float16 as attention.npz stores it (equal values)
+  attribution/<method>/<obs key>       attribution map over the frame, at steps that carry maps (--attribution)
+  intervention/<obs key>               what the policy was fed when an intervention masks its inputs (--intervene)
+  actions/executed, actions/predicted  the action sent to the env; the first action of this step's chunk
+  actions/chunk                        (horizon, action dim) tensor: the predicted chunk
+  scalars/reward, scalars/success      per step
+  scalars/new_chunk                    a marker (1) at every step where a new action chunk was inferred
+  measures/share/<group>, measures/timestep_share/<part>, measures/entropy, measures/mask_mass/<obs>/<mask>,
+  measures/mask_lift/<obs>/<mask>      per layer, one series each (attention.step_metrics; lift = mass / area)
+  episode/instruction, episode/outcome text documents (static)
+
+Overlays use the same colours and interpolation as the PNGs and the MP4 (OutputOptions.overlay_interpolation).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+import numpy as np
+from PIL import Image
+
+from harness.analysis.attention import camera_maps, fuse_heads
+from harness.files import temp_path
+from harness.octo.tokens import TokenMap
+from harness.outputs.overlays import heatmap_overlays, resize_nearest
+from harness.records import EpisodeMeta, StepRecord
+
+RERUN_MINOR = "0.23"  # recordings are readable by viewers of this minor version only
+INSTALL = "pip install 'octo-harness[viewer]'"
+RRD_NAME = "episode.rrd"
+APPLICATION_ID = "octo-harness"
+MODES = ("save", "spawn", "serve")
+JPEG_QUALITY = 90
+TENSOR_DIMS = ["layer", "head", "row", "col"]
+TARGET_DRAW_ORDER = 5.0  # the target mask is drawn above the frame (images default to -10)
+TARGET_COLOUR = (0, 255, 0, 110)  # RGBA of target pixels; the rest is transparent
+OVERLAY_HEIGHT = 128  # overlays are drawn on the frame shrunk by an integer factor to at most this height (size, time)
+DEFAULT_GRPC_PORT = 9876
+DEFAULT_WEB_PORT = 9090
+
+
+class ViewerUnavailableError(ValueError):
+    """The Rerun SDK is missing or of another minor version (one line naming the install command)."""
+
+
+def import_rerun():
+    """The `rerun` module, checked: installed, and of the minor version recordings are written for."""
+    try:
+        import rerun as rr
+    except ImportError:
+        raise ViewerUnavailableError(f"the Rerun viewer is an optional extra and is not installed; install it with {INSTALL}") from None
+    version = str(getattr(rr, "__version__", "unknown"))
+    if not version.startswith(RERUN_MINOR + "."):
+        raise ViewerUnavailableError(f"rerun-sdk {version} is installed, but octo-harness writes recordings for Rerun "
+                                     f"{RERUN_MINOR}.x (a viewer reads only its own minor version); {INSTALL}")
+    return rr
+
+
+def parse_modes(text: str | None) -> tuple[str, ...]:
+    """--rerun MODE[,MODE]: save, spawn, serve (spawn and serve exclude each other) -> sorted tuple ('' -> ())."""
+    if text is None:
+        return ()
+    modes = tuple(dict.fromkeys(m.strip() for m in str(text).split(",") if m.strip()))
+    unknown = [m for m in modes if m not in MODES]
+    if unknown or not modes:
+        raise ValueError(f"--rerun takes save, spawn or serve (or save,spawn / save,serve); got {text!r}")
+    if "spawn" in modes and "serve" in modes:
+        raise ValueError("--rerun spawn (a viewer on this machine) and serve (a web viewer for a remote browser) "
+                         "exclude each other; choose one")
+    return modes
+
+
+def recording_id(meta: EpisodeMeta) -> str:
+    return f"{meta.run}/{meta.task}/episode_{meta.episode}"
+
+
+def entity(*parts: str) -> str:
+    """An entity path from parts that may hold characters Rerun reserves (e.g. '/' inside a mask name)."""
+    return "/".join(re.sub(r"[^A-Za-z0-9_\-.]", "_", str(p)) for p in parts)
+
+
+def overlay_base(frame: np.ndarray, height: int = OVERLAY_HEIGHT) -> np.ndarray:
+    """frame (H, W, 3) -> the frame the overlays are drawn on: every k-th pixel, k the smallest integer factor that
+    brings the height to at most `height` (k = 1 for small frames); maps are at most a 16 x 16 patch grid."""
+    k = max(1, -(-frame.shape[0] // height))
+    return np.ascontiguousarray(frame[::k, ::k])
+
+
+def mask_png(mask: np.ndarray) -> bytes:
+    """mask (H, W) bool -> PNG bytes, RGBA: TARGET_COLOUR where True, transparent elsewhere (a few hundred bytes)."""
+    rgba = np.zeros((*mask.shape, 4), np.uint8)
+    rgba[mask] = TARGET_COLOUR
+    out = io.BytesIO()
+    Image.fromarray(rgba, "RGBA").save(out, format="PNG", optimize=False, compress_level=6)
+    return out.getvalue()
+
+
+# ---------------------------------------------------------------------------------------------- live viewers
+
+@dataclass
+class LiveViewer:
+    """A viewer recordings stream to: `url` is the gRPC address each episode's recording connects to."""
+
+    mode: str  # "spawn" | "serve"
+    url: str
+    web_url: str | None = None  # serve: open this in a browser (through an SSH tunnel of both ports on a server)
+    hub: Any = field(default=None, repr=False)  # serve: the recording stream that hosts the gRPC server (kept alive)
+
+
+def start_viewer(mode: str, grpc_port: int | None = None, web_port: int | None = None, host: str = "127.0.0.1",
+                 blueprint=None) -> LiveViewer:
+    """spawn: start the native Rerun viewer on this machine (it listens on `grpc_port`);
+    serve: host a gRPC server in this process and the web viewer over HTTP (`web_port`); both on `host`."""
+    rr = import_rerun()
+    port = grpc_port or DEFAULT_GRPC_PORT
+    if mode == "spawn":
+        rr.spawn(port=port, connect=False, hide_welcome_screen=True)
+        return LiveViewer("spawn", f"rerun+http://{host}:{port}/proxy")
+    if mode != "serve":
+        raise ValueError(f"a live viewer is spawn or serve; got {mode!r}")
+    hub = rr.RecordingStream(APPLICATION_ID, recording_id="octo-harness-live")
+    url = hub.serve_grpc(grpc_port=port, default_blueprint=blueprint)
+    web = web_port or DEFAULT_WEB_PORT
+    rr.serve_web_viewer(web_port=web, open_browser=False, connect_to=url)
+    return LiveViewer("serve", url, f"http://{host}:{web}/?url={quote(url, safe='')}", hub)
+
+
+def serve_file(path: str | Path, grpc_port: int | None = None, web_port: int | None = None,
+               host: str = "127.0.0.1") -> LiveViewer:
+    """Serve a saved recording to the web viewer (for `octo-harness view --serve`): the file is streamed into a
+    gRPC server in this process (kept while the process runs)."""
+    rr = import_rerun()
+    viewer = start_viewer("serve", grpc_port, web_port, host)
+    viewer.hub.log_file_from_path(Path(path))
+    viewer.hub.flush()
+    return viewer
+
+
+# ---------------------------------------------------------------------------------------------- blueprint
+
+def blueprint(cameras: list[str], layers: int, methods: list[str] = (), intervention: bool = False):
+    """The default layout: per camera its frame (with masks) beside the layer tabs of attention overlays (last layer
+    shown); the per-head tensor with sliders over layer and head; the measures, actions and rewards on the timeline;
+    the instruction and outcome."""
+    import rerun.blueprint as rrb
+    from rerun.blueprint.datatypes import TensorDimensionIndexSlider
+    from rerun.datatypes import TensorDimensionIndexSelection, TensorDimensionSelection
+
+    image_rows = []
+    for cam in cameras:
+        names = [f"{cam} layer {layer}" for layer in range(layers)]
+        layer_tabs = rrb.Tabs(*[rrb.Spatial2DView(origin=entity("attention", cam, f"layer_{layer:02d}"), name=name)
+                                for layer, name in enumerate(names)],
+                              active_tab=names[-1] if names else None, name=f"{cam} attention by layer")
+        extra = []
+        for method in methods:
+            extra.append(rrb.Spatial2DView(origin=entity("attribution", method, cam), name=f"{cam} {method}"))
+        if intervention:
+            extra.append(rrb.Spatial2DView(origin=entity("intervention", cam), name=f"{cam} as the policy saw it"))
+        heads = rrb.TensorView(
+            origin=entity("attention", cam, "heads"), name=f"{cam} every head (sliders: layer, head)",
+            slice_selection=rrb.TensorSliceSelection(
+                width=TensorDimensionSelection(3), height=TensorDimensionSelection(2),
+                indices=[TensorDimensionIndexSelection(0, max(layers - 1, 0)), TensorDimensionIndexSelection(1, 0)],
+                slider=[TensorDimensionIndexSlider(0), TensorDimensionIndexSlider(1)]),
+            scalar_mapping=rrb.TensorScalarMapping(colormap="turbo", mag_filter="nearest"),
+        )
+        views = [rrb.Spatial2DView(origin=entity("camera", cam), name=cam), layer_tabs, heads]
+        if extra:
+            views.append(rrb.Tabs(*extra, name=f"{cam} attribution"))
+        image_rows.append(rrb.Horizontal(*views))
+    measures = rrb.Tabs(
+        rrb.TimeSeriesView(origin="measures/mask_lift", contents=[entity("measures", "mask_lift", cam, "target")
+                                                                  for cam in cameras],
+                           name="target lift per layer (1 = chance)"),
+        rrb.TimeSeriesView(origin="measures/share", name="modality shares per layer"),
+        rrb.TimeSeriesView(origin="measures/timestep_share", name="timestep shares per layer"),
+        rrb.TimeSeriesView(origin="measures/entropy", name="entropy per layer"),
+        rrb.TimeSeriesView(origin="measures/mask_mass", name="mask mass per layer"),
+        active_tab="target lift per layer (1 = chance)", name="attention measures")
+    plots = rrb.Vertical(
+        measures,
+        rrb.TimeSeriesView(origin="actions", name="actions (executed; first of the predicted chunk)"),
+        rrb.TimeSeriesView(origin="scalars", name="reward, success, new chunks"),
+        rrb.Horizontal(rrb.TextDocumentView(origin="episode/instruction", name="episode"),
+                       rrb.TextDocumentView(origin="episode/outcome", name="outcome")),
+        row_shares=[3, 2, 1.5, 1.5],
+    )
+    return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*image_rows), plots, column_shares=[3, 2]),
+                         rrb.TimePanel(expanded=True), collapse_panels=True)
+
+
+# ---------------------------------------------------------------------------------------------- the sink
+
+@dataclass(frozen=True)
+class SinkOptions:
+    """What the sink draws, from OutputOptions (the PNGs' and MP4's colours and interpolation)."""
+
+    cmap: str = "jet"
+    alpha: float = 0.5
+    head_fusion: str = "mean"
+    interpolation: str = "nearest"
+    jpeg_quality: int = JPEG_QUALITY
+
+
+class RerunSink:
+    """Logs one episode's step records into a Rerun recording (see the module docstring).
+
+    save: path of the .rrd to write (atomically, at `finish`); connect: gRPC url of a live viewer. Call `log_step`
+    per step (in order), then `finish(outcome)` or `abort()`. Arrays: frames (H, W, 3) uint8; attention
+    (layers, heads, readouts, keys).
+
+    A live viewer gets every entity as it is logged (`rr.log`); the saved recording buffers each entity's images and
+    scalars and sends them as columns (`rr.send_columns`, one call per entity every FLUSH_STEPS steps and at the end),
+    which costs a fraction of one `log` call per entity and step (tensors are logged per step: Rerun 0.23 takes no
+    column of tensors).
+    """
+
+    FLUSH_STEPS = 64  # buffered steps per column batch of the saved recording (bounds the memory it holds)
+
+    def __init__(self, meta: EpisodeMeta, options: SinkOptions | None = None, *, save: str | os.PathLike | None = None,
+                 connect: str | None = None, intervention: bool = False, control_hz: float | None = None):
+        if save is None and connect is None:
+            raise ValueError("a RerunSink needs a file to save to or a viewer to connect to")
+        rr = import_rerun()
+        self.rr = rr
+        self.meta = meta
+        self.options = options or SinkOptions()
+        self.path = Path(save) if save is not None else None
+        self.temp = temp_path(self.path) if self.path is not None else None
+        self.intervention = intervention
+        self.control_hz = control_hz
+        self.file = self.live = None
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.file = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id(meta))
+            self.file.save(self.temp)
+        if connect is not None:
+            self.live = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id(meta))
+            self.live.connect_grpc(connect)
+        self._started = False
+        self._buffer: dict[str, tuple[str, list[int], list]] = {}  # entity -> (kind, steps, values) for the file
+        self._buffered_steps = 0
+        self._targets: dict[str, np.ndarray] = {}  # camera -> the target mask logged last
+        self._steps: list[int] = []
+        self._done = False
+
+    @property
+    def streams(self) -> list:
+        return [s for s in (self.file, self.live) if s is not None]
+
+    # ---- logging helpers ---------------------------------------------------------------------
+
+    def _static(self, path: str, *archetypes) -> None:
+        for stream in self.streams:
+            stream.log(path, *archetypes, static=True)
+
+    def _emit(self, path: str, kind: str, value) -> None:
+        """One entity's value at the current step: logged live at once, buffered as a column for the file.
+        kind: "jpeg" / "png" (encoded bytes), "tensor" ((array, dim names)), "scalars" ((n,) float64)."""
+        if self.live is not None:
+            rr = self.rr
+            if kind in ("jpeg", "png"):
+                archetype = rr.EncodedImage(contents=value, media_type=f"image/{kind}",
+                                            draw_order=TARGET_DRAW_ORDER if kind == "png" else None)
+            elif kind == "tensor":
+                archetype = rr.Tensor(value[0], dim_names=value[1])
+            else:
+                archetype = rr.Scalars(value)
+            self.live.log(path, archetype)
+        if self.file is not None and kind == "tensor":  # Rerun 0.23 sends no batch of tensors as a column: log it now
+            self.file.set_time("step", sequence=self._steps[-1])
+            if self.control_hz:
+                self.file.set_time("sim_time", duration=self._steps[-1] / self.control_hz)
+            self.file.log(path, self.rr.Tensor(value[0], dim_names=value[1]))
+        elif self.file is not None:
+            self._buffer.setdefault(path, (kind, [], []))
+            self._buffer[path][1].append(self._steps[-1])
+            self._buffer[path][2].append(value)
+
+    def _image(self, path: str, image: np.ndarray) -> None:
+        """JPEG of an (H, W, 3) uint8 image: Pillow's encoder at the quality rr.Image.compress uses it with."""
+        out = io.BytesIO()
+        Image.fromarray(np.ascontiguousarray(image)).save(out, format="JPEG", quality=self.options.jpeg_quality)
+        self._emit(path, "jpeg", out.getvalue())
+
+    def _scalars(self, path: str, values, names: list[str] | None = None) -> None:
+        values = np.atleast_1d(np.asarray(values, np.float64))
+        if path not in self._buffer and path not in self._styled:
+            self._styled.add(path)
+            rr = self.rr
+            style = (rr.SeriesPoints(markers="diamond", marker_sizes=6.0, names=names or ["new action chunk"])
+                     if path == "scalars/new_chunk" else rr.SeriesLines(names=names) if names else None)
+            if style is not None:
+                self._static(path, style)
+        self._emit(path, "scalars", values)
+
+    _styled: set
+
+    def _flush_columns(self) -> None:
+        """The buffered values of the saved recording, one send_columns call per entity."""
+        rr = self.rr
+        for path, (kind, steps, values) in self._buffer.items():
+            if not steps:
+                continue
+            index = np.asarray(steps, np.int64)
+            indexes = [rr.TimeColumn("step", sequence=index)]
+            if self.control_hz:
+                indexes.append(rr.TimeColumn("sim_time", duration=index / self.control_hz))
+            if kind in ("jpeg", "png"):
+                columns = rr.EncodedImage.columns(blob=values, media_type=[f"image/{kind}"] * len(values),
+                                                  **({"draw_order": [TARGET_DRAW_ORDER] * len(values)}
+                                                     if kind == "png" else {}))
+            else:
+                columns = rr.Scalars.columns(scalars=np.stack(values))
+            self.file.send_columns(path, indexes=indexes, columns=columns)
+            steps.clear()
+            values.clear()
+        self._buffered_steps = 0
+
+    # ---- steps ---------------------------------------------------------------------------------
+
+    def _start(self, record: StepRecord, layers: int, cameras: list[str]) -> None:
+        rr = self.rr
+        self._styled = set()
+        methods = sorted(((record.attribution or {}).get("maps") or {}).keys())
+        bp = blueprint(cameras, layers, methods, self.intervention)
+        for stream in self.streams:
+            stream.send_blueprint(bp, make_active=True, make_default=True)
+        meta = self.meta
+        header = [f"# {meta.task}, episode {meta.episode} (seed {meta.seed})", "", f"**Instruction:** {meta.instruction}",
+                  "", f"- run: {meta.run}", f"- model: {meta.model}" + (" (**RANDOM WEIGHTS**)" if meta.model_is_random else ""),
+                  f"- execution: {meta.execution}", f"- text tokenizer: {meta.text_tokenizer}"]
+        if self.intervention:
+            header.append(f"- intervention: {meta.extra.get('intervention')}")
+        header.append("- green over the frames: the target object's mask")
+        if meta.extra.get("frames_note"):
+            header.append(f"- frames: {meta.extra['frames_note']}")
+        self._static("episode/instruction", rr.TextDocument("\n".join(header), media_type="text/markdown"))
+        self._static("episode/outcome", rr.TextDocument("(episode running)"))
+
+    def log_step(self, record: StepRecord, tokens: TokenMap, metrics: dict[str, np.ndarray] | None = None) -> None:
+        """One control step. tokens: the token map of its attention; metrics: attention.step_metrics of it (as
+        metrics.jsonl / attention.npz hold them; the measures plotted), None to skip the measures."""
+        if self._done:
+            raise RuntimeError("this recording is finished")
+        opts = self.options
+        attn = np.asarray(record.readout_attention, np.float16).astype(np.float32)  # as attention.npz stores it
+        if attn.ndim != 4 or attn.shape[-1] != tokens.num_keys:
+            raise ValueError(f"readout_attention must be (layers, heads, readouts, keys={tokens.num_keys}); "
+                             f"got {attn.shape}")
+        layers = attn.shape[0]
+        cameras = [key for _, key, _, _ in tokens.image_groups]  # maps of every camera; frames where the record has them
+        if not self._started:
+            self._start(record, layers, cameras)
+            self._started = True
+        step = int(record.step)
+        self._steps.append(step)
+        if self.live is not None:
+            self.live.set_time("step", sequence=step)
+            if self.control_hz:
+                self.live.set_time("sim_time", duration=step / self.control_hz)
+
+        for cam in cameras:
+            heads = camera_maps(attn, tokens, cam).mean(axis=2)  # (layers, heads, rows, cols)
+            self._emit(entity("attention", cam, "heads"), "tensor", (heads, TENSOR_DIMS))
+            if cam not in record.frames:
+                continue
+            frame = np.asarray(record.frames[cam])
+            self._image(entity("camera", cam), frame)
+            target = ((record.masks or {}).get(cam) or {}).get("target")
+            if target is not None:
+                target = resize_nearest(np.asarray(target, bool), *frame.shape[:2])
+                previous = self._targets.get(cam)
+                if previous is None or not np.array_equal(previous, target):  # logged when it changes (latest-at holds it)
+                    self._targets[cam] = target
+                    self._emit(entity("camera", cam, "target"), "png", mask_png(target))
+            fused = fuse_heads(heads, opts.head_fusion, axis=1)  # (layers, rows, cols)
+            shown = overlay_base(frame)
+            overlays = heatmap_overlays(shown, fused, alpha=opts.alpha, cmap=opts.cmap, interpolation=opts.interpolation)
+            for layer in range(layers):
+                self._image(entity("attention", cam, f"layer_{layer:02d}"), overlays[layer])
+            for method, by_camera in ((record.attribution or {}).get("maps") or {}).items():
+                if cam in by_camera:
+                    grid = np.asarray(by_camera[cam], np.float32)
+                    if np.isfinite(grid).any():
+                        drawn = heatmap_overlays(shown, grid[None], float(np.nanmin(grid)), float(np.nanmax(grid)),
+                                                 opts.alpha, opts.cmap, opts.interpolation)[0]
+                        self._image(entity("attribution", method, cam), drawn)
+            seen = (record.policy_inputs or {}).get(cam)
+            if self.intervention and seen is not None and np.ndim(seen) == 3:
+                self._image(entity("intervention", cam), np.asarray(seen, np.uint8))
+
+        executed = np.asarray(record.action_executed, np.float64).ravel()
+        chunk = np.asarray(record.actions_predicted, np.float32)
+        dims = [f"a{i}" for i in range(executed.size)]
+        self._scalars("actions/executed", executed, [f"executed {d}" for d in dims])
+        if chunk.ndim == 2 and chunk.shape[0]:
+            self._scalars("actions/predicted", chunk[0], [f"predicted {d}" for d in dims[:chunk.shape[1]]])
+            self._emit("actions/chunk", "tensor", (chunk, ["horizon", "action"]))
+        self._scalars("scalars/reward", float(record.reward), ["reward"])
+        self._scalars("scalars/success", float(bool(record.success)), ["success"])
+        if record.inferred:
+            self._scalars("scalars/new_chunk", 1.0)
+        for name, values in (metrics or {}).items():
+            self._measure(name, np.asarray(values, np.float32), metrics)
+        self._buffered_steps += 1
+        if self.file is not None and self._buffered_steps >= self.FLUSH_STEPS:
+            self._flush_columns()
+
+    def _measure(self, name: str, values: np.ndarray, metrics: dict) -> None:
+        if name.startswith("mask_area/") or values.ndim != 1:
+            return  # the chance level is folded into the lift
+        names = [f"layer {i}" for i in range(values.size)]
+        self._scalars(entity("measures", *name.split("/")), values, names)
+        if name.startswith("mask_mass/"):
+            area = metrics.get("mask_area/" + name[len("mask_mass/"):])
+            if area is not None and float(np.asarray(area)) > 0:
+                lift = values.astype(np.float64) / float(np.asarray(area, np.float32))
+                self._scalars(entity("measures", "mask_lift", *name.split("/")[1:]), lift, names)
+
+    # ---- end -------------------------------------------------------------------------------------
+
+    def finish(self, outcome: dict | None = None) -> Path | None:
+        """Send the buffered columns and the outcome, close the recording and move the file into place."""
+        if self._done:
+            raise RuntimeError("this recording is already finished or aborted")
+        self._done = True
+        try:
+            if self.file is not None:
+                self._flush_columns()
+            outcome = outcome or {}
+            lines = [f"# {'SUCCESS' if outcome.get('success') else 'no success'}", ""]
+            lines += [f"- {key}: {value}" for key, value in outcome.items() if key != "success"]
+            self._static("episode/outcome", self.rr.TextDocument("\n".join(lines), media_type="text/markdown"))
+            for stream in self.streams:
+                stream.flush(blocking=True)
+                stream.disconnect()
+            self.file = self.live = None
+            if self.path is not None:
+                os.replace(self.temp, self.path)
+        except BaseException:
+            self._discard()
+            raise
+        return self.path
+
+    def abort(self) -> None:
+        """Stop logging and delete the temporary file; nothing is written under the final name."""
+        if self._done:
+            return
+        self._done = True
+        self._discard()
+
+    def _discard(self) -> None:
+        for stream in self.streams:
+            try:
+                stream.disconnect()
+            except Exception:  # noqa: BLE001 - already gone; the file is removed below either way
+                pass
+        self.file = self.live = None
+        self._buffer = {}
+        if self.temp is not None:
+            self.temp.unlink(missing_ok=True)
