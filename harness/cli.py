@@ -138,8 +138,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--faithfulness-every", type=int, default=None, metavar="K",
                    help="open-loop faithfulness (deletion/insertion curves, top/random/bottom-k) of every attribution "
                         "method every K-th step, in faithfulness.jsonl [0 = never; methods default to all]")
-    r.add_argument("--faithfulness-fill", choices=["mean", "blur"], default=None,
-                   help="what a deleted patch becomes in the faithfulness curves [mean]")
+    r.add_argument("--faithfulness-fill", choices=["mean", "blur", "impute"], default=None,
+                   help="what a deleted patch becomes in the faithfulness curves: the frame's mean colour, a blur of "
+                        "the frame, or noisy linear imputation from the surrounding pixels (ROAD; in distribution, "
+                        "no shape leak) [mean]")
     r.add_argument("--verbose", action="store_true", default=argparse.SUPPRESS,
                    help="also show other libraries' INFO lines and start-up warnings")
     r.add_argument("--text-tokenizer", default=None, metavar="auto|fallback|PATH",

@@ -111,14 +111,14 @@ def analyse(step: StepFunction, gradients: bool = True, occlusion: bool = False)
 
 def occlusion_maps(step: StepFunction, reference: np.ndarray, fill: str = "mean") -> dict[str, np.ndarray]:
     """{obs key: (rows, cols)} RMS change of the chunk when that patch alone of the current frame is deleted."""
-    from harness.analysis.faithfulness import action_change, baseline_image, compose
+    from harness.analysis.faithfulness import action_change, delete_patches
 
     out = {}
     for _, key, rows, cols in step.tokens.image_groups:
         frame = np.asarray(step.images[key][-1], np.float32)
         single = np.eye(rows * cols, dtype=bool).reshape(rows * cols, rows, cols)
         inputs = {k: np.repeat(np.asarray(v, np.float32)[None], rows * cols, axis=0) for k, v in step.images.items()}
-        inputs[key][:, -1] = compose(frame, baseline_image(frame, fill, rows, cols), single)
+        inputs[key][:, -1] = delete_patches(frame, single, fill)
         out[key] = action_change(step.batch(inputs), reference).reshape(rows, cols)
     return out
 
