@@ -276,3 +276,44 @@ def test_patch_effects_additive_and_interacting():
     joint = S.patch_effects(either, image, ref, pair, fill="mean")
     assert joint["single"][0, 0] == 0 and joint["single"][0, 2] == 0  # alone, either patch is redundant
     assert joint["pair"]["change"][0] > 0 and not np.isfinite(joint["pair"]["additivity"][0])  # jointly they matter
+
+
+# ------------------------------------------------------------------------------------------- the command
+
+
+def test_sanity_command_on_the_committed_baselines_recorded_inputs(tmp_path, capsys):
+    """The real reference policy on the committed baseline's recorded inputs: every block's randomisation changes
+    the maps (the cascade's last stage leaves no attention layer intact), the random map is unchanged, files are
+    written, and the additivity rows cover both cameras and fills."""
+    from harness.cli import main
+
+    out = tmp_path / "sanity"
+    code = main(["sanity", str(ROOT / "results/baselines/reference-lift"), "--every", "50", "--max-steps", "2",
+                 "--methods", "attention:3,saliency", "--additivity", "--fills", "mean,impute", "--out", str(out)])
+    assert code == 0
+    result = json.loads((out / "sanity.json").read_text())
+    assert result["steps"] == 2
+    assert [b["name"] for b in result["blocks"]] == ["head", "block_3", "block_2", "block_1", "block_0", "stem"]
+    rows = {(r["schedule"], r["stage"], r["method"], r["camera"]): r for r in result["randomisation"]}
+    for camera in ("image_primary", "image_wrist"):
+        assert rows[("cascading", "up to stem", "random", camera)]["spearman"] == 1.0
+        assert rows[("cascading", "up to stem", "attention:3", camera)]["spearman"] < 0.9
+        # the head sits above the attention: re-drawing it alone leaves layer-3 attention exactly as it was
+        assert rows[("independent", "head", "attention:3", camera)]["spearman"] == pytest.approx(1.0)
+        assert rows[("cascading", "up to stem", "random", camera)]["verdict"] == "fail"
+    assert {(r["camera"], r["fill"]) for r in result["additivity"]} == {
+        (c, f) for c in ("image_primary", "image_wrist") for f in ("mean", "impute")}
+    assert (out / "randomisation.csv").read_text().startswith("schedule,stage,method,camera")
+    assert "| cascading | up to stem |" in capsys.readouterr().out
+
+
+def test_sanity_command_bad_input_is_one_line(tmp_path, capsys):
+    from harness.cli import main
+
+    assert main(["sanity", str(tmp_path), "--every", "0"]) == 2
+    assert "--every must be >= 1" in capsys.readouterr().err
+    assert main(["sanity", str(tmp_path), "--fills", "mean,sepia"]) == 2
+    assert "unknown fill 'sepia'" in capsys.readouterr().err
+    assert main(["sanity", str(tmp_path / "missing")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and len(err.strip().splitlines()) == 1
