@@ -317,3 +317,18 @@ def test_sanity_command_bad_input_is_one_line(tmp_path, capsys):
     assert main(["sanity", str(tmp_path / "missing")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error:") and len(err.strip().splitlines()) == 1
+
+
+def test_sanity_command_names_the_fix_for_a_run_without_recorded_inputs(tmp_path, capsys):
+    import shutil
+
+    from harness.cli import main
+
+    copy = tmp_path / "run"
+    shutil.copytree(ROOT / "results/baselines/reference-lift", copy)
+    victim = sorted(copy.glob("Lift/episode_*/inputs.npz"))[0]
+    victim.unlink()
+    assert main(["sanity", str(copy), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "--record-inputs" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()  # nothing written, nothing loaded
