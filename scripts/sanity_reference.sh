@@ -25,10 +25,10 @@ openrun() {  # FILL TASK: the open-loop faithfulness run of one task with one fi
     run --task "$2" --episodes "$3" --seed 100 --max-steps 100 --faithfulness-every "$4" --faithfulness-fill "$1" \
         --attribution attention,rollout,grad-attention,saliency,occlusion --record-inputs --run-name "open_$1_$2"
 }
-# most needed first: the two tasks of the closed-loop question with both fills, the sanity checks, the closed loop;
+# most needed first (the compute is shared): Lift with both fills, the closed loop, the sanity checks, Stack;
 # then PickPlaceCan and the blur fill
-for task in Lift Stack; do openrun mean "$task"; openrun impute "$task"; done
-"$PY" -m harness.cli sanity "$OUT"/open_mean_{Lift,Stack} --every 40 --additivity --out "$OUT/sanity" > "$OUT/sanity.md"
+openrun mean Lift
+openrun impute Lift
 closed=()
 for arm in "plain" "all-wrist mask-all@image_wrist" "all-primary mask-all@image_primary" \
            "top-wrist mask-top:4:attention:2@image_wrist" "random-wrist mask-random:4@image_wrist"; do
@@ -37,6 +37,9 @@ for arm in "plain" "all-wrist mask-all@image_wrist" "all-primary mask-all@image_
     run --task Lift --episodes 6 --seed 300 --max-steps 150 --run-name "Lift_$name" ${intervention:+--intervene "$intervention"}
     closed+=("$OUT/Lift_$name")
 done
+openrun mean Stack
+"$PY" -m harness.cli sanity "$OUT"/open_mean_{Lift,Stack} --every 40 --additivity --out "$OUT/sanity" > "$OUT/sanity.md"
+openrun impute Stack
 openrun mean PickPlaceCan
 openrun impute PickPlaceCan
 for task in Lift Stack PickPlaceCan; do openrun blur "$task"; done

@@ -304,6 +304,11 @@ def test_sanity_command_on_the_committed_baselines_recorded_inputs(tmp_path, cap
     assert {(r["camera"], r["fill"]) for r in result["additivity"]} == {
         (c, f) for c in ("image_primary", "image_wrist") for f in ("mean", "impute")}
     assert (out / "randomisation.csv").read_text().startswith("schedule,stage,method,camera")
+    profile = {(r["camera"], r["method"]): np.asarray(r["map_share"]) for r in result["patch_profile"]}
+    assert profile[("image_wrist", "saliency")].shape == (4, 4) and profile[("image_primary", "saliency")].shape == (8, 8)
+    assert profile[("image_wrist", "saliency")].sum() == pytest.approx(1.0, abs=1e-3)
+    assert (profile[("image_wrist", "pixel std over steps")] >= 0).all()
+    assert result["occlusion_agreement"] == []  # occlusion was not among the methods
     assert "| cascading | up to stem |" in capsys.readouterr().out
 
 

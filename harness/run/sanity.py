@@ -106,7 +106,7 @@ def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions =
     wanted = [*model.image_sizes, *getattr(model, "lowdim_sizes", {})]
     gradients = any(m in ("grad-attention", "saliency") for m in methods)
 
-    per_step, effects, count = [], [], 0
+    per_step, effects, agreement, profiles, frames, count = [], [], [], {}, {}, 0
     for run, episodes in loaded:
         for episode in episodes:
             inputs = recorded_inputs(episode)
@@ -131,6 +131,7 @@ def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions =
                 fn = functions.at(observations, tasks, keys[0])
                 trained_analysis = analyse(fn, gradients=gradients, occlusion="occlusion" in methods)
                 trained = {m: attribute(trained_analysis, m, seed=[seed, step]) for m in methods}
+                _profile(trained, fn.images, where, agreement, profiles, frames)
                 for schedule, stage, params in variants:
                     a = analyse(functions.at(observations, tasks, keys[0], params=params), gradients=gradients,
                                 occlusion="occlusion" in methods)
@@ -146,6 +147,13 @@ def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions =
     for row in summary:
         row["verdict"] = verdicts.get((row["method"], row["camera"]), "") if row["stage"] == last_stage else ""
     additivity = _summarise_effects(effects)
+    occlusion_agreement = S.summarise_randomisation(
+        [{**r, "schedule": "occlusion", "stage": "trained"} for r in agreement], seed=options.seed)
+    patch_profile = [{"camera": camera, "method": method, "map_share": (np.mean(grids, axis=0)).round(4).tolist()}
+                     for (camera, method), grids in profiles.items()]
+    patch_profile += [{"camera": camera, "method": "pixel std over steps",
+                       "map_share": np.asarray(stack).std(axis=0).mean(axis=-1).round(2).tolist()}
+                      for camera, stack in ((c, _patch_means(f)) for c, f in frames.items())]
     result = {
         "format": FORMAT,
         "model": source,
@@ -159,6 +167,9 @@ def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions =
         "verdicts": [{"method": m, "camera": c, "verdict": v} for (m, c), v in verdicts.items()],
         "randomisation": summary,
         "additivity": additivity,
+        "occlusion_agreement": [{k: r[k] for k in ("method", "camera", "steps", "spearman", "spearman_low",
+                                                   "spearman_high")} for r in occlusion_agreement],
+        "patch_profile": patch_profile,
         "per_step": per_step,
         "seconds": time.perf_counter() - start,
     }
@@ -200,6 +211,38 @@ def _effects(fn, analysis, options: SanityOptions, where: dict, seed: int, step:
     return rows
 
 
+def _profile(trained: dict, images: dict, where: dict, agreement: list, profiles: dict, frames: dict) -> None:
+    """Per camera: each method's Spearman correlation with occlusion (the single-patch effects) at this step, each
+    map's share of its total per patch, and the current frame (for the patches' pixel spread over steps)."""
+    occlusion = trained.get("occlusion", {})
+    for method, by_camera in trained.items():
+        for camera, m in by_camera.items():
+            total = float(np.sum(m))
+            if total > 0:
+                profiles.setdefault((camera, method), []).append(np.asarray(m, np.float64) / total)
+            if method != "occlusion" and camera in occlusion:
+                agreement.append({"method": method, "camera": camera, "spearman": S.spearman(m, occlusion[camera]),
+                                  "ssim": S.ssim(m, occlusion[camera])})
+    for camera in next(iter(trained.values()), {}):
+        frames.setdefault(camera, []).append((np.asarray(images[camera][-1], np.float32),
+                                              np.asarray(next(iter(trained.values()))[camera]).shape))
+
+
+def _patch_means(frames: list) -> np.ndarray:
+    """[(frame (H, W, 3), (rows, cols))] -> (steps, rows, cols, 3) mean colour of each patch."""
+    from harness.analysis.attention import _patch_index
+
+    out = []
+    for frame, (rows, cols) in frames:
+        h, w = frame.shape[:2]
+        index = _patch_index(h, rows)[:, None] * cols + _patch_index(w, cols)[None, :]
+        sums = np.stack([np.bincount(index.ravel(), weights=frame[..., ch].ravel(), minlength=rows * cols)
+                         for ch in range(3)], axis=-1)
+        counts = np.bincount(index.ravel(), minlength=rows * cols)[:, None]
+        out.append((sums / counts).reshape(rows, cols, 3))
+    return np.stack(out)
+
+
 def _summarise_effects(rows: list[dict]) -> list[dict]:
     """Medians over steps per (task, camera, fill, set, k)."""
     groups: dict[tuple, list[dict]] = {}
@@ -239,6 +282,18 @@ def markdown(result: dict) -> str:
         lines.append(f"| {r['schedule']} | {r['stage']} | {r['method']} | {r['camera']} | {r['steps']} | "
                      f"{f(r['spearman'], r['spearman_low'], r['spearman_high'])} | "
                      f"{f(r['ssim'], r['ssim_low'], r['ssim_high'])} | {r.get('verdict', '')} |")
+    if result.get("occlusion_agreement"):
+        lines += ["", "Agreement of each trained map with occlusion (single-patch effects, mean fill): Spearman [95%] "
+                      "over steps.", "", "| method | camera | steps | Spearman with occlusion [95%] |", "|---|---|---:|---|"]
+        for r in result["occlusion_agreement"]:
+            lines.append(f"| {r['method']} | {r['camera']} | {r['steps']} | "
+                         f"{f(r['spearman'], r['spearman_low'], r['spearman_high'])} |")
+    if result.get("patch_profile"):
+        lines += ["", "Where each map puts its weight (mean share per patch, rows top to bottom), and how much each "
+                      "patch's mean colour varies over the steps (pixel levels):", ""]
+        for r in result["patch_profile"]:
+            grid = " / ".join(" ".join(f"{v:.2f}" for v in row) for row in r["map_share"])
+            lines.append(f"- {r['camera']}, {r['method']}: {grid}")
     if result["additivity"]:
         lines += ["", "| task | camera | fill | steps | whole camera | largest single | sum of singles / whole | set | k | "
                       "change(set) | sum of single changes | additivity | cosine |",
