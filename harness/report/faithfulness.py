@@ -11,8 +11,14 @@ seeds) are paired with the plain run, and each mask-top:K run with the mask-rand
 chance at finding what the policy needs?): success of each arm (Wilson), the paired difference (Newcombe's interval
 for paired proportions) and the exact McNemar p-value, per task.
 
-`tables(runs)` -> {"faithfulness.csv", "interventions.csv"}; `section(runs, plots)` -> HTML ("" when no run
-has either); `markdown(runs)` -> the same tables as Markdown (EVAL.md).
+Fills (harness.analysis.faithfulness: mean, blur, impute) and orders: each open-loop row carries its fill and the
+LeRF ratio beside deletion (MoRF) and insertion; runs of one task with different fills give a ranking-by-fill table
+(`fill_ranking`). Per camera (`camera_rows`): the closed-loop arms of that camera (mask-all@CAMERA against the
+plain run, mask-top:K:METHOD@CAMERA against mask-random:K@CAMERA) beside the open-loop ratio of the same method,
+with a flag where they disagree, and one sentence per camera (`camera_sentence`).
+
+`tables(runs)` -> {"faithfulness.csv", "interventions.csv", "faithfulness_cameras.csv"}; `section(runs, plots)` ->
+HTML ("" when no run has either); `markdown(runs)` -> the same tables as Markdown (EVAL.md).
 """
 
 from __future__ import annotations
