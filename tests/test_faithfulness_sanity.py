@@ -337,3 +337,25 @@ def test_sanity_command_names_the_fix_for_a_run_without_recorded_inputs(tmp_path
     err = capsys.readouterr().err
     assert "--record-inputs" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "out").exists()  # nothing written, nothing loaded
+
+
+def test_profile_agreement_with_occlusion_and_static_patches():
+    """Maps that rank patches as occlusion does agree (+1), reversed ones disagree (-1); the per-patch pixel spread
+    over steps is 0 for a patch that never changes."""
+    from harness.run.sanity import _patch_means, _profile
+
+    occ = np.arange(N, dtype=float).reshape(ROWS, COLS)
+    agreement, profiles, frames = [], {}, {}
+    for step in range(3):
+        image = np.zeros((1, 16, 16, 3), np.float32)
+        image[0, 12:, 12:] = 40.0 * step  # only the last patch changes over the steps
+        trained = {"occlusion": {"image_primary": occ}, "same": {"image_primary": 2 * occ},
+                   "reversed": {"image_primary": -occ + N}}
+        _profile(trained, {"image_primary": image}, {"step": step}, agreement, profiles, frames)
+    by = {(r["method"], r["step"] if "step" in r else 0): r["spearman"] for r in agreement}
+    assert all(v == pytest.approx(1.0) for (m, _), v in by.items() if m == "same")
+    assert all(v == pytest.approx(-1.0) for (m, _), v in by.items() if m == "reversed")
+    assert len(agreement) == 6 and len(profiles[("image_primary", "same")]) == 3
+    np.testing.assert_allclose(profiles[("image_primary", "same")][0].sum(), 1.0)
+    spread = _patch_means(frames["image_primary"]).std(axis=0).mean(axis=-1)  # (4, 4)
+    assert spread[3, 3] > 30 and np.all(spread.ravel()[:-1] == 0)
