@@ -102,14 +102,15 @@ def mean_curve(rows: list[dict], key: str = "deletion_curve") -> tuple[np.ndarra
 
 def beats_random_from(rows: list[dict], control: list[dict], margin: float = 1.1) -> float:
     """The smallest deleted fraction k/n > 0 from which the method's mean deletion curve stays above `margin` x the
-    random map's (the same steps); NaN when it never does, or when either has no curve. 1.0: only at full deletion."""
+    random map's (the same steps) up to half the camera (beyond it every curve converges on the full deletion); NaN
+    when it never does, or when either has no curve."""
     mine, theirs = mean_curve(rows), mean_curve(control)
     if mine is None or theirs is None or len(mine[1]) != len(theirs[1]):
         return float("nan")
     fractions, a = mine
     b = theirs[1]
     above = a > margin * b
-    last = len(fractions) - 1  # k = n: every curve ends at the same full deletion
+    last = int(np.searchsorted(fractions, 0.5, side="right"))  # points with k/n <= 1/2
     for i in range(1, last):
         if above[i:last].all():
             return float(fractions[i])
@@ -327,8 +328,10 @@ def camera_sentence(task: str, camera: str, faith: list[tuple], cams: list[tuple
         below = sum(1 for r in mine if _verdict(r[8], r[9]) == "worse")
         above = sum(1 for r in mine if _verdict(r[8], r[9]) == "better")
         starts = [r[19] for r in mine if math.isfinite(r[19])]
-        onset = (f"the earliest ordering stays above random from k/n = {min(starts):.2f}" if starts else
-                 "no ordering stays above random before the whole camera is deleted")
+        best = min(starts) if starts else None
+        onset = (f"the earliest ordering ({', '.join(r[3] for r in mine if r[19] == best)}) stays above random from "
+                 f"k/n = {best:.2f} to half the camera" if starts else
+                 "no ordering stays above random up to half the camera")
         parts.append(f"{fill} fill: deletion {min(ratios):.2f}-{max(ratios):.2f} of random over {len(mine)} methods "
                      f"({below} below, {above} above random by their intervals); {onset}")
     text = f"{task}, {camera}: open loop, " + ("; ".join(parts) if parts else "not measured")
