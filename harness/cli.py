@@ -200,8 +200,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--faithfulness-every", type=int, default=None, metavar="K",
                    help="open-loop faithfulness (deletion/insertion curves, top/random/bottom-k) of every attribution "
                         "method every K-th step, in faithfulness.jsonl [0 = never; methods default to all]")
-    r.add_argument("--faithfulness-fill", choices=["mean", "blur"], default=None,
-                   help="what a deleted patch becomes in the faithfulness curves [mean]")
+    r.add_argument("--faithfulness-fill", choices=["mean", "blur", "impute"], default=None,
+                   help="what a deleted patch becomes in the faithfulness curves: the frame's mean colour, a blur of "
+                        "the frame, or noisy linear imputation from the surrounding pixels (ROAD; in distribution, "
+                        "no shape leak) [mean]")
     r.add_argument("--attention-controls", default=None, metavar="blank,mirror",
                    help="position-against-content controls: ask the model each control step again with every camera's "
                         "frames blanked to their mean colour and/or mirrored left-right; attention in controls.npz "
@@ -281,6 +283,28 @@ def build_parser() -> argparse.ArgumentParser:
                     help="do not re-simulate the episode for its frames: maps and measures only")
     vw.add_argument("--viewer-port", type=int, default=None, metavar="PORT", help="the viewer's gRPC port [9876]")
     vw.add_argument("--web-port", type=int, default=None, metavar="PORT", help="--serve: the web viewer's HTTP port [9090]")
+
+    san = sub.add_parser("sanity", help="sanity checks of the attribution methods, once per policy: model-parameter "
+                                         "randomisation and patch additivity, open loop on recorded inputs",
+                         description="On the inputs of runs made with --record-inputs: Spearman and SSIM between the "
+                                     "maps of the trained policy and of the policy with re-drawn weights (cascading "
+                                     "from the top block down, and each block alone), per method and camera, with "
+                                     "95%% intervals over steps and a pass/fail verdict; with --additivity also "
+                                     "single-patch effects and their additivity per camera and fill. Writes "
+                                     "sanity.json, randomisation.csv, additivity.csv; prints Markdown tables.")
+    san.add_argument("runs", nargs="+", type=Path, metavar="RUN_DIR", help="run folder(s) made with --record-inputs "
+                                                                           "(one policy; several tasks pool)")
+    san.add_argument("--model", default=None, help="the policy to check [the runs' own model]")
+    san.add_argument("--every", type=int, default=10, help="every k-th inferred step of each episode [10]")
+    san.add_argument("--max-steps", type=int, default=None, help="at most N steps in all [every selected step]")
+    san.add_argument("--methods", default=None,
+                     help="attribution methods (as for run --attribution; random is always added) "
+                          "[attention,rollout,grad-attention,saliency,occlusion]")
+    san.add_argument("--additivity", action="store_true",
+                     help="also measure single-patch effects and how additive they are, per camera and fill")
+    san.add_argument("--fills", default=None, help="fills of the additivity measures, comma-separated [mean,blur,impute]")
+    san.add_argument("--seed", type=int, default=0, help="seed of the re-drawn weights and the random orders [0]")
+    san.add_argument("--out", type=Path, default=None, help="output folder [first RUN_DIR/sanity]")
 
     reg = sub.add_parser("regress", help="run a candidate on a baseline's protocol and seeds until a sequential test decides",
                          description="Pair by pair (round by round over tasks) through the run store (resumable); "
@@ -375,6 +399,19 @@ def _cmd_replay(args) -> int:
     print(summary_text(result))
     print(f"replay: {out / 'replay.json'}")
     return exit_code(result)
+
+
+def _cmd_sanity(args) -> int:
+    from harness.run.sanity import DEFAULT_METHODS, SanityOptions, markdown, run_sanity
+
+    fills = tuple(f.strip() for f in args.fills.split(",") if f.strip()) if args.fills else SanityOptions.fills
+    options = SanityOptions(every=args.every, methods=args.methods or DEFAULT_METHODS, additivity=args.additivity,
+                            fills=fills, seed=args.seed, max_steps=args.max_steps)
+    out = args.out or args.runs[0] / "sanity"
+    result = run_sanity(args.runs, out, options, model_source=args.model)
+    print(markdown(result))
+    print(f"sanity: {out / 'sanity.json'} ({result['steps']} steps, {result['seconds']:.0f} s)")
+    return 0
 
 
 def _has_display() -> bool:
@@ -528,6 +565,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_replay(args)
         if args.command == "view":
             return _cmd_view(args)
+        if args.command == "sanity":
+            return _cmd_sanity(args)
         return _cmd_run(args)
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", 2)

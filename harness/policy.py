@@ -61,7 +61,7 @@ class PolicyConfig:
     intervention: str | None = None
     # attribution maps at every inference step (harness/analysis/attribution.py: "attention,rollout,grad-attention,
     # saliency"; random is always added) and open-loop faithfulness every k-th step (0 = never), deleted patches
-    # filled with "mean" or "blur". They do not change actions; recorded only when set
+    # filled with "mean", "blur" or "impute" (ROAD's noisy linear imputation). They do not change actions; recorded only when set
     attribution: str | None = None
     faithfulness_every: int = 0
     faithfulness_fill: str = "mean"
@@ -92,8 +92,8 @@ class PolicyConfig:
         if isinstance(self.faithfulness_every, bool) or not isinstance(self.faithfulness_every, int) \
                 or self.faithfulness_every < 0:
             raise ValueError(f"--faithfulness-every must be an integer >= 0 (0 = never), got {self.faithfulness_every!r}")
-        if self.faithfulness_fill not in ("mean", "blur"):
-            raise ValueError(f"--faithfulness-fill must be 'mean' or 'blur', got {self.faithfulness_fill!r}")
+        if self.faithfulness_fill not in ("mean", "blur", "impute"):
+            raise ValueError(f"--faithfulness-fill must be 'mean', 'blur' or 'impute', got {self.faithfulness_fill!r}")
         if self.faithfulness_every and self.attribution is None:
             from harness.analysis.attribution import DEFAULT_METHODS
 

@@ -87,3 +87,91 @@ def test_an_intervention_run_on_several_tasks_gets_a_pooled_row(tmp_path):
     assert pooled["run"] == "lt+st" and pooled["baseline_run"] == "lp+sp"
     assert pooled["mcnemar_p"] == pytest.approx(2 * 0.5 ** 15)
     assert len(rows) == 3
+
+
+def _curve_row(episode, method, curve, fill="mean", camera="image_wrist", lerf=None):
+    fractions = [i / 4 for i in range(5)]
+    auc = float(np.trapz(curve, fractions))
+    return {"task": "Lift", "episode": episode, "step": 0, "camera": camera, "method": method, "fill": fill,
+            "change_all": curve[-1], "deletion_auc": auc, "random_deletion_auc": 0.5, "insertion_auc": 0.5,
+            "random_insertion_auc": 0.5, "lerf_auc": lerf if lerf is not None else auc, "random_lerf_auc": 0.5,
+            "fractions": fractions, "deletion_curve": curve, "top_k/1": curve[1], "random_k/1": 0.25}
+
+
+def test_lerf_fill_and_where_an_ordering_first_beats_random():
+    random_curve = [0.0, 0.25, 0.5, 0.75, 1.0]
+    early = [0.0, 0.5, 0.8, 0.9, 1.0]  # above random (x1.1) from k/n = 0.25 on
+    late = [0.0, 0.2, 0.6, 0.9, 1.0]  # above only from 0.5 on
+    never = [0.0, 0.1, 0.2, 0.3, 1.0]  # below random until the whole camera goes
+    rows = [_curve_row(e, m, c, lerf=0.25 if m == "early" else None) for e in range(3)
+            for m, c in (("random", random_curve), ("attention:0", early), ("attention:1", late), ("saliency", never))]
+    table = {r[3]: dict(zip(R.FAITH_COLUMNS, r)) for r in R.summarise(rows, "run")}
+    assert table["attention:0"]["beats_random_from"] == 0.25
+    assert table["attention:1"]["beats_random_from"] == 0.5
+    assert np.isnan(table["saliency"]["beats_random_from"])
+    assert table["saliency"]["fill"] == "mean"
+    assert table["saliency"]["lerf_rel"] == pytest.approx(np.trapz(never, [0, .25, .5, .75, 1]) / 0.5)
+
+
+def test_fill_ranking_reports_how_the_order_of_methods_changes():
+    rows = []
+    for fill, values in (("mean", {"attention:0": 0.6, "rollout": 0.8, "saliency": 0.7}),
+                         ("impute", {"attention:0": 1.3, "rollout": 0.9, "saliency": 1.1})):
+        for m, v in values.items():
+            rows += [{**_curve_row(e, m, [0, .25, .5, .75, 1.0], fill=fill), "deletion_auc": v * 0.5} for e in range(3)]
+    faith = R.summarise([r for r in rows if r["fill"] == "mean"], "mean") + \
+        R.summarise([r for r in rows if r["fill"] == "impute"], "impute")
+    ranking = R.fill_ranking(faith)
+    by = {r[2]: r[3] for r in ranking}
+    assert list(by["rollout"]) == ["mean", "impute"]  # mean first
+    assert by["rollout"]["mean"][1] == 1 and by["rollout"]["impute"][1] == 3
+    assert by["attention:0"]["mean"][1] == 3 and by["attention:0"]["impute"][1] == 1
+    assert by["spearman vs mean"]["impute"][0] == pytest.approx(-1.0)
+    assert R.fill_ranking(R.summarise([r for r in rows if r["fill"] == "mean"], "mean")) == []  # one fill: nothing
+
+
+def test_camera_rows_flag_open_and_closed_loop_disagreement(tmp_path):
+    """The wrist camera: masking it stops the policy, masking its top-4 by attention:2 costs more than 4 random
+    patches, yet open loop every ranking is below random: flagged. The primary camera agrees."""
+    def run(name, policy, outcomes, faith_rows=()):
+        record = _record(name, policy, outcomes, tmp_path)
+        for e in record.episodes:
+            e.directory.mkdir(parents=True, exist_ok=True)
+            (e.directory / "faithfulness.jsonl").write_text("".join(json.dumps(r) + "\n" for r in faith_rows
+                                                                    if r["episode"] == e.episode))
+        return record
+
+    below = [0.0, 0.1, 0.2, 0.3, 1.0]
+    above = [0.0, 0.6, 0.8, 0.9, 1.0]
+    faith = [_curve_row(e, "attention:2", below, camera="image_wrist") for e in range(6)]
+    faith += [{**_curve_row(e, "attention:2", below, camera="image_wrist"), "deletion_auc": 0.3 + 0.01 * e} for e in range(6, 12)]
+    faith += [{**_curve_row(e, "attention:2", above, camera="image_primary"), "deletion_auc": 0.7 + 0.01 * e} for e in range(12)]
+    faith += [_curve_row(e, "random", [0, .25, .5, .75, 1.0], camera=c) for e in range(12) for c in ("image_wrist", "image_primary")]
+    open_run = run("open", {"faithfulness_every": 10}, [True] * 12, faith)
+    plain = run("plain", {}, [True] * 12)
+    all_wrist = run("all-wrist", {"intervention": "mask-all@image_wrist"}, [False] * 12)
+    top = run("top-wrist", {"intervention": "mask-top:4:attention:2@image_wrist"}, [False] * 10 + [True] * 2)
+    rand = run("random-wrist", {"intervention": "mask-random:4@image_wrist"}, [True] * 12)
+    runs = [open_run, plain, all_wrist, top, rand]
+    cams = [dict(zip(R.CAMERA_COLUMNS, c)) for c in R.camera_rows(runs)]
+    wrist = [c for c in cams if c["camera"] == "image_wrist"]
+    assert len(wrist) == 1 and wrist[0]["method"] == "attention:2"
+    assert wrist[0]["mask_all"] == "12/12 -> 0/12" and wrist[0]["mask_all_p"] < 0.001
+    assert wrist[0]["top_vs_random_difference"] == pytest.approx(-10 / 12)
+    assert wrist[0]["agreement"] == "DISAGREE"  # closed loop: better than random; open loop: worse
+    assert wrist[0]["open_ci_high"] < 1
+    assert all(c["camera"] != "image_primary" for c in cams)  # no closed-loop arm of its own: not in the table
+    text = R.camera_sentence("Lift", "image_wrist", R.open_rows(runs), R.camera_rows(runs))
+    assert "1 below" in text and "12/12 -> 0/12" in text and "DISAGREE" in text
+    assert "no ordering stays above random up to half the camera" in text
+    md = R.markdown(runs)
+    assert "| Lift | image_wrist | mean | attention:2 |" in md and "open vs closed loop" in md
+    assert "faithfulness_cameras.csv" in R.tables(runs)
+
+
+def test_camera_rows_without_closed_loop_or_open_loop_are_empty_or_na(tmp_path):
+    plain = _record("plain", {}, [True] * 4, tmp_path)
+    masked = _record("m", {"intervention": "mask-all@image_wrist"}, [False] * 4, tmp_path)
+    assert R.camera_rows([plain]) == []
+    (row,) = R.camera_rows([plain, masked])  # a mask-all arm without any open-loop run: open loop n/a
+    assert row[13] == "n/a" and row[7] == "4/4 -> 0/4"

@@ -111,14 +111,14 @@ def analyse(step: StepFunction, gradients: bool = True, occlusion: bool = False)
 
 def occlusion_maps(step: StepFunction, reference: np.ndarray, fill: str = "mean") -> dict[str, np.ndarray]:
     """{obs key: (rows, cols)} RMS change of the chunk when that patch alone of the current frame is deleted."""
-    from harness.analysis.faithfulness import action_change, baseline_image, compose
+    from harness.analysis.faithfulness import action_change, delete_patches
 
     out = {}
     for _, key, rows, cols in step.tokens.image_groups:
         frame = np.asarray(step.images[key][-1], np.float32)
         single = np.eye(rows * cols, dtype=bool).reshape(rows * cols, rows, cols)
         inputs = {k: np.repeat(np.asarray(v, np.float32)[None], rows * cols, axis=0) for k, v in step.images.items()}
-        inputs[key][:, -1] = compose(frame, baseline_image(frame, fill, rows, cols), single)
+        inputs[key][:, -1] = delete_patches(frame, single, fill)
         out[key] = action_change(step.batch(inputs), reference).reshape(rows, cols)
     return out
 
@@ -266,8 +266,10 @@ def attribute_all(analysis: StepAnalysis, methods: tuple[str, ...], seed: int = 
 class OctoFunctions:
     """StepFunctions of one Octo model (jitted once per model and input shape; no state beyond the compiled code).
 
-    `at(observations, task, rng)` takes what `model.sample_actions` takes with batch 1 (uint8 images at the
-    model's sizes, a batch-1 task from `create_task`, one rng key) and returns the step's StepFunction.
+    `at(observations, task, rng, params=None)` takes what `model.sample_actions` takes with batch 1 (uint8 images at
+    the model's sizes, a batch-1 task from `create_task`, one rng key) and returns the step's StepFunction; `params`
+    (a tree of the model's structure, e.g. with re-drawn weights: harness.analysis.sanity) replaces the model's own
+    weights without compiling again.
     `head_mask` (layers, heads) of 0/1 multiplies each head's attention output (an ablation); None: none.
     """
 
@@ -280,32 +282,33 @@ class OctoFunctions:
         cfg = model.config.transformer
         self.layers, self.heads = int(cfg.num_layers), int(cfg.num_heads)
         self._fn = jax.jit(self._apply)
-        self._batch = jax.jit(jax.vmap(self._apply_actions, in_axes=(0, None, None, None, None, None)))
+        self._batch = jax.jit(jax.vmap(self._apply_actions, in_axes=(None, 0, None, None, None, None, None)))
 
     def _perturbations(self, perturbation: jax.Array, batch: int = 1) -> dict:
         blocks = {f"encoderblock_{i}": {"MultiHeadDotProductAttention_0": {"weights": jnp.broadcast_to(
             perturbation[i][None], (batch, *perturbation.shape[1:]))}} for i in range(self.layers)}
         return {"BlockTransformer_0": {"Transformer_0": blocks}}
 
-    def _run(self, images, obs, task, encoding, pad, rng, perturbation):
+    def _run(self, params, images, obs, task, encoding, pad, rng, perturbation):
         o = dict(obs)
         o.update({k: v[None] for k, v in images.items()})
-        variables = {"params": self.params["octo_transformer"], "perturbations": self._perturbations(perturbation)}
+        variables = {"params": params["octo_transformer"], "perturbations": self._perturbations(perturbation)}
         out = self.module.apply(variables, o, task, encoding, pad)
-        actions = self.model.head_actions(self.params["heads_action"], out, rng[None], None)[0]
+        actions = self.model.head_actions(params["heads_action"], out, rng[None], None)[0]
         return actions, out["attention"][0]
 
-    def _apply(self, images, obs, task, encoding, pad, rng, perturbation):
-        return self._run(images, obs, task, encoding, pad, rng, perturbation)
+    def _apply(self, params, images, obs, task, encoding, pad, rng, perturbation):
+        return self._run(params, images, obs, task, encoding, pad, rng, perturbation)
 
-    def _apply_actions(self, images, obs, task, encoding, pad, rng):
+    def _apply_actions(self, params, images, obs, task, encoding, pad, rng):
         o = dict(obs)
         o.update({k: v[None] for k, v in images.items()})
-        out = self.module.apply({"params": self.params["octo_transformer"]}, o, task, encoding, pad)
-        return self.model.head_actions(self.params["heads_action"], out, rng[None], None)[0]
+        out = self.module.apply({"params": params["octo_transformer"]}, o, task, encoding, pad)
+        return self.model.head_actions(params["heads_action"], out, rng[None], None)[0]
 
-    def at(self, observations: Mapping, task: Mapping, rng) -> StepFunction:
+    def at(self, observations: Mapping, task: Mapping, rng, params=None) -> StepFunction:
         model = self.model
+        params = self.params if params is None else params
         obs, pad = model._prepare_observations(observations)
         if pad.shape[0] != 1:
             raise ValueError(f"attribution takes one example (batch 1); got batch {pad.shape[0]}")
@@ -317,7 +320,7 @@ class OctoFunctions:
         tokens = model._token_map(model._layout(obs, encoding))
 
         def fn(imgs, perturbation):
-            return self._fn(imgs, rest, task_in, encoding, pad, rng, perturbation)
+            return self._fn(params, imgs, rest, task_in, encoding, pad, rng, perturbation)
 
         def batch(imgs, chunk: int = 32):
             n = len(next(iter(imgs.values())))
@@ -327,7 +330,7 @@ class OctoFunctions:
                 m = len(next(iter(part.values())))
                 if m < chunk:
                     part = {k: np.concatenate([v, np.repeat(v[:1], chunk - m, axis=0)]) for k, v in part.items()}
-                out.append(np.asarray(self._batch(part, rest, task_in, encoding, pad, rng))[:m])
+                out.append(np.asarray(self._batch(params, part, rest, task_in, encoding, pad, rng))[:m])
             return np.concatenate(out)
 
         return StepFunction(fn=fn, batch=batch, images=images, tokens=tokens,

@@ -3,8 +3,14 @@
 Pure numpy functions around one evaluation callable (images -> predicted action chunks), named after the
 papers they implement:
 
-- `baseline_image`: what a deleted patch becomes: the image's per-channel mean ("mean") or a Gaussian blur
-  of the image ("blur", sigma = one patch width).
+- `baseline_image` / `delete_patches`: what a deleted patch becomes: the image's per-channel mean ("mean"), a
+  Gaussian blur of the image ("blur", sigma = one patch width), or noisy linear imputation from the pixels
+  around the deleted region ("impute", `impute`: ROAD, Rong et al. 2022, "A Consistent and Efficient Evaluation
+  Strategy for Attribution Methods"): each deleted pixel is the weighted mean of its 8 neighbours (edge
+  neighbours 1/6, corner neighbours 1/12) with the kept pixels as the boundary, one sparse linear solve per
+  deleted set, plus Gaussian noise. Mean and blur fills give every deleted region a tell-tale flat or smooth
+  shape the model may react to (the region's shape leaks the ranking) and leave the training distribution;
+  imputation continues the surrounding image instead.
 - Deletion and insertion curves (RISE, Petsiuk, Das & Saenko 2018; pixel flipping, Samek et al. 2017) on the
   patch grid, for a policy's continuous action: delete the top-k patches of the ranking (k = 0..n), or insert
   them into the fully deleted image, and measure how far the predicted chunk moves from the one predicted on
@@ -13,6 +19,9 @@ papers they implement:
   curve starts at change(all deleted) and ends at 0; a faithful map makes it fall at once (LOW AUC). AUC:
   trapezoid over the deleted fraction k/n, in action units. (RISE's probability-retained form, 1 -
   change/change(all), is not used: a camera whose full deletion changes the chunk little makes it explode.)
+- MoRF and LeRF (ROAD's names): the deletion curve above removes the Most Relevant patches First; the LeRF
+  curve removes the Least Relevant First (a faithful map keeps it low: LOW AUC). The random map's LeRF curve
+  is its MoRF curve (a reversed random order is a random order), so both share one control.
 - top-k / random-k / bottom-k: the change when the k highest-, randomly- or lowest-ranked patches are deleted.
 - `relative_to_random`: a method's AUC over the random map's on the same steps (sums over steps, so 1 = no
   better than random; deletion > 1 and insertion < 1 are better than random) with a percentile bootstrap
@@ -27,11 +36,19 @@ from __future__ import annotations
 from typing import Callable, Mapping, Sequence
 
 import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
 from scipy.ndimage import gaussian_filter
 
 from harness.analysis.attention import _patch_index
 
-FILLS = ("mean", "blur")
+FILLS = ("mean", "blur", "impute")
+IMPUTE_NOISE = 2.55  # std of the noise added to imputed pixels, pixel units (1% of the 0..255 range)
+IMPUTE_CELLS = 4  # delete_patches imputes on blocks such that a patch spans ~4 blocks a side (speed)
+IMPUTE_ANCHOR = 1e-4  # pull of each imputed pixel towards the kept pixels' mean: keeps a fully deleted image solvable
+# the 8 neighbours of a pixel and their weights in the imputation (sum 1 in the image's interior)
+_NEIGHBOURS = ((-1, 0, 1 / 6), (1, 0, 1 / 6), (0, -1, 1 / 6), (0, 1, 1 / 6),
+               (-1, -1, 1 / 12), (-1, 1, 1 / 12), (1, -1, 1 / 12), (1, 1, 1 / 12))
 MIN_CHANGE = 1e-6  # normalised action units
 TOP_K = (1, 0.1, 0.25)  # patches (int) or fractions of the camera's patches
 
@@ -44,7 +61,131 @@ def baseline_image(image: np.ndarray, fill: str = "mean", rows: int = 1, cols: i
     if fill == "blur":
         sigma = max(image.shape[0] / rows, image.shape[1] / cols)
         return gaussian_filter(image, sigma=(sigma, sigma, 0), mode="nearest").astype(np.float32)
+    if fill == "impute":
+        raise ValueError("the impute fill depends on the deleted region: use delete_patches or impute")
     raise ValueError(f"unknown fill {fill!r}; use one of {', '.join(FILLS)}")
+
+
+def impute(image: np.ndarray, deleted: np.ndarray, noise: float = IMPUTE_NOISE, rng=None, factor: int = 1) -> np.ndarray:
+    """Noisy linear imputation (ROAD): image (H, W, C), deleted (H, W) bool -> (H, W, C) float32, 0..255.
+
+    The deleted pixels u solve, per channel, (s_u + e) x_u - sum_{v deleted} w_uv x_v = sum_{v kept} w_uv x_v + e m,
+    where w are the neighbour weights (_NEIGHBOURS, those inside the image), s_u their sum, m the kept pixels'
+    mean (the image's when nothing is kept) and e = IMPUTE_ANCHOR: each deleted pixel is (almost exactly) the
+    weighted mean of its neighbours, kept ones fixed. The matrix is symmetric and strictly diagonally dominant,
+    so every connected deleted region has one solution; each is solved alone (one sparse LU, C right-hand sides).
+    factor > 1 (dividing H and W): the system is solved on the image averaged over factor x factor blocks (a
+    block is deleted when any of its pixels is) and the solution upsampled bilinearly into the deleted pixels:
+    factor^2 fewer unknowns. N(0, noise) is then added to the deleted pixels (rng: a numpy Generator or seed;
+    noise 0: none). A constant image comes back unchanged when noise is 0.
+    """
+    image = np.asarray(image, np.float64)
+    deleted = np.asarray(deleted, bool)
+    h, w, c = image.shape
+    if deleted.shape != (h, w):
+        raise ValueError(f"deleted mask {deleted.shape} does not match the image {(h, w)}")
+    if factor < 1 or h % factor or w % factor:
+        raise ValueError(f"imputation factor {factor} must divide the image size {(h, w)}")
+    out = image.copy()
+    if not deleted.any():
+        return out.astype(np.float32)
+    if factor > 1:
+        coarse = image.reshape(h // factor, factor, w // factor, factor, c).mean(axis=(1, 3))
+        cells = deleted.reshape(h // factor, factor, w // factor, factor).any(axis=(1, 3))
+        solved = _solve_imputation(coarse, cells)
+        smooth = _upsample(solved, factor)
+        out[deleted] = smooth[deleted]
+    else:
+        out = _solve_imputation(image, deleted)
+    if noise > 0:
+        generator = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+        out[deleted] += generator.normal(0.0, noise, (int(deleted.sum()), c))
+    return np.clip(out, 0.0, 255.0).astype(np.float32)
+
+
+def _solve_imputation(image: np.ndarray, deleted: np.ndarray) -> np.ndarray:
+    """image (H, W, C) float64, deleted (H, W) bool -> (H, W, C) float64: the deleted pixels solved (see `impute`).
+
+    One sparse system for every deleted region at once (its matrix is block diagonal over the 8-connected regions,
+    which the LU's fill-reducing ordering keeps apart)."""
+    h, w, c = image.shape
+    kept = ~deleted
+    anchor = image[kept].mean(axis=0) if kept.any() else image.reshape(-1, c).mean(axis=0)  # (C,)
+    flat = image.reshape(-1, c)
+    pixels = np.flatnonzero(deleted)  # (u,)
+    u = pixels.size
+    index = np.full(h * w, -1, np.int64)
+    index[pixels] = np.arange(u)
+    ys, xs = np.divmod(pixels, w)
+    diagonal = np.full(u, IMPUTE_ANCHOR)
+    rhs = np.broadcast_to(IMPUTE_ANCHOR * anchor, (u, c)).copy()
+    rows, cols, values = [np.arange(u)], [np.arange(u)], []
+    for dy, dx, weight in _NEIGHBOURS:
+        ny, nx = ys + dy, xs + dx
+        inside = (ny >= 0) & (ny < h) & (nx >= 0) & (nx < w)
+        diagonal[inside] += weight
+        neighbour = np.where(inside, ny * w + nx, 0)
+        other = np.where(inside, index[neighbour], -1)
+        unknown = inside & (other >= 0)
+        rows.append(np.flatnonzero(unknown))
+        cols.append(other[unknown])
+        values.append(np.full(int(unknown.sum()), -weight))
+        known = inside & (other < 0)
+        rhs[known] += weight * flat[neighbour[known]]
+    matrix = scipy.sparse.csc_matrix((np.concatenate([diagonal, *values]),
+                                      (np.concatenate(rows), np.concatenate(cols))), shape=(u, u))
+    out = image.copy()
+    out.reshape(-1, c)[pixels] = scipy.sparse.linalg.splu(matrix, permc_spec="MMD_AT_PLUS_A").solve(rhs)
+    return out
+
+
+def _upsample(coarse: np.ndarray, factor: int) -> np.ndarray:
+    """(h, w, C) -> (h*factor, w*factor, C) bilinear, pixel centres aligned (edges held)."""
+    def axis_weights(n: int):
+        position = (np.arange(n * factor) + 0.5) / factor - 0.5
+        low = np.clip(np.floor(position).astype(int), 0, n - 1)
+        high = np.clip(low + 1, 0, n - 1)
+        t = np.clip(position - low, 0.0, 1.0)[:, None]
+        return low, high, t
+
+    ly, hy, ty = axis_weights(coarse.shape[0])
+    rows = coarse[ly] * (1 - ty[..., None]) + coarse[hy] * ty[..., None]
+    lx, hx, tx = axis_weights(coarse.shape[1])
+    return rows[:, lx] * (1 - tx) + rows[:, hx] * tx
+
+
+def impute_factor(height: int, width: int, rows: int, cols: int, cells: int = IMPUTE_CELLS) -> int:
+    """The block size `delete_patches` imputes at: patches of at most ~`cells` blocks a side (a divisor of H, W)."""
+    factor = max(1, min(height // rows, width // cols) // cells)
+    while height % factor or width % factor:
+        factor -= 1
+    return factor
+
+
+def pixel_mask(deleted: np.ndarray, height: int, width: int) -> np.ndarray:
+    """deleted (..., rows, cols) bool -> (..., height, width) bool: every pixel of a deleted patch."""
+    deleted = np.asarray(deleted, bool)
+    ry = _patch_index(height, deleted.shape[-2])
+    cx = _patch_index(width, deleted.shape[-1])
+    return deleted[..., ry[:, None], cx[None, :]]
+
+
+def delete_patches(image: np.ndarray, deleted: np.ndarray, fill: str = "mean", seed=0) -> np.ndarray:
+    """image (H, W, 3), deleted (m, rows, cols) bool -> (m, H, W, 3) float32 with the deleted patches filled.
+
+    mean / blur: one baseline image composed in (`compose`); impute: `impute` per deleted set (solved on blocks of
+    `impute_factor` pixels: a 16-pixel patch is imputed on 4x4-pixel blocks), with noise drawn from `seed` (an
+    int or a sequence of ints) in the order of the sets, so the same call gives the same images.
+    """
+    deleted = np.asarray(deleted, bool)
+    if fill != "impute":
+        return compose(image, baseline_image(image, fill, deleted.shape[1], deleted.shape[2]), deleted)
+    image = np.asarray(image, np.float32)
+    pixels = pixel_mask(deleted, *image.shape[:2])
+    factor = impute_factor(*image.shape[:2], *deleted.shape[1:])
+    rng = np.random.default_rng(seed)
+    return np.stack([impute(image, p, rng=rng, factor=factor) for p in pixels]) if len(pixels) else \
+        np.zeros((0, *image.shape), np.float32)
 
 
 def ranking(scores: np.ndarray) -> np.ndarray:
@@ -64,10 +205,7 @@ def first_k(order: np.ndarray, ks: Sequence[int]) -> np.ndarray:
 def compose(image: np.ndarray, baseline: np.ndarray, deleted: np.ndarray) -> np.ndarray:
     """image, baseline (H, W, 3); deleted (m, rows, cols) bool -> (m, H, W, 3): baseline inside deleted patches."""
     deleted = np.asarray(deleted, bool)
-    h, w = image.shape[:2]
-    ry = _patch_index(h, deleted.shape[1])
-    cx = _patch_index(w, deleted.shape[2])
-    pixel = deleted[:, ry[:, None], cx[None, :]]  # (m, H, W)
+    pixel = pixel_mask(deleted, *image.shape[:2])  # (m, H, W)
     return np.where(pixel[..., None], baseline[None], image[None]).astype(np.float32)
 
 
@@ -113,7 +251,8 @@ def camera_faithfulness(
     top_k: Sequence[float] = TOP_K,
     max_points: int = 17,
 ) -> list[dict]:
-    """One camera at one step: a row per method with its curves, AUCs and top/random/bottom-k changes.
+    """One camera at one step: a row per method with its curves (MoRF deletion, insertion, LeRF), AUCs and
+    top/random/bottom-k changes.
 
     evaluate: images (m, H, W, 3) float32 of this camera's current frame -> (m, horizon, dim) normalised chunks
     (the other inputs held fixed, same rng); image (H, W, 3) the frame as the policy saw it; reference
@@ -123,7 +262,6 @@ def camera_faithfulness(
     first = next(iter(maps.values()))
     rows, cols = first.shape
     n = rows * cols
-    base = baseline_image(image, fill, rows, cols)
     topk = k_values(n, top_k)
     ks = _ks_with(n, topk, max_points)  # the curve's k, the top-k counts included
     fractions = ks / n
@@ -131,15 +269,19 @@ def camera_faithfulness(
     orders = {name: ranking(m) for name, m in maps.items()}
     controls = [rng.permutation(n) for _ in range(random_orders)]
 
-    # one batch: full deletion; per ranking deletion and insertion at every k; bottom-k per method
+    # one batch: full deletion; per ranking MoRF deletion and insertion at every k; LeRF per method (its first
+    # top-k points are the bottom-k); each distinct deleted set is filled and evaluated once
     blocks: list[np.ndarray] = [np.ones((1, n), bool)]
     for order in [*orders.values(), *controls]:
         chosen = first_k(order, ks)
         blocks += [chosen, ~chosen]
     for order in orders.values():
-        blocks.append(first_k(order[::-1], topk))
+        blocks.append(first_k(order[::-1], ks))
     deleted = np.concatenate(blocks)
-    changes = action_change(evaluate(compose(image, base, deleted.reshape(-1, rows, cols))), reference)
+    distinct, inverse = np.unique(deleted, axis=0, return_inverse=True)
+    noise_seed = [*np.atleast_1d(np.asarray(seed, np.int64)).tolist(), 7]
+    filled = delete_patches(image, distinct.reshape(-1, rows, cols), fill, seed=noise_seed)
+    changes = action_change(evaluate(filled), reference)[np.asarray(inverse).ravel()]
 
     change_all = float(changes[0])
     at = 1
@@ -149,10 +291,10 @@ def camera_faithfulness(
         i = changes[at + len(ks):at + 2 * len(ks)]
         curves.append((d, i))
         at += 2 * len(ks)
-    bottoms = []
+    lerfs = []
     for _ in orders:
-        bottoms.append(changes[at:at + len(topk)])
-        at += len(topk)
+        lerfs.append(changes[at:at + len(ks)])
+        at += len(ks)
 
     valid = change_all >= MIN_CHANGE
     area = lambda c: float(auc(fractions, c)) if valid else np.nan  # noqa: E731
@@ -162,23 +304,27 @@ def camera_faithfulness(
     random_k = {k: float(np.mean([d[position[k]] for d, _ in curves[len(orders):]])) for k in topk}
 
     out = []
-    for (name, order), (d, i), bottom in zip(orders.items(), curves, bottoms):
+    for (name, order), (d, i), lerf in zip(orders.items(), curves, lerfs):
         row = {
             "method": name,
+            "fill": fill,
             "patches": n,
             "change_all": change_all,
             "deletion_auc": area(d),
             "insertion_auc": area(i),
+            "lerf_auc": area(lerf),
             "random_deletion_auc": float(control_del),
             "random_insertion_auc": float(control_ins),
+            "random_lerf_auc": float(control_del),  # a reversed random order is a random order
             "fractions": fractions.tolist(),
             "deletion_curve": [float(x) for x in d],
             "insertion_curve": [float(x) for x in i],
+            "lerf_curve": [float(x) for x in lerf],
         }
-        for j, k in enumerate(topk):
+        for k in topk:
             row[f"top_k/{k}"] = float(d[position[k]])
             row[f"random_k/{k}"] = random_k[k]
-            row[f"bottom_k/{k}"] = float(bottom[j])
+            row[f"bottom_k/{k}"] = float(lerf[position[k]])
         out.append(row)
     return out
 
