@@ -14,6 +14,8 @@ from collections.abc import Sequence
 import numpy as np
 
 OTHER, TARGET, ROBOT = 0, 1, 2
+TASK_OBJECT = 3  # an object of the task other than the target (Stack's green cube, PickPlace's bin markers)
+DISTRACTOR = 16  # distractor i is labelled DISTRACTOR + i (envs.perturbations adds them)
 MJOBJ_GEOM = 5  # mujoco.mjtObj.mjOBJ_GEOM
 
 
@@ -65,3 +67,30 @@ def masks_from_segmentation(segmentation_rgb: np.ndarray, table: np.ndarray) -> 
     ids = np.where(ids < len(table), ids, 0)
     category = table[ids]  # (h, w) uint8
     return {"target": category == TARGET, "robot": category == ROBOT}
+
+
+def scene_labels(geom_category: np.ndarray, geom_bodyid: np.ndarray, body_names: Sequence[str], body_parentid: np.ndarray,
+                 task_object_prefixes: Sequence[str], distractor_prefixes: Sequence[str]) -> np.ndarray:
+    """(ngeom,) uint8 label of every model geom: TARGET / ROBOT as `geom_category`, else TASK_OBJECT under a task
+    object prefix, DISTRACTOR + i under distractor prefix i, else OTHER (the arena: table, floor, walls, bins)."""
+    labels = np.asarray(geom_category, dtype=np.uint8).copy()
+    free = labels == OTHER
+    bodies = np.asarray(geom_bodyid)
+    task = body_ancestry_matches(body_names, body_parentid, task_object_prefixes)[bodies]
+    labels[free & task] = TASK_OBJECT
+    for i, prefix in enumerate(distractor_prefixes):
+        labels[free & body_ancestry_matches(body_names, body_parentid, (prefix,))[bodies]] = DISTRACTOR + i
+    return labels
+
+
+def labelled_masks(segmentation_rgb: np.ndarray, table: np.ndarray, distractors: int = 0) -> dict[str, np.ndarray]:
+    """(h, w, 3) id-colour render + a `scene_lookup` table of `scene_labels` -> {"target", "robot", "background",
+    "distractor_<i>" for i < distractors}: (h, w) bool. Background: pixels of no robot, target, task object or
+    distractor (the arena, and pixels no geom covers)."""
+    ids = decode_ids(segmentation_rgb)
+    ids = np.where(ids < len(table), ids, 0)
+    label = table[ids]  # (h, w) uint8
+    out = {"target": label == TARGET, "robot": label == ROBOT, "background": label == OTHER}
+    for i in range(distractors):
+        out[f"distractor_{i}"] = label == DISTRACTOR + i
+    return out
