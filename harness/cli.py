@@ -148,6 +148,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--inference-batch", type=int, default=None,
                    help="examples per compiled inference call; every call is padded to it, so actions are bit-identical "
                         "whatever --workers or the load (part of the protocol; >1 pays on a GPU) [1]")
+    r.add_argument("--perturb", default=None, metavar="KIND[@KEY]:LEVEL[,...]",
+                   help="controlled perturbation of the scene (part of the protocol; docs/perturbations.md): camera, "
+                        "lighting, texture, distractors, init-state, noise, language at level 0 (nominal) to 5; "
+                        "camera@KEY / noise@KEY pick a camera, e.g. camera:3,lighting:1 [none]")
     r.add_argument("--ci-method", choices=["wilson", "clopper-pearson"], default=None,
                    help="confidence interval of success rates (95%%) [wilson]")
     _add_execution_args(r)

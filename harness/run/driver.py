@@ -197,6 +197,7 @@ def execute(
     executor: factory(context, model) -> Executor (default SequentialExecutor).
     """
     checks.check_environment()
+    checks.check_perturbations(protocol)
     out = checks.check_destination(Path(out))
     fingerprint, fingerprint_details = model_fingerprint(protocol.model, protocol.text_tokenizer)
     goals_fp = goal_fingerprint(protocol.goal_images) if protocol.goal_images else None
@@ -344,7 +345,7 @@ def _check_env(protocol: Protocol, model, task: str) -> None:
     import envs
     from harness.policy import OctoPolicy
 
-    env = envs.make(task, protocol.env, instruction=protocol.instruction)
+    env = envs.make(task, protocol.env, instruction=protocol.instruction, perturb=protocol.perturb)
     try:
         OctoPolicy(model, protocol.policy).check_env(env)
     finally:
