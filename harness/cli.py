@@ -158,6 +158,27 @@ def build_parser() -> argparse.ArgumentParser:
 
     sub.add_parser("tasks", help="list the registered tasks")
 
+    rob = sub.add_parser("robustness", help="run a grid of perturbation kinds x levels x tasks into one folder of runs",
+                         description="One run per (kind, level > 0) over every task, plus one nominal run for level 0 "
+                                     "(docs/perturbations.md); resumable: the same command finishes what is missing. "
+                                     "`octo-harness report OUT/*/` then adds a Robustness section.")
+    rob.add_argument("--model", required=True, help="model (as for `run --model`)")
+    rob.add_argument("--task", action="append", required=True, help="task name(s), repeat or comma-separate")
+    rob.add_argument("--perturb", required=True, metavar="KINDS",
+                     help="comma-separated kinds (camera, lighting, texture, distractors, init-state, noise, language; "
+                          "camera@KEY / noise@KEY for one camera)")
+    rob.add_argument("--levels", default="0,1,3,5", help="comma-separated levels 0-5 (0 = the nominal run) [0,1,3,5]")
+    rob.add_argument("--episodes", type=int, default=20, help="episodes per task and condition [20]")
+    rob.add_argument("--seed", type=int, default=None, help="episode k uses seed + k in every condition [0]")
+    rob.add_argument("--max-steps", type=int, default=None, help="stop each episode after N control steps [task's limit]")
+    rob.add_argument("--out", type=Path, default=Path("results/robustness"), help="grid folder [results/robustness]")
+    rob.add_argument("--protocol", type=Path, default=None, help="TOML protocol file for every other run setting")
+    rob.add_argument("--fast-render", action="store_true", default=None, help="as for `run --fast-render`")
+    rob.add_argument("--png-every", type=int, default=0, help="overlay PNGs every n-th step (0 = none) [0]")
+    rob.add_argument("--no-video", action="store_true", default=None, help="no rollout.mp4 per episode")
+    rob.add_argument("--overwrite", action="store_true", help="start every run of the grid afresh")
+    _add_execution_args(rob)
+
     rep = sub.add_parser("report", help="HTML report comparing attention task by task (one or more runs)",
                          description="Aggregate the episodes of one or more runs into report.html (self-contained), "
                                      "tables/*.csv (long format) and plots/*.png.")
@@ -273,6 +294,28 @@ def _cmd_replay(args) -> int:
     return exit_code(result)
 
 
+def _cmd_robustness(args) -> int:
+    from harness.run.robustness import parse_kinds, parse_levels, run_grid
+    from harness.run.settings import build_protocol, read_protocol_file
+
+    conditions, levels = parse_kinds(args.perturb), parse_levels(args.levels)
+    factory = _execution(args)
+    given = {"model": args.model, "task": args.task, "episodes": args.episodes, "seed": args.seed,
+             "max_steps": args.max_steps, "fast_render": args.fast_render, "png_every": args.png_every,
+             "no_video": args.no_video}
+    settings = {**(read_protocol_file(args.protocol) if args.protocol else {}),
+                **{k: v for k, v in given.items() if v is not None}}
+    if settings.get("perturb"):
+        raise ValueError("the grid sets each run's perturbation; drop perturb from the protocol file")
+    summaries = run_grid(build_protocol(settings), conditions, levels, args.out, executor=factory,
+                         overwrite=args.overwrite)
+    for name, summary in summaries.items():
+        s = summary.statistics["overall"]
+        print(f"{name:<28} {summary.status:<12} {s['successes']}/{s['n']} successes, {s['failed']} errored")
+    print(f"robustness: {args.out} (report: octo-harness report {args.out}/*/ --out {args.out}/report)")
+    return 0 if all(s.status == "complete" for s in summaries.values()) else 1
+
+
 def _cmd_tasks() -> int:
     import envs
 
@@ -338,6 +381,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_regress(args)
         if args.command == "replay":
             return _cmd_replay(args)
+        if args.command == "robustness":
+            return _cmd_robustness(args)
         return _cmd_run(args)
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", 2)

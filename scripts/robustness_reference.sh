@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Robustness grid of the reference policy (docs/perturbations.md, EVAL.md): kinds x levels x tasks on held-out seeds
+# (seed 0 upward, as scripts/evaluate_reference.sh), fast render, no PNG/MP4, masks on, then the report with its
+# Robustness section (every number in OUT/report/tables/robustness_*.csv).
+#   bash scripts/robustness_reference.sh [TASKS] [KINDS] [LEVELS] [EPISODES] [OUT] [WORKERS]
+# The full grid of issue 27 is the default (20 episodes x levels 0,1,3,5 x every kind x Lift, Stack, PickPlaceCan);
+# the reduced grid in EVAL.md was: bash scripts/robustness_reference.sh Lift camera,lighting,distractors 0,3,5 5
+# Resumable: re-running the same command finishes what a killed grid left.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+TASKS="${1:-Lift,Stack,PickPlaceCan}"
+KINDS="${2:-camera,lighting,texture,distractors,init-state,noise,language}"
+LEVELS="${3:-0,1,3,5}"
+EPISODES="${4:-20}"
+OUT="${5:-results/robustness-reference}"
+WORKERS="${6:-}"
+MODEL=models/octo-reference-robosuite
+export HF_HUB_OFFLINE=1 MUJOCO_GL="${MUJOCO_GL:-egl}"
+PY="${PYTHON:-.venv/bin/python}"
+workers=()
+[ -n "$WORKERS" ] && workers=(--workers "$WORKERS")
+"$PY" -m harness.cli robustness --model "$MODEL" --task "$TASKS" --perturb "$KINDS" --levels "$LEVELS" \
+    --episodes "$EPISODES" --seed 0 --fast-render --png-every 0 --no-video --out "$OUT" "${workers[@]}"
+"$PY" -m harness.cli report "$OUT"/*/ --out "$OUT/report"
