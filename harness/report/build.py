@@ -11,6 +11,8 @@ page (harness.report.page) -> files. Output folder:
   tables/progress.csv  per layer along normalised episode progress (+ bin, progress_from, progress_to)
   tables/success.csv   per run and task: episodes, errors, missing, successes, rate and Wilson interval
   tables/episodes.csv  one row per finished job (status, success, steps, headline lift, error)
+  tables/robustness*.csv  when a run was perturbed: success per task x condition x level, episode measures,
+                     step-0 attention shift against the nominal episode, nuisance-success association
   plots/*.png        every figure of the page
 
 The folder is built under a temporary name next to `out` and swapped in at the end, so a report folder is
@@ -36,7 +38,7 @@ import numpy as np
 from harness.analysis import aggregate as agg
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays, load_run
 from harness.analysis.stats import success_summary
-from harness.report import faithfulness, figures, page
+from harness.report import faithfulness, figures, page, robustness
 from harness.report.rundata import RunData, episode_headline, representative
 
 VIDEO_DISPLAY = 256  # harness.outputs.overlays.video_frame's `display`: the camera frame fills the video's top-left display x w
@@ -295,6 +297,8 @@ def _tables(runs: list[RunData]) -> dict[str, bytes]:
         "success.csv": _csv(success_cols, success_rows),
         "episodes.csv": _csv(episode_cols, episode_rows),
         **faithfulness.tables(runs),  # faithfulness.csv, interventions.csv (harness/report/faithfulness.py)
+        # robustness*.csv when a run was perturbed (harness/report/robustness.py)
+        **{name: _csv(cols, rows) for name, (cols, rows) in robustness.tables([run.record for run in runs]).items()},
     }
 
 

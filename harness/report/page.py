@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.report import faithfulness, figures
+from harness.report import faithfulness, figures, robustness
 from harness.report import html as H
 from harness.report.rundata import RunData, episode_headline, representative, share_categories
 
@@ -32,12 +32,16 @@ def render(runs: list[RunData], tasks: list[str], out: Path, overlays: dict[tupl
         body.append(_task_section(runs, task, out, plots, overlays))
     faith = faithfulness.section(runs, plots)  # "" unless a run measured faithfulness or ran an intervention
     body.append(faith)
+    robust = robustness.section([run.record for run in runs], plots)  # "" unless a run was perturbed
+    body.append(robust)
     body.append(H.section("Run manifest", "".join(_manifest_section(run) for run in runs), anchor="manifest"))
     body.append(H.section("Definitions", H.Raw(_DEFINITIONS), anchor="definitions"))
     toc = [("cross-task", "Cross-task comparison")] + [(H.anchor_id("task-" + t), t) for t in tasks] + [
         ("manifest", "Run manifest"), ("definitions", "Definitions")]
     if faith:
         toc.insert(-2, ("faithfulness", "Faithfulness"))
+    if robust:
+        toc.insert(-2, ("robustness", "Robustness"))
     title = "Attention report: " + " vs ".join(run.label for run in runs)
     subtitle = (f"{len(runs)} run(s), {len(tasks)} task(s), {sum(len(r.summaries) for r in runs)} episodes analysed; "
                 f"generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
