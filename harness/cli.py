@@ -193,8 +193,10 @@ def build_parser() -> argparse.ArgumentParser:
                           description="Pair episodes by (task, seed); write compare.json, compare.md and compare.html. "
                                       "Exit 0 pass, 1 REGRESSED or SUSPECT (see --fail-on), 2 incompatible or invalid "
                                       "input, 3 ERRORED (an arm errored on more than half of its paired episodes).")
-    cmp_.add_argument("baseline", type=Path, metavar="BASELINE_RUN")
-    cmp_.add_argument("candidate", type=Path, metavar="CANDIDATE_RUN")
+    cmp_.add_argument("baseline", type=Path, metavar="BASELINE_RUN",
+                      help="baseline run folder, or a robustness grid folder (octo-harness robustness): then every "
+                           "task x condition is one cell of the Holm family, so one lost condition fails the gate")
+    cmp_.add_argument("candidate", type=Path, metavar="CANDIDATE_RUN", help="candidate run (or grid) folder")
     cmp_.add_argument("--max-drop", type=float, default=0.1, help="HELD rules out a larger drop in success rate [0.1]")
     cmp_.add_argument("--alpha", type=float, default=0.05, help="family-wise level; intervals at 1 - alpha [0.05]")
     cmp_.add_argument("--first-steps", type=int, default=10, help="per-step divergence over the first k steps [10]")
@@ -221,7 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      "one anytime-valid test per task (alpha / tasks each); stops as soon as a task "
                                      "regressed or every task decided. Exit codes as for compare, from the worse "
                                      "of the sequential verdict and compare's verdict on the pairs run.")
-    reg.add_argument("--baseline", type=Path, required=True, metavar="RUN", help="baseline run folder")
+    reg.add_argument("--baseline", type=Path, required=True, metavar="RUN",
+                     help="baseline run folder, or a robustness grid folder: each condition's sequential test then runs "
+                          "at alpha / conditions, and the pairs are compared as a grid")
     reg.add_argument("--model", required=True, help="candidate model (as for `run --model`)")
     reg.add_argument("--max-episodes", type=int, default=None, help="at most N episodes per task [the baseline's]")
     reg.add_argument("--max-drop", type=float, default=0.1, help="HELD rules out a larger drop in success rate [0.1]")
@@ -253,11 +257,18 @@ def _cmd_compare(args) -> int:
     from harness.analysis.compare import CompareConfig, compare_runs, exit_code
     from harness.report.compare_html import step0_frames, write_comparison
 
-    result = compare_runs(args.baseline, args.candidate,
-                          CompareConfig(max_drop=args.max_drop, alpha=args.alpha, first_steps=args.first_steps))
+    from harness.analysis.compare import compare_grids, is_grid
+
+    config = CompareConfig(max_drop=args.max_drop, alpha=args.alpha, first_steps=args.first_steps)
+    if is_grid(args.baseline) != is_grid(args.candidate):
+        raise ValueError("compare two robustness grid folders (octo-harness robustness) or two run folders, not one of "
+                         "each")
+    grid = is_grid(args.baseline)
+    result = (compare_grids if grid else compare_runs)(args.baseline, args.candidate, config)
     code = exit_code(result, args.fail_on)
     frames = {} if args.no_frames or result["env"] is None else step0_frames(result, result["env"])
-    out = args.out or Path(result["candidate"]["path"]) / f"compare_{result['baseline']['run']}"
+    out = args.out or (args.candidate / f"compare_{args.baseline.resolve().name}" if grid else
+                       Path(result["candidate"]["path"]) / f"compare_{result['baseline']['run']}")
     paths = write_comparison(result, out, frames, code)
     print(paths["markdown"].read_text(), end="")
     print(f"compare: {paths['html']}")
@@ -269,6 +280,19 @@ def _cmd_regress(args) -> int:
     from harness.run.regress import exit_code, regress, write_regress
 
     factory = _execution(args)
+    from harness.analysis.compare import is_grid
+
+    if is_grid(args.baseline):  # a robustness grid: condition by condition, Holm over every task x condition
+        from harness.run.regress import regress_grid, write_regress_grid
+
+        result = regress_grid(args.baseline, args.model, max_episodes=args.max_episodes, out=args.out,
+                              run_name=args.run_name, alpha=args.alpha, max_drop=args.max_drop, executor=factory,
+                              text_tokenizer=args.text_tokenizer)
+        code = exit_code(result, args.fail_on if args.fail_on != "changed" else "suspect")
+        paths = write_regress_grid(result, code, write_comparison)
+        print(paths["summary"])
+        print(f"regress: {paths['json']}")
+        return code
     result = regress(args.baseline, args.model, max_episodes=args.max_episodes, out=args.out, run_name=args.run_name,
                      alpha=args.alpha, max_drop=args.max_drop, executor=factory, text_tokenizer=args.text_tokenizer)
     code = exit_code(result, args.fail_on)

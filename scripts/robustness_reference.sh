@@ -4,7 +4,8 @@
 # Robustness section (every number in OUT/report/tables/robustness_*.csv).
 #   bash scripts/robustness_reference.sh [TASKS] [KINDS] [LEVELS] [EPISODES] [OUT] [WORKERS]
 # The full grid of issue 27 is the default (20 episodes x levels 0,1,3,5 x every kind x Lift, Stack, PickPlaceCan);
-# the reduced grid in EVAL.md was: bash scripts/robustness_reference.sh Lift camera,lighting,distractors 0,3,5 5
+# the reduced grid in EVAL.md was: bash scripts/robustness_reference.sh Lift <every kind> 0,3,5 5
+# (run first with camera,lighting,distractors, then extended with the other kinds: a grid folder grows)
 # Resumable: re-running the same command finishes what a killed grid left.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -21,4 +22,6 @@ workers=()
 [ -n "$WORKERS" ] && workers=(--workers "$WORKERS")
 "$PY" -m harness.cli robustness --model "$MODEL" --task "$TASKS" --perturb "$KINDS" --levels "$LEVELS" \
     --episodes "$EPISODES" --seed 0 --fast-render --png-every 0 --no-video --out "$OUT" "${workers[@]}"
-"$PY" -m harness.cli report "$OUT"/*/ --out "$OUT/report"
+runs=()
+for d in "$OUT"/*/; do [ -f "$d/manifest.json" ] && runs+=("$d"); done
+"$PY" -m harness.cli report "${runs[@]}" --out "$OUT/report"
