@@ -264,3 +264,59 @@ def test_a_paraphrase_is_the_instruction_the_env_reports():
         assert env.perturbation_record["instruction"] == info["instruction"]
     finally:
         env.close()
+
+
+# ------------------------------------------------------------------------------------------- hostile input
+
+def test_a_foreign_perturb_in_a_manifest_is_one_line(tmp_path):
+    from harness.run.schema import MalformedRunError, check_protocol
+
+    good = Protocol(model="random:octo-small-1.5", tasks=("Lift",), perturb="camera:2").to_dict()
+    with pytest.raises(MalformedRunError, match="protocol.perturb"):
+        check_protocol({**good, "perturb": 5}, "manifest.json")
+    with pytest.raises(ValueError, match="level must be 0"):
+        Protocol.from_dict({**good, "perturb": "camera:99"})
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["--perturb", "camera,blur"], "unknown kind"),
+    (["--perturb", "camera", "--levels", "0,7"], "--levels"),
+    (["--perturb", "camera", "--levels", "x"], "--levels"),
+    (["--perturb", "lighting@image_primary"], "only camera and noise"),
+    (["--perturb", "distractors", "--task", "Door"], "Door cannot take distractors"),
+])
+def test_robustness_refuses_bad_grids_in_one_line_before_loading(tmp_path, capsys, argv, fragment):
+    from harness import cli
+
+    args = ["robustness", "--model", "random:octo-small-1.5", "--task", "Lift", "--out", str(tmp_path / "g"), *argv]
+    assert cli.main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and fragment in err[0], err
+
+
+def test_robustness_refuses_a_foreign_grid_file(tmp_path, capsys):
+    from harness import cli
+
+    (tmp_path / "g").mkdir()
+    (tmp_path / "g" / "robustness.json").write_text("[1, 2]")
+    assert cli.main(["robustness", "--model", "random:octo-small-1.5", "--task", "Lift", "--perturb", "camera",
+                     "--out", str(tmp_path / "g")]) == 2
+    assert "not a robustness grid file" in capsys.readouterr().err
+
+
+def test_point_biserial_matches_scipy_and_its_interval_is_fisher_z():
+    from scipy.stats import pearsonr, pointbiserialr
+
+    from harness.analysis.robustness import js_divergence_bits, point_biserial
+
+    rng = np.random.default_rng(0)
+    success = rng.integers(0, 2, 40)
+    mass = 0.6 + 0.1 * rng.normal(size=40) - 0.05 * success
+    r, low, high, n = point_biserial(success, mass)
+    assert n == 40 and r == pytest.approx(pointbiserialr(success, mass).statistic, abs=1e-12)
+    ci = pearsonr(success, mass).confidence_interval(0.95)  # scipy's Fisher-z interval of Pearson's r
+    assert (low, high) == pytest.approx((ci.low, ci.high), abs=1e-9)
+    assert np.isnan(point_biserial([1, 1, 1, 1, 1], [0.1, 0.2, 0.3, 0.4, 0.5])[0])  # no variation: no estimate
+    p = np.array([[0.5, 0.5, 0.0], [1.0, 0.0, 0.0]])
+    q = np.array([[0.0, 0.5, 0.5], [0.0, 1.0, 0.0]])
+    assert js_divergence_bits(p, q) == pytest.approx([0.5, 1.0])  # half-overlapping halves; disjoint: 1 bit
