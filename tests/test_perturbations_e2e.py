@@ -150,3 +150,16 @@ def test_robustness_grid_resumes_and_reports_in_chromium(tmp_path, capsys):
                           (out / "report" / "report.html").as_uri()], capture_output=True, text=True, timeout=120,
                          check=True).stdout
     assert ">Robustness</h2>" in dom and "point-biserial" in dom and "plots/robustness_lift.png" in dom
+
+    from harness.analysis.runs import load_run
+    from harness.report.robustness import write_section
+
+    eval_md = tmp_path / "EVAL.md"
+    eval_md.write_text("# model: evaluation\n\ntable\n\n## Faithfulness\n\nkept\n")
+    records = [load_run(r) for r in runs]
+    write_section(eval_md, records, "made by a test")
+    write_section(eval_md, records, "made by a test")  # replaced, not appended twice
+    text = eval_md.read_text()
+    assert text.count("## Robustness") == 1 and "## Faithfulness\n\nkept" in text and "made by a test" in text
+    level2 = next(r for r in success if r["condition"] == "distractors" and r["level"] == "2")
+    assert f"| distractors | 2 | {level2['successes']}/2 |" in text

@@ -96,3 +96,59 @@ def section(records, plots) -> str:
                         [(a[0], a[1], H.fmt_ci(a[2], a[3], a[4], 2), H.fmt(a[5], 3), H.fmt(a[6], 3)) for a in association],
                         numeric=(1,)))
     return H.section("Robustness", "".join(str(b) for b in body), anchor="robustness")
+
+
+SECTION = "## Robustness"
+
+
+def markdown(records, note: str = "") -> str:
+    """The Robustness section as Markdown (EVAL.md): per task a sentence and a table of success against level per
+    condition, target lift and nuisance mass; the association line per task."""
+    rows, _, notes, success, association = _analyse(records)
+    lines = [SECTION, "", note, ""] if note else [SECTION, ""]
+    lines += [f"- {n}" for n in notes]
+    for task in dict.fromkeys(r.task for r in rows):
+        lines += [R.sentence(task, success, association), "",
+                  "| condition | level | success | Wilson 95% | target lift | nuisance mass | distractor mass |",
+                  "|---|---|---|---|---|---|---|"]
+        for s in success:
+            if s[0] == task:
+                lines.append(f"| {s[1]} | {s[2]} | {s[6]}/{s[4]} | [{s[8]:.2f}, {s[9]:.2f}] | {s[13]:.2f} | {s[10]:.3f} | "
+                             f"{s[11]:.3f} |")
+        lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+def write_section(eval_md, records, note: str = "") -> None:
+    """Replace (or append) the Robustness section of an EVAL.md; other sections stay as they are."""
+    from pathlib import Path
+
+    path = Path(eval_md)
+    text = path.read_text() if path.is_file() else ""
+    head, _, rest = text.partition("\n" + SECTION + "\n")
+    after = ""
+    if rest and "\n## " in rest:
+        after = "\n## " + rest.split("\n## ", 1)[1]
+    path.write_text(head.rstrip("\n") + "\n\n" + markdown(records, note) + after)
+
+
+def main(argv=None) -> int:
+    import argparse
+    from pathlib import Path
+
+    from harness.analysis.runs import load_run
+
+    parser = argparse.ArgumentParser(prog="python -m harness.report.robustness",
+                                     description="Write the Robustness section of an EVAL.md from grid runs.")
+    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("--eval-md", type=Path, required=True)
+    parser.add_argument("--note", default="")
+    args = parser.parse_args(argv)
+    records = [load_run(p) for p in args.runs]
+    write_section(args.eval_md, records, args.note)
+    print(markdown(records, args.note))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
