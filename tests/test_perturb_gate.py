@@ -31,14 +31,14 @@ def test_a_candidate_that_loses_one_condition_fails(tmp_path, capsys):
                       model="m2")
     result = compare_grids(base, cand)
     cells = result["outcomes"]["tasks"]
-    assert set(cells) == {"Lift | nominal", "Lift | camera-3"} and result["outcomes"]["holm_family"] == 3
+    assert set(cells) == {"Lift / nominal", "Lift / camera-3"} and result["outcomes"]["holm_family"] == 3
     expected = holm_adjust([1.0, mcnemar_exact(12, 0), mcnemar_exact(12, 0)])
-    assert cells["Lift | camera-3"]["mcnemar_p_holm"] == pytest.approx(expected[1])
-    assert cells["Lift | camera-3"]["verdict"] == "REGRESSED"
-    assert cells["Lift | nominal"]["verdict"] in ("IDENTICAL", "HELD", "UNDERPOWERED")
+    assert cells["Lift / camera-3"]["mcnemar_p_holm"] == pytest.approx(expected[1])
+    assert cells["Lift / camera-3"]["verdict"] == "REGRESSED"
+    assert cells["Lift / nominal"]["verdict"] in ("IDENTICAL", "HELD", "UNDERPOWERED")
     assert result["verdict"] == "REGRESSED" and exit_code(result) == 1
     assert cli.main(["compare", str(base), str(cand), "--no-frames"]) == 1
-    assert "Lift | camera-3" in capsys.readouterr().out
+    assert "Lift / camera-3" in capsys.readouterr().out
     assert (cand / "compare_base" / "compare.json").is_file()
 
 
@@ -50,8 +50,8 @@ def test_the_family_grows_with_tasks_and_conditions(tmp_path):
     result = compare_grids(base, cand)
     assert result["outcomes"]["holm_family"] == 5  # 2 tasks x 2 conditions + pooled
     # 6 of 6 lost: p = 2/64 alone would pass alpha 0.05, times the family of 5 it cannot: not REGRESSED
-    assert result["outcomes"]["tasks"]["Lift | camera-3"]["mcnemar_p"] == pytest.approx(2 / 64)
-    assert result["outcomes"]["tasks"]["Lift | camera-3"]["verdict"] != "REGRESSED"
+    assert result["outcomes"]["tasks"]["Lift / camera-3"]["mcnemar_p"] == pytest.approx(2 / 64)
+    assert result["outcomes"]["tasks"]["Lift / camera-3"]["verdict"] != "REGRESSED"
     assert exit_code(result) == 1  # the interval still shows the drop: SUSPECT fails the default gate
 
 

@@ -163,3 +163,15 @@ def test_robustness_grid_resumes_and_reports_in_chromium(tmp_path, capsys):
     assert text.count("## Robustness") == 1 and "## Faithfulness\n\nkept" in text and "made by a test" in text
     level2 = next(r for r in success if r["condition"] == "distractors" and r["level"] == "2")
     assert f"| distractors | 2 | {level2['successes']}/2 |" in text
+
+    # regress over the grid with the same model: every condition's pairs are identical, the gate passes
+    assert cli.main(["regress", "--baseline", str(out), "--model", str(MODEL), "--out", str(tmp_path / "reg"),
+                     "--run-name", "cand"]) == 0
+    printed = capsys.readouterr().out
+    assert "regress (grid): IDENTICAL over 3 condition(s)" in printed, printed
+    regress_json = json.loads((tmp_path / "reg" / "cand" / "regress" / "regress.json").read_text())
+    assert set(regress_json["conditions"]) == set(grid["runs"])
+    assert all(c["alpha"] == pytest.approx(0.05 / 3, rel=1e-4) for c in regress_json["conditions"].values())
+    # compare renders the step-0 frames of each condition's perturbed scene
+    assert cli.main(["compare", str(out), str(tmp_path / "reg" / "cand"), "--out", str(tmp_path / "cmp")]) == 0
+    assert (tmp_path / "cmp" / "compare.html").is_file()

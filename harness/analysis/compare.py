@@ -470,6 +470,7 @@ def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], miss
         "baseline": _arm(baseline),
         "candidate": _arm(candidate),
         "env": _protocol(baseline).get("env") if isinstance(_protocol(baseline).get("env"), dict) else None,
+        "perturb": _protocol(baseline).get("perturb") if isinstance(_protocol(baseline).get("perturb"), str) else None,
         "pairs": len(details),
         "missing_pairs": missing,
         "identical": {
@@ -539,14 +540,15 @@ def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: C
         truncated = (truncated[0] or cond_truncated[0], truncated[1] or cond_truncated[1])
         for task, seed, b, c in pairs:
             d = _compare_pair(task, seed, b, c, cond_truncated, config)
-            details.append({**d, "task": f"{task} | {name}", "condition": name})
+            details.append({**d, "task": f"{task} / {name}", "condition": name})
         for side in ("baseline", "candidate"):
-            missing[side] += [[f"{t} | {name}", s] for t, s in miss[side]]
+            missing[side] += [[f"{t} / {name}", s] for t, s in miss[side]]
     if not details:
         raise IncompatibleRuns(f"no (task, seed) pair is finished in both grids {baseline_dir} and {candidate_dir}")
     result = _result(arms[0], arms[1], details, missing, truncated, config)
     result["grid"] = {"baseline": str(Path(baseline_dir).resolve()), "candidate": str(Path(candidate_dir).resolve()),
-                      "conditions": list(base_grid["runs"]), "cells": len(result["outcomes"]["tasks"])}
+                      "conditions": list(base_grid["runs"]), "cells": len(result["outcomes"]["tasks"]),
+                      "perturb": dict(base_grid["runs"])}
     return result
 
 
