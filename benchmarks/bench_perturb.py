@@ -45,6 +45,22 @@ def measure(task: str, spec: str, steps: int, resets: int) -> tuple[float, float
         env.close()
 
 
+def noise_cost(level: int, repeats: int = 200) -> float:
+    """Seconds per control step that sensor noise adds: noise_frame on a 256 px and a 128 px frame (the default
+    cameras), timed alone (no simulator), so machine load from rendering does not blur it."""
+    from envs.perturbations import noise_frame, parse_perturb
+
+    (p,) = parse_perturb(f"noise:{level}")
+    rng = np.random.default_rng(0)
+    frames = {"image_primary": rng.integers(0, 256, (256, 256, 3), dtype=np.uint8),
+              "image_wrist": rng.integers(0, 256, (128, 128, 3), dtype=np.uint8)}
+    start = time.perf_counter()
+    for step in range(repeats):
+        for key, frame in frames.items():
+            noise_frame(frame, 0, p, step, key)
+    return (time.perf_counter() - start) / repeats
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--task", default="Lift")
@@ -68,6 +84,8 @@ def main() -> None:
         built, reset, step = (statistics.median(r[i] for r in rounds[spec]) for i in range(3))
         print(f"{spec or 'none':16s} {built:8.2f} {reset:8.3f} {reset - base[1]:+9.3f} {step:8.4f} "
               f"{(step - base[2]) * 1e3:+9.1f}")
+    for level in (1, 3, 5):
+        print(f"sensor noise alone, level {level}: {noise_cost(level) * 1e3:.2f} ms per step (256 + 128 px frames)")
 
 
 if __name__ == "__main__":
