@@ -27,6 +27,7 @@ import gymnasium  # noqa: E402
 from envs.actions import ActionAdapterConfig, ActionAdapterError, adapt_action  # noqa: E402
 from envs.gl import HeadlessGLError  # noqa: E402
 from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvOptions, parse_camera, to_convention  # noqa: E402
+from envs.perturbations import Perturbation, PerturbationError, parse_perturb  # noqa: E402
 from envs.render import UnknownCameraError  # noqa: E402
 from envs.robosuite_env import EnvConfig, EnvConfigError, RobosuiteEnv, WrongThreadError, parse_cameras  # noqa: E402
 from envs.robosuite_env import quiet_robosuite_import  # noqa: E402
@@ -43,6 +44,8 @@ __all__ = [
     "EnvConfigError",
     "EnvOptions",
     "HeadlessGLError",
+    "Perturbation",
+    "PerturbationError",
     "RobosuiteEnv",
     "TaskSpec",
     "UnknownCameraError",
@@ -54,6 +57,7 @@ __all__ = [
     "make",
     "make_vector",
     "parse_camera",
+    "parse_perturb",
     "to_convention",
     "task_table",
 ]
@@ -74,6 +78,7 @@ def make(
     action_adapter: ActionAdapterConfig | None = None,
     model_seed: int = 0,
     render_mode: str | None = None,
+    perturb=None,
     **robosuite_options,
 ) -> RobosuiteEnv:
     """A gymnasium environment for registered task `task` (see `list_tasks()`; LIBERO tasks such as "libero_object/3"
@@ -83,6 +88,7 @@ def make(
     arguments of the same names override it when given. cameras: {observation key: (robosuite camera,
     square size)}; None gives image_primary = agentview (Door: sideview) 256 px and image_wrist =
     robot0_eye_in_hand 128 px; {} renders nothing (no GL needed).
+    perturb: "KIND[@KEY]:LEVEL[,...]" or parsed perturbations (envs.perturbations); None or level 0 = nominal.
     Remaining keyword arguments go to `robosuite.make` unchanged.
     """
     spec = get_task(task)
@@ -104,6 +110,7 @@ def make(
         model_seed=model_seed,
         render_mode=render_mode,
         robosuite_options=tuple(sorted(robosuite_options.items())),
+        perturbations=perturb if isinstance(perturb, tuple) else parse_perturb(perturb),
     )
     if spec.simulator == "libero":
         from envs.libero_env import LiberoEnv

@@ -64,6 +64,13 @@ class SceneRenderer:
         context.con.free()  # MuJoCo resets the struct, so robosuite's later __del__ frees nothing twice
         context.gl_ctx.free()
 
+    def upload_texture(self, tex_id: int) -> None:
+        """Send texture `tex_id` of the model to this simulation's GL context again (after its bitmap changed)."""
+        import mujoco  # deferred: importing mujoco loads the GL backend (see envs.gl)
+
+        self._context.gl_ctx.make_current()
+        mujoco.mjr_uploadTexture(self._sim.model._model, self._context.con, tex_id)
+
     def camera_id(self, key: str) -> int:
         return self._camera_ids[key]
 

@@ -21,8 +21,12 @@ the arm realises about 25% of a commanded position delta (measured: 5 steps of 0
 info: success (robosuite's own check), instruction, task, step, action_clipped (steps clipped so far
 this episode), target_pixels {image key: (n_targets, 2) float32 (row, col)}, phase (the task phase of this
 state, `envs.phases`; None for tasks without a phase function), and masks {image key: {"target", "robot",
-"gripper", "arm"[, "goal"]: (h, w) bool}} when masks are on: "robot" is the whole robot (arm, hand and fingers,
-mount), "gripper" its hand and fingers, "arm" the rest, "goal" the task's goal region (TaskSpec.goal) where it has one.
+"gripper", "arm"[, "goal"], "background", "distractor_<i>": (h, w) bool}} when masks are on: "robot" is the
+whole robot (arm, hand and fingers, mount), "gripper" its hand and fingers, "arm" the rest, "goal" the task's
+goal region (TaskSpec.goal) where it has one, "background" neither robot, target, goal, another task object
+nor a distractor.
+Perturbations (`EnvConfig.perturbations`, see envs.perturbations) are drawn from the reset seed and applied at
+reset (sensor noise: to every observation); `perturbation_record` holds what the episode drew.
 
 Seeding: every reset draws the episode's robosuite seed from the gymnasium `np_random` stream, so
 `reset(seed=s)` gives the same episode whatever ran before; randomised model properties (e.g. cube
@@ -44,8 +48,9 @@ from envs.actions import ActionAdapterConfig, adapt_action, libero_action, passt
 from envs.camera import project_points
 from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvConfigError, to_convention
 from envs.render import CameraSpec, SceneRenderer
+from envs import perturbations as perturb
 from envs.phases import PHASE_SPECS, PhaseState, phase_of
-from envs.segmentation import TARGET, geom_categories, masks_from_segmentation, scene_lookup
+from envs.segmentation import TARGET, geom_categories, labelled_masks, scene_labels, scene_lookup
 from envs.tasks import TaskSpec
 
 ROBOT_BODY_PREFIXES = ("robot0_", "gripper0_", "fixed_mount0_", "mount0_")
@@ -75,6 +80,7 @@ class EnvConfig:
     image_convention: str = "upright"  # "upright" | "opengl" (see envs.options)
     action_space: str = "octo-delta"  # "octo-delta" | "robosuite" (see envs.options)
     hold_gripper: float | None = None  # 6-D actions (arm only), this gripper value appended (see envs.options)
+    perturbations: tuple = ()  # envs.perturbations.Perturbation values (level > 0); () = the nominal scene
 
 
 def default_cameras(task: TaskSpec) -> tuple[CameraSpec, ...]:
@@ -181,7 +187,14 @@ class RobosuiteEnv(gym.Env):
         )
         options.update(dict(task.robosuite_options))
         options.update(dict(config.robosuite_options))
-        self._env = robosuite.make(task.robosuite_env, **options)
+        distractors = perturb.find(config.perturbations, "distractors")
+        if distractors:  # extra objects are part of the model: built in, placed at every reset
+            from robosuite.environments.base import REGISTERED_ENVS
+
+            cls = perturb.class_with_distractors(REGISTERED_ENVS[task.robosuite_env], distractors[0].level)
+            self._env = cls(**options)
+        else:
+            self._env = robosuite.make(task.robosuite_env, **options)
         arm = options["controller_configs"]["body_parts"]["right"]  # the user's controller if one was passed
         self.adapter = config.action_adapter or ActionAdapterConfig(
             position_max=float(arm["output_max"][0]), rotation_max=float(arm["output_max"][3])
@@ -202,8 +215,24 @@ class RobosuiteEnv(gym.Env):
                 raise EnvConfigError(f"task {task.name}: no visual geom under target prefix {prefix!r}")
             target_geoms.append(ids)
         self._target_geoms = tuple(target_geoms)
+        objects = [obj.name for obj in getattr(self._env.model, "mujoco_objects", ())]
+        self._distractor_count = distractors[0].level if distractors else 0
+        self._geom_label = scene_labels(
+            self._geom_category, model.geom_bodyid, body_names, model.body_parentid,
+            tuple(f"{name}_" for name in objects if not f"{name}_".startswith(task.targets)),
+            tuple(f"{perturb.DISTRACTOR_PREFIX}{i}_" for i in range(self._distractor_count)))
         self._camera_fovy = {spec.key: float(model.cam_fovy[self._renderer.camera_id(spec.key)]) for spec in config.cameras}
         self._camera_sizes = {spec.key: spec.size for spec in config.cameras}
+        self._perturber = None
+        self.perturbation_record: dict = {}  # what this episode's perturbations drew (empty: nominal)
+        if config.perturbations:
+            perturb.check_task(task, config.perturbations, tuple(spec.key for spec in config.cameras), config.instruction)
+            self._perturber = perturb.ScenePerturber(self._env, config.perturbations,
+                                                     {spec.key: spec.camera for spec in config.cameras},
+                                                     upload=self._renderer.upload_texture if self._renderer else None,
+                                                     target_geoms=self._target_geoms)
+        self._base_instruction = self.instruction
+        self._perturb_seed = 0
 
         images = {spec.key: gym.spaces.Box(0, 255, (spec.size, spec.size, 3), np.uint8) for spec in config.cameras}
         self.observation_space = gym.spaces.Dict({**images, "proprio": PROPRIO_SPACE})
@@ -233,7 +262,21 @@ class RobosuiteEnv(gym.Env):
         super().reset(seed=seed)
         episode_seed = int(self.np_random.integers(0, 2**63 - 1))
         self._env.rng.bit_generator.state = np.random.default_rng(episode_seed).bit_generator.state
+        self._perturb_seed = int(seed) if seed is not None else episode_seed % (2**32)
+        if self._perturber is not None:
+            self._perturber.record = {}
+            self._perturber.before_reset(self._perturb_seed)
         raw = self._env.reset()
+        if self._perturber is not None:
+            self._perturber.after_reset(self._perturb_seed, self._avoid_xy())
+            for spec in self.config.cameras:  # a camera perturbation may change the field of view
+                self._camera_fovy[spec.key] = float(self._env.sim.model.cam_fovy[self._renderer.camera_id(spec.key)])
+        self.instruction = perturb.instruction_for(self.task, self._base_instruction, self._perturb_seed,
+                                                   self.config.perturbations)
+        if self._perturber is not None:
+            self.perturbation_record = {**self._perturber.record,
+                                        **({"instruction": self.instruction} if self.instruction != self._base_instruction
+                                           else {})}
         if self._phase_spec is not None:
             self._rest_height = float(self.object_poses()[self._phase_spec.obj][0][2])
         self._step_index = 0
@@ -294,7 +337,10 @@ class RobosuiteEnv(gym.Env):
             raise WrongThreadError("step/reset this environment only from the thread that created it (its GL context lives there)")
 
     def _observe(self, raw: dict) -> dict[str, np.ndarray]:
-        obs = {spec.key: self._in_convention(self._renderer.rgb(spec.key)) for spec in self.config.cameras}
+        frames = {spec.key: self._renderer.rgb(spec.key) for spec in self.config.cameras}
+        if self._perturber is not None:  # sensor noise: what the policy sees, not the scene
+            frames = self._perturber.noisy(frames, self._perturb_seed, self._step_index)
+        obs = {key: self._in_convention(frame) for key, frame in frames.items()}
         euler = Rotation.from_quat(raw["robot0_eef_quat_site"]).as_euler("xyz")  # robosuite quats are (x, y, z, w)
         fingers = raw.get("robot0_gripper_qpos", np.zeros(0))  # (2,) for the Panda hand
         if fingers.shape != (2,):  # Wipe's wiping tool has no finger joints
@@ -306,6 +352,14 @@ class RobosuiteEnv(gym.Env):
     def _in_convention(self, upright: np.ndarray) -> np.ndarray:
         """(h, w, ...) upright pixels -> the same in this env's image convention (opengl: rows reversed)."""
         return to_convention(upright, self.image_convention)
+
+    def _avoid_xy(self) -> np.ndarray:
+        """(k, 2) plane positions distractors keep clear of: the targets, every task object and placement goal."""
+        points = [self.target_centres()[:, :2]]
+        points += [pose[0][None, :2] for name, pose in self.object_poses().items()
+                   if not name.startswith(perturb.DISTRACTOR_PREFIX)]
+        points += [goal[None, :2] for goal in self.placement_targets().values()]
+        return np.concatenate(points, axis=0)
 
     def target_centres(self) -> np.ndarray:
         """(n_targets, 3) world positions: mean centre of each target's visual geoms."""
@@ -398,8 +452,8 @@ class RobosuiteEnv(gym.Env):
         out = {}
         for spec in self.config.cameras:
             image, segids, objtypes, objids = self._renderer.segmentation(spec.key)
-            named = masks_from_segmentation(image, scene_lookup(segids, objtypes, objids, self._geom_category),
-                                            gripper=True, goal=bool(self.task.goal))
+            named = labelled_masks(image, scene_lookup(segids, objtypes, objids, self._geom_label),
+                                   self._distractor_count, gripper=True, goal=bool(self.task.goal))
             out[spec.key] = {name: self._in_convention(mask) for name, mask in named.items()}
         return out
 

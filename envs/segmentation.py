@@ -14,6 +14,8 @@ from collections.abc import Sequence
 import numpy as np
 
 OTHER, TARGET, ROBOT, GRIPPER, GOAL = 0, 1, 2, 3, 4  # GRIPPER: the hand and fingers, part of the robot
+TASK_OBJECT = 5  # an object of the task other than the target and the goal (PickPlace's other objects)
+DISTRACTOR = 16  # distractor i is labelled DISTRACTOR + i (envs.perturbations adds them)
 MJOBJ_GEOM = 5  # mujoco.mjtObj.mjOBJ_GEOM
 
 
@@ -71,13 +73,48 @@ def masks_from_segmentation(segmentation_rgb: np.ndarray, table: np.ndarray, gri
     """(h, w, 3) id-colour render + lookup table -> {"target": (h, w) bool, "robot": (h, w) bool} (the robot with
     its gripper), plus "gripper" (hand and fingers) and "arm" (the robot without them) when `gripper`, and "goal"
     when `goal` (the task has a goal region)."""
+    return _masks(_labels(segmentation_rgb, table), gripper, goal)
+
+
+def scene_labels(geom_category: np.ndarray, geom_bodyid: np.ndarray, body_names: Sequence[str], body_parentid: np.ndarray,
+                 task_object_prefixes: Sequence[str], distractor_prefixes: Sequence[str]) -> np.ndarray:
+    """(ngeom,) uint8 label of every model geom: the categories of `geom_categories` (TARGET, GOAL, GRIPPER, ROBOT),
+    else TASK_OBJECT under a task object prefix, DISTRACTOR + i under distractor prefix i, else OTHER (the arena:
+    table, floor, walls, bins that are not the goal)."""
+    labels = np.asarray(geom_category, dtype=np.uint8).copy()
+    free = labels == OTHER
+    bodies = np.asarray(geom_bodyid)
+    task = body_ancestry_matches(body_names, body_parentid, task_object_prefixes)[bodies]
+    labels[free & task] = TASK_OBJECT
+    for i, prefix in enumerate(distractor_prefixes):
+        labels[free & body_ancestry_matches(body_names, body_parentid, (prefix,))[bodies]] = DISTRACTOR + i
+    return labels
+
+
+def labelled_masks(segmentation_rgb: np.ndarray, table: np.ndarray, distractors: int = 0, gripper: bool = False,
+                   goal: bool = False) -> dict[str, np.ndarray]:
+    """(h, w, 3) id-colour render + a `scene_lookup` table of `scene_labels` -> the masks of
+    `masks_from_segmentation`, plus "background" and "distractor_<i>" for i < distractors: (h, w) bool.
+    Background: pixels of no robot, target, goal, task object or distractor (the arena, and pixels no geom covers)."""
+    label = _labels(segmentation_rgb, table)
+    out = _masks(label, gripper, goal)
+    out["background"] = label == OTHER
+    for i in range(distractors):
+        out[f"distractor_{i}"] = label == DISTRACTOR + i
+    return out
+
+
+def _labels(segmentation_rgb: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """(h, w) uint8 label of every pixel of an id-colour render."""
     ids = decode_ids(segmentation_rgb)
-    ids = np.where(ids < len(table), ids, 0)
-    category = table[ids]  # (h, w) uint8
-    out = {"target": category == TARGET, "robot": (category == ROBOT) | (category == GRIPPER)}
+    return table[np.where(ids < len(table), ids, 0)]
+
+
+def _masks(label: np.ndarray, gripper: bool, goal: bool) -> dict[str, np.ndarray]:
+    out = {"target": label == TARGET, "robot": (label == ROBOT) | (label == GRIPPER)}
     if gripper:
-        out["gripper"] = category == GRIPPER
-        out["arm"] = category == ROBOT
+        out["gripper"] = label == GRIPPER
+        out["arm"] = label == ROBOT
     if goal:
-        out["goal"] = category == GOAL
+        out["goal"] = label == GOAL
     return out

@@ -218,12 +218,37 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--inference-batch", type=int, default=None,
                    help="examples per compiled inference call; every call is padded to it, so actions are bit-identical "
                         "whatever --workers or the load (part of the protocol; >1 pays on a GPU) [1]")
+    r.add_argument("--perturb", default=None, metavar="KIND[@KEY]:LEVEL[,...]",
+                   help="controlled perturbation of the scene (part of the protocol; docs/perturbations.md): camera, "
+                        "lighting, texture, distractors, init-state, noise, language at level 0 (nominal) to 5; "
+                        "camera@KEY / noise@KEY pick a camera, e.g. camera:3,lighting:1 [none]")
     r.add_argument("--ci-method", choices=["wilson", "clopper-pearson"], default=None,
                    help="confidence interval of success rates (95%%) [wilson]")
     _add_execution_args(r)
     _add_render_arg(r)
 
     sub.add_parser("tasks", help="list the registered tasks")
+
+    rob = sub.add_parser("robustness", help="run a grid of perturbation kinds x levels x tasks into one folder of runs",
+                         description="One run per (kind, level > 0) over every task, plus one nominal run for level 0 "
+                                     "(docs/perturbations.md); resumable: the same command finishes what is missing. "
+                                     "`octo-harness report OUT/*/` then adds a Robustness section.")
+    rob.add_argument("--model", required=True, help="model (as for `run --model`)")
+    rob.add_argument("--task", action="append", required=True, help="task name(s), repeat or comma-separate")
+    rob.add_argument("--perturb", required=True, metavar="KINDS",
+                     help="comma-separated kinds (camera, lighting, texture, distractors, init-state, noise, language; "
+                          "camera@KEY / noise@KEY for one camera)")
+    rob.add_argument("--levels", default="0,1,3,5", help="comma-separated levels 0-5 (0 = the nominal run) [0,1,3,5]")
+    rob.add_argument("--episodes", type=int, default=20, help="episodes per task and condition [20]")
+    rob.add_argument("--seed", type=int, default=None, help="episode k uses seed + k in every condition [0]")
+    rob.add_argument("--max-steps", type=int, default=None, help="stop each episode after N control steps [task's limit]")
+    rob.add_argument("--out", type=Path, default=Path("results/robustness"), help="grid folder [results/robustness]")
+    rob.add_argument("--protocol", type=Path, default=None, help="TOML protocol file for every other run setting")
+    rob.add_argument("--fast-render", action="store_true", default=None, help="as for `run --fast-render`")
+    rob.add_argument("--png-every", type=int, default=0, help="overlay PNGs every n-th step (0 = none) [0]")
+    rob.add_argument("--no-video", action="store_true", default=None, help="no rollout.mp4 per episode")
+    rob.add_argument("--overwrite", action="store_true", help="start every run of the grid afresh")
+    _add_execution_args(rob)
 
     rep = sub.add_parser("report", help="HTML report comparing attention task by task (one or more runs)",
                          description="Aggregate the episodes of one or more runs into report.html (self-contained), "
@@ -241,8 +266,10 @@ def build_parser() -> argparse.ArgumentParser:
                                       "input, or outputs that could not be written, 3 ERRORED (an arm errored on more "
                                       "than half of its paired episodes), 4 INCOMPLETE (the candidate lacks episodes "
                                       "the baseline finished).")
-    cmp_.add_argument("baseline", type=Path, metavar="BASELINE_RUN")
-    cmp_.add_argument("candidate", type=Path, metavar="CANDIDATE_RUN")
+    cmp_.add_argument("baseline", type=Path, metavar="BASELINE_RUN",
+                      help="baseline run folder, or a robustness grid folder (octo-harness robustness): then every "
+                           "task x condition is one cell of the Holm family, so one lost condition fails the gate")
+    cmp_.add_argument("candidate", type=Path, metavar="CANDIDATE_RUN", help="candidate run (or grid) folder")
     cmp_.add_argument("--max-drop", type=float, default=0.1, help="HELD rules out a larger drop in success rate [0.1]")
     cmp_.add_argument("--alpha", type=float, default=0.05, help="family-wise level; intervals at 1 - alpha [0.05]")
     cmp_.add_argument("--first-steps", type=int, default=10, help="per-step divergence over the first k steps [10]")
@@ -311,7 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
                                      "one anytime-valid test per task (alpha / tasks each); stops as soon as a task "
                                      "regressed or every task decided. Exit codes as for compare, from the worse "
                                      "of the sequential verdict and compare's verdict on the pairs run.")
-    reg.add_argument("--baseline", type=Path, required=True, metavar="RUN", help="baseline run folder")
+    reg.add_argument("--baseline", type=Path, required=True, metavar="RUN",
+                     help="baseline run folder, or a robustness grid folder: each condition's sequential test then runs "
+                          "at alpha / conditions, and the pairs are compared as a grid")
     reg.add_argument("--model", required=True, help="candidate model (as for `run --model`)")
     reg.add_argument("--max-episodes", type=int, default=None, help="at most N episodes per task [the baseline's]")
     reg.add_argument("--max-drop", type=float, default=0.1, help="HELD rules out a larger drop in success rate [0.1]")
@@ -356,14 +385,19 @@ def _cmd_report(args) -> int:
 
 
 def _cmd_compare(args) -> int:
-    from harness.analysis.compare import CompareConfig, compare_runs, exit_code
+    from harness.analysis.compare import CompareConfig, compare_grids, compare_runs, exit_code, is_grid
     from harness.report.compare_html import step0_frames, write_comparison
 
-    result = compare_runs(args.baseline, args.candidate,
-                          CompareConfig(max_drop=args.max_drop, alpha=args.alpha, first_steps=args.first_steps))
+    config = CompareConfig(max_drop=args.max_drop, alpha=args.alpha, first_steps=args.first_steps)
+    if is_grid(args.baseline) != is_grid(args.candidate):
+        raise ValueError("compare two robustness grid folders (octo-harness robustness) or two run folders, not one of "
+                         "each")
+    grid = is_grid(args.baseline)
+    result = (compare_grids if grid else compare_runs)(args.baseline, args.candidate, config)
     code = exit_code(result, args.fail_on)
     frames = {} if args.no_frames or result["env"] is None else step0_frames(result, result["env"])
-    out = args.out or Path(result["candidate"]["path"]) / f"compare_{result['baseline']['run']}"
+    out = args.out or (args.candidate / f"compare_{args.baseline.resolve().name}" if grid else
+                       Path(result["candidate"]["path"]) / f"compare_{result['baseline']['run']}")
     paths = _writing(f"compare's outputs in {out}", result["verdict"], lambda: write_comparison(result, out, frames, code))
     print(paths["markdown"].read_text(), end="")
     print(f"compare: {paths['html']}")
@@ -375,6 +409,19 @@ def _cmd_regress(args) -> int:
     from harness.run.regress import exit_code, regress, write_regress
 
     factory = _execution(args)
+    from harness.analysis.compare import is_grid
+
+    if is_grid(args.baseline):  # a robustness grid: condition by condition, Holm over every task x condition
+        from harness.run.regress import regress_grid, write_regress_grid
+
+        result = regress_grid(args.baseline, args.model, max_episodes=args.max_episodes, out=args.out,
+                              run_name=args.run_name, alpha=args.alpha, max_drop=args.max_drop, executor=factory,
+                              text_tokenizer=args.text_tokenizer)
+        code = exit_code(result, args.fail_on if args.fail_on != "changed" else "suspect")
+        paths = write_regress_grid(result, code, write_comparison)
+        print(paths["summary"])
+        print(f"regress: {paths['json']}")
+        return code
     result = regress(args.baseline, args.model, max_episodes=args.max_episodes, out=args.out, run_name=args.run_name,
                      alpha=args.alpha, max_drop=args.max_drop, executor=factory, text_tokenizer=args.text_tokenizer)
     code = exit_code(result, args.fail_on)
@@ -399,6 +446,28 @@ def _cmd_replay(args) -> int:
     print(summary_text(result))
     print(f"replay: {out / 'replay.json'}")
     return exit_code(result)
+
+
+def _cmd_robustness(args) -> int:
+    from harness.run.robustness import parse_kinds, parse_levels, run_grid
+    from harness.run.settings import build_protocol, read_protocol_file
+
+    conditions, levels = parse_kinds(args.perturb), parse_levels(args.levels)
+    factory = _execution(args)
+    given = {"model": args.model, "task": args.task, "episodes": args.episodes, "seed": args.seed,
+             "max_steps": args.max_steps, "fast_render": args.fast_render, "png_every": args.png_every,
+             "no_video": args.no_video}
+    settings = {**(read_protocol_file(args.protocol) if args.protocol else {}),
+                **{k: v for k, v in given.items() if v is not None}}
+    if settings.get("perturb"):
+        raise ValueError("the grid sets each run's perturbation; drop perturb from the protocol file")
+    summaries = run_grid(build_protocol(settings), conditions, levels, args.out, executor=factory,
+                         overwrite=args.overwrite)
+    for name, summary in summaries.items():
+        s = summary.statistics["overall"]
+        print(f"{name:<28} {summary.status:<12} {s['successes']}/{s['n']} successes, {s['failed']} errored")
+    print(f"robustness: {args.out} (report: octo-harness report {args.out}/*/ --out {args.out}/report)")
+    return 0 if all(s.status == "complete" for s in summaries.values()) else 1
 
 
 def _cmd_sanity(args) -> int:
@@ -567,6 +636,8 @@ def main(argv: list[str] | None = None) -> int:
             return _cmd_view(args)
         if args.command == "sanity":
             return _cmd_sanity(args)
+        if args.command == "robustness":
+            return _cmd_robustness(args)
         return _cmd_run(args)
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", 2)

@@ -512,7 +512,12 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
                                "run the candidate on the baseline's tasks and seeds")
     truncated = (_truncated(baseline), _truncated(candidate))
     details = [_compare_pair(task, seed, b, c, truncated, config) for task, seed, b, c in pairs]
+    return _result(baseline, candidate, details, missing, truncated, config)
 
+
+def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], missing: dict, truncated: tuple,
+            config: CompareConfig) -> dict:
+    """The comparison dict of paired episode details (`task` names the Holm family's cells)."""
     tables, errored = outcome_tables(details)
     outcomes = outcome_verdicts(tables, config, errored)
     identical = all(d["identical"] for d in details) and not missing["baseline"] and not missing["candidate"]
@@ -541,6 +546,7 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
         "baseline": _arm(baseline),
         "candidate": _arm(candidate),
         "env": _protocol(baseline).get("env") if isinstance(_protocol(baseline).get("env"), dict) else None,
+        "perturb": _protocol(baseline).get("perturb") if isinstance(_protocol(baseline).get("perturb"), str) else None,
         "pairs": len(details),
         "missing_pairs": missing,
         "incomplete": incomplete,
@@ -562,6 +568,66 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
             for d in details
         ],
     }
+
+
+GRID_FILE = "robustness.json"  # harness.run.robustness writes it into a grid folder
+
+
+def is_grid(path: str | Path) -> bool:
+    """Whether `path` is a robustness grid folder (`octo-harness robustness`) rather than one run."""
+    return (Path(path) / GRID_FILE).is_file()
+
+
+def read_grid(path: str | Path) -> dict:
+    """robustness.json of a grid folder ({"runs": {run name: perturb or None}, ...}); one line if unreadable."""
+    path = Path(path) / GRID_FILE
+    try:
+        grid = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise IncompatibleRuns(f"{path}: unreadable robustness grid ({exc}); re-create it with octo-harness robustness")
+    runs = grid.get("runs") if isinstance(grid, dict) else None
+    if not isinstance(runs, dict) or not runs or not all(isinstance(k, str) and "/" not in k and k not in ("", ".", "..")
+                                                       for k in runs):
+        raise IncompatibleRuns(f"{path}: 'runs' must map run folder names to perturbations; re-create the grid")
+    return grid
+
+
+def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig()) -> dict:
+    """Two robustness grids, condition by condition: every (task, condition) is one cell of the Holm family (plus
+    the pooled table), so a candidate that holds its nominal success but loses one condition by more than max_drop
+    is REGRESSED / SUSPECT there, at the same family-wise alpha as a task of `compare_runs`. Every condition of the
+    baseline grid must be in the candidate's (one line otherwise)."""
+    base_grid, cand_grid = read_grid(baseline_dir), read_grid(candidate_dir)
+    absent = [name for name in base_grid["runs"] if name not in cand_grid["runs"]]
+    if absent:
+        raise IncompatibleRuns(f"the candidate grid {candidate_dir} lacks condition(s) {', '.join(absent)} of the "
+                               "baseline grid; run octo-harness robustness with the baseline's --perturb and --levels")
+    details, missing, arms, truncated = [], {"baseline": [], "candidate": []}, None, (False, False)
+    for name, perturb in base_grid["runs"].items():
+        baseline, candidate = load_run(Path(baseline_dir) / name), load_run(Path(candidate_dir) / name)
+        fields = incompatible_fields(_protocol(baseline), _protocol(candidate))
+        if fields:
+            raise IncompatibleRuns(f"condition {name}: the runs' protocols differ in fields that change outcomes: "
+                                   f"{', '.join(fields)}; re-run the candidate grid with the baseline's settings")
+        if (_protocol(baseline).get("perturb") or None) != (perturb or None):
+            raise IncompatibleRuns(f"condition {name}: {baseline.path} holds perturb "
+                                   f"{_protocol(baseline).get('perturb')!r}, the grid file says {perturb!r}")
+        pairs, miss = pair_episodes(baseline, candidate)
+        arms = arms or (baseline, candidate)
+        cond_truncated = (_truncated(baseline), _truncated(candidate))
+        truncated = (truncated[0] or cond_truncated[0], truncated[1] or cond_truncated[1])
+        for task, seed, b, c in pairs:
+            d = _compare_pair(task, seed, b, c, cond_truncated, config)
+            details.append({**d, "task": f"{task} / {name}", "condition": name})
+        for side in ("baseline", "candidate"):
+            missing[side] += [[f"{t} / {name}", s] for t, s in miss[side]]
+    if not details:
+        raise IncompatibleRuns(f"no (task, seed) pair is finished in both grids {baseline_dir} and {candidate_dir}")
+    result = _result(arms[0], arms[1], details, missing, truncated, config)
+    result["grid"] = {"baseline": str(Path(baseline_dir).resolve()), "candidate": str(Path(candidate_dir).resolve()),
+                      "conditions": list(base_grid["runs"]), "cells": len(result["outcomes"]["tasks"]),
+                      "perturb": dict(base_grid["runs"])}
+    return result
 
 
 def gate_exit_code(verdict: str, fail_on: str = "suspect") -> int:

@@ -14,6 +14,8 @@ page (harness.report.page) -> files. Output folder:
   tables/faithfulness.csv, interventions.csv   harness/report/faithfulness.py
   tables/phase_*.csv   task phases: phase x layer table, steps, tests, event-aligned views, failures (report/phases.py)
   tables/position_bound.csv, position_share.csv, position_lift.csv   attention controls (report/position.py)
+  tables/robustness*.csv  when a run was perturbed: success per task x condition x level, episode measures,
+                     step-0 attention shift against the nominal episode, nuisance-success association
   plots/*.png        every figure of the page
 
 The folder is built under a temporary name next to `out` and swapped in at the end, so a report folder is
@@ -39,7 +41,7 @@ import numpy as np
 from harness.analysis import aggregate as agg
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays, load_run
 from harness.analysis.stats import success_summary
-from harness.report import faithfulness, figures, page, phases, position
+from harness.report import faithfulness, figures, page, phases, position, robustness
 from harness.report.rundata import RunData, episode_headline, representative
 
 VIDEO_DISPLAY = 256  # harness.outputs.overlays.video_frame's `display`: the camera frame fills the video's top-left display x w
@@ -302,6 +304,8 @@ def _tables(runs: list[RunData], summaries: dict | None = None) -> dict[str, byt
         **faithfulness.tables(runs),  # faithfulness.csv, interventions.csv (harness/report/faithfulness.py)
         **phases.tables(runs, (summaries or {}).get("phases")),  # phase_*.csv (harness/report/phases.py)
         **position.tables(runs, (summaries or {}).get("position")),  # position_*.csv (harness/report/position.py)
+        # robustness*.csv when a run was perturbed (harness/report/robustness.py)
+        **{name: _csv(cols, rows) for name, (cols, rows) in robustness.tables([run.record for run in runs]).items()},
     }
 
 

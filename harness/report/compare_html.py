@@ -41,11 +41,14 @@ def step0_frames(result: dict, protocol_env: dict | None) -> dict[tuple[str, int
 
     options = envs.EnvOptions.from_dict(protocol_env) if protocol_env else envs.EnvOptions()
     frames = {}
-    for task, seed in _first_pairs(result):
-        env = envs.make(task, options.replace(masks=False))
+    conditions = (result.get("grid") or {}).get("perturb") or {}
+    for label, seed in _first_pairs(result):
+        task, _, condition = label.partition(" / ")  # a grid comparison's cells are "<task> / <condition>"
+        perturb = conditions.get(condition) if condition else result.get("perturb")
+        env = envs.make(task, options.replace(masks=False), perturb=perturb)  # the perturbed scene both arms saw
         try:
             obs, _ = env.reset(seed=int(seed))
-            frames[(task, seed)] = {k: np.asarray(v) for k, v in obs.items() if np.ndim(v) == 3}
+            frames[(label, seed)] = {k: np.asarray(v) for k, v in obs.items() if np.ndim(v) == 3}
         finally:
             env.close()
     return frames

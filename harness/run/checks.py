@@ -174,3 +174,19 @@ def check_model(protocol: Protocol, model, goal_images: Mapping[str, np.ndarray]
     elif not takes_language:
         raise ValueError(f"{model.source} is goal-conditioned (no language input); pass --goal-images DIR holding {expected}")
     return inputs
+
+
+def check_perturbations(protocol) -> None:
+    """Every task of the protocol can take its perturbations (envs.perturbations.check_task): one line if not,
+    before the model loads or any episode runs."""
+    if not protocol.perturb:
+        return
+    import envs
+    from envs.perturbations import check_task, parse_perturb
+
+    perturbations = parse_perturb(protocol.perturb)
+    for name in protocol.tasks:
+        task = envs.get_task(name)
+        cameras = protocol.env.cameras
+        keys = tuple(c[0] for c in cameras) if cameras is not None else tuple(s.key for s in envs.parse_cameras(None, task))
+        check_task(task, perturbations, keys, protocol.instruction)

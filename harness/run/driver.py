@@ -207,6 +207,7 @@ def execute(
         from harness.outputs.rerun_sink import import_rerun
 
         import_rerun()  # the optional viewer extra: one line naming the install command, before anything heavy
+    checks.check_perturbations(protocol)
     out = checks.check_destination(Path(out))
     if run_name is not None:
         checks.check_run_name(run_name)  # before hashing the checkpoint
@@ -378,7 +379,7 @@ def _check_env(protocol: Protocol, model, task: str) -> None:
     import envs
     from harness.policy import OctoPolicy
 
-    env = envs.make(task, protocol.env, instruction=protocol.instruction)
+    env = envs.make(task, protocol.env, instruction=protocol.instruction, perturb=protocol.perturb)
     try:
         OctoPolicy(model, protocol.policy).check_env(env)
     finally:

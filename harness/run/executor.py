@@ -39,6 +39,7 @@ from typing import Callable, Iterator, Protocol as TypingProtocol, Sequence
 import numpy as np
 
 import envs
+from envs.perturbations import instruction_for
 from harness.files import atomic_write_json
 from harness.policy import EnvMismatchError, OctoPolicy
 from harness.records import EpisodeMeta, StepRecord
@@ -68,12 +69,15 @@ class EpisodeContext:
         return Path(self.run_dir) / job.directory
 
     def meta(self, job: EpisodeJob) -> EpisodeMeta:
+        spec = envs.get_task(job.task)
+        perturbations = envs.parse_perturb(self.protocol.perturb)
         return EpisodeMeta(
             run=self.run, task=job.task, episode=job.episode, seed=job.seed,
-            instruction=self.protocol.instruction or envs.get_task(job.task).instruction,
+            instruction=instruction_for(spec, self.protocol.instruction or spec.instruction, job.seed, perturbations),
             model=self.model["source"], model_is_random=bool(self.model["is_random"]),
             dataset_key=self.model.get("dataset_key"), text_tokenizer=self.model.get("text_tokenizer", ""),
             execution=self.protocol.policy.describe(),
+            extra={"perturb": self.protocol.perturb} if self.protocol.perturb else {},
         )
 
 
@@ -85,7 +89,7 @@ class Executor(TypingProtocol):
 
 def make_env(context: EpisodeContext, task: str):
     """The environment of `task` as the protocol asks for it (create and use it in one thread)."""
-    return envs.make(task, context.protocol.env, instruction=context.protocol.instruction)
+    return envs.make(task, context.protocol.env, instruction=context.protocol.instruction, perturb=context.protocol.perturb)
 
 
 def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolicy, tokens=None,
@@ -109,9 +113,11 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
         writer = EpisodeWriter(episode_dir, tokens, meta, context.protocol.outputs, viewer=context.viewer)
         result = rollout(env, policy, writer.add_step, seed=job.seed, instruction=meta.instruction, goals=context.goals,
                          max_steps=context.protocol.max_steps, on_step=step_cb)
+        drawn = getattr(getattr(env, "unwrapped", env), "perturbation_record", None) if context.protocol.perturb else None
         written = writer.finish({"success": result.success, "steps": result.steps, "total_reward": result.total_reward,
                                  "actions_clipped": result.actions_clipped, "timings": result.timings,
-                                 **({"phases": result.phases} if result.phases is not None else {})})
+                                 **({"phases": result.phases} if result.phases is not None else {}),
+                                 **({"perturbation": drawn} if drawn is not None else {})})
         files = data_digests(episode_dir, (Path(p).name for p in written["paths"].values()))  # size and sha256
     except (KeyboardInterrupt, EnvMismatchError):  # a model/env mismatch is the protocol's error: refuse the run
         if writer is not None:

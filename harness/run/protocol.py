@@ -1,7 +1,7 @@
 """The protocol of an evaluation run: everything that decides its episodes, as one frozen, serialisable value.
 
 A run is a `Protocol` (model source and fingerprint of its checkpoint files, tasks, episodes, seeds, max steps,
-execution, instruction and goal overrides, env options, output options, harness version) plus the list of
+execution, instruction and goal overrides, env options, output options, harness version, perturbations) plus the list of
 episode jobs it implies (`Protocol.jobs()`: `(task, episode index, seed)`, episode k of every task seeded
 `seed + k`). Two runs with equal `to_dict()` produce the same files; `protocol_hash` names that value and
 `diff` lists the fields (dotted names, e.g. `policy.receding_steps`, `env.cameras`) where two protocols differ.
@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from envs.options import EnvOptions
+from envs.perturbations import parse_perturb, perturb_text
 from harness.files import json_safe
 from harness.policy import PolicyConfig
 from harness.run.jobs import FORMAT, EpisodeJob  # noqa: F401  (re-exported)
@@ -61,6 +62,7 @@ class Protocol:
     goal_fingerprint: str | None = None  # sha256 of the goal image files
     harness_version: str = field(default_factory=harness_version)
     text_tokenizer: str | None = None  # None: the checkpoint's own (auto); "fallback"; or an absolute tokenizer.json path
+    perturb: str | None = None  # canonical "KIND[@KEY]:LEVEL,..." (envs.perturbations); None = nominal (level 0 too)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "tasks", tuple(self.tasks))
@@ -84,6 +86,7 @@ class Protocol:
         if self.max_steps is not None and self.max_steps > MAX_STEPS:
             raise ValueError(f"--max-steps {self.max_steps} is more than an episode may run ({MAX_STEPS} control steps: "
                              "its arrays are held in memory until it ends); choose a smaller --max-steps")
+        object.__setattr__(self, "perturb", perturb_text(parse_perturb(self.perturb)))  # level 0 -> None: nominal
         weight = float(self.policy.ensemble_weight)
         if weight != weight or weight in (float("inf"), float("-inf")):
             raise ValueError(f"--ensemble-weight must be a finite number, got {self.policy.ensemble_weight}")
@@ -120,6 +123,8 @@ class Protocol:
             "harness_version": self.harness_version,
             # only when chosen, so protocols (and run names) of the automatic choice keep their hash
             **({"text_tokenizer": self.text_tokenizer} if self.text_tokenizer is not None else {}),
+            # only when set: a nominal protocol (no flag, or every level 0) keeps its hash and its run folder
+            **({"perturb": self.perturb} if self.perturb is not None else {}),
         })
 
     @classmethod

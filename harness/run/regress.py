@@ -341,3 +341,66 @@ def write_regress(result: dict, code: int, write_comparison) -> dict:
     atomic_write_json(out / "regress.json", {**{k: v for k, v in result.items() if k != "compare"}, "exit_code": code,
                                              "compare_json": str(paths["json"])})
     return {"json": out / "regress.json", "html": paths["html"], "summary": summary_text(result, code)}
+
+
+def regress_grid(baseline_grid: str | Path, model: str, *, max_episodes: int | None = None,
+                 out: str | Path = "results/runs", run_name: str | None = None, alpha: float = 0.05,
+                 max_drop: float = 0.1, executor=None, progress: bool = True, text_tokenizer: str | None = None) -> dict:
+    """`regress` condition by condition over a robustness grid (octo-harness robustness): each condition's
+    sequential test runs at alpha / conditions (and, inside it, alpha / conditions / tasks per task), so the family
+    of every (task, condition) cell holds alpha; then the pairs run are compared as a grid (compare_grids: Holm over
+    every cell). The candidate grid goes to <out>/<run_name> (default <model>_<baseline grid name>)."""
+    from harness.analysis.compare import compare_grids, read_grid
+    from harness.files import atomic_write_json
+    from harness.octo import load_pretrained
+    from harness.run.robustness import GRID_FILE
+
+    baseline_grid = Path(baseline_grid)
+    grid = read_grid(baseline_grid)
+    names = list(grid["runs"])
+    short = model.rstrip("/").replace("hf://", "").replace("random:", "random-").split("/")[-1].replace(":", "-")
+    folder = Path(out) / (run_name or f"{short}_{baseline_grid.resolve().name}")
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(folder / GRID_FILE, {**grid, "regress_of": str(baseline_grid.resolve())})
+    loaded = load_pretrained(model, text_tokenizer=text_tokenizer)
+    per_condition = {}
+    for name in names:
+        log.info("regress: condition %s at alpha %.3g", name, alpha / len(names))
+        per_condition[name] = regress(baseline_grid / name, model, max_episodes=max_episodes, out=folder, run_name=name,
+                                      alpha=alpha / len(names), max_drop=max_drop, loaded_model=loaded, executor=executor,
+                                      progress=progress, text_tokenizer=text_tokenizer)
+    comparison = compare_grids(baseline_grid, folder, CompareConfig(max_drop=max_drop, alpha=alpha))
+    verdicts = [r["verdict"] for r in per_condition.values()] + [comparison["verdict"]]
+    return {
+        "format": "octo-harness-regress-grid/1",
+        "verdict": worst(verdicts),
+        "conditions": {name: {"verdict": r["verdict"], "sequential_verdict": r["sequential_verdict"],
+                              "compare_verdict": r["compare_verdict"], "pairs_used": r["pairs_used"],
+                              "candidate_run": r["candidate_run"], "alpha": alpha / len(names)}
+                       for name, r in per_condition.items()},
+        "compare_verdict": comparison["verdict"],
+        "baseline_grid": str(baseline_grid.resolve()),
+        "candidate_run": str(folder.resolve()),
+        "compare": comparison,
+    }
+
+
+def grid_summary_text(result: dict, code: int) -> str:
+    lines = [f"regress (grid): {result['verdict']} over {len(result['conditions'])} condition(s)"]
+    for name, c in result["conditions"].items():
+        lines.append(f"  {name}: {c['verdict']} (sequential {c['sequential_verdict']} at alpha {c['alpha']:.3g}, "
+                     f"fixed-size {c['compare_verdict']}, {c['pairs_used']} pairs)")
+    lines.append(f"  grid comparison (Holm over every task x condition): {result['compare_verdict']}")
+    lines += [f"    {note}" for note in result["compare"]["outcomes"].get("notes", [])]
+    lines.append(f"exit code {code}")
+    return "\n".join(lines)
+
+
+def write_regress_grid(result: dict, code: int, write_comparison) -> dict:
+    from harness.files import atomic_write_json
+
+    out = Path(result["candidate_run"]) / "regress"
+    paths = write_comparison(result["compare"], out, None, None)
+    atomic_write_json(out / "regress.json", {**{k: v for k, v in result.items() if k != "compare"}, "exit_code": code,
+                                             "compare_json": str(paths["json"])})
+    return {"json": out / "regress.json", "html": paths["html"], "summary": grid_summary_text(result, code)}

@@ -16,6 +16,7 @@ underscores) at its top level; flags given on the command line override it; chec
     camera = ["image_primary=agentview:84"]   # or a table: [camera] image_primary = "agentview:84"
     png_every = 0
     fast_render = true
+    perturb = "camera:3,lighting:1"   # or ["camera@image_wrist:2", "noise:4"] (envs.perturbations)
 
 An unknown key is a one-line error naming it.
 """
@@ -28,6 +29,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from envs.options import EnvOptions, parse_camera
+from envs.perturbations import parse_perturb, perturb_text
 from harness.policy import PolicyConfig
 from harness.analysis.attribution import DEFAULT_METHODS
 from harness.outputs.writers import ATTRIBUTION_VIDEO
@@ -53,6 +55,7 @@ FILE_KEYS: dict[str, tuple[type, ...]] = {
     "text_tokenizer": (str,), "hold_gripper": (str, int, float),
     "video_cameras": (str, list), "overlay_interpolation": (str,),
     "rerun": (bool,),  # true: write each episode's episode.rrd (live viewers are chosen on the command line)
+    "perturb": (str, list),
 }
 POLICY_KEYS = ("execution", "receding_steps", "ensemble_weight", "dataset_key", "sampler", "action_normalization",
                "proprio_normalization", "inference_batch")
@@ -229,6 +232,7 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
         policy=policy,
         outputs=outputs,
         text_tokenizer=text_tokenizer_choice(s.get("text_tokenizer", conventions.text_tokenizer if conventions else None)),
+        perturb=perturb_text(parse_perturb(s.get("perturb"))),
     )
 
 

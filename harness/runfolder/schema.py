@@ -67,6 +67,8 @@ def check_protocol(protocol: Any, path: Path | str) -> dict:
     _expect(path, "protocol.max_steps", protocol.get("max_steps"), (int,), "an integer or null", optional=True)
     for name in ("env", "policy", "outputs"):
         _expect(path, f"protocol.{name}", protocol.get(name), (dict,), "an object", optional=True)
+    _expect(path, "protocol.perturb", protocol.get("perturb"), (str,), "a perturbation string (KIND:LEVEL,...)",
+            optional=True)
     for name in ("model_fingerprint", "instruction", "goal_images", "goal_fingerprint", "harness_version"):
         _expect(path, f"protocol.{name}", protocol.get(name), (str,), "a string or null", optional=True)
     return protocol

@@ -1,0 +1,543 @@
+"""Controlled perturbations of a robosuite scene: data parsed once, drawn per episode, applied with robosuite's modders.
+
+A perturbation is data: `Perturbation(kind, level, camera)` with level 0 (nominal) .. 5 (severe), written
+`KIND[@KEY]:LEVEL` (`camera:3`, `camera@image_wrist:2`, `noise@image_primary:4`, `lighting:1`). Several are
+comma-separated. Level-0 entries are dropped when parsed: a protocol whose perturbations are all at level 0 IS the
+nominal protocol (same protocol hash, same run folder, same frames bit for bit).
+
+Kinds and what one level means (MAGNITUDES holds the numbers; docs/perturbations.md has the table):
+  camera       a camera's position moved by 0.02 m x level in a drawn direction, its orientation turned by 2 deg x
+               level about a drawn axis (in the camera's frame), its vertical field of view changed by +-1 deg x level
+               (sign drawn). Default: the camera behind `image_primary`; `camera@KEY` moves the camera behind KEY.
+  lighting     every model light's diffuse, ambient and specular colour and the headlight scaled by 1 - 0.12 x level
+               (darker: level 5 keeps 40%), each light's direction turned by 5 deg x level about a drawn horizontal
+               axis, its diffuse colour tinted per channel by up to +-4% x level.
+  texture      the arena's table, legs, floor and walls (never an object, never the robot, never a texture an object
+               also uses: the target keeps its colour) blended with a drawn pattern (flat colour, checker, noise or
+               gradient, TextureModder's patterns; robosuite 1.5.2's TextureModder reads `tex_rgb`, which MuJoCo 3
+               renamed, so the blend is done here on `tex_data`) at weight 0.2 x level (level 5: the pattern alone).
+  distractors  `level` extra objects (robosuite's lemon, bottle, blue ball, yellow cylinder, purple box, in that
+               order) placed on the task's free surface (table, or the start bin of PickPlace tasks) at drawn
+               positions at least 0.10 m (centre to centre, in the plane) from every task object, the target and its
+               goal, and 0.07 m from each other.
+  init-state   the robot's initial joint angles offset by a drawn uniform value in +-0.03 rad x level per joint,
+               and the objects' placement range widened by 0.02 m x level on each side (table tasks; PickPlace
+               samplers already span their bin, so only the joints move there).
+  noise        what the policy sees (not the scene): Gaussian blur of sigma 0.25 px x level, then Gaussian pixel
+               noise of sigma 3 x level (of 255), then JPEG at quality 90 - 14 x level; every camera by default,
+               `noise@KEY` one. Drawn per step (the only per-step perturbation).
+  language     the instruction: 1 capitalised with a full stop; 2 a paraphrase drawn from the task's list
+               (envs.tasks); 3 that paraphrase after a drawn prefix ("please ", "robot, ", "now "); 4 also a
+               drawn suffix (" now", " please", ", thanks"); 5 level 4 in capitals.
+
+Draws: every random choice of an episode comes from `numpy.random.SeedSequence((reset seed, kind, level, key))`,
+where the reset seed is the episode's seed (protocol seed + episode index), never from the simulator's own
+random stream: the scene's nominal randomness (object placement, robosuite's joint noise) is the nominal
+episode's, so a perturbed episode pairs with the nominal episode of the same seed, and the same protocol gives
+the same scene and frames whatever ran before, in whichever process. Scene modding happens at reset only
+(sensor noise excepted).
+"""
+
+from __future__ import annotations
+
+import re
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+KINDS = ("camera", "lighting", "texture", "distractors", "init-state", "noise", "language")
+LEVELS = tuple(range(6))
+KEYED_KINDS = ("camera", "noise")  # kinds that take @KEY (an observation key)
+DEFAULT_CAMERA_KEY = "image_primary"
+
+# physical magnitude of one level, per kind (multiplied by the level)
+MAGNITUDES = {
+    "camera": {"position_m": 0.02, "rotation_deg": 2.0, "fovy_deg": 1.0},
+    "lighting": {"intensity_drop": 0.12, "direction_deg": 5.0, "tint": 0.04},
+    "texture": {"blend": 0.2},
+    "distractors": {"objects": 1, "clearance_m": 0.10, "spacing_m": 0.07},
+    "init-state": {"joint_rad": 0.03, "placement_m": 0.02},
+    "noise": {"blur_sigma_px": 0.25, "gaussian_sigma": 3.0, "jpeg_quality_drop": 14},
+    "language": {},
+}
+LANGUAGE_LEVELS = {1: "capitalised, full stop", 2: "a paraphrase from the task's list",
+                   3: "paraphrase after a prefix", 4: "paraphrase with a prefix and a suffix",
+                   5: "level 4 in capitals"}
+PREFIXES = ("please ", "robot, ", "now ")
+SUFFIXES = (" now", " please", ", thanks")
+# tasks whose scene has no free surface for distractors (one line before the first episode)
+NO_DISTRACTOR_ROOM = {"Door": "the door's arena has no free table surface",
+                      "ToolHang": "the stand and the tool fill the table's reachable area"}
+
+_SPEC = re.compile(r"^([a-z-]+)(?:@([A-Za-z_]\w*))?:(-?\d+)$")
+
+
+class PerturbationError(ValueError):
+    """A perturbation that cannot be parsed or that a task cannot take (message: one line naming the fix)."""
+
+
+@dataclass(frozen=True, order=True)
+class Perturbation:
+    kind: str
+    level: int
+    camera: str | None = None  # observation key (camera: default image_primary; noise: None = every camera)
+
+    @property
+    def label(self) -> str:
+        return f"{self.kind}{'@' + self.camera if self.camera else ''}:{self.level}"
+
+    @property
+    def condition(self) -> str:
+        """The condition without its level (`camera@image_primary`), as a robustness grid groups runs."""
+        return f"{self.kind}{'@' + self.camera if self.camera else ''}"
+
+
+def parse_perturb(value) -> tuple[Perturbation, ...]:
+    """"KIND[@KEY]:LEVEL[,...]" (or a list of them, or None) -> canonical perturbations, level 0 dropped, sorted.
+
+    One-line errors for an unknown kind, a level outside 0-5, @KEY on a kind without a key, a repeated kind.
+    """
+    if value is None:
+        return ()
+    items = value if isinstance(value, (list, tuple)) else [value]
+    texts = [t.strip() for item in items for t in str(item).split(",") if t.strip()]
+    out: dict[tuple[str, str | None], Perturbation] = {}
+    for text in texts:
+        match = _SPEC.match(text)
+        if not match:
+            raise PerturbationError(f"--perturb {text!r}: expected KIND[@KEY]:LEVEL, e.g. camera:3, camera@image_wrist:2, "
+                                    f"lighting:1 (kinds: {', '.join(KINDS)}; levels 0-5)")
+        kind, key, level = match.group(1), match.group(2), int(match.group(3))
+        if kind not in KINDS:
+            raise PerturbationError(f"--perturb {text!r}: unknown kind {kind!r}; kinds: {', '.join(KINDS)}")
+        if level not in LEVELS:
+            raise PerturbationError(f"--perturb {text!r}: level must be 0 (nominal) to 5 (severe), got {level}")
+        if key is not None and kind not in KEYED_KINDS:
+            raise PerturbationError(f"--perturb {text!r}: only {' and '.join(KEYED_KINDS)} take @KEY; write {kind}:{level}")
+        if kind == "camera" and key is None:
+            key = DEFAULT_CAMERA_KEY
+        if (kind, key) in out or (kind == "noise" and any(k == "noise" and (key is None or c is None) for k, c in out)):
+            raise PerturbationError(f"--perturb: {kind}{'@' + key if key else ''} is given twice; give each kind (and key) once")
+        out[(kind, key)] = Perturbation(kind, level, key)
+    kept = [p for p in out.values() if p.level > 0]
+    return tuple(sorted(kept, key=lambda p: (KINDS.index(p.kind), p.camera or "")))
+
+
+def perturb_text(perturbations: tuple[Perturbation, ...]) -> str | None:
+    """Canonical text of perturbations (what a protocol records), None for the nominal scene."""
+    return ",".join(p.label for p in perturbations) or None
+
+
+def find(perturbations: tuple[Perturbation, ...], kind: str) -> list[Perturbation]:
+    return [p for p in perturbations if p.kind == kind]
+
+
+def check_task(task, perturbations: tuple[Perturbation, ...], camera_keys: tuple[str, ...],
+               instruction_override: str | None = None) -> None:
+    """Whether `task` (envs.tasks.TaskSpec) with cameras `camera_keys` can take the perturbations: one line if not."""
+    for p in perturbations:
+        if p.kind in KEYED_KINDS and p.camera is not None and p.camera not in camera_keys:
+            raise PerturbationError(f"--perturb {p.label}: task {task.name} has no camera {p.camera!r} (its cameras: "
+                                    f"{', '.join(camera_keys) or 'none'}); use {p.kind}@KEY with one of them")
+        if p.kind == "distractors" and task.name in NO_DISTRACTOR_ROOM:
+            raise PerturbationError(f"--perturb {p.label}: task {task.name} cannot take distractors "
+                                    f"({NO_DISTRACTOR_ROOM[task.name]}); drop distractors or the task")
+        if p.kind == "language" and instruction_override is not None:
+            raise PerturbationError(f"--perturb {p.label}: paraphrases exist for the tasks' own instructions, not for "
+                                    "--instruction; drop one of them")
+        if p.kind == "language" and not task.paraphrases:
+            raise PerturbationError(f"--perturb {p.label}: task {task.name} has no paraphrase list; drop language")
+        if p.kind in ("camera", "texture", "lighting", "distractors", "noise") and not camera_keys:
+            raise PerturbationError(f"--perturb {p.label}: the env renders no camera, so a visual perturbation changes "
+                                    "nothing; add a camera or drop it")
+
+
+# ---------------------------------------------------------------------------------------------- draws
+
+def rng(seed: int, p: Perturbation, *extra: int) -> np.random.Generator:
+    """The generator of one draw: SeedSequence((seed, kind, level, key, *extra)); independent of every other stream."""
+    key = zlib.crc32((p.camera or "").encode())
+    return np.random.default_rng(np.random.SeedSequence([int(seed), KINDS.index(p.kind), int(p.level), key, *extra]))
+
+
+def _unit(rng_: np.random.Generator) -> np.ndarray:
+    v = rng_.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def axis_angle_quat(axis: np.ndarray, degrees: float) -> np.ndarray:
+    """(w, x, y, z) quaternion of a rotation by `degrees` about unit `axis`."""
+    half = np.deg2rad(degrees) / 2.0
+    return np.concatenate([[np.cos(half)], np.sin(half) * np.asarray(axis, float)])
+
+
+def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of (w, x, y, z) quaternions."""
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+def camera_draw(seed: int, p: Perturbation) -> dict:
+    """{"offset": (3,) m in the camera's parent frame, "axis": (3,) in the camera frame, "degrees", "fovy_delta"}."""
+    g = rng(seed, p)
+    m = MAGNITUDES["camera"]
+    offset = _unit(g) * m["position_m"] * p.level
+    axis = _unit(g)
+    fovy = float(np.sign(g.uniform(-1, 1)) or 1.0) * m["fovy_deg"] * p.level
+    return {"offset": offset, "axis": axis, "degrees": m["rotation_deg"] * p.level, "fovy_delta": fovy}
+
+
+def perturbed_camera(pos: np.ndarray, quat: np.ndarray, fovy: float, draw: dict) -> tuple[np.ndarray, np.ndarray, float]:
+    """Nominal camera (pos (3,), quat (w, x, y, z), fovy deg) -> the perturbed one (pure; the env and the tests share it)."""
+    new_quat = quat_mul(np.asarray(quat, float), axis_angle_quat(draw["axis"], draw["degrees"]))
+    return np.asarray(pos, float) + draw["offset"], new_quat / np.linalg.norm(new_quat), float(fovy) + draw["fovy_delta"]
+
+
+def lighting_draw(seed: int, p: Perturbation, lights: int) -> dict:
+    g = rng(seed, p)
+    m = MAGNITUDES["lighting"]
+    axes = []
+    for _ in range(lights):
+        a = g.normal(size=2)
+        axes.append(np.array([a[0], a[1], 0.0]) / np.linalg.norm(a))
+    tint = 1.0 + g.uniform(-1, 1, size=(lights, 3)) * m["tint"] * p.level
+    return {"scale": 1.0 - m["intensity_drop"] * p.level, "axes": axes, "degrees": m["direction_deg"] * p.level,
+            "tint": tint}
+
+
+def rotate(vector: np.ndarray, axis: np.ndarray, degrees: float) -> np.ndarray:
+    """Rodrigues rotation of (3,) `vector` about unit `axis`."""
+    t = np.deg2rad(degrees)
+    v, k = np.asarray(vector, float), np.asarray(axis, float)
+    return v * np.cos(t) + np.cross(k, v) * np.sin(t) + k * np.dot(k, v) * (1 - np.cos(t))
+
+
+def instruction_for(task, instruction: str, seed: int, perturbations: tuple[Perturbation, ...]) -> str:
+    """The episode's instruction: `instruction` unless a language perturbation rewrites it (see the module docstring)."""
+    found = find(perturbations, "language")
+    if not found:
+        return instruction
+    p = found[0]
+    g = rng(seed, p)
+    if p.level == 1:
+        return instruction[:1].upper() + instruction[1:] + "."
+    text = task.paraphrases[int(g.integers(len(task.paraphrases)))]
+    if p.level >= 3:
+        text = PREFIXES[int(g.integers(len(PREFIXES)))] + text
+    if p.level >= 4:
+        text = text + SUFFIXES[int(g.integers(len(SUFFIXES)))]
+    if p.level >= 5:
+        text = text.upper()
+    return text
+
+
+def noise_frame(frame: np.ndarray, seed: int, p: Perturbation, step: int, key: str) -> np.ndarray:
+    """(h, w, 3) uint8 -> the frame after blur, Gaussian noise and JPEG at `p.level` (drawn per step and camera)."""
+    import cv2
+
+    m = MAGNITUDES["noise"]
+    out = np.asarray(frame)
+    sigma = m["blur_sigma_px"] * p.level
+    out = cv2.GaussianBlur(out, (0, 0), sigmaX=sigma, sigmaY=sigma)
+    g = np.random.default_rng(np.random.SeedSequence([int(seed), KINDS.index("noise"), p.level, zlib.crc32(key.encode()),
+                                                      int(step)]))
+    noisy = out.astype(np.float32) + g.normal(0.0, m["gaussian_sigma"] * p.level, size=out.shape).astype(np.float32)
+    out = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+    quality = int(90 - m["jpeg_quality_drop"] * p.level)
+    ok, encoded = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    return np.ascontiguousarray(cv2.imdecode(encoded, cv2.IMREAD_UNCHANGED).reshape(out.shape))
+
+
+# ---------------------------------------------------------------------------------------------- distractor models
+
+DISTRACTOR_PREFIX = "distractor"
+
+
+def distractor_objects(count: int) -> list:
+    """`count` robosuite object models, named distractor0.. (lemon, bottle, blue ball, yellow cylinder, purple box)."""
+    from robosuite.models.objects import BallObject, BottleObject, BoxObject, CylinderObject, LemonObject
+
+    makers = (
+        lambda n: LemonObject(n),
+        lambda n: BottleObject(n),
+        lambda n: BallObject(n, size=[0.025], rgba=[0.15, 0.35, 0.9, 1.0]),
+        lambda n: CylinderObject(n, size=[0.022, 0.035], rgba=[0.95, 0.8, 0.1, 1.0]),
+        lambda n: BoxObject(n, size=[0.024, 0.024, 0.024], rgba=[0.6, 0.25, 0.8, 1.0]),
+    )
+    return [makers[i % len(makers)](f"{DISTRACTOR_PREFIX}{i}") for i in range(count)]
+
+
+def class_with_distractors(base, count: int):
+    """A subclass of robosuite env class `base` whose model also holds `count` distractor objects (free joints)."""
+
+    def _load_model(self):
+        base._load_model(self)
+        self._octo_distractors = distractor_objects(count)
+        self.model.merge_objects(self._octo_distractors)
+
+    return type(f"{base.__name__}OctoDistractors{count}", (base,), {"_load_model": _load_model})
+
+
+def distractor_region(env) -> tuple[np.ndarray, np.ndarray, float]:
+    """((2,) low xy, (2,) high xy, surface z) where distractors may stand in robosuite env `env`."""
+    if hasattr(env, "bin1_pos") and hasattr(env, "bin_size"):  # PickPlace: the start bin
+        centre, half = np.asarray(env.bin1_pos, float), np.asarray(env.bin_size[:2], float) / 2 - 0.05
+        return centre[:2] - half, centre[:2] + half, float(centre[2])
+    offset = getattr(env, "table_offset", None)
+    size = getattr(env, "table_full_size", None)
+    if offset is None or size is None:
+        raise PerturbationError(f"distractors: {type(env).__name__} has no table or bin to place them on; drop distractors")
+    half = np.asarray(size[:2], float) / 2 - 0.08
+    return np.asarray(offset[:2], float) - half, np.asarray(offset[:2], float) + half, float(offset[2])
+
+
+def place_distractors(g: np.random.Generator, low: np.ndarray, high: np.ndarray, avoid: np.ndarray, count: int,
+                      clearance: float, spacing: float, tries: int = 2000) -> np.ndarray:
+    """(count, 2) xy positions in [low, high], >= clearance from every row of `avoid` (k, 2), >= spacing apart."""
+    placed: list[np.ndarray] = []
+    for _ in range(tries):
+        if len(placed) == count:
+            break
+        xy = g.uniform(low, high)
+        if len(avoid) and np.min(np.linalg.norm(avoid - xy, axis=1)) < clearance:
+            continue
+        if placed and np.min(np.linalg.norm(np.array(placed) - xy, axis=1)) < spacing:
+            continue
+        placed.append(xy)
+    if len(placed) < count:
+        raise PerturbationError(f"distractors: no room for {count} objects {clearance:.2f} m from the task's objects "
+                                "on this surface; use a lower level")
+    return np.array(placed).reshape(count, 2)
+
+
+# ---------------------------------------------------------------------------------------------- the env side
+
+class ScenePerturber:
+    """Applies one protocol's perturbations to one robosuite env at every reset (and to frames, for noise).
+
+    env: the robosuite env (built with `class_with_distractors` when distractors are asked for); cameras: {obs key:
+    robosuite camera name}; upload(tex_id): re-uploads a changed texture to the env's GL context.
+    Nominal values are saved once, at construction, and restored before every episode's draw, so an episode's
+    scene depends on its own seed only.
+    """
+
+    def __init__(self, env, perturbations: tuple[Perturbation, ...], cameras: dict[str, str], upload=None,
+                 target_geoms: tuple = ()):
+        self.env = env
+        self.perturbations = perturbations
+        self.cameras = cameras
+        self.upload = upload
+        self.record: dict = {}
+        sim = env.sim
+        model = sim.model
+        self._camera_mods = []
+        for p in find(perturbations, "camera"):
+            from robosuite.utils.mjmod import CameraModder
+
+            name = cameras[p.camera]
+            modder = CameraModder(sim, random_state=np.random.RandomState(0), camera_names=[name])
+            self._camera_mods.append((p, name, modder))
+        self._lighting = None
+        for p in find(perturbations, "lighting"):
+            from robosuite.utils.mjmod import LightingModder
+
+            self._lighting = (p, LightingModder(sim, random_state=np.random.RandomState(0),
+                                                light_names=list(model.light_names)),
+                              np.array(model.vis.headlight.ambient), np.array(model.vis.headlight.diffuse))
+        self._texture = None
+        for p in find(perturbations, "texture"):
+            self._texture = (p, *self._texture_modder(env, target_geoms))
+        self._init = None
+        for p in find(perturbations, "init-state"):
+            robot = env.robots[0]
+            samplers = _uniform_samplers(getattr(env, "placement_initializer", None))
+            self._init = (p, np.array(robot.init_qpos, float),
+                          [(s, tuple(s.x_range), tuple(s.y_range)) for s in samplers])
+        self._distractors = None
+        for p in find(perturbations, "distractors"):
+            objects = getattr(env, "_octo_distractors", [])
+            self._distractors = (p, objects)
+        self._noise = find(perturbations, "noise")
+
+    # ---- reset-time modding
+
+    def before_reset(self, seed: int) -> None:
+        """Perturbations robosuite's own reset must see: the robot's initial joints and the placement ranges."""
+        if self._init is None:
+            return
+        p, nominal, samplers = self._init
+        g = rng(seed, p)
+        m = MAGNITUDES["init-state"]
+        offset = g.uniform(-1, 1, size=nominal.shape) * m["joint_rad"] * p.level
+        self.env.robots[0].init_qpos = nominal + offset
+        widen = m["placement_m"] * p.level
+        for sampler, xr, yr in samplers:
+            if xr[0] == xr[1] and yr[0] == yr[1]:  # a fixed marker (PickPlace's visual objects)
+                continue
+            sampler.x_range = (xr[0] - widen, xr[1] + widen)
+            sampler.y_range = (yr[0] - widen, yr[1] + widen)
+        self.record["init-state"] = {"joint_offset_rad": offset.round(6).tolist(), "placement_widened_m": widen}
+
+    def after_reset(self, seed: int, avoid_xy: np.ndarray) -> None:
+        """Camera, lighting, texture and distractor placement of this episode; then the simulation is forwarded."""
+        sim = self.env.sim
+        for p, name, modder in self._camera_mods:
+            modder.restore_defaults()
+            draw = camera_draw(seed, p)
+            d = modder._defaults[name]
+            pos, quat, fovy = perturbed_camera(d["pos"], d["quat"], d["fovy"], draw)
+            modder.set_pos(name, pos)
+            modder.set_quat(name, quat)
+            modder.set_fovy(name, fovy)
+            self.record[p.condition] = {"camera": name, "offset_m": draw["offset"].round(6).tolist(),
+                                        "axis": draw["axis"].round(6).tolist(), "degrees": draw["degrees"],
+                                        "fovy_deg": fovy}
+        if self._lighting is not None:
+            p, modder, ambient, diffuse = self._lighting
+            modder.restore_defaults()
+            draw = lighting_draw(seed, p, len(modder.light_names))
+            for i, name in enumerate(modder.light_names):
+                d = modder._defaults[name]
+                modder.set_diffuse(name, np.clip(d["diffuse"] * draw["scale"] * draw["tint"][i], 0, 1))
+                modder.set_ambient(name, d["ambient"] * draw["scale"])
+                modder.set_specular(name, d["specular"] * draw["scale"])
+                modder.set_dir(name, rotate(d["dir"], draw["axes"][i], draw["degrees"]))
+            sim.model.vis.headlight.ambient[:] = ambient * draw["scale"]
+            sim.model.vis.headlight.diffuse[:] = diffuse * draw["scale"]
+            self.record["lighting"] = {"scale": draw["scale"], "degrees": draw["degrees"],
+                                       "tint": np.round(draw["tint"], 6).tolist()}
+        if self._texture is not None:
+            self._apply_texture(seed)
+        if self._distractors is not None:
+            self._place_distractors(seed, avoid_xy)
+        for p in self._noise:
+            m = MAGNITUDES["noise"]
+            self.record[p.condition] = {"blur_sigma_px": m["blur_sigma_px"] * p.level,
+                                        "gaussian_sigma": m["gaussian_sigma"] * p.level,
+                                        "jpeg_quality": int(90 - m["jpeg_quality_drop"] * p.level)}
+        sim.forward()
+
+    def _texture_modder(self, env, target_geoms):
+        """(textures {tex id: nominal (h, w, c) uint8}, untextured arena geoms {geom id: nominal rgba}).
+
+        robosuite 1.5.2's TextureModder reads `MjModel.tex_rgb`, which MuJoCo 3 renamed `tex_data`; so textures are
+        blended here, in the same way (default bitmap blended with a drawn pattern), on `tex_data`."""
+        from envs.segmentation import body_ancestry_matches
+
+        model = env.sim.model
+        names = [model.body_id2name(i) or "" for i in range(model.nbody)]
+        prefixes = tuple(obj.name + "_" for obj in getattr(env.model, "mujoco_objects", ())) + \
+            ("robot0_", "gripper0_", "mount0_", "fixed_mount0_", DISTRACTOR_PREFIX)
+        foreign_body = body_ancestry_matches(names, model.body_parentid, prefixes)
+        targets = {int(i) for ids in target_geoms for i in np.asarray(ids).ravel()}
+        arena, used_elsewhere = [], set()
+        for g in range(model.ngeom):
+            name = model.geom_id2name(g) or ""
+            mat = int(model.geom_matid[g])
+            tex = _material_texture(model, mat)
+            if foreign_body[model.geom_bodyid[g]] or g in targets:
+                if tex >= 0:
+                    used_elsewhere.add(tex)
+                continue
+            if "eef_target" not in name and int(model.geom_group[g]) == 1:
+                arena.append((g, tex))
+        textures = {tex: self._bitmap(tex).copy() for g, tex in arena if tex >= 0 and tex not in used_elsewhere}
+        plain = {g: np.array(model.geom_rgba[g]) for g, tex in arena if tex < 0}
+        return textures, plain
+
+    def _bitmap(self, tex: int) -> np.ndarray:
+        """(h, w, channels) uint8 view of texture `tex` in the model."""
+        model = self.env.sim.model
+        h, w, c = int(model.tex_height[tex]), int(model.tex_width[tex]), int(model.tex_nchannel[tex])
+        adr = int(model.tex_adr[tex])
+        return model.tex_data[adr: adr + h * w * c].reshape(h, w, c)
+
+    def _apply_texture(self, seed: int) -> None:
+        p, textures, plain = self._texture
+        g = rng(seed, p)
+        blend = MAGNITUDES["texture"]["blend"] * p.level
+        chosen = {}
+        for tex, nominal in textures.items():
+            variation = TEXTURE_PATTERNS[int(g.integers(len(TEXTURE_PATTERNS)))]
+            pattern = texture_pattern(g, variation, nominal.shape)
+            blended = (1.0 - blend) * nominal.astype(np.float64) + blend * pattern
+            self._bitmap(tex)[:] = np.clip(np.rint(blended), 0, 255).astype(np.uint8)
+            chosen[str(tex)] = variation
+            if self.upload is not None:
+                self.upload(tex)
+        model = self.env.sim.model
+        for geom, rgba in plain.items():
+            colour = g.uniform(0, 1, size=3)
+            model.geom_rgba[geom, :3] = (1 - blend) * rgba[:3] + blend * colour
+        self.record["texture"] = {"blend": blend, "textures": chosen, "plain_geoms": len(plain)}
+
+    def _place_distractors(self, seed: int, avoid_xy: np.ndarray) -> None:
+        p, objects = self._distractors
+        env = self.env
+        low, high, z = distractor_region(env)
+        m = MAGNITUDES["distractors"]
+        g = rng(seed, p)
+        xy = place_distractors(g, low, high, np.asarray(avoid_xy, float).reshape(-1, 2), len(objects), m["clearance_m"],
+                               m["spacing_m"])
+        placed = []
+        for obj, (x, y) in zip(objects, xy):
+            yaw = g.uniform(-np.pi, np.pi)
+            quat = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+            height = z - float(obj.bottom_offset[2]) + 0.002
+            env.sim.data.set_joint_qpos(obj.joints[0], np.concatenate([[x, y, height], quat]))
+            placed.append({"object": obj.name, "xy": [round(float(x), 6), round(float(y), 6)]})
+        self.record["distractors"] = placed
+
+    # ---- per-step
+
+    def noisy(self, frames: dict[str, np.ndarray], seed: int, step: int) -> dict[str, np.ndarray]:
+        """{obs key: upright frame} -> the frames the policy sees (sensor noise on the chosen cameras)."""
+        if not self._noise:
+            return frames
+        p = self._noise[0]
+        return {key: (noise_frame(frame, seed, p, step, key) if p.camera in (None, key) else frame)
+                for key, frame in frames.items()}
+
+
+TEXTURE_PATTERNS = ("rgb", "checker", "noise", "gradient")
+
+
+def texture_pattern(g: np.random.Generator, variation: str, shape: tuple) -> np.ndarray:
+    """(h, w, c) float pattern in 0-255: a flat colour, an 8x8 checker, noise of two colours, or a gradient."""
+    h, w, c = shape
+    a, b = g.uniform(0, 255, size=(2, c))
+    if variation == "rgb":
+        return np.broadcast_to(a, shape).astype(np.float64)
+    if variation == "checker":
+        cells = ((np.arange(h)[:, None] * 8 // max(h, 1)) + (np.arange(w)[None, :] * 8 // max(w, 1))) % 2
+        return np.where(cells[..., None] == 1, a, b)
+    if variation == "noise":
+        mask = g.uniform(size=(h, w)) < g.uniform(0.1, 0.9)
+        return np.where(mask[..., None], a, b)
+    t = np.linspace(0.0, 1.0, h)[:, None, None]
+    return np.broadcast_to((1 - t) * a + t * b, shape).astype(np.float64)
+
+
+def _material_texture(model, mat: int) -> int:
+    """The RGB texture of material `mat` (-1: none); MuJoCo 3 stores one texture per role."""
+    if mat < 0:
+        return -1
+    ids = np.atleast_1d(np.asarray(model.mat_texid[mat]))
+    if ids.size > 1 and ids[1] >= 0:  # mjTEXROLE_RGB
+        return int(ids[1])
+    valid = ids[ids >= 0]
+    return int(valid[0]) if valid.size else -1
+
+
+def _uniform_samplers(sampler) -> list:
+    """The UniformRandomSampler leaves of robosuite placement sampler `sampler` (composite samplers unrolled)."""
+    if sampler is None:
+        return []
+    if hasattr(sampler, "samplers"):
+        return [leaf for child in sampler.samplers.values() for leaf in _uniform_samplers(child)]
+    return [sampler] if hasattr(sampler, "x_range") else []

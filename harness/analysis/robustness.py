@@ -1,0 +1,230 @@
+"""Robustness across perturbation conditions: success per (task, condition, level), attention on nuisances, and
+the shift of attention a perturbation causes at step 0. Pure functions over run records and arrays.
+
+Runs are grouped by their protocol's `perturb` (envs.perturbations): one perturbation -> (condition, level); no
+perturbation -> the nominal run, level 0 of every condition. Per finished episode (from attention.npz, primary
+camera `image_primary`, the model's last layer):
+  nuisance_mass   attention mass on the background plus every distractor (neither robot, target nor another task
+                  object), mean over the episode's steps
+  target_lift     mask_lift of the target, mean over steps
+  shift_js/<l>    for a perturbed episode and the nominal episode of the same task and seed: Jensen-Shannon
+                  divergence (bits) of the two step-0 readout attention rows of layer l (mean over heads and
+                  readouts, normalised over all keys; the same model gives the same keys)
+  lift_change     step-0 target lift, perturbed minus nominal
+Association of nuisance mass with success, per task across episodes and conditions: the point-biserial
+correlation (Pearson r of a 0/1 variable with a continuous one) with a 95% interval by Fisher's z (n - 3).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from envs.perturbations import parse_perturb
+from harness.analysis.stats import wilson_interval
+
+CAMERA = "image_primary"
+
+
+@dataclass(frozen=True)
+class EpisodeRow:
+    run: str
+    task: str
+    condition: str  # e.g. "camera@image_primary"; "nominal" for the nominal run
+    level: int
+    seed: int
+    episode: int
+    status: str
+    success: bool
+    nuisance_mass: float
+    target_lift: float
+    distractor_mass: float
+    background_mass: float
+
+
+def run_condition(manifest: dict) -> tuple[str, int] | None:
+    """(condition, level) of a run from its manifest; ("nominal", 0) without perturbation; None with several."""
+    perturbations = parse_perturb((manifest.get("protocol") or {}).get("perturb"))
+    if not perturbations:
+        return ("nominal", 0)
+    if len(perturbations) > 1:
+        return None
+    return (perturbations[0].condition, perturbations[0].level)
+
+
+def is_perturbed(records) -> bool:
+    """Whether any run of `records` was made with a perturbation (the report then adds its Robustness section)."""
+    return any((r.manifest.get("protocol") or {}).get("perturb") for r in records)
+
+
+def _layer_measure(z, name: str) -> np.ndarray | None:
+    key = f"measures/layer/{name}"
+    return np.asarray(z[key], np.float64) if key in z.files else None
+
+
+def episode_measures(path) -> dict:
+    """attention.npz -> {"nuisance_mass", "distractor_mass", "background_mass", "target_lift" (episode means at the
+    last layer, primary camera; nan when absent), "step0_rows" (layers, keys) normalised step-0 attention,
+    "step0_lift" (layers,)}."""
+    with np.load(path) as z:
+        background = _layer_measure(z, f"mask_mass/{CAMERA}/background")
+        distractors = [np.asarray(z[k], np.float64) for k in z.files
+                       if k.startswith(f"measures/layer/mask_mass/{CAMERA}/distractor_")]
+        lift = _layer_measure(z, f"mask_lift/{CAMERA}/target")
+        attn = np.asarray(z["readout_attention"][0], np.float64) if "readout_attention" in z.files else None
+    out = {"nuisance_mass": math.nan, "distractor_mass": math.nan, "background_mass": math.nan, "target_lift": math.nan,
+           "step0_rows": None, "step0_lift": None}
+    if background is not None and background.size:
+        dis = np.sum(distractors, axis=0) if distractors else np.zeros_like(background)
+        out["background_mass"] = float(np.nanmean(background[:, -1]))
+        out["distractor_mass"] = float(np.nanmean(dis[:, -1]))
+        out["nuisance_mass"] = float(np.nanmean((background + dis)[:, -1]))
+    if lift is not None and lift.size:
+        out["target_lift"] = float(np.nanmean(lift[:, -1]))
+        out["step0_lift"] = lift[0]
+    if attn is not None:
+        rows = attn.mean(axis=(1, 2))  # (layers, keys)
+        out["step0_rows"] = rows / rows.sum(axis=-1, keepdims=True)
+    return out
+
+
+def js_divergence_bits(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Jensen-Shannon divergence in bits between distributions along the last axis: (..., k), (..., k) -> (...)."""
+    p = np.asarray(p, np.float64)
+    q = np.asarray(q, np.float64)
+    p = p / p.sum(axis=-1, keepdims=True)
+    q = q / q.sum(axis=-1, keepdims=True)
+    m = 0.5 * (p + q)
+
+    def kl(a, b):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            terms = np.where(a > 0, a * np.log2(a / b), 0.0)
+        return terms.sum(axis=-1)
+
+    return 0.5 * kl(p, m) + 0.5 * kl(q, m)
+
+
+def point_biserial(success, values, confidence: float = 0.95) -> tuple[float, float, float, int]:
+    """(r, ci_low, ci_high, n): Pearson correlation of 0/1 `success` with `values` (nan pairs dropped), 95% interval by
+    Fisher's z transform with standard error 1/sqrt(n - 3); nan where n < 4 or a variable is constant."""
+    from scipy.stats import norm
+
+    s = np.asarray(success, np.float64)
+    v = np.asarray(values, np.float64)
+    keep = np.isfinite(s) & np.isfinite(v)
+    s, v = s[keep], v[keep]
+    n = int(s.size)
+    if n < 4 or s.std() == 0 or v.std() == 0:
+        return (math.nan, math.nan, math.nan, n)
+    r = float(np.corrcoef(s, v)[0, 1])
+    z = math.atanh(max(min(r, 1 - 1e-12), -1 + 1e-12))
+    half = norm.ppf(0.5 + confidence / 2) / math.sqrt(n - 3)
+    return (r, math.tanh(z - half), math.tanh(z + half), n)
+
+
+def collect(records) -> tuple[list[EpisodeRow], list[tuple], list[str]]:
+    """Episode rows, shift rows (run, task, condition, level, seed, layer, js_bits, lift_change) and notes
+    (runs left out) from run records (harness.analysis.runs.RunRecord)."""
+    rows, notes, measures = [], [], {}
+    for record in records:
+        cond = run_condition(record.manifest)
+        if cond is None:
+            notes.append(f"{record.name}: several perturbations at once; left out of the robustness tables")
+            continue
+        for e in record.episodes:
+            m = {}
+            if e.ok and e.attention_path.is_file():
+                try:
+                    m = episode_measures(e.attention_path)
+                except (OSError, ValueError, KeyError) as exc:
+                    notes.append(f"{record.name}/{e.task}/episode_{e.episode}: unreadable attention.npz ({exc})")
+            measures[(record.name, e.task, e.seed)] = m
+            rows.append(EpisodeRow(record.name, e.task, cond[0], cond[1], e.seed if e.seed is not None else -1, e.episode,
+                                   e.status, bool(e.success), m.get("nuisance_mass", math.nan),
+                                   m.get("target_lift", math.nan), m.get("distractor_mass", math.nan),
+                                   m.get("background_mass", math.nan)))
+    nominal = {(r.task, r.seed): r.run for r in rows if r.condition == "nominal"}
+    shifts = []
+    for r in rows:
+        if r.condition == "nominal" or (r.task, r.seed) not in nominal:
+            continue
+        a = measures.get((nominal[(r.task, r.seed)], r.task, r.seed)) or {}
+        b = measures.get((r.run, r.task, r.seed)) or {}
+        if a.get("step0_rows") is None or b.get("step0_rows") is None or a["step0_rows"].shape != b["step0_rows"].shape:
+            continue
+        js = js_divergence_bits(a["step0_rows"], b["step0_rows"])
+        lift = (b["step0_lift"] - a["step0_lift"]) if a.get("step0_lift") is not None and b.get("step0_lift") is not None \
+            else np.full(js.shape, math.nan)
+        for layer in range(js.shape[0]):
+            shifts.append((r.run, r.task, r.condition, r.level, r.seed, layer, float(js[layer]), float(lift[layer])))
+    return rows, shifts, notes
+
+
+SUCCESS_COLUMNS = ("task", "condition", "level", "run", "n", "errored", "successes", "success_rate", "ci_low", "ci_high",
+                   "nuisance_mass", "distractor_mass", "background_mass", "target_lift")
+SHIFT_COLUMNS = ("run", "task", "condition", "level", "seed", "layer", "js_bits", "lift_change")
+ASSOCIATION_COLUMNS = ("task", "n", "point_biserial_r", "ci_low", "ci_high", "mean_nuisance_success", "mean_nuisance_failure")
+
+
+def _mean(values) -> float:
+    v = np.asarray([x for x in values if math.isfinite(x)], np.float64)
+    return float(v.mean()) if v.size else math.nan
+
+
+def success_rows(rows: list[EpisodeRow]) -> list[tuple]:
+    """Per task x condition x level (the nominal run repeated at level 0 of every condition): Wilson interval and
+    mean episode measures."""
+    conditions = sorted({r.condition for r in rows if r.condition != "nominal"})
+    out = []
+    for task in dict.fromkeys(r.task for r in rows):
+        for condition in conditions or ["nominal"]:
+            cells = sorted({(r.level, r.run) for r in rows if r.task == task and r.condition in (condition, "nominal")})
+            for level, run in cells:
+                cell = [r for r in rows if r.task == task and r.run == run]
+                ok = [r for r in cell if r.status == "ok"]
+                k = sum(r.success for r in ok)
+                lo, hi = wilson_interval(k, len(ok)) if ok else (0.0, 1.0)
+                out.append((task, condition, level, run, len(ok), len(cell) - len(ok), k,
+                            k / len(ok) if ok else math.nan, lo, hi, _mean(r.nuisance_mass for r in ok),
+                            _mean(r.distractor_mass for r in ok), _mean(r.background_mass for r in ok),
+                            _mean(r.target_lift for r in ok)))
+    return out
+
+
+def association_rows(rows: list[EpisodeRow]) -> list[tuple]:
+    out = []
+    for task in dict.fromkeys(r.task for r in rows):
+        ok = [r for r in rows if r.task == task and r.status == "ok"]
+        r_, lo, hi, n = point_biserial([r.success for r in ok], [r.nuisance_mass for r in ok])
+        out.append((task, n, r_, lo, hi, _mean(r.nuisance_mass for r in ok if r.success),
+                    _mean(r.nuisance_mass for r in ok if not r.success)))
+    return out
+
+
+def sentence(task: str, success: list[tuple], association: list[tuple]) -> str:
+    """One plain sentence per task: the condition and level that cost the most, and what nuisance mass says."""
+    cells = [s for s in success if s[0] == task and math.isfinite(s[7])]
+    nominal = [s for s in cells if s[2] == 0]
+    worst = min((s for s in cells if s[2] > 0), key=lambda s: (s[7], -s[2]), default=None)
+    parts = []
+    if nominal and worst is not None:
+        base = nominal[0]
+        parts.append(f"{task}: nominal success {base[6]}/{base[4]}; the largest loss is {worst[1]} at level {worst[2]} "
+                     f"({worst[6]}/{worst[4]}, Wilson 95% [{worst[8]:.2f}, {worst[9]:.2f}])")
+    elif nominal:
+        parts.append(f"{task}: nominal success {nominal[0][6]}/{nominal[0][4]}, no perturbed run")
+    else:
+        parts.append(f"{task}: no nominal run to compare with")
+    assoc = [a for a in association if a[0] == task]
+    if assoc and math.isfinite(assoc[0][2]):
+        a = assoc[0]
+        verdict = ("more nuisance attention goes with failure" if a[4] < 0 else
+                   "more nuisance attention goes with success" if a[3] > 0 else
+                   "nuisance attention does not predict success here (the interval holds 0)")
+        parts.append(f"point-biserial r of nuisance mass and success {a[2]:+.2f} [{a[3]:+.2f}, {a[4]:+.2f}] over {a[1]} "
+                     f"episodes: {verdict}")
+    else:
+        parts.append("nuisance mass and success: too few episodes or no variation to estimate an association")
+    return "; ".join(parts) + "."

@@ -1,0 +1,154 @@
+"""The report's Robustness section: success against perturbation level per condition and task (Wilson bands), target
+lift and nuisance mass against level, the step-0 attention shift, and the association of nuisance mass with success.
+
+`tables(records)` -> {"robustness.csv", "robustness_episodes.csv", "robustness_shift.csv", "robustness_association.csv"};
+`section(records, plots)` -> HTML ("" when no run was perturbed). Every number on the page is in those CSVs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from harness.analysis import robustness as R
+from harness.report import html as H
+
+EPISODE_COLUMNS = ("run", "task", "condition", "level", "seed", "episode", "status", "success", "nuisance_mass",
+                   "distractor_mass", "background_mass", "target_lift")
+
+
+def _analyse(records):
+    rows, shifts, notes = R.collect(records)
+    return rows, shifts, notes, R.success_rows(rows), R.association_rows(rows)
+
+
+def tables(records) -> dict[str, list]:
+    """{csv name: (columns, rows)} (empty when no run was perturbed)."""
+    if not R.is_perturbed(records):
+        return {}
+    rows, shifts, _, success, association = _analyse(records)
+    episodes = [(r.run, r.task, r.condition, r.level, r.seed, r.episode, r.status, r.success, r.nuisance_mass,
+                 r.distractor_mass, r.background_mass, r.target_lift) for r in rows]
+    return {"robustness.csv": (R.SUCCESS_COLUMNS, success), "robustness_episodes.csv": (EPISODE_COLUMNS, episodes),
+            "robustness_shift.csv": (R.SHIFT_COLUMNS, shifts),
+            "robustness_association.csv": (R.ASSOCIATION_COLUMNS, association)}
+
+
+def level_plot(task: str, success: list[tuple]) -> bytes:
+    """Success rate (Wilson band), target lift and nuisance mass against level, one line per condition."""
+    from harness.report.figures import _figure, _png, run_colours
+
+    cells = [s for s in success if s[0] == task]
+    conditions = list(dict.fromkeys(s[1] for s in cells))
+    colours = run_colours(len(conditions))
+    figure = _figure(12, 3.6)
+    axes = figure.subplots(1, 3)
+    for colour, condition in zip(colours, conditions):
+        c = sorted((s for s in cells if s[1] == condition), key=lambda s: s[2])
+        levels = [s[2] for s in c]
+        axes[0].plot(levels, [s[7] for s in c], "o-", color=colour, label=condition)
+        axes[0].fill_between(levels, [s[8] for s in c], [s[9] for s in c], color=colour, alpha=0.15)
+        axes[1].plot(levels, [s[13] for s in c], "o-", color=colour)
+        axes[2].plot(levels, [s[10] for s in c], "o-", color=colour)
+    for ax, title in zip(axes, ("success rate (Wilson 95%)", "target lift (last layer)", "nuisance mass (last layer)")):
+        ax.set_xlabel("level")
+        ax.set_title(title, fontsize=10)
+        ax.set_xticks(range(6))
+    axes[0].set_ylim(-0.02, 1.02)
+    axes[0].legend(fontsize=8)
+    figure.suptitle(task)
+    figure.tight_layout()
+    return _png(figure)
+
+
+def section(records, plots) -> str:
+    if not R.is_perturbed(records):
+        return ""
+    rows, shifts, notes, success, association = _analyse(records)
+    body = [H.note("Success against perturbation level per condition (level 0 = the nominal run), with Wilson 95% "
+                   "bands; target lift and nuisance mass (attention on the background and distractors: neither robot, "
+                   "target nor another task object) of the primary camera at the last layer, mean over each "
+                   "episode's steps. Numbers: tables/robustness*.csv.")]
+    for note in notes:
+        body.append(H.banner(note))
+    for task in dict.fromkeys(r.task for r in rows):
+        body.append(H.section(task, "", level=3))
+        body.append(H.Raw(f"<p>{H.esc(R.sentence(task, success, association))}</p>"))
+        body.append(plots.add(f"robustness_{H.anchor_id(task)[2:]}", level_plot(task, success), f"robustness {task}",
+                              "Success (Wilson band), target lift and nuisance mass against level, per condition."))
+        body.append(H.table(("condition", "level", "run", "success [Wilson 95%]", "errored", "target lift",
+                             "nuisance mass", "distractor mass"),
+                            [(s[1], s[2], s[3], H.Raw(f"{s[6]}/{s[4]} {H.fmt_ci(s[7], s[8], s[9], 2)}"), s[5],
+                              H.fmt(s[13], 2), H.fmt(s[10], 3), H.fmt(s[11], 3)) for s in success if s[0] == task],
+                            numeric=(1, 4)))
+        shift = [x for x in shifts if x[1] == task]
+        if shift:
+            table = {}
+            for run, _, condition, level, _, layer, js, lift in shift:
+                table.setdefault((condition, level, layer), []).append((js, lift))
+            body.append(H.table(("condition", "level", "layer", "pairs", "step-0 JS (bits), mean", "step-0 lift change, mean"),
+                                [(c, lvl, layer, len(v), H.fmt(float(np.mean([a for a, _ in v])), 4),
+                                  H.fmt(float(np.nanmean([b for _, b in v])) if any(math.isfinite(b) for _, b in v)
+                                        else math.nan, 2))
+                                 for (c, lvl, layer), v in sorted(table.items())], numeric=(1, 2, 3)))
+    body.append(H.table(("task", "episodes", "point-biserial r [Fisher 95%]", "nuisance mass: successes", "failures"),
+                        [(a[0], a[1], H.fmt_ci(a[2], a[3], a[4], 2), H.fmt(a[5], 3), H.fmt(a[6], 3)) for a in association],
+                        numeric=(1,)))
+    return H.section("Robustness", "".join(str(b) for b in body), anchor="robustness")
+
+
+SECTION = "## Robustness"
+
+
+def markdown(records, note: str = "") -> str:
+    """The Robustness section as Markdown (EVAL.md): per task a sentence and a table of success against level per
+    condition, target lift and nuisance mass; the association line per task."""
+    rows, _, notes, success, association = _analyse(records)
+    lines = [SECTION, "", note, ""] if note else [SECTION, ""]
+    lines += [f"- {n}" for n in notes]
+    for task in dict.fromkeys(r.task for r in rows):
+        lines += [R.sentence(task, success, association), "",
+                  "| condition | level | success | Wilson 95% | target lift | nuisance mass | distractor mass |",
+                  "|---|---|---|---|---|---|---|"]
+        for s in success:
+            if s[0] == task:
+                lines.append(f"| {s[1]} | {s[2]} | {s[6]}/{s[4]} | [{s[8]:.2f}, {s[9]:.2f}] | {s[13]:.2f} | {s[10]:.3f} | "
+                             f"{s[11]:.3f} |")
+        lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+def write_section(eval_md, records, note: str = "") -> None:
+    """Replace (or append) the Robustness section of an EVAL.md; other sections stay as they are."""
+    from pathlib import Path
+
+    path = Path(eval_md)
+    text = path.read_text() if path.is_file() else ""
+    head, _, rest = text.partition("\n" + SECTION + "\n")
+    after = ""
+    if rest and "\n## " in rest:
+        after = "\n## " + rest.split("\n## ", 1)[1]
+    path.write_text(head.rstrip("\n") + "\n\n" + markdown(records, note) + after)
+
+
+def main(argv=None) -> int:
+    import argparse
+    from pathlib import Path
+
+    from harness.analysis.runs import load_run
+
+    parser = argparse.ArgumentParser(prog="python -m harness.report.robustness",
+                                     description="Write the Robustness section of an EVAL.md from grid runs.")
+    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("--eval-md", type=Path, required=True)
+    parser.add_argument("--note", default="")
+    args = parser.parse_args(argv)
+    records = [load_run(p) for p in args.runs]
+    write_section(args.eval_md, records, args.note)
+    print(markdown(records, args.note))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

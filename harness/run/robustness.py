@@ -1,0 +1,107 @@
+"""`octo-harness robustness`: a grid of perturbation kinds x levels x tasks run into one folder of runs, resumable.
+
+The grid is one run per (kind, level > 0), each over every task, plus one nominal run that stands for level 0 of
+every kind (a protocol whose perturbations are all at level 0 IS the nominal protocol: same hash, same frames):
+
+    <out>/nominal/            the nominal protocol
+    <out>/<kind>-<level>/     --perturb <kind>:<level> (camera@image_wrist -> camera@image_wrist-3)
+    <out>/robustness.json     the grid: kinds, levels, tasks and {run name: perturb}
+
+Every run goes through `harness.run.execute`, so running the same command again resumes each run where it stopped
+and skips finished ones; the model is loaded once for the whole grid.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from envs.perturbations import KEYED_KINDS, KINDS, LEVELS, PerturbationError, parse_perturb
+from harness.files import atomic_write_json
+from harness.run.protocol import Protocol
+
+log = logging.getLogger(__name__)
+GRID_FILE = "robustness.json"
+NOMINAL = "nominal"
+
+
+def parse_kinds(text: str | list) -> tuple[str, ...]:
+    """"camera,lighting,camera@image_wrist" -> conditions (kind or kind@KEY), checked; one line on a bad one."""
+    items = [t.strip() for item in (text if isinstance(text, list) else [text]) for t in str(item).split(",") if t.strip()]
+    if not items:
+        raise PerturbationError(f"--perturb names no kind; kinds: {', '.join(KINDS)}")
+    for item in items:
+        parse_perturb(f"{item}:1")  # the same checks as a run's --perturb
+        if item.split("@")[0] not in KINDS:
+            raise PerturbationError(f"--perturb {item!r}: unknown kind; kinds: {', '.join(KINDS)}")
+    if len(set(items)) != len(items):
+        raise PerturbationError(f"--perturb {','.join(items)}: a kind is given twice")
+    return tuple(items)
+
+
+def parse_levels(text: str) -> tuple[int, ...]:
+    try:
+        levels = sorted({int(x) for x in str(text).split(",") if x.strip()})
+    except ValueError:
+        raise PerturbationError(f"--levels takes comma-separated integers 0-5, got {text!r}") from None
+    if not levels or any(level not in LEVELS for level in levels):
+        raise PerturbationError(f"--levels takes comma-separated integers 0-5, got {text!r}")
+    return tuple(levels)
+
+
+def run_name(condition: str, level: int) -> str:
+    return NOMINAL if level == 0 else f"{condition}-{level}"
+
+
+def grid(conditions: tuple[str, ...], levels: tuple[int, ...]) -> dict[str, str | None]:
+    """{run name: --perturb text or None (nominal)}, nominal first, then kind by kind, level by level."""
+    runs: dict[str, str | None] = {NOMINAL: None} if 0 in levels else {}
+    for condition in conditions:
+        for level in levels:
+            if level > 0:
+                runs[run_name(condition, level)] = f"{condition}:{level}"
+    return runs
+
+
+def run_grid(base: Protocol, conditions: tuple[str, ...], levels: tuple[int, ...], out: Path, *, executor=None,
+             model=None, progress: bool = True, overwrite: bool = False) -> dict:
+    """Run (or resume) every run of the grid into `out`; returns {run name: RunSummary}."""
+    from harness.run import checks
+    from harness.run.driver import execute
+
+    runs = grid(conditions, levels)
+    protocols = {name: base.replace(perturb=perturb) for name, perturb in runs.items()}
+    for protocol in protocols.values():  # every task x kind checked before anything runs
+        checks.check_perturbations(protocol)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    record = {"format": "octo-harness-robustness/1", "conditions": list(conditions), "levels": list(levels),
+              "tasks": list(base.tasks), "runs": runs}
+    existing = out / GRID_FILE
+    if existing.is_file() and not overwrite:
+        import json
+
+        try:
+            old = json.loads(existing.read_text())
+        except (OSError, ValueError):
+            old = None
+        if not isinstance(old, dict) or old.get("format") != record["format"]:
+            raise ValueError(f"{existing} is not a robustness grid file; choose another --out")
+        record["runs"] = {**old.get("runs", {}), **runs}  # a grid may grow by kinds or levels
+        record["conditions"] = list(dict.fromkeys([*old.get("conditions", []), *conditions]))
+        record["levels"] = sorted(set(old.get("levels", [])) | set(levels))
+    atomic_write_json(existing, record)
+    if model is None:
+        from harness.octo import load_pretrained
+
+        model = load_pretrained(base.model, text_tokenizer=base.text_tokenizer)
+    summaries = {}
+    for name, protocol in protocols.items():
+        log.info("robustness: run %s (%s)", name, protocol.perturb or "nominal")
+        summaries[name] = execute(protocol, out, name, overwrite=overwrite, executor=executor, model=model,
+                                  progress=progress)
+    return summaries
+
+
+def keyed(condition: str) -> bool:
+    return condition.split("@")[0] in KEYED_KINDS

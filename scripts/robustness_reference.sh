@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Robustness grid of the reference policy (docs/perturbations.md, EVAL.md): kinds x levels x tasks on held-out seeds
+# (seed 0 upward, as scripts/evaluate_reference.sh), fast render, no PNG/MP4, masks on, then the report with its
+# Robustness section (every number in OUT/report/tables/robustness_*.csv).
+#   bash scripts/robustness_reference.sh [TASKS] [KINDS] [LEVELS] [EPISODES] [OUT] [WORKERS]
+# The full grid of issue 27 is the default (20 episodes x levels 0,1,3,5 x every kind x Lift, Stack, PickPlaceCan);
+# the reduced grid in EVAL.md was: bash scripts/robustness_reference.sh Lift <every kind> 0,3,5 5
+# (run first with camera,lighting,distractors, then extended with the other kinds: a grid folder grows)
+# Resumable: re-running the same command finishes what a killed grid left.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+TASKS="${1:-Lift,Stack,PickPlaceCan}"
+KINDS="${2:-camera,lighting,texture,distractors,init-state,noise,language}"
+LEVELS="${3:-0,1,3,5}"
+EPISODES="${4:-20}"
+OUT="${5:-results/robustness-reference}"
+WORKERS="${6:-}"
+NOTE="${NOTE:-}"
+MODEL=models/octo-reference-robosuite
+export HF_HUB_OFFLINE=1 MUJOCO_GL="${MUJOCO_GL:-egl}"
+PY="${PYTHON:-.venv/bin/python}"
+workers=()
+[ -n "$WORKERS" ] && workers=(--workers "$WORKERS")
+"$PY" -m harness.cli robustness --model "$MODEL" --task "$TASKS" --perturb "$KINDS" --levels "$LEVELS" \
+    --episodes "$EPISODES" --seed 0 --fast-render --png-every 0 --no-video --out "$OUT" "${workers[@]}"
+runs=()
+for d in "$OUT"/*/; do [ -f "$d/manifest.json" ] && runs+=("$d"); done
+"$PY" -m harness.cli report "${runs[@]}" --out "$OUT/report"
+# EVAL.md's "## Robustness" section (other sections stay)
+"$PY" -m harness.report.robustness "${runs[@]}" --eval-md "$MODEL/EVAL.md" --note \
+    "Made by \`bash scripts/robustness_reference.sh $TASKS $KINDS $LEVELS $EPISODES\`: \`octo-harness robustness --model $MODEL --task $TASKS --perturb $KINDS --levels $LEVELS --episodes $EPISODES --seed 0 --fast-render --png-every 0 --no-video\` (held-out seeds 0..$((EPISODES - 1)), each task at its own step limit, masks on; kinds and levels: docs/perturbations.md). Target lift and nuisance mass: primary camera, last layer, mean over each episode's steps. $NOTE"
