@@ -269,7 +269,7 @@ def test_a_paraphrase_is_the_instruction_the_env_reports():
 # ------------------------------------------------------------------------------------------- hostile input
 
 def test_a_foreign_perturb_in_a_manifest_is_one_line(tmp_path):
-    from harness.run.schema import MalformedRunError, check_protocol
+    from harness.runfolder.schema import MalformedRunError, check_protocol
 
     good = Protocol(model="random:octo-small-1.5", tasks=("Lift",), perturb="camera:2").to_dict()
     with pytest.raises(MalformedRunError, match="protocol.perturb"):

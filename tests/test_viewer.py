@@ -112,6 +112,12 @@ def test_recording_holds_the_entity_tree_every_step_and_the_attention_values(run
     executed_steps, executed = _column(rrd, "/actions/executed", "Scalar")
     with np.load(episode / "actions.npz") as z:
         np.testing.assert_array_equal(np.asarray(executed, np.float32), z["executed"])
+    # the task phase on the timeline: its index in the task's phases, as attention.npz records it (envs.phases)
+    phase_steps, phase = _column(rrd, "/scalars/phase", "Scalar")
+    with np.load(episode / "attention.npz") as z:
+        assert [str(n) for n in z["phase_names"]] == ["approach", "grasp", "lift"]
+        np.testing.assert_array_equal(np.asarray(phase, np.float64).ravel(), z["phase"].astype(np.float64))
+    assert phase_steps.tolist() == list(range(STEPS))
 
 
 @pytest.mark.slow

@@ -48,6 +48,7 @@ from urllib.parse import quote
 import numpy as np
 from PIL import Image
 
+from envs.phases import phase_names
 from harness.analysis.attention import camera_maps, fuse_heads
 from harness.files import temp_path
 from harness.octo.tokens import TokenMap
@@ -431,6 +432,10 @@ class RerunSink:
         self._scalars("scalars/success", float(bool(record.success)), ["success"])
         if record.inferred:
             self._scalars("scalars/new_chunk", 1.0)
+        phases = phase_names(self.meta.task) if getattr(record, "phase", None) is not None else ()
+        if record.phase in phases:  # the task phase on the timeline, as its index (envs.phases)
+            self._scalars("scalars/phase", float(phases.index(record.phase)),
+                          ["phase: " + ", ".join(f"{i} {name}" for i, name in enumerate(phases))])
         for name, values in (metrics or {}).items():
             self._measure(name, np.asarray(values, np.float32), metrics)
         self._buffered_steps += 1

@@ -28,7 +28,7 @@ from harness.analysis.attribution import OctoFunctions, analyse, attribute, pars
 from harness.analysis.faithfulness import FILLS, k_values, ranking
 from harness.analysis.runs import load_run
 from harness.run.replay import ReplayInputError, _inputs_path, recorded_inputs
-from harness.run.schema import protocol_from_manifest
+from harness.run.protocol import protocol_from_manifest
 
 log = logging.getLogger(__name__)
 

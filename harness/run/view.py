@@ -27,7 +27,7 @@ from harness.files import write_atomic
 from harness.octo.tokens import TokenMap
 from harness.outputs.rerun_sink import RRD_NAME, RerunSink, SinkOptions, import_rerun
 from harness.records import EpisodeMeta, StepRecord
-from harness.run.schema import protocol_from_manifest
+from harness.run.protocol import protocol_from_manifest
 
 
 class ViewInputError(ValueError):
@@ -194,9 +194,12 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
     try:
         predicted = actions.get("predicted")
         inferred = actions.get("inferred", np.ones(steps, bool))
+        phase_index, phase_list = attention.get("phase"), [str(n) for n in attention.get("phase_names", ())]
         for i in range(steps):
             step = int(attention["step"][i]) if "step" in attention else i
             again = records[i] if i < len(records) else None
+            phase = (phase_list[int(phase_index[i])] if phase_index is not None and 0 <= int(phase_index[i]) < len(phase_list)
+                     else None)  # the task phase attention.npz recorded (envs.phases)
             record = StepRecord(
                 step=step, frames=dict(again.frames) if again is not None else {},
                 readout_attention=attn[i],
@@ -204,7 +207,7 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
                 action_executed=actions["executed"][i], reward=float(actions["reward"][i]),
                 success=bool(actions["success"][i]), masks=again.masks if again is not None else None,
                 inferred=bool(inferred[i]), attribution=attribution.get(step),
-                policy_inputs=again.policy_inputs if again is not None else None)
+                policy_inputs=again.policy_inputs if again is not None else None, phase=phase)
             metrics = {name: attention[f"metrics/{name}"][i] for name in metric_names}
             sink.log_step(record, tokens, {k: v for k, v in metrics.items() if np.all(np.isfinite(v))})
         summary = ep.read_json()
