@@ -512,12 +512,13 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
                                "run the candidate on the baseline's tasks and seeds")
     truncated = (_truncated(baseline), _truncated(candidate))
     details = [_compare_pair(task, seed, b, c, truncated, config) for task, seed, b, c in pairs]
-    return _result(baseline, candidate, details, missing, truncated, config)
+    return _result(baseline, candidate, details, missing, truncated, config, differs, require_complete)
 
 
 def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], missing: dict, truncated: tuple,
-            config: CompareConfig) -> dict:
-    """The comparison dict of paired episode details (`task` names the Holm family's cells)."""
+            config: CompareConfig, differs: dict, require_complete: bool = True) -> dict:
+    """The comparison dict of paired episode details (`task` names the Holm family's cells); `differs`: what
+    differs between the protocols (`what_differs`); require_complete: as in `compare_runs`."""
     tables, errored = outcome_tables(details)
     outcomes = outcome_verdicts(tables, config, errored)
     identical = all(d["identical"] for d in details) and not missing["baseline"] and not missing["candidate"]
@@ -592,7 +593,8 @@ def read_grid(path: str | Path) -> dict:
     return grid
 
 
-def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig()) -> dict:
+def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig(),
+                  require_complete: bool = True) -> dict:
     """Two robustness grids, condition by condition: every (task, condition) is one cell of the Holm family (plus
     the pooled table), so a candidate that holds its nominal success but loses one condition by more than max_drop
     is REGRESSED / SUSPECT there, at the same family-wise alpha as a task of `compare_runs`. Every condition of the
@@ -623,7 +625,8 @@ def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: C
             missing[side] += [[f"{t} / {name}", s] for t, s in miss[side]]
     if not details:
         raise IncompatibleRuns(f"no (task, seed) pair is finished in both grids {baseline_dir} and {candidate_dir}")
-    result = _result(arms[0], arms[1], details, missing, truncated, config)
+    result = _result(arms[0], arms[1], details, missing, truncated, config,
+                     what_differs(_protocol(arms[0]), _protocol(arms[1])), require_complete)
     result["grid"] = {"baseline": str(Path(baseline_dir).resolve()), "candidate": str(Path(candidate_dir).resolve()),
                       "conditions": list(base_grid["runs"]), "cells": len(result["outcomes"]["tasks"]),
                       "perturb": dict(base_grid["runs"])}
