@@ -43,6 +43,7 @@ from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays,
 from harness.analysis.stats import success_summary
 from harness.report import faithfulness, figures, page, phases, position, robustness
 from harness.report.rundata import RunData, episode_headline, representative
+from harness.report.rundata import csv_bytes as _csv
 
 VIDEO_DISPLAY = 256  # harness.outputs.overlays.video_frame's `display`: the camera frame fills the video's top-left display x w
 
@@ -272,14 +273,6 @@ def _side_by_side(pngs: list[bytes]) -> bytes:
 # ---- tables --------------------------------------------------------------------------------------------------------
 
 
-def _csv(columns, rows) -> bytes:
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(columns)
-    for row in rows:
-        writer.writerow(["" if (isinstance(v, float) and not math.isfinite(v)) else (f"{v:.6g}" if isinstance(v, float) else v)
-                         for v in row])
-    return buffer.getvalue().encode()
 
 
 def _tables(runs: list[RunData], summaries: dict | None = None) -> dict[str, bytes]:

@@ -34,6 +34,7 @@ from harness.analysis.faithfulness import relative_to_random
 from harness.analysis.paired import PairedCounts, mcnemar_exact, newcombe_paired_interval
 from harness.analysis.stats import wilson_interval
 from harness.report import html as H
+from harness.report.rundata import csv_bytes as _csv
 
 FAITH_COLUMNS = ("run", "task", "camera", "method", "steps", "episodes", "change_all_median",
                  "deletion_rel", "deletion_ci_low", "deletion_ci_high", "insertion_rel", "insertion_ci_low",
@@ -207,16 +208,6 @@ def _row(name: str, base_name: str, spec: str, task: str, b: list[bool], c: list
             mcnemar_exact(counts.baseline_only, counts.candidate_only))
 
 
-def _csv(columns, rows) -> bytes:
-    import csv
-
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(columns)
-    for row in rows:
-        writer.writerow(["" if isinstance(v, float) and not math.isfinite(v) else (f"{v:.6g}" if isinstance(v, float) else v)
-                         for v in row])
-    return buffer.getvalue().encode()
 
 
 def _label(run) -> str:

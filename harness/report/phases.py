@@ -32,6 +32,7 @@ import numpy as np
 from harness.analysis import phases as P
 from harness.analysis.runs import read_npz
 from harness.report import html as H
+from harness.report.rundata import csv_bytes as _csv
 
 WINDOW = 10  # steps either side of an event
 TABLE_COLUMNS = ("run", "task", "phase", "camera", "mask", "layer", "value", "ci_low", "ci_high", "n")
@@ -149,16 +150,6 @@ def summarise(run, resamples: int = 2000, seed: int = 0) -> dict[str, list[tuple
     return rows
 
 
-def _csv(columns, rows) -> bytes:
-    import csv
-
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(columns)
-    for row in rows:
-        writer.writerow(["" if isinstance(v, float) and not math.isfinite(v) else (f"{v:.6g}" if isinstance(v, float) else v)
-                         for v in row])
-    return buffer.getvalue().encode()
 
 
 def _all(runs) -> list[dict[str, list[tuple]]]:

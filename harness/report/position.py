@@ -30,6 +30,7 @@ from harness.analysis.attention import camera_maps
 from harness.analysis.runs import read_npz
 from harness.octo.tokens import TokenMap
 from harness.report import html as H
+from harness.report.rundata import csv_bytes as _csv
 
 BOUND_COLUMNS = ("run", "task", "camera", "layer", "head", "row", "col", "real", "blank", "mirrored", "flagged")
 SHARE_COLUMNS = ("run", "task", "camera", "layer", "head", "steps", "remaining_share", "follows_share",
@@ -143,16 +144,6 @@ def summarise(run) -> dict:
     return out
 
 
-def _csv(columns, rows) -> bytes:
-    import csv
-
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(columns)
-    for row in rows:
-        writer.writerow(["" if isinstance(v, float) and not math.isfinite(v) else (f"{v:.6g}" if isinstance(v, float) else v)
-                         for v in row])
-    return buffer.getvalue().encode()
 
 
 def tables(runs, summaries: list | None = None) -> dict[str, bytes]:

@@ -4,6 +4,10 @@ share categories). Plain data filled by harness.report.build, read by harness.re
 
 from __future__ import annotations
 
+import csv
+import io
+import math
+
 from collections import defaultdict
 from dataclasses import dataclass, field
 
@@ -91,3 +95,15 @@ def _scatter(rows, key_of, position_of) -> dict[tuple, tuple[np.ndarray, np.ndar
             v[pos], lo[pos], hi[pos] = r[5], r[6], r[7]
         out[key] = (v, lo, hi)
     return out
+
+
+def csv_bytes(columns, rows) -> bytes:
+    """One CSV table of the report (tables/*.csv) as bytes: a header row, floats to 6 significant digits, non-finite
+    values as empty cells."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(columns)
+    for row in rows:
+        writer.writerow(["" if isinstance(v, float) and not math.isfinite(v) else (f"{v:.6g}" if isinstance(v, float) else v)
+                         for v in row])
+    return buffer.getvalue().encode()
