@@ -300,9 +300,9 @@ class RunStore:
                 match = _EPISODE_DIR.match(path.name)
                 if not match or (task, int(match.group(1))) in keep:
                     continue
-                if path.is_symlink() or (path.exists() and not path.is_dir()):
+                if path.is_symlink():
                     path.unlink()
-                elif path.is_dir():
+                elif path.is_dir():  # a file in an episode's place is not the run's: kept (that episode fails)
                     shutil.rmtree(path)
                 else:
                     continue
