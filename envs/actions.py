@@ -123,3 +123,19 @@ def libero_action(action: np.ndarray) -> tuple[np.ndarray, bool]:
     osc = np.clip(action, -1.0, 1.0)
     osc[6] = -np.sign(2.0 * np.clip(action[6], 0.0, 1.0) - 1.0)
     return osc, clipped
+
+
+def controller_action(action: np.ndarray, action_space: str, adapter: ActionAdapterConfig,
+                      hold_gripper: float | None = None) -> tuple[np.ndarray, bool]:
+    """A policy's action in `action_space` ("octo-delta", "robosuite", "libero") -> (OSC controller input, clipped),
+    the one conversion every env applies. hold_gripper: the env takes 6-D arm actions and appends this gripper value."""
+    if hold_gripper is not None:
+        arm = np.asarray(action, np.float32).reshape(-1)
+        if arm.shape != (6,):
+            raise ValueError(f"this env holds the gripper at {hold_gripper:g} and takes 6-D actions, got {arm.shape[0]}-D")
+        action = np.append(arm, np.float32(hold_gripper))
+    if action_space == "robosuite":
+        return passthrough_action(np.asarray(action))
+    if action_space == "libero":
+        return libero_action(np.asarray(action))
+    return adapt_action(np.asarray(action), adapter)

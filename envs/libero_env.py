@@ -43,7 +43,7 @@ import gymnasium as gym
 import numpy as np
 
 from envs import libero_wire
-from envs.actions import ActionAdapterConfig, adapt_action, libero_action, passthrough_action
+from envs.actions import ActionAdapterConfig, controller_action
 from envs.camera import project_points
 from envs.libero_tasks import SETTLE_STEPS, suite_and_index
 from envs.options import EnvConfigError, to_convention
@@ -261,18 +261,7 @@ class LiberoEnv(gym.Env):
     def step(self, action):
         if self._last_obs is None:
             raise gym.error.ResetNeeded("call reset() before step()")
-        if self.config.hold_gripper is not None:
-            arm = np.asarray(action, np.float32).reshape(-1)
-            if arm.shape != (6,):
-                raise ValueError(f"this env holds the gripper at {self.config.hold_gripper:g} and takes 6-D actions, "
-                                 f"got {arm.shape[0]}-D")
-            action = np.append(arm, np.float32(self.config.hold_gripper))
-        if self.config.action_space == "robosuite":
-            osc, clipped = passthrough_action(np.asarray(action))
-        elif self.config.action_space == "libero":
-            osc, clipped = libero_action(np.asarray(action))
-        else:
-            osc, clipped = adapt_action(np.asarray(action), self.adapter)
+        osc, clipped = controller_action(action, self.config.action_space, self.adapter, self.config.hold_gripper)
         reply = self._server.call("step", action=np.asarray(osc, np.float64))
         raw, self.last_server_seconds = reply["obs"], float(reply.get("seconds", 0.0))
         self._step_index += 1

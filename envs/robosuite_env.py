@@ -44,7 +44,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from envs import gl
-from envs.actions import ActionAdapterConfig, adapt_action, libero_action, passthrough_action
+from envs.actions import ActionAdapterConfig, controller_action
 from envs.camera import project_points
 from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvConfigError, to_convention
 from envs.render import CameraSpec, SceneRenderer
@@ -289,18 +289,7 @@ class RobosuiteEnv(gym.Env):
         self._check_thread()
         if self._last_obs is None:
             raise gym.error.ResetNeeded("call reset() before step()")
-        if self.config.hold_gripper is not None:
-            arm = np.asarray(action, np.float32).reshape(-1)
-            if arm.shape != (6,):
-                raise ValueError(f"this env holds the gripper at {self.config.hold_gripper:g} and takes 6-D actions, "
-                                 f"got {arm.shape[0]}-D")
-            action = np.append(arm, np.float32(self.config.hold_gripper))
-        if self.config.action_space == "robosuite":
-            osc, clipped = passthrough_action(np.asarray(action))
-        elif self.config.action_space == "libero":
-            osc, clipped = libero_action(np.asarray(action))
-        else:
-            osc, clipped = adapt_action(np.asarray(action), self.adapter)
+        osc, clipped = controller_action(action, self.config.action_space, self.adapter, self.config.hold_gripper)
         raw, reward, _, _ = self._env.step(osc[: self._env.action_dim])  # Wipe's gripper-less arm takes 6 values
         self._step_index += 1
         self._clipped += int(clipped)
