@@ -12,6 +12,8 @@ Protocol (OpenVLA's LIBERO evaluation, experiments/robot/libero/run_libero_eval.
   reset(seed=k)  restores the task's stored initial state k (k < 50; more is an error naming the limit), then
                  takes SETTLE_STEPS (10) no-op actions (arm still, gripper open) so dropped objects come to rest;
                  they are not episode steps. The env is made with seed 0, as OpenVLA's.
+                 reset(seed=s, options={"initial_state": "sampled"}) instead places the objects with LIBERO's own
+                 sampler seeded s (the regions the stored states were drawn from): demonstrations start there.
   truncation     after the suite's step limit (spatial 220, object 280, goal 300, libero_10 520, libero_90 400).
   success        LIBERO's own predicate (`check_success`, the BDDL goal); the episode terminates on it.
 Observations:
@@ -182,9 +184,6 @@ class LiberoEnv(gym.Env):
     def __init__(self, task: TaskSpec, config) -> None:
         if config.render_mode not in (None, "rgb_array"):
             raise EnvConfigError(f"render_mode {config.render_mode!r} unsupported; use None or 'rgb_array'")
-        if config.fast_render:
-            raise EnvConfigError("--fast-render is not available for LIBERO tasks: they render as LIBERO renders (the "
-                                 "published protocol's images); drop --fast-render")
         if config.robosuite_options:
             raise EnvConfigError(f"LIBERO tasks take no robosuite options; got {dict(config.robosuite_options)}")
         self.task = task
@@ -196,6 +195,7 @@ class LiberoEnv(gym.Env):
         self.settle_steps = SETTLE_STEPS
         suite, index = suite_and_index(task.name)
         self._make_args = {"suite": suite, "task": index, "masks": bool(config.masks),
+                           "fast_render": bool(config.fast_render),
                            "cameras": [[spec.key, spec.camera, spec.size] for spec in config.cameras]}
         self._server = None
         self.description = self._start_server()
@@ -243,17 +243,24 @@ class LiberoEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
+        options = dict(options or {})
         state_index = 0 if seed is None else int(seed)
         count = int(self.description["init_states"])
-        if not 0 <= state_index < count:
+        initial = options.get("initial_state", "stored")
+        if initial not in ("stored", "sampled"):
+            raise EnvConfigError(f"initial_state must be 'stored' or 'sampled', got {initial!r}")
+        if initial == "stored" and not 0 <= state_index < count:
             raise EnvConfigError(f"{self.task.name} stores initial states 0..{count - 1}; episode seed {state_index} "
                                  f"has none (use --seed S --episodes N with S + N <= {count})")
-        settle = self.settle_steps if options is None else int(options.get("settle_steps", self.settle_steps))
+        settle = int(options.get("settle_steps", self.settle_steps))
         if self._server is None or self._server.process is None or self._server.process.poll() is not None:
             if self._server is not None:  # it died (its episode was recorded as failed): a fresh one for this episode
                 self._server.close()
             self.description = self._start_server()
-        raw = self._server.call("reset", state_index=state_index, settle_steps=settle)["obs"]
+        if initial == "stored":
+            raw = self._server.call("reset", state_index=state_index, settle_steps=settle)["obs"]
+        else:  # demonstrations: LIBERO's own placement sampler, seeded, never a stored evaluation state
+            raw = self._server.call("reset", state_index=None, placement_seed=state_index, settle_steps=settle)["obs"]
         self._step_index = 0
         self._clipped = 0
         return self._observe(raw), self._info(raw)
@@ -359,6 +366,32 @@ class LiberoEnv(gym.Env):
     def grasping(self, name: str) -> bool:
         """Whether both finger pads touch object instance `name` (robosuite's grasp check)."""
         return bool(self._server.call("grasping", name=name)["grasping"])
+
+    def episode_outcome(self) -> dict:
+        """What the episode did to the scene, from the simulator state now (the rollout asks at the episode's end):
+        {"picked_object": the movable object that is in (or on) a goal object of the task (the instruction's objects
+        of interest after the first, e.g. the basket) or, if none is, the one held in the gripper; None when neither,
+        "placed": [objects in/on a goal object], "held": [objects both finger pads touch], "objects": the movable
+        objects it considered}."""
+        poses = self.object_poses()
+        interest = [_owner(n, self.description["instances"]) for n in self.description["interest"]]
+        goals = [g for g in dict.fromkeys(interest[1:]) if g in poses]
+        movable = [n for n in self.description.get("movable", self.description["objects"]) if n in poses and n not in goals]
+        placed = []
+        for name in movable:
+            low, high = poses[name]["low"], poses[name]["high"]
+            centre = (low + high) / 2
+            for goal in goals:
+                g_low, g_high = poses[goal]["low"], poses[goal]["high"]
+                inside = np.all(centre[:2] >= g_low[:2] - 0.01) and np.all(centre[:2] <= g_high[:2] + 0.01)
+                if inside and low[2] <= g_high[2] + 0.03 and high[2] >= g_low[2]:
+                    placed.append(name)
+                    break
+        held = [name for name in movable if self.grasping(name)]
+        picked = placed[0] if len(placed) == 1 else (held[0] if len(held) == 1 and not placed else None)
+        if len(placed) > 1:  # several objects in the goal: the one the gripper left last is not knowable here
+            picked = None
+        return {"picked_object": picked, "placed": placed, "held": held, "objects": movable}
 
     @property
     def robosuite_env(self):

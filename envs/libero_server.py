@@ -6,10 +6,11 @@ Messages (`libero_wire`): the driver sends {"op": ..., ...}, the server answers 
 {"ok": false, "error": "<one line>", "traceback": "..."}. Operations:
 
   versions                          -> versions of the LIBERO side and the GL renderer's strings
-  make  suite, task, cameras [[key, camera, size]], masks
+  make  suite, task, cameras [[key, camera, size]], masks, fast_render
                                     -> instances (names, index i+1 in the id images), objects of interest, robot
                                        instances, camera fovy, controller limits, instruction, state size
   reset state_index, settle_steps   -> observation after set_init_state(state k) and `settle_steps` no-op actions
+        (state_index null, placement_seed s: a placement LIBERO's sampler draws with seed s instead of a stored state)
   step  action (7,)                 -> observation, reward, success
   get_state / set_state state       -> the flattened MuJoCo state (set_state also re-observes)
   init_state state_index            -> the task's stored initial state
@@ -99,7 +100,7 @@ def owner(name: str, instances: list) -> str:
 class Task:
     """One LIBERO task's OffScreenRenderEnv with the cameras and masks the harness asked for."""
 
-    def __init__(self, suite: str, task_index: int, cameras: list, masks: bool):
+    def __init__(self, suite: str, task_index: int, cameras: list, masks: bool, fast_render: bool = False):
         import logging
 
         logging.getLogger("robosuite_logs").setLevel(logging.ERROR)
@@ -148,6 +149,9 @@ class Task:
         if unknown:
             raise ValueError(f"LIBERO scene has no camera {unknown[0]!r}; cameras: {', '.join(available)}")
         self.masks = bool(masks) and render
+        self.fast_render = bool(fast_render) and render
+        if self.fast_render:
+            self._fast_render()
         self.instances = list(inner.model.instances_to_ids.keys())
         index = {name: i + 1 for i, name in enumerate(self.instances)}
         lookup = np.zeros(model.ngeom + 1, np.uint8)
@@ -169,7 +173,24 @@ class Task:
             "output_max": np.asarray(controller.output_max, np.float64), "control_freq": float(inner.control_freq),
             "state_size": int(self.init_states.shape[1]), "init_states": int(self.init_states.shape[0]),
             "action_dim": int(inner.action_dim),
+            "movable": [n for n in self.objects if getattr(inner.objects_dict.get(n), "joints", None)],
         }
+
+    def _fast_render(self) -> None:
+        """The harness's fast render (envs.render.SceneRenderer(fast=True)): no shadows, reflections, skybox or
+        multisample anti-aliasing in the offscreen context every camera of this env renders through."""
+        import mujoco
+
+        sim = self.env.env.sim
+        context = sim._render_context_offscreen
+        flags = context.scn.flags
+        flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+        flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
+        flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = 0
+        context.gl_ctx.make_current()
+        context.con.free()
+        sim.model.vis.quality.offsamples = 0
+        context._set_mujoco_context_and_buffers()
 
     def observe(self, raw: dict) -> dict:
         inner = self.env.env
@@ -194,14 +215,19 @@ class Task:
         ids = np.where((objtype == MJOBJ_GEOM) & (objid >= 0) & (objid < len(self.lookup) - 1), objid, len(self.lookup) - 1)
         return self.lookup[ids]
 
-    def reset(self, state_index: int, settle_steps: int) -> dict:
-        if not 0 <= state_index < len(self.init_states):
+    def reset(self, state_index: int | None, settle_steps: int, placement_seed: int | None = None) -> dict:
+        """Stored initial state `state_index`, or (state_index None) a placement LIBERO's own sampler draws with
+        numpy's global RNG seeded `placement_seed` (the BDDL regions the stored states were drawn from)."""
+        if state_index is None:
+            if placement_seed is None or not 0 <= int(placement_seed) < 2**32:
+                raise ValueError(f"a sampled placement needs a seed in 0..2**32-1, got {placement_seed!r}")
+        elif not 0 <= state_index < len(self.init_states):
             raise ValueError(f"initial state {state_index} does not exist: this task stores {len(self.init_states)} "
                              f"(0..{len(self.init_states) - 1})")
         # LIBERO places fixtures (bodies without joints, which the stored states do not hold) by sampling numpy's
         # global RNG at every reset; seeding it before each reset makes the scene a function of the state index
         # alone, whatever ran before (OpenVLA seeds 0 once per task and draws on from there).
-        self.env.seed(0)
+        self.env.seed(0 if state_index is not None else int(placement_seed))
         self.env.reset()
         # A soft reset (hard_reset=False) keeps the model, so robosuite's Panda gripper keeps its `current_action`
         # (an integrator of the commands it received) from the previous episode; a hard reset (OpenVLA's) builds a
@@ -210,7 +236,10 @@ class Task:
         for robot in self.env.env.robots:
             if getattr(robot, "gripper", None) is not None and hasattr(robot.gripper, "current_action"):
                 robot.gripper.current_action = np.zeros_like(robot.gripper.current_action)
-        raw = self.env.set_init_state(self.init_states[state_index])
+        if state_index is not None:
+            raw = self.env.set_init_state(self.init_states[state_index])
+        else:  # the sampled placement, observed as set_init_state observes a stored one
+            raw = self.env.set_init_state(self.get_state())
         for _ in range(settle_steps):
             raw, _, _, _ = self.env.step(NOOP_ACTION.copy())
         return self.observe(raw)
@@ -289,7 +318,8 @@ def serve(stdin, stdout) -> None:
                 if task is not None:
                     task.close()
                     task = None
-                task = Task(message["suite"], int(message["task"]), message.get("cameras") or [], bool(message.get("masks")))
+                task = Task(message["suite"], int(message["task"]), message.get("cameras") or [], bool(message.get("masks")),
+                            bool(message.get("fast_render")))
                 reply = {"task": task.description}
             elif op == "close":
                 libero_wire.write_message(stdout, {"ok": True})
@@ -297,7 +327,9 @@ def serve(stdin, stdout) -> None:
             elif task is None:
                 raise RuntimeError(f"operation {op!r} before make")
             elif op == "reset":
-                reply = {"obs": task.reset(int(message["state_index"]), int(message.get("settle_steps", 0)))}
+                index = message.get("state_index")
+                reply = {"obs": task.reset(None if index is None else int(index), int(message.get("settle_steps", 0)),
+                                           message.get("placement_seed"))}
             elif op == "step":
                 reply = {"obs": task.step(message["action"])}
             elif op == "get_state":

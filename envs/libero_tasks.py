@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import json
+import re
 from pathlib import Path
 
 from envs.tasks import TaskSpec, UnknownTaskError
@@ -27,6 +28,29 @@ def _table() -> dict:
     return json.loads(TABLE_PATH.read_text())
 
 
+# Paraphrases of LIBERO-Object's instructions ("pick up the X and place it in the basket"): the same task in other
+# words, used by the reference policy's training (harness.reference.libero_demos) and `--perturb language`.
+_OBJECT_INSTRUCTION = re.compile(r"^pick up the (?P<object>.+) and place it in the basket$")
+_OBJECT_PARAPHRASES = ("put the {object} in the basket", "place the {object} into the basket",
+                       "grab the {object} and drop it in the basket", "move the {object} to the basket")
+
+
+def paraphrases(instruction: str) -> tuple[str, ...]:
+    """Paraphrases of a LIBERO instruction: LIBERO-Object's pattern has four; other instructions have none."""
+    match = _OBJECT_INSTRUCTION.match(instruction)
+    return tuple(p.format(object=match["object"]) for p in _OBJECT_PARAPHRASES) if match else ()
+
+
+def named_object(instruction: str) -> str | None:
+    """The object a LIBERO-Object instruction (or one of its paraphrases) names ("alphabet soup"), else None."""
+    for pattern in (_OBJECT_INSTRUCTION, *(re.compile("^" + re.escape(p).replace(r"\{object\}", "(?P<object>.+)") + "$")
+                                           for p in _OBJECT_PARAPHRASES)):
+        match = pattern.match(instruction.strip().lower())
+        if match:
+            return match["object"]
+    return None
+
+
 @functools.lru_cache(maxsize=1)
 def libero_tasks() -> tuple[TaskSpec, ...]:
     """Every LIBERO task of the five suites as a TaskSpec (targets: the BDDL objects of interest)."""
@@ -34,7 +58,8 @@ def libero_tasks() -> tuple[TaskSpec, ...]:
     for suite in SUITES:
         for index, task in enumerate(_table()["suites"][suite]):
             specs.append(TaskSpec(
-                name=f"{suite}/{index}", robosuite_env="libero", instruction=task["instruction"], paraphrases=(),
+                name=f"{suite}/{index}", robosuite_env="libero", instruction=task["instruction"],
+                paraphrases=paraphrases(task["instruction"]),
                 targets=tuple(task["objects_of_interest"]), max_episode_steps=STEP_LIMITS[suite],
                 simulator="libero", initial_states=int(task["initial_states"])))
     return tuple(specs)

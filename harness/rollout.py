@@ -37,6 +37,9 @@ class EpisodeResult:
     # the task's phases (envs.phases), None for tasks without a phase function: {"names": [...], "steps": {phase:
     # recorded steps in it}, "furthest": the furthest phase of any state, the final one (after the last step) included}
     phases: dict | None = None
+    # what the episode did to the scene, from the simulator state at its end, for envs that say (LiberoEnv's
+    # episode_outcome: the object picked); None for the others
+    outcome: dict | None = None
 
 
 def rollout(
@@ -108,7 +111,9 @@ def rollout(
         seen_phases.append(info.get("phase"))
         if terminated or truncated:
             break
+    outcome = getattr(getattr(env, "unwrapped", env), "episode_outcome", None)
     return EpisodeResult(
+        outcome=outcome() if callable(outcome) else None,
         success=success,
         steps=t,
         total_reward=total_reward,

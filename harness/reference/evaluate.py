@@ -66,10 +66,18 @@ def summarise_runs(run_dirs: list[Path]) -> list[dict]:
     return rows
 
 
-def markdown(rows: list[dict], note: str = "") -> str:
+def markdown(rows: list[dict], note: str = "", title: str = "octo-reference-robosuite") -> str:
     layers = max((len(v) for r in rows for v in r["target_lift"].values()), default=0)
     header = "| task | n | successes | rate | Wilson 95% CI | seeds | camera | " + " | ".join(f"lift L{i}" for i in range(layers)) + " |"
-    lines = ["# octo-reference-robosuite: evaluation", "", note, "", header, "|" + "---|" * (7 + layers)]
+    lines = [f"# {title}: evaluation", "", note, ""]
+    if len(rows) > 1:  # the average over tasks (every task weighs the same) and the pooled interval
+        n, successes = sum(r["n"] for r in rows), sum(r["successes"] for r in rows)
+        low, high = wilson_interval(successes, n) if n else (float("nan"), float("nan"))
+        average = float(np.mean([r["rate"] for r in rows]))
+        lowest = min(rows, key=lambda r: r["rate"])
+        lines += [f"Average over the {len(rows)} tasks: **{average:.1%}** ({successes}/{n} episodes, Wilson 95% "
+                  f"[{low:.2f}, {high:.2f}]); lowest task: {lowest['task']} {lowest['rate']:.0%}.", ""]
+    lines += [header, "|" + "---|" * (7 + layers)]
     for r in rows:
         cams = list(r["target_lift"].items()) or [("-", [])]
         for i, (camera, lift) in enumerate(cams):
@@ -97,8 +105,9 @@ def main(argv: list[str] | None = None) -> int:
     kept = ""  # sections written by other scripts (e.g. "## Faithfulness", scripts/faithfulness_reference.sh) stay
     if eval_md.is_file() and "\n## " in eval_md.read_text():
         kept = "\n## " + eval_md.read_text().split("\n## ", 1)[1]
-    eval_md.write_text(markdown(rows, args.note) + kept)
-    print(markdown(rows, args.note))
+    title = args.out.resolve().name
+    eval_md.write_text(markdown(rows, args.note, title) + kept)
+    print(markdown(rows, args.note, title))
     return 0
 
 

@@ -210,7 +210,8 @@ def _stats(x: np.ndarray, mask: np.ndarray) -> dict:
 
 
 def build_dataset(demos: dict[str, dict[str, np.ndarray]], horizon: int,
-                  normalise_with: dict[str, dict[str, np.ndarray]] | None = None) -> Dataset:
+                  normalise_with: dict[str, dict[str, np.ndarray]] | None = None,
+                  dataset_key: str = DATASET_KEY) -> Dataset:
     """Concatenate all tasks; action chunks a[t:t+horizon] (masked past the end); mean/std normalisation.
 
     `normalise_with` (default `demos`): the data whose action and proprio statistics normalise (DAgger
@@ -241,7 +242,7 @@ def build_dataset(demos: dict[str, dict[str, np.ndarray]], horizon: int,
     proprio_stats = _stats(reference_proprio, np.ones(PROPRIO_DIM, bool))
     norm_actions = np.where(action_mask, (chunks - action_stats["mean"]) / action_stats["std"], chunks)
     norm_proprio = (proprio - proprio_stats["mean"]) / proprio_stats["std"]
-    statistics = {DATASET_KEY: {
+    statistics = {dataset_key: {
         "action": action_stats, "proprio": proprio_stats, "num_transitions": n,
         "num_trajectories": int(sum(len(demos[t]["lengths"]) for t in tasks)),
     }}
@@ -374,7 +375,8 @@ def write_curve(folder: Path, rows: list[dict]) -> None:
     path.with_suffix(".tmp").replace(path)
 
 
-def plot_curve(folder: Path, rows: list[dict], head: str = "l1") -> None:
+def plot_curve(folder: Path, rows: list[dict], head: str = "l1",
+               title: str = "octo-reference-robosuite: training curve") -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -386,7 +388,7 @@ def plot_curve(folder: Path, rows: list[dict], head: str = "l1") -> None:
     ax.set_xlabel("training step")
     every = rows[1]["step"] - rows[0]["step"] if len(rows) > 1 else 1
     ax.set_ylabel(f"{'L1' if head == 'l1' else 'diffusion'} loss (mean of {every} steps)")
-    ax.set_title("octo-reference-robosuite: training curve")
+    ax.set_title(title)
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(folder / "training_curve.png")
@@ -398,24 +400,31 @@ def plot_curve(folder: Path, rows: list[dict], head: str = "l1") -> None:
 
 def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: TrainConfig = TrainConfig(),
           extra_files: dict[str, str] | None = None,
-          normalise_with: dict[str, dict[str, np.ndarray]] | None = None) -> dict:
+          normalise_with: dict[str, dict[str, np.ndarray]] | None = None,
+          instructions: dict[str, tuple[str, ...]] | None = None, dataset_key: str = DATASET_KEY,
+          conventions: str | None = None) -> dict:
     """Train on `demos` ({task: arrays from demos.load_demos}) and save into `out_dir`; returns a summary.
 
     `normalise_with`: the data whose statistics normalise actions and proprio (default `demos`).
+    `instructions`: {task: (instruction, paraphrases...)}, the same number per task (default: the robosuite
+    tasks' from the registry); `dataset_key`: the statistics key; `conventions`: harness.toml's text (default:
+    the robosuite reference's, `conventions_toml(cfg)`).
     """
     out_dir = Path(out_dir)
     start = time.perf_counter()
-    instructions = task_instructions()
+    instructions = instructions or task_instructions()
     tasks = list(demos)
     texts = [s for t in tasks for s in instructions[t]]  # per task: default, then paraphrases
     per_task = len(instructions[tasks[0]])
+    if any(len(instructions[t]) != per_task for t in tasks):
+        raise ValueError("every task needs as many paraphrases as the others")
     tokenizer = build_tokenizer(texts)
     vocab = tokenizer.get_vocab_size()
     t5_dict = t5_config_dict(vocab, cfg.t5_width)
     t5 = T5Config.from_hf_dict(t5_dict)
     config_dict = model_config(cfg)
     config = OctoConfig.from_dict(config_dict)
-    data = build_dataset(demos, cfg.action_horizon, normalise_with)
+    data = build_dataset(demos, cfg.action_horizon, normalise_with, dataset_key)
     sizes = dict(cfg.image_sizes)
 
     key = jax.random.PRNGKey(cfg.seed)
@@ -451,7 +460,7 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
         "action": np.zeros((1, 1, cfg.action_horizon, ACTION_DIM), np.float32),
     }
     write_static_files(out_dir, config_dict, tokenizer, t5_dict, data.statistics, example_batch)
-    (out_dir / "harness.toml").write_text(conventions_toml(cfg))
+    (out_dir / "harness.toml").write_text(conventions if conventions is not None else conventions_toml(cfg))
     for name, content in (extra_files or {}).items():
         (out_dir / name).write_text(content)
 
@@ -486,8 +495,9 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     def sample_batch():
         task = rng.choice(len(tasks), cfg.batch_size, p=p_task)
         idx = np.array([by_task[t][rng.integers(0, len(by_task[t]))] for t in task])
-        phrase = np.where(rng.random(cfg.batch_size) < cfg.paraphrase_probability,
-                          rng.integers(1, per_task, cfg.batch_size), 0)
+        phrase = (np.where(rng.random(cfg.batch_size) < cfg.paraphrase_probability,
+                           rng.integers(1, per_task, cfg.batch_size), 0) if per_task > 1
+                  else np.zeros(cfg.batch_size, np.int64))
         return {
             **{k: data.images[k][idx][:, None] for k in sizes},
             "proprio": data.proprio[idx][:, None],
@@ -512,7 +522,7 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
             full = {**trainable, "octo_transformer": {**trainable["octo_transformer"], "task_tokenizers_language": t5_params}}
             write_params(out_dir, step, full)
             log.info("checkpoint %d written", step)
-    plot_curve(out_dir, rows, cfg.head)
+    plot_curve(out_dir, rows, cfg.head, title=f"{out_dir.name}: training curve")
     summary = {"parameters": n_params, "frames": int(len(data.actions)), "train_seconds": time.perf_counter() - t0,
                "total_seconds": time.perf_counter() - start, "final_loss": rows[-1]["loss"], "config": asdict(cfg),
                "warm_start": warm}

@@ -4,7 +4,9 @@ Every parameter whose path and shape match is copied. A patch-grid position embe
 size (a camera now resized to more pixels, so more patches) is resampled bilinearly over the grid: the
 SmallStem16 convolutions, the transformer and the heads do not depend on the image size, so after this the
 new model computes on a finer grid what the old one computed on the coarse one, and training starts from
-a policy that already acts. Anything else that differs (a new parameter, a changed width) is an error:
+a policy that already acts. The frozen language encoder's word table may differ in its number of rows (a new
+task set has another word vocabulary): the fresh, seeded table stays. Anything else that differs (a new
+parameter, a changed width) is an error:
 warm-starting across architectures would silently keep a random part.
 """
 
@@ -21,6 +23,8 @@ from flax import traverse_util
 from harness.octo.checkpoint import read_params, select_step
 
 log = logging.getLogger(__name__)
+
+FROZEN_ENCODER = "octo_transformer/task_tokenizers_language/"  # the frozen T5 (harness.reference.train.split_t5)
 
 
 def resize_grid_embedding(embedding: np.ndarray, tokens: int) -> np.ndarray:
@@ -45,7 +49,7 @@ def warm_start(params: dict, folder: str | Path) -> tuple[dict, dict]:
     folder = Path(folder)
     source = traverse_util.flatten_dict(read_params(folder, select_step(folder, None)))  # {(key, ...): array}
     target = traverse_util.flatten_dict(params)
-    out, resized = {}, []
+    out, resized, fresh = {}, [], []
     for key, value in target.items():
         path = "/".join(key)
         if key not in source:
@@ -57,9 +61,18 @@ def warm_start(params: dict, folder: str | Path) -> tuple[dict, dict]:
         elif path.endswith("_pos_embedding") and old.shape[:-2] == value.shape[:-2] and old.shape[-1] == value.shape[-1]:
             out[key] = resize_grid_embedding(old, value.shape[-2])
             resized.append(f"{path} {old.shape} -> {value.shape}")
+        elif path.startswith(FROZEN_ENCODER) and old.shape[1:] == value.shape[1:]:
+            # the frozen language encoder's word table over another vocabulary (other tasks' words): its rows
+            # belong to other words, so the fresh (seeded) table stays
+            out[key] = np.asarray(value, np.float32)
+            fresh.append(f"{path} {old.shape} -> {value.shape}")
         else:
             raise ValueError(f"--init-from {folder}: {path} has shape {old.shape}, the new model needs {value.shape}; "
                              "only patch-grid position embeddings can change size")
-    log.info("warm start from %s: %d parameters copied, %d resized (%s)", folder, len(out) - len(resized),
-             len(resized), "; ".join(resized) or "none")
-    return traverse_util.unflatten_dict(out), {"copied": len(out) - len(resized), "resized": resized}
+    log.info("warm start from %s: %d parameters copied, %d resized (%s), %d kept fresh (%s)", folder,
+             len(out) - len(resized) - len(fresh), len(resized), "; ".join(resized) or "none", len(fresh),
+             "; ".join(fresh) or "none")
+    summary = {"copied": len(out) - len(resized) - len(fresh), "resized": resized}
+    if fresh:
+        summary["fresh"] = fresh
+    return traverse_util.unflatten_dict(out), summary

@@ -14,6 +14,7 @@ page (harness.report.page) -> files. Output folder:
   tables/faithfulness.csv, interventions.csv   harness/report/faithfulness.py
   tables/phase_*.csv   task phases: phase x layer table, steps, tests, event-aligned views, failures (report/phases.py)
   tables/position_bound.csv, position_share.csv, position_lift.csv   attention controls (report/position.py)
+  tables/grounding_*.csv  LIBERO-Object runs: object picked vs named, named-object lift per layer (report/grounding.py)
   tables/robustness*.csv  when a run was perturbed: success per task x condition x level, episode measures,
                      step-0 attention shift against the nominal episode, nuisance-success association
   plots/*.png        every figure of the page
@@ -41,7 +42,7 @@ import numpy as np
 from harness.analysis import aggregate as agg
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays, load_run
 from harness.analysis.stats import success_summary
-from harness.report import faithfulness, figures, page, phases, position, robustness
+from harness.report import faithfulness, figures, grounding, page, phases, position, robustness
 from harness.report.rundata import RunData, episode_headline, representative
 from harness.report.rundata import csv_bytes as _csv
 
@@ -299,6 +300,8 @@ def _tables(runs: list[RunData], summaries: dict | None = None) -> dict[str, byt
         **position.tables(runs, (summaries or {}).get("position")),  # position_*.csv (harness/report/position.py)
         # robustness*.csv when a run was perturbed (harness/report/robustness.py)
         **{name: _csv(cols, rows) for name, (cols, rows) in robustness.tables([run.record for run in runs]).items()},
+        # grounding_*.csv when a run holds LIBERO-Object episodes (harness/report/grounding.py)
+        **{name: _csv(cols, rows) for name, (cols, rows) in grounding.tables([run.record for run in runs]).items()},
     }
 
 

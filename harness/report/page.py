@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.report import faithfulness, figures, phases, position, robustness
+from harness.report import faithfulness, figures, grounding, phases, position, robustness
 from harness.report import html as H
 from harness.report.rundata import RunData, episode_headline, representative, share_categories
 
@@ -41,12 +41,15 @@ def render(runs: list[RunData], tasks: list[str], out: Path, overlays: dict[tupl
     body.append(position_html)
     robust = robustness.section([run.record for run in runs], plots)  # "" unless a run was perturbed
     body.append(robust)
+    grounded = grounding.section([run.record for run in runs])  # "" unless a run holds LIBERO-Object episodes
+    body.append(grounded)
     body.append(H.section("Run manifest", "".join(_manifest_section(run) for run in runs), anchor="manifest"))
     body.append(H.section("Definitions", H.Raw(_DEFINITIONS), anchor="definitions"))
     toc = [("cross-task", "Cross-task comparison")] + [(H.anchor_id("task-" + t), t) for t in tasks] + [
         ("manifest", "Run manifest"), ("definitions", "Definitions")]
     for html_, anchor, name in ((faith, "faithfulness", "Faithfulness"), (phase_html, "phases", "Phases"),
-                                (position_html, "position", "Position"), (robust, "robustness", "Robustness")):
+                                (position_html, "position", "Position"), (robust, "robustness", "Robustness"),
+                                (grounded, "grounding", "Grounding")):
         if html_:
             toc.insert(-2, (anchor, name))
     title = "Attention report: " + " vs ".join(run.label for run in runs)

@@ -121,15 +121,9 @@ def markdown(records, note: str = "") -> str:
 
 def write_section(eval_md, records, note: str = "") -> None:
     """Replace (or append) the Robustness section of an EVAL.md; other sections stay as they are."""
-    from pathlib import Path
+    from harness.report.rundata import replace_markdown_section
 
-    path = Path(eval_md)
-    text = path.read_text() if path.is_file() else ""
-    head, _, rest = text.partition("\n" + SECTION + "\n")
-    after = ""
-    if rest and "\n## " in rest:
-        after = "\n## " + rest.split("\n## ", 1)[1]
-    path.write_text(head.rstrip("\n") + "\n\n" + markdown(records, note) + after)
+    replace_markdown_section(eval_md, SECTION, markdown(records, note))
 
 
 def main(argv=None) -> int:

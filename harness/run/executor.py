@@ -117,6 +117,7 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
         written = writer.finish({"success": result.success, "steps": result.steps, "total_reward": result.total_reward,
                                  "actions_clipped": result.actions_clipped, "timings": result.timings,
                                  **({"phases": result.phases} if result.phases is not None else {}),
+                                 **({"outcome": result.outcome} if result.outcome is not None else {}),
                                  **({"perturbation": drawn} if drawn is not None else {})})
         files = data_digests(episode_dir, (Path(p).name for p in written["paths"].values()))  # size and sha256
     except (KeyboardInterrupt, EnvMismatchError):  # a model/env mismatch is the protocol's error: refuse the run

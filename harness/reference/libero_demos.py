@@ -1,0 +1,157 @@
+"""LIBERO-Object demonstrations from the scripted expert, recorded through the harness's LIBERO env path.
+
+Each episode starts from a placement LIBERO's own sampler draws (`LiberoEnv.reset(seed=s, options={"initial_state":
+"sampled"})`: the BDDL regions the suite's stored states were drawn from) with seeds LIBERO_SEED_BASE + 10_000 *
+task + k, never from the 50 stored initial states the published evaluation uses. The env is the one the policy
+will be evaluated in: cameras at the model's sizes (agentview 128 px, eye-in-hand 64 px, so no resize), the "rot180"
+image convention of OpenVLA's LIBERO datasets, fast render, the "libero" action space (6 OSC values in [-1, 1],
+gripper 1 open / 0 closed), LIBERO's 8-D proprio. As for the robosuite reference (harness.reference.demos), Gaussian
+noise perturbs the *executed* arm input while the label stays the expert's clean action (DART), so the data cover
+the states a learned policy drifts into; an episode the expert fails under noise is dropped and the next seed used.
+
+Output per task: `<suite>_<index>.npz` in the layout of harness.reference.demos (image_primary, image_wrist,
+proprio, action, episode, step, seeds, lengths), plus summary.json.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from harness.reference.demos import config_fingerprint, finished_recording, run_jobs, save_episodes
+from harness.reference.libero_expert import LiberoExpertConfig, LiberoObjectExpert
+
+log = logging.getLogger(__name__)
+
+LIBERO_SEED_BASE = 1_000_000  # placement seeds of task i: 1_000_000 + 10_000 i + k (evaluation uses stored states)
+SEEDS_PER_JOB = 1_000
+LIBERO_OBJECT_TASKS = tuple(f"libero_object/{i}" for i in range(10))
+# the reference model's cameras: observation key -> (LIBERO camera, square size rendered)
+LIBERO_CAMERAS = (("image_primary", "agentview", 128), ("image_wrist", "robot0_eye_in_hand", 64))
+
+
+@dataclass(frozen=True)
+class LiberoDemoConfig:
+    tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS
+    episodes: int = 20  # demonstrations per task
+    jobs_per_task: int = 2  # fixed split, so the data do not depend on the number of workers
+    cameras: tuple[tuple[str, str, int], ...] = LIBERO_CAMERAS
+    image_convention: str = "rot180"
+    fast_render: bool = True
+    noise: float = 0.3  # std of the Gaussian noise on the executed position input (OSC units)
+    max_steps: int = 280  # LIBERO-Object's step limit
+    expert: LiberoExpertConfig = field(default_factory=LiberoExpertConfig)
+
+    def task_seed_base(self, task: str) -> int:
+        return LIBERO_SEED_BASE + 10_000 * int(task.split("/")[1])
+
+
+def task_file(task: str) -> str:
+    """"libero_object/3" -> "libero_object_3.npz"."""
+    return task.replace("/", "_") + ".npz"
+
+
+def make_env(task: str, config: LiberoDemoConfig):
+    import envs
+
+    return envs.make(task, cameras={k: (c, s) for k, c, s in config.cameras}, image_convention=config.image_convention,
+                     fast_render=config.fast_render, action_space="libero", max_episode_steps=config.max_steps)
+
+
+def record_episode(env, target: str, seed: int, config: LiberoDemoConfig) -> dict | None:
+    """One noisy expert episode from sampled placement `seed`; arrays as in harness.reference.demos, or None when
+    the expert failed."""
+    rng = np.random.default_rng(seed)
+    obs, info = env.reset(seed=seed, options={"initial_state": "sampled"})
+    expert = LiberoObjectExpert(target, config=config.expert)
+    keys = [k for k, _, _ in config.cameras]
+    frames = {k: [] for k in keys}
+    proprio, actions = [], []
+    for _ in range(config.max_steps):
+        label = expert.act(env, obs)
+        for key in keys:
+            frames[key].append(obs[key])
+        proprio.append(obs["proprio"].astype(np.float32))
+        actions.append(label)
+        executed = label.copy()
+        executed[:3] = np.clip(executed[:3] + config.noise * rng.standard_normal(3), -1.0, 1.0)
+        obs, _, terminated, truncated, info = env.step(executed)
+        if info["success"] or truncated:
+            break
+    if not info["success"]:
+        return None
+    out = {k: np.stack(v) for k, v in frames.items()}
+    out["proprio"] = np.stack(proprio)
+    out["action"] = np.stack(actions).astype(np.float32)
+    return out
+
+
+def _record_job(args: tuple) -> tuple[list[dict], list[int], int]:
+    """Spawned worker: `count` successful episodes of `task` from placement seeds `first_seed`, `first_seed + 1`..."""
+    task, first_seed, count, config = args
+    from envs.libero_tasks import get_libero_task
+
+    target = get_libero_task(task).targets[0]
+    env = make_env(task, config)
+    episodes, seeds, dropped = [], [], 0
+    seed = first_seed
+    try:
+        while len(episodes) < count:
+            if seed >= first_seed + SEEDS_PER_JOB:
+                raise RuntimeError(f"{task}: the expert failed on too many placements from seed {first_seed}")
+            episode = record_episode(env, target, seed, config)
+            if episode is None:
+                dropped += 1
+            else:
+                episodes.append(episode)
+                seeds.append(seed)
+            seed += 1
+    finally:
+        env.close()
+    return episodes, seeds, dropped
+
+
+def record_libero_demos(config: LiberoDemoConfig, out_dir: str | Path, workers: int = 2) -> dict:
+    """Record every task's demonstrations into `out_dir/<suite>_<index>.npz`; returns a summary per task."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    jobs = []
+    for task in config.tasks:
+        counts = np.full(config.jobs_per_task, config.episodes // config.jobs_per_task)
+        counts[: config.episodes % config.jobs_per_task] += 1
+        for j, count in enumerate(counts):
+            jobs.append((task, config.task_seed_base(task) + j * SEEDS_PER_JOB, int(count), config))
+    start = time.perf_counter()
+    results = run_jobs(_record_job, jobs, workers)
+    summary = {}
+    for task in config.tasks:
+        parts = [r for job, r in zip(jobs, results) if job[0] == task]
+        episodes = [e for p in parts for e in p[0]]
+        seeds = [s for p in parts for s in p[1]]
+        lengths = save_episodes(out_dir / task_file(task), episodes, seeds)
+        summary[task] = {"episodes": len(episodes), "steps": int(lengths.sum()), "mean_length": float(lengths.mean()),
+                         "dropped": int(sum(p[2] for p in parts)), "seed_min": int(min(seeds)), "seed_max": int(max(seeds))}
+        log.info("%s: %s", task, summary[task])
+    summary["seconds"] = time.perf_counter() - start
+    summary["config"] = config_fingerprint(config)
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def existing_libero_demos(config: LiberoDemoConfig, out_dir: str | Path) -> dict | None:
+    """The summary of a finished recording with exactly this configuration in `out_dir`, else None."""
+    return finished_recording(out_dir, config_fingerprint(config), tuple(task_file(t)[:-4] for t in config.tasks))
+
+
+def load_libero_demos(out_dir: str | Path, tasks: tuple[str, ...]) -> dict[str, dict[str, np.ndarray]]:
+    """{task: arrays} from record_libero_demos' files."""
+    out = {}
+    for task in tasks:
+        with np.load(Path(out_dir) / task_file(task)) as data:
+            out[task] = {k: data[k] for k in data.files}
+    return out

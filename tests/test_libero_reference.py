@@ -1,0 +1,238 @@
+"""The LIBERO-Object reference policy (issue 32): demonstrations from sampled placements (never the stored evaluation
+states), the picked object read from the simulator, paraphrases and the named object, the trainer's LIBERO
+conventions, and the grounding measures with known answers (quick ones on synthetic episodes; the LIBERO ones start
+the real LIBERO environment and are marked slow, as in tests/test_libero.py)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import envs
+from envs import libero_tasks
+from envs.libero_env import LiberoEnvironmentMissing, libero_python
+from harness.analysis import grounding as G
+
+REPO = Path(__file__).resolve().parents[1]
+MODEL = REPO / "models" / "octo-reference-libero-object"
+
+
+def _needs_libero() -> None:
+    try:
+        libero_python()
+    except LiberoEnvironmentMissing as exc:
+        if os.environ.get("CI", "").strip().lower() in ("1", "true", "yes"):
+            pytest.fail(f"CI=true and {exc}")
+        pytest.skip(str(exc))
+
+
+# ------------------------------------------------------------------------------------------------ quick, no LIBERO
+
+
+def test_libero_object_paraphrases_name_the_same_object_and_other_suites_have_none():
+    for i in range(10):
+        spec = envs.get_task(f"libero_object/{i}")
+        words = libero_tasks.named_object(spec.instruction)
+        assert words and spec.targets[0].startswith(words.replace(" ", "_"))
+        assert len(spec.paraphrases) == 4 and len(set(spec.paraphrases)) == 4
+        assert all(libero_tasks.named_object(p) == words for p in spec.paraphrases)
+    assert envs.get_task("libero_spatial/0").paraphrases == ()
+    assert libero_tasks.named_object("open the top drawer of the cabinet") is None
+    assert libero_tasks.named_object("blorp the zizzle quantum") is None
+
+
+def test_instance_of_and_grasp_step_known_answers():
+    objects = ("alphabet_soup_1", "basket_1", "cream_cheese_1", "milk_1")
+    assert G.instance_of("alphabet soup", objects) == "alphabet_soup_1"
+    assert G.instance_of("milk", objects) == "milk_1"
+    assert G.instance_of("orange juice", objects) is None  # not in this scene
+    assert G.instance_of(None, objects) is None
+    executed = np.zeros((6, 7), np.float32)
+    executed[:, 6] = [1, 1, 1, 0, 0, 1]
+    assert G.grasp_step(executed) == 3
+    executed[:, 6] = 1
+    assert G.grasp_step(executed) == -1
+    assert G.grasp_step(np.zeros((0, 7))) == -1
+
+
+def _episode(folder: Path, instruction: str, picked, masses: dict[str, list[float]], areas: dict[str, float],
+             gripper: list[float], layers: int = 2) -> Path:
+    """A synthetic LIBERO episode folder: attention.npz object measures (same mass at every layer), actions.npz,
+    episode.json with the instruction and the outcome."""
+    folder.mkdir(parents=True)
+    steps = len(gripper)
+    arrays = {}
+    for name, mass in masses.items():
+        arrays[f"measures/layer/mask_mass/image_primary/object.{name}"] = np.repeat(
+            np.asarray(mass, np.float32)[:, None], layers, axis=1)
+        arrays[f"metrics/mask_area/image_primary/object.{name}"] = np.full(steps, areas[name], np.float32)
+    np.savez(folder / "attention.npz", **arrays)
+    executed = np.zeros((steps, 7), np.float32)
+    executed[:, 6] = gripper
+    np.savez(folder / "actions.npz", executed=executed)
+    (folder / "episode.json").write_text(json.dumps({"instruction": instruction,
+                                                     "outcome": {"picked_object": picked}}))
+    return folder
+
+
+def _record(name: str, task: str, folders: list[Path], success: list[bool]):
+    episodes = tuple(SimpleNamespace(task=task, episode=k, seed=k, status="ok", ok=True, success=s, directory=f,
+                                     attention_path=f / "attention.npz") for k, (f, s) in enumerate(zip(folders, success)))
+    return SimpleNamespace(name=name, tasks=(task,), episodes=episodes)
+
+
+def test_grounding_measures_known_answers(tmp_path):
+    """Task 0's scene: the named object (alphabet soup) holds 0.3 of the mass on 0.05 of the image (lift 6) up to
+    the grasp at step 2, cream cheese 0.1 on 0.05 (lift 2); after the grasp the masses swap, which must not count.
+    A swap to cream cheese that picks the cream cheese is a hit; the language-blind rate of that swap is how often the
+    own-instruction episodes (same seeds) picked the cream cheese: 0 of 2."""
+    own = envs.get_task("libero_object/0").instruction
+    swapped = envs.get_task("libero_object/1").instruction  # cream cheese
+    areas = {"alphabet_soup_1": 0.05, "cream_cheese_1": 0.05, "basket_1": 0.1}
+    masses = {"alphabet_soup_1": [0.3, 0.3, 0.3, 0.05], "cream_cheese_1": [0.1, 0.1, 0.1, 0.6], "basket_1": [0.1] * 4}
+    folders = [_episode(tmp_path / f"own{k}", own, "alphabet_soup_1", masses, areas, [1, 1, 0, 0]) for k in range(2)]
+    swap_folders = [_episode(tmp_path / "swap0", swapped, "cream_cheese_1", masses, areas, [1, 1, 0, 0]),
+                    _episode(tmp_path / "swap1", swapped, "alphabet_soup_1", masses, areas, [1, 1, 1, 1])]
+    records = [_record("own", "libero_object/0", folders, [True, True]),
+               _record("swap", "libero_object/0", swap_folders, [False, True])]
+    rows, notes = G.collect(records)
+    assert not notes and len(rows) == 4
+    assert [r.grasp_step for r in rows] == [2, 2, 2, -1]
+    summary, per_object = G.lift_rows(rows)
+    last = [s for s in summary if s[0] == "own" and s[3] == 1][0]
+    assert last[4] == 2 and last[5] == pytest.approx(6.0) and last[6] == pytest.approx((2.0 + 1.0) / 2)
+    assert last[7] == pytest.approx(2.0) and (last[9], last[10]) == (2, 2)  # named on top at the grasp in both
+    named = [o for o in per_object if o[0] == "own" and o[3] == 0 and o[5] == "named"]
+    assert [o[4] for o in named] == ["alphabet_soup_1"]
+    swaps = {s[0]: s for s in G.swap_rows(rows)}
+    assert swaps["own"][3] == "own" and swaps["own"][5] == 2 and swaps["own"][4] == 2
+    s = swaps["swap"]
+    assert s[3] == "swap" and (s[4], s[5], s[9], s[11]) == (2, 1, 1, 0)  # 1 named, 1 scene target, none 0
+    assert s[12] == 0.0 and s[13] == 2  # blind: the own-instruction episodes never picked the cream cheese
+
+
+def test_grounding_reads_foreign_episode_files_as_notes_not_crashes(tmp_path):
+    own = envs.get_task("libero_object/0").instruction
+    good = _episode(tmp_path / "good", own, None, {"alphabet_soup_1": [0.1], "milk_1": [0.1]},
+                    {"alphabet_soup_1": 0.1, "milk_1": 0.1}, [1])
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "episode.json").write_text("[1, 2")
+    rows, notes = G.collect([_record("r", "libero_object/0", [good, bad], [False, False])])
+    assert len(rows) == 1 and rows[0].picked is None and rows[0].grasp_step == -1
+    assert len(notes) == 1 and "episode_1: unreadable" in notes[0]
+
+
+def test_libero_conventions_parse_and_name_the_libero_action_space(tmp_path):
+    from harness.conventions import CheckpointConventions
+    from harness.reference.libero_pipeline import DATASET_KEY, conventions_toml
+
+    (tmp_path / "harness.toml").write_text(conventions_toml())
+    conventions = CheckpointConventions.read(tmp_path)
+    options = conventions.env_options()
+    assert options.action_space == "libero" and options.image_convention == "rot180"
+    assert options.camera_dict == {"image_primary": ("agentview", 128), "image_wrist": ("robot0_eye_in_hand", 64)}
+    assert conventions.policy_config().dataset_key == DATASET_KEY
+
+
+# ------------------------------------------------------------------------------------------------ LIBERO environment
+
+
+@pytest.fixture(scope="module")
+def camera_free_env():
+    _needs_libero()
+    env = envs.make("libero_object/0", cameras={}, action_space="libero")
+    yield env
+    env.close()
+
+
+@pytest.mark.slow
+def test_sampled_placements_repeat_per_seed_and_are_none_of_the_stored_evaluation_states(camera_free_env):
+    env = camera_free_env
+    env.reset(seed=1_000_000, options={"initial_state": "sampled", "settle_steps": 0})
+    first = env.sim_state()
+    env.reset(seed=3)  # a stored state in between
+    env.reset(seed=1_000_000, options={"initial_state": "sampled", "settle_steps": 0})
+    np.testing.assert_array_equal(env.sim_state(), first)
+    env.reset(seed=1_000_001, options={"initial_state": "sampled", "settle_steps": 0})
+    assert not np.allclose(env.sim_state(), first)
+    stored = np.stack([env.initial_state(k) for k in range(50)])
+    assert stored.shape[1] == first.shape[0]
+    # objects' free joints differ from every stored state by more than settling noise (1 mm)
+    assert np.min(np.max(np.abs(stored[:, 1:] - first[None, 1:]), axis=1)) > 1e-3
+
+
+@pytest.mark.slow
+def test_the_outcome_names_the_object_in_the_basket_or_none(camera_free_env):
+    env = camera_free_env
+    env.reset(seed=0)
+    outcome = env.episode_outcome()
+    assert (outcome["picked_object"], outcome["placed"], outcome["held"]) == (None, [], [])
+    assert "alphabet_soup_1" in outcome["objects"] and "basket_1" not in outcome["objects"]
+    basket = env.object_poses()["basket_1"]
+    centre = (basket["low"] + basket["high"]) / 2
+    env.place_object("cream_cheese_1", [centre[0], centre[1], basket["low"][2] + 0.06])
+    for _ in range(15):
+        env.step(np.array([0, 0, 0, 0, 0, 0, 1.0], np.float32))
+    outcome = env.episode_outcome()
+    assert outcome["picked_object"] == "cream_cheese_1" and outcome["placed"] == ["cream_cheese_1"]
+
+
+@pytest.mark.slow
+def test_a_demonstration_from_a_sampled_placement_is_recorded_as_the_policy_sees_it():
+    _needs_libero()
+    from harness.reference.libero_demos import LiberoDemoConfig, make_env, record_episode
+
+    config = LiberoDemoConfig()
+    env = make_env("libero_object/6", config)
+    try:
+        episode = record_episode(env, "butter_1", config.task_seed_base("libero_object/6"), config)
+    finally:
+        env.close()
+    assert episode is not None  # the expert succeeds under the recording noise
+    n = len(episode["action"])
+    assert 50 < n < config.max_steps
+    assert episode["image_primary"].shape == (n, 128, 128, 3) and episode["image_wrist"].shape == (n, 64, 64, 3)
+    assert episode["proprio"].shape == (n, 8)
+    assert set(np.unique(episode["action"][:, 6])) == {0.0, 1.0}  # the libero gripper: 1 open, 0 closed
+    assert np.abs(episode["action"][:, :6]).max() <= 1.0
+
+
+def test_the_pipeline_trains_libero_tasks_warm_started_from_the_robosuite_reference(tmp_path):
+    """Two training steps on synthetic frames of two LIBERO-Object tasks, warm-started from the committed robosuite
+    reference: every parameter copied except the frozen T5 word table (another vocabulary: kept fresh); the result
+    loads as an Octo checkpoint with the LIBERO conventions, and its vocabulary holds the objects' words."""
+    from dataclasses import replace
+
+    from harness.octo import load_pretrained
+    from harness.reference.libero_pipeline import DATASET_KEY, conventions_toml, instructions
+    from harness.reference.train import TrainConfig, train
+
+    rng = np.random.default_rng(0)
+    tasks = ("libero_object/0", "libero_object/7")
+    demos = {}
+    for task in tasks:
+        n = 9
+        demos[task] = {"image_primary": rng.integers(0, 255, (n, 128, 128, 3), np.uint8),
+                       "image_wrist": rng.integers(0, 255, (n, 64, 64, 3), np.uint8),
+                       "proprio": rng.normal(size=(n, 8)).astype(np.float32),
+                       "action": np.concatenate([rng.uniform(-1, 1, (n, 6)), rng.integers(0, 2, (n, 1))], 1).astype(np.float32),
+                       "episode": np.repeat([0, 1], [5, 4]).astype(np.int32), "step": np.r_[0:5, 0:4].astype(np.int32),
+                       "seeds": np.array([1, 2]), "lengths": np.array([5, 4], np.int32)}
+    config = replace(TrainConfig(), steps=2, batch_size=4, log_every=1, checkpoint_every=2, warmup_steps=1,
+                     task_weights=(), init_from=str(REPO / "models" / "octo-reference-robosuite"))
+    summary = train(demos, tmp_path, config, instructions=instructions(tasks), dataset_key=DATASET_KEY,
+                    conventions=conventions_toml())
+    assert [f.split()[0] for f in summary["warm_start"]["fresh"]] == [
+        "octo_transformer/task_tokenizers_language/hf_model/shared/embedding"]
+    assert summary["warm_start"]["copied"] > 100 and not summary["warm_start"]["resized"]
+    model = load_pretrained(str(tmp_path))
+    assert model.unnormalization_statistics(DATASET_KEY)["mask"].tolist() == [True] * 6 + [False]
+    vocab = json.loads((tmp_path / "tokenizer" / "tokenizer.json").read_text())["model"]["vocab"]
+    assert {"alphabet", "soup", "milk", "basket", "grab"} <= set(vocab) and "ketchup" not in vocab
+    assert 'action_space = "libero"' in (tmp_path / "harness.toml").read_text()
