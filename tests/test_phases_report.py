@@ -16,22 +16,11 @@ from harness import cli
 from harness.analysis import position as Q
 from harness.analysis.attention import camera_maps
 from harness.octo.tokens import TokenMap
+from tests.runfolder_edits import redigest  # as if a run had written the edited files
 from tests.test_report_e2e import _browser
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "octo-reference-robosuite"
 EVERY = 3
-
-
-def _redigest(run_dir: Path) -> None:
-    """Record the episode files' current sizes and digests in results.jsonl, as if the run had written them: what a
-    consistent but foreign folder looks like to the reader (harness/runfolder/integrity.py)."""
-    from harness.runfolder.integrity import data_digests
-
-    rows = [json.loads(line) for line in (run_dir / "results.jsonl").read_text().splitlines()]
-    for row in rows:
-        if row.get("files"):
-            row["files"] = data_digests(run_dir / row["directory"], list(row["files"]))
-    (run_dir / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
 
 
 def _rows(path: Path) -> list[dict]:
@@ -147,7 +136,7 @@ def test_foreign_and_damaged_files_are_left_out(run, tmp_path):
     np.savez(second / "controls.npz", **controls)
     # the reader refuses files whose digests differ from what the run recorded (one line naming the file)
     assert cli.main(["report", str(copy), "--out", str(tmp_path / "refused"), "--resamples", "50"]) == 2
-    _redigest(copy)  # now as if a run had written them: the sections must still not trust them
+    redigest(copy)  # now as if a run had written them: the sections must still not trust them
     assert cli.main(["report", str(copy), "--out", str(tmp_path / "report"), "--resamples", "50"]) == 0
     assert _rows(tmp_path / "report" / "tables" / "position_bound.csv") == []
     assert _rows(tmp_path / "report" / "tables" / "phase_steps.csv")[0]["episodes"] == "1"  # the first one is fine
@@ -189,7 +178,7 @@ def test_a_run_without_masks_reports_its_phases_and_says_why_nothing_is_tested(r
             kept = {k: z[k] for k in z.files
                     if not k.startswith(("mask_fraction/", "metrics/mask_", "measures/layer/mask_", "measures/head/mask_"))}
         np.savez(npz, **kept)
-    _redigest(copy)
+    redigest(copy)
     assert cli.main(["report", str(copy), "--out", str(tmp_path / "report"), "--resamples", "50"]) == 0
     assert len(_rows(tmp_path / "report" / "tables" / "phase_steps.csv")) == 3
     assert _rows(tmp_path / "report" / "tables" / "phase_tests.csv") == []
