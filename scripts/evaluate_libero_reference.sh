@@ -1,12 +1,15 @@
 #!/usr/bin/env bash
-# Evaluate the LIBERO-Object reference policy as its EVAL.md reports it (docs/libero.md):
-#   1. the published protocol: every LIBERO-Object task from stored initial states SEED..SEED+STATES-1, step limit 280,
-#      masks on (named-object attention), -> EVAL.md's success table (Wilson intervals) and target lift;
-#   2. language: each scene told another task's instruction (an object that scene holds), a paraphrase of its own, and
-#      a nonsense instruction, from states 0..PROBE_STATES-1 -> which object was picked (EVAL.md "Language grounding");
-#   3. closed loop: mask-top:K:attention:L against mask-random:K from the same states, paired by initial state.
-#   bash scripts/evaluate_libero_reference.sh [STATES] [PROBE_STATES] [OUT]      (published: STATES=50)
-# Resumable: re-running the same command finishes what a killed evaluation left.
+# Evaluate the LIBERO-Object reference policy as its EVAL.md reports it (docs/libero-reference.md):
+#   1. the published protocol: every LIBERO-Object task from stored initial states 0..STATES-1, step limit 280, masks
+#      on (named-object attention) -> EVAL.md's success table (Wilson intervals, average over tasks);
+#   2. language, from states 0..PROBE-1, masks off: each scene told another task's instruction (an object that scene
+#      also holds), the first paraphrase of its own, and a nonsense instruction -> which object was picked
+#      (EVAL.md "Language grounding", with the named-object attention of run 1);
+#   3. closed loop, from states 0..PROBE-1: mask-top:TOPK:attention:LAYER against mask-random:TOPK, paired by
+#      initial state (octo-harness compare) -> EVAL.md "Closed loop".
+#   bash scripts/evaluate_libero_reference.sh [STATES] [PROBE] [OUT]      (the published protocol: STATES=50)
+# Runs of stages 2 and 3 are small, so they go in two parallel streams of one env worker each. Resumable: re-running
+# the same command finishes what a killed evaluation left.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 STATES="${1:-50}"
@@ -17,32 +20,46 @@ TOPK="${TOPK:-8}"
 LAYER="${LAYER:-3}"
 export HF_HUB_OFFLINE=1 MUJOCO_GL="${MUJOCO_GL:-egl}"
 PY=.venv/bin/python
-common=(--model "$MODEL" --seed 0 --fast-render --png-every 0 --no-video --workers 2 --out "$OUT")
-"$PY" -m harness.cli run "${common[@]}" --task libero_object --episodes "$STATES" --run-name published
-language=()
-while IFS=$'\t' read -r task instruction; do
-    index="${task#libero_object/}"
-    "$PY" -m harness.cli run "${common[@]}" --no-masks --task "$task" --episodes "$PROBE" --run-name "swap_$index" \
-        --instruction "$instruction"
-    language+=("$OUT/swap_$index")
-done < <("$PY" -m harness.reference.libero_eval swaps)
+common=(--model "$MODEL" --seed 0 --fast-render --png-every 0 --no-video --out "$OUT")
+"$PY" -m harness.cli run "${common[@]}" --workers 2 --task libero_object --episodes "$STATES" --run-name published
+
+# stage 2: (run name, task, instruction) lines, then two streams
 nonsense="$("$PY" -m harness.reference.libero_eval nonsense)"
+plan="$(mktemp)"
+trap 'rm -f "$plan"' EXIT
+"$PY" -m harness.reference.libero_eval swaps | while IFS=$'\t' read -r task instruction; do
+    printf 'swap_%s\t%s\t%s\n' "${task#libero_object/}" "$task" "$instruction"
+done >> "$plan"
 for index in 0 1 2 3 4 5 6 7 8 9; do
     paraphrase="$("$PY" -c "import envs; print(envs.get_task('libero_object/$index').paraphrases[0])")"
-    "$PY" -m harness.cli run "${common[@]}" --no-masks --task "libero_object/$index" --episodes "$PROBE" \
-        --run-name "paraphrase_$index" --instruction "$paraphrase"
-    "$PY" -m harness.cli run "${common[@]}" --no-masks --task "libero_object/$index" --episodes "$PROBE" \
-        --run-name "nonsense_$index" --instruction "$nonsense"
-    language+=("$OUT/paraphrase_$index" "$OUT/nonsense_$index")
+    printf 'paraphrase_%s\tlibero_object/%s\t%s\n' "$index" "$index" "$paraphrase" >> "$plan"
+    printf 'nonsense_%s\tlibero_object/%s\t%s\n' "$index" "$index" "$nonsense" >> "$plan"
 done
-"$PY" -m harness.cli run "${common[@]}" --task libero_object --episodes "$PROBE" --run-name "mask_top" \
-    --intervene "mask-top:$TOPK:attention:$LAYER"
-"$PY" -m harness.cli run "${common[@]}" --task libero_object --episodes "$PROBE" --run-name "mask_random" \
+stream() {  # every other line of the plan, from line $1
+    awk -v s="$1" 'NR % 2 == s' "$plan" | while IFS=$'\t' read -r name task instruction; do
+        "$PY" -m harness.cli run "${common[@]}" --no-masks --task "$task" --episodes "$PROBE" --run-name "$name" \
+            --instruction "$instruction" </dev/null
+    done
+}
+stream 0 & first=$!
+stream 1
+wait "$first"
+language=()
+while IFS=$'\t' read -r name _; do language+=("$OUT/$name"); done < "$plan"
+
+# stage 3: the two interventions side by side
+"$PY" -m harness.cli run "${common[@]}" --no-masks --task libero_object --episodes "$PROBE" --run-name mask_top \
+    --intervene "mask-top:$TOPK:attention:$LAYER" & top=$!
+"$PY" -m harness.cli run "${common[@]}" --no-masks --task libero_object --episodes "$PROBE" --run-name mask_random \
     --intervene "mask-random:$TOPK"
+wait "$top"
+
 step="$(find "$MODEL" -mindepth 1 -maxdepth 1 -type d -regex '.*/[0-9]+' -printf '%f\n' | sort -n | tail -1)"
 "$PY" -m harness.reference.evaluate "$OUT/published" --out "$MODEL" --note \
     "Checkpoint step $step. Made by \`bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: \`octo-harness run --model $MODEL --task libero_object --episodes $STATES --seed 0 --fast-render --png-every 0 --no-video --workers 2\` (LIBERO-Object's published protocol: stored initial states 0..$((STATES - 1)) of each task, 10 settle steps, step limit 280; libero action space, rot180 images and cameras from harness.toml; masks on)."
 "$PY" -m harness.report.grounding "$OUT/published" "${language[@]}" --eval-md "$MODEL/EVAL.md" --note \
     "Made by \`bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: own instructions from the published run (states 0..$((STATES - 1))); swaps, paraphrases and the nonsense instruction (\`$nonsense\`) from states 0..$((PROBE - 1)), masks off (the picked object is read from the simulator at the episode's end)."
-"$PY" -m harness.cli compare "$OUT/mask_random" "$OUT/mask_top" --out "$OUT/compare_mask_top" || true
+"$PY" -m harness.cli compare "$OUT/mask_random" "$OUT/mask_top" --no-frames --out "$OUT/compare_mask_top" || true
+"$PY" -m harness.reference.libero_eval closed-loop "$OUT/mask_random" "$OUT/mask_top" \
+    --eval-md "$MODEL/EVAL.md" --note "Made by \`bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: \`--intervene mask-top:$TOPK:attention:$LAYER\` against \`--intervene mask-random:$TOPK\`, states 0..$((PROBE - 1)) of every task, masks off."
 "$PY" -m harness.cli report "$OUT/published" "${language[@]}" --out "$OUT/report"

@@ -2,6 +2,7 @@
 
     python -m harness.reference.libero_eval swaps      # "<task>\t<swapped instruction>" per task
     python -m harness.reference.libero_eval nonsense   # the nonsense instruction
+    python -m harness.reference.libero_eval closed-loop RANDOM_RUN TOP_RUN --eval-md EVAL.md   # paired table
 
 A swap tells scene task i the instruction of task j, where j is the next task (i+1, i+2, ... mod 10) whose named
 object is also in scene i, so the swapped instruction names an object the policy can pick. The scenes' objects are
@@ -44,13 +45,61 @@ def swaps(tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS) -> dict[str, str]:
     return out
 
 
+CLOSED_LOOP = "## Closed loop: masking what the policy looks at"
+
+
+def closed_loop_markdown(random_run, top_run, note: str = "") -> str:
+    """EVAL.md section: per task, successes with mask-random and with mask-top from the same initial states, the
+    discordant pairs and an exact two-sided McNemar test (binomial on the discordant pairs); then all tasks pooled."""
+    from scipy.stats import binomtest
+
+    from harness.analysis.runs import load_run
+    from harness.analysis.stats import wilson_interval
+
+    records = [load_run(random_run), load_run(top_run)]
+    outcome = [{(e.task, e.seed): bool(e.success) for e in r.episodes if e.ok} for r in records]
+    pairs = sorted(set(outcome[0]) & set(outcome[1]))
+    spec = [str(((r.manifest.get("protocol") or {}).get("policy") or {}).get("intervention")) for r in records]
+    lines = [CLOSED_LOOP, ""] + ([note, ""] if note else [])
+    lines += [f"Paired by (task, initial state): `{spec[0]}` against `{spec[1]}`, {len(pairs)} pairs.", "",
+              "| task | pairs | mask-random | mask-top | only mask-random succeeded | only mask-top succeeded | "
+              "McNemar exact p |", "|---|---|---|---|---|---|---|"]
+    tasks = list(dict.fromkeys(t for t, _ in pairs))
+    for task in tasks + ["all"]:
+        keys = [k for k in pairs if task in ("all", k[0])]
+        a = [outcome[0][k] for k in keys]
+        b = [outcome[1][k] for k in keys]
+        only_a = sum(x and not y for x, y in zip(a, b))
+        only_b = sum(y and not x for x, y in zip(a, b))
+        p = binomtest(only_a, only_a + only_b).pvalue if only_a + only_b else 1.0
+        cells = []
+        for xs in (a, b):
+            low, high = wilson_interval(sum(xs), len(xs))
+            cells.append(f"{sum(xs)}/{len(xs)} [{low:.2f}, {high:.2f}]")
+        name = "**all tasks**" if task == "all" else task
+        lines.append(f"| {name} | {len(keys)} | {cells[0]} | {cells[1]} | {only_a} | {only_b} | {p:.3g} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_eval", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser("swaps", help="print '<task>\\t<swapped instruction>' per LIBERO-Object task")
     sub.add_parser("nonsense", help="print the nonsense instruction")
+    closed = sub.add_parser("closed-loop", help="write EVAL.md's closed-loop section from a mask-random and a "
+                                                "mask-top run")
+    closed.add_argument("random_run")
+    closed.add_argument("top_run")
+    closed.add_argument("--eval-md", required=True)
+    closed.add_argument("--note", default="")
     args = parser.parse_args(argv)
-    if args.command == "swaps":
+    if args.command == "closed-loop":
+        from harness.report.rundata import replace_markdown_section
+
+        text = closed_loop_markdown(args.random_run, args.top_run, args.note)
+        replace_markdown_section(args.eval_md, CLOSED_LOOP, text)
+        print(text)
+    elif args.command == "swaps":
         for task, instruction in swaps().items():
             print(f"{task}\t{instruction}")
     else:
