@@ -236,3 +236,41 @@ def test_the_pipeline_trains_libero_tasks_warm_started_from_the_robosuite_refere
     vocab = json.loads((tmp_path / "tokenizer" / "tokenizer.json").read_text())["model"]["vocab"]
     assert {"alphabet", "soup", "milk", "basket", "grab"} <= set(vocab) and "ketchup" not in vocab
     assert 'action_space = "libero"' in (tmp_path / "harness.toml").read_text()
+
+
+# ------------------------------------------------------------------------------------------------ the committed policy
+
+
+@pytest.mark.slow
+def test_the_committed_policy_runs_libero_object_and_the_report_shows_its_grounding(tmp_path):
+    """A short closed-loop episode of the committed policy on libero_object/0 (its harness.toml conventions, masks
+    on) and one told task 7's instruction: episode.json carries the outcome, attention.npz the per-object measures,
+    and `octo-harness report` renders a Grounding section in Chromium whose numbers are in tables/grounding_*.csv."""
+    import csv
+    import io
+
+    from harness import cli
+    from tests.test_report_e2e import _browser
+
+    _needs_libero()
+    common = ["--model", str(MODEL), "--episodes", "1", "--seed", "0", "--max-steps", "6", "--fast-render",
+              "--png-every", "0", "--no-video", "--out", str(tmp_path / "runs")]
+    assert cli.main(["run", "--task", "libero_object/0", "--run-name", "own", *common]) == 0
+    milk = envs.get_task("libero_object/7").instruction
+    assert cli.main(["run", "--task", "libero_object/0", "--run-name", "swap", "--instruction", milk, "--no-masks",
+                     *common]) == 0
+    episode = tmp_path / "runs" / "own" / "libero_object" / "0" / "episode_0"
+    meta = json.loads((episode / "episode.json").read_text())
+    assert set(meta["outcome"]) == {"picked_object", "placed", "held", "objects"}
+    assert "alphabet_soup_1" in meta["outcome"]["objects"] and "milk_1" in meta["outcome"]["objects"]
+    with np.load(episode / "attention.npz") as z:
+        assert z["measures/layer/mask_mass/image_primary/object.alphabet_soup_1"].shape == (6, 4)
+    report = tmp_path / "report"
+    assert cli.main(["report", str(tmp_path / "runs" / "own"), str(tmp_path / "runs" / "swap"), "--out", str(report)]) == 0
+    lift = list(csv.DictReader(io.StringIO((report / "tables" / "grounding_lift.csv").read_text())))
+    assert [(r["task"], r["camera"], r["layer"]) for r in lift if r["camera"] == "image_primary"] == [
+        ("libero_object/0", "image_primary", str(layer)) for layer in range(4)]
+    swaps = {r["run"]: r for r in csv.DictReader(io.StringIO((report / "tables" / "grounding_swap.csv").read_text()))}
+    assert swaps["own"]["kind"] == "own" and swaps["swap"]["kind"] == "swap" and swaps["swap"]["blind_episodes"] == "1"
+    dom = _browser(report / "report.html", tmp_path, "--dump-dom", "--virtual-time-budget=10000").stdout
+    assert ">Grounding</h" in dom and 'href="#grounding"' in dom and "Named object vs the others" in dom

@@ -1,7 +1,7 @@
 """One command that builds the LIBERO-Object reference policy: record demonstrations, then train.
 
     python -m harness.reference.libero_pipeline --out models/octo-reference-libero-object \
-        --data data/libero_object_demos [--episodes 20] [--steps 4000] [--init-from models/octo-reference-robosuite]
+        --data data/libero_object_demos [--episodes 20] [--steps 2500] [--init-from models/octo-reference-robosuite]
 
 (1) The scripted LIBERO-Object expert's demonstrations from sampled placements, never the suite's stored
 evaluation states (harness.reference.libero_demos), into `--data`; (2) behaviour cloning with the robosuite
@@ -29,7 +29,7 @@ from harness.reference.train import TrainConfig, train
 log = logging.getLogger(__name__)
 
 DATASET_KEY = "libero_object_reference"
-DEFAULT_STEPS = 4000
+DEFAULT_STEPS = 2500
 DEFAULT_INIT = "models/octo-reference-robosuite"
 
 
