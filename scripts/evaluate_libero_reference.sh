@@ -8,6 +8,7 @@
 #   3. closed loop, from states 0..PROBE-1: mask-top:TOPK:attention:LAYER against mask-random:TOPK, paired by
 #      initial state (octo-harness compare) -> EVAL.md "Closed loop".
 #   bash scripts/evaluate_libero_reference.sh [STATES] [PROBE] [OUT]      (the published protocol: STATES=50)
+# LANGUAGE="swap paraphrase nonsense" (default: all three) picks the probes of stage 2; INTERVENTIONS=0 skips stage 3.
 # Runs of stages 2 and 3 are small, so they go in two parallel streams of one env worker each. Resumable: re-running
 # the same command finishes what a killed evaluation left.
 set -euo pipefail
@@ -16,6 +17,8 @@ STATES="${1:-50}"
 PROBE="${2:-10}"
 OUT="${3:-results/libero-reference-eval}"
 MODEL=models/octo-reference-libero-object
+LANGUAGE="${LANGUAGE:-swap paraphrase nonsense}"
+INTERVENTIONS="${INTERVENTIONS:-1}"
 TOPK="${TOPK:-8}"
 LAYER="${LAYER:-3}"
 export HF_HUB_OFFLINE=1 MUJOCO_GL="${MUJOCO_GL:-egl}"
@@ -27,13 +30,19 @@ common=(--model "$MODEL" --seed 0 --fast-render --png-every 0 --no-video --out "
 nonsense="$("$PY" -m harness.reference.libero_eval nonsense)"
 plan="$(mktemp)"
 trap 'rm -f "$plan"' EXIT
-"$PY" -m harness.reference.libero_eval swaps | while IFS=$'\t' read -r task instruction; do
-    printf 'swap_%s\t%s\t%s\n' "${task#libero_object/}" "$task" "$instruction"
-done >> "$plan"
+if [[ " $LANGUAGE " == *" swap "* ]]; then
+    "$PY" -m harness.reference.libero_eval swaps | while IFS=$'\t' read -r task instruction; do
+        printf 'swap_%s\t%s\t%s\n' "${task#libero_object/}" "$task" "$instruction"
+    done >> "$plan"
+fi
 for index in 0 1 2 3 4 5 6 7 8 9; do
-    paraphrase="$("$PY" -c "import envs; print(envs.get_task('libero_object/$index').paraphrases[0])")"
-    printf 'paraphrase_%s\tlibero_object/%s\t%s\n' "$index" "$index" "$paraphrase" >> "$plan"
-    printf 'nonsense_%s\tlibero_object/%s\t%s\n' "$index" "$index" "$nonsense" >> "$plan"
+    if [[ " $LANGUAGE " == *" paraphrase "* ]]; then
+        paraphrase="$("$PY" -c "import envs; print(envs.get_task('libero_object/$index').paraphrases[0])")"
+        printf 'paraphrase_%s\tlibero_object/%s\t%s\n' "$index" "$index" "$paraphrase" >> "$plan"
+    fi
+    if [[ " $LANGUAGE " == *" nonsense "* ]]; then
+        printf 'nonsense_%s\tlibero_object/%s\t%s\n' "$index" "$index" "$nonsense" >> "$plan"
+    fi
 done
 stream() {  # every other line of the plan, from line $1
     awk -v s="$1" 'NR % 2 == s' "$plan" | while IFS=$'\t' read -r name task instruction; do
@@ -48,18 +57,22 @@ language=()
 while IFS=$'\t' read -r name _; do language+=("$OUT/$name"); done < "$plan"
 
 # stage 3: the two interventions side by side
-"$PY" -m harness.cli run "${common[@]}" --no-masks --task libero_object --episodes "$PROBE" --run-name mask_top \
-    --intervene "mask-top:$TOPK:attention:$LAYER" & top=$!
-"$PY" -m harness.cli run "${common[@]}" --no-masks --task libero_object --episodes "$PROBE" --run-name mask_random \
-    --intervene "mask-random:$TOPK"
-wait "$top"
+if [ "$INTERVENTIONS" != 0 ]; then
+    "$PY" -m harness.cli run "${common[@]}" --no-masks --task libero_object --episodes "$PROBE" --run-name mask_top \
+        --intervene "mask-top:$TOPK:attention:$LAYER" & top=$!
+    "$PY" -m harness.cli run "${common[@]}" --no-masks --task libero_object --episodes "$PROBE" --run-name mask_random \
+        --intervene "mask-random:$TOPK"
+    wait "$top"
+fi
 
 step="$(find "$MODEL" -mindepth 1 -maxdepth 1 -type d -regex '.*/[0-9]+' -printf '%f\n' | sort -n | tail -1)"
 "$PY" -m harness.reference.evaluate "$OUT/published" --out "$MODEL" --note \
     "Checkpoint step $step. Made by \`bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: \`octo-harness run --model $MODEL --task libero_object --episodes $STATES --seed 0 --fast-render --png-every 0 --no-video --workers 2\` (LIBERO-Object's published protocol: stored initial states 0..$((STATES - 1)) of each task, 10 settle steps, step limit 280; libero action space, rot180 images and cameras from harness.toml; masks on)."
 "$PY" -m harness.report.grounding "$OUT/published" "${language[@]}" --eval-md "$MODEL/EVAL.md" --note \
-    "Made by \`bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: own instructions from the published run (states 0..$((STATES - 1))); swaps, paraphrases and the nonsense instruction (\`$nonsense\`) from states 0..$((PROBE - 1)), masks off (the picked object is read from the simulator at the episode's end)."
-"$PY" -m harness.cli compare "$OUT/mask_random" "$OUT/mask_top" --no-frames --out "$OUT/compare_mask_top" || true
-"$PY" -m harness.reference.libero_eval closed-loop "$OUT/mask_random" "$OUT/mask_top" \
-    --eval-md "$MODEL/EVAL.md" --note "Made by \`bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: \`--intervene mask-top:$TOPK:attention:$LAYER\` against \`--intervene mask-random:$TOPK\`, states 0..$((PROBE - 1)) of every task, masks off."
+    "Made by \`LANGUAGE=\"$LANGUAGE\" bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: own instructions from the published run (states 0..$((STATES - 1))); swaps, paraphrases and the nonsense instruction (\`$nonsense\`) from states 0..$((PROBE - 1)), masks off (the picked object is read from the simulator at the episode's end)."
+if [ "$INTERVENTIONS" != 0 ]; then
+    "$PY" -m harness.cli compare "$OUT/mask_random" "$OUT/mask_top" --no-frames --out "$OUT/compare_mask_top" || true
+    "$PY" -m harness.reference.libero_eval closed-loop "$OUT/mask_random" "$OUT/mask_top" \
+        --eval-md "$MODEL/EVAL.md" --note "Made by \`bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: \`--intervene mask-top:$TOPK:attention:$LAYER\` against \`--intervene mask-random:$TOPK\`, states 0..$((PROBE - 1)) of every task, masks off."
+fi
 "$PY" -m harness.cli report "$OUT/published" "${language[@]}" --out "$OUT/report"

@@ -88,13 +88,14 @@ def _record(name: str, task: str, folders: list[Path], success: list[bool]):
 
 def test_grounding_measures_known_answers(tmp_path):
     """Task 0's scene: the named object (alphabet soup) holds 0.3 of the mass on 0.05 of the image (lift 6) up to
-    the grasp at step 2, cream cheese 0.1 on 0.05 (lift 2); after the grasp the masses swap, which must not count.
+    the grasp at step 2, cream cheese 0.1 on 0.05 (lift 2), the basket 0.5 on 0.1; after the grasp the soup and the
+    cream cheese swap, which must not count.
     A swap to cream cheese that picks the cream cheese is a hit; the language-blind rate of that swap is how often the
     own-instruction episodes (same seeds) picked the cream cheese: 0 of 2."""
     own = envs.get_task("libero_object/0").instruction
     swapped = envs.get_task("libero_object/1").instruction  # cream cheese
     areas = {"alphabet_soup_1": 0.05, "cream_cheese_1": 0.05, "basket_1": 0.1}
-    masses = {"alphabet_soup_1": [0.3, 0.3, 0.3, 0.05], "cream_cheese_1": [0.1, 0.1, 0.1, 0.6], "basket_1": [0.1] * 4}
+    masses = {"alphabet_soup_1": [0.3, 0.3, 0.3, 0.05], "cream_cheese_1": [0.1, 0.1, 0.1, 0.6], "basket_1": [0.5] * 4}
     folders = [_episode(tmp_path / f"own{k}", own, "alphabet_soup_1", masses, areas, [1, 1, 0, 0]) for k in range(2)]
     swap_folders = [_episode(tmp_path / "swap0", swapped, "cream_cheese_1", masses, areas, [1, 1, 0, 0]),
                     _episode(tmp_path / "swap1", swapped, "alphabet_soup_1", masses, areas, [1, 1, 1, 1])]
@@ -105,8 +106,11 @@ def test_grounding_measures_known_answers(tmp_path):
     assert [r.grasp_step for r in rows] == [2, 2, 2, -1]
     summary, per_object = G.lift_rows(rows)
     last = [s for s in summary if s[0] == "own" and s[3] == 1][0]
-    assert last[4] == 2 and last[5] == pytest.approx(6.0) and last[6] == pytest.approx((2.0 + 1.0) / 2)
+    # the basket (the goal, named too) holds more mass than the alphabet soup but is neither named nor "other"
+    assert last[4] == 2 and last[5] == pytest.approx(6.0) and last[6] == pytest.approx(2.0)
     assert last[7] == pytest.approx(2.0) and (last[9], last[10]) == (2, 2)  # named on top at the grasp in both
+    roles = {o[4]: o[5] for o in per_object if o[0] == "own" and o[3] == 0}
+    assert roles == {"alphabet_soup_1": "named", "cream_cheese_1": "other", "basket_1": "goal"}
     named = [o for o in per_object if o[0] == "own" and o[3] == 0 and o[5] == "named"]
     assert [o[4] for o in named] == ["alphabet_soup_1"]
     swaps = {s[0]: s for s in G.swap_rows(rows)}

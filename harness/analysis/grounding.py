@@ -7,7 +7,8 @@ Per episode (a LIBERO task run whose instruction names an object: `envs.libero_t
 - the grasp step: the first step whose executed gripper command closes (< 0.5 in the "libero" action space);
 - per layer and camera, the lift (attention mass / mask area; 1 = chance) of every object in the scene, averaged over
   the steps up to the grasp (all steps without one), and whether the named object got more attention mass than
-  every other object at the grasp step.
+  every other object at the grasp step. "Other" objects are the scene's graspable ones; the instruction's goal (the
+  basket, which it names too) is kept apart (role "goal" in the per-object table).
 
 `swap_rows` aggregates instruction swaps: episodes of scene task i told another instruction (a run's `--instruction`)
 -> how often the picked object is the named one, the scene's own target, another object or none, with a Wilson
@@ -47,6 +48,7 @@ class GroundingEpisode:
     # {camera: (layers, objects) mean lift up to the grasp}; {camera: (layers,) bool} named mass > every other at grasp
     lifts: dict = field(default_factory=dict)
     top_at_grasp: dict = field(default_factory=dict)
+    goals: tuple[str, ...] = ()  # the instruction's other objects of interest (the basket): neither named nor "other"
 
 
 def instance_of(words: str | None, instances) -> str | None:
@@ -78,9 +80,11 @@ def _object_measures(z, camera: str) -> tuple[list[str], np.ndarray, np.ndarray]
     return names, mass, area
 
 
-def episode_grounding(attention_path, actions_path, episode_json: dict, cameras=("image_primary", "image_wrist")):
+def episode_grounding(attention_path, actions_path, episode_json: dict, cameras=("image_primary", "image_wrist"),
+                      goals=()):
     """(objects, {camera: (layers, objects) lift up to the grasp}, {camera: (layers,) named-on-top at the grasp},
-    grasp step) for one episode; the named instance comes from `episode_json["instruction"]`."""
+    grasp step) for one episode; the named instance comes from `episode_json["instruction"]`. "On top": more mass
+    than every other object except the `goals` (the basket, which the instruction names too)."""
     from envs.libero_tasks import named_object
 
     with np.load(actions_path) as a:
@@ -103,7 +107,7 @@ def episode_grounding(attention_path, actions_path, episode_json: dict, cameras=
             if named is not None and grasp >= 0 and grasp < mass.shape[0]:
                 at = mass[grasp]  # (layers, objects)
                 i = names.index(named)
-                others = np.delete(at, i, axis=-1)
+                others = np.delete(at, [j for j, n in enumerate(names) if j == i or n in goals], axis=-1)
                 top[camera] = at[:, i] > (others.max(axis=-1) if others.size else -np.inf)
     return tuple(objects), lifts, top, grasp
 
@@ -121,7 +125,10 @@ def collect(records) -> tuple[list[GroundingEpisode], list[str]]:
                 meta = json.loads((e.directory / "episode.json").read_text())
                 if not isinstance(meta, dict):
                     raise ValueError("not a JSON object")
-                objects, lifts, top, grasp = episode_grounding(e.attention_path, e.directory / "actions.npz", meta)
+                spec = get_libero_task(e.task)
+                goals = tuple(spec.targets[1:])
+                objects, lifts, top, grasp = episode_grounding(e.attention_path, e.directory / "actions.npz", meta,
+                                                               goals=goals)
             except (OSError, ValueError, KeyError) as exc:
                 notes.append(f"{record.name}/{e.task}/episode_{e.episode}: unreadable ({str(exc).splitlines()[0]})")
                 continue
@@ -135,7 +142,8 @@ def collect(records) -> tuple[list[GroundingEpisode], list[str]]:
             rows.append(GroundingEpisode(record.name, e.task, e.episode, e.seed if e.seed is not None else -1,
                                          bool(e.success), instruction, instance_of(words, objects),
                                          target if target in objects else None,
-                                         picked if isinstance(picked, str) else None, grasp, objects, lifts, top))
+                                         picked if isinstance(picked, str) else None, grasp, objects, lifts, top,
+                                         goals))
     return rows, notes
 
 
@@ -159,7 +167,7 @@ def lift_rows(rows: list[GroundingEpisode]) -> tuple[list[tuple], list[tuple]]:
             objects = have[0].objects
             stack = np.stack([r.lifts[camera] for r in have if r.objects == objects])  # (episodes, layers, objects)
             named_index = objects.index(have[0].named)
-            others = [i for i in range(len(objects)) if i != named_index]
+            others = [i for i, name in enumerate(objects) if i != named_index and name not in have[0].goals]
             tops = [r.top_at_grasp[camera] for r in have if camera in r.top_at_grasp]
             for layer in range(stack.shape[1]):
                 named = float(np.nanmean(stack[:, layer, named_index]))
@@ -171,8 +179,9 @@ def lift_rows(rows: list[GroundingEpisode]) -> tuple[list[tuple], list[tuple]]:
                                 named / others_mean if others_mean and math.isfinite(others_mean) else math.nan,
                                 top, len(tops)))
                 for i, name in enumerate(objects):
-                    per_object.append((run, task, camera, layer, name, "named" if i == named_index else "other",
-                                       len(stack), float(np.nanmean(stack[:, layer, i]))))
+                    role = "named" if i == named_index else ("goal" if name in have[0].goals else "other")
+                    per_object.append((run, task, camera, layer, name, role, len(stack),
+                                       float(np.nanmean(stack[:, layer, i]))))
     return summary, per_object
 
 
