@@ -82,6 +82,17 @@ def atomic_write_json(path: str | Path, obj) -> Path:
     return write_atomic(path, lambda f: f.write(data))
 
 
+def replace_markdown_section(path: str | Path, heading: str, section: str) -> Path:
+    """Replace the `heading` section ("## Name" up to the next "## ") of the Markdown file `path` with `section` (which
+    starts with that heading), or append it; every other section stays as it is. Written atomically."""
+    path = Path(path)
+    text = path.read_text() if path.is_file() else ""
+    head, _, rest = text.partition("\n" + heading + "\n")
+    after = "\n## " + rest.split("\n## ", 1)[1] if rest and "\n## " in rest else ""
+    data = (head.rstrip("\n") + "\n\n" + section + after).encode()
+    return write_atomic(path, lambda f: f.write(data))
+
+
 def json_safe(x: Any) -> Any:
     """JSON-safe copy: numpy scalars/arrays and Paths to Python, NaN/inf to None, floats rounded to 6 places (6 significant digits below 1)."""
     if isinstance(x, dict):

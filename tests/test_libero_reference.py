@@ -278,3 +278,15 @@ def test_the_committed_policy_runs_libero_object_and_the_report_shows_its_ground
     assert swaps["own"]["kind"] == "own" and swaps["swap"]["kind"] == "swap" and swaps["swap"]["blind_episodes"] == "1"
     dom = _browser(report / "report.html", tmp_path, "--dump-dom", "--virtual-time-budget=10000").stdout
     assert ">Grounding</h" in dom and 'href="#grounding"' in dom and "Named object vs the others" in dom
+
+
+def test_an_eval_md_section_is_replaced_in_place_or_appended_and_the_others_stay(tmp_path):
+    from harness.files import replace_markdown_section
+
+    path = tmp_path / "EVAL.md"
+    path.write_text("# model: evaluation\n\ntable\n\n## Language grounding\n\nold\n\n## Robustness\n\nkept\n")
+    replace_markdown_section(path, "## Language grounding", "## Language grounding\n\nnew\n")
+    assert path.read_text() == "# model: evaluation\n\ntable\n\n## Language grounding\n\nnew\n\n## Robustness\n\nkept\n"
+    replace_markdown_section(path, "## Closed loop", "## Closed loop\n\npairs\n")
+    assert path.read_text().endswith("## Robustness\n\nkept\n\n## Closed loop\n\npairs\n")
+    assert not list(tmp_path.glob("*.tmp.*"))  # written whole, no temporary left

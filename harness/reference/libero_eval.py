@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     closed.add_argument("--note", default="")
     args = parser.parse_args(argv)
     if args.command == "closed-loop":
-        from harness.report.rundata import replace_markdown_section
+        from harness.files import replace_markdown_section
 
         text = closed_loop_markdown(args.random_run, args.top_run, args.note)
         replace_markdown_section(args.eval_md, CLOSED_LOOP, text)

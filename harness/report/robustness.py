@@ -121,7 +121,7 @@ def markdown(records, note: str = "") -> str:
 
 def write_section(eval_md, records, note: str = "") -> None:
     """Replace (or append) the Robustness section of an EVAL.md; other sections stay as they are."""
-    from harness.report.rundata import replace_markdown_section
+    from harness.files import replace_markdown_section
 
     replace_markdown_section(eval_md, SECTION, markdown(records, note))
 

@@ -107,16 +107,3 @@ def csv_bytes(columns, rows) -> bytes:
         writer.writerow(["" if isinstance(v, float) and not math.isfinite(v) else (f"{v:.6g}" if isinstance(v, float) else v)
                          for v in row])
     return buffer.getvalue().encode()
-
-
-def replace_markdown_section(path, heading: str, section: str) -> None:
-    """Replace the `heading` section ("## Name" up to the next "## ") of the Markdown file `path` with `section` (which
-    starts with that heading), or append it; every other section stays as it is."""
-    from pathlib import Path
-
-    path = Path(path)
-    text = path.read_text() if path.is_file() else ""
-    head, _, rest = text.partition("\n" + heading + "\n")
-    after = "\n## " + rest.split("\n## ", 1)[1] if rest and "\n## " in rest else ""
-    path.write_text(head.rstrip("\n") + "\n\n" + section + after)
-
