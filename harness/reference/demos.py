@@ -61,15 +61,24 @@ class DemoConfig:
 def record_episode(env, expert: ScriptedExpert, seed: int, sizes: dict[str, int], noise: float,
                    max_steps: int) -> dict | None:
     """One noisy expert episode; arrays as in the module docstring, or None if the expert failed."""
-    from harness.policy import resize_frame
-
     rng = np.random.default_rng(seed)
     obs, info = env.reset(seed=seed)
     expert.reset(obs, env)
+    return noisy_episode(env, obs, lambda o: expert.act(o, env), sizes, noise, rng, max_steps)
+
+
+def noisy_episode(env, obs: dict, act, sizes: dict[str, int], noise: float, rng: np.random.Generator,
+                  max_steps: int) -> dict | None:
+    """From observation `obs`, step `env` with the labels `act(obs)` whose first three (position) entries carry
+    Gaussian noise of std `noise` (clipped to [-1, 1]; the stored label stays clean) until success, truncation or
+    `max_steps`; the frames resized to `sizes` ({key: side}), proprio and labels -> arrays, or None without success."""
+    from harness.policy import resize_frame
+
     frames = {k: [] for k in sizes}
     proprio, actions = [], []
+    success = False
     for _ in range(max_steps):
-        label = expert.act(obs, env)
+        label = act(obs)
         for key, size in sizes.items():
             frames[key].append(resize_frame(obs[key], (size, size)))
         proprio.append(obs["proprio"].astype(np.float32))
@@ -77,9 +86,10 @@ def record_episode(env, expert: ScriptedExpert, seed: int, sizes: dict[str, int]
         executed = label.copy()
         executed[:3] = np.clip(executed[:3] + noise * rng.standard_normal(3), -1.0, 1.0)
         obs, _, terminated, truncated, info = env.step(executed)
-        if info["success"]:
+        success = bool(info["success"])
+        if success or truncated:
             break
-    if not info["success"]:
+    if not success:
         return None
     out = {k: np.stack(v) for k, v in frames.items()}
     out["proprio"] = np.stack(proprio)
@@ -96,42 +106,61 @@ def _record_job(args: tuple) -> tuple[list[dict], list[int], int]:
                     max_episode_steps=config.max_steps[task])
     expert = ScriptedExpert(task, config.expert)
     sizes = dict(config.image_sizes)
+    try:
+        return successful_episodes(lambda seed: record_episode(env, expert, seed, sizes, config.noise,
+                                                               config.max_steps[task]), task, first_seed, count)
+    finally:
+        env.close()
+
+
+def successful_episodes(record, task: str, first_seed: int, count: int,
+                        seeds_per_job: int = SEEDS_PER_JOB) -> tuple[list[dict], list[int], int]:
+    """`record(seed)` (an episode, or None when the expert failed) over seeds from `first_seed` until `count`
+    episodes succeeded -> (episodes, their seeds, dropped); an error when the job's seed block runs out."""
     episodes, seeds, dropped = [], [], 0
-    seed = first_seed
-    while len(episodes) < count:
-        if seed >= first_seed + SEEDS_PER_JOB:
-            raise RuntimeError(f"{task}: expert failed on too many seeds from {first_seed}")
-        episode = record_episode(env, expert, seed, sizes, config.noise, config.max_steps[task])
+    for seed in range(first_seed, first_seed + seeds_per_job):
+        if len(episodes) == count:
+            break
+        episode = record(seed)
         if episode is None:
             dropped += 1
         else:
             episodes.append(episode)
             seeds.append(seed)
-        seed += 1
-    env.close()
+    if len(episodes) < count:
+        raise RuntimeError(f"{task}: the expert failed on too many seeds from {first_seed}")
     return episodes, seeds, dropped
 
 
 def record_demos(config: DemoConfig, out_dir: str | Path, workers: int = 2) -> dict:
     """Record every task's demonstrations into `out_dir/<task>.npz`; returns a summary per task."""
+    return record_tasks(_record_job, config, {t: config.episodes_of(t) for t in config.tasks}, out_dir,
+                        lambda task: f"{task}.npz", workers)
+
+
+def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, file_of, workers: int = 2,
+                 seeds_per_job: int = SEEDS_PER_JOB) -> dict:
+    """Split each task's `episodes` over `config.jobs_per_task` jobs `(task, first seed, count, config)` (seed blocks
+    from `config.task_seed_base(task)`), run `job` over them in `workers` spawned processes (harness.reference
+    recorders: each returns (episodes, seeds, dropped)), save each task into `out_dir/file_of(task)` and
+    summary.json; returns the summary per task."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     jobs = []
-    for task in config.tasks:
-        total = config.episodes_of(task)
+    for task, total in episodes.items():
         counts = np.full(config.jobs_per_task, total // config.jobs_per_task)
         counts[: total % config.jobs_per_task] += 1
         for j, count in enumerate(counts):
-            jobs.append((task, config.task_seed_base(task) + j * SEEDS_PER_JOB, int(count), config))
+            jobs.append((task, config.task_seed_base(task) + j * seeds_per_job, int(count), config))
     start = time.perf_counter()
-    results = run_jobs(_record_job, jobs, workers)
+    results = run_jobs(job, jobs, workers)
     summary = {}
-    for task in config.tasks:
-        parts = [r for job, r in zip(jobs, results) if job[0] == task]
-        episodes = [e for p in parts for e in p[0]]
+    for task in episodes:
+        parts = [r for job_args, r in zip(jobs, results) if job_args[0] == task]
+        recorded = [e for p in parts for e in p[0]]
         seeds = [s for p in parts for s in p[1]]
-        lengths = save_episodes(out_dir / f"{task}.npz", episodes, seeds)
-        summary[task] = {"episodes": len(episodes), "steps": int(lengths.sum()), "mean_length": float(lengths.mean()),
+        lengths = save_episodes(out_dir / file_of(task), recorded, seeds)
+        summary[task] = {"episodes": len(recorded), "steps": int(lengths.sum()), "mean_length": float(lengths.mean()),
                          "dropped": int(sum(p[2] for p in parts)), "seed_min": int(min(seeds)), "seed_max": int(max(seeds))}
         log.info("%s: %s", task, summary[task])
     summary["seconds"] = time.perf_counter() - start

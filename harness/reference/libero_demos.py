@@ -15,18 +15,15 @@ proprio, action, episode, step, seeds, lengths), plus summary.json.
 
 from __future__ import annotations
 
-import json
-import logging
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from harness.reference.demos import config_fingerprint, finished_recording, run_jobs, save_episodes
+from harness.reference.demos import (config_fingerprint, finished_recording, noisy_episode, record_tasks,
+                                     successful_episodes)
 from harness.reference.libero_expert import LiberoExpertConfig, LiberoObjectExpert
 
-log = logging.getLogger(__name__)
 
 LIBERO_SEED_BASE = 1_000_000  # placement seeds of task i: 1_000_000 + 10_000 i + k (evaluation uses stored states)
 SEEDS_PER_JOB = 1_000
@@ -69,26 +66,8 @@ def record_episode(env, target: str, seed: int, config: LiberoDemoConfig) -> dic
     rng = np.random.default_rng(seed)
     obs, info = env.reset(seed=seed, options={"initial_state": "sampled"})
     expert = LiberoObjectExpert(target, config=config.expert)
-    keys = [k for k, _, _ in config.cameras]
-    frames = {k: [] for k in keys}
-    proprio, actions = [], []
-    for _ in range(config.max_steps):
-        label = expert.act(env, obs)
-        for key in keys:
-            frames[key].append(obs[key])
-        proprio.append(obs["proprio"].astype(np.float32))
-        actions.append(label)
-        executed = label.copy()
-        executed[:3] = np.clip(executed[:3] + config.noise * rng.standard_normal(3), -1.0, 1.0)
-        obs, _, terminated, truncated, info = env.step(executed)
-        if info["success"] or truncated:
-            break
-    if not info["success"]:
-        return None
-    out = {k: np.stack(v) for k, v in frames.items()}
-    out["proprio"] = np.stack(proprio)
-    out["action"] = np.stack(actions).astype(np.float32)
-    return out
+    sizes = {k: s for k, _, s in config.cameras}  # rendered at the model's sizes: stored as rendered
+    return noisy_episode(env, obs, lambda o: expert.act(env, o), sizes, config.noise, rng, config.max_steps)
 
 
 def _record_job(args: tuple) -> tuple[list[dict], list[int], int]:
@@ -98,49 +77,17 @@ def _record_job(args: tuple) -> tuple[list[dict], list[int], int]:
 
     target = get_libero_task(task).targets[0]
     env = make_env(task, config)
-    episodes, seeds, dropped = [], [], 0
-    seed = first_seed
     try:
-        while len(episodes) < count:
-            if seed >= first_seed + SEEDS_PER_JOB:
-                raise RuntimeError(f"{task}: the expert failed on too many placements from seed {first_seed}")
-            episode = record_episode(env, target, seed, config)
-            if episode is None:
-                dropped += 1
-            else:
-                episodes.append(episode)
-                seeds.append(seed)
-            seed += 1
+        return successful_episodes(lambda seed: record_episode(env, target, seed, config), task, first_seed, count,
+                                   SEEDS_PER_JOB)
     finally:
         env.close()
-    return episodes, seeds, dropped
 
 
 def record_libero_demos(config: LiberoDemoConfig, out_dir: str | Path, workers: int = 2) -> dict:
     """Record every task's demonstrations into `out_dir/<suite>_<index>.npz`; returns a summary per task."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    jobs = []
-    for task in config.tasks:
-        counts = np.full(config.jobs_per_task, config.episodes // config.jobs_per_task)
-        counts[: config.episodes % config.jobs_per_task] += 1
-        for j, count in enumerate(counts):
-            jobs.append((task, config.task_seed_base(task) + j * SEEDS_PER_JOB, int(count), config))
-    start = time.perf_counter()
-    results = run_jobs(_record_job, jobs, workers)
-    summary = {}
-    for task in config.tasks:
-        parts = [r for job, r in zip(jobs, results) if job[0] == task]
-        episodes = [e for p in parts for e in p[0]]
-        seeds = [s for p in parts for s in p[1]]
-        lengths = save_episodes(out_dir / task_file(task), episodes, seeds)
-        summary[task] = {"episodes": len(episodes), "steps": int(lengths.sum()), "mean_length": float(lengths.mean()),
-                         "dropped": int(sum(p[2] for p in parts)), "seed_min": int(min(seeds)), "seed_max": int(max(seeds))}
-        log.info("%s: %s", task, summary[task])
-    summary["seconds"] = time.perf_counter() - start
-    summary["config"] = config_fingerprint(config)
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    return summary
+    return record_tasks(_record_job, config, {t: config.episodes for t in config.tasks}, out_dir, task_file, workers,
+                        SEEDS_PER_JOB)
 
 
 def existing_libero_demos(config: LiberoDemoConfig, out_dir: str | Path) -> dict | None:

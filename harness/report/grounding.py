@@ -98,21 +98,11 @@ def write_section(eval_md, records, note: str = "") -> None:
 
 
 def main(argv=None) -> int:
-    import argparse
-    from pathlib import Path
+    from harness.report.rundata import eval_md_section_main
 
-    from harness.analysis.runs import load_run
-
-    parser = argparse.ArgumentParser(prog="python -m harness.report.grounding",
-                                     description="Write the Language grounding section of an EVAL.md from LIBERO-Object runs.")
-    parser.add_argument("runs", nargs="+", type=Path)
-    parser.add_argument("--eval-md", type=Path, required=True)
-    parser.add_argument("--note", default="")
-    args = parser.parse_args(argv)
-    records = [load_run(p) for p in args.runs]
-    write_section(args.eval_md, records, args.note)
-    print(markdown(records, args.note))
-    return 0
+    return eval_md_section_main(argv, "python -m harness.report.grounding",
+                                "Write the Language grounding section of an EVAL.md from LIBERO-Object runs.",
+                                write_section, markdown)
 
 
 if __name__ == "__main__":

@@ -107,3 +107,23 @@ def csv_bytes(columns, rows) -> bytes:
         writer.writerow(["" if isinstance(v, float) and not math.isfinite(v) else (f"{v:.6g}" if isinstance(v, float) else v)
                          for v in row])
     return buffer.getvalue().encode()
+
+
+def eval_md_section_main(argv, prog: str, description: str, write_section, markdown) -> int:
+    """`python -m harness.report.<section> RUN... --eval-md EVAL.md [--note TEXT]`: write that section of an EVAL.md
+    from run folders (`write_section(eval_md, records, note)`) and print it (`markdown(records, note)`)."""
+    import argparse
+    from pathlib import Path
+
+    from harness.analysis.runs import load_run
+
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("--eval-md", type=Path, required=True)
+    parser.add_argument("--note", default="")
+    args = parser.parse_args(argv)
+    records = [load_run(p) for p in args.runs]
+    write_section(args.eval_md, records, args.note)
+    print(markdown(records, args.note))
+    return 0
+
