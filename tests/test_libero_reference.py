@@ -280,3 +280,17 @@ def test_an_eval_md_section_is_replaced_in_place_or_appended_and_the_others_stay
     replace_markdown_section(path, "## Closed loop", "## Closed loop\n\npairs\n")
     assert path.read_text().endswith("## Robustness\n\nkept\n\n## Closed loop\n\npairs\n")
     assert not list(tmp_path.glob("*.tmp.*"))  # written whole, no temporary left
+
+
+def test_the_committed_policy_is_small_and_states_its_libero_conventions():
+    total = sum(p.stat().st_size for p in MODEL.rglob("*") if p.is_file())
+    assert total <= 25 * 2**20  # the limit for a committed model folder
+    from harness.conventions import CheckpointConventions
+    from harness.reference.libero_pipeline import DATASET_KEY
+
+    conventions = CheckpointConventions.read(MODEL)
+    assert conventions.env_options().action_space == "libero" and conventions.policy_config().dataset_key == DATASET_KEY
+    summary = json.loads((MODEL / "training_summary.json").read_text())
+    demos = summary["demonstrations"]
+    # every demonstration came from a sampled placement of the training seed block, never a stored state index
+    assert all(demos[f"libero_object/{i}"]["seed_min"] >= 1_000_000 for i in range(10))
