@@ -12,7 +12,8 @@ Per episode (a LIBERO task run whose instruction names an object: `envs.libero_t
 
 `swap_rows` aggregates instruction swaps: episodes of scene task i told another instruction (a run's `--instruction`)
 -> how often the picked object is the named one, the scene's own target, another object or none, with a Wilson
-interval (kind "own", "paraphrase", "swap", or "names no object" for nonsense), against the language-blind rate: how often the same policy, told the scene's own instruction on the same
+interval (kind "own", "paraphrase", "swap", or "names no object" for nonsense), against the language-blind rate:
+how often the same policy, told the scene's own instruction on the same
 initial states, picked the object the swapped instruction names (a policy that ignores the instruction picks as it
 did there).
 """
@@ -28,7 +29,7 @@ import numpy as np
 
 from harness.analysis.stats import wilson_interval
 
-CLOSED_BELOW = 0.5  # the "libero" action space's gripper: 1 open, 0 closed
+CLOSED_BELOW = 0.5  # the "libero" action space's gripper: 1 open, 0 closed (envs.actions.libero_action's binarising)
 MASK_PREFIX = "object."
 
 
@@ -91,6 +92,7 @@ def episode_grounding(attention_path, actions_path, episode_json: dict, cameras=
         grasp = grasp_step(a["executed"]) if "executed" in a.files else -1
     lifts, top = {}, {}
     objects: list[str] = []
+    words = named_object(str(episode_json.get("instruction", "")))
     with np.load(attention_path) as z:
         for camera in cameras:
             names, mass, area = _object_measures(z, camera)
@@ -103,7 +105,7 @@ def episode_grounding(attention_path, actions_path, episode_json: dict, cameras=
             with np.errstate(divide="ignore", invalid="ignore"):
                 lift = np.where(area[:end, None, :] > 0, mass[:end] / area[:end, None, :], np.nan)
             lifts[camera] = np.nanmean(lift, axis=0) if np.isfinite(lift).any() else np.full(lift.shape[1:], np.nan)
-            named = instance_of(named_object(str(episode_json.get("instruction", ""))), names)
+            named = instance_of(words, names)
             if named is not None and grasp >= 0 and grasp < mass.shape[0]:
                 at = mass[grasp]  # (layers, objects)
                 i = names.index(named)
@@ -134,11 +136,11 @@ def collect(records) -> tuple[list[GroundingEpisode], list[str]]:
                 continue
             instruction = str(meta.get("instruction", ""))
             words = named_object(instruction)
-            if not objects:  # no object masks (a run with --no-masks): nothing to measure attention on
-                objects = tuple(str(n) for n in (meta.get("outcome") or {}).get("objects", ()) if isinstance(n, str))
             outcome = meta.get("outcome") if isinstance(meta.get("outcome"), dict) else {}
+            if not objects:  # no object masks (a run with --no-masks): nothing to measure attention on
+                objects = tuple(str(n) for n in outcome.get("objects", ()) if isinstance(n, str))
             picked = outcome.get("picked_object")
-            target = get_libero_task(e.task).targets[0] if get_libero_task(e.task).targets else None
+            target = spec.targets[0] if spec.targets else None
             rows.append(GroundingEpisode(record.name, e.task, e.episode, e.seed if e.seed is not None else -1,
                                          bool(e.success), instruction, instance_of(words, objects),
                                          target if target in objects else None,
@@ -154,7 +156,7 @@ OBJECT_COLUMNS = ("run", "task", "camera", "layer", "object", "role", "episodes"
 
 def lift_rows(rows: list[GroundingEpisode]) -> tuple[list[tuple], list[tuple]]:
     """Per (run, task, camera, layer): named lift, the others' mean and max lift, their ratio, episodes where the named
-    object got the most mass at the grasp; and per object (role "named" / "other") its mean lift."""
+    object got the most mass at the grasp; and per object (role "named", "goal" or "other") its mean lift."""
     summary, per_object = [], []
     groups: dict[tuple, list[GroundingEpisode]] = {}
     for r in rows:
