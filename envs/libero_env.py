@@ -377,16 +377,7 @@ class LiberoEnv(gym.Env):
         interest = [_owner(n, self.description["instances"]) for n in self.description["interest"]]
         goals = [g for g in dict.fromkeys(interest[1:]) if g in poses]
         movable = [n for n in self.description.get("movable", self.description["objects"]) if n in poses and n not in goals]
-        placed = []
-        for name in movable:
-            low, high = poses[name]["low"], poses[name]["high"]
-            centre = (low + high) / 2
-            for goal in goals:
-                g_low, g_high = poses[goal]["low"], poses[goal]["high"]
-                inside = np.all(centre[:2] >= g_low[:2] - 0.01) and np.all(centre[:2] <= g_high[:2] + 0.01)
-                if inside and low[2] <= g_high[2] + 0.03 and high[2] >= g_low[2]:
-                    placed.append(name)
-                    break
+        placed = [name for name in movable if any(in_goal(poses[name], poses[goal]) for goal in goals)]
         held = [name for name in movable if self.grasping(name)]
         picked = placed[0] if len(placed) == 1 else (held[0] if len(held) == 1 and not placed else None)
         if len(placed) > 1:  # several objects in the goal: the one the gripper left last is not knowable here
@@ -397,6 +388,16 @@ class LiberoEnv(gym.Env):
     def robosuite_env(self):
         """None: the simulator lives in another process (use sim_state / object_poses)."""
         return None
+
+
+def in_goal(pose: dict, goal: dict) -> bool:
+    """Whether an object (an `object_poses` entry) is in or on `goal`'s: its centre within the goal's horizontal
+    extent (1 cm slack), its bottom at most 3 cm above the goal's top and its top above the goal's bottom."""
+    low, high = pose["low"], pose["high"]
+    centre = (low + high) / 2
+    g_low, g_high = goal["low"], goal["high"]
+    inside = np.all(centre[:2] >= g_low[:2] - 0.01) and np.all(centre[:2] <= g_high[:2] + 0.01)
+    return bool(inside and low[2] <= g_high[2] + 0.03 and high[2] >= g_low[2])
 
 
 def _owner(name: str, instances: list[str]) -> str:

@@ -134,6 +134,72 @@ def test_libero_conventions_parse_and_name_the_libero_action_space(tmp_path):
     assert conventions.policy_config().dataset_key == DATASET_KEY
 
 
+def _box(centre, size):
+    centre, half = np.asarray(centre, float), np.asarray(size, float) / 2
+    return {"low": centre - half, "high": centre + half}
+
+
+def test_the_labeller_reads_the_phase_off_the_state_known_answers():
+    """LiberoObjectLabeller's waypoint for hand-made states: a 6 cm tall object at (0, -0.2) and a basket at (0, 0.25)
+    whose rim is at 0.08 m."""
+    from harness.reference.libero_expert import CLOSED, OPEN, LiberoExpertConfig, LiberoObjectLabeller
+
+    c = LiberoExpertConfig()
+    lab = LiberoObjectLabeller("soup_1")
+    poses = {"soup_1": _box([0, -0.2, 0.03], [0.04, 0.04, 0.06]), "basket_1": _box([0, 0.25, 0.04], [0.2, 0.2, 0.08])}
+    grasp_z = max(0.06 - c.finger_depth, 0.03, c.floor_clearance)
+    open_fingers, empty = 0.08, 0.002
+    # far and high: to the hover point above the object, open
+    goal, grip = lab.waypoint(np.array([0.2, 0.0, 0.3]), open_fingers, poses, held=False)
+    np.testing.assert_allclose(goal, [0, -0.2, 0.3])
+    assert grip == OPEN
+    # off-centre and low: straight up first
+    goal, grip = lab.waypoint(np.array([0.05, -0.2, 0.05]), open_fingers, poses, held=False)
+    np.testing.assert_allclose(goal, [0.05, -0.2, 0.06 + c.hover])
+    # centred above: descend to the grasp point; at it: close
+    goal, grip = lab.waypoint(np.array([0.0, -0.2, 0.2]), open_fingers, poses, held=False)
+    np.testing.assert_allclose(goal, [0, -0.2, grasp_z])
+    assert grip == OPEN
+    assert lab.waypoint(np.array([0.0, -0.2, grasp_z + 0.005]), open_fingers, poses, held=False)[1] == CLOSED
+    # closed on nothing beside the object: open and back up to the hover height
+    goal, grip = lab.waypoint(np.array([0.04, -0.2, grasp_z]), empty, poses, held=False)
+    assert grip == OPEN and goal[2] == pytest.approx(0.06 + c.hover)
+    # held low beside the object: rise to the carrying height; held high: carry over the basket; over it: lower, open
+    hand = np.array([0.0, -0.2, grasp_z])
+    goal, grip = lab.waypoint(hand, 0.04, poses, held=True)
+    carry_z = 0.08 + c.carry_clearance + (grasp_z - 0.0)
+    assert grip == CLOSED and goal[:2].tolist() == [0.0, -0.2] and goal[2] == pytest.approx(carry_z)
+    lifted = {**poses, "soup_1": _box([0, -0.2, carry_z - grasp_z + 0.03], [0.04, 0.04, 0.06])}  # moved with the hand
+    goal, grip = lab.waypoint(np.array([0.0, -0.2, carry_z]), 0.04, lifted, held=True)
+    np.testing.assert_allclose(goal[:2], [0, 0.25])
+    assert grip == CLOSED
+    over = {**poses, "soup_1": _box([0, 0.25, 0.2], [0.04, 0.04, 0.06])}
+    hand = np.array([0.0, 0.25, 0.2 - 0.03 + grasp_z])  # the object hangs from the hand as it was grasped
+    goal, grip = lab.waypoint(hand, 0.04, over, held=True)
+    assert grip == CLOSED and goal[2] < hand[2]
+    low = np.array([0.0, 0.25, 0.08 + c.release_above_rim + grasp_z])
+    low_pose = {**poses, "soup_1": _box([0, 0.25, 0.08 + c.release_above_rim + 0.03], [0.04, 0.04, 0.06])}
+    assert lab.waypoint(low, 0.04, low_pose, held=True)[1] == OPEN
+    # released over the basket (falling in, not held): retreat upwards, open, never close on it again
+    goal, grip = lab.waypoint(low, 0.05, low_pose, held=False)
+    assert grip == OPEN and goal[2] > low[2]
+
+
+def test_libero_dagger_seeds_are_their_own_block_and_bad_counts_are_refused():
+    from harness.reference.libero_dagger import LIBERO_DAGGER_SEED_BASE, LiberoDaggerConfig
+    from harness.reference.libero_demos import LIBERO_SEED_BASE, SEEDS_PER_JOB, LiberoDemoConfig
+
+    demo = LiberoDemoConfig()
+    demo_seeds = {demo.task_seed_base(t) + j * SEEDS_PER_JOB + k for t in demo.tasks
+                  for j in range(demo.jobs_per_task) for k in range(SEEDS_PER_JOB)}
+    config = LiberoDaggerConfig(episodes=50)
+    dagger_seeds = {s for t in config.tasks for s in config.seeds(t)}
+    assert len(dagger_seeds) == 500 and not dagger_seeds & demo_seeds
+    assert min(dagger_seeds) == LIBERO_DAGGER_SEED_BASE > LIBERO_SEED_BASE
+    with pytest.raises(ValueError, match="--dagger-episodes"):
+        LiberoDaggerConfig(episodes=1)
+
+
 # ------------------------------------------------------------------------------------------------ LIBERO environment
 
 
@@ -195,6 +261,76 @@ def test_a_demonstration_from_a_sampled_placement_is_recorded_as_the_policy_sees
     assert episode["proprio"].shape == (n, 8)
     assert set(np.unique(episode["action"][:, 6])) == {0.0, 1.0}  # the libero gripper: 1 open, 0 closed
     assert np.abs(episode["action"][:, :6]).max() <= 1.0
+
+
+@pytest.mark.slow
+def test_the_labeller_recovers_from_a_grasp_closed_beside_the_object():
+    """The policy's commonest failure, set up by hand: the hand 4 cm beside the object at grasp height, fingers
+    closed on nothing. From there the state-based labeller (acting alone) opens, backs up, re-grasps and puts the
+    object in the basket: LIBERO's own success predicate."""
+    _needs_libero()
+    from harness.reference.libero_demos import LiberoDemoConfig, make_env
+    from harness.reference.libero_expert import OPEN, LiberoObjectLabeller
+
+    env = make_env("libero_object/0", LiberoDemoConfig(cameras=()))
+    try:
+        obs, _ = env.reset(seed=7_000_000, options={"initial_state": "sampled"})
+        lab = LiberoObjectLabeller("alphabet_soup_1")
+        box = env.object_poses()["alphabet_soup_1"]
+        beside = (box["low"] + box["high"]) / 2 + np.array([0.04, 0.0, 0.0])
+        for _ in range(80):  # drive there open, then close on nothing
+            hand = obs["proprio"][:3]
+            arm = np.clip(10 * (beside - hand) / 0.05, -1, 1)
+            obs, *_ = env.step(np.r_[arm, 0, 0, 0, 1.0].astype(np.float32))
+        for _ in range(15):
+            obs, *_ = env.step(np.array([0, 0, 0, 0, 0, 0, 0.0], np.float32))
+        assert np.abs(obs["proprio"][6:8]).sum() < LiberoObjectLabeller.EMPTY_FINGERS
+        assert not env.grasping("alphabet_soup_1")
+        first = lab.act(env, obs)
+        assert first[6] == OPEN and first[2] > 0  # open and back up
+        success = False
+        for _ in range(250):
+            obs, _, _, _, info = env.step(lab.act(env, obs))
+            if info["success"]:
+                success = True
+                break
+        assert success
+    finally:
+        env.close()
+
+
+@pytest.mark.slow
+def test_libero_dagger_labels_the_policys_own_states_and_appends_them(tmp_path):
+    """A short collection with the committed policy: files per task in the demonstrations' layout, the seeds of its
+    block, labels in the libero action space; reused only for the same configuration and checkpoint; appended as
+    further episodes of each task."""
+    _needs_libero()
+    from harness.reference import libero_dagger
+    from harness.reference.libero_demos import load_libero_demos
+
+    config = libero_dagger.LiberoDaggerConfig(tasks=("libero_object/3",), episodes=2, max_steps=6)
+    summary = libero_dagger.collect(MODEL, tmp_path / "c", config, workers=1)
+    assert summary["libero_object/3"]["episodes"] == 2 and summary["libero_object/3"]["steps"] == 12
+    with np.load(tmp_path / "c" / "libero_object_3.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    assert arrays["seeds"].tolist() == config.seeds("libero_object/3") == [2_030_000, 2_030_001]
+    assert arrays["image_primary"].shape == (12, 128, 128, 3) and arrays["image_wrist"].shape == (12, 64, 64, 3)
+    assert arrays["proprio"].shape == (12, 8) and arrays["success"].tolist() == [False, False]
+    assert set(np.unique(arrays["action"][:, 6])) <= {0.0, 1.0} and np.abs(arrays["action"][:, :6]).max() <= 1.0
+    assert libero_dagger.existing(config, MODEL, tmp_path / "c") is not None
+    assert libero_dagger.existing(libero_dagger.LiberoDaggerConfig(tasks=config.tasks, episodes=4, max_steps=6),
+                                  MODEL, tmp_path / "c") is None
+    other = tmp_path / "other"
+    other.mkdir()
+    for name in ("config.json", "dataset_statistics.json"):
+        (other / name).write_bytes((MODEL / name).read_bytes())
+    (other / "dataset_statistics.json").write_text((MODEL / "dataset_statistics.json").read_text() + " ")
+    assert libero_dagger.existing(config, other, tmp_path / "c") is None  # another checkpoint acted
+    demos = {"libero_object/3": {k: v[:7] if k not in ("seeds", "lengths", "success") else v
+                                 for k, v in arrays.items() if k != "success"}}
+    demos["libero_object/3"]["episode"] = np.zeros(7, np.int32)
+    merged = libero_dagger.append_all(demos, tmp_path / "c", config.tasks)["libero_object/3"]
+    assert len(merged["action"]) == 7 + 12 and merged["episode"].max() == 2
 
 
 def test_the_pipeline_trains_libero_tasks_warm_started_from_the_robosuite_reference(tmp_path):

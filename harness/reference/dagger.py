@@ -64,9 +64,9 @@ def checkpoint_fingerprint(model_dir: str | Path) -> str:
     return digest.hexdigest()
 
 
-def _collect_job(args: tuple) -> list[dict]:
-    """Spawned worker: the episodes of seeds `seeds`, each {arrays..., "seed", "success"}."""
-    model_dir, config, seeds = args
+def policy_in_env(model_dir: str | Path, task: str, max_steps: int):
+    """(env, policy): `task` made as the evaluation runs the checkpoint (its harness.toml conventions, fast render,
+    no masks) and the checkpoint's policy, checked against it."""
     import envs
     from harness.conventions import CheckpointConventions
     from harness.octo import load_pretrained
@@ -74,29 +74,53 @@ def _collect_job(args: tuple) -> list[dict]:
 
     conventions = CheckpointConventions.read(model_dir)
     options = conventions.env_options({"fast_render": True, "masks": False})
-    env = envs.make(config.task, options, max_episode_steps=config.max_steps)
+    env = envs.make(task, options, max_episode_steps=max_steps)
     model = load_pretrained(str(model_dir), text_tokenizer=conventions.text_tokenizer)
     policy = OctoPolicy(model, conventions.policy_config())
     policy.check_env(env)
+    return env, policy
+
+
+def labelled_episode(env, policy, label, obs: dict, info: dict, seed: int, max_steps: int) -> dict:
+    """One closed-loop episode from a fresh reset (`obs`, `info`): the policy acts, `label(obs)` says what the expert
+    would do at each visited state -> {the policy's inputs..., "action": labels, "seed", "success"}; stops at
+    success or after `max_steps`."""
+    policy.reset(info.get("instruction", ""), seed=seed)
+    steps: dict[str, list] = {}
+    success = False
+    for _ in range(max_steps):
+        decision = policy.step(obs)
+        for key, value in {**decision.inputs, "action": label(obs)}.items():
+            steps.setdefault(key, []).append(value)
+        obs, _, terminated, truncated, info = env.step(decision.action)
+        success = bool(info["success"])
+        if success or terminated or truncated:
+            break
+    # inputs as the policy was fed them (proprio float32), labels float32 from the expert's control law
+    return {**{k: np.stack(v) for k, v in steps.items()}, "seed": seed, "success": success}
+
+
+def save_collection(out_dir: Path, episodes: list[dict], file_name: str) -> dict:
+    """Write a task's labelled episodes (sorted by seed) into `out_dir/file_name` with their `success` flags ->
+    {episodes, steps, policy_successes, mean_length}."""
+    episodes = sorted(episodes, key=lambda e: e["seed"])
+    success = np.array([e.pop("success") for e in episodes], bool)
+    seeds = [e.pop("seed") for e in episodes]
+    lengths = save_episodes(out_dir / file_name, episodes, seeds, {"success": success})
+    return {"episodes": len(episodes), "steps": int(lengths.sum()), "policy_successes": int(success.sum()),
+            "mean_length": float(lengths.mean())}
+
+
+def _collect_job(args: tuple) -> list[dict]:
+    """Spawned worker: the episodes of seeds `seeds`, each {arrays..., "seed", "success"}."""
+    model_dir, config, seeds = args
+    env, policy = policy_in_env(model_dir, config.task, config.max_steps)
     labeller = LABELLERS[config.task](config.expert)
     episodes = []
     for seed in seeds:
         obs, info = env.reset(seed=seed)
-        policy.reset(info.get("instruction", ""), seed=seed)
         labeller.reset(obs, env)
-        steps: dict[str, list] = {}
-        success = False
-        for _ in range(config.max_steps):
-            decision = policy.step(obs)
-            label = labeller.act(obs, env)
-            for key, value in {**decision.inputs, "action": label}.items():
-                steps.setdefault(key, []).append(value)
-            obs, _, terminated, truncated, info = env.step(decision.action)
-            success = bool(info["success"])
-            if success or terminated or truncated:
-                break
-        # inputs as the policy was fed them (proprio float32), labels float32 from the expert's control law
-        episodes.append({**{k: np.stack(v) for k, v in steps.items()}, "seed": seed, "success": success})
+        episodes.append(labelled_episode(env, policy, lambda o: labeller.act(o, env), obs, info, seed, config.max_steps))
     env.close()
     return episodes
 
@@ -108,12 +132,8 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: DaggerConfig = D
     seeds = [DAGGER_SEED_BASE + k for k in range(config.episodes)]
     jobs = [(str(model_dir), config, seeds[j::config.jobs]) for j in range(config.jobs)]
     start = time.perf_counter()
-    episodes = sorted((e for part in run_jobs(_collect_job, jobs, workers) for e in part), key=lambda e: e["seed"])
-    success = np.array([e.pop("success") for e in episodes], bool)
-    seeds = [e.pop("seed") for e in episodes]
-    lengths = save_episodes(out_dir / f"{config.task}.npz", episodes, seeds, {"success": success})
-    summary = {config.task: {"episodes": len(episodes), "steps": int(lengths.sum()),
-                             "policy_successes": int(success.sum()), "mean_length": float(lengths.mean())},
+    episodes = [e for part in run_jobs(_collect_job, jobs, workers) for e in part]
+    summary = {config.task: save_collection(out_dir, episodes, f"{config.task}.npz"),
                "seconds": time.perf_counter() - start,
                "config": fingerprint(config, model_dir)}
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
@@ -131,10 +151,12 @@ def existing(config: DaggerConfig, model_dir: str | Path, out_dir: str | Path) -
     return finished_recording(out_dir, fingerprint(config, model_dir), (config.task,))
 
 
-def append_corrections(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path,
-                       task: str) -> dict[str, dict[str, np.ndarray]]:
-    """`demos` with the corrections of `task` in `out_dir` appended as further episodes of that task."""
-    with np.load(Path(out_dir) / f"{task}.npz") as data:
+def append_corrections(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, task: str,
+                       file_name: str | None = None) -> dict[str, dict[str, np.ndarray]]:
+    """`demos` with the corrections of `task` in `out_dir/file_name` (default `<task>.npz`) appended as further
+    episodes of that task."""
+    file_name = file_name or f"{task}.npz"
+    with np.load(Path(out_dir) / file_name) as data:
         extra = {k: data[k] for k in data.files}
     base = demos[task]
     first = int(base["episode"].max()) + 1
@@ -145,7 +167,7 @@ def append_corrections(demos: dict[str, dict[str, np.ndarray]], out_dir: str | P
         elif key in extra:
             merged[key] = np.concatenate([value, extra[key].astype(value.dtype)])
         else:
-            raise ValueError(f"{out_dir}/{task}.npz lacks {key!r}; collect the corrections again")
+            raise ValueError(f"{out_dir}/{file_name} lacks {key!r}; collect the corrections again")
     return {**demos, task: merged}
 
 

@@ -119,3 +119,70 @@ def run_expert_episode(env, target: str, seed: int, max_steps: int | None = None
         if terminated or truncated:
             break
     return {"success": success, "steps": steps, "phase": expert.phase_name}
+
+
+class LiberoObjectLabeller:
+    """The LIBERO-Object expert as a function of the simulator state, for labelling states a policy visits (DAgger).
+
+    `LiberoObjectExpert`'s phase follows its own progress, so it cannot say what to do from a state it did not lead
+    to (a grasp closed beside the object, an object dropped on the way). This labeller reads the phase off the state,
+    with the expert's waypoints, gains and gripper values:
+      object over the basket, not held -> retreat above the basket, gripper open (it is in, or falling in);
+      object held, away from the basket -> rise to the carrying height, then carry over the basket;
+      object held over the basket     -> lower to the release height, then open where the hand is;
+      object elsewhere, not held      -> fingers closed on nothing: open and rise to the hover height; else rise to
+                                         the hover height while off-centre, descend when centred, close once the
+                                         hand is at the grasp point.
+    """
+
+    CENTRED = 0.015  # metres (horizontal) within which the hand descends onto the object / counts as over the basket
+    AT_GRASP = 0.012  # metres from the grasp point within which the fingers close (the expert stops at 0.008)
+    EMPTY_FINGERS = 0.01  # summed finger opening below which closed fingers hold nothing (open: ~0.08)
+
+    def __init__(self, target: str, basket: str = "basket_1", config: LiberoExpertConfig = LiberoExpertConfig()):
+        self.target = target
+        self.basket = basket
+        self.config = config
+
+    def waypoint(self, hand: np.ndarray, fingers: float, poses: dict, held: bool) -> tuple[np.ndarray, float]:
+        """((3,) hand target, gripper command) for this state; `fingers` is the summed finger opening (m)."""
+        c = self.config
+        obj, basket = poses[self.target], poses[self.basket]
+        centre = (obj["low"] + obj["high"]) / 2
+        top, bottom = obj["high"][2], obj["low"][2]
+        rim = basket["high"][2]
+        basket_xy = (basket["low"][:2] + basket["high"][:2]) / 2
+        if held:
+            below_hand = hand[2] - bottom
+            carry_z = rim + c.carry_clearance + below_hand
+            release_z = rim + c.release_above_rim + below_hand
+            if np.linalg.norm(hand[:2] - basket_xy) > self.CENTRED * 2:
+                if hand[2] < carry_z - 0.03:  # rise first (as the expert's lift), then carry
+                    return np.array([hand[0], hand[1], carry_z]), CLOSED
+                return np.array([basket_xy[0], basket_xy[1], carry_z]), CLOSED
+            if hand[2] > release_z + 0.02:
+                return np.array([basket_xy[0], basket_xy[1], release_z]), CLOSED
+            return hand, OPEN
+        over_basket = np.all(centre[:2] >= basket["low"][:2] - 0.01) and np.all(centre[:2] <= basket["high"][:2] + 0.01)
+        if over_basket:  # in the basket, or falling into it after the release
+            return np.array([basket_xy[0], basket_xy[1], rim + 0.15]), OPEN
+        hover_z = top + c.hover
+        grasp = np.array([centre[0], centre[1], max(top - c.finger_depth, (top + bottom) / 2, bottom + c.floor_clearance)])
+        if fingers < self.EMPTY_FINGERS:  # closed on nothing: open and back up
+            return np.array([hand[0], hand[1], max(hover_z, hand[2])]), OPEN
+        if np.linalg.norm(hand - grasp) <= self.AT_GRASP:
+            return grasp, CLOSED
+        if np.linalg.norm(hand[:2] - grasp[:2]) > self.CENTRED:
+            if hand[2] < hover_z - 0.03:  # off-centre and low: rise before moving across
+                return np.array([hand[0], hand[1], hover_z]), OPEN
+            return np.array([grasp[0], grasp[1], max(hover_z, hand[2])]), OPEN
+        return grasp, OPEN
+
+    def act(self, env, obs: dict) -> np.ndarray:
+        """(7,) float32 "libero" action the expert gives in this state (same signature as LiberoObjectExpert.act)."""
+        proprio = np.asarray(obs["proprio"], np.float64)
+        hand = proprio[:3]
+        fingers = float(np.abs(proprio[6:8]).sum())
+        goal, gripper = self.waypoint(hand, fingers, env.object_poses(), env.grasping(self.target))
+        arm = np.clip(self.config.gain * (goal - hand) / POSITION_MAX, -1.0, 1.0)
+        return np.concatenate([arm, np.zeros(3), [gripper]]).astype(np.float32)

@@ -2,6 +2,7 @@
 
     python -m harness.reference.libero_pipeline --out models/octo-reference-libero-object \
         --data data/libero_object_demos [--episodes 20] [--steps 2500] [--init-from models/octo-reference-robosuite]
+        [--dagger-episodes N --dagger-steps 1500]
 
 (1) The scripted LIBERO-Object expert's demonstrations from sampled placements, never the suite's stored
 evaluation states (harness.reference.libero_demos), into `--data`; (2) behaviour cloning with the robosuite
@@ -9,6 +10,9 @@ reference's trainer (harness.reference.train: the same Octo architecture, primar
 wrist 64 px = 4x4, L1 head, frozen tiny T5 over a word vocabulary of the ten instructions and their
 paraphrases), warm-started from `--init-from` (every parameter whose shape is unchanged), into `--out`, with a
 harness.toml stating the LIBERO conventions (the "libero" action space, rot180 images, the cameras above).
+With `--dagger-episodes N`, (2) writes `<data>/stage1`, which then runs N episodes per task from further sampled
+placements while the state-based expert labels every state it visits (harness.reference.libero_dagger, into
+`<data>/dagger`), and (3) fine-tunes from it on demonstrations + corrections into `--out`.
 Everything is seeded, so the same command on the same machine gives the same data and weights; a finished
 recording with the same configuration is reused.
 """
@@ -24,6 +28,9 @@ from pathlib import Path
 
 from harness.reference.libero_demos import (LIBERO_CAMERAS, LiberoDemoConfig, existing_libero_demos, load_libero_demos,
                                             record_libero_demos)
+from harness.reference import libero_dagger
+from harness.reference.libero_dagger import LiberoDaggerConfig
+from harness.reference.pipeline import dagger_round
 from harness.reference.train import TrainConfig, train
 
 log = logging.getLogger(__name__)
@@ -63,15 +70,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--learning-rate", type=float, default=TrainConfig.learning_rate)
     parser.add_argument("--workers", type=int, default=2, help="recording processes (spawned)")
     parser.add_argument("--seed", type=int, default=TrainConfig.seed, help="training seed")
+    parser.add_argument("--dagger-episodes", type=int, default=0,
+                        help="episodes per task of the trained policy to label for a DAgger round (0 = no round)")
+    parser.add_argument("--dagger-steps", type=int, default=1500, help="fine-tuning steps of the DAgger round")
+    parser.add_argument("--dagger-learning-rate", type=float, default=3e-4, help="peak learning rate of the DAgger round")
     parser.add_argument("--init-from", default=DEFAULT_INIT, metavar="CHECKPOINT",
                         help="warm start from this checkpoint folder ('none': random initialisation)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     for noisy in ("jax._src.xla_bridge", "robosuite_logs"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
-    if args.episodes < 2 or args.steps < 1 or args.batch_size < 1 or not args.learning_rate > 0:
-        parser.error("--episodes must be >= 2 (one per recording job), --steps and --batch-size >= 1, "
-                     "--learning-rate > 0")
+    if args.episodes < 2 or args.steps < 1 or args.batch_size < 1 or not args.learning_rate > 0 \
+            or args.dagger_steps < 1 or not args.dagger_learning_rate > 0:
+        parser.error("--episodes must be >= 2 (one per recording job), --steps, --dagger-steps and --batch-size >= 1, "
+                     "learning rates > 0")
+    dagger_config = None
+    if args.dagger_episodes:
+        try:
+            dagger_config = LiberoDaggerConfig(episodes=args.dagger_episodes)
+        except ValueError as e:
+            parser.error(str(e))
     init = None if args.init_from.lower() == "none" else args.init_from
     if init is not None and not (Path(init) / "config.json").is_file():
         parser.error(f"--init-from {init}: no checkpoint there (a folder with config.json); use 'none' to train "
@@ -88,8 +106,18 @@ def main(argv: list[str] | None = None) -> int:
     train_config = replace(TrainConfig(), steps=args.steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
                            seed=args.seed, init_from=init, task_weights=(),
                            image_sizes=tuple((k, s) for k, _, s in demo_config.cameras))
-    result = train(demos, args.out, train_config, instructions=instructions(demo_config.tasks), dataset_key=DATASET_KEY,
-                   conventions=conventions_toml(demo_config.cameras))
+    train_kwargs = {"instructions": instructions(demo_config.tasks), "dataset_key": DATASET_KEY,
+                    "conventions": conventions_toml(demo_config.cameras)}
+    if dagger_config is None:
+        result = train(demos, args.out, train_config, **train_kwargs)
+    else:
+        result = dagger_round(
+            demos, train_config, args.data, args.out,
+            collect=lambda model, out: libero_dagger.collect(model, out, dagger_config, workers=args.workers),
+            existing=lambda model, out: libero_dagger.existing(dagger_config, model, out),
+            append=lambda d, out: libero_dagger.append_all(d, out, dagger_config.tasks),
+            steps=args.dagger_steps, learning_rate=args.dagger_learning_rate,
+            what=f"{dagger_config.episodes} episodes per task", train_kwargs=train_kwargs)
     result["demonstrations"] = summary
     result["pipeline_seconds_this_run"] = time.perf_counter() - start
     Path(args.out, "training_summary.json").write_text(json.dumps(result, indent=2, default=str))

@@ -83,32 +83,48 @@ def main(argv: list[str] | None = None) -> int:
     if dagger_config is None:
         result = train(demos, args.out, train_config)
     else:
-        stage1 = Path(args.data) / "stage1"
-        first = finished_training(stage1, train_config, demos)
-        if first is None:
-            first = train(demos, stage1, train_config)
-        else:
-            log.info("reusing the stage-1 checkpoint in %s (trained in %.0f s)", stage1, first["train_seconds"])
-        corrections = Path(args.data) / "dagger"
-        collected = dagger.existing(dagger_config, stage1, corrections)
-        if collected is None:
-            log.info("DAgger: %d %s episodes of %s, labelled by the expert", dagger_config.episodes,
-                     dagger_config.task, stage1)
-            collected = dagger.collect(stage1, corrections, dagger_config, workers=args.workers)
-        else:
-            log.info("reusing the corrections in %s (collected in %.0f s)", corrections, collected["seconds"])
-        fine_tune = replace(train_config, steps=args.dagger_steps, learning_rate=args.dagger_learning_rate,
-                            seed=args.seed + 1, init_from=str(stage1))
-        result = train(dagger.append_corrections(demos, corrections, dagger_config.task), args.out, fine_tune,
-                       normalise_with=demos)
-        result["stage1"] = {k: first.get(k) for k in ("frames", "train_seconds", "final_loss", "config", "warm_start")}
-        result["dagger"] = collected
-        result["total_seconds"] += first["total_seconds"] + collected["seconds"]
+        result = dagger_round(
+            demos, train_config, args.data, args.out,
+            collect=lambda model, out: dagger.collect(model, out, dagger_config, workers=args.workers),
+            existing=lambda model, out: dagger.existing(dagger_config, model, out),
+            append=lambda d, out: dagger.append_corrections(d, out, dagger_config.task),
+            steps=args.dagger_steps, learning_rate=args.dagger_learning_rate,
+            what=f"{dagger_config.episodes} {dagger_config.task} episodes")
     result["demonstrations"] = summary
     result["pipeline_seconds_this_run"] = time.perf_counter() - start
     Path(args.out, "training_summary.json").write_text(json.dumps(result, indent=2, default=str))
     log.info("done: %s (demonstrations %.0f s, training %.0f s)", args.out, summary["seconds"], result["total_seconds"])
     return 0
+
+
+def dagger_round(demos: dict, train_config: TrainConfig, data_dir: str | Path, out: str | Path, *, collect, existing,
+                 append, steps: int, learning_rate: float, what: str, train_kwargs: dict | None = None) -> dict:
+    """Behaviour cloning into `<data_dir>/stage1`, then a DAgger round: that checkpoint acts and the expert labels
+    the states it visits (`collect(model, out)` into `<data_dir>/dagger`, reused when `existing(model, out)` finds a
+    finished one), then fine-tuning from stage 1 on demonstrations + corrections (`append(demos, out)`) for `steps`
+    at peak `learning_rate`, with training seed + 1 and the demonstrations' normalisation, into `out`.
+    Returns the fine-tuning summary with "stage1" and "dagger" added."""
+    train_kwargs = train_kwargs or {}
+    stage1 = Path(data_dir) / "stage1"
+    first = finished_training(stage1, train_config, demos)
+    if first is None:
+        first = train(demos, stage1, train_config, **train_kwargs)
+    else:
+        log.info("reusing the stage-1 checkpoint in %s (trained in %.0f s)", stage1, first["train_seconds"])
+    corrections = Path(data_dir) / "dagger"
+    collected = existing(stage1, corrections)
+    if collected is None:
+        log.info("DAgger: %s of %s, labelled by the expert", what, stage1)
+        collected = collect(stage1, corrections)
+    else:
+        log.info("reusing the corrections in %s (collected in %.0f s)", corrections, collected["seconds"])
+    fine_tune = replace(train_config, steps=steps, learning_rate=learning_rate, seed=train_config.seed + 1,
+                        init_from=str(stage1))
+    result = train(append(demos, corrections), out, fine_tune, normalise_with=demos, **train_kwargs)
+    result["stage1"] = {k: first.get(k) for k in ("frames", "train_seconds", "final_loss", "config", "warm_start")}
+    result["dagger"] = collected
+    result["total_seconds"] += first["total_seconds"] + collected["seconds"]
+    return result
 
 
 def finished_training(folder: Path, cfg: TrainConfig, demos: dict) -> dict | None:

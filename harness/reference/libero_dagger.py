@@ -1,0 +1,106 @@
+"""DAgger corrections for the LIBERO-Object reference policy: the checkpoint acts, the state-based expert labels.
+
+The LIBERO counterpart of harness.reference.dagger. The checkpoint runs each LIBERO-Object task as the evaluation
+runs it (its harness.toml conventions, fast render) from placements LIBERO's sampler draws with seeds
+LIBERO_DAGGER_SEED_BASE + 10_000 * task + k (apart from the demonstrations' 1_000_000 block and never the suite's
+stored evaluation states), and `LiberoObjectLabeller` says at every visited state what the expert would do there:
+open and back up after a grasp closed beside the object, re-centre when off, carry and release once it holds.
+Episodes run in spawned processes in a fixed split of jobs per task, so the data do not depend on the workers.
+
+Output: `<out>/<suite>_<index>.npz` per task (the layout of harness.reference.demos plus `success`) and
+`<out>/summary.json` (per task: episodes, steps, policy successes; seconds; configuration and checkpoint).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from harness.reference.dagger import (append_corrections, checkpoint_fingerprint, labelled_episode, policy_in_env,
+                                      save_collection)
+from harness.reference.demos import config_fingerprint, finished_recording, run_jobs
+from harness.reference.libero_demos import LIBERO_OBJECT_TASKS, task_file
+from harness.reference.libero_expert import LiberoExpertConfig, LiberoObjectLabeller
+
+log = logging.getLogger(__name__)
+
+LIBERO_DAGGER_SEED_BASE = 2_000_000  # placement seeds of task i: 2_000_000 + 10_000 i + k
+
+
+@dataclass(frozen=True)
+class LiberoDaggerConfig:
+    tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS
+    episodes: int = 6  # per task
+    jobs_per_task: int = 2  # fixed split (not the worker count), so the data do not depend on the workers
+    max_steps: int = 280  # LIBERO-Object's step limit
+    expert: LiberoExpertConfig = field(default_factory=LiberoExpertConfig)  # the labeller's waypoints; fingerprinted
+
+    def __post_init__(self) -> None:
+        if self.episodes < self.jobs_per_task or self.max_steps < 1:
+            raise ValueError(f"--dagger-episodes must be >= {self.jobs_per_task} per task (one per job) and "
+                             "--max-steps >= 1")
+
+    def seeds(self, task: str) -> list[int]:
+        base = LIBERO_DAGGER_SEED_BASE + 10_000 * int(task.split("/")[1])
+        return [base + k for k in range(self.episodes)]
+
+
+def _collect_job(args: tuple) -> tuple[str, list[dict]]:
+    """Spawned worker: (task, its episodes of seeds `seeds`, each {arrays..., "seed", "success"})."""
+    model_dir, config, task, seeds = args
+    from envs.libero_tasks import get_libero_task
+
+    env, policy = policy_in_env(model_dir, task, config.max_steps)
+    labeller = LiberoObjectLabeller(get_libero_task(task).targets[0], config=config.expert)
+    episodes = []
+    try:
+        for seed in seeds:
+            obs, info = env.reset(seed=seed, options={"initial_state": "sampled"})
+            episodes.append(labelled_episode(env, policy, lambda o: labeller.act(env, o), obs, info, seed,
+                                             config.max_steps))
+    finally:
+        env.close()
+    return task, episodes
+
+
+def collect(model_dir: str | Path, out_dir: str | Path, config: LiberoDaggerConfig = LiberoDaggerConfig(),
+            workers: int = 2) -> dict:
+    """Run the checkpoint on every task's seeds, label every visited state; write `<out>/<suite>_<index>.npz`."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    jobs = [(str(model_dir), config, task, config.seeds(task)[j::config.jobs_per_task])
+            for task in config.tasks for j in range(config.jobs_per_task)]
+    start = time.perf_counter()
+    results = run_jobs(_collect_job, jobs, workers)
+    summary = {}
+    for task in config.tasks:
+        episodes = [e for t, part in results if t == task for e in part]
+        summary[task] = save_collection(out_dir, episodes, task_file(task))
+        log.info("%s: %s", task, summary[task])
+    summary["seconds"] = time.perf_counter() - start
+    summary["config"] = fingerprint(config, model_dir)
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def fingerprint(config: LiberoDaggerConfig, model_dir: str | Path) -> dict:
+    """JSON-able description of a collection: its configuration and the checkpoint that acted."""
+    return {**config_fingerprint(config), "checkpoint": checkpoint_fingerprint(model_dir)}
+
+
+def existing(config: LiberoDaggerConfig, model_dir: str | Path, out_dir: str | Path) -> dict | None:
+    """The summary of a finished collection with this configuration and checkpoint in `out_dir`, else None."""
+    return finished_recording(out_dir, fingerprint(config, model_dir), tuple(task_file(t)[:-4] for t in config.tasks))
+
+
+def append_all(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path,
+               tasks: tuple[str, ...]) -> dict[str, dict[str, np.ndarray]]:
+    """`demos` with every task's corrections in `out_dir` appended as further episodes of that task."""
+    for task in tasks:
+        demos = append_corrections(demos, out_dir, task, task_file(task))
+    return demos
