@@ -200,6 +200,20 @@ def test_libero_dagger_seeds_are_their_own_block_and_bad_counts_are_refused():
         LiberoDaggerConfig(episodes=1)
 
 
+def test_the_demonstrator_is_part_of_the_recording_fingerprint_and_unknown_ones_are_one_line():
+    from harness.reference.demos import config_fingerprint
+    from harness.reference.libero_demos import LiberoDemoConfig
+    from harness.reference.libero_pipeline import main
+
+    timed, state = LiberoDemoConfig(), LiberoDemoConfig(demonstrator="state")
+    assert timed.demonstrator == "timed"  # the committed policy's demonstrations
+    assert config_fingerprint(timed) != config_fingerprint(state)  # a recording is never reused across them
+    with pytest.raises(ValueError, match="use one of state, timed"):
+        LiberoDemoConfig(demonstrator="scripted")
+    with pytest.raises(SystemExit):
+        main(["--demonstrator", "scripted"])
+
+
 # ------------------------------------------------------------------------------------------------ LIBERO environment
 
 

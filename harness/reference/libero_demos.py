@@ -2,8 +2,11 @@
 
 Each episode starts from a placement LIBERO's own sampler draws (`LiberoEnv.reset(seed=s, options={"initial_state":
 "sampled"})`: the BDDL regions the suite's stored states were drawn from) with seeds LIBERO_SEED_BASE + 10_000 *
-task + k, never from the 50 stored initial states the published evaluation uses. The env is the one the policy
-will be evaluated in: cameras at the model's sizes (agentview 128 px, eye-in-hand 64 px, so no resize), the "rot180"
+task + k, never from the 50 stored initial states the published evaluation uses. The demonstrator is the timed
+LIBERO-Object expert (`LiberoObjectExpert`, whose close phase lasts 12 steps that no single frame tells apart: the
+committed policy, trained on it, stays closed at the grasp) or, with `demonstrator="state"`, the state-based one
+(`LiberoObjectLabeller`: its phase is read off the state, so it lifts as soon as the fingers hold the object and
+every frame shows what comes next). The env is the one the policy will be evaluated in: cameras at the model's sizes (agentview 128 px, eye-in-hand 64 px, so no resize), the "rot180"
 image convention of OpenVLA's LIBERO datasets, fast render, the "libero" action space (6 OSC values in [-1, 1],
 gripper 1 open / 0 closed), LIBERO's 8-D proprio. As for the robosuite reference (harness.reference.demos), Gaussian
 noise perturbs the *executed* arm input while the label stays the expert's clean action (DART), so the data cover
@@ -22,9 +25,10 @@ import numpy as np
 
 from harness.reference.demos import (config_fingerprint, finished_recording, noisy_episode, record_tasks,
                                      successful_episodes)
-from harness.reference.libero_expert import LiberoExpertConfig, LiberoObjectExpert
+from harness.reference.libero_expert import LiberoExpertConfig, LiberoObjectExpert, LiberoObjectLabeller
 
 
+DEMONSTRATORS = {"state": LiberoObjectLabeller, "timed": LiberoObjectExpert}  # both: act(env, obs)
 LIBERO_SEED_BASE = 1_000_000  # placement seeds of task i: 1_000_000 + 10_000 i + k (evaluation uses stored states)
 SEEDS_PER_JOB = 1_000
 LIBERO_OBJECT_TASKS = tuple(f"libero_object/{i}" for i in range(10))
@@ -43,6 +47,13 @@ class LiberoDemoConfig:
     noise: float = 0.3  # std of the Gaussian noise on the executed position input (OSC units)
     max_steps: int = 280  # LIBERO-Object's step limit
     expert: LiberoExpertConfig = field(default_factory=LiberoExpertConfig)
+    # "timed": LiberoObjectExpert, whose close phase is a 12-step timer no single frame shows (the committed policy's);
+    # "state": LiberoObjectLabeller, whose phase is read off the state (it lifts once the fingers hold the object)
+    demonstrator: str = "timed"
+
+    def __post_init__(self) -> None:
+        if self.demonstrator not in DEMONSTRATORS:
+            raise ValueError(f"demonstrator {self.demonstrator!r}: use one of {', '.join(DEMONSTRATORS)}")
 
     def task_seed_base(self, task: str) -> int:
         return LIBERO_SEED_BASE + 10_000 * int(task.split("/")[1])
@@ -65,7 +76,7 @@ def record_episode(env, target: str, seed: int, config: LiberoDemoConfig) -> dic
     the expert failed."""
     rng = np.random.default_rng(seed)
     obs, info = env.reset(seed=seed, options={"initial_state": "sampled"})
-    expert = LiberoObjectExpert(target, config=config.expert)
+    expert = DEMONSTRATORS[config.demonstrator](target, config=config.expert)
     sizes = {k: s for k, _, s in config.cameras}  # rendered at the model's sizes: stored as rendered
     return noisy_episode(env, obs, lambda o: expert.act(env, o), sizes, config.noise, rng, config.max_steps)
 

@@ -26,8 +26,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from harness.reference.libero_demos import (LIBERO_CAMERAS, LiberoDemoConfig, existing_libero_demos, load_libero_demos,
-                                            record_libero_demos)
+from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, LiberoDemoConfig, existing_libero_demos,
+                                            load_libero_demos, record_libero_demos)
 from harness.reference import libero_dagger
 from harness.reference.libero_dagger import LiberoDaggerConfig
 from harness.reference.pipeline import dagger_round
@@ -70,6 +70,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--learning-rate", type=float, default=TrainConfig.learning_rate)
     parser.add_argument("--workers", type=int, default=2, help="recording processes (spawned)")
     parser.add_argument("--seed", type=int, default=TrainConfig.seed, help="training seed")
+    parser.add_argument("--demonstrator", choices=sorted(DEMONSTRATORS), default=LiberoDemoConfig.demonstrator,
+                        help="timed: the phase expert (12-step close); state: the state-based expert, which lifts once "
+                             "the fingers hold the object [timed]")
     parser.add_argument("--dagger-episodes", type=int, default=0,
                         help="episodes per task of the trained policy to label for a DAgger round (0 = no round)")
     parser.add_argument("--dagger-steps", type=int, default=1500, help="fine-tuning steps of the DAgger round")
@@ -95,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--init-from {init}: no checkpoint there (a folder with config.json); use 'none' to train "
                      "from scratch")
     start = time.perf_counter()
-    demo_config = LiberoDemoConfig(episodes=args.episodes)
+    demo_config = LiberoDemoConfig(episodes=args.episodes, demonstrator=args.demonstrator)
     summary = existing_libero_demos(demo_config, args.data)
     if summary is None:
         log.info("recording %d demonstrations per task into %s", args.episodes, args.data)
