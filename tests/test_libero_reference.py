@@ -382,6 +382,57 @@ def test_the_pipeline_trains_libero_tasks_warm_started_from_the_robosuite_refere
     assert 'action_space = "libero"' in (tmp_path / "harness.toml").read_text()
 
 
+def test_a_dagger_round_trains_stage_1_collects_once_then_fine_tunes_on_demonstrations_and_corrections(tmp_path):
+    """pipeline.dagger_round with a stand-in collection (the collection itself is tested on LIBERO above): stage 1
+    is trained into <data>/stage1, the collector is handed that checkpoint, the fine-tuning sees the corrections'
+    frames too, starts from stage 1 with seed + 1, and a second call reuses stage 1 and the corrections."""
+    from dataclasses import replace
+
+    from harness.reference.libero_pipeline import DATASET_KEY, conventions_toml, instructions
+    from harness.reference.pipeline import dagger_round
+    from harness.reference.train import TrainConfig
+
+    rng = np.random.default_rng(1)
+    task = "libero_object/2"
+
+    def frames(n):
+        return {"image_primary": rng.integers(0, 255, (n, 128, 128, 3), np.uint8),
+                "image_wrist": rng.integers(0, 255, (n, 64, 64, 3), np.uint8),
+                "proprio": rng.normal(size=(n, 8)).astype(np.float32),
+                "action": rng.uniform(-1, 1, (n, 7)).astype(np.float32),
+                "episode": np.zeros(n, np.int32), "step": np.arange(n, dtype=np.int32),
+                "seeds": np.array([1]), "lengths": np.array([n], np.int32)}
+
+    demos = {task: frames(6)}
+    corrections = frames(5)
+    collected = []
+
+    def collect(model, out):
+        collected.append(Path(model))
+        return {"seconds": 2.0}
+
+    def existing(model, out):
+        return {"seconds": 2.0} if collected else None
+
+    def append(d, out):
+        merged = {k: np.concatenate([d[task][k], corrections[k]]) for k in d[task]}
+        return {task: merged}
+
+    config = replace(TrainConfig(), steps=2, batch_size=4, log_every=1, checkpoint_every=2, warmup_steps=1,
+                     task_weights=(), init_from=None)
+    kwargs = {"instructions": instructions((task,)), "dataset_key": DATASET_KEY, "conventions": conventions_toml()}
+    result = dagger_round(demos, config, tmp_path / "data", tmp_path / "out", collect=collect, existing=existing,
+                          append=append, steps=2, learning_rate=1e-4, what="test", train_kwargs=kwargs)
+    assert collected == [tmp_path / "data" / "stage1"]
+    assert (tmp_path / "data" / "stage1" / "2" / "default" / "checkpoint").is_file()
+    assert result["frames"] == 11 and result["stage1"]["frames"] == 6
+    assert result["config"]["seed"] == config.seed + 1 and result["config"]["init_from"] == str(tmp_path / "data" / "stage1")
+    assert result["dagger"] == {"seconds": 2.0} and (tmp_path / "out" / "harness.toml").is_file()
+    again = dagger_round(demos, config, tmp_path / "data", tmp_path / "out2", collect=collect, existing=existing,
+                         append=append, steps=2, learning_rate=1e-4, what="test", train_kwargs=kwargs)
+    assert len(collected) == 1 and again["frames"] == 11  # stage 1 and the corrections reused
+
+
 # ------------------------------------------------------------------------------------------------ the committed policy
 
 
