@@ -390,14 +390,17 @@ class LiberoEnv(gym.Env):
         return None
 
 
+def horizontally_within(pose: dict, goal: dict) -> bool:
+    """Whether an object's centre (an `object_poses` entry) lies within `goal`'s horizontal extent (1 cm slack)."""
+    centre = (pose["low"] + pose["high"]) / 2
+    return bool(np.all(centre[:2] >= goal["low"][:2] - 0.01) and np.all(centre[:2] <= goal["high"][:2] + 0.01))
+
+
 def in_goal(pose: dict, goal: dict) -> bool:
-    """Whether an object (an `object_poses` entry) is in or on `goal`'s: its centre within the goal's horizontal
-    extent (1 cm slack), its bottom at most 3 cm above the goal's top and its top above the goal's bottom."""
-    low, high = pose["low"], pose["high"]
-    centre = (low + high) / 2
-    g_low, g_high = goal["low"], goal["high"]
-    inside = np.all(centre[:2] >= g_low[:2] - 0.01) and np.all(centre[:2] <= g_high[:2] + 0.01)
-    return bool(inside and low[2] <= g_high[2] + 0.03 and high[2] >= g_low[2])
+    """Whether an object (an `object_poses` entry) is in or on `goal`'s: its centre horizontally within the goal
+    (`horizontally_within`), its bottom at most 3 cm above the goal's top and its top above the goal's bottom."""
+    return horizontally_within(pose, goal) and bool(pose["low"][2] <= goal["high"][2] + 0.03
+                                                    and pose["high"][2] >= goal["low"][2])
 
 
 def _owner(name: str, instances: list[str]) -> str:

@@ -52,6 +52,23 @@ PHASES = (
 )
 
 
+def _geometry(poses: dict, target: str, basket: str, c: LiberoExpertConfig) -> dict:
+    """The waypoints' ingredients, shared by the timed expert and the state-based labeller: the object's centre,
+    top and bottom, its grasp point, the basket's rim height and horizontal centre."""
+    obj, box = poses[target], poses[basket]
+    centre = (obj["low"] + obj["high"]) / 2
+    top, bottom = obj["high"][2], obj["low"][2]
+    grasp_z = max(top - c.finger_depth, (top + bottom) / 2, bottom + c.floor_clearance)
+    return {"centre": centre, "top": top, "bottom": bottom, "grasp": np.array([centre[0], centre[1], grasp_z]),
+            "rim": box["high"][2], "basket_xy": (box["low"][:2] + box["high"][:2]) / 2}
+
+
+def _action(goal: np.ndarray, hand: np.ndarray, gripper: float, c: LiberoExpertConfig) -> np.ndarray:
+    """(7,) float32 "libero" action: the saturated proportional law towards `goal`, no rotation, `gripper`."""
+    arm = np.clip(c.gain * (goal - hand) / POSITION_MAX, -1.0, 1.0)
+    return np.concatenate([arm, np.zeros(3), [gripper]]).astype(np.float32)
+
+
 class LiberoObjectExpert:
     """`act(env, obs) -> (7,) float32` in the "libero" action space for one episode of a LIBERO-Object task."""
 
@@ -69,12 +86,9 @@ class LiberoObjectExpert:
 
     def _waypoint(self, name: str, hand: np.ndarray, poses: dict) -> np.ndarray:
         c = self.config
-        obj, basket = poses[self.target], poses[self.basket]
-        centre = (obj["low"] + obj["high"]) / 2
-        top, bottom = obj["high"][2], obj["low"][2]
-        grasp_z = max(top - c.finger_depth, (top + bottom) / 2, bottom + c.floor_clearance)
-        rim = basket["high"][2]
-        basket_xy = (basket["low"][:2] + basket["high"][:2]) / 2
+        g = _geometry(poses, self.target, self.basket, c)
+        centre, top, bottom, rim, basket_xy = g["centre"], g["top"], g["bottom"], g["rim"], g["basket_xy"]
+        grasp_z = g["grasp"][2]
         below_hand = hand[2] - bottom  # the object's bottom sits this far below the hand while held
         if name == "hover":
             return np.array([centre[0], centre[1], max(top + c.hover, hand[2])])
@@ -102,8 +116,7 @@ class LiberoObjectExpert:
                 continue
             break
         self.steps_in_phase += 1
-        arm = np.clip(self.config.gain * error / POSITION_MAX, -1.0, 1.0)
-        return np.concatenate([arm, np.zeros(3), [phase.gripper]]).astype(np.float32)
+        return _action(goal, hand, phase.gripper, self.config)
 
 
 def run_expert_episode(env, target: str, seed: int, max_steps: int | None = None) -> dict:
@@ -146,12 +159,11 @@ class LiberoObjectLabeller:
 
     def waypoint(self, hand: np.ndarray, fingers: float, poses: dict, held: bool) -> tuple[np.ndarray, float]:
         """((3,) hand target, gripper command) for this state; `fingers` is the summed finger opening (m)."""
+        from envs.libero_env import horizontally_within
+
         c = self.config
-        obj, basket = poses[self.target], poses[self.basket]
-        centre = (obj["low"] + obj["high"]) / 2
-        top, bottom = obj["high"][2], obj["low"][2]
-        rim = basket["high"][2]
-        basket_xy = (basket["low"][:2] + basket["high"][:2]) / 2
+        g = _geometry(poses, self.target, self.basket, c)
+        top, bottom, rim, basket_xy, grasp = g["top"], g["bottom"], g["rim"], g["basket_xy"], g["grasp"]
         if held:
             below_hand = hand[2] - bottom
             carry_z = rim + c.carry_clearance + below_hand
@@ -163,11 +175,9 @@ class LiberoObjectLabeller:
             if hand[2] > release_z + 0.02:
                 return np.array([basket_xy[0], basket_xy[1], release_z]), CLOSED
             return hand, OPEN
-        over_basket = np.all(centre[:2] >= basket["low"][:2] - 0.01) and np.all(centre[:2] <= basket["high"][:2] + 0.01)
-        if over_basket:  # in the basket, or falling into it after the release
+        if horizontally_within(poses[self.target], poses[self.basket]):  # in the basket, or falling in after the release
             return np.array([basket_xy[0], basket_xy[1], rim + 0.15]), OPEN
         hover_z = top + c.hover
-        grasp = np.array([centre[0], centre[1], max(top - c.finger_depth, (top + bottom) / 2, bottom + c.floor_clearance)])
         if fingers < self.EMPTY_FINGERS:  # closed on nothing: open and back up
             return np.array([hand[0], hand[1], max(hover_z, hand[2])]), OPEN
         if np.linalg.norm(hand - grasp) <= self.AT_GRASP:
@@ -184,5 +194,4 @@ class LiberoObjectLabeller:
         hand = proprio[:3]
         fingers = float(np.abs(proprio[6:8]).sum())
         goal, gripper = self.waypoint(hand, fingers, env.object_poses(), env.grasping(self.target))
-        arm = np.clip(self.config.gain * (goal - hand) / POSITION_MAX, -1.0, 1.0)
-        return np.concatenate([arm, np.zeros(3), [gripper]]).astype(np.float32)
+        return _action(goal, hand, gripper, self.config)
