@@ -320,3 +320,52 @@ def test_point_biserial_matches_scipy_and_its_interval_is_fisher_z():
     p = np.array([[0.5, 0.5, 0.0], [1.0, 0.0, 0.0]])
     q = np.array([[0.0, 0.5, 0.5], [0.0, 1.0, 0.0]])
     assert js_divergence_bits(p, q) == pytest.approx([0.5, 1.0])  # half-overlapping halves; disjoint: 1 bit
+
+
+def test_a_cell_breaks_a_task_only_when_its_paired_drop_survives_holm():
+    from harness.analysis.robustness import EpisodeRow, paired_rows, sentence, success_rows, association_rows
+
+    def cell(run, condition, level, outcomes, status=None):
+        return [EpisodeRow(run, "Lift", condition, level, seed, seed, (status or {}).get(seed, "ok"), ok,
+                           0.8, 0.5, 0.0, 0.8) for seed, ok in enumerate(outcomes)]
+
+    nominal = cell("nominal", "nominal", 0, [True] * 20)
+    texture = cell("texture-5", "texture", 5, [False] * 20)  # 20 discordant pairs: p = 2 * 0.5**20
+    lighting = cell("lighting-5", "lighting", 5, [True] * 16 + [False] * 4)  # 4 lost: p = 0.125, not a break
+    camera = cell("camera-3", "camera@image_primary", 3, [False] * 6 + [True] * 14, status={0: "failed", 1: "failed"})
+    rows = nominal + texture + lighting + camera
+    paired = {p[3]: p for p in paired_rows(rows)}
+    t, lt, c = paired["texture-5"], paired["lighting-5"], paired["camera-3"]
+    assert (t[4], t[7], t[8], t[12]) == (20, 20, 0, True) and t[10] == pytest.approx(2 * 0.5 ** 20)
+    assert t[11] == pytest.approx(3 * t[10])  # the smallest of three p-values, times three
+    assert (lt[7], lt[12]) == (4, False) and lt[10] == pytest.approx(0.125)
+    assert (c[4], c[7]) == (18, 4) and not c[12]  # errored episodes are not pairs: 4 lost of 18, not 6 of 20
+    text = sentence("Lift", success_rows(rows), association_rows(rows), paired_rows(rows))
+    assert "it breaks under texture 5 (0/20 vs 20/20" in text and "lighting" not in text.split("breaks under")[1]
+    gained = cell("noise-1", "noise", 1, [True] * 20)
+    worse_nominal = cell("nominal", "nominal", 0, [False] * 20)
+    assert not paired_rows(worse_nominal + gained)[0][12]  # gaining successes never "breaks"
+    assert "no condition breaks it" in sentence("Lift", [], [], paired_rows(worse_nominal + gained))
+
+
+def test_the_association_interval_resamples_seeds_and_needs_both_outcomes():
+    from harness.analysis.robustness import MIN_CLASS, EpisodeRow, association_rows, seed_cluster_interval, sentence
+
+    rng = np.random.default_rng(1)
+    seeds = np.repeat(np.arange(20), 4)  # one seed's episodes across four conditions share its scene
+    per_seed = rng.normal(size=20)[seeds]
+    success = (per_seed + 0.3 * rng.normal(size=80)) > 0
+    mass = 0.8 - 0.05 * per_seed + 0.01 * rng.normal(size=80)  # more nuisance mass on the seeds that fail
+    low, high = seed_cluster_interval(seeds, success, mass)
+    assert high < 0 and low < np.corrcoef(success, mass)[0, 1] < high
+    assert seed_cluster_interval(seeds, success, mass) == (low, high)  # seeded: the same interval twice
+    # treating the 80 episodes as independent (80 clusters) gives a narrower interval than 20 seeds do
+    independent = seed_cluster_interval(np.arange(80), success, mass)
+    assert independent[1] - independent[0] < high - low
+    few = np.zeros(80, bool)
+    few[:MIN_CLASS - 1] = True  # too few successes: no interval, and the sentence says so
+    assert all(np.isnan(seed_cluster_interval(seeds, few, mass)))
+    rows = [EpisodeRow("r", "Lift", "nominal", 0, int(k), i, "ok", bool(ok), float(m), 0.5, 0.0, float(m), float(m))
+            for i, (k, ok, m) in enumerate(zip(seeds, few, mass))]
+    assert "too few seeds, successes or failures" in sentence("Lift", [], association_rows(rows))
+    assert "nan" not in sentence("Lift", [], association_rows(rows))

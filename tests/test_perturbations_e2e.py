@@ -142,6 +142,8 @@ def test_robustness_grid_resumes_and_reports_in_chromium(tmp_path, capsys):
     assert len(shift) == 2 * 2 * 4  # perturbed runs x episodes x layers of the reference policy
     assert all(float(r["js_bits"]) >= 0 for r in shift) and any(float(r["js_bits"]) > 0 for r in shift)
     assert _rows(tables / "robustness_association.csv")[0]["task"] == "Lift"
+    paired = {r["run"]: r for r in _rows(tables / "robustness_paired.csv")}
+    assert set(paired) == {"distractors-2", "lighting-2"} and all(int(r["pairs"]) == 2 for r in paired.values())
 
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     assert chromium, "chromium not found (apt-get install --no-install-recommends chromium)"
@@ -150,6 +152,7 @@ def test_robustness_grid_resumes_and_reports_in_chromium(tmp_path, capsys):
                           (out / "report" / "report.html").as_uri()], capture_output=True, text=True, timeout=120,
                          check=True).stdout
     assert ">Robustness</h2>" in dom and "point-biserial" in dom and "plots/robustness_lift.png" in dom
+    assert "Holm p" in dom and "seed-cluster 95%" in dom
 
     from harness.analysis.runs import load_run
     from harness.report.robustness import write_section

@@ -11,8 +11,17 @@ camera `image_primary`, the model's last layer):
                   divergence (bits) of the two step-0 readout attention rows of layer l (mean over heads and
                   readouts, normalised over all keys; the same model gives the same keys)
   lift_change     step-0 target lift, perturbed minus nominal
+  nuisance_start  nuisance mass over the first START_STEPS steps only: a failed episode runs to the step limit and
+                  wanders, so the episode mean partly measures the outcome; the start is measured before it
 Association of nuisance mass with success, per task across episodes and conditions: the point-biserial
-correlation (Pearson r of a 0/1 variable with a continuous one) with a 95% interval by Fisher's z (n - 3).
+correlation (Pearson r of a 0/1 variable with a continuous one) with a 95% interval by Fisher's z (n - 3), which
+assumes independent episodes, and a seed-cluster bootstrap interval (seeds resampled with all their episodes across
+conditions, which share the scene's seed): the verdict reads the cluster interval. Both for the episode mean and
+the start.
+Which condition breaks a task (`paired_rows`): each perturbed cell is paired with the nominal run's episodes of the
+same task and seed (both ran to an outcome), tested by the exact McNemar test, and the p-values are Holm-adjusted over
+the task's perturbed cells (the family-wise error the regression gate controls); a cell "breaks" the task when its
+adjusted p <= alpha and it lost successes.
 """
 
 from __future__ import annotations
@@ -23,9 +32,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from envs.perturbations import parse_perturb
+from harness.analysis.paired import PairedCounts, holm_adjust, mcnemar_exact
 from harness.analysis.stats import wilson_interval
 
 CAMERA = "image_primary"
+START_STEPS = 10
+CLUSTER_RESAMPLES = 2000
+MIN_CLASS = 5
 
 
 @dataclass(frozen=True)
@@ -42,6 +55,7 @@ class EpisodeRow:
     target_lift: float
     distractor_mass: float
     background_mass: float
+    nuisance_start: float = math.nan
 
 
 def run_condition(manifest: dict) -> tuple[str, int] | None:
@@ -75,12 +89,13 @@ def episode_measures(path) -> dict:
         lift = _layer_measure(z, f"mask_lift/{CAMERA}/target")
         attn = np.asarray(z["readout_attention"][0], np.float64) if "readout_attention" in z.files else None
     out = {"nuisance_mass": math.nan, "distractor_mass": math.nan, "background_mass": math.nan, "target_lift": math.nan,
-           "step0_rows": None, "step0_lift": None}
+           "nuisance_start": math.nan, "step0_rows": None, "step0_lift": None}
     if background is not None and background.size:
         dis = np.sum(distractors, axis=0) if distractors else np.zeros_like(background)
         out["background_mass"] = float(np.nanmean(background[:, -1]))
         out["distractor_mass"] = float(np.nanmean(dis[:, -1]))
         out["nuisance_mass"] = float(np.nanmean((background + dis)[:, -1]))
+        out["nuisance_start"] = float(np.nanmean((background + dis)[:START_STEPS, -1]))
     if lift is not None and lift.size:
         out["target_lift"] = float(np.nanmean(lift[:, -1]))
         out["step0_lift"] = lift[0]
@@ -144,7 +159,7 @@ def collect(records) -> tuple[list[EpisodeRow], list[tuple], list[str]]:
             rows.append(EpisodeRow(record.name, e.task, cond[0], cond[1], e.seed if e.seed is not None else -1, e.episode,
                                    e.status, bool(e.success), m.get("nuisance_mass", math.nan),
                                    m.get("target_lift", math.nan), m.get("distractor_mass", math.nan),
-                                   m.get("background_mass", math.nan)))
+                                   m.get("background_mass", math.nan), m.get("nuisance_start", math.nan)))
     nominal = {(r.task, r.seed): r.run for r in rows if r.condition == "nominal"}
     shifts = []
     for r in rows:
@@ -165,7 +180,9 @@ def collect(records) -> tuple[list[EpisodeRow], list[tuple], list[str]]:
 SUCCESS_COLUMNS = ("task", "condition", "level", "run", "n", "errored", "successes", "success_rate", "ci_low", "ci_high",
                    "nuisance_mass", "distractor_mass", "background_mass", "target_lift")
 SHIFT_COLUMNS = ("run", "task", "condition", "level", "seed", "layer", "js_bits", "lift_change")
-ASSOCIATION_COLUMNS = ("task", "n", "point_biserial_r", "ci_low", "ci_high", "mean_nuisance_success", "mean_nuisance_failure")
+ASSOCIATION_COLUMNS = ("task", "n", "point_biserial_r", "ci_low", "ci_high", "seed_ci_low", "seed_ci_high",
+                       "mean_nuisance_success", "mean_nuisance_failure", "seeds", "start_point_biserial_r",
+                       "start_seed_ci_low", "start_seed_ci_high")
 
 
 def _mean(values) -> float:
@@ -193,23 +210,105 @@ def success_rows(rows: list[EpisodeRow]) -> list[tuple]:
     return out
 
 
+def seed_cluster_interval(seeds, success, values, confidence: float = 0.95, resamples: int = CLUSTER_RESAMPLES,
+                          seed: int = 0) -> tuple[float, float]:
+    """Percentile interval of the point-biserial r when whole seeds (every episode of a seed, across conditions) are
+    resampled with replacement; resamples where r is undefined (one class, constant values) are left out. nan with
+    fewer than 4 seeds or fewer than MIN_CLASS successes or failures (a resample then hinges on a handful of
+    episodes, and the percentile interval says little)."""
+    seeds = np.asarray(seeds)
+    s = np.asarray(success, np.float64)
+    v = np.asarray(values, np.float64)
+    keep = np.isfinite(s) & np.isfinite(v)
+    seeds, s, v = seeds[keep], s[keep], v[keep]
+    groups = [np.flatnonzero(seeds == k) for k in np.unique(seeds)]
+    if len(groups) < 4 or min(int(s.sum()), int(s.size - s.sum())) < MIN_CLASS:
+        return (math.nan, math.nan)
+    rng = np.random.default_rng(seed)
+    rs = []
+    for draw in rng.integers(0, len(groups), size=(resamples, len(groups))):
+        idx = np.concatenate([groups[g] for g in draw])
+        a, b = s[idx], v[idx]
+        if a.std() > 0 and b.std() > 0:
+            rs.append(np.corrcoef(a, b)[0, 1])
+    if len(rs) < resamples // 2:
+        return (math.nan, math.nan)
+    low, high = np.quantile(rs, [(1 - confidence) / 2, (1 + confidence) / 2])
+    return (float(low), float(high))
+
+
 def association_rows(rows: list[EpisodeRow]) -> list[tuple]:
     out = []
     for task in dict.fromkeys(r.task for r in rows):
         ok = [r for r in rows if r.task == task and r.status == "ok"]
-        r_, lo, hi, n = point_biserial([r.success for r in ok], [r.nuisance_mass for r in ok])
-        out.append((task, n, r_, lo, hi, _mean(r.nuisance_mass for r in ok if r.success),
-                    _mean(r.nuisance_mass for r in ok if not r.success)))
+        success, seeds = [r.success for r in ok], [r.seed for r in ok]
+        r_, lo, hi, n = point_biserial(success, [r.nuisance_mass for r in ok])
+        start = point_biserial(success, [r.nuisance_start for r in ok])[0]
+        out.append((task, n, r_, lo, hi, *seed_cluster_interval(seeds, success, [r.nuisance_mass for r in ok]),
+                    _mean(r.nuisance_mass for r in ok if r.success), _mean(r.nuisance_mass for r in ok if not r.success),
+                    len(set(seeds)), start, *seed_cluster_interval(seeds, success, [r.nuisance_start for r in ok])))
     return out
 
 
-def sentence(task: str, success: list[tuple], association: list[tuple]) -> str:
-    """One plain sentence per task: the condition and level that cost the most, and what nuisance mass says."""
+PAIRED_COLUMNS = ("task", "condition", "level", "run", "pairs", "nominal_successes", "perturbed_successes",
+                  "nominal_only", "perturbed_only", "difference", "p_mcnemar", "p_holm", "breaks")
+
+
+def paired_rows(rows: list[EpisodeRow], alpha: float = 0.05) -> list[tuple]:
+    """Per task x perturbed cell: the paired 2x2 against the nominal episodes of the same seeds, the exact McNemar p,
+    its Holm adjustment over the task's perturbed cells, and whether the cell breaks the task (see the docstring)."""
+    out = []
+    for task in dict.fromkeys(r.task for r in rows):
+        nominal = {r.seed: r for r in rows if r.task == task and r.condition == "nominal" and r.status == "ok"}
+        cells = sorted({(r.condition, r.level, r.run) for r in rows if r.task == task and r.condition != "nominal"})
+        found = []
+        for condition, level, run in cells:
+            pairs = [(nominal[r.seed].success, r.success) for r in rows
+                     if r.task == task and r.run == run and r.status == "ok" and r.seed in nominal]
+            counts = PairedCounts.from_outcomes([a for a, _ in pairs], [b for _, b in pairs])
+            found.append((condition, level, run, counts, mcnemar_exact(counts.baseline_only, counts.candidate_only)))
+        adjusted = holm_adjust([f[4] for f in found])
+        for (condition, level, run, c, p), p_holm in zip(found, adjusted):
+            out.append((task, condition, level, run, c.n, c.baseline_successes, c.candidate_successes, c.baseline_only,
+                        c.candidate_only, c.difference, p, p_holm, bool(c.n and p_holm <= alpha and c.difference < 0)))
+    return out
+
+
+def breaking(task: str, paired: list[tuple]) -> str:
+    """The part of a task's sentence that names the cells that break it (or says none does)."""
+    cells = [p for p in paired if p[0] == task]
+    if not cells:
+        return ""
+    broken = sorted((p for p in cells if p[12]), key=lambda p: (p[1], p[2]))
+    test = f"paired with the nominal seeds, exact McNemar, Holm over {len(cells)} cells"
+    if not broken:
+        return f"no condition breaks it at any level ({test}, adjusted p <= 0.05)"
+    named = ", ".join(f"{p[1]} {p[2]} ({p[6]}/{p[4]} vs {p[5]}/{p[4]}, p = {p[11]:.3g})" for p in broken)
+    return f"it breaks under {named} ({test})"
+
+
+def _interval(low: float, high: float) -> str:
+    return f" (seed-cluster 95% [{low:+.2f}, {high:+.2f}])" if math.isfinite(low) and math.isfinite(high) else ""
+
+
+def _verdict(low: float, high: float) -> str:
+    if not (math.isfinite(low) and math.isfinite(high)):
+        return f"too few seeds, successes or failures (< {MIN_CLASS}) for an interval"
+    return ("more nuisance attention goes with failure" if high < 0 else
+            "more nuisance attention goes with success" if low > 0 else
+            "nuisance attention does not predict success here (the interval holds 0)")
+
+
+def sentence(task: str, success: list[tuple], association: list[tuple], paired: list[tuple] = ()) -> str:
+    """One plain sentence per task: the condition and level that cost the most, which cells break the task (when
+    `paired` is given), and what nuisance mass says."""
     cells = [s for s in success if s[0] == task and math.isfinite(s[7])]
     nominal = [s for s in cells if s[2] == 0]
     worst = min((s for s in cells if s[2] > 0), key=lambda s: (s[7], -s[2]), default=None)
     parts = []
-    if nominal and worst is not None:
+    if nominal and worst is not None and worst[7] >= nominal[0][7]:
+        parts.append(f"{task}: nominal success {nominal[0][6]}/{nominal[0][4]}; no perturbed cell does worse")
+    elif nominal and worst is not None:
         base = nominal[0]
         parts.append(f"{task}: nominal success {base[6]}/{base[4]}; the largest loss is {worst[1]} at level {worst[2]} "
                      f"({worst[6]}/{worst[4]}, Wilson 95% [{worst[8]:.2f}, {worst[9]:.2f}])")
@@ -217,14 +316,16 @@ def sentence(task: str, success: list[tuple], association: list[tuple]) -> str:
         parts.append(f"{task}: nominal success {nominal[0][6]}/{nominal[0][4]}, no perturbed run")
     else:
         parts.append(f"{task}: no nominal run to compare with")
+    if breaking(task, paired):
+        parts.append(breaking(task, paired))
     assoc = [a for a in association if a[0] == task]
     if assoc and math.isfinite(assoc[0][2]):
         a = assoc[0]
-        verdict = ("more nuisance attention goes with failure" if a[4] < 0 else
-                   "more nuisance attention goes with success" if a[3] > 0 else
-                   "nuisance attention does not predict success here (the interval holds 0)")
-        parts.append(f"point-biserial r of nuisance mass and success {a[2]:+.2f} [{a[3]:+.2f}, {a[4]:+.2f}] over {a[1]} "
-                     f"episodes: {verdict}")
+        parts.append(f"point-biserial r of nuisance mass and success {a[2]:+.2f}{_interval(a[5], a[6])} ({a[9]} seeds, "
+                     f"{a[1]} episodes): {_verdict(a[5], a[6])}")
+        if math.isfinite(a[10]):
+            parts.append(f"over the first {START_STEPS} steps only, r {a[10]:+.2f}{_interval(a[11], a[12])}: "
+                         f"{_verdict(a[11], a[12])}")
     else:
         parts.append("nuisance mass and success: too few episodes or no variation to estimate an association")
     return "; ".join(parts) + "."

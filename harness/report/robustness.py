@@ -1,7 +1,8 @@
 """The report's Robustness section: success against perturbation level per condition and task (Wilson bands), target
 lift and nuisance mass against level, the step-0 attention shift, and the association of nuisance mass with success.
 
-`tables(records)` -> {"robustness.csv", "robustness_episodes.csv", "robustness_shift.csv", "robustness_association.csv"};
+`tables(records)` -> {"robustness.csv", "robustness_episodes.csv", "robustness_shift.csv", "robustness_association.csv",
+"robustness_paired.csv"} (the paired test of each perturbed cell against the nominal seeds: which cells break a task);
 `section(records, plots)` -> HTML ("" when no run was perturbed). Every number on the page is in those CSVs.
 """
 
@@ -15,24 +16,25 @@ from harness.analysis import robustness as R
 from harness.report import html as H
 
 EPISODE_COLUMNS = ("run", "task", "condition", "level", "seed", "episode", "status", "success", "nuisance_mass",
-                   "distractor_mass", "background_mass", "target_lift")
+                   "distractor_mass", "background_mass", "target_lift", "nuisance_start")
 
 
 def _analyse(records):
     rows, shifts, notes = R.collect(records)
-    return rows, shifts, notes, R.success_rows(rows), R.association_rows(rows)
+    return rows, shifts, notes, R.success_rows(rows), R.association_rows(rows), R.paired_rows(rows)
 
 
 def tables(records) -> dict[str, list]:
     """{csv name: (columns, rows)} (empty when no run was perturbed)."""
     if not R.is_perturbed(records):
         return {}
-    rows, shifts, _, success, association = _analyse(records)
+    rows, shifts, _, success, association, paired = _analyse(records)
     episodes = [(r.run, r.task, r.condition, r.level, r.seed, r.episode, r.status, r.success, r.nuisance_mass,
-                 r.distractor_mass, r.background_mass, r.target_lift) for r in rows]
+                 r.distractor_mass, r.background_mass, r.target_lift, r.nuisance_start) for r in rows]
     return {"robustness.csv": (R.SUCCESS_COLUMNS, success), "robustness_episodes.csv": (EPISODE_COLUMNS, episodes),
             "robustness_shift.csv": (R.SHIFT_COLUMNS, shifts),
-            "robustness_association.csv": (R.ASSOCIATION_COLUMNS, association)}
+            "robustness_association.csv": (R.ASSOCIATION_COLUMNS, association),
+            "robustness_paired.csv": (R.PAIRED_COLUMNS, paired)}
 
 
 def level_plot(task: str, success: list[tuple]) -> bytes:
@@ -62,10 +64,18 @@ def level_plot(task: str, success: list[tuple]) -> bytes:
     return _png(figure)
 
 
+def _paired_cells(p) -> tuple[str, str]:
+    """(lost / gained pairs, Holm p with "breaks") of a perturbed cell; dashes for the nominal row."""
+    if p is None:
+        return ("-", "-")
+    return (f"{p[7]} / {p[8]}", f"{p[11]:.3g}" + (" breaks" if p[12] else ""))
+
+
 def section(records, plots) -> str:
     if not R.is_perturbed(records):
         return ""
-    rows, shifts, notes, success, association = _analyse(records)
+    rows, shifts, notes, success, association, paired = _analyse(records)
+    drops = {(p[0], p[3]): p for p in paired}
     body = [H.note("Success against perturbation level per condition (level 0 = the nominal run), with Wilson 95% "
                    "bands; target lift and nuisance mass (attention on the background and distractors: neither robot, "
                    "target nor another task object) of the primary camera at the last layer, mean over each "
@@ -74,12 +84,13 @@ def section(records, plots) -> str:
         body.append(H.banner(note))
     for task in dict.fromkeys(r.task for r in rows):
         body.append(H.section(task, "", level=3))
-        body.append(H.Raw(f"<p>{H.esc(R.sentence(task, success, association))}</p>"))
+        body.append(H.Raw(f"<p>{H.esc(R.sentence(task, success, association, paired))}</p>"))
         body.append(plots.add(f"robustness_{H.anchor_id(task)[2:]}", level_plot(task, success), f"robustness {task}",
                               "Success (Wilson band), target lift and nuisance mass against level, per condition."))
-        body.append(H.table(("condition", "level", "run", "success [Wilson 95%]", "errored", "target lift",
-                             "nuisance mass", "distractor mass"),
+        body.append(H.table(("condition", "level", "run", "success [Wilson 95%]", "errored", "paired: lost / gained",
+                             "Holm p", "target lift", "nuisance mass", "distractor mass"),
                             [(s[1], s[2], s[3], H.Raw(f"{s[6]}/{s[4]} {H.fmt_ci(s[7], s[8], s[9], 2)}"), s[5],
+                              *_paired_cells(drops.get((task, s[3])) if s[2] else None),
                               H.fmt(s[13], 2), H.fmt(s[10], 3), H.fmt(s[11], 3)) for s in success if s[0] == task],
                             numeric=(1, 4)))
         shift = [x for x in shifts if x[1] == task]
@@ -92,9 +103,11 @@ def section(records, plots) -> str:
                                   H.fmt(float(np.nanmean([b for _, b in v])) if any(math.isfinite(b) for _, b in v)
                                         else math.nan, 2))
                                  for (c, lvl, layer), v in sorted(table.items())], numeric=(1, 2, 3)))
-    body.append(H.table(("task", "episodes", "point-biserial r [Fisher 95%]", "nuisance mass: successes", "failures"),
-                        [(a[0], a[1], H.fmt_ci(a[2], a[3], a[4], 2), H.fmt(a[5], 3), H.fmt(a[6], 3)) for a in association],
-                        numeric=(1,)))
+    body.append(H.table(("task", "episodes", "seeds", "point-biserial r [Fisher 95%]", "seed-cluster 95%",
+                         "nuisance mass: successes", "failures", f"first {R.START_STEPS} steps: r [seed-cluster 95%]"),
+                        [(a[0], a[1], a[9], H.fmt_ci(a[2], a[3], a[4], 2), f"[{H.fmt(a[5], 2)}, {H.fmt(a[6], 2)}]",
+                          H.fmt(a[7], 3), H.fmt(a[8], 3), H.fmt_ci(a[10], a[11], a[12], 2)) for a in association],
+                        numeric=(1, 2)))
     return H.section("Robustness", "".join(str(b) for b in body), anchor="robustness")
 
 
@@ -104,17 +117,20 @@ SECTION = "## Robustness"
 def markdown(records, note: str = "") -> str:
     """The Robustness section as Markdown (EVAL.md): per task a sentence and a table of success against level per
     condition, target lift and nuisance mass; the association line per task."""
-    rows, _, notes, success, association = _analyse(records)
+    rows, _, notes, success, association, paired = _analyse(records)
+    drops = {(p[0], p[3]): p for p in paired}
     lines = [SECTION, "", note, ""] if note else [SECTION, ""]
     lines += [f"- {n}" for n in notes]
     for task in dict.fromkeys(r.task for r in rows):
-        lines += [R.sentence(task, success, association), "",
-                  "| condition | level | success | Wilson 95% | target lift | nuisance mass | distractor mass |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += [R.sentence(task, success, association, paired), "",
+                  "| condition | level | success | Wilson 95% | paired: lost / gained | Holm p | target lift | "
+                  "nuisance mass | distractor mass |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for s in success:
             if s[0] == task:
-                lines.append(f"| {s[1]} | {s[2]} | {s[6]}/{s[4]} | [{s[8]:.2f}, {s[9]:.2f}] | {s[13]:.2f} | {s[10]:.3f} | "
-                             f"{s[11]:.3f} |")
+                lost, p = _paired_cells(drops.get((task, s[3])) if s[2] else None)
+                lines.append(f"| {s[1]} | {s[2]} | {s[6]}/{s[4]} | [{s[8]:.2f}, {s[9]:.2f}] | {lost} | {p} | {s[13]:.2f} | "
+                             f"{s[10]:.3f} | {s[11]:.3f} |")
         lines.append("")
     return "\n".join(lines) + "\n"
 
