@@ -15,7 +15,8 @@ LEVELS="${3:-0,1,3,5}"
 EPISODES="${4:-20}"
 OUT="${5:-results/robustness-reference}"
 WORKERS="${6:-}"
-NOTE="${NOTE:-}"
+CPU="$(lscpu 2>/dev/null | sed -n 's/^Model name: *//p' | head -1)"
+NOTE="${NOTE:-Measured on ${CPU:-an unnamed CPU}, $(nproc) cores, CPU only.}"
 MODEL=models/octo-reference-robosuite
 export HF_HUB_OFFLINE=1 MUJOCO_GL="${MUJOCO_GL:-egl}"
 PY="${PYTHON:-.venv/bin/python}"
@@ -29,3 +30,9 @@ for d in "$OUT"/*/; do [ -f "$d/manifest.json" ] && runs+=("$d"); done
 # EVAL.md's "## Robustness" section (other sections stay)
 "$PY" -m harness.report.robustness "${runs[@]}" --eval-md "$MODEL/EVAL.md" --note \
     "Made by \`bash scripts/robustness_reference.sh $TASKS $KINDS $LEVELS $EPISODES\`: \`octo-harness robustness --model $MODEL --task $TASKS --perturb $KINDS --levels $LEVELS --episodes $EPISODES --seed 0 --fast-render --png-every 0 --no-video\` (held-out seeds 0..$((EPISODES - 1)), each task at its own step limit, masks on; kinds and levels: docs/perturbations.md). Target lift and nuisance mass: primary camera, last layer, mean over each episode's steps. $NOTE"
+# the figures docs/perturbations.md shows (only for the default grid folder, whose numbers the docs quote)
+if [ "$OUT" = results/robustness-reference ]; then
+    for png in "$OUT"/report/plots/robustness_*.png; do
+        [ -f "$png" ] && cp "$png" "docs/robustness_reference_$(basename "$png" .png | sed 's/^robustness_//').png"
+    done
+fi
