@@ -27,6 +27,7 @@ adjusted p <= alpha and it lost successes.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,6 +91,12 @@ def episode_measures(path) -> dict:
         attn = np.asarray(z["readout_attention"][0], np.float64) if "readout_attention" in z.files else None
     out = {"nuisance_mass": math.nan, "distractor_mass": math.nan, "background_mass": math.nan, "target_lift": math.nan,
            "nuisance_start": math.nan, "step0_rows": None, "step0_lift": None}
+    with warnings.catch_warnings():  # an all-nan column (a target never in view) gives a nan mean, not a warning
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return _episode_means(background, distractors, lift, attn, out)
+
+
+def _episode_means(background, distractors, lift, attn, out) -> dict:
     if background is not None and background.size:
         dis = np.sum(distractors, axis=0) if distractors else np.zeros_like(background)
         out["background_mass"] = float(np.nanmean(background[:, -1]))
@@ -321,8 +328,8 @@ def sentence(task: str, success: list[tuple], association: list[tuple], paired: 
     assoc = [a for a in association if a[0] == task]
     if assoc and math.isfinite(assoc[0][2]):
         a = assoc[0]
-        parts.append(f"point-biserial r of nuisance mass and success {a[2]:+.2f}{_interval(a[5], a[6])} ({a[9]} seeds, "
-                     f"{a[1]} episodes): {_verdict(a[5], a[6])}")
+        parts.append(f"point-biserial r of nuisance mass and success {a[2]:+.2f} over {a[1]} episodes of {a[9]} seeds"
+                     f"{_interval(a[5], a[6])}: {_verdict(a[5], a[6])}")
         if math.isfinite(a[10]):
             parts.append(f"over the first {START_STEPS} steps only, r {a[10]:+.2f}{_interval(a[11], a[12])}: "
                          f"{_verdict(a[11], a[12])}")
