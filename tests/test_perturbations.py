@@ -369,3 +369,17 @@ def test_the_association_interval_resamples_seeds_and_needs_both_outcomes():
             for i, (k, ok, m) in enumerate(zip(seeds, few, mass))]
     assert "too few seeds, successes or failures" in sentence("Lift", [], association_rows(rows))
     assert "nan" not in sentence("Lift", [], association_rows(rows))
+
+
+def test_a_condition_that_moves_both_success_and_nuisance_mass_is_not_a_within_condition_association():
+    from harness.analysis.robustness import EpisodeRow, association_rows
+
+    rng = np.random.default_rng(2)
+    rows = []
+    for run, rate, shift in (("nominal", 0.9, 0.0), ("texture-5", 0.1, -0.1)):  # the perturbation lowers both
+        for seed in range(40):
+            rows.append(EpisodeRow(run, "Lift", run, 0, seed, seed, "ok", bool(rng.random() < rate),
+                                   float(0.85 + shift + 0.01 * rng.normal()), 0.5, 0.0, 0.8, 0.8))
+    a = association_rows(rows)[0]
+    assert a[5] > 0  # pooled: "more nuisance mass goes with success", made by the condition alone
+    assert a[14] < 0 < a[15]  # within conditions the seed-cluster interval holds 0

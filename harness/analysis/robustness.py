@@ -16,8 +16,9 @@ camera `image_primary`, the model's last layer):
 Association of nuisance mass with success, per task across episodes and conditions: the point-biserial
 correlation (Pearson r of a 0/1 variable with a continuous one) with a 95% interval by Fisher's z (n - 3), which
 assumes independent episodes, and a seed-cluster bootstrap interval (seeds resampled with all their episodes across
-conditions, which share the scene's seed): the verdict reads the cluster interval. Both for the episode mean and
-the start.
+conditions, which share the scene's seed): the verdict reads the cluster interval. For the episode mean, for the
+episode mean centred per run (within a condition: a perturbation that lowers both success and nuisance mass makes
+a pooled association by itself), and for the start.
 Which condition breaks a task (`paired_rows`): each perturbed cell is paired with the nominal run's episodes of the
 same task and seed (both ran to an outcome), tested by the exact McNemar test, and the p-values are Holm-adjusted over
 the task's perturbed cells (the family-wise error the regression gate controls); a cell "breaks" the task when its
@@ -189,7 +190,8 @@ SUCCESS_COLUMNS = ("task", "condition", "level", "run", "n", "errored", "success
 SHIFT_COLUMNS = ("run", "task", "condition", "level", "seed", "layer", "js_bits", "lift_change")
 ASSOCIATION_COLUMNS = ("task", "n", "point_biserial_r", "ci_low", "ci_high", "seed_ci_low", "seed_ci_high",
                        "mean_nuisance_success", "mean_nuisance_failure", "seeds", "start_point_biserial_r",
-                       "start_seed_ci_low", "start_seed_ci_high")
+                       "start_seed_ci_low", "start_seed_ci_high", "within_point_biserial_r", "within_seed_ci_low",
+                       "within_seed_ci_high")
 
 
 def _mean(values) -> float:
@@ -244,6 +246,13 @@ def seed_cluster_interval(seeds, success, values, confidence: float = 0.95, resa
     return (float(low), float(high))
 
 
+def _centred_per_run(rows: list[EpisodeRow]) -> list[float]:
+    """Each episode's nuisance mass minus the mean of its run (one condition and level): what is left is the
+    variation within a condition, which a perturbation that moves both nuisance mass and success cannot make."""
+    means = {run: _mean(r.nuisance_mass for r in rows if r.run == run) for run in {r.run for r in rows}}
+    return [r.nuisance_mass - means[r.run] for r in rows]
+
+
 def association_rows(rows: list[EpisodeRow]) -> list[tuple]:
     out = []
     for task in dict.fromkeys(r.task for r in rows):
@@ -251,9 +260,11 @@ def association_rows(rows: list[EpisodeRow]) -> list[tuple]:
         success, seeds = [r.success for r in ok], [r.seed for r in ok]
         r_, lo, hi, n = point_biserial(success, [r.nuisance_mass for r in ok])
         start = point_biserial(success, [r.nuisance_start for r in ok])[0]
+        within = _centred_per_run(ok)
         out.append((task, n, r_, lo, hi, *seed_cluster_interval(seeds, success, [r.nuisance_mass for r in ok]),
                     _mean(r.nuisance_mass for r in ok if r.success), _mean(r.nuisance_mass for r in ok if not r.success),
-                    len(set(seeds)), start, *seed_cluster_interval(seeds, success, [r.nuisance_start for r in ok])))
+                    len(set(seeds)), start, *seed_cluster_interval(seeds, success, [r.nuisance_start for r in ok]),
+                    point_biserial(success, within)[0], *seed_cluster_interval(seeds, success, within)))
     return out
 
 
@@ -330,6 +341,9 @@ def sentence(task: str, success: list[tuple], association: list[tuple], paired: 
         a = assoc[0]
         parts.append(f"point-biserial r of nuisance mass and success {a[2]:+.2f} over {a[1]} episodes of {a[9]} seeds"
                      f"{_interval(a[5], a[6])}: {_verdict(a[5], a[6])}")
+        if math.isfinite(a[13]):
+            parts.append(f"within conditions (centred per run), r {a[13]:+.2f}{_interval(a[14], a[15])}: "
+                         f"{_verdict(a[14], a[15])}")
         if math.isfinite(a[10]):
             parts.append(f"over the first {START_STEPS} steps only, r {a[10]:+.2f}{_interval(a[11], a[12])}: "
                          f"{_verdict(a[11], a[12])}")

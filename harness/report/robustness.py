@@ -104,9 +104,11 @@ def section(records, plots) -> str:
                                         else math.nan, 2))
                                  for (c, lvl, layer), v in sorted(table.items())], numeric=(1, 2, 3)))
     body.append(H.table(("task", "episodes", "seeds", "point-biserial r [Fisher 95%]", "seed-cluster 95%",
-                         "nuisance mass: successes", "failures", f"first {R.START_STEPS} steps: r [seed-cluster 95%]"),
+                         "nuisance mass: successes", "failures", "within conditions: r [seed-cluster 95%]",
+                         f"first {R.START_STEPS} steps: r [seed-cluster 95%]"),
                         [(a[0], a[1], a[9], H.fmt_ci(a[2], a[3], a[4], 2), f"[{H.fmt(a[5], 2)}, {H.fmt(a[6], 2)}]",
-                          H.fmt(a[7], 3), H.fmt(a[8], 3), H.fmt_ci(a[10], a[11], a[12], 2)) for a in association],
+                          H.fmt(a[7], 3), H.fmt(a[8], 3), H.fmt_ci(a[13], a[14], a[15], 2),
+                          H.fmt_ci(a[10], a[11], a[12], 2)) for a in association],
                         numeric=(1, 2)))
     return H.section("Robustness", "".join(str(b) for b in body), anchor="robustness")
 
