@@ -58,7 +58,7 @@ def level_plot(task: str, success: list[tuple]) -> bytes:
         ax.set_title(title, fontsize=10)
         ax.set_xticks(range(6))
     axes[0].set_ylim(-0.02, 1.02)
-    axes[0].legend(fontsize=8)
+    axes[0].legend(fontsize=7, framealpha=0.4)  # see-through: a line at 0 under it stays visible
     figure.suptitle(task)
     figure.tight_layout()
     return _png(figure)
