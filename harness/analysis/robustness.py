@@ -258,12 +258,11 @@ def association_rows(rows: list[EpisodeRow]) -> list[tuple]:
     for task in dict.fromkeys(r.task for r in rows):
         ok = [r for r in rows if r.task == task and r.status == "ok"]
         success, seeds = [r.success for r in ok], [r.seed for r in ok]
-        r_, lo, hi, n = point_biserial(success, [r.nuisance_mass for r in ok])
-        start = point_biserial(success, [r.nuisance_start for r in ok])[0]
-        within = _centred_per_run(ok)
-        out.append((task, n, r_, lo, hi, *seed_cluster_interval(seeds, success, [r.nuisance_mass for r in ok]),
+        mass, start, within = [r.nuisance_mass for r in ok], [r.nuisance_start for r in ok], _centred_per_run(ok)
+        r_, lo, hi, n = point_biserial(success, mass)
+        out.append((task, n, r_, lo, hi, *seed_cluster_interval(seeds, success, mass),
                     _mean(r.nuisance_mass for r in ok if r.success), _mean(r.nuisance_mass for r in ok if not r.success),
-                    len(set(seeds)), start, *seed_cluster_interval(seeds, success, [r.nuisance_start for r in ok]),
+                    len(set(seeds)), point_biserial(success, start)[0], *seed_cluster_interval(seeds, success, start),
                     point_biserial(success, within)[0], *seed_cluster_interval(seeds, success, within)))
     return out
 
@@ -334,8 +333,9 @@ def sentence(task: str, success: list[tuple], association: list[tuple], paired: 
         parts.append(f"{task}: nominal success {nominal[0][6]}/{nominal[0][4]}, no perturbed run")
     else:
         parts.append(f"{task}: no nominal run to compare with")
-    if breaking(task, paired):
-        parts.append(breaking(task, paired))
+    broken = breaking(task, paired)
+    if broken:
+        parts.append(broken)
     assoc = [a for a in association if a[0] == task]
     if assoc and math.isfinite(assoc[0][2]):
         a = assoc[0]

@@ -64,8 +64,10 @@ def level_plot(task: str, success: list[tuple]) -> bytes:
     return _png(figure)
 
 
-def _paired_cells(p) -> tuple[str, str]:
-    """(lost / gained pairs, Holm p with "breaks") of a perturbed cell; dashes for the nominal row."""
+def _paired_cells(drops: dict, s: tuple) -> tuple[str, str]:
+    """(lost / gained pairs, Holm p with "breaks") of the success row `s`'s cell, from `drops` ({(task, run): paired
+    row}); dashes for the nominal row (level 0)."""
+    p = drops.get((s[0], s[3])) if s[2] else None
     if p is None:
         return ("-", "-")
     return (f"{p[7]} / {p[8]}", f"{p[11]:.3g}" + (" breaks" if p[12] else ""))
@@ -90,7 +92,7 @@ def section(records, plots) -> str:
         body.append(H.table(("condition", "level", "run", "success [Wilson 95%]", "errored", "paired: lost / gained",
                              "Holm p", "target lift", "nuisance mass", "distractor mass"),
                             [(s[1], s[2], s[3], H.Raw(f"{s[6]}/{s[4]} {H.fmt_ci(s[7], s[8], s[9], 2)}"), s[5],
-                              *_paired_cells(drops.get((task, s[3])) if s[2] else None),
+                              *_paired_cells(drops, s),
                               H.fmt(s[13], 2), H.fmt(s[10], 3), H.fmt(s[11], 3)) for s in success if s[0] == task],
                             numeric=(1, 4)))
         shift = [x for x in shifts if x[1] == task]
@@ -130,7 +132,7 @@ def markdown(records, note: str = "") -> str:
                   "|---|---|---|---|---|---|---|---|---|"]
         for s in success:
             if s[0] == task:
-                lost, p = _paired_cells(drops.get((task, s[3])) if s[2] else None)
+                lost, p = _paired_cells(drops, s)
                 lines.append(f"| {s[1]} | {s[2]} | {s[6]}/{s[4]} | [{s[8]:.2f}, {s[9]:.2f}] | {lost} | {p} | {s[13]:.2f} | "
                              f"{s[10]:.3f} | {s[11]:.3f} |")
         lines.append("")
