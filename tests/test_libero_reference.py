@@ -469,6 +469,33 @@ def test_the_committed_policy_runs_libero_object_and_the_report_shows_its_ground
     assert swaps["own"]["kind"] == "own" and swaps["swap"]["kind"] == "swap" and swaps["swap"]["blind_episodes"] == "1"
     dom = _browser(report / "report.html", tmp_path, "--dump-dom", "--virtual-time-budget=10000").stdout
     assert ">Grounding</h" in dom and 'href="#grounding"' in dom and "Named object vs the others" in dom
+    # the EVAL.md command (scripts/evaluate_libero_reference.sh) over the same runs: written and printed once
+    from harness.report.grounding import main as grounding_main
+
+    eval_md = tmp_path / "EVAL.md"
+    eval_md.write_text("# model: evaluation\n")
+    assert grounding_main([str(tmp_path / "runs" / "own"), str(tmp_path / "runs" / "swap"), "--eval-md", str(eval_md)]) == 0
+    text = eval_md.read_text()
+    assert text.count("## Language grounding") == 1 and "| libero_object/0 |" in text
+
+
+def test_a_grounding_section_of_runs_without_libero_object_episodes_is_refused_in_one_line(tmp_path, capsys):
+    from harness.report import grounding
+
+    with pytest.raises(ValueError, match="no run here holds LIBERO-Object episodes"):
+        grounding.markdown([])
+    # the command: one line, EVAL.md untouched (any run folder that holds no LIBERO-Object episode)
+    from harness import cli
+
+    assert cli.main(["run", "--model", str(REPO / "models" / "octo-reference-robosuite"), "--task", "Lift",
+                     "--episodes", "1", "--max-steps", "2", "--fast-render", "--png-every", "0", "--no-video",
+                     "--no-masks", "--out", str(tmp_path), "--run-name", "run"]) == 0
+    run = tmp_path / "run"
+    eval_md = tmp_path / "EVAL.md"
+    eval_md.write_text("# model: evaluation\n")
+    capsys.readouterr()
+    assert grounding.main([str(run), "--eval-md", str(eval_md)]) == 2
+    assert eval_md.read_text() == "# model: evaluation\n" and capsys.readouterr().err.count("\n") == 1
 
 
 def test_an_eval_md_section_is_replaced_in_place_or_appended_and_the_others_stay(tmp_path):

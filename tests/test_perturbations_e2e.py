@@ -166,6 +166,18 @@ def test_robustness_grid_resumes_and_reports_in_chromium(tmp_path, capsys):
     assert text.count("## Robustness") == 1 and "## Faithfulness\n\nkept" in text and "made by a test" in text
     level2 = next(r for r in success if r["condition"] == "distractors" and r["level"] == "2")
     assert f"| distractors | 2 | {level2['successes']}/2 |" in text
+    # the module's command: one section made once, written and printed; an unperturbed run alone is one line and
+    # leaves EVAL.md as it was
+    from harness.report.robustness import main as robustness_main
+
+    capsys.readouterr()
+    assert robustness_main([*runs, "--eval-md", str(eval_md), "--note", "made by the command"]) == 0
+    printed, text = capsys.readouterr().out, eval_md.read_text()
+    assert "made by the command" in text and printed.strip() in text and text.count("## Robustness") == 1
+    nominal = next(r for r in runs if Path(r).name == "nominal")
+    assert robustness_main([nominal, "--eval-md", str(eval_md)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no run here was perturbed" in err and eval_md.read_text() == text
 
     # regress over the grid with the same model: every condition's pairs are identical, the gate passes
     assert cli.main(["regress", "--baseline", str(out), "--model", str(MODEL), "--out", str(tmp_path / "reg"),

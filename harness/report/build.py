@@ -299,7 +299,8 @@ def _tables(runs: list[RunData], summaries: dict | None = None) -> dict[str, byt
         **phases.tables(runs, (summaries or {}).get("phases")),  # phase_*.csv (harness/report/phases.py)
         **position.tables(runs, (summaries or {}).get("position")),  # position_*.csv (harness/report/position.py)
         # robustness*.csv when a run was perturbed (harness/report/robustness.py)
-        **{name: _csv(cols, rows) for name, (cols, rows) in robustness.tables([run.record for run in runs]).items()},
+        **{name: _csv(cols, rows) for name, (cols, rows) in robustness.tables(
+            [run.record for run in runs], (summaries or {}).get("robustness")).items()},
         # grounding_*.csv when a run holds LIBERO-Object episodes (harness/report/grounding.py)
         **{name: _csv(cols, rows) for name, (cols, rows) in grounding.tables([run.record for run in runs]).items()},
     }
@@ -364,7 +365,8 @@ def build_report(run_dirs: list[str | Path], out: str | Path | None = None, opti
         _aggregate(run, options)
     tasks = list(dict.fromkeys(t for run in runs for t in run.record.tasks))
     summaries = {"phases": [phases.summarise(run, options.resamples, options.seed) for run in runs],
-                 "position": [position.summarise(run) for run in runs]}
+                 "position": [position.summarise(run) for run in runs],
+                 "robustness": robustness.analyse(records)}  # None unless a run was perturbed
 
     with ThreadPoolExecutor(max_workers=3) as pool:  # overlay grids decode videos in ffmpeg processes meanwhile
         overlays = {}

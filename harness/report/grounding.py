@@ -72,6 +72,8 @@ def _fmt(x: float, digits: int = 2) -> str:
 
 
 def markdown(records, note: str = "") -> str:
+    if not G.is_grounding(records):
+        raise ValueError("no run here holds LIBERO-Object episodes: give the runs of scripts/evaluate_libero_reference.sh")
     rows, notes, summary, _, swaps = _analyse(records)
     lines = [SECTION, ""] + ([note, ""] if note else []) + [f"- {n}" for n in notes]
     lines += ["### Which object was picked", "",
@@ -102,7 +104,7 @@ def main(argv=None) -> int:
 
     return eval_md_section_main(argv, "python -m harness.report.grounding",
                                 "Write the Language grounding section of an EVAL.md from LIBERO-Object runs.",
-                                write_section, markdown)
+                                SECTION, markdown)
 
 
 if __name__ == "__main__":

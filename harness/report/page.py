@@ -39,7 +39,7 @@ def render(runs: list[RunData], tasks: list[str], out: Path, overlays: dict[tupl
     body.append(phase_html)
     position_html = position.section(runs, plots, summaries.get("position"))  # "" unless a run has attention controls
     body.append(position_html)
-    robust = robustness.section([run.record for run in runs], plots)  # "" unless a run was perturbed
+    robust = robustness.section([run.record for run in runs], plots, summaries.get("robustness"))  # "" unless a run was perturbed
     body.append(robust)
     grounded = grounding.section([run.record for run in runs])  # "" unless a run holds LIBERO-Object episodes
     body.append(grounded)

@@ -1,9 +1,10 @@
 """The report's Robustness section: success against perturbation level per condition and task (Wilson bands), target
 lift and nuisance mass against level, the step-0 attention shift, and the association of nuisance mass with success.
 
-`tables(records)` -> {"robustness.csv", "robustness_episodes.csv", "robustness_shift.csv", "robustness_association.csv",
+`analyse(records)` reads every perturbed episode once (None when no run was perturbed); the report passes its result to
+`tables(records, analysis)` -> {"robustness.csv", "robustness_episodes.csv", "robustness_shift.csv", "robustness_association.csv",
 "robustness_paired.csv"} (the paired test of each perturbed cell against the nominal seeds: which cells break a task);
-`section(records, plots)` -> HTML ("" when no run was perturbed). Every number on the page is in those CSVs.
+`section(records, plots, analysis)` -> HTML ("" when no run was perturbed). Every number on the page is in those CSVs.
 """
 
 from __future__ import annotations
@@ -19,16 +20,21 @@ EPISODE_COLUMNS = ("run", "task", "condition", "level", "seed", "episode", "stat
                    "distractor_mass", "background_mass", "target_lift", "nuisance_start")
 
 
-def _analyse(records):
+def analyse(records):
+    """(episode rows, step-0 shifts, notes, success rows, association rows, paired rows), or None when no run was
+    perturbed: one read of every perturbed episode's attention, shared by the report's tables and section."""
+    if not R.is_perturbed(records):
+        return None
     rows, shifts, notes = R.collect(records)
     return rows, shifts, notes, R.success_rows(rows), R.association_rows(rows), R.paired_rows(rows)
 
 
-def tables(records) -> dict[str, list]:
-    """{csv name: (columns, rows)} (empty when no run was perturbed)."""
-    if not R.is_perturbed(records):
+def tables(records, analysis=None) -> dict[str, list]:
+    """{csv name: (columns, rows)} (empty when no run was perturbed); `analysis`: analyse(records), if already made."""
+    analysis = analysis or analyse(records)
+    if analysis is None:
         return {}
-    rows, shifts, _, success, association, paired = _analyse(records)
+    rows, shifts, _, success, association, paired = analysis
     episodes = [(r.run, r.task, r.condition, r.level, r.seed, r.episode, r.status, r.success, r.nuisance_mass,
                  r.distractor_mass, r.background_mass, r.target_lift, r.nuisance_start) for r in rows]
     return {"robustness.csv": (R.SUCCESS_COLUMNS, success), "robustness_episodes.csv": (EPISODE_COLUMNS, episodes),
@@ -73,10 +79,11 @@ def _paired_cells(drops: dict, s: tuple) -> tuple[str, str]:
     return (f"{p[7]} / {p[8]}", f"{p[11]:.3g}" + (" breaks" if p[12] else ""))
 
 
-def section(records, plots) -> str:
-    if not R.is_perturbed(records):
+def section(records, plots, analysis=None) -> str:
+    analysis = analysis or analyse(records)
+    if analysis is None:
         return ""
-    rows, shifts, notes, success, association, paired = _analyse(records)
+    rows, shifts, notes, success, association, paired = analysis
     drops = {(p[0], p[3]): p for p in paired}
     body = [H.note("Success against perturbation level per condition (level 0 = the nominal run), with Wilson 95% "
                    "bands; target lift and nuisance mass (attention on the background and distractors: neither robot, "
@@ -121,7 +128,10 @@ SECTION = "## Robustness"
 def markdown(records, note: str = "") -> str:
     """The Robustness section as Markdown (EVAL.md): per task a sentence and a table of success against level per
     condition, target lift and nuisance mass; the association line per task."""
-    rows, _, notes, success, association, paired = _analyse(records)
+    analysis = analyse(records)
+    if analysis is None:
+        raise ValueError("no run here was perturbed: give the runs of a robustness grid")
+    rows, _, notes, success, association, paired = analysis
     drops = {(p[0], p[3]): p for p in paired}
     lines = [SECTION, "", note, ""] if note else [SECTION, ""]
     lines += [f"- {n}" for n in notes]
@@ -149,7 +159,7 @@ def write_section(eval_md, records, note: str = "") -> None:
 def main(argv=None) -> int:
     from harness.report.rundata import eval_md_section_main
 
-    return eval_md_section_main(argv, "python -m harness.report.robustness", "Write the Robustness section of an EVAL.md from grid runs.", write_section, markdown)
+    return eval_md_section_main(argv, "python -m harness.report.robustness", "Write the Robustness section of an EVAL.md from grid runs.", SECTION, markdown)
 
 
 if __name__ == "__main__":

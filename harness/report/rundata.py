@@ -109,13 +109,15 @@ def csv_bytes(columns, rows) -> bytes:
     return buffer.getvalue().encode()
 
 
-def eval_md_section_main(argv, prog: str, description: str, write_section, markdown) -> int:
-    """`python -m harness.report.<section> RUN... --eval-md EVAL.md [--note TEXT]`: write that section of an EVAL.md
-    from run folders (`write_section(eval_md, records, note)`) and print it (`markdown(records, note)`)."""
+def eval_md_section_main(argv, prog: str, description: str, section: str, markdown) -> int:
+    """`python -m harness.report.<section> RUN... --eval-md EVAL.md [--note TEXT]`: make that section of an EVAL.md
+    from run folders once (`markdown(records, note)`), replace it there (other sections stay) and print it."""
     import argparse
+    import sys
     from pathlib import Path
 
     from harness.analysis.runs import load_run
+    from harness.files import replace_markdown_section
 
     parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("runs", nargs="+", type=Path)
@@ -123,7 +125,12 @@ def eval_md_section_main(argv, prog: str, description: str, write_section, markd
     parser.add_argument("--note", default="")
     args = parser.parse_args(argv)
     records = [load_run(p) for p in args.runs]
-    write_section(args.eval_md, records, args.note)
-    print(markdown(records, args.note))
+    try:
+        text = markdown(records, args.note)
+    except ValueError as exc:  # runs that hold nothing for this section: one line, EVAL.md untouched
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
+    replace_markdown_section(args.eval_md, section, text)
+    print(text)
     return 0
 
