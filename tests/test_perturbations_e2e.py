@@ -154,26 +154,21 @@ def test_robustness_grid_resumes_and_reports_in_chromium(tmp_path, capsys):
     assert ">Robustness</h2>" in dom and "point-biserial" in dom and "plots/robustness_lift.png" in dom
     assert "Holm p" in dom and "seed-cluster 95%" in dom
 
-    from harness.analysis.runs import load_run
-    from harness.report.robustness import write_section
+    # the EVAL.md command (scripts/robustness_reference.sh): the section made once, written and printed; run twice it
+    # replaces its section, not appends a second
+    from harness.report.robustness import main as robustness_main
 
     eval_md = tmp_path / "EVAL.md"
     eval_md.write_text("# model: evaluation\n\ntable\n\n## Faithfulness\n\nkept\n")
-    records = [load_run(r) for r in runs]
-    write_section(eval_md, records, "made by a test")
-    write_section(eval_md, records, "made by a test")  # replaced, not appended twice
-    text = eval_md.read_text()
+    assert robustness_main([*runs, "--eval-md", str(eval_md), "--note", "made by a test"]) == 0
+    capsys.readouterr()
+    assert robustness_main([*runs, "--eval-md", str(eval_md), "--note", "made by a test"]) == 0
+    printed, text = capsys.readouterr().out, eval_md.read_text()
     assert text.count("## Robustness") == 1 and "## Faithfulness\n\nkept" in text and "made by a test" in text
+    assert printed.strip() in text
     level2 = next(r for r in success if r["condition"] == "distractors" and r["level"] == "2")
     assert f"| distractors | 2 | {level2['successes']}/2 |" in text
-    # the module's command: one section made once, written and printed; an unperturbed run alone is one line and
-    # leaves EVAL.md as it was
-    from harness.report.robustness import main as robustness_main
-
-    capsys.readouterr()
-    assert robustness_main([*runs, "--eval-md", str(eval_md), "--note", "made by the command"]) == 0
-    printed, text = capsys.readouterr().out, eval_md.read_text()
-    assert "made by the command" in text and printed.strip() in text and text.count("## Robustness") == 1
+    # an unperturbed run alone is one line and leaves EVAL.md as it was
     nominal = next(r for r in runs if Path(r).name == "nominal")
     assert robustness_main([nominal, "--eval-md", str(eval_md)]) == 2
     err = capsys.readouterr().err

@@ -3,8 +3,8 @@ names (own instruction, paraphrases, swaps, nonsense), and attention on the name
 and layer (harness.analysis.grounding).
 
 `tables(records)` -> {"grounding_lift.csv", "grounding_objects.csv", "grounding_swap.csv"} (empty without
-LIBERO-Object runs); `section(records)` -> HTML; `markdown(records)` / `write_section(eval_md, ...)` -> EVAL.md's
-"## Language grounding" section. Every number on the page is in those CSVs.
+LIBERO-Object runs); `section(records)` -> HTML; `markdown(records)` -> EVAL.md's
+"## Language grounding" section (`python -m harness.report.grounding RUN... --eval-md EVAL.md` writes it). Every number on the page is in those CSVs.
 """
 
 from __future__ import annotations
@@ -90,13 +90,6 @@ def markdown(records, note: str = "") -> str:
             lines.append(f"| {s[1]} | {s[3]} | {s[4]} | {_fmt(s[5])} | {_fmt(s[6])} | {_fmt(s[7])} | {_fmt(s[8])} | "
                          f"{s[9]}/{s[10]} |")
     return "\n".join(lines) + "\n"
-
-
-def write_section(eval_md, records, note: str = "") -> None:
-    """Replace (or append) the Language grounding section of an EVAL.md; other sections stay as they are."""
-    from harness.files import replace_markdown_section
-
-    replace_markdown_section(eval_md, SECTION, markdown(records, note))
 
 
 def main(argv=None) -> int:

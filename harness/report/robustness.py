@@ -149,13 +149,6 @@ def markdown(records, note: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_section(eval_md, records, note: str = "") -> None:
-    """Replace (or append) the Robustness section of an EVAL.md; other sections stay as they are."""
-    from harness.files import replace_markdown_section
-
-    replace_markdown_section(eval_md, SECTION, markdown(records, note))
-
-
 def main(argv=None) -> int:
     from harness.report.rundata import eval_md_section_main
 
