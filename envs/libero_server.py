@@ -232,7 +232,7 @@ class Task:
         # A soft reset (hard_reset=False) keeps the model, so robosuite's Panda gripper keeps its `current_action`
         # (an integrator of the commands it received) from the previous episode; a hard reset (OpenVLA's) builds a
         # fresh gripper, whose integrator starts at zero. Zero it, so every episode starts as after a hard reset
-        # whatever ran before (tests/test_libero.py checks the state after a different episode in between).
+        # whatever ran before (tests/libero/test_libero_env.py checks the state after a different episode in between).
         for robot in self.env.env.robots:
             if getattr(robot, "gripper", None) is not None and hasattr(robot.gripper, "current_action"):
                 robot.gripper.current_action = np.zeros_like(robot.gripper.current_action)

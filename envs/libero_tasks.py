@@ -2,7 +2,7 @@
 
 The table (suites, task names, instructions, BDDL objects of interest, stored initial states) is
 envs/libero_tasks.json, written from the installed package by scripts/libero_tasks.py and checked against it by
-tests/test_libero.py, so listing and validating tasks needs no LIBERO environment. Step limits are the published
+tests/libero/test_libero_env.py, so listing and validating tasks needs no LIBERO environment. Step limits are the published
 evaluation's (OpenVLA's run_libero_eval.py: the longest training demonstration plus a margin), counted after the
 settle steps.
 """

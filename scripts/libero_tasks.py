@@ -3,7 +3,7 @@
 Run in LIBERO's environment (`bash scripts/setup_libero.sh` first):
     LIBERO_CONFIG_PATH=.venv-libero/libero-config .venv-libero/bin/python scripts/libero_tasks.py
 The harness reads the JSON file (so `octo-harness tasks` works without LIBERO's environment);
-tests/test_libero.py checks it against the installed package.
+tests/libero/test_libero_env.py checks it against the installed package.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 # (8 Lift episodes on evaluation seeds 0..7, at most 80 steps, fast render, no PNG/MP4, policy inputs recorded;
 # arrays and inputs of the first 20 steps kept for `octo-harness replay`), made from a fresh run of
 # models/octo-reference-robosuite. Run it again whenever the reference checkpoint changes (the baseline gate,
-# tests/test_compare_baseline.py, checks the model fingerprint and says so).
+# tests/gate/test_committed_baseline.py, checks the model fingerprint and says so).
 #   bash scripts/make_reference_baseline.sh [MODEL] [NAME] [MAX_STEPS]
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Runs the whole test suite (installs system libraries and .venv on first use).
 source "$(dirname "$0")/_bootstrap.sh"
-# Debian's chromium: the report's real-browser test (tests/test_report_e2e.py) opens report.html headless
+# Debian's chromium: the report's real-browser test (tests/report/test_report_in_browser.py) opens report.html headless
 if ! command -v chromium >/dev/null 2>&1; then
     if [ "$(id -u)" = "0" ]; then
         echo "[setup] installing chromium (headless browser test of the HTML report)"
@@ -12,7 +12,7 @@ if ! command -v chromium >/dev/null 2>&1; then
         exit 1
     fi
 fi
-# LIBERO's own simulator stack (.venv-libero: robosuite 1.4.0, MuJoCo 3.3.2), which tests/test_libero.py needs; a
+# LIBERO's own simulator stack (.venv-libero: robosuite 1.4.0, MuJoCo 3.3.2), which tests/libero/test_libero_env.py needs; a
 # no-op once made. Under CI=true those tests fail rather than skip when it is missing.
 libero_start=$(date +%s)
 bash "$(dirname "$0")/setup_libero.sh"

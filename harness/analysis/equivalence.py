@@ -16,7 +16,7 @@ reference policy's recorded Lift episodes (10 x up to 80 steps), recorded under 
 normalised units and 3.2e-8 bits (step 0 alone: ~1e-6 and ~1e-9; on the recording platform: exactly 0).
 ACTION_NOISE and ATTENTION_NOISE round those up and the tolerances are 10x them. Gaussian noise of std 1e-3
 added to one MLP kernel changes the step-0 chunk by 1.2e-3 (4x the tolerance; 1.1e-2 at its largest step)
-and attention by 7.8e-6 bits (22x) (tests/test_replay.py). A step is EQUIVALENT when both changes are
+and attention by 7.8e-6 bits (22x) (tests/gate/test_replay.py). A step is EQUIVALENT when both changes are
 within tolerance.
 """
 

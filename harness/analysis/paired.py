@@ -33,7 +33,7 @@ of m tables, Bonferroni-simultaneous, so that SUSPECT's family-wise false alarm 
   HELD          none of these, no errored pair, the interval's lower limit >= -max_drop and the exact
                 unconditional test of "a drop >= max_drop" (`held_pvalue`) rejects at alpha / 2: a drop larger
                 than max_drop is ruled out (the exact test keeps the error of HELD <= alpha / 2, which Newcombe's
-                interval alone exceeds at small n: up to 9% at 20 pairs; tests/test_gate_decisions.py)
+                interval alone exceeds at small n: up to 9% at 20 pairs; tests/gate/test_decisions.py)
   UNDERPOWERED  none of the above (or no pairs, or HELD but with errored pairs)
 Gate order (worst first): ERRORED > REGRESSED > SUSPECT > UNDERPOWERED > HELD > IMPROVED > IDENTICAL.
 """

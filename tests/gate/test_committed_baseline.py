@@ -1,0 +1,133 @@
+"""The harness's regression gate on itself, on any x86-64 machine: every committed baseline
+(results/baselines/<name>/) re-run and compared, and the gate's answers for broken candidates.
+
+A baseline holds a small run made by scripts/make_baseline.py: manifest (with its platform), results, the first
+steps' arrays and the policy's recorded inputs. What holds on every machine:
+- the model's numbers: `replay` of the recorded inputs is EQUIVALENT (tests/gate/test_replay.py, also under XLA capped
+  at SSE4.2 there);
+- the outcomes: the same protocol re-run passes the gate (no REGRESSED, SUSPECT or ERRORED), and compare says
+  IDENTICAL exactly when the platform fingerprint is the baseline's; step 0 (same seed, same inputs when the
+  renderer agrees) is EQUIVALENT or IDENTICAL.
+The gate fails, with its own message, for a candidate whose every episode errors (NaN weights: ERRORED, exit 3)
+and, where the model must not change (`--fail-on changed`), for one weight tensor perturbed by std 1e-3.
+"""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from harness.analysis.compare import compare_runs, exit_code
+from harness.run import execute
+from harness.runfolder.platform import platform_fingerprint, platform_info
+from harness.run.regress import candidate_protocol
+
+pytestmark = pytest.mark.slow
+
+REPO = Path(__file__).resolve().parents[2]
+BASELINES = REPO / "results" / "baselines"
+NAMES = sorted(p.name for p in BASELINES.glob("*") if (p / "BASELINE.json").is_file())
+REFERENCE = BASELINES / "reference-lift"
+
+
+def _model(ref: str, fixtures_dir: Path) -> str:
+    kind, _, rest = ref.partition(":")
+    if kind == "repo":
+        return str(REPO / rest)
+    if kind == "fixture":
+        return str(fixtures_dir / rest)
+    return ref
+
+
+def test_there_is_a_committed_baseline_with_recorded_inputs():
+    assert NAMES, f"no baseline under {BASELINES}; make one with scripts/make_baseline.py"
+    info = json.loads((REFERENCE / "BASELINE.json").read_text())
+    assert info["recorded_inputs"] and len(list(REFERENCE.glob("*/*/inputs.npz"))) == 8
+    manifest = json.loads((REFERENCE / "manifest.json").read_text())
+    assert manifest["platform_fingerprint"].startswith("sha256:") and manifest["platform"]["gl"]["renderer"]
+    size = sum(p.stat().st_size for p in REFERENCE.rglob("*") if p.is_file())
+    # 6 MB: 8 episodes x 20 steps of recorded inputs, the primary camera at 128 px (8x8 patches) is most of it
+    assert size < 6 * 2 ** 20, f"the committed baseline is {size / 2 ** 20:.1f} MB"
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_rerunning_a_committed_baseline_passes_the_gate_on_this_machine(name, fixtures_dir, tmp_path):
+    folder = BASELINES / name
+    info = json.loads((folder / "BASELINE.json").read_text())
+    manifest = json.loads((folder / "manifest.json").read_text())
+    protocol = candidate_protocol(manifest, _model(info["model_ref"], fixtures_dir))
+    summary = execute(protocol, tmp_path, "again", progress=False)
+    assert summary.manifest["protocol"]["model_fingerprint"] == info["model_fingerprint"], (
+        f"the model of baseline {name} changed; regenerate it (scripts/make_reference_baseline.sh for reference-lift, "
+        "else octo-harness run + scripts/make_baseline.py) and commit it")
+
+    result = compare_runs(folder, summary.run_dir)
+    assert exit_code(result) == 0, (result["verdict"], result["outcomes"]["notes"])
+    assert result["pairs"] == len(manifest["jobs"]) and not any(result["missing_pairs"].values())
+    prov = result["provenance"]
+    same_platform = manifest.get("platform_fingerprint") == platform_fingerprint(platform_info())
+    assert prov["platform"]["same"] == same_platform
+    if same_platform:  # bit-identical trajectories are the claim here, and are checked bit for bit
+        assert result["verdict"] == "IDENTICAL", result["identical"]["first_difference"]
+    else:  # another CPU, XLA or renderer: the outcomes may move, the model's step-0 numbers may not
+        assert prov["platform"]["differs_in"]
+        assert prov["step0_numerics"]["verdict"] in ("IDENTICAL", "EQUIVALENT", "UNKNOWN"), prov["summary"]
+    if prov["inputs"]["step0_same"]:
+        assert prov["step0_numerics"]["verdict"] in ("IDENTICAL", "EQUIVALENT"), prov["summary"]
+
+
+def _gate(argv: list[str], tmp_path: Path, env_extra: dict | None = None) -> subprocess.CompletedProcess:
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", **(env_extra or {})}
+    return subprocess.run([sys.executable, "-m", "harness.cli", "regress", "--baseline", str(REFERENCE),
+                           "--out", str(tmp_path), *argv], capture_output=True, text=True, env=env, cwd=REPO,
+                          timeout=900)
+
+
+@pytest.mark.slow
+def test_the_gate_passes_the_unchanged_model_under_another_machines_numerics(tmp_path):
+    """XLA capped at SSE4.2: other bits from step 0 on, maybe other trajectories; the gate still passes, says the
+    model's numbers are EQUIVALENT and that the platforms differ."""
+    proc = _gate(["--model", "models/octo-reference-robosuite", "--fail-on", "changed"], tmp_path,
+                 {"XLA_FLAGS": "--xla_cpu_max_isa=SSE4_2"})
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    (regress_json,) = tmp_path.glob("*/regress/regress.json")
+    result = json.loads(regress_json.read_text())
+    assert result["replay"]["verdict"] == "EQUIVALENT"
+    compare = json.loads((regress_json.parent / "compare.json").read_text())
+    assert "xla_flags" in compare["provenance"]["platform"]["differs_in"]
+    assert "model numerics: EQUIVALENT" in proc.stdout and "platform: different" in proc.stdout
+
+
+def _broken_model(dest: Path, change) -> Path:
+    from flax import serialization
+
+    shutil.copytree(REPO / "models" / "octo-reference-robosuite", dest)
+    (path,) = dest.glob("*/default/checkpoint")
+    tree = serialization.msgpack_restore(path.read_bytes())
+    node = tree["octo_transformer"]["BlockTransformer_0"]["Transformer_0"]["encoderblock_1"]["MlpBlock_0"]["Dense_1"]
+    node["kernel"] = change(np.asarray(node["kernel"])).astype(np.float32)
+    path.write_bytes(serialization.msgpack_serialize(tree))
+    return dest
+
+
+def test_the_gate_fails_a_candidate_whose_every_episode_errors(tmp_path):
+    """NaN weights: every action is NaN, every episode errors (the rollout refuses non-finite actions): ERRORED, exit 3."""
+    model = _broken_model(tmp_path / "nan", lambda k: np.full_like(k, np.nan))
+    proc = _gate(["--model", str(model)], tmp_path / "runs")
+    assert proc.returncode == 3, proc.stdout + proc.stderr
+    assert "ERRORED" in proc.stdout
+    rows = [json.loads(line) for line in next((tmp_path / "runs").glob("*/results.jsonl")).read_text().splitlines()]
+    assert rows and all(r["status"] == "failed" and "not finite" in r["error"] for r in rows)
+
+
+def test_the_gate_fails_a_candidate_with_one_weight_tensor_perturbed_where_the_model_must_not_change(tmp_path):
+    rng = np.random.default_rng(0)
+    model = _broken_model(tmp_path / "perturbed", lambda k: k + 1e-3 * rng.standard_normal(k.shape))
+    proc = _gate(["--model", str(model), "--fail-on", "changed", "--max-episodes", "2"], tmp_path / "runs")
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "model numerics: CHANGED" in proc.stdout and "step 0" in proc.stdout

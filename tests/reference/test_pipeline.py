@@ -1,0 +1,232 @@
+"""Reference policy pipeline: scripted experts in the real simulator, demonstration recording, dataset
+chunks and statistics, and a tiny training run that reduces the loss and saves a loadable Octo checkpoint."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import envs
+from harness.reference import demos as demos_mod
+from harness.reference.experts import EXPERT_TASKS, ExpertConfig, ScriptedExpert
+from harness.reference.train import DATASET_KEY, TrainConfig, build_dataset, build_tokenizer, train
+
+
+def _expert_succeeds(task: str, seed: int) -> bool:
+    env = envs.make(task, cameras={}, action_space="robosuite")
+    try:
+        obs, info = env.reset(seed=seed)
+        expert = ScriptedExpert(task)
+        expert.reset(obs, env)
+        for _ in range(env.max_episode_steps):
+            obs, _, terminated, truncated, info = env.step(expert.act(obs, env))
+            if terminated or truncated:
+                break
+        return bool(info["success"])
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("task,seed", [("Lift", 3), ("Stack", 4), ("PickPlaceCan", 5)])
+def test_expert_succeeds_in_the_simulator(task, seed):
+    assert _expert_succeeds(task, seed)
+
+
+def test_expert_rejects_an_unknown_task():
+    with pytest.raises(ValueError, match="no scripted expert"):
+        ScriptedExpert("Door")
+
+
+def test_training_seeds_are_disjoint_from_evaluation_seeds():
+    config = demos_mod.DemoConfig()
+    blocks = []
+    for task in EXPERT_TASKS:
+        base = config.task_seed_base(task)
+        blocks.append((base, base + config.jobs_per_task * demos_mod.SEEDS_PER_JOB))
+    assert all(low >= demos_mod.EVAL_SEEDS for low, _ in blocks)
+    blocks.sort()
+    assert all(a_high <= b_low for (_, a_high), (b_low, _) in zip(blocks, blocks[1:]))
+
+
+def test_recorded_episode_is_what_the_policy_sees():
+    env = envs.make("Lift", fast_render=True, action_space="robosuite", max_episode_steps=120)
+    try:
+        episode = demos_mod.record_episode(env, ScriptedExpert("Lift"), 100_000, {"image_primary": 64, "image_wrist": 64},
+                                           noise=0.2, max_steps=120)
+    finally:
+        env.close()
+    assert episode is not None
+    n = len(episode["action"])
+    assert 10 < n < 120
+    assert episode["image_primary"].shape == (n, 64, 64, 3) and episode["image_primary"].dtype == np.uint8
+    assert episode["image_wrist"].shape == (n, 64, 64, 3) and episode["image_wrist"].dtype == np.uint8
+    assert episode["proprio"].shape == (n, 8) and episode["proprio"].dtype == np.float32
+    assert episode["action"].shape == (n, 7) and episode["action"].dtype == np.float32
+    assert np.all(np.abs(episode["action"]) <= 1.0)
+    assert set(np.unique(episode["action"][:, 6])) == {-1.0, 1.0}  # opens, then closes
+    assert episode["image_primary"].std() > 5  # a rendered scene, not a blank frame
+
+
+def test_recording_writes_whole_episodes_and_is_found_again(tmp_path):
+    config = demos_mod.DemoConfig(tasks=("Lift",), episodes=(("Lift", 2),), jobs_per_task=2,
+                                  image_sizes=(("image_primary", 32), ("image_wrist", 32)))
+    summary = demos_mod.record_demos(config, tmp_path, workers=1)
+    (arrays,) = demos_mod.load_demos(tmp_path, ("Lift",)).values()
+    lengths = arrays["lengths"]
+    assert summary["Lift"]["episodes"] == 2 and summary["Lift"]["steps"] == lengths.sum() == len(arrays["action"])
+    # one seed from each job's block; episode ids and steps restart per episode
+    assert list(arrays["seeds"]) == [config.task_seed_base("Lift"), config.task_seed_base("Lift") + 1000]
+    assert list(arrays["episode"]) == [0] * lengths[0] + [1] * lengths[1]
+    assert list(arrays["step"][lengths[0] - 1:lengths[0] + 1]) == [lengths[0] - 1, 0]
+    assert arrays["image_primary"].shape == (lengths.sum(), 32, 32, 3)
+    assert not list(tmp_path.glob("*.tmp.npz"))
+    assert demos_mod.existing_demos(config, tmp_path) == summary
+    assert demos_mod.existing_demos(demos_mod.DemoConfig(), tmp_path) is None  # another configuration
+    changed_expert = replace(config, expert=ExpertConfig(bin_inset=(0.0, 0.04)))
+    assert demos_mod.existing_demos(changed_expert, tmp_path) is None  # another demonstrator records afresh
+
+
+def _stuck_frames(episode: dict) -> int:
+    """Frames where the hand holds something and the label pushes +x at saturation while the hand does not
+    move in x over the next 5 frames (pushing against the arm's reach)."""
+    a, p = episode["action"], episode["proprio"]
+    return sum(1 for i in range(len(a) - 5) if a[i, 6] > 0 and a[i, 0] > 0.9 and abs(p[i + 5, 0] - p[i, 0]) < 0.002)
+
+
+def test_can_expert_carries_to_a_point_the_arm_reaches():
+    """The carry point over the can's bin is inside the arm's reach, so the carry phase ends on arrival (a
+    state), not by timing out while pushing against the reach limit (a label the policy cannot read off the
+    frame). Aiming at the bin's centre, as the first expert did, pushes for 20 frames on this seed."""
+    env = envs.make("PickPlaceCan", fast_render=True, action_space="robosuite", max_episode_steps=300)
+    try:
+        record = lambda cfg: demos_mod.record_episode(env, ScriptedExpert("PickPlaceCan", cfg), 300_000,  # noqa: E731
+                                                      {"image_primary": 32}, noise=0.3, max_steps=300)
+        inset, centre = record(ExpertConfig()), record(ExpertConfig(bin_inset=(0.0, 0.04)))
+    finally:
+        env.close()
+    assert inset is not None and centre is not None
+    assert _stuck_frames(inset) == 0
+    assert _stuck_frames(centre) >= 10
+    assert len(inset["action"]) < len(centre["action"])
+
+
+def _toy_demos(lengths=(3, 2), seed=0):
+    """Two episodes with actions a[t] = (episode*10 + t) in every arm dim, gripper alternating."""
+    rng = np.random.default_rng(seed)
+    actions, episode = [], []
+    for e, n in enumerate(lengths):
+        for t in range(n):
+            actions.append([e * 10 + t] * 6 + [1.0 if t % 2 else -1.0])
+            episode.append(e)
+    n = len(actions)
+    return {
+        "image_primary": rng.integers(0, 255, (n, 32, 32, 3), dtype=np.uint8),
+        "proprio": rng.normal(size=(n, 8)).astype(np.float32),
+        "action": np.array(actions, np.float32),
+        "episode": np.array(episode, np.int32),
+        "step": np.concatenate([np.arange(k) for k in lengths]).astype(np.int32),
+        "lengths": np.array(lengths, np.int32),
+        "seeds": np.arange(len(lengths)),
+    }
+
+
+def test_action_chunks_stop_at_the_episode_end_and_keep_the_gripper_unnormalised():
+    data = build_dataset({"Lift": _toy_demos()}, horizon=3)
+    stats = data.statistics[DATASET_KEY]["action"]
+    raw = data.actions * np.where(stats["mask"], stats["std"], 1) + np.where(stats["mask"], stats["mean"], 0)
+    # episode 0 (t = 0, 1, 2): chunk at t=1 is a[1], a[2], then a[2] held and masked out
+    np.testing.assert_allclose(raw[1, :, 0], [1, 2, 2], atol=1e-5)
+    assert data.action_mask[1].tolist() == [True, True, False]
+    # episode 1 starts at index 3 and never reads episode 0
+    np.testing.assert_allclose(raw[3, :, 0], [10, 11, 11], atol=1e-5)
+    assert data.action_mask[4].tolist() == [True, False, False]
+    assert stats["mask"].tolist() == [True] * 6 + [False]
+    np.testing.assert_array_equal(data.actions[:, 0, 6], [-1, 1, -1, -1, 1])  # gripper as recorded
+    np.testing.assert_allclose(stats["mean"][0], np.mean([0, 1, 2, 10, 11]), rtol=1e-6)
+    proprio = data.statistics[DATASET_KEY]["proprio"]
+    np.testing.assert_allclose(data.proprio.mean(0), 0, atol=1e-5)
+    assert proprio["mask"].all()
+
+
+def test_word_tokenizer_uses_t5_special_ids():
+    tok = build_tokenizer(["pick up the red cube", "stack the red cube"])
+    enc = tok.encode("Pick up the RED cube")
+    assert enc.ids[-1] == 1 and tok.token_to_id("<pad>") == 0 and tok.token_to_id("<unk>") == 2
+    assert tok.encode("pick up the blue cube").ids[3] == 2  # unknown word
+
+
+@pytest.mark.slow
+def test_tiny_diffusion_training_reduces_loss_and_saves_a_loadable_octo_checkpoint(tmp_path):
+    """The diffusion head's training path (the committed model, tested in test_reference_model.py, uses L1)."""
+    from harness.octo import load_pretrained
+
+    demo = _toy_demos(lengths=(12, 10))
+    demo["image_wrist"] = demo["image_primary"][:, :16, :16].copy()
+    cfg = TrainConfig(steps=60, batch_size=16, log_every=10, checkpoint_every=30, warmup_steps=5, learning_rate=1e-3,
+                      width=32, layers=1, heads=2, mlp_dim=64, stem_features=(32, 32, 32, 32), head="diffusion", head_hidden=32,
+                      t5_width=16,
+                      image_sizes=(("image_primary", 32), ("image_wrist", 16)), action_horizon=2)
+    summary = train({"Lift": demo}, tmp_path, cfg)
+    curve = _read_curve(tmp_path / "training_curve.csv")
+    assert curve[-1]["loss"] < 0.7 * curve[0]["loss"]
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.isdigit()) == ["60"]  # older steps replaced
+    model = load_pretrained(str(tmp_path))  # checks every parameter path and shape against config.json
+    assert model.text_tokenizer.tokenizer is not None  # the tokenizer inside the checkpoint, not the fallback
+    assert model.action_horizon == 2 and model.window_size == 1
+    stats = model.unnormalization_statistics(DATASET_KEY)
+    assert stats["mask"].tolist() == [True] * 6 + [False]
+    assert summary["parameters"] == sum(int(np.prod(x.shape)) for x in __import__("jax").tree.leaves(model.params))
+
+
+def _read_curve(path):
+    import csv
+
+    with open(path) as f:
+        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def test_grid_embedding_resize_known_answer():
+    from harness.reference.warm_start import resize_grid_embedding
+
+    # a 2x2 grid (row-major tokens) whose value is the row index: 4x4 bilinear (half-pixel centres, edges held)
+    old = np.array([0.0, 0.0, 1.0, 1.0], np.float32).reshape(1, 4, 1)
+    new = resize_grid_embedding(old, 16)[0, :, 0].reshape(4, 4)
+    np.testing.assert_allclose(new, np.repeat([[0.0], [0.25], [0.75], [1.0]], 4, axis=1), atol=1e-6)
+    flat = np.full((1, 10, 16, 8), 0.3, np.float32)  # (1, horizon, tokens, D): a constant stays constant
+    np.testing.assert_allclose(resize_grid_embedding(flat, 64), 0.3, atol=1e-6)
+    with pytest.raises(ValueError, match="not square"):
+        resize_grid_embedding(np.zeros((1, 6, 8)), 16)
+
+
+def test_warm_start_copies_an_earlier_checkpoint_and_resamples_the_patch_grid(tmp_path):
+    """A 32-px model warm-starts a 64-px one: every parameter copied, the primary position embeddings
+    resampled from 2x2 to 4x4 patches (lr 0: the saved model is the warm start itself)."""
+    from flax import traverse_util
+
+    from harness.octo.checkpoint import read_params
+    from harness.reference.warm_start import resize_grid_embedding
+
+    demo = _toy_demos(lengths=(12, 10))
+    demo["image_wrist"] = demo["image_primary"][:, :16, :16].copy()
+    small = dict(batch_size=4, log_every=1, checkpoint_every=10, warmup_steps=1, width=32, layers=1, heads=2, mlp_dim=64,
+                 stem_features=(32, 32, 32, 32), t5_width=16, action_horizon=2)
+    train({"Lift": demo}, tmp_path / "a", TrainConfig(steps=2, image_sizes=(("image_primary", 32), ("image_wrist", 16)),
+                                                       **small))
+    big = dict(demo, image_primary=np.repeat(np.repeat(demo["image_primary"], 2, axis=1), 2, axis=2))
+    summary = train({"Lift": big}, tmp_path / "b", TrainConfig(
+        steps=1, learning_rate=0.0, weight_decay=0.0, image_sizes=(("image_primary", 64), ("image_wrist", 16)),
+        init_from=str(tmp_path / "a"), **small))
+    a = traverse_util.flatten_dict(read_params(tmp_path / "a", 2))
+    b = traverse_util.flatten_dict(read_params(tmp_path / "b", 1))
+    assert a.keys() == b.keys()
+    key = ("octo_transformer", "obs_primary_pos_embedding")
+    assert a[key].shape[-2:] == (4, 32) and b[key].shape[-2:] == (16, 32)
+    np.testing.assert_allclose(b[key], resize_grid_embedding(a[key], 16), atol=1e-6)
+    for k in a:
+        if k != key:
+            np.testing.assert_array_equal(a[k], b[k], err_msg="/".join(k))
+    assert summary["warm_start"]["resized"] and summary["warm_start"]["copied"] == len(a) - 1
+    with pytest.raises(ValueError, match="only patch-grid position embeddings can change size"):
+        train({"Lift": demo}, tmp_path / "c", TrainConfig(
+            steps=1, image_sizes=(("image_primary", 32), ("image_wrist", 16)), init_from=str(tmp_path / "a"),
+            **{**small, "mlp_dim": 128}))

@@ -1,0 +1,431 @@
+"""Parallel execution end to end (real robosuite, real JAX model: the tiny reference fixture, 64/32 px cameras):
+`--workers 2` and `--executor ray --workers 2` give the sequential run's episodes step for step; batched inference
+neither recompiles after warm-up nor lets an episode's actions depend on its batch; faults stay contained."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import envs
+from harness.octo import load_pretrained
+from harness.policy import BatchInference, PolicyConfig, TaskSpec
+from harness.run import execute
+from harness.run.protocol import Protocol
+from harness.run.execution import executor_factory
+from harness.run.workers import WorkersExecutor, max_workers, warmup_request, PolicyShape
+from harness.outputs.writers import OutputOptions
+
+STEPS = 8
+CAMERAS = (("image_primary", "agentview", 64), ("image_wrist", "robot0_eye_in_hand", 32))  # the tiny model's sizes
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def tiny(fixtures_dir):
+    return load_pretrained(str(fixtures_dir / "tiny"))
+
+
+def _protocol(model, episodes: int = 2, **kw) -> Protocol:
+    return Protocol(model=model.source, tasks=("Lift",), episodes=episodes, seed=3, max_steps=STEPS,
+                    env=envs.EnvOptions(masks=True, fast_render=True, cameras=CAMERAS),
+                    outputs=OutputOptions(png_every=0, video=False, record_inputs=True), **kw)
+
+
+def _actions(summary, row) -> np.ndarray:
+    with np.load(summary.episode_dir(row) / "actions.npz") as z:
+        return z["executed"]  # (steps, action_dim)
+
+
+def _no_temporaries(run_dir: Path) -> bool:
+    return not [p for p in run_dir.rglob("*.tmp.*")]
+
+
+@pytest.fixture(scope="module")
+def sequential(tiny, tmp_path_factory):
+    return execute(_protocol(tiny), tmp_path_factory.mktemp("seq"), "seq", model=tiny, progress=False)
+
+
+def _assert_same_episodes(reference, other) -> None:
+    assert other.status == "complete" and len(other.rows) == len(reference.rows)
+    for a, b in zip(reference.rows, other.rows):
+        assert (b.task, b.episode, b.seed, b.status) == (a.task, a.episode, a.seed, "ok")
+        assert (b.success, b.steps) == (a.success, a.steps)
+        # bit-identical: one fixed inference shape, per-example rng (not "close": the numbers must not depend on
+        # the executor, the worker count or the load)
+        np.testing.assert_array_equal(_actions(other, b), _actions(reference, a))
+        with np.load(reference.episode_dir(a) / "attention.npz") as za, np.load(other.episode_dir(b) / "attention.npz") as zb:
+            np.testing.assert_array_equal(zb["readout_attention"], za["readout_attention"])
+
+
+def _assert_replay_is_exact(summary, model) -> None:
+    """Replay of a run on its own recorded inputs, with its own model on this machine: EQUIVALENT, and exactly 0."""
+    from harness.run.replay import replay_run
+
+    result = replay_run(summary.run_dir, loaded_model=model)
+    assert result["verdict"] == "EQUIVALENT" and result["steps_compared"] == sum(r.steps for r in summary.rows)
+    assert result["action_change_max"] == 0.0 and result["attention_js_max"] == 0.0
+
+
+def _run_three_while(tiny, tmp_path, name, factory, killer):
+    """Run 3 episodes with `factory` while `killer` (a thread) kills a worker."""
+    thread = threading.Thread(target=killer, daemon=True)
+    thread.start()
+    summary = execute(_protocol(tiny, episodes=3), tmp_path, name, model=tiny, executor=factory, progress=False)
+    thread.join()
+    return summary
+
+
+def _the_one_failed_episode(summary):
+    """A 3-episode run that lost one worker: complete, one failed row (its folder holds only episode.json), the
+    other episodes whole, no temporaries. Returns the failed row."""
+    assert summary.status == "complete" and len(summary.rows) == 3
+    failed = [r for r in summary.rows if r.status == "failed"]
+    assert len(failed) == 1
+    assert all(r.status == "ok" and r.steps == STEPS for r in summary.rows if r is not failed[0])
+    meta = json.loads((summary.episode_dir(failed[0]) / "episode.json").read_text())
+    assert meta["status"] == "failed" and sorted(p.name for p in summary.episode_dir(failed[0]).iterdir()) == ["episode.json"]
+    assert _no_temporaries(summary.run_dir)
+    return failed[0]
+
+
+@pytest.mark.slow
+def test_two_worker_processes_give_the_sequential_episodes_without_recompiling(tiny, sequential, tmp_path):
+    executors = []
+
+    def factory(context, model):
+        executors.append(WorkersExecutor(context, model, workers=2))
+        return executors[-1]
+
+    summary = execute(_protocol(tiny), tmp_path, "w2", model=tiny, executor=factory, progress=False)
+    _assert_same_episodes(sequential, summary)
+    _assert_replay_is_exact(sequential, tiny)
+    _assert_replay_is_exact(summary, tiny)
+    # one inference shape (the protocol's inference_batch 1, shared with the sequential run), compiled once
+    assert tiny.sample_cache_size == 1
+    pool = executors[0].pool
+    assert sum(pool.batches) == 2 * STEPS and set(pool.batches) == {1} and pool.max_batch == 1 and pool.replacements == 0
+    rows = [json.loads(line) for line in (summary.run_dir / "results.jsonl").read_text().splitlines()]
+    assert sorted((r["task"], r["episode"]) for r in rows) == [("Lift", 0), ("Lift", 1)]
+    assert _no_temporaries(summary.run_dir)
+
+
+def test_workers_are_bounded_by_the_machine_before_anything_compiles():
+    assert max_workers(cpus=2, memory_bytes=24 << 30) == 8  # 4 per core
+    assert max_workers(cpus=64, memory_bytes=8 << 30) == 8  # one per GB of memory
+    assert max_workers(cpus=1, memory_bytes=0) == 4  # memory unknown: the core bound alone
+    with pytest.raises(ValueError, match=r"^--workers 100000 is more than this machine can use .*use --workers \d+ or fewer$"):
+        executor_factory(100000)
+    assert executor_factory(max_workers()) is not None
+    assert executor_factory(100000, "ray", "head-node:6379") is not None  # a cluster's CPUs are checked when joined
+    with pytest.raises(ValueError, match=r"^--workers 100000 is more than this machine can use"):
+        executor_factory(100000, "ray")  # a local Ray instance runs on this machine
+
+
+@pytest.mark.slow
+def test_an_episode_gets_the_same_bits_whatever_shares_its_inference_call(tiny):
+    """inference_batch 4: alone (padded to 4) or with others (3 in one call, or 2 in another order), each example's
+    chunk and attention are bit-identical; one shape is compiled; per-example rng."""
+    shape = PolicyShape.of(tiny, None)
+    inference = BatchInference(tiny, PolicyConfig(inference_batch=4))
+    rng = np.random.default_rng(0)
+    requests = []
+    for i, text in enumerate(["lift the red cube", "open the door", "lift the red cube"]):
+        base = warmup_request(shape, TaskSpec.of(text))
+        obs = {k: (rng.integers(0, 256, v.shape, dtype=np.uint8) if k.startswith("image_") else v)
+               for k, v in base.observation.items()}
+        requests.append(type(base)(obs, base.task, seed=10 + i, step=i))
+    inference.warm_up(requests[0])
+    compiled = tiny.sample_cache_size
+    alone = [inference([r])[0] for r in requests]
+    together = inference(requests)  # batch of 3, padded to 4
+    pairs = inference([requests[2], requests[0]])  # other neighbours and positions
+    assert tiny.sample_cache_size == compiled  # no recompilation after warm-up
+    for got, want in list(zip(together, alone)) + list(zip(pairs, [alone[2], alone[0]])):
+        np.testing.assert_array_equal(got.chunk, want.chunk)
+        np.testing.assert_array_equal(got.readout_attention, want.readout_attention)
+    assert not np.allclose(alone[0].chunk, alone[2].chunk)  # different seeds/observations -> different actions
+    assert len(inference._tasks) == 2  # one task per distinct instruction
+
+
+@pytest.mark.slow
+def test_a_policy_error_fails_only_the_episodes_of_its_batch(tiny, tmp_path):
+    executors = []
+
+    def factory(context, model):
+        executor = WorkersExecutor(context, model, workers=2)
+        real, calls = executor.pool.inference, []
+
+        class FailingThirdBatch:  # fault injection around the real inference: the third call after warm-up raises
+            warm_up = real.warm_up
+
+            def __call__(self, requests):
+                calls.append(len(requests))
+                if len(calls) == 3:
+                    raise FloatingPointError("injected policy failure")
+                return real(requests)
+
+        executor.pool.inference = FailingThirdBatch()
+        executors.append((executor, calls))
+        return executor
+
+    summary = execute(_protocol(tiny, episodes=3), tmp_path, "perr", model=tiny, executor=factory, progress=False)
+    _, calls = executors[0]
+    failed = [r for r in summary.rows if r.status == "failed"]
+    assert summary.status == "complete" and len(summary.rows) == 3
+    assert len(failed) == calls[2] and all("injected policy failure" in r.error for r in failed)
+    assert all(r.steps == STEPS for r in summary.rows if r.status == "ok")
+    for row in failed:
+        meta = json.loads((summary.episode_dir(row) / "episode.json").read_text())
+        assert meta["status"] == "failed" and "injected policy failure" in meta["error"]
+    assert _no_temporaries(summary.run_dir)
+
+
+@pytest.mark.slow
+def test_a_worker_killed_mid_episode_fails_that_episode_is_replaced_and_the_run_completes(tiny, tmp_path):
+    executors = []
+
+    def factory(context, model):
+        executors.append(WorkersExecutor(context, model, workers=2))
+        return executors[-1]
+
+    killed = []
+
+    def kill_a_busy_worker():
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not killed:
+            pool = executors[0].pool if executors else None
+            if pool is not None and len(pool.batches) >= 3:  # past warm-up, inside the first episodes
+                try:
+                    busy = [w for w in list(pool._pool.values()) if w.job is not None and w.process.pid]
+                except RuntimeError:  # the pool changed while we looked
+                    continue
+                if busy:
+                    killed.append(busy[0].job)
+                    os.kill(busy[0].process.pid, signal.SIGKILL)
+                    return
+            time.sleep(0.01)
+
+    summary = _run_three_while(tiny, tmp_path, "kill", factory, kill_a_busy_worker)
+    assert killed, "no worker was killed"
+    failed = _the_one_failed_episode(summary)
+    assert (failed.task, failed.episode) == (killed[0].task, killed[0].episode)
+    assert "worker process died: signal 9" in failed.error
+    assert executors[0].pool.replacements == 1
+
+
+def test_an_env_worker_that_cannot_see_the_run_folder_names_its_node_and_the_fix(tmp_path):
+    from harness.run.ray_executor import EnvWorker, RayExecutorError
+
+    (tmp_path / "marker").write_text("token")
+    with pytest.raises(RayExecutorError, match=r"not visible from node .*filesystem every Ray node mounts"):
+        EnvWorker(None, None, (str(tmp_path / "elsewhere"), "token"))
+    with pytest.raises(RayExecutorError, match="not visible"):
+        EnvWorker(None, None, (str(tmp_path / "marker"), "another run's token"))
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--workers", "0"], "--workers must be at least 1"),
+    (["--ray-address", "auto"], "need --executor ray"),
+    (["--executor", "ray", "--policy-replicas", "0"], "--policy-replicas must be at least 1"),
+])
+def test_impossible_execution_options_are_one_line_before_anything_loads(fixtures_dir, tmp_path, capsys, flags, message):
+    from harness import cli
+
+    code = cli.main(["run", "--task", "Lift", "--model", str(fixtures_dir / "tiny"), "--out", str(tmp_path), *flags])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0]
+    assert not any(tmp_path.iterdir())  # nothing written
+
+
+@pytest.mark.slow
+def test_regress_with_two_workers_pairs_the_sequential_episodes(tiny, sequential, tmp_path, capsys):
+    """`regress --workers 2`: the candidate's episodes run in env workers and still pair step for step."""
+    from harness import cli
+    from harness.analysis.runs import load_run
+
+    args = ["regress", "--baseline", str(sequential.run_dir), "--model", tiny.source, "--workers", "2",
+            "--out", str(tmp_path), "--run-name", "cand"]
+    assert cli.main(args) == 0  # same model, same seeds: no regression
+    result = json.loads((tmp_path / "cand" / "regress" / "regress.json").read_text())
+    assert result["pairs_used"] == result["baseline_pairs"] == 2
+    candidate = load_run(tmp_path / "cand")
+    assert candidate.status == "complete" and len(candidate.episodes) == 2
+    for base, cand in zip(sequential.rows, sorted(candidate.episodes, key=lambda e: e.episode)):
+        assert (cand.seed, cand.success, cand.steps) == (base.seed, base.success, base.steps)
+        with np.load(cand.directory / "actions.npz") as z:
+            np.testing.assert_allclose(z["executed"], _actions(sequential, base), rtol=0, atol=1e-4)
+
+
+# ---------------------------------------------------------------------------------------------- the command line
+
+
+def _cli(fixtures_dir, out: Path, name: str, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "harness.cli", "run", "--task", "Lift", "--model", str(fixtures_dir / "tiny"),
+            "--episodes", "3", "--max-steps", str(STEPS), "--seed", "3", "--fast-render", "--png-every", "0",
+            "--camera", "image_primary=agentview:64", "--camera", "image_wrist=robot0_eye_in_hand:32",
+            "--out", str(out), "--run-name", name, *extra]
+
+
+def _children(pid: int) -> set[int]:
+    """Every descendant process of `pid` (from /proc)."""
+    parents: dict[int, int] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                parents[int(entry.name)] = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                pass
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {p for p, pp in parents.items() if pp in frontier} - found
+        found |= frontier
+    return found
+
+
+def _alive(pids: set[int]) -> set[int]:
+    alive = set()
+    for pid in pids:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z":
+            alive.add(pid)
+    return alive
+
+
+def _env() -> dict:
+    return {**os.environ, "HF_HUB_OFFLINE": "1", "PYTHONPATH": str(REPO)}
+
+
+def _wait_for(predicate, timeout: float = 180.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError("timed out waiting")
+        time.sleep(0.1)
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_every_worker_and_leaves_no_process_or_temporary(fixtures_dir, tmp_path):
+    proc = subprocess.Popen(_cli(fixtures_dir, tmp_path, "int", "--workers", "2"), env=_env(), cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        workers: set[int] = set()
+
+        def two_workers_running():
+            workers.update(_children(proc.pid))
+            return len(_alive(workers)) >= 2 and any((tmp_path / "int" / "Lift").glob("episode_*"))
+
+        _wait_for(two_workers_running)
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130
+    time.sleep(0.5)
+    assert not _alive(workers), f"processes left behind: {_alive(workers)}"
+    assert _no_temporaries(tmp_path / "int")
+    results = json.loads((tmp_path / "int" / "results.json").read_text())
+    assert results["status"] == "interrupted"
+
+
+@pytest.mark.slow
+def test_a_killed_parallel_run_resumes_to_exactly_n_episodes(fixtures_dir, tmp_path):
+    command = _cli(fixtures_dir, tmp_path, "resume", "--workers", "2")
+    jsonl = tmp_path / "resume" / "results.jsonl"
+    proc = subprocess.Popen(command, env=_env(), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    workers: set[int] = set()
+    try:
+        def one_episode_done():
+            workers.update(_children(proc.pid))
+            return jsonl.exists() and jsonl.read_text().count("\n") >= 1
+
+        _wait_for(one_episode_done)
+        proc.kill()  # SIGKILL: no clean-up in the driver
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert jsonl.read_text().count("\n") < 3
+    _wait_for(lambda: not _alive(workers), timeout=20)  # workers die with their driver (no orphans)
+    done = subprocess.run(command, env=_env(), cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    lines = [json.loads(line) for line in jsonl.read_text().splitlines()]
+    assert sorted((r["task"], r["episode"]) for r in lines) == [("Lift", 0), ("Lift", 1), ("Lift", 2)]
+    results = json.loads((tmp_path / "resume" / "results.json").read_text())
+    assert results["status"] == "complete" and [e["status"] for e in results["episodes"]] == ["ok"] * 3
+    assert _no_temporaries(tmp_path / "resume")
+    for k in range(3):
+        assert (tmp_path / "resume" / "Lift" / f"episode_{k}" / "episode.json").is_file()
+
+
+@pytest.mark.slow
+def test_ray_executor_with_two_workers_gives_the_sequential_episodes(tiny, sequential, tmp_path):
+    from harness.run.ray_executor import RayExecutor
+
+    executors = []
+
+    def factory(context, model):
+        executors.append(RayExecutor(context, model, workers=2))
+        return executors[-1]
+
+    summary = execute(_protocol(tiny), tmp_path, "ray2", model=tiny, executor=factory, progress=False)
+    _assert_same_episodes(sequential, summary)
+    _assert_replay_is_exact(summary, tiny)
+    (stats,) = executors[0].replica_stats
+    assert stats["sample_cache_size"] == 1  # the replica compiled its one shape during warm-up only
+    assert sum(stats["batches"]) == 2 * STEPS
+    assert not list(Path(summary.run_dir).glob(".octo-harness-shared-check-*"))  # the marker is removed
+
+
+def _busy_ray_env_workers() -> list[int]:
+    """Pids of Ray env-worker actors inside `run` (Ray titles the process `ray::EnvWorker.run` meanwhile)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if (entry / "cmdline").read_bytes().startswith(b"ray::EnvWorker.run"):
+                    pids.append(int(entry.name))
+            except OSError:
+                pass
+    return pids
+
+
+@pytest.mark.slow
+def test_a_ray_env_worker_killed_during_a_job_fails_that_episode_is_replaced_and_the_run_completes(tiny, tmp_path):
+    from harness.run.ray_executor import RayExecutor
+
+    executors, killed = [], []
+
+    def factory(context, model):
+        executors.append(RayExecutor(context, model, workers=2))
+        return executors[-1]
+
+    def kill_a_busy_actor():
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline:
+            busy = _busy_ray_env_workers()
+            if busy:  # a job is under way on that actor (making its env or stepping the episode)
+                os.kill(busy[0], signal.SIGKILL)
+                killed.append(busy[0])
+                return
+            time.sleep(0.02)
+
+    summary = _run_three_while(tiny, tmp_path, "raykill", factory, kill_a_busy_actor)
+    assert killed, "no Ray env worker was killed"
+    failed = _the_one_failed_episode(summary)
+    assert f"worker process died (pid {killed[0]}" in failed.error
+    assert executors[0].replacements == 1
+    assert not _busy_ray_env_workers()  # every actor is gone with the run
