@@ -18,6 +18,8 @@ of the task's phases, in order:
 The first rule that holds wins. The function is memoryless (a dropped object goes back to approach); the
 episode's furthest phase is the maximum over its states. Tasks without a phase function (PickPlace with four
 objects, NutAssembly with two nuts, Door, Wipe, ToolHang) record no phase (null).
+
+A change to a phase rule changes the stored measures: bump harness.analysis.attention.MEASURES_VERSION.
 """
 
 from __future__ import annotations

@@ -25,6 +25,14 @@ from harness.octo.tokens import TokenMap
 
 HEAD_FUSIONS = ("mean", "max", "min")
 
+# The definition of the derived measures an episode stores beside the policy's own outputs (attention.npz's
+# mask_fraction/*, metrics/*, measures/* and the task phases): the mask labels of envs/segmentation.py, the phase
+# rules of envs/phases.py and the maths here. Bump it
+# whenever either changes what those arrays hold; the run folder records it (manifest "measures_version") and
+# `compare` then names a difference confined to them as a change of definition, not of the policy.
+MEASURES_VERSION = 1  # runs written before it was recorded have none ("unrecorded")
+DERIVED_PREFIXES = ("mask_fraction/", "metrics/", "measures/", "phase")  # attention.npz keys MEASURES_VERSION covers
+
 
 def _timestep(tokens: TokenMap, timestep: int) -> int:
     """Absolute window index for a possibly negative `timestep` (-1 = last)."""

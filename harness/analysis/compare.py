@@ -50,6 +50,7 @@ from harness.analysis.paired import (
     regressed_reachable,
     worst,
 )
+from harness.analysis.attention import DERIVED_PREFIXES
 from harness.analysis.equivalence import attention_divergence
 from harness.analysis.provenance import input_agreement, provenance
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
@@ -225,8 +226,18 @@ def _step_count(arrays: dict[str, np.ndarray]) -> int:
     return int(arrays["attention.npz:step"].shape[0]) if "attention.npz:step" in arrays else 0
 
 
-def _first_difference(a: dict, b: dict, steps: int, atol: float) -> str | None:
-    """None when every array agrees within atol over the first `steps` stored steps, else what differs first."""
+def _derived(key: str) -> bool:
+    """An attention.npz array derived from the policy's outputs and the masks (MEASURES_VERSION covers it)."""
+    return key.startswith(tuple(f"attention.npz:{prefix}" for prefix in DERIVED_PREFIXES))
+
+
+def _first_difference(a: dict, b: dict, steps: int, atol: float, derived: bool | None = None) -> str | None:
+    """None when every array agrees within atol over the first `steps` stored steps, else what differs first.
+    derived: None compares every array, False only the policy's own (actions, attention, tokens), True only the
+    derived measures."""
+    if derived is not None:
+        a = {k: v for k, v in a.items() if _derived(k) == derived}
+        b = {k: v for k, v in b.items() if _derived(k) == derived}
     if set(a) != set(b):
         return f"array files hold different arrays: {sorted(set(a) ^ set(b))[:4]}"
     for key in sorted(a):
@@ -250,8 +261,10 @@ def _first_difference(a: dict, b: dict, steps: int, atol: float) -> str | None:
 
 
 def _compare_pair(task, seed, base: EpisodeRecord, cand: EpisodeRecord, truncated: tuple[bool, bool],
-                  config: CompareConfig) -> dict:
-    """One pair: outcome, IDENTICAL check and drift arrays (kept as numpy for aggregation)."""
+                  config: CompareConfig, measures_changed: bool = False) -> dict:
+    """One pair: outcome, IDENTICAL check and drift arrays (kept as numpy for aggregation). measures_changed: the
+    runs were written under different definitions of the derived measures (MEASURES_VERSION), so a difference
+    confined to them leaves the pair identical and is recorded as `derived_difference`."""
     out = {"task": task, "seed": seed, "baseline_dir": str(base.directory), "candidate_dir": str(cand.directory),
            "baseline_success": base.success, "candidate_success": cand.success,
            "baseline_steps": base.steps, "candidate_steps": cand.steps,
@@ -272,6 +285,10 @@ def _compare_pair(task, seed, base: EpisodeRecord, cand: EpisodeRecord, truncate
         difference = f"outcome differs (success {base.success} -> {cand.success}, steps {base.steps} -> {cand.steps})"
     elif not complete:
         difference = "stored arrays are shorter than the episode"
+    elif measures_changed:
+        difference = _first_difference(a, b, steps, config.atol, derived=False)
+        if difference is None:
+            out["derived_difference"] = _first_difference(a, b, steps, config.atol, derived=True)
     else:
         difference = _first_difference(a, b, steps, config.atol)
     out["identical"] = difference is None
@@ -494,6 +511,25 @@ def incompleteness(lacking: list, baseline_path, candidate_path) -> dict | None:
                     "and seeds: `octo-harness run --resume` on the candidate, or `octo-harness regress`)."}
 
 
+def measures_versions(baseline: RunRecord, candidate: RunRecord) -> tuple:
+    """Each run's manifest "measures_version" (None for runs written before it was recorded)."""
+    return tuple(run.manifest.get("measures_version") for run in (baseline, candidate))
+
+
+def _derived_block(baseline: RunRecord, candidate: RunRecord, details: list[dict]) -> dict | None:
+    """Identical trajectories whose derived measures differ because their definition changed, or None."""
+    differing = [d for d in details if d["identical"] and d.get("derived_difference")]
+    if not differing:
+        return None
+    versions = measures_versions(baseline, candidate)
+    shown = ["unrecorded" if v is None else str(v) for v in versions]
+    first = f"{differing[0]['task']} seed {differing[0]['seed']}: {differing[0]['derived_difference']}"
+    return {"baseline_version": versions[0], "candidate_version": versions[1], "pairs": len(differing),
+            "first_difference": first,
+            "note": f"the policy's trajectories are identical (actions, attention); only derived measures differ, "
+                    f"because their definition changed (measures version {shown[0]} -> {shown[1]}); first: {first}"}
+
+
 def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig(),
                  require_complete: bool = True) -> dict:
     """Compare two run folders (see the module docstring). Raises IncompatibleRuns / NotARunError (exit 2).
@@ -511,7 +547,8 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
         raise IncompatibleRuns(f"no (task, seed) pair is finished in both {baseline.path} and {candidate.path}; "
                                "run the candidate on the baseline's tasks and seeds")
     truncated = (_truncated(baseline), _truncated(candidate))
-    details = [_compare_pair(task, seed, b, c, truncated, config) for task, seed, b, c in pairs]
+    changed = measures_versions(baseline, candidate)[0] != measures_versions(baseline, candidate)[1]
+    details = [_compare_pair(task, seed, b, c, truncated, config, changed) for task, seed, b, c in pairs]
     return _result(baseline, candidate, details, missing, truncated, config, differs, require_complete)
 
 
@@ -557,6 +594,7 @@ def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], miss
             "first_difference": first_diff if not identical else None,
             "atol": config.atol,
             "steps_compared": "first stored steps of the committed baseline" if any(truncated) else "all steps",
+            "derived_measures": _derived_block(baseline, candidate, details),
         },
         "outcomes": outcomes,
         "drift": _drift(details, config),
@@ -619,7 +657,8 @@ def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: C
         cond_truncated = (_truncated(baseline), _truncated(candidate))
         truncated = (truncated[0] or cond_truncated[0], truncated[1] or cond_truncated[1])
         for task, seed, b, c in pairs:
-            d = _compare_pair(task, seed, b, c, cond_truncated, config)
+            versions = measures_versions(baseline, candidate)
+            d = _compare_pair(task, seed, b, c, cond_truncated, config, versions[0] != versions[1])
             details.append({**d, "task": f"{task} / {name}", "condition": name})
         for side in ("baseline", "candidate"):
             missing[side] += [[f"{t} / {name}", s] for t, s in miss[side]]

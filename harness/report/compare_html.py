@@ -179,6 +179,8 @@ def compare_page(result: dict, frames: dict | None = None, markdown: str | None 
                        + ("every paired array and outcome is equal" if ident["identical"] else
                           f"{ident['pairs_identical']}/{result['pairs']} pairs identical; first difference: "
                           f"{ident['first_difference']}")))
+    if ident.get("derived_measures"):
+        body.append(H.note("Derived measures: " + ident["derived_measures"]["note"]))
     if result.get("provenance"):
         body.append(H.note("Provenance: " + result["provenance"]["summary"]))
 

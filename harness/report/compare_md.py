@@ -80,6 +80,8 @@ def markdown_summary(result: dict, exit_code: int | None = None) -> str:
         lines += ["", ("Every paired array is bit-equal" if not ident["atol"] else
                        f"Every paired array is equal within {ident['atol']:g}")
                   + f" and every outcome is the same ({ident['steps_compared']})."]
+        if ident.get("derived_measures"):
+            lines += ["", "Derived measures: " + ident["derived_measures"]["note"] + "."]
     else:
         lines += ["", f"Not identical: {ident['pairs_identical']}/{result['pairs']} pairs identical; first difference: "
                       f"{ident['first_difference']}."]

@@ -24,6 +24,7 @@ from typing import Callable
 
 import numpy as np
 
+from harness.analysis.attention import MEASURES_VERSION
 from harness.run import checks
 from harness.run.protocol import protocol_from_manifest
 from harness.runfolder.platform import libero_platform, platform_differences, platform_fingerprint, platform_info
@@ -267,6 +268,7 @@ def execute(
                     "goal_images": protocol.goal_images, "git_commit": _git_commit(),
                     "versions": {"jax": platform_now["jax"]["version"], **platform_now["versions"]},
                     "platform": platform_now, "platform_fingerprint": platform_fp,
+                    "measures_version": MEASURES_VERSION,
                 }
                 store.write_manifest(manifest)
             store.remove_temporaries()

@@ -8,10 +8,16 @@ steps' arrays and the policy's recorded inputs. What holds on every machine:
 - the outcomes: the same protocol re-run passes the gate (no REGRESSED, SUSPECT or ERRORED), and compare says
   IDENTICAL exactly when the platform fingerprint is the baseline's; step 0 (same seed, same inputs when the
   renderer agrees) is EQUIVALENT or IDENTICAL.
+The same-platform branch is also checked on every machine, whatever CPU it is: a baseline made here, at test time,
+from the committed baseline's protocol (cut short) is IDENTICAL on rerun. A difference confined to the derived
+measures (mask fractions, metrics, phases) under another measures version is named as a change of definition, while
+under the same version it is a real difference.
 The gate fails, with its own message, for a candidate whose every episode errors (NaN weights: ERRORED, exit 3)
 and, where the model must not change (`--fail-on changed`), for one weight tensor perturbed by std 1e-3.
 """
 
+import dataclasses
+import importlib.util
 import json
 import os
 import shutil
@@ -22,10 +28,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness.analysis.attention import MEASURES_VERSION
 from harness.analysis.compare import compare_runs, exit_code
 from harness.run import execute
 from harness.runfolder.platform import platform_fingerprint, platform_info
 from harness.run.regress import candidate_protocol
+from tests.runfolder.edits import redigest
 
 pytestmark = pytest.mark.slow
 
@@ -79,6 +87,75 @@ def test_rerunning_a_committed_baseline_passes_the_gate_on_this_machine(name, fi
         assert prov["step0_numerics"]["verdict"] in ("IDENTICAL", "EQUIVALENT", "UNKNOWN"), prov["summary"]
     if prov["inputs"]["step0_same"]:
         assert prov["step0_numerics"]["verdict"] in ("IDENTICAL", "EQUIVALENT"), prov["summary"]
+
+
+def _make_baseline_module():
+    spec = importlib.util.spec_from_file_location("make_baseline", REPO / "scripts" / "make_baseline.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def made_here(tmp_path_factory):
+    """The committed baseline's protocol cut to 2 episodes of 12 steps, run twice on this machine: a baseline made
+    here from the first run (scripts/make_baseline.py), and the second run as the candidate."""
+    manifest = json.loads((REFERENCE / "manifest.json").read_text())
+    protocol = dataclasses.replace(candidate_protocol(manifest, str(REPO / "models" / "octo-reference-robosuite")),
+                                   episodes=2, max_steps=12)
+    out = tmp_path_factory.mktemp("made-here")
+    first = execute(protocol, out, "first", progress=False)
+    second = execute(protocol, out, "second", progress=False)
+    baseline = _make_baseline_module().make_baseline(first.run_dir, out / "baseline", steps=8)
+    return baseline, second.run_dir
+
+
+def test_a_baseline_made_on_this_machine_is_identical_on_rerun(made_here):
+    """The same-platform branch, on every machine: bit-identical trajectories and measures, whatever CPU CI gets."""
+    baseline, candidate = made_here
+    result = compare_runs(baseline, candidate)
+    assert result["provenance"]["platform"]["same"]
+    assert result["verdict"] == "IDENTICAL", result["identical"]["first_difference"]
+    assert result["identical"]["derived_measures"] is None and exit_code(result) == 0
+
+
+def _edit_measure(run: Path, version) -> None:
+    """Moves one derived measure (a mask fraction) of every episode and records `version` as the run's measures
+    version, as a run written under another mask definition would hold them."""
+    for npz in sorted(run.glob("*/episode_*/attention.npz")):
+        with np.load(npz) as z:
+            arrays = {k: z[k] for k in z.files}
+        (key,) = [k for k in arrays if k.startswith("mask_fraction/image_primary/") and k.endswith("/arm")][:1]
+        arrays[key] = np.where(np.isnan(arrays[key]), arrays[key], 1.0 - arrays[key]).astype(arrays[key].dtype)
+        np.savez(npz, **arrays)
+    redigest(run)
+    manifest = json.loads((run / "manifest.json").read_text())
+    manifest["measures_version"] = version
+    (run / "manifest.json").write_text(json.dumps(manifest))
+
+
+def test_a_changed_measure_definition_is_named_apart_from_a_real_difference(made_here, tmp_path):
+    """Identical actions and attention with a mask measure that moved: under another measures version the verdict
+    stays IDENTICAL and says the definition changed; under the same version it is a real difference."""
+    baseline, candidate = made_here
+    version = json.loads((candidate / "manifest.json").read_text())["measures_version"]
+    assert version == MEASURES_VERSION
+    redefined = tmp_path / "redefined"
+    shutil.copytree(candidate, redefined)
+    _edit_measure(redefined, version + 1)
+    result = compare_runs(baseline, redefined)
+    derived = result["identical"]["derived_measures"]
+    assert result["verdict"] == "IDENTICAL" and exit_code(result) == 0
+    assert derived["baseline_version"] == version and derived["candidate_version"] == version + 1
+    assert derived["pairs"] == 2 and "mask_fraction/image_primary/" in derived["first_difference"]
+    assert f"measures version {version} -> {version + 1}" in derived["note"]
+
+    moved = tmp_path / "moved"
+    shutil.copytree(candidate, moved)
+    _edit_measure(moved, version)
+    result = compare_runs(baseline, moved)
+    assert result["verdict"] != "IDENTICAL" and result["identical"]["derived_measures"] is None
+    assert "mask_fraction/image_primary/" in result["identical"]["first_difference"]
 
 
 def _gate(argv: list[str], tmp_path: Path, env_extra: dict | None = None) -> subprocess.CompletedProcess:

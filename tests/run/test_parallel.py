@@ -201,19 +201,22 @@ def test_a_worker_killed_mid_episode_fails_that_episode_is_replaced_and_the_run_
     killed = []
 
     def kill_a_busy_worker():
-        deadline = time.monotonic() + 120
+        """Kills a worker while both workers run the first two episodes, so the third is still queued and the pool
+        must start a replacement for it, however slowly the machine runs (no timing assumption: under load the
+        first episodes may end before any given number of inference calls)."""
+        deadline = time.monotonic() + 300
         while time.monotonic() < deadline and not killed:
             pool = executors[0].pool if executors else None
-            if pool is not None and len(pool.batches) >= 3:  # past warm-up, inside the first episodes
+            if pool is not None and pool.batches:  # past warm-up: the workers have asked for actions
                 try:
                     busy = [w for w in list(pool._pool.values()) if w.job is not None and w.process.pid]
                 except RuntimeError:  # the pool changed while we looked
                     continue
-                if busy:
+                if len(busy) == 2 and {w.job.episode for w in busy} == {0, 1}:
                     killed.append(busy[0].job)
                     os.kill(busy[0].process.pid, signal.SIGKILL)
                     return
-            time.sleep(0.01)
+            time.sleep(0.001)
 
     summary = _run_three_while(tiny, tmp_path, "kill", factory, kill_a_busy_worker)
     assert killed, "no worker was killed"
