@@ -10,6 +10,16 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
 REPO = Path(__file__).resolve().parents[1]
+
+# One persistent XLA compilation cache for the suite, its worker processes and every subprocess it starts (they
+# inherit the environment): a model compiled once is loaded from disk by the next test that builds the same program,
+# instead of compiled again (10-30 s each on 2 cores). The cache key holds the program, the jax/jaxlib versions and
+# XLA_FLAGS, so a test under another machine's numerics (--xla_cpu_max_isa=SSE4_2) compiles its own, and a loaded
+# executable is the compiled one, bit for bit. Kept between sessions under .pytest_cache/ (git-ignored), at most 2 GB.
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(REPO / ".pytest_cache" / "jax-compilation"))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
+os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(2 * 2 ** 30))
 FIXTURES = Path(os.environ.get("OCTO_REFERENCE_FIXTURES", REPO.parent / "shared" / "fixtures" / "octo-reference"))
 
 
@@ -20,3 +30,12 @@ def fixtures_dir() -> Path:
             f"reference fixtures not found at {FIXTURES}; place ../shared next to the repo or set OCTO_REFERENCE_FIXTURES"
         )
     return FIXTURES
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist (`-n 2 --dist loadgroup`, as scripts/test.sh runs the suite), a test file runs on one
+    worker, so its module-scoped runs are made once; tests marked `xdist_group("ray")` share one worker, because
+    two local Ray clusters at once would see each other's actor processes."""
+    for item in items:
+        if not any(mark.name == "xdist_group" for mark in item.iter_markers()):
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__))

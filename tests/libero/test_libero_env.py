@@ -429,6 +429,7 @@ def test_random_octo_small_runs_a_libero_task_from_the_command_line_and_resumes(
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ray")  # with tests/run/test_parallel.py: one local Ray cluster at a time
 def test_ray_env_workers_run_libero_tasks_with_the_sequential_bits(fixtures_dir, tmp_path):
     """Each Ray env actor starts its own LIBERO server; the episodes equal a sequential run's bit for bit."""
     _needs_libero()

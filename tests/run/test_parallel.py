@@ -25,6 +25,8 @@ from harness.run.execution import executor_factory
 from harness.run.workers import WorkersExecutor, max_workers, warmup_request, PolicyShape
 from harness.outputs.writers import OutputOptions
 
+pytestmark = pytest.mark.xdist_group("ray")  # with the LIBERO Ray test: one local Ray cluster at a time
+
 STEPS = 8
 CAMERAS = (("image_primary", "agentview", 64), ("image_wrist", "robot0_eye_in_hand", 32))  # the tiny model's sizes
 REPO = Path(__file__).resolve().parents[2]

@@ -32,24 +32,16 @@ STEPS = 2
 @pytest.fixture(scope="module")
 def made(fixtures_dir, tmp_path_factory):
     """A real run of the tiny model (2 Lift episodes, 2 steps, recorded inputs). The resumes below load the model
-    again; a persistent compilation cache (this module's only) spares them the 30 s compile."""
-    import jax
-
+    again from the suite's persistent compilation cache (tests/conftest.py), not a fresh compile."""
     from harness.octo import load_pretrained
 
-    previous = {name: getattr(jax.config, name) for name in
-                ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")}
-    jax.config.update("jax_compilation_cache_dir", str(tmp_path_factory.mktemp("jax_cache")))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
     out = tmp_path_factory.mktemp("made")
     model = load_pretrained(str(fixtures_dir / "tiny"))
     protocol = Protocol(model=str(fixtures_dir / "tiny"), tasks=("Lift",), episodes=2, max_steps=STEPS,
                         env=EnvOptions(masks=False, fast_render=True),
                         outputs=OutputOptions(png_every=0, video=False, record_inputs=True))
     execute(protocol, out, "run", model=model, progress=False)
-    yield out / "run"
-    for name, value in previous.items():
-        jax.config.update(name, value)
+    return out / "run"
 
 
 @pytest.fixture()
