@@ -21,8 +21,15 @@ episode mean centred per run (within a condition: a perturbation that lowers bot
 a pooled association by itself), and for the start.
 Which condition breaks a task (`paired_rows`): each perturbed cell is paired with the nominal run's episodes of the
 same task and seed (both ran to an outcome), tested by the exact McNemar test, and the p-values are Holm-adjusted over
-the task's perturbed cells (the family-wise error the regression gate controls); a cell "breaks" the task when its
-adjusted p <= alpha and it lost successes.
+the task's perturbed cells (the family-wise error the regression gate controls). Each cell gets one verdict:
+  BREAKS        its adjusted p <= alpha and it lost successes;
+  HOLDS         not BREAKS, and a drop larger than the margin (default MARGIN, 15 points; `--margin`) is ruled out:
+                the upper confidence bound of the drop (Newcombe's interval at 1 - alpha / cells, Bonferroni over the
+                task's cells) is within the margin and the exact test of "a drop >= margin" rejects: the same test
+                as compare's HELD (harness.analysis.paired.equivalent);
+  UNDETERMINED  neither: the data can tell neither a break nor the absence of one the size of the margin.
+Each null statement says what it could have detected (`paired.detectable_phrase`): at 20 pairs and Holm over 21
+cells, a cell breaks only with 10 or more lost pairs and none gained (a drop of 50 points).
 """
 
 from __future__ import annotations
@@ -34,13 +41,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from envs.perturbations import parse_perturb
-from harness.analysis.paired import PairedCounts, holm_adjust, mcnemar_exact
+from harness.analysis.paired import (PairedCounts, detectable_loss, detectable_phrase, difference_interval, equivalent,
+                                     holm_adjust, mcnemar_exact)
 from harness.analysis.stats import wilson_interval
 
 CAMERA = "image_primary"
 START_STEPS = 10
 CLUSTER_RESAMPLES = 2000
 MIN_CLASS = 5
+MARGIN = 0.15  # HOLDS rules out a drop in success rate larger than this
+ALPHA = 0.05
+VERDICTS = ("BREAKS", "HOLDS", "UNDETERMINED")
 
 
 @dataclass(frozen=True)
@@ -268,12 +279,24 @@ def association_rows(rows: list[EpisodeRow]) -> list[tuple]:
 
 
 PAIRED_COLUMNS = ("task", "condition", "level", "run", "pairs", "nominal_successes", "perturbed_successes",
-                  "nominal_only", "perturbed_only", "difference", "p_mcnemar", "p_holm", "breaks")
+                  "nominal_only", "perturbed_only", "difference", "p_mcnemar", "p_holm", "breaks", "verdict",
+                  "drop_upper", "margin", "detectable_drop", "cells")
 
 
-def paired_rows(rows: list[EpisodeRow], alpha: float = 0.05) -> list[tuple]:
+def cell_verdict(counts: PairedCounts, p_holm: float, cells: int, alpha: float = ALPHA, margin: float = MARGIN) -> str:
+    """BREAKS / HOLDS / UNDETERMINED of one perturbed cell (see the module docstring)."""
+    if counts.n and p_holm <= alpha and counts.difference < 0:
+        return "BREAKS"
+    if equivalent(counts, difference_interval(counts, 1.0 - alpha / max(cells, 1)), margin, alpha):
+        return "HOLDS"
+    return "UNDETERMINED"
+
+
+def paired_rows(rows: list[EpisodeRow], alpha: float = ALPHA, margin: float = MARGIN) -> list[tuple]:
     """Per task x perturbed cell: the paired 2x2 against the nominal episodes of the same seeds, the exact McNemar p,
-    its Holm adjustment over the task's perturbed cells, and whether the cell breaks the task (see the docstring)."""
+    its Holm adjustment over the task's perturbed cells, whether the cell breaks the task, its verdict (BREAKS,
+    HOLDS, UNDETERMINED), the upper confidence bound of the drop, the margin, and the smallest drop the test could
+    declare at its pairs and multiplicity (nan when none can be)."""
     out = []
     for task in dict.fromkeys(r.task for r in rows):
         nominal = {r.seed: r for r in rows if r.task == task and r.condition == "nominal" and r.status == "ok"}
@@ -285,9 +308,14 @@ def paired_rows(rows: list[EpisodeRow], alpha: float = 0.05) -> list[tuple]:
             counts = PairedCounts.from_outcomes([a for a, _ in pairs], [b for _, b in pairs])
             found.append((condition, level, run, counts, mcnemar_exact(counts.baseline_only, counts.candidate_only)))
         adjusted = holm_adjust([f[4] for f in found])
+        cells = len(found)
         for (condition, level, run, c, p), p_holm in zip(found, adjusted):
+            verdict = cell_verdict(c, p_holm, cells, alpha, margin)
+            low = difference_interval(c, 1.0 - alpha / max(cells, 1))[0] if c.n else -1.0
+            loss = detectable_loss(c.n, alpha, cells)
             out.append((task, condition, level, run, c.n, c.baseline_successes, c.candidate_successes, c.baseline_only,
-                        c.candidate_only, c.difference, p, p_holm, bool(c.n and p_holm <= alpha and c.difference < 0)))
+                        c.candidate_only, c.difference, p, p_holm, verdict == "BREAKS", verdict, -low, margin,
+                        loss / c.n if loss is not None else math.nan, cells))
     return out
 
 
@@ -297,11 +325,17 @@ def breaking(task: str, paired: list[tuple]) -> str:
     if not cells:
         return ""
     broken = sorted((p for p in cells if p[12]), key=lambda p: (p[1], p[2]))
+    holds = [p for p in cells if p[13] == "HOLDS"]
     test = f"paired with the nominal seeds, exact McNemar, Holm over {len(cells)} cells"
+    pairs = min(p[4] for p in cells)
+    power = detectable_phrase(pairs, ALPHA, len(cells)) if pairs else "no pairs to test"
+    margin = cells[0][15]
+    rest = (f"{len(holds)} of the other {len(cells) - len(broken)} cells HOLD (a drop over {round(100 * margin)} "
+            f"points ruled out) and the rest are UNDETERMINED")
     if not broken:
-        return f"no condition breaks it at any level ({test}, adjusted p <= 0.05)"
+        return (f"no condition breaks it at any level ({test}, adjusted p <= 0.05): {power}; {rest}")
     named = ", ".join(f"{p[1]} {p[2]} ({p[6]}/{p[4]} vs {p[5]}/{p[4]}, p = {p[11]:.3g})" for p in broken)
-    return f"it breaks under {named} ({test})"
+    return f"it breaks under {named} ({test}); elsewhere {power}; {rest}"
 
 
 def _interval(low: float, high: float) -> str:
@@ -313,7 +347,13 @@ def _verdict(low: float, high: float) -> str:
         return f"too few seeds, successes or failures (< {MIN_CLASS}) for an interval"
     return ("more nuisance attention goes with failure" if high < 0 else
             "more nuisance attention goes with success" if low > 0 else
-            "nuisance attention does not predict success here (the interval holds 0)")
+            f"nuisance attention does not predict success here (the interval holds 0; {detectable_r(low, high)})")
+
+
+def detectable_r(low: float, high: float) -> str:
+    """What a null association could have detected: an |r| within the interval's half-width of 0 cannot be told
+    from 0 at this n (the interval's width is what the seed-cluster test resolves)."""
+    return f"the smallest |r| it could tell from 0 at this n is about {(high - low) / 2:.2f}"
 
 
 def sentence(task: str, success: list[tuple], association: list[tuple], paired: list[tuple] = ()) -> str:

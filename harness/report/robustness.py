@@ -20,13 +20,14 @@ EPISODE_COLUMNS = ("run", "task", "condition", "level", "seed", "episode", "stat
                    "distractor_mass", "background_mass", "target_lift", "nuisance_start")
 
 
-def analyse(records):
+def analyse(records, margin: float = R.MARGIN):
     """(episode rows, step-0 shifts, notes, success rows, association rows, paired rows), or None when no run was
-    perturbed: one read of every perturbed episode's attention, shared by the report's tables and section."""
+    perturbed: one read of every perturbed episode's attention, shared by the report's tables and section.
+    `margin`: the drop a HOLDS verdict rules out."""
     if not R.is_perturbed(records):
         return None
     rows, shifts, notes = R.collect(records)
-    return rows, shifts, notes, R.success_rows(rows), R.association_rows(rows), R.paired_rows(rows)
+    return rows, shifts, notes, R.success_rows(rows), R.association_rows(rows), R.paired_rows(rows, margin=margin)
 
 
 def tables(records, analysis=None) -> dict[str, list]:
@@ -70,13 +71,13 @@ def level_plot(task: str, success: list[tuple]) -> bytes:
     return _png(figure)
 
 
-def _paired_cells(drops: dict, s: tuple) -> tuple[str, str]:
-    """(lost / gained pairs, Holm p with "breaks") of the success row `s`'s cell, from `drops` ({(task, run): paired
-    row}); dashes for the nominal row (level 0)."""
+def _paired_cells(drops: dict, s: tuple) -> tuple[str, str, str]:
+    """(lost / gained pairs, Holm p, verdict with the drop's upper bound) of the success row `s`'s cell, from `drops`
+    ({(task, run): paired row}); dashes for the nominal row (level 0)."""
     p = drops.get((s[0], s[3])) if s[2] else None
     if p is None:
-        return ("-", "-")
-    return (f"{p[7]} / {p[8]}", f"{p[11]:.3g}" + (" breaks" if p[12] else ""))
+        return ("-", "-", "-")
+    return (f"{p[7]} / {p[8]}", f"{p[11]:.3g}", f"{p[13]} (drop <= {round(100 * p[14])})")
 
 
 def section(records, plots, analysis=None) -> str:
@@ -97,7 +98,7 @@ def section(records, plots, analysis=None) -> str:
         body.append(plots.add(f"robustness_{H.anchor_id(task)[2:]}", level_plot(task, success), f"robustness {task}",
                               "Success (Wilson band), target lift and nuisance mass against level, per condition."))
         body.append(H.table(("condition", "level", "run", "success [Wilson 95%]", "errored", "paired: lost / gained",
-                             "Holm p", "target lift", "nuisance mass", "distractor mass"),
+                             "Holm p", "verdict (drop's upper bound, points)", "target lift", "nuisance mass", "distractor mass"),
                             [(s[1], s[2], s[3], H.Raw(f"{s[6]}/{s[4]} {H.fmt_ci(s[7], s[8], s[9], 2)}"), s[5],
                               *_paired_cells(drops, s),
                               H.fmt(s[13], 2), H.fmt(s[10], 3), H.fmt(s[11], 3)) for s in success if s[0] == task],
@@ -125,34 +126,51 @@ def section(records, plots, analysis=None) -> str:
 SECTION = "## Robustness"
 
 
-def markdown(records, note: str = "") -> str:
+VERDICT_NOTE = ("Verdicts per perturbed cell (paired with the nominal seeds): BREAKS = the exact McNemar drop survives "
+                "Holm over the task's cells; HOLDS = a drop larger than the margin ({margin} points) is ruled out (the "
+                "upper confidence bound of the drop, Newcombe at 1 - 0.05 / cells, is within it and the exact test of a "
+                "drop that large rejects: the test of compare's HELD); UNDETERMINED = neither. The column gives the "
+                "drop's upper bound.")
+
+
+def markdown(records, note: str = "", margin: float = R.MARGIN) -> str:
     """The Robustness section as Markdown (EVAL.md): per task a sentence and a table of success against level per
-    condition, target lift and nuisance mass; the association line per task."""
-    analysis = analyse(records)
+    condition with each cell's verdict, target lift and nuisance mass; the association line per task."""
+    analysis = analyse(records, margin)
     if analysis is None:
         raise ValueError("no run here was perturbed: give the runs of a robustness grid")
     rows, _, notes, success, association, paired = analysis
     drops = {(p[0], p[3]): p for p in paired}
     lines = [SECTION, "", note, ""] if note else [SECTION, ""]
+    lines += [VERDICT_NOTE.format(margin=round(100 * margin)), ""]
     lines += [f"- {n}" for n in notes]
     for task in dict.fromkeys(r.task for r in rows):
         lines += [R.sentence(task, success, association, paired), "",
-                  "| condition | level | success | Wilson 95% | paired: lost / gained | Holm p | target lift | "
-                  "nuisance mass | distractor mass |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  "| condition | level | success | Wilson 95% | paired: lost / gained | Holm p | verdict (drop's upper "
+                  "bound, points) | target lift | nuisance mass | distractor mass |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         for s in success:
             if s[0] == task:
-                lost, p = _paired_cells(drops, s)
-                lines.append(f"| {s[1]} | {s[2]} | {s[6]}/{s[4]} | [{s[8]:.2f}, {s[9]:.2f}] | {lost} | {p} | {s[13]:.2f} | "
+                lost, p, verdict = _paired_cells(drops, s)
+                lines.append(f"| {s[1]} | {s[2]} | {s[6]}/{s[4]} | [{s[8]:.2f}, {s[9]:.2f}] | {lost} | {p} | {verdict} | "
+                             f"{s[13]:.2f} | "
                              f"{s[10]:.3f} | {s[11]:.3f} |")
         lines.append("")
     return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:
+    import argparse
+    import functools
+
     from harness.report.rundata import eval_md_section_main
 
-    return eval_md_section_main(argv, "python -m harness.report.robustness", "Write the Robustness section of an EVAL.md from grid runs.", SECTION, markdown)
+    parser = argparse.ArgumentParser(add_help=False)
+    parser.add_argument("--margin", type=float, default=R.MARGIN)
+    known, rest = parser.parse_known_args(argv)
+    return eval_md_section_main(rest, "python -m harness.report.robustness", "Write the Robustness section of an EVAL.md "
+                                "from grid runs (--margin M: the drop a HOLDS verdict rules out [0.15]).", SECTION,
+                                functools.partial(markdown, margin=known.margin))
 
 
 if __name__ == "__main__":
