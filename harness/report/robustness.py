@@ -89,7 +89,7 @@ def section(records, plots, analysis=None) -> str:
     body = [H.note("Success against perturbation level per condition (level 0 = the nominal run), with Wilson 95% "
                    "bands; target lift and nuisance mass (attention on the background and distractors: neither robot, "
                    "target nor another task object) of the primary camera at the last layer, mean over each "
-                   "episode's steps. Numbers: tables/robustness*.csv.")]
+                   "episode's steps. Numbers: tables/robustness*.csv. " + map_note(records))]
     for note in notes:
         body.append(H.banner(note))
     for task in dict.fromkeys(r.task for r in rows):
@@ -126,6 +126,17 @@ def section(records, plots, analysis=None) -> str:
 SECTION = "## Robustness"
 
 
+def map_note(records) -> str:
+    """Which attention map the section's figures use: raw maps, and whether position-bound attention may be in them."""
+    controls = any(((r.manifest.get("protocol") or {}).get("policy") or {}).get("attention_controls") for r in records)
+    if controls:
+        return ("Target lift, nuisance mass and their association use the raw attention maps; these runs recorded "
+                "position controls (--attention-controls), but the content-only versions of these figures are not "
+                "computed yet: read them with the Position section's content-only lift.")
+    return ("Target lift, nuisance mass and their association use the raw attention maps: these runs had no "
+            "--attention-controls, so the figures may include position-bound attention.")
+
+
 VERDICT_NOTE = ("Verdicts per perturbed cell (paired with the nominal seeds): BREAKS = the exact McNemar drop survives "
                 "Holm over the task's cells; HOLDS = a drop larger than the margin ({margin} points) is ruled out (the "
                 "upper confidence bound of the drop, Newcombe at 1 - 0.05 / cells, is within it and the exact test of a "
@@ -142,7 +153,7 @@ def markdown(records, note: str = "", margin: float = R.MARGIN) -> str:
     rows, _, notes, success, association, paired = analysis
     drops = {(p[0], p[3]): p for p in paired}
     lines = [SECTION, "", note, ""] if note else [SECTION, ""]
-    lines += [VERDICT_NOTE.format(margin=round(100 * margin)), ""]
+    lines += [VERDICT_NOTE.format(margin=round(100 * margin)), "", map_note(records), ""]
     lines += [f"- {n}" for n in notes]
     for task in dict.fromkeys(r.task for r in rows):
         lines += [R.sentence(task, success, association, paired), "",
