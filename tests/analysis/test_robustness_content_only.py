@@ -129,3 +129,31 @@ def test_a_grid_without_controls_keeps_the_raw_note_and_table(tmp_path):
 def test_a_mirror_only_run_says_it_cannot_remove_position(tmp_path):
     note = report.map_note([_run(tmp_path, "nominal", None, "mirror", [True])])
     assert "only the mirror control" in note and "may include position-bound attention" in note
+
+
+@pytest.mark.slow
+def test_a_real_grid_with_controls_gets_content_only_figures(fixtures_dir, tmp_path):
+    """The tiny fixture model, Lift, 2 steps, one episode per cell, controls at every step: every episode gets
+    content-only figures, and with an empty blank map the content-only nuisance mass is the stored raw measure at
+    the control steps (the maps, tokens and masks are read the way the writer measured them)."""
+    from harness import cli
+    from harness.analysis.runs import load_run
+
+    (tmp_path / "p.toml").write_text('attention_controls = "blank,mirror"\ncontrols_every = 1\n')
+    out = tmp_path / "grid"
+    assert cli.main(["robustness", "--model", str(fixtures_dir / "tiny"), "--task", "Lift", "--perturb", "lighting",
+                     "--levels", "0,1", "--episodes", "1", "--max-steps", "2", "--protocol", str(tmp_path / "p.toml"),
+                     "--fast-render", "--no-video", "--out", str(out)]) == 0
+    records = [load_run(out / "nominal"), load_run(out / "lighting-1")]
+    rows, _, notes = R.collect(records)
+    assert not notes and len(rows) == 2
+    assert all(math.isfinite(r.nuisance_content) and math.isfinite(r.nuisance_mass) for r in rows)
+    episode = records[0].episodes[0]
+    with np.load(episode.attention_path) as z, np.load(episode.directory / "controls.npz") as c:
+        arrays = {k: z[k] for k in z.files}
+        steps = c["step"]
+        no_blank = R.content_measures(arrays["readout_attention"], arrays, steps, np.zeros_like(c["blank"]))
+    stored = arrays["measures/layer/mask_mass/image_primary/background"][steps, -1]
+    assert no_blank["nuisance_content"] == pytest.approx(float(np.mean(stored)), abs=2e-3)
+    text = report.markdown(records)
+    assert "| nuisance mass (raw) |" in text and "| nuisance mass (content only) |" in text
