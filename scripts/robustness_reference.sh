@@ -31,7 +31,8 @@ runs=()
 for d in "$OUT"/*/; do [ -f "$d/manifest.json" ] && runs+=("$d"); done
 "$PY" -m harness.cli report "${runs[@]}" --out "$OUT/report"
 # EVAL.md's "## Robustness" section (other sections stay)
-"$PY" -m harness.report.robustness "${runs[@]}" --eval-md "$MODEL/EVAL.md" --note \
+"$PY" -m harness.report.robustness "${runs[@]}" --eval-md "$MODEL/EVAL.md" \
+    --command "bash scripts/robustness_reference.sh $TASKS $KINDS $LEVELS $EPISODES" --note \
     "Made by \`bash scripts/robustness_reference.sh $TASKS $KINDS $LEVELS $EPISODES\`: \`octo-harness robustness --model $MODEL --task $TASKS --perturb $KINDS --levels $LEVELS --episodes $EPISODES --seed 0 --fast-render --png-every 0 --no-video\` (held-out seeds 0..$((EPISODES - 1)), each task at its own step limit, masks on; kinds and levels: docs/perturbations.md). Target lift and nuisance mass: primary camera, last layer, mean over each episode's steps. $NOTE"
 # the figures docs/perturbations.md shows (only for the default grid folder, whose numbers the docs quote)
 if [ "$OUT" = results/robustness-reference ]; then

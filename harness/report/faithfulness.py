@@ -556,13 +556,17 @@ def markdown(runs) -> str:
 if __name__ == "__main__":  # python -m harness.report.faithfulness RUN... [--figure PNG]: the Markdown tables
     import argparse
 
+    from harness.analysis.provenance import command_text, provenance_line
     from harness.analysis.runs import load_run
 
     parser = argparse.ArgumentParser(prog="python -m harness.report.faithfulness")
     parser.add_argument("runs", nargs="+")
+    parser.add_argument("--command", default=None, help="the command to name in the provenance line [this one]")
     parser.add_argument("--figure", default=None, help="also write the deletion-ratio heatmaps of every task here")
     args = parser.parse_args()
     records = [load_run(p) for p in args.runs]
+    command = args.command or command_text("python -m harness.report.faithfulness", args.runs, [])
+    print(provenance_line(command, [r.manifest for r in records]) + "\n")  # the line a results section carries
     print(markdown(records))
     if args.figure:
         rows = [r for record in records for r in summarise(read_rows(record), record.name)]

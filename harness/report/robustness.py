@@ -227,7 +227,8 @@ def main(argv=None) -> int:
     known, rest = parser.parse_known_args(argv)
     return eval_md_section_main(rest, "python -m harness.report.robustness", "Write the Robustness section of an EVAL.md "
                                 "from grid runs (--margin M: the drop a HOLDS verdict rules out [0.15]).", SECTION,
-                                functools.partial(markdown, margin=known.margin))
+                                functools.partial(markdown, margin=known.margin),
+                                options=("--margin", f"{known.margin:g}") if known.margin != R.MARGIN else ())
 
 
 if __name__ == "__main__":

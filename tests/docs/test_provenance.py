@@ -8,8 +8,10 @@ import re
 import subprocess
 from pathlib import Path
 
+from harness.analysis.provenance import PROVENANCE_LINE
+
 REPO = Path(__file__).resolve().parents[2]
-LINE = re.compile(r"^Provenance: command `[^`]+`; commit `([0-9a-f]{7,40})`[^;]*; machine: \S.*\.$", re.M)
+LINE = PROVENANCE_LINE  # the one definition, which the section generators' lines are tested against too
 CARD_MEASURED = ("## What was measured", "## Evaluation")  # model-card sections that quote measured figures
 
 
