@@ -1,5 +1,6 @@
 """Every results section names the command, the project commit and the machine it was measured on (issue 43 item 5):
-each section of models/*/EVAL.md and the measured sections of the model cards (models/*/README.md) hold one line
+each section of models/*/EVAL.md, the measured sections of the model cards (models/*/README.md) and the docs/ sections
+that quote measured figures (DOCS_MEASURED) hold one line
 `Provenance: command `...`; commit `<hash>` ...; machine: ...`, and the commit exists in a git checkout."""
 
 from __future__ import annotations
@@ -30,8 +31,39 @@ def _sections(path: Path) -> list[tuple[str, str]]:
     return out
 
 
-def _results_sections() -> list[tuple[Path, str, str]]:
+# docs/ sections that quote measured figures (results on the reference policies, benchmark timings). Examples of a
+# command's output on made-up inputs (regression.md's Outcomes and Drift) are not measurements and are not listed.
+DOCS_MEASURED = (
+    ("docs/benchmarks.md", "# Benchmarks"),
+    ("docs/faithfulness-sanity.md", "## Results on the reference policy"),
+    ("docs/faithfulness.md", "## Results on the 4×4-grid reference policy"),
+    ("docs/faithfulness.md", "## Results on the previous 8×8-grid policy"),
+    ("docs/faithfulness.md", "## Cost"),
+    ("docs/libero-reference.md", "## Results"),
+    ("docs/libero.md", "## The scripted expert: the env path end to end"),
+    ("docs/libero.md", "## Cost (benchmarks/bench_libero.py)"),
+    ("docs/parallel.md", "## Throughput (benchmarks/bench_parallel.py)"),
+    ("docs/parallel.md", "## Running on a GPU machine"),
+    ("docs/perturbations.md", "## Cost"),
+    ("docs/perturbations.md", "## Measured: the reference policy on the grid"),
+    ("docs/phases-and-position.md", "## Cost"),
+    ("docs/phases-and-position.md", "## Reference policy: results"),
+    ("docs/regression.md", "## Across machines: provenance, replay and what a verdict can claim"),
+    ("docs/viewer.md", "## Cost (benchmarks/bench_rerun.py)"),
+)
+
+
+def _docs_sections() -> list[tuple[Path, str, str]]:
     found = []
+    for name, heading in DOCS_MEASURED:
+        bodies = [b for h, b in _sections(REPO / name) if h == heading]
+        assert len(bodies) == 1, f"{name}: no single section {heading!r} (renamed? update DOCS_MEASURED)"
+        found.append((REPO / name, heading, bodies[0]))
+    return found
+
+
+def _results_sections() -> list[tuple[Path, str, str]]:
+    found = _docs_sections()
     for path in sorted(REPO.glob("models/*/EVAL.md")):
         found += [(path, h, b) for h, b in _sections(path)]
     for path in sorted(REPO.glob("models/*/README.md")):
@@ -41,7 +73,7 @@ def _results_sections() -> list[tuple[Path, str, str]]:
 
 def test_every_results_section_has_a_provenance_line():
     sections = _results_sections()
-    assert len(sections) >= 12  # three EVAL.md files (9 sections) and three model cards
+    assert len(sections) >= 12 + len(DOCS_MEASURED)  # three EVAL.md files (9 sections), three model cards, docs
     missing = [f"{p.relative_to(REPO)}: {h}" for p, h, b in sections if len(LINE.findall(b)) != 1]
     assert not missing, "sections without exactly one provenance line:\n" + "\n".join(missing)
 
