@@ -257,6 +257,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--out", type=Path, default=None, help="report folder [first RUN_DIR/report]")
     rep.add_argument("--bins", type=int, default=10, help="bins of normalised episode progress [10]")
     rep.add_argument("--resamples", type=int, default=2000, help="bootstrap resamples for the 95%% intervals [2000]")
+    rep.add_argument("--margin", type=float, default=0.15,
+                     help="a robustness cell HOLDS when its drop's upper confidence bound is below this [0.15]")
     rep.add_argument("--workers", type=int, default=None,
                      help="processes measuring runs made before measures were stored [up to 4 above 1 GB of attention]")
 
@@ -379,7 +381,8 @@ def _writing(what: str, verdict: str, write):
 def _cmd_report(args) -> int:
     from harness.report.build import ReportOptions, build_report
 
-    result = build_report(args.runs, args.out, ReportOptions(bins=args.bins, resamples=args.resamples, workers=args.workers))
+    result = build_report(args.runs, args.out, ReportOptions(bins=args.bins, resamples=args.resamples, workers=args.workers,
+                                                                  margin=args.margin))
     print(f"report: {result.html} ({result.episodes} episodes, {len(result.plots)} plots, {result.seconds:.1f} s)")
     return 0
 

@@ -25,8 +25,11 @@ normalisation statistics. `harness.toml` (TOML, read with the standard library's
     [text]
     tokenizer = "tokenizer"            # "auto" | "fallback" | a tokenizer.json or folder, relative to the checkpoint
 
-Precedence, highest first: command-line flags, the protocol file, `harness.toml`, the defaults.
-A missing file means "no conventions" (the defaults: octo-delta, upright, task cameras).
+Precedence, highest first: command-line flags, the protocol file, `harness.toml`, the default of the task's
+family (`FAMILY_DEFAULTS`). A missing file means "no conventions": robosuite tasks then take octo-delta actions
+and upright images (as before), LIBERO tasks the published evaluation's (OpenVLA's run_libero_eval.py: the
+rendered frame turned 180 degrees, LIBERO's action convention; the stored initial states and settle steps are the
+LIBERO env's own). A run that mixes families gives each family's tasks its own default (`resolve_env`).
 """
 
 from __future__ import annotations
@@ -42,6 +45,50 @@ from envs.options import EnvConfigError, EnvOptions
 CONVENTIONS_FILE = "harness.toml"
 FORMAT = "octo-harness-conventions/1"
 ENV_KEYS = ("cameras", "image_convention", "action_space", "hold_gripper")  # masks and fast_render are run choices, not model conventions
+
+
+# each task family's default conventions, used for a key neither the command line nor harness.toml sets
+FAMILY_DEFAULTS = {"robosuite": {"image_convention": "upright", "action_space": "octo-delta"},
+                   "libero": {"image_convention": "rot180", "action_space": "libero"}}
+FAMILY_PROTOCOL = {"robosuite": "the harness's robosuite default", "libero": "published protocol"}
+SOURCE_KEYS = ("cameras", "image_convention", "action_space", "hold_gripper")  # the conventions whose source is recorded
+
+
+def task_family(task: str) -> str:
+    """"libero" for a LIBERO task or suite ("libero_object/3"), else "robosuite"."""
+    from envs import libero_tasks
+
+    return "libero" if libero_tasks.is_libero(task) else "robosuite"
+
+
+def resolve_env(conventions: "CheckpointConventions", given: Mapping[str, Any], families) -> tuple[dict, dict]:
+    """({family: EnvOptions}, {family: {key: "flag" | "checkpoint" | "default:<family>"}}) for each family in
+    `families`: `given` (the user's choices, None values ignored) over the checkpoint's conventions over the family's
+    defaults. A hold_gripper given as "open"/"closed" is read in each family's own action space."""
+    given = {k: v for k, v in given.items() if v is not None}
+    options, sources = {}, {}
+    for family in dict.fromkeys(families):
+        options[family] = EnvOptions.from_dict({**FAMILY_DEFAULTS[family], **conventions.env, **given})
+        sources[family] = {k: "flag" if k in given else "checkpoint" if k in conventions.env else f"default:{family}"
+                           for k in SOURCE_KEYS if k != "hold_gripper" or options[family].hold_gripper is not None}
+    return options, sources
+
+
+def default_lines(sources: Mapping[str, Mapping[str, str]], options: Mapping[str, EnvOptions], tasks, model: str,
+                  has_file: bool) -> list[str]:
+    """One console line per family whose image or action convention came from the family's default, e.g.
+    `libero_object: rot180 images, libero actions (published protocol; MODEL has no harness.toml)`."""
+    lines = []
+    for family, keys in sources.items():
+        if not any(keys.get(k, "").startswith("default:") for k in ("image_convention", "action_space")):
+            continue
+        names = [t.split("/")[0] for t in tasks if task_family(t) == family]
+        label = ", ".join(dict.fromkeys(names)) if family == "libero" else ", ".join(names)
+        why = f"{model}'s harness.toml does not set them" if has_file else f"{model} has no {CONVENTIONS_FILE}"
+        option = options[family]
+        lines.append(f"{label}: {option.image_convention} images, {option.action_space} actions "
+                     f"({FAMILY_PROTOCOL[family]}; {why})")
+    return lines
 
 
 class ConventionsError(ValueError):

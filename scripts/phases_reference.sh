@@ -22,8 +22,8 @@ for task in Lift Stack PickPlaceCan; do
     runs+=("$OUT/phases_$task")
 done
 "$PY" -m harness.cli report "${runs[@]}" --out "$OUT/report"
-"$PY" -m harness.report.phases "${runs[@]}" > "$OUT/phases.md"
-"$PY" -m harness.report.position "${runs[@]}" > "$OUT/position.md"
+"$PY" -m harness.report.phases "${runs[@]}" --command "bash scripts/phases_reference.sh" > "$OUT/phases.md"
+"$PY" -m harness.report.position "${runs[@]}" --command "bash scripts/phases_reference.sh" > "$OUT/position.md"
 # the figures docs/phases-and-position.md shows
 for task in Lift Stack PickPlaceCan; do
     lower=$(echo "$task" | tr '[:upper:]' '[:lower:]')

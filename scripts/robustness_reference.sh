@@ -4,6 +4,9 @@
 # Robustness section (every number in OUT/report/tables/robustness_*.csv).
 #   bash scripts/robustness_reference.sh [TASKS] [KINDS] [LEVELS] [EPISODES] [OUT] [WORKERS]
 # The full grid of issue 27 is the default (20 episodes x levels 0,1,3,5 x every kind x Lift, Stack, PickPlaceCan);
+# `camera` and `noise` expand to one condition per camera the policy reads (camera@image_primary, camera@image_wrist,
+# noise@image_primary, noise@image_wrist: issue 43), so the default grid moves the wrist camera too. A grid folder
+# made before keeps its run names (camera-3 is camera@image_primary:3) and gains only the new cells on re-running.
 # the reduced grid in EVAL.md was: bash scripts/robustness_reference.sh Lift <every kind> 0,3,5 5
 # (run first with camera,lighting,distractors, then extended with the other kinds: a grid folder grows)
 # Resumable: re-running the same command finishes what a killed grid left.
@@ -28,7 +31,8 @@ runs=()
 for d in "$OUT"/*/; do [ -f "$d/manifest.json" ] && runs+=("$d"); done
 "$PY" -m harness.cli report "${runs[@]}" --out "$OUT/report"
 # EVAL.md's "## Robustness" section (other sections stay)
-"$PY" -m harness.report.robustness "${runs[@]}" --eval-md "$MODEL/EVAL.md" --note \
+"$PY" -m harness.report.robustness "${runs[@]}" --eval-md "$MODEL/EVAL.md" \
+    --command "bash scripts/robustness_reference.sh $TASKS $KINDS $LEVELS $EPISODES" --note \
     "Made by \`bash scripts/robustness_reference.sh $TASKS $KINDS $LEVELS $EPISODES\`: \`octo-harness robustness --model $MODEL --task $TASKS --perturb $KINDS --levels $LEVELS --episodes $EPISODES --seed 0 --fast-render --png-every 0 --no-video\` (held-out seeds 0..$((EPISODES - 1)), each task at its own step limit, masks on; kinds and levels: docs/perturbations.md). Target lift and nuisance mass: primary camera, last layer, mean over each episode's steps. $NOTE"
 # the figures docs/perturbations.md shows (only for the default grid folder, whose numbers the docs quote)
 if [ "$OUT" = results/robustness-reference ]; then

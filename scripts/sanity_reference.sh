@@ -44,5 +44,5 @@ openrun mean PickPlaceCan
 openrun impute PickPlaceCan
 for task in Lift Stack PickPlaceCan; do openrun blur "$task"; done
 open=("$OUT"/open_{mean,impute,blur}_{Lift,Stack,PickPlaceCan})
-"$PY" -m harness.report.faithfulness "${open[@]}" "${closed[@]}" > "$OUT/faithfulness.md"
+"$PY" -m harness.report.faithfulness "${open[@]}" "${closed[@]}" --command "bash scripts/sanity_reference.sh" > "$OUT/faithfulness.md"
 "$PY" -m harness.cli report "${open[@]}" "${closed[@]}" --out "$OUT/report"

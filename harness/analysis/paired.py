@@ -15,6 +15,10 @@ Only the discordant pairs (baseline_only, candidate_only) carry information abou
 - `holm_adjust`: Holm's (1979) step-down adjusted p-values.
 - `paired_verdict`: ERRORED / REGRESSED / SUSPECT / IMPROVED / HELD / UNDERPOWERED from the rules below.
 - `worst`: the gate's order of verdicts (an overall verdict is the worst of its parts).
+- `equivalent`: the HELD rule's equivalence test alone (a drop larger than max_drop ruled out); compare's HELD and
+  the robustness grid's HOLDS are this one function.
+- `detectable_loss` / `detectable_phrase`: the smallest drop (lost pairs, none gained) the exact test can declare
+  at n pairs, alpha and a multiplicity: what a null statement ("breaks nothing") could have detected.
 - `regressed_reachable` / `pairs_for_regressed`: whether n pairs can give REGRESSED at all (exact test).
 - `pairs_to_decide`: how many pairs the current rates would need for a verdict other than UNDERPOWERED.
 - `mcnemar_sample_size`: fixed-size number of pairs for a given power (Connor 1987, asymptotic);
@@ -241,10 +245,36 @@ def paired_verdict(counts: PairedCounts, p_adjusted: float, interval: tuple[floa
         return "REGRESSED" if counts.candidate_only < counts.baseline_only else "IMPROVED"
     if interval[1] < 0:
         return "SUSPECT"
-    if (interval[0] >= -max_drop and not errored_pairs
-            and held_pvalue(counts.baseline_only, counts.candidate_only, counts.n, max_drop) <= alpha / 2):
+    if not errored_pairs and equivalent(counts, interval, max_drop, alpha):
         return "HELD"
     return "UNDERPOWERED"
+
+
+def equivalent(counts: PairedCounts, interval: tuple[float, float], max_drop: float, alpha: float) -> bool:
+    """Whether a drop (baseline rate - candidate rate) larger than `max_drop` is ruled out: the interval's lower limit
+    (candidate - baseline) >= -max_drop, i.e. the upper confidence bound of the drop is within the margin, and the
+    exact unconditional test of "a drop >= max_drop" (`held_pvalue`) rejects at alpha / 2. False without pairs."""
+    return bool(counts.n and interval[0] >= -max_drop
+                and held_pvalue(counts.baseline_only, counts.candidate_only, counts.n, max_drop) <= alpha / 2)
+
+
+def detectable_loss(pairs: int, alpha: float, cells: int = 1) -> int | None:
+    """Fewest lost pairs (none gained) whose exact McNemar p, times `cells` (Holm's first factor over a family of
+    `cells` tables: the bound that holds whatever the other cells show), is <= alpha; None when `pairs` pairs
+    cannot reach it. E.g. 6 at alpha 0.05 alone (2 * 0.5**6 = 0.031), 10 over 21 cells (21 * 2 * 0.5**10 = 0.041)."""
+    if pairs <= 0:
+        return None
+    needed = pairs_for_regressed(alpha, cells)
+    return needed if needed <= pairs else None
+
+
+def detectable_phrase(pairs: int, alpha: float = 0.05, cells: int = 1) -> str:
+    """A null statement's power in words: "no drop of 50 points or more at 20 pairs (Holm over 21 cells)"."""
+    family = f"Holm over {cells} cells" if cells > 1 else f"alpha {alpha:g}"
+    loss = detectable_loss(pairs, alpha, cells)
+    if loss is None:
+        return f"no drop at all is detectable at {pairs} pairs ({family})"
+    return f"no drop of {round(100 * loss / pairs)} points or more at {pairs} pairs ({family})"
 
 
 def min_mcnemar_p(pairs: int) -> float:

@@ -19,6 +19,8 @@ recorded (pure functions over manifests and the per-pair details of harness.anal
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from harness.analysis.equivalence import Tolerances
@@ -121,3 +123,82 @@ def summary_sentence(platform: dict, inputs: dict, numerics: dict, differs: dict
                  "after identical step-0 numerics are this float noise amplified by the closed loop, the platform's, "
                  "not the model's" + (f"; other differences are {cause}" if other else ""))
     return f"{model}; {seen}; {where}"
+
+
+# ---- the provenance line of a results section (EVAL.md, model cards; tests/docs/test_provenance.py) ----------------
+
+# "Provenance: command `...`; commit `<hash>` (...); machine: ...." on a line of its own; group 1: the commit
+PROVENANCE_LINE = re.compile(r"^Provenance: command `[^`]+`; commit `([0-9a-f]{7,40})`[^;]*; machine: \S.*\.$", re.M)
+
+def machine_text(platforms: list) -> str:
+    """Run manifests' `platform` dicts -> "Intel(R) Xeon(R) Processor (x86_64), 2 cores, CPU only" (the GPU's kind
+    instead of "CPU only" where JAX ran on one); several machines are each named with their run count, and runs that
+    recorded none are counted."""
+    names: dict[str, int] = {}
+    unrecorded = 0
+    for info in platforms:
+        if not isinstance(info, dict) or not isinstance(info.get("cpu"), dict):
+            unrecorded += 1
+            continue
+        cpu, jax = info["cpu"], info.get("jax") if isinstance(info.get("jax"), dict) else {}
+        device = (f"GPU {jax.get('device_kind')}" if str(jax.get("backend", "")).lower() in ("gpu", "cuda", "rocm")
+                  else "CPU only")
+        name = f"{cpu.get('model', 'unknown CPU')} ({info.get('machine', '?')}), {cpu.get('cores', '?')} cores, {device}"
+        names[name] = names.get(name, 0) + 1
+    if not names:
+        return "not recorded in the runs' manifests"
+    parts = list(names) if len(names) == 1 and not unrecorded else [f"{n} ({k} runs)" for n, k in names.items()]
+    return " and ".join(parts + ([f"{unrecorded} runs without a recorded platform"] if unrecorded else []))
+
+
+def checkout_commit(repo=None) -> tuple[str | None, bool]:
+    """(`git rev-parse HEAD` of the checkout, whether tracked files differ from it); (None, False) outside git."""
+    import subprocess
+    from pathlib import Path
+
+    repo = Path(repo) if repo is not None else Path(__file__).resolve().parents[2]
+    try:
+        head = subprocess.run(["git", "-C", str(repo), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=30)
+        if head.returncode != 0:
+            return None, False
+        status = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no"],
+                                capture_output=True, text=True, timeout=60)
+        return head.stdout.strip(), bool(status.stdout.strip())
+    except (OSError, subprocess.SubprocessError):
+        return None, False
+
+
+def provenance_line(command: str, manifests: list, repo=None) -> str:
+    """"Provenance: command `...`; commit `<HEAD>` (...); machine: ...." for a section made from runs: the command
+    that made it, the commit of the checkout that wrote it (and the commits the runs recorded, where they differ),
+    and the machine from the runs' manifests (`machine_text`). No ';' inside the parts: the line's fields split on it."""
+    head, dirty = checkout_commit(repo)
+    recorded = sorted({m.get("git_commit") for m in manifests if isinstance(m, dict) and m.get("git_commit")})
+    notes = ["the checkout that wrote this section" + (", with uncommitted changes" if dirty else "")]
+    if recorded and recorded != [head]:
+        notes.append("the runs recorded " + ", ".join(f"`{c[:12]}`" for c in recorded))
+    elif not recorded:
+        notes.append("the runs recorded no commit")
+    commit = f"commit `{head[:12]}` ({', '.join(notes)})" if head else "commit unknown (not a git checkout)"
+    machine = machine_text([m.get("platform") if isinstance(m, dict) else None for m in manifests])
+    return f"Provenance: command `{command.replace('`', chr(39)).replace(';', ',')}`; {commit}; machine: {machine}."
+
+
+def command_text(prog: str, runs, rest: list[str]) -> str:
+    """The command that makes a section, for its provenance line: `prog RUN... rest`, the runs named by their common
+    folder and count when there are more than 3."""
+    import os
+
+    runs = [str(r) for r in runs]
+    if len(runs) > 3:
+        parent = os.path.commonpath([os.path.abspath(r) for r in runs])
+        named = f"{os.path.relpath(parent)}/<{len(runs)} runs>"
+    else:
+        named = " ".join(runs)
+    return " ".join([prog, named, *rest])
+
+
+def with_provenance(text: str, line: str) -> str:
+    """A Markdown section ("## Heading\n..." or "# Title\n...") with its provenance line right below the heading."""
+    heading, _, body = text.partition("\n")
+    return f"{heading}\n\n{line}\n\n{body.lstrip(chr(10))}"

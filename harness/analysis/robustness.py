@@ -13,16 +13,29 @@ camera `image_primary`, the model's last layer):
   lift_change     step-0 target lift, perturbed minus nominal
   nuisance_start  nuisance mass over the first START_STEPS steps only: a failed episode runs to the step limit and
                   wanders, so the episode mean partly measures the outcome; the start is measured before it
+Content-only (runs with `--attention-controls` including `blank`; controls.npz beside attention.npz): at each
+control step the camera's map (readouts and heads averaged, last layer) has its blank-frame part removed
+(harness.analysis.position.content_only: max(real - blank, 0), renormalised), and the same measures are read off it:
+  nuisance_content, target_lift_content, nuisance_start_content   over the control steps only (nan without them)
+A map whose nuisance attention is all bound to position keeps it on the blank frame and shows none content-only.
 Association of nuisance mass with success, per task across episodes and conditions: the point-biserial
 correlation (Pearson r of a 0/1 variable with a continuous one) with a 95% interval by Fisher's z (n - 3), which
 assumes independent episodes, and a seed-cluster bootstrap interval (seeds resampled with all their episodes across
 conditions, which share the scene's seed): the verdict reads the cluster interval. For the episode mean, for the
 episode mean centred per run (within a condition: a perturbation that lowers both success and nuisance mass makes
-a pooled association by itself), and for the start.
+a pooled association by itself), and for the start; each on the raw maps and, where any episode has controls,
+on the content-only maps (`map` column: "raw" or "content").
 Which condition breaks a task (`paired_rows`): each perturbed cell is paired with the nominal run's episodes of the
 same task and seed (both ran to an outcome), tested by the exact McNemar test, and the p-values are Holm-adjusted over
-the task's perturbed cells (the family-wise error the regression gate controls); a cell "breaks" the task when its
-adjusted p <= alpha and it lost successes.
+the task's perturbed cells (the family-wise error the regression gate controls). Each cell gets one verdict:
+  BREAKS        its adjusted p <= alpha and it lost successes;
+  HOLDS         not BREAKS, and a drop larger than the margin (default MARGIN, 15 points; `--margin`) is ruled out:
+                the upper confidence bound of the drop (Newcombe's interval at 1 - alpha / cells, Bonferroni over the
+                task's cells) is within the margin and the exact test of "a drop >= margin" rejects: the same test
+                as compare's HELD (harness.analysis.paired.equivalent);
+  UNDETERMINED  neither: the data can tell neither a break nor the absence of one the size of the margin.
+Each null statement says what it could have detected (`paired.detectable_phrase`): at 20 pairs and Holm over 21
+cells, a cell breaks only with 10 or more lost pairs and none gained (a drop of 50 points).
 """
 
 from __future__ import annotations
@@ -34,13 +47,20 @@ from dataclasses import dataclass
 import numpy as np
 
 from envs.perturbations import parse_perturb
-from harness.analysis.paired import PairedCounts, holm_adjust, mcnemar_exact
+from harness.analysis import position as Q
+from harness.analysis.attention import camera_maps
+from harness.analysis.paired import (PairedCounts, detectable_loss, detectable_phrase, difference_interval, equivalent,
+                                     holm_adjust, mcnemar_exact)
 from harness.analysis.stats import wilson_interval
 
 CAMERA = "image_primary"
 START_STEPS = 10
 CLUSTER_RESAMPLES = 2000
 MIN_CLASS = 5
+MAPS = ("raw", "content")  # the attention map a figure uses: raw, or content-only (blank-frame part removed)
+MARGIN = 0.15  # HOLDS rules out a drop in success rate larger than this
+ALPHA = 0.05
+VERDICTS = ("BREAKS", "HOLDS", "UNDETERMINED")
 
 
 @dataclass(frozen=True)
@@ -58,6 +78,15 @@ class EpisodeRow:
     distractor_mass: float
     background_mass: float
     nuisance_start: float = math.nan
+    nuisance_content: float = math.nan  # the same measures on the content-only maps at the control steps
+    target_lift_content: float = math.nan
+    nuisance_start_content: float = math.nan
+
+    def nuisance(self, map_: str = "raw") -> tuple[float, float]:
+        """(episode mean, first START_STEPS steps) of the nuisance mass on the raw or content-only map."""
+        if map_ == "content":
+            return self.nuisance_content, self.nuisance_start_content
+        return self.nuisance_mass, self.nuisance_start
 
 
 def run_condition(manifest: dict) -> tuple[str, int] | None:
@@ -80,21 +109,72 @@ def _layer_measure(z, name: str) -> np.ndarray | None:
     return np.asarray(z[key], np.float64) if key in z.files else None
 
 
-def episode_measures(path) -> dict:
+def episode_measures(path, controls=None) -> dict:
     """attention.npz -> {"nuisance_mass", "distractor_mass", "background_mass", "target_lift" (episode means at the
     last layer, primary camera; nan when absent), "step0_rows" (layers, keys) normalised step-0 attention,
-    "step0_lift" (layers,)}."""
+    "step0_lift" (layers,)}; with `controls` (the episode's controls.npz, when it has a blank control) also
+    "nuisance_content", "target_lift_content", "nuisance_start_content" (content_measures)."""
     with np.load(path) as z:
         background = _layer_measure(z, f"mask_mass/{CAMERA}/background")
         distractors = [np.asarray(z[k], np.float64) for k in z.files
                        if k.startswith(f"measures/layer/mask_mass/{CAMERA}/distractor_")]
         lift = _layer_measure(z, f"mask_lift/{CAMERA}/target")
-        attn = np.asarray(z["readout_attention"][0], np.float64) if "readout_attention" in z.files else None
+        attention = z["readout_attention"] if "readout_attention" in z.files else None
+        attn = np.asarray(attention[0], np.float64) if attention is not None else None
+        content = {}
+        if controls is not None and attention is not None:
+            with np.load(controls) as c:
+                if "blank" in c.files and "step" in c.files:
+                    arrays = {k: z[k] for k in z.files if k.startswith(("tokens/", f"mask_fraction/{CAMERA}/")) or k == "step"}
+                    content = content_measures(attention, arrays, np.asarray(c["step"]), c["blank"])
     out = {"nuisance_mass": math.nan, "distractor_mass": math.nan, "background_mass": math.nan, "target_lift": math.nan,
            "nuisance_start": math.nan, "step0_rows": None, "step0_lift": None}
     with warnings.catch_warnings():  # an all-nan column (a target never in view) gives a nan mean, not a warning
         warnings.simplefilter("ignore", RuntimeWarning)
-        return _episode_means(background, distractors, lift, attn, out)
+        return {**_episode_means(background, distractors, lift, attn, out), **content}
+
+
+def content_measures(attention: np.ndarray, arrays: dict, control_steps: np.ndarray, blank: np.ndarray) -> dict:
+    """The nuisance and target measures on the content-only map of one episode, at its control steps.
+
+    attention (steps, layers, heads, readouts, keys) the episode's readout attention; arrays: its "step" (steps,),
+    tokens/* and mask_fraction/<CAMERA>/<mask> (steps, rows, cols); control_steps (n,) and blank (n, layers, heads,
+    readouts, keys) from controls.npz. {} when the controls do not match the episode (steps it never recorded,
+    another shape) or the camera has no masks."""
+    from harness.octo.tokens import TokenMap
+
+    steps = np.asarray(arrays.get("step", np.arange(len(attention))))
+    index = {int(s): i for i, s in enumerate(steps)}
+    wanted = [int(s) for s in control_steps]
+    if not wanted or any(s not in index for s in wanted) or tuple(blank.shape[1:]) != tuple(attention.shape[1:]):
+        return {}
+    rows = [index[s] for s in wanted]
+    fractions = {k.rsplit("/", 1)[1]: np.asarray(v, np.float64)[rows] for k, v in arrays.items()
+                 if k.startswith(f"mask_fraction/{CAMERA}/") and len(v) == len(steps)}
+    if "background" not in fractions:
+        return {}
+    tokens = TokenMap.from_arrays(arrays)
+    real = camera_maps(np.asarray(attention[rows][:, -1], np.float64).mean(axis=(1, 2)), tokens, CAMERA)
+    empty = camera_maps(np.asarray(blank[:, -1], np.float64).mean(axis=(1, 2)), tokens, CAMERA)  # (n, rows, cols)
+    return content_means(real, empty, fractions, np.asarray(wanted))
+
+
+def content_means(real: np.ndarray, blank: np.ndarray, fractions: dict, steps: np.ndarray) -> dict:
+    """Camera maps real, blank (n, rows, cols) at n control steps (`steps` (n,)), mask coverage {"background",
+    "distractor_<i>", "target": (n, rows, cols)} -> {"nuisance_content", "nuisance_start_content" (steps before
+    START_STEPS), "target_lift_content"}: mass on background plus distractors, and the target's mass / area, of
+    position.content_only(real, blank); means over the steps (nan where nothing content-bound is left)."""
+    content = Q.content_only(real, blank)
+    nuisance_cover = fractions["background"] + sum((v for k, v in fractions.items() if k.startswith("distractor_")),
+                                                   np.zeros_like(fractions["background"]))
+    total = content.sum(axis=(-2, -1))
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # no step with content left, or no target in view: nan
+        nuisance = np.where(total > 0, (content * nuisance_cover).sum(axis=(-2, -1)) / np.where(total > 0, total, 1), np.nan)
+        lift = Q.mask_lift(content, fractions["target"]) if "target" in fractions else np.full(len(total), np.nan)
+        start = np.asarray(steps) < START_STEPS
+        return {"nuisance_content": float(np.nanmean(nuisance)), "target_lift_content": float(np.nanmean(lift)),
+                "nuisance_start_content": float(np.nanmean(nuisance[start])) if start.any() else math.nan}
 
 
 def _episode_means(background, distractors, lift, attn, out) -> dict:
@@ -159,15 +239,18 @@ def collect(records) -> tuple[list[EpisodeRow], list[tuple], list[str]]:
         for e in record.episodes:
             m = {}
             if e.ok and e.attention_path.is_file():
+                controls = e.attention_path.with_name("controls.npz")
                 try:
-                    m = episode_measures(e.attention_path)
+                    m = episode_measures(e.attention_path, controls if controls.is_file() else None)
                 except (OSError, ValueError, KeyError) as exc:
                     notes.append(f"{record.name}/{e.task}/episode_{e.episode}: unreadable attention.npz ({exc})")
             measures[(record.name, e.task, e.seed)] = m
             rows.append(EpisodeRow(record.name, e.task, cond[0], cond[1], e.seed if e.seed is not None else -1, e.episode,
                                    e.status, bool(e.success), m.get("nuisance_mass", math.nan),
                                    m.get("target_lift", math.nan), m.get("distractor_mass", math.nan),
-                                   m.get("background_mass", math.nan), m.get("nuisance_start", math.nan)))
+                                   m.get("background_mass", math.nan), m.get("nuisance_start", math.nan),
+                                   m.get("nuisance_content", math.nan), m.get("target_lift_content", math.nan),
+                                   m.get("nuisance_start_content", math.nan)))
     nominal = {(r.task, r.seed): r.run for r in rows if r.condition == "nominal"}
     shifts = []
     for r in rows:
@@ -186,12 +269,13 @@ def collect(records) -> tuple[list[EpisodeRow], list[tuple], list[str]]:
 
 
 SUCCESS_COLUMNS = ("task", "condition", "level", "run", "n", "errored", "successes", "success_rate", "ci_low", "ci_high",
-                   "nuisance_mass", "distractor_mass", "background_mass", "target_lift")
+                   "nuisance_mass", "distractor_mass", "background_mass", "target_lift", "nuisance_content",
+                   "target_lift_content")
 SHIFT_COLUMNS = ("run", "task", "condition", "level", "seed", "layer", "js_bits", "lift_change")
 ASSOCIATION_COLUMNS = ("task", "n", "point_biserial_r", "ci_low", "ci_high", "seed_ci_low", "seed_ci_high",
                        "mean_nuisance_success", "mean_nuisance_failure", "seeds", "start_point_biserial_r",
                        "start_seed_ci_low", "start_seed_ci_high", "within_point_biserial_r", "within_seed_ci_low",
-                       "within_seed_ci_high")
+                       "within_seed_ci_high", "map")
 
 
 def _mean(values) -> float:
@@ -215,7 +299,8 @@ def success_rows(rows: list[EpisodeRow]) -> list[tuple]:
                 out.append((task, condition, level, run, len(ok), len(cell) - len(ok), k,
                             k / len(ok) if ok else math.nan, lo, hi, _mean(r.nuisance_mass for r in ok),
                             _mean(r.distractor_mass for r in ok), _mean(r.background_mass for r in ok),
-                            _mean(r.target_lift for r in ok)))
+                            _mean(r.target_lift for r in ok), _mean(r.nuisance_content for r in ok),
+                            _mean(r.target_lift_content for r in ok)))
     return out
 
 
@@ -246,34 +331,57 @@ def seed_cluster_interval(seeds, success, values, confidence: float = 0.95, resa
     return (float(low), float(high))
 
 
-def _centred_per_run(rows: list[EpisodeRow]) -> list[float]:
+def _centred_per_run(rows: list[EpisodeRow], map_: str = "raw") -> list[float]:
     """Each episode's nuisance mass minus the mean of its run (one condition and level): what is left is the
     variation within a condition, which a perturbation that moves both nuisance mass and success cannot make."""
-    means = {run: _mean(r.nuisance_mass for r in rows if r.run == run) for run in {r.run for r in rows}}
-    return [r.nuisance_mass - means[r.run] for r in rows]
+    means = {run: _mean(r.nuisance(map_)[0] for r in rows if r.run == run) for run in {r.run for r in rows}}
+    return [r.nuisance(map_)[0] - means[r.run] for r in rows]
 
 
-def association_rows(rows: list[EpisodeRow]) -> list[tuple]:
+def has_content(rows: list[EpisodeRow]) -> bool:
+    """Whether any episode has content-only measures (a run with a blank attention control)."""
+    return any(math.isfinite(r.nuisance_content) for r in rows)
+
+
+def association_rows(rows: list[EpisodeRow], maps: tuple[str, ...] | None = None) -> list[tuple]:
+    """Per task and map (ASSOCIATION_COLUMNS): the association of nuisance mass with success on the raw maps and,
+    when `maps` holds "content" (default: when any episode has content-only measures), on the content-only maps."""
+    maps = maps or (MAPS if has_content(rows) else ("raw",))
     out = []
     for task in dict.fromkeys(r.task for r in rows):
         ok = [r for r in rows if r.task == task and r.status == "ok"]
-        success, seeds = [r.success for r in ok], [r.seed for r in ok]
-        mass, start, within = [r.nuisance_mass for r in ok], [r.nuisance_start for r in ok], _centred_per_run(ok)
-        r_, lo, hi, n = point_biserial(success, mass)
-        out.append((task, n, r_, lo, hi, *seed_cluster_interval(seeds, success, mass),
-                    _mean(r.nuisance_mass for r in ok if r.success), _mean(r.nuisance_mass for r in ok if not r.success),
-                    len(set(seeds)), point_biserial(success, start)[0], *seed_cluster_interval(seeds, success, start),
-                    point_biserial(success, within)[0], *seed_cluster_interval(seeds, success, within)))
+        for map_ in maps:
+            success, seeds = [r.success for r in ok], [r.seed for r in ok]
+            mass, start = [r.nuisance(map_)[0] for r in ok], [r.nuisance(map_)[1] for r in ok]
+            within = _centred_per_run(ok, map_)
+            r_, lo, hi, n = point_biserial(success, mass)
+            out.append((task, n, r_, lo, hi, *seed_cluster_interval(seeds, success, mass),
+                        _mean(m for m, r in zip(mass, ok) if r.success), _mean(m for m, r in zip(mass, ok) if not r.success),
+                        len({s for s, m in zip(seeds, mass) if math.isfinite(m)}), point_biserial(success, start)[0],
+                        *seed_cluster_interval(seeds, success, start), point_biserial(success, within)[0],
+                        *seed_cluster_interval(seeds, success, within), map_))
     return out
 
 
 PAIRED_COLUMNS = ("task", "condition", "level", "run", "pairs", "nominal_successes", "perturbed_successes",
-                  "nominal_only", "perturbed_only", "difference", "p_mcnemar", "p_holm", "breaks")
+                  "nominal_only", "perturbed_only", "difference", "p_mcnemar", "p_holm", "breaks", "verdict",
+                  "drop_upper", "margin", "detectable_drop", "cells")
 
 
-def paired_rows(rows: list[EpisodeRow], alpha: float = 0.05) -> list[tuple]:
+def cell_verdict(counts: PairedCounts, p_holm: float, cells: int, alpha: float = ALPHA, margin: float = MARGIN) -> str:
+    """BREAKS / HOLDS / UNDETERMINED of one perturbed cell (see the module docstring)."""
+    if counts.n and p_holm <= alpha and counts.difference < 0:
+        return "BREAKS"
+    if equivalent(counts, difference_interval(counts, 1.0 - alpha / max(cells, 1)), margin, alpha):
+        return "HOLDS"
+    return "UNDETERMINED"
+
+
+def paired_rows(rows: list[EpisodeRow], alpha: float = ALPHA, margin: float = MARGIN) -> list[tuple]:
     """Per task x perturbed cell: the paired 2x2 against the nominal episodes of the same seeds, the exact McNemar p,
-    its Holm adjustment over the task's perturbed cells, and whether the cell breaks the task (see the docstring)."""
+    its Holm adjustment over the task's perturbed cells, whether the cell breaks the task, its verdict (BREAKS,
+    HOLDS, UNDETERMINED), the upper confidence bound of the drop, the margin, and the smallest drop the test could
+    declare at its pairs and multiplicity (nan when none can be)."""
     out = []
     for task in dict.fromkeys(r.task for r in rows):
         nominal = {r.seed: r for r in rows if r.task == task and r.condition == "nominal" and r.status == "ok"}
@@ -285,9 +393,14 @@ def paired_rows(rows: list[EpisodeRow], alpha: float = 0.05) -> list[tuple]:
             counts = PairedCounts.from_outcomes([a for a, _ in pairs], [b for _, b in pairs])
             found.append((condition, level, run, counts, mcnemar_exact(counts.baseline_only, counts.candidate_only)))
         adjusted = holm_adjust([f[4] for f in found])
+        cells = len(found)
         for (condition, level, run, c, p), p_holm in zip(found, adjusted):
+            verdict = cell_verdict(c, p_holm, cells, alpha, margin)
+            low = difference_interval(c, 1.0 - alpha / max(cells, 1))[0] if c.n else -1.0
+            loss = detectable_loss(c.n, alpha, cells)
             out.append((task, condition, level, run, c.n, c.baseline_successes, c.candidate_successes, c.baseline_only,
-                        c.candidate_only, c.difference, p, p_holm, bool(c.n and p_holm <= alpha and c.difference < 0)))
+                        c.candidate_only, c.difference, p, p_holm, verdict == "BREAKS", verdict, -low, margin,
+                        loss / c.n if loss is not None else math.nan, cells))
     return out
 
 
@@ -297,11 +410,17 @@ def breaking(task: str, paired: list[tuple]) -> str:
     if not cells:
         return ""
     broken = sorted((p for p in cells if p[12]), key=lambda p: (p[1], p[2]))
+    holds = [p for p in cells if p[13] == "HOLDS"]
     test = f"paired with the nominal seeds, exact McNemar, Holm over {len(cells)} cells"
+    pairs = min(p[4] for p in cells)
+    power = detectable_phrase(pairs, ALPHA, len(cells)) if pairs else "no pairs to test"
+    margin = cells[0][15]
+    rest = (f"{len(holds)} of the other {len(cells) - len(broken)} cells HOLD (a drop over {round(100 * margin)} "
+            f"points ruled out) and the rest are UNDETERMINED")
     if not broken:
-        return f"no condition breaks it at any level ({test}, adjusted p <= 0.05)"
+        return (f"no condition breaks it at any level ({test}, adjusted p <= 0.05): {power}; {rest}")
     named = ", ".join(f"{p[1]} {p[2]} ({p[6]}/{p[4]} vs {p[5]}/{p[4]}, p = {p[11]:.3g})" for p in broken)
-    return f"it breaks under {named} ({test})"
+    return f"it breaks under {named} ({test}); elsewhere {power}; {rest}"
 
 
 def _interval(low: float, high: float) -> str:
@@ -313,7 +432,26 @@ def _verdict(low: float, high: float) -> str:
         return f"too few seeds, successes or failures (< {MIN_CLASS}) for an interval"
     return ("more nuisance attention goes with failure" if high < 0 else
             "more nuisance attention goes with success" if low > 0 else
-            "nuisance attention does not predict success here (the interval holds 0)")
+            f"nuisance attention does not predict success here (the interval holds 0; {detectable_r(low, high)})")
+
+
+def detectable_r(low: float, high: float) -> str:
+    """What a null association could have detected: an |r| within the interval's half-width of 0 cannot be told
+    from 0 at this n (the interval's width is what the seed-cluster test resolves)."""
+    return f"the smallest |r| it could tell from 0 at this n is about {(high - low) / 2:.2f}"
+
+
+def _association_parts(a: tuple, prefix: str) -> list[str]:
+    """The association clauses of one ASSOCIATION_COLUMNS row: over episodes, within conditions, at the start."""
+    parts = [f"{prefix}point-biserial r of nuisance mass and success {a[2]:+.2f} over {a[1]} episodes of {a[9]} seeds"
+             f"{_interval(a[5], a[6])}: {_verdict(a[5], a[6])}"]
+    if math.isfinite(a[13]):
+        parts.append(f"within conditions (centred per run), r {a[13]:+.2f}{_interval(a[14], a[15])}: "
+                     f"{_verdict(a[14], a[15])}")
+    if math.isfinite(a[10]):
+        parts.append(f"over the first {START_STEPS} steps only, r {a[10]:+.2f}{_interval(a[11], a[12])}: "
+                     f"{_verdict(a[11], a[12])}")
+    return parts
 
 
 def sentence(task: str, success: list[tuple], association: list[tuple], paired: list[tuple] = ()) -> str:
@@ -336,17 +474,15 @@ def sentence(task: str, success: list[tuple], association: list[tuple], paired: 
     broken = breaking(task, paired)
     if broken:
         parts.append(broken)
-    assoc = [a for a in association if a[0] == task]
+    assoc = [a for a in association if a[0] == task and (len(a) <= 16 or a[16] == "raw")]
+    content = [a for a in association if a[0] == task and len(a) > 16 and a[16] == "content"]
     if assoc and math.isfinite(assoc[0][2]):
-        a = assoc[0]
-        parts.append(f"point-biserial r of nuisance mass and success {a[2]:+.2f} over {a[1]} episodes of {a[9]} seeds"
-                     f"{_interval(a[5], a[6])}: {_verdict(a[5], a[6])}")
-        if math.isfinite(a[13]):
-            parts.append(f"within conditions (centred per run), r {a[13]:+.2f}{_interval(a[14], a[15])}: "
-                         f"{_verdict(a[14], a[15])}")
-        if math.isfinite(a[10]):
-            parts.append(f"over the first {START_STEPS} steps only, r {a[10]:+.2f}{_interval(a[11], a[12])}: "
-                         f"{_verdict(a[11], a[12])}")
+        parts += _association_parts(assoc[0], "on the raw maps, " if content else "")
     else:
         parts.append("nuisance mass and success: too few episodes or no variation to estimate an association")
+    if content and math.isfinite(content[0][2]):
+        parts += _association_parts(content[0], "on the content-only maps (blank-frame part removed, control steps), ")
+    elif content:
+        parts.append("on the content-only maps: too few episodes with controls or no variation to estimate an "
+                     "association")
     return "; ".join(parts) + "."

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.analysis.provenance import command_text, provenance_line, with_provenance
 from harness.analysis.stats import wilson_interval
 
 
@@ -97,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("runs", nargs="+", type=Path, help="octo-harness run folders")
     parser.add_argument("--out", type=Path, default=Path("models/octo-reference-robosuite"))
     parser.add_argument("--note", default="", help="text placed above the table (command, checkpoint step, ...)")
+    parser.add_argument("--command", default=None, help="the command to name in the provenance line (a script that "
+                        "calls this one) [this command]")
     args = parser.parse_args(argv)
     rows = summarise_runs(args.runs)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -106,8 +109,12 @@ def main(argv: list[str] | None = None) -> int:
     if eval_md.is_file() and "\n## " in eval_md.read_text():
         kept = "\n## " + eval_md.read_text().split("\n## ", 1)[1]
     title = args.out.resolve().name
-    eval_md.write_text(markdown(rows, args.note, title) + kept)
-    print(markdown(rows, args.note, title))
+    command = args.command or command_text("python -m harness.reference.evaluate", args.runs, ["--out", str(args.out)])
+    manifests = [json.loads((run / "manifest.json").read_text()) if (run / "manifest.json").is_file() else {}
+                 for run in args.runs]
+    text = with_provenance(markdown(rows, args.note, title), provenance_line(command, manifests))
+    eval_md.write_text(text + kept)
+    print(text)
     return 0
 
 

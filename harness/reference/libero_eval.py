@@ -92,11 +92,19 @@ def main(argv: list[str] | None = None) -> int:
     closed.add_argument("top_run")
     closed.add_argument("--eval-md", required=True)
     closed.add_argument("--note", default="")
+    closed.add_argument("--command", default=None, help="the command to name in the provenance line [this command]")
     args = parser.parse_args(argv)
     if args.command == "closed-loop":
         from harness.files import replace_markdown_section
 
+        from harness.analysis.provenance import command_text, provenance_line, with_provenance
+        from harness.analysis.runs import load_run
+
         text = closed_loop_markdown(args.random_run, args.top_run, args.note)
+        command = args.command or command_text("python -m harness.reference.libero_eval closed-loop",
+                                               [args.random_run, args.top_run], ["--eval-md", args.eval_md])
+        text = with_provenance(text, provenance_line(command, [load_run(args.random_run).manifest,
+                                                               load_run(args.top_run).manifest]))
         replace_markdown_section(args.eval_md, CLOSED_LOOP, text)
         print(text)
     elif args.command == "swaps":

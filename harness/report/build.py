@@ -62,8 +62,11 @@ class ReportOptions:
     workers: int | None = None  # processes measuring older runs' attention; None = up to 4 above 1 GB, else none
     overlay_steps: int = 6  # time columns of the overlay grid
     overlay_layers: int = 12  # at most this many layers in the overlay grid (evenly spaced, first and last kept)
+    margin: float = 0.15  # a robustness cell HOLDS when a drop larger than this is ruled out
 
     def __post_init__(self) -> None:
+        if not 0 < self.margin < 1:
+            raise ReportError(f"--margin must be between 0 and 1 (a drop in success rate, e.g. 0.15), got {self.margin}")
         if self.bins < 1 or self.resamples < 1 or self.overlay_steps < 1 or self.overlay_layers < 1:
             raise ReportError("bins, resamples, overlay steps and overlay layers must be >= 1")
         if not 0 < self.confidence < 1:
@@ -366,7 +369,7 @@ def build_report(run_dirs: list[str | Path], out: str | Path | None = None, opti
     tasks = list(dict.fromkeys(t for run in runs for t in run.record.tasks))
     summaries = {"phases": [phases.summarise(run, options.resamples, options.seed) for run in runs],
                  "position": [position.summarise(run) for run in runs],
-                 "robustness": robustness.analyse(records)}  # None unless a run was perturbed
+                 "robustness": robustness.analyse(records, options.margin)}  # None unless a run was perturbed
 
     with ThreadPoolExecutor(max_workers=3) as pool:  # overlay grids decode videos in ffmpeg processes meanwhile
         overlays = {}

@@ -355,6 +355,8 @@ def sentence(task: str, rows: list[tuple]) -> str:
     _, _, camera, method, steps, episodes, _, d, dlo, dhi, i, ilo, ihi, *_ = best
     verdict = ("better than random" if math.isfinite(dlo) and dlo > 1 else
                "worse than random" if math.isfinite(dhi) and dhi < 1 else "not distinguishable from random")
+    if episodes < MIN_EPISODES:
+        verdict = f"with no verdict against random ({TOO_FEW})"
     attention = [r for r in ranked if r[3].startswith("attention:") and r[2] == camera]
     tail = ""
     if attention and best not in attention:
@@ -362,7 +364,8 @@ def sentence(task: str, rows: list[tuple]) -> str:
         tail = (f"; the best raw attention layer ({a[3].split(':')[1]}) reaches {a[7]:.2f} "
                 f"[{a[8]:.2f}, {a[9]:.2f}]")
     return (f"{task}, {camera}: {_name(method)} ranks the patches the action depends on {verdict}: deletion AUC "
-            f"{d:.2f}x random [{dlo:.2f}, {dhi:.2f}], insertion AUC {i:.2f}x random [{ilo:.2f}, {ihi:.2f}] "
+            f"{_ci_text(d, dlo, dhi, episodes).replace(' ', 'x random ', 1)}, insertion AUC "
+            f"{_ci_text(i, ilo, ihi, episodes).replace(' ', 'x random ', 1)} "
             f"({steps} steps, {episodes} episodes){tail}.")
 
 
@@ -435,8 +438,9 @@ def section(runs, plots) -> str:
                                   "action sooner)."))
             body.append(H.table(("camera", "method", "fill", "steps", "episodes", "deletion (MoRF) / random [95%]",
                                  "insertion / random [95%]", "LeRF / random [95%]", "top-k / random-k (k)"),
-                                [(r[2], r[3], r[15], r[4], r[5], H.fmt_ci(r[7], r[8], r[9], 2),
-                                  H.fmt_ci(r[10], r[11], r[12], 2), H.fmt_ci(r[16], r[17], r[18], 2),
+                                [(r[2], r[3], r[15], r[4], r[5], *(H.fmt_ci(v, lo, hi, 2) if r[5] >= MIN_EPISODES
+                                                                   else _ci_text(v, lo, hi, r[5])
+                                                                   for v, lo, hi in (r[7:10], r[10:13], r[16:19])),
                                   f"{r[13]:.2f} ({r[14]})" if math.isfinite(r[13]) else "n/a")
                                  for r in rows if r[1] == task], numeric=(3, 4)))
     faith = open_rows(runs)
@@ -490,6 +494,17 @@ def _diff_cell(difference: float, p: float) -> str:
     return "n/a" if not math.isfinite(difference) else f"{difference:+.2f} (p = {p:.3g})"
 
 
+MIN_EPISODES = 4  # a bootstrap over fewer episodes collapses (2 episodes: at most 3 distinct resamples)
+TOO_FEW = "too few episodes for an interval"
+
+
+def _ci_text(value: float, low: float, high: float, episodes: int) -> str:
+    """"1.23 [1.01, 1.40]", or "1.23 (too few episodes for an interval)" from fewer than MIN_EPISODES episodes."""
+    if episodes < MIN_EPISODES:
+        return f"{value:.2f} ({TOO_FEW})"
+    return f"{value:.2f} [{low:.2f}, {high:.2f}]"
+
+
 def markdown(runs) -> str:
     """The open-loop table and the intervention table as Markdown (EVAL.md), plus the sentences."""
     lines = []
@@ -501,8 +516,8 @@ def markdown(runs) -> str:
                   "[95%] | LeRF AUC / random [95%] | top-k / random-k (k) |", "|---|---|---|---|---:|---|---|---|---|"]
         for r in rows:
             top = f"{r[13]:.2f} ({r[14]})" if math.isfinite(r[13]) else "n/a"
-            lines.append(f"| {r[1]} | {r[2]} | {r[3]} | {r[15]} | {r[4]} | {r[7]:.2f} [{r[8]:.2f}, {r[9]:.2f}] | "
-                         f"{r[10]:.2f} [{r[11]:.2f}, {r[12]:.2f}] | {r[16]:.2f} [{r[17]:.2f}, {r[18]:.2f}] | {top} |")
+            lines.append(f"| {r[1]} | {r[2]} | {r[3]} | {r[15]} | {r[4]} | {_ci_text(r[7], r[8], r[9], r[5])} | "
+                         f"{_ci_text(r[10], r[11], r[12], r[5])} | {_ci_text(r[16], r[17], r[18], r[5])} | {top} |")
         lines.append("")
         for task in dict.fromkeys(r[1] for r in rows):
             lines.append(f"- {sentence(task, rows)}")
@@ -541,13 +556,17 @@ def markdown(runs) -> str:
 if __name__ == "__main__":  # python -m harness.report.faithfulness RUN... [--figure PNG]: the Markdown tables
     import argparse
 
+    from harness.analysis.provenance import command_text, provenance_line
     from harness.analysis.runs import load_run
 
     parser = argparse.ArgumentParser(prog="python -m harness.report.faithfulness")
     parser.add_argument("runs", nargs="+")
+    parser.add_argument("--command", default=None, help="the command to name in the provenance line [this one]")
     parser.add_argument("--figure", default=None, help="also write the deletion-ratio heatmaps of every task here")
     args = parser.parse_args()
     records = [load_run(p) for p in args.runs]
+    command = args.command or command_text("python -m harness.report.faithfulness", args.runs, [])
+    print(provenance_line(command, [r.manifest for r in records]) + "\n")  # the line a results section carries
     print(markdown(records))
     if args.figure:
         rows = [r for record in records for r in summarise(read_rows(record), record.name)]

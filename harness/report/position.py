@@ -261,9 +261,14 @@ def markdown(runs) -> str:
 if __name__ == "__main__":  # python -m harness.report.position RUN...: the Markdown tables
     import argparse
 
+    from harness.analysis.provenance import command_text, provenance_line
     from harness.analysis.runs import load_run
 
     parser = argparse.ArgumentParser(prog="python -m harness.report.position")
     parser.add_argument("runs", nargs="+")
+    parser.add_argument("--command", default=None, help="the command to name in the provenance line [this one]")
     args = parser.parse_args()
-    print(markdown([load_run(p) for p in args.runs]))
+    records = [load_run(p) for p in args.runs]
+    command = args.command or command_text("python -m harness.report.position", args.runs, [])
+    print(provenance_line(command, [r.manifest for r in records]) + "\n")  # the line a results section carries
+    print(markdown(records))

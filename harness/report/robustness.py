@@ -17,16 +17,18 @@ from harness.analysis import robustness as R
 from harness.report import html as H
 
 EPISODE_COLUMNS = ("run", "task", "condition", "level", "seed", "episode", "status", "success", "nuisance_mass",
-                   "distractor_mass", "background_mass", "target_lift", "nuisance_start")
+                   "distractor_mass", "background_mass", "target_lift", "nuisance_start", "nuisance_content",
+                   "target_lift_content", "nuisance_start_content")
 
 
-def analyse(records):
+def analyse(records, margin: float = R.MARGIN):
     """(episode rows, step-0 shifts, notes, success rows, association rows, paired rows), or None when no run was
-    perturbed: one read of every perturbed episode's attention, shared by the report's tables and section."""
+    perturbed: one read of every perturbed episode's attention, shared by the report's tables and section.
+    `margin`: the drop a HOLDS verdict rules out."""
     if not R.is_perturbed(records):
         return None
     rows, shifts, notes = R.collect(records)
-    return rows, shifts, notes, R.success_rows(rows), R.association_rows(rows), R.paired_rows(rows)
+    return rows, shifts, notes, R.success_rows(rows), R.association_rows(rows), R.paired_rows(rows, margin=margin)
 
 
 def tables(records, analysis=None) -> dict[str, list]:
@@ -36,7 +38,8 @@ def tables(records, analysis=None) -> dict[str, list]:
         return {}
     rows, shifts, _, success, association, paired = analysis
     episodes = [(r.run, r.task, r.condition, r.level, r.seed, r.episode, r.status, r.success, r.nuisance_mass,
-                 r.distractor_mass, r.background_mass, r.target_lift, r.nuisance_start) for r in rows]
+                 r.distractor_mass, r.background_mass, r.target_lift, r.nuisance_start, r.nuisance_content,
+                 r.target_lift_content, r.nuisance_start_content) for r in rows]
     return {"robustness.csv": (R.SUCCESS_COLUMNS, success), "robustness_episodes.csv": (EPISODE_COLUMNS, episodes),
             "robustness_shift.csv": (R.SHIFT_COLUMNS, shifts),
             "robustness_association.csv": (R.ASSOCIATION_COLUMNS, association),
@@ -59,7 +62,13 @@ def level_plot(task: str, success: list[tuple]) -> bytes:
         axes[0].fill_between(levels, [s[8] for s in c], [s[9] for s in c], color=colour, alpha=0.15)
         axes[1].plot(levels, [s[13] for s in c], "o-", color=colour)
         axes[2].plot(levels, [s[10] for s in c], "o-", color=colour)
-    for ax, title in zip(axes, ("success rate (Wilson 95%)", "target lift (last layer)", "nuisance mass (last layer)")):
+        if any(math.isfinite(s[14]) for s in c):  # content-only (runs with the blank control): dashed
+            axes[1].plot(levels, [s[15] for s in c], "s--", color=colour, alpha=0.7)
+            axes[2].plot(levels, [s[14] for s in c], "s--", color=colour, alpha=0.7)
+    content = any(math.isfinite(s[14]) for s in cells)
+    suffix = " (solid raw, dashed content only)" if content else " (raw map)"
+    for ax, title in zip(axes, ("success rate (Wilson 95%)", "target lift (last layer)" + suffix,
+                                "nuisance mass (last layer)" + suffix)):
         ax.set_xlabel("level")
         ax.set_title(title, fontsize=10)
         ax.set_xticks(range(6))
@@ -70,13 +79,13 @@ def level_plot(task: str, success: list[tuple]) -> bytes:
     return _png(figure)
 
 
-def _paired_cells(drops: dict, s: tuple) -> tuple[str, str]:
-    """(lost / gained pairs, Holm p with "breaks") of the success row `s`'s cell, from `drops` ({(task, run): paired
-    row}); dashes for the nominal row (level 0)."""
+def _paired_cells(drops: dict, s: tuple) -> tuple[str, str, str]:
+    """(lost / gained pairs, Holm p, verdict with the drop's upper bound) of the success row `s`'s cell, from `drops`
+    ({(task, run): paired row}); dashes for the nominal row (level 0)."""
     p = drops.get((s[0], s[3])) if s[2] else None
     if p is None:
-        return ("-", "-")
-    return (f"{p[7]} / {p[8]}", f"{p[11]:.3g}" + (" breaks" if p[12] else ""))
+        return ("-", "-", "-")
+    return (f"{p[7]} / {p[8]}", f"{p[11]:.3g}", f"{p[13]} (drop <= {round(100 * p[14])})")
 
 
 def section(records, plots, analysis=None) -> str:
@@ -88,7 +97,7 @@ def section(records, plots, analysis=None) -> str:
     body = [H.note("Success against perturbation level per condition (level 0 = the nominal run), with Wilson 95% "
                    "bands; target lift and nuisance mass (attention on the background and distractors: neither robot, "
                    "target nor another task object) of the primary camera at the last layer, mean over each "
-                   "episode's steps. Numbers: tables/robustness*.csv.")]
+                   "episode's steps. Numbers: tables/robustness*.csv. " + map_note(records))]
     for note in notes:
         body.append(H.banner(note))
     for task in dict.fromkeys(r.task for r in rows):
@@ -96,11 +105,12 @@ def section(records, plots, analysis=None) -> str:
         body.append(H.Raw(f"<p>{H.esc(R.sentence(task, success, association, paired))}</p>"))
         body.append(plots.add(f"robustness_{H.anchor_id(task)[2:]}", level_plot(task, success), f"robustness {task}",
                               "Success (Wilson band), target lift and nuisance mass against level, per condition."))
+        content = R.has_content(rows)
         body.append(H.table(("condition", "level", "run", "success [Wilson 95%]", "errored", "paired: lost / gained",
-                             "Holm p", "target lift", "nuisance mass", "distractor mass"),
+                             "Holm p", "verdict (drop's upper bound, points)", *_measure_headers(content)),
                             [(s[1], s[2], s[3], H.Raw(f"{s[6]}/{s[4]} {H.fmt_ci(s[7], s[8], s[9], 2)}"), s[5],
-                              *_paired_cells(drops, s),
-                              H.fmt(s[13], 2), H.fmt(s[10], 3), H.fmt(s[11], 3)) for s in success if s[0] == task],
+                              *_paired_cells(drops, s), *_measure_cells(s, content))
+                             for s in success if s[0] == task],
                             numeric=(1, 4)))
         shift = [x for x in shifts if x[1] == task]
         if shift:
@@ -112,47 +122,113 @@ def section(records, plots, analysis=None) -> str:
                                   H.fmt(float(np.nanmean([b for _, b in v])) if any(math.isfinite(b) for _, b in v)
                                         else math.nan, 2))
                                  for (c, lvl, layer), v in sorted(table.items())], numeric=(1, 2, 3)))
-    body.append(H.table(("task", "episodes", "seeds", "point-biserial r [Fisher 95%]", "seed-cluster 95%",
+    body.append(H.table(("task", "map", "episodes", "seeds", "point-biserial r [Fisher 95%]", "seed-cluster 95%",
                          "nuisance mass: successes", "failures", "within conditions: r [seed-cluster 95%]",
                          f"first {R.START_STEPS} steps: r [seed-cluster 95%]"),
-                        [(a[0], a[1], a[9], H.fmt_ci(a[2], a[3], a[4], 2), f"[{H.fmt(a[5], 2)}, {H.fmt(a[6], 2)}]",
-                          H.fmt(a[7], 3), H.fmt(a[8], 3), H.fmt_ci(a[13], a[14], a[15], 2),
-                          H.fmt_ci(a[10], a[11], a[12], 2)) for a in association],
-                        numeric=(1, 2)))
+                        [(a[0], MAP_NAMES[a[16]], a[1], a[9], H.fmt_ci(a[2], a[3], a[4], 2),
+                          f"[{H.fmt(a[5], 2)}, {H.fmt(a[6], 2)}]", H.fmt(a[7], 3), H.fmt(a[8], 3),
+                          H.fmt_ci(a[13], a[14], a[15], 2), H.fmt_ci(a[10], a[11], a[12], 2)) for a in association],
+                        numeric=(2, 3)))
     return H.section("Robustness", "".join(str(b) for b in body), anchor="robustness")
 
 
 SECTION = "## Robustness"
 
 
-def markdown(records, note: str = "") -> str:
+MAP_NAMES = {"raw": "raw", "content": "content only"}
+
+
+def _measure_headers(content: bool) -> tuple[str, ...]:
+    raw = ("target lift", "nuisance mass", "distractor mass")
+    if not content:
+        return raw
+    return ("target lift (raw)", "nuisance mass (raw)", "distractor mass (raw)", "target lift (content only)",
+            "nuisance mass (content only)")
+
+
+def _measure_cells(s: tuple, content: bool, markdown: bool = False) -> tuple[str, ...]:
+    """Target lift, nuisance and distractor mass of a success row (raw), then content-only lift and nuisance; in the
+    HTML's significant digits or EVAL.md's fixed decimals."""
+    values = ((s[13], 2), (s[10], 3), (s[11], 3)) + (((s[15], 2), (s[14], 3)) if content else ())
+    return tuple(f"{v:.{d}f}" if markdown else H.fmt(v, d) for v, d in values)
+
+
+def _controls(record) -> tuple[str, ...]:
+    spec = ((record.manifest.get("protocol") or {}).get("policy") or {}).get("attention_controls")
+    return tuple(n.strip() for n in spec.split(",")) if isinstance(spec, str) else tuple(spec or ())
+
+
+def map_note(records) -> str:
+    """Which attention map each figure of the section uses: raw maps always; content-only ones (the blank-frame part
+    removed) too where runs recorded the blank control. Without it the figures may include position-bound
+    attention, and the note says so."""
+    if not any(_controls(r) for r in records):
+        return ("Target lift, nuisance mass and their association use the raw attention maps: these runs had no "
+                "--attention-controls, so the figures may include position-bound attention.")
+    blank = [r for r in records if "blank" in _controls(r)]
+    if not blank:
+        return ("Target lift, nuisance mass and their association use the raw attention maps: these runs recorded "
+                "only the mirror control, and the content-only view needs --attention-controls blank, so the figures "
+                "may include position-bound attention.")
+    note = ("Each figure names its map. Raw: the attention maps at every step (they may include position-bound "
+            "attention). Content only: at the control steps (--attention-controls), the map minus what remains on a "
+            "blank frame, clipped and renormalised (harness.analysis.position.content_only; docs/phases-and-position.md), "
+            "so attention bound to a patch's position, not to what it shows, is left out. Target lift and nuisance "
+            "mass are given on both, and the association of nuisance mass with success is computed on both (the "
+            "'map' column; 'on the content-only maps' in the sentences).")
+    missing = [getattr(r, "name", "?") for r in records if "blank" not in _controls(r)]
+    if missing:
+        note += (f" Runs without the blank control ({', '.join(missing)}) have no content-only figures and are left "
+                 "out of the content-only association.")
+    return note
+
+
+VERDICT_NOTE = ("Verdicts per perturbed cell (paired with the nominal seeds): BREAKS = the exact McNemar drop survives "
+                "Holm over the task's cells; HOLDS = a drop larger than the margin ({margin} points) is ruled out (the "
+                "upper confidence bound of the drop, Newcombe at 1 - 0.05 / cells, is within it and the exact test of a "
+                "drop that large rejects: the test of compare's HELD); UNDETERMINED = neither. The column gives the "
+                "drop's upper bound.")
+
+
+def markdown(records, note: str = "", margin: float = R.MARGIN) -> str:
     """The Robustness section as Markdown (EVAL.md): per task a sentence and a table of success against level per
-    condition, target lift and nuisance mass; the association line per task."""
-    analysis = analyse(records)
+    condition with each cell's verdict, target lift and nuisance mass; the association line per task."""
+    analysis = analyse(records, margin)
     if analysis is None:
         raise ValueError("no run here was perturbed: give the runs of a robustness grid")
     rows, _, notes, success, association, paired = analysis
     drops = {(p[0], p[3]): p for p in paired}
     lines = [SECTION, "", note, ""] if note else [SECTION, ""]
+    lines += [VERDICT_NOTE.format(margin=round(100 * margin)), "", map_note(records), ""]
     lines += [f"- {n}" for n in notes]
+    content = R.has_content(rows)
+    measures = _measure_headers(content)
     for task in dict.fromkeys(r.task for r in rows):
         lines += [R.sentence(task, success, association, paired), "",
-                  "| condition | level | success | Wilson 95% | paired: lost / gained | Holm p | target lift | "
-                  "nuisance mass | distractor mass |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  "| condition | level | success | Wilson 95% | paired: lost / gained | Holm p | verdict (drop's upper "
+                  "bound, points) | " + " | ".join(measures) + " |", "|---" * (7 + len(measures)) + "|"]
         for s in success:
             if s[0] == task:
-                lost, p = _paired_cells(drops, s)
-                lines.append(f"| {s[1]} | {s[2]} | {s[6]}/{s[4]} | [{s[8]:.2f}, {s[9]:.2f}] | {lost} | {p} | {s[13]:.2f} | "
-                             f"{s[10]:.3f} | {s[11]:.3f} |")
+                lost, p, verdict = _paired_cells(drops, s)
+                lines.append(f"| {s[1]} | {s[2]} | {s[6]}/{s[4]} | [{s[8]:.2f}, {s[9]:.2f}] | {lost} | {p} | {verdict} | "
+                             + " | ".join(_measure_cells(s, content, markdown=True)) + " |")
         lines.append("")
     return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:
+    import argparse
+    import functools
+
     from harness.report.rundata import eval_md_section_main
 
-    return eval_md_section_main(argv, "python -m harness.report.robustness", "Write the Robustness section of an EVAL.md from grid runs.", SECTION, markdown)
+    parser = argparse.ArgumentParser(add_help=False)
+    parser.add_argument("--margin", type=float, default=R.MARGIN)
+    known, rest = parser.parse_known_args(argv)
+    return eval_md_section_main(rest, "python -m harness.report.robustness", "Write the Robustness section of an EVAL.md "
+                                "from grid runs (--margin M: the drop a HOLDS verdict rules out [0.15]).", SECTION,
+                                functools.partial(markdown, margin=known.margin),
+                                options=("--margin", f"{known.margin:g}") if known.margin != R.MARGIN else ())
 
 
 if __name__ == "__main__":

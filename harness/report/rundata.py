@@ -109,13 +109,16 @@ def csv_bytes(columns, rows) -> bytes:
     return buffer.getvalue().encode()
 
 
-def eval_md_section_main(argv, prog: str, description: str, section: str, markdown) -> int:
-    """`python -m harness.report.<section> RUN... --eval-md EVAL.md [--note TEXT]`: make that section of an EVAL.md
-    from run folders once (`markdown(records, note)`), replace it there (other sections stay) and print it."""
+def eval_md_section_main(argv, prog: str, description: str, section: str, markdown, options: tuple = ()) -> int:
+    """`python -m harness.report.<section> RUN... --eval-md EVAL.md [--note TEXT] [--command TEXT]`: make that section
+    of an EVAL.md from run folders once (`markdown(records, note)`), with its provenance line (the command: --command,
+    else this one with `options`, the caller's own options; the checkout's commit; the runs' machine), replace it
+    there (other sections stay) and print it."""
     import argparse
     import sys
     from pathlib import Path
 
+    from harness.analysis.provenance import command_text, provenance_line, with_provenance
     from harness.analysis.runs import load_run
     from harness.files import replace_markdown_section
 
@@ -123,6 +126,8 @@ def eval_md_section_main(argv, prog: str, description: str, section: str, markdo
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--eval-md", type=Path, required=True)
     parser.add_argument("--note", default="")
+    parser.add_argument("--command", default=None, help="the command to name in the provenance line (a script that "
+                        "calls this one) [this command]")
     args = parser.parse_args(argv)
     records = [load_run(p) for p in args.runs]
     try:
@@ -130,7 +135,8 @@ def eval_md_section_main(argv, prog: str, description: str, section: str, markdo
     except ValueError as exc:  # runs that hold nothing for this section: one line, EVAL.md untouched
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
+    command = args.command or command_text(prog, args.runs, ["--eval-md", str(args.eval_md), *options])
+    text = with_provenance(text, provenance_line(command, [r.manifest for r in records]))
     replace_markdown_section(args.eval_md, section, text)
     print(text)
     return 0
-

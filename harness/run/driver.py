@@ -269,8 +269,12 @@ def execute(
                     "versions": {"jax": platform_now["jax"]["version"], **platform_now["versions"]},
                     "platform": platform_now, "platform_fingerprint": platform_fp,
                     "measures_version": MEASURES_VERSION,
+                    # where each env convention came from, per task family (flag, checkpoint, default:<family>)
+                    **({"conventions": protocol.convention_sources} if protocol.convention_sources else {}),
                 }
                 store.write_manifest(manifest)
+            for line in _default_lines(protocol):
+                log.info("%s", line)
             store.remove_temporaries()
             store.remove_incomplete(protocol.tasks, keep=done)
         except BaseException:
@@ -376,12 +380,26 @@ def _check_model(protocol: Protocol, model, goal_images) -> tuple[list[str], dic
     return task_inputs, goals, dataset_key
 
 
+def _default_lines(protocol: Protocol) -> list[str]:
+    """The console lines naming each family's default conventions where a run uses them (harness.conventions)."""
+    if not protocol.convention_sources:
+        return []
+    from harness.conventions import CONVENTIONS_FILE, default_lines, task_family
+    from harness.run.settings import _model_folder
+
+    folder = _model_folder(protocol.model)
+    has_file = folder is not None and (folder / CONVENTIONS_FILE).is_file()
+    options = {task_family(t): protocol.env_for(t) for t in protocol.tasks}
+    label = Path(protocol.model).name if not protocol.model.startswith(("hf://", "random:")) else protocol.model
+    return default_lines(protocol.convention_sources, options, protocol.tasks, label, has_file)
+
+
 def _check_env(protocol: Protocol, model, task: str) -> None:
     """The model's inputs and action dimension against the env of the first task to run (EnvMismatchError, one line)."""
     import envs
     from harness.policy import OctoPolicy
 
-    env = envs.make(task, protocol.env, instruction=protocol.instruction, perturb=protocol.perturb)
+    env = envs.make(task, protocol.env_for(task), instruction=protocol.instruction, perturb=protocol.perturb)
     try:
         OctoPolicy(model, protocol.policy).check_env(env)
     finally:

@@ -89,7 +89,7 @@ class Executor(TypingProtocol):
 
 def make_env(context: EpisodeContext, task: str):
     """The environment of `task` as the protocol asks for it (create and use it in one thread)."""
-    return envs.make(task, context.protocol.env, instruction=context.protocol.instruction, perturb=context.protocol.perturb)
+    return envs.make(task, context.protocol.env_for(task), instruction=context.protocol.instruction, perturb=context.protocol.perturb)
 
 
 def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolicy, tokens=None,

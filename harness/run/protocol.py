@@ -63,6 +63,12 @@ class Protocol:
     harness_version: str = field(default_factory=harness_version)
     text_tokenizer: str | None = None  # None: the checkpoint's own (auto); "fallback"; or an absolute tokenizer.json path
     perturb: str | None = None  # canonical "KIND[@KEY]:LEVEL,..." (envs.perturbations); None = nominal (level 0 too)
+    # a run mixing task families (robosuite, LIBERO): {family: {env option: value}} where a family's own default
+    # convention differs from `env` (harness.conventions.family_defaults); None when every task takes `env`
+    family_env: Mapping[str, Mapping[str, Any]] | None = None
+    # where each convention came from, per family: {family: {key: "flag" | "checkpoint" | "default:<family>"}};
+    # recorded in the manifest ("conventions"), not part of the protocol's value (it does not change an episode)
+    convention_sources: Mapping[str, Mapping[str, str]] | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "tasks", tuple(self.tasks))
@@ -90,6 +96,13 @@ class Protocol:
         weight = float(self.policy.ensemble_weight)
         if weight != weight or weight in (float("inf"), float("-inf")):
             raise ValueError(f"--ensemble-weight must be a finite number, got {self.policy.ensemble_weight}")
+
+    def env_for(self, task: str) -> EnvOptions:
+        """The env options of `task`: `env`, with its family's own defaults on top in a run that mixes families."""
+        from harness.conventions import task_family
+
+        changes = (self.family_env or {}).get(task_family(task))
+        return self.env.replace(**changes) if changes else self.env
 
     def jobs(self) -> list[EpisodeJob]:
         """Episode jobs in run order: task by task, episode 0..episodes-1, seed + episode."""
@@ -125,6 +138,7 @@ class Protocol:
             **({"text_tokenizer": self.text_tokenizer} if self.text_tokenizer is not None else {}),
             # only when set: a nominal protocol (no flag, or every level 0) keeps its hash and its run folder
             **({"perturb": self.perturb} if self.perturb is not None else {}),
+            **({"family_env": {f: dict(v) for f, v in self.family_env.items()}} if self.family_env else {}),
         })
 
     @classmethod
@@ -132,6 +146,7 @@ class Protocol:
         """Inverse of `to_dict` (manifest.json -> Protocol); unknown keys raise."""
         data = dict(data)
         data.pop("execution", None)
+        data.pop("convention_sources", None)
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:

@@ -7,6 +7,11 @@ every kind (a protocol whose perturbations are all at level 0 IS the nominal pro
     <out>/<kind>-<level>/     --perturb <kind>:<level> (camera@image_wrist -> camera@image_wrist-3)
     <out>/robustness.json     the grid: kinds, levels, tasks and {run name: perturb}
 
+`camera` and `noise` without @KEY expand to one condition per camera the model reads (`expand_conditions`:
+`camera` -> camera@image_primary, camera@image_wrist), so a grid moves every camera, not only the primary one.
+A run whose perturbation a grid file already records under another name keeps that name (a grid made before
+the expansion, with `camera-3` for camera@image_primary:3, resumes instead of running it again).
+
 Every run goes through `harness.run.execute`, so running the same command again resumes each run where it stopped
 and skips finished ones; the model is loaded once for the whole grid.
 """
@@ -49,6 +54,23 @@ def parse_levels(text: str) -> tuple[int, ...]:
     return tuple(levels)
 
 
+def expand_conditions(conditions: tuple[str, ...], camera_keys) -> tuple[str, ...]:
+    """Conditions with each bare keyed kind (`camera`, `noise`) replaced by one `kind@KEY` per camera key the model
+    reads (in the model's order); explicit `kind@KEY` conditions and the other kinds stay; no duplicates."""
+    out = []
+    for condition in conditions:
+        if condition in KEYED_KINDS and camera_keys:
+            out += [f"{condition}@{key}" for key in camera_keys]
+        else:
+            out.append(condition)
+    return tuple(dict.fromkeys(out))
+
+
+def model_camera_keys(model) -> tuple[str, ...]:
+    """The image observation keys a loaded model reads (`image_primary`, `image_wrist`, ...), in its order."""
+    return tuple(k for k in getattr(model, "image_sizes", {}) if k.startswith("image_"))
+
+
 def run_name(condition: str, level: int) -> str:
     return NOMINAL if level == 0 else f"{condition}-{level}"
 
@@ -69,15 +91,11 @@ def run_grid(base: Protocol, conditions: tuple[str, ...], levels: tuple[int, ...
     from harness.run import checks
     from harness.run.driver import execute
 
-    runs = grid(conditions, levels)
-    protocols = {name: base.replace(perturb=perturb) for name, perturb in runs.items()}
-    for protocol in protocols.values():  # every task x kind checked before anything runs
-        checks.check_perturbations(protocol)
+    for perturb in grid(conditions, levels).values():  # cheap checks of what was asked, before loading the model
+        checks.check_perturbations(base.replace(perturb=perturb))
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    record = {"format": "octo-harness-robustness/1", "conditions": list(conditions), "levels": list(levels),
-              "tasks": list(base.tasks), "runs": runs}
     existing = out / GRID_FILE
+    old = None
     if existing.is_file() and not overwrite:
         import json
 
@@ -85,16 +103,28 @@ def run_grid(base: Protocol, conditions: tuple[str, ...], levels: tuple[int, ...
             old = json.loads(existing.read_text())
         except (OSError, ValueError):
             old = None
-        if not isinstance(old, dict) or old.get("format") != record["format"]:
+        if not isinstance(old, dict) or old.get("format") != "octo-harness-robustness/1":
             raise ValueError(f"{existing} is not a robustness grid file; choose another --out")
-        record["runs"] = {**old.get("runs", {}), **runs}  # a grid may grow by kinds or levels
-        record["conditions"] = list(dict.fromkeys([*old.get("conditions", []), *conditions]))
-        record["levels"] = sorted(set(old.get("levels", [])) | set(levels))
-    atomic_write_json(existing, record)
     if model is None:
         from harness.octo import load_pretrained
 
         model = load_pretrained(base.model, text_tokenizer=base.text_tokenizer)
+    conditions = expand_conditions(conditions, model_camera_keys(model))
+    runs = grid(conditions, levels)
+    if old is not None:  # a perturbation the grid already holds keeps its run's name
+        known = {perturb: name for name, perturb in (old.get("runs") or {}).items()}
+        runs = {known.get(perturb, name): perturb for name, perturb in runs.items()}
+    protocols = {name: base.replace(perturb=perturb) for name, perturb in runs.items()}
+    for protocol in protocols.values():  # every task x camera checked before anything runs
+        checks.check_perturbations(protocol)
+    out.mkdir(parents=True, exist_ok=True)
+    record = {"format": "octo-harness-robustness/1", "conditions": list(conditions), "levels": list(levels),
+              "tasks": list(base.tasks), "runs": runs}
+    if old is not None:
+        record["runs"] = {**old.get("runs", {}), **runs}  # a grid may grow by kinds or levels
+        record["conditions"] = list(dict.fromkeys([*old.get("conditions", []), *conditions]))
+        record["levels"] = sorted(set(old.get("levels", [])) | set(levels))
+    atomic_write_json(existing, record)
     summaries = {}
     for name, protocol in protocols.items():
         log.info("robustness: run %s (%s)", name, protocol.perturb or "nominal")

@@ -3,7 +3,8 @@
 Settings are a flat dict keyed like the `run` command's flags (`max_steps` for `--max-steps`, `task` for
 `--task`, ...). A protocol file (`--protocol eval.toml`, read with `tomllib`) holds the same keys (dashes or
 underscores) at its top level; flags given on the command line override it; checkpoint conventions
-(`<checkpoint>/harness.toml`, see harness/conventions.py) come next, then the defaults below:
+(`<checkpoint>/harness.toml`, see harness/conventions.py) come next, then the task family's defaults
+(LIBERO: the published protocol; harness.conventions.FAMILY_DEFAULTS), then the defaults below:
 
     # eval.toml
     task = ["Lift", "Stack"]          # or "Lift,Stack"
@@ -177,7 +178,8 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
     for key in ("image_convention", "action_space", "hold_gripper"):
         if key in s:
             env_given[key] = s[key]
-    env = conventions.env_options(env_given) if conventions is not None else EnvOptions.from_dict(env_given)
+    tasks = resolve_tasks(s.get("task"))
+    env, family_env, sources = _family_env(conventions, env_given, tasks)
 
     video_attention = s.get("video_attention", -1)
     policy_given: dict[str, Any] = {k: s[k] for k in POLICY_KEYS if k in s}
@@ -222,7 +224,7 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
     goal_images = s.get("goal_images")
     return Protocol(
         model=model,
-        tasks=resolve_tasks(s.get("task")),
+        tasks=tasks,
         episodes=s.get("episodes", 1),
         seed=s.get("seed", 0),
         max_steps=s.get("max_steps"),
@@ -233,7 +235,23 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
         outputs=outputs,
         text_tokenizer=text_tokenizer_choice(s.get("text_tokenizer", conventions.text_tokenizer if conventions else None)),
         perturb=perturb_text(parse_perturb(s.get("perturb"))),
+        family_env=family_env,
+        convention_sources=sources,
     )
+
+
+def _family_env(conventions, given: dict[str, Any], tasks) -> tuple[EnvOptions, dict | None, dict | None]:
+    """(env options of the first task's family, {other family: the options where its defaults differ} or None,
+    {family: {key: source}}): flags over the checkpoint's harness.toml over each family's defaults."""
+    if conventions is None:  # an older checkout without checkpoint conventions
+        return EnvOptions.from_dict(given), None, None
+    from harness.conventions import resolve_env, task_family
+
+    options, sources = resolve_env(conventions, given, [task_family(t) for t in tasks])
+    first, *others = options
+    base = options[first].to_dict()
+    family_env = {f: {k: v for k, v in options[f].to_dict().items() if base.get(k) != v} for f in others}
+    return options[first], {f: v for f, v in family_env.items() if v} or None, sources
 
 
 def text_tokenizer_choice(value: str | None) -> str | None:

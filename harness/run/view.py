@@ -92,7 +92,7 @@ def _resimulate(run: RunRecord, episode: EpisodeRecord, steps: int, model=None) 
     if protocol.goal_images:
         images = checks.decode_goal_images(protocol.goal_images)
         goals = {k: resize_frame(v, model.goal_image_sizes[k]) for k, v in images.items() if k in model.goal_image_sizes}
-    env = envs.make(episode.task, protocol.env, instruction=protocol.instruction)
+    env = envs.make(episode.task, protocol.env_for(episode.task), instruction=protocol.instruction)
     try:
         records: list[StepRecord] = []
         rollout(env, OctoPolicy(model, protocol.policy), records.append, seed=int(episode.seed or 0),

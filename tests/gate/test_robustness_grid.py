@@ -160,6 +160,7 @@ def test_robustness_grid_resumes_and_reports_in_chromium(tmp_path, capsys):
     printed, text = capsys.readouterr().out, eval_md.read_text()
     assert text.count("## Robustness") == 1 and "## Faithfulness\n\nkept" in text and "made by a test" in text
     assert printed.strip() in text
+    assert text.count("\nProvenance: command `python -m harness.report.robustness ") == 1  # its own line, once
     level2 = next(r for r in success if r["condition"] == "distractors" and r["level"] == "2")
     assert f"| distractors | 2 | {level2['successes']}/2 |" in text
     # an unperturbed run alone is one line and leaves EVAL.md as it was

@@ -1,0 +1,73 @@
+"""Robustness cells get BREAKS / HOLDS / UNDETERMINED, HOLDS by the same equivalence test as compare's HELD, and every
+null statement states the smallest drop it could have detected (issue 43 item 3)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from harness.analysis.paired import (PairedCounts, decide, detectable_loss, detectable_phrase, equivalent,
+                                     difference_interval, mcnemar_exact)
+from harness.analysis.robustness import EpisodeRow, association_rows, cell_verdict, paired_rows, sentence, success_rows
+
+
+@pytest.mark.parametrize("pairs, alpha, cells, expected", [
+    (20, 0.05, 1, 6),     # 2 * 0.5**6 = 0.031 <= 0.05 < 2 * 0.5**5 = 0.0625
+    (20, 0.05, 21, 10),   # 21 * 2 * 0.5**10 = 0.041 <= 0.05 < 21 * 2 * 0.5**9 = 0.082: the issue's "about 50 points"
+    (20, 0.01, 1, 8),     # 2 * 0.5**8 = 0.0078 <= 0.01 < 2 * 0.5**7 = 0.0156
+    (9, 0.05, 21, None),  # 9 pairs can never reach it over 21 cells
+    (5, 0.05, 1, None),   # 2 * 0.5**5 = 0.0625 > 0.05: five pairs detect nothing alone
+    (0, 0.05, 1, None),
+])
+def test_detectable_loss_is_the_fewest_lost_pairs_the_exact_test_declares(pairs, alpha, cells, expected):
+    assert detectable_loss(pairs, alpha, cells) == expected
+    if expected is not None:  # the definition, checked against the test itself
+        assert cells * mcnemar_exact(expected, 0) <= alpha < cells * mcnemar_exact(expected - 1, 0)
+
+
+def test_detectable_phrase_reads_as_the_issue_states_it():
+    assert detectable_phrase(20, 0.05, 21) == "no drop of 50 points or more at 20 pairs (Holm over 21 cells)"
+    assert detectable_phrase(20, 0.05, 1) == "no drop of 30 points or more at 20 pairs (alpha 0.05)"
+    assert detectable_phrase(5, 0.05, 1) == "no drop at all is detectable at 5 pairs (alpha 0.05)"
+
+
+def _same(n: int) -> PairedCounts:
+    return PairedCounts.from_outcomes([True] * n, [True] * n)
+
+
+def test_holds_and_held_are_one_equivalence_test():
+    # compare's HELD (one table alone) and a robustness cell's HOLDS (one cell) agree on every table here
+    tables = [_same(20), _same(40), _same(100), PairedCounts.from_outcomes([True] * 40, [True] * 36 + [False] * 4),
+              PairedCounts.from_outcomes([True] * 60, [True] * 50 + [False] * 10)]
+    for counts in tables:
+        held = decide(counts, 0.15, 0.05) == "HELD"
+        holds = cell_verdict(counts, mcnemar_exact(counts.baseline_only, counts.candidate_only), 1) == "HOLDS"
+        assert held == holds == equivalent(counts, difference_interval(counts, 0.95), 0.15, 0.05), counts
+    assert cell_verdict(_same(40), 1.0, 1) == "HOLDS"  # 40 identical pairs rule out a 15-point drop alone
+    assert cell_verdict(_same(40), 1.0, 21) == "UNDETERMINED"  # but not with the interval at 1 - 0.05 / 21
+    assert cell_verdict(_same(20), 1.0, 1) == "UNDETERMINED"  # 20 pairs never rule out 15 points
+    assert cell_verdict(_same(40), 1.0, 1, margin=0.30) == "HOLDS" and cell_verdict(_same(20), 1.0, 1, margin=0.40) == "HOLDS"
+
+
+def _cell(run, condition, level, outcomes):
+    return [EpisodeRow(run, "Lift", condition, level, seed, seed, "ok", ok, 0.8, 0.5, 0.0, 0.8)
+            for seed, ok in enumerate(outcomes)]
+
+
+def test_each_cell_has_a_verdict_and_the_sentence_states_its_power():
+    rows = (_cell("nominal", "nominal", 0, [True] * 20) + _cell("texture-5", "texture", 5, [False] * 20)
+            + _cell("camera-1", "camera@image_wrist", 1, [True] * 20))
+    paired = {p[3]: p for p in paired_rows(rows)}
+    assert paired["texture-5"][13] == "BREAKS" and paired["camera-1"][13] == "UNDETERMINED"
+    assert paired["camera-1"][15] == 0.15 and paired["camera-1"][16] == pytest.approx(7 / 20)  # 2 cells: 7 lost
+    assert paired["camera-1"][14] == pytest.approx(-difference_interval(_same(20), 1 - 0.05 / 2)[0])
+    text = sentence("Lift", success_rows(rows), association_rows(rows), list(paired.values()))
+    assert "it breaks under texture 5" in text and "no drop of 35 points or more at 20 pairs (Holm over 2 cells)" in text
+    assert "0 of the other 1 cells HOLD" in text and "UNDETERMINED" in text
+    nothing = _cell("nominal", "nominal", 0, [True] * 20) + _cell("camera-1", "camera@image_wrist", 1, [True] * 20)
+    text = sentence("Lift", [], [], paired_rows(nothing, margin=0.40))
+    assert "no condition breaks it" in text and "no drop of 30 points or more at 20 pairs (alpha 0.05)" in text
+    assert "1 of the other 1 cells HOLD (a drop over 40 points ruled out)" in text
+    assert math.isnan(paired_rows(_cell("nominal", "nominal", 0, [True] * 5)
+                                  + _cell("c-1", "camera@image_wrist", 1, [True] * 5))[0][16])  # 5 pairs: nothing

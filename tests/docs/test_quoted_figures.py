@@ -1,0 +1,55 @@
+"""Figures the docs and the README quote match the committed files they come from (issue 43 item 5): each quote is
+looked up in its source (models/*/EVAL.md), or regenerated from it or from the function that made it."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from harness.analysis.paired import detectable_loss
+
+REPO = Path(__file__).resolve().parents[2]
+EVAL = "models/octo-reference-robosuite/EVAL.md"
+
+# (page, what the page says, source file, the line of the source it comes from: a regex)
+QUOTES = (
+    ("docs/perturbations.md", "masking it takes Lift from 6/6 to 0/6, p = 0.03", EVAL,
+     r"^\| Lift \| `mask-all@image_wrist` \| Lift_plain \| 6 \| 6/6 = 1\.00 .* \| 0/6 = 0\.00 .* \| 0\.0312 \|$"),
+    ("docs/perturbations.md", "halves Lift in the closed-loop interventions (6/6 -> 3/6, p = 0.25", EVAL,
+     r"^\| Lift \| `mask-all@image_primary` \| Lift_plain \| 6 \| 6/6 = 1\.00 .* \| 3/6 = 0\.50 .* \| 0\.25 \|$"),
+    ("README.md", "(Stack and PickPlaceCan 0/20, Lift\n6/20)", EVAL, r"^\| texture \| 3 \| 6/20 \|"),
+    ("docs/faithfulness-sanity.md", "1.57 [1.29, 1.84]", EVAL, r"1\.57 \[1\.29, 1\.84\]"),
+    ("docs/faithfulness-sanity.md", "0.51-0.75 on Stack", EVAL, r"0\.51-0\.75"),
+    ("docs/phases-and-position.md", "(Lift 0.49 → 0.01 and 0.67 → 0.01; Stack 0.58 → 0.05 and 0.72 → 0.09)", EVAL,
+     r"^\| image_primary \| 1 \| target \| 94 \| 0\.67 \| 0\.01 \|$"),  # Lift's position lift table, layer 1
+    ("docs/phases-and-position.md", "Stack 0.58 → 0.05 and 0.72 → 0.09", EVAL,
+     r"^\| image_primary \| 1 \| target \| 335 \| 0\.72 \| 0\.09 \|$"),
+    ("docs/phases-and-position.md", "layer 3: 1.65 → 2.32", EVAL, r"1\.65 → 2\.32"),
+)
+
+
+@pytest.mark.parametrize("page, quote, source, pattern", QUOTES, ids=[q[1][:40] for q in QUOTES])
+def test_a_quoted_figure_is_in_its_source(page, quote, source, pattern):
+    text = (REPO / page).read_text()
+    assert quote in text, f"{page} no longer quotes {quote!r}: update QUOTES with what it says now"
+    assert re.search(pattern, (REPO / source).read_text(), re.M), f"{page} quotes {quote!r}, which {source} does not hold"
+
+
+def test_the_detectable_drop_the_docs_quote_is_the_tests():
+    """'no drop of 50 points or more at 20 pairs, Holm over 21 cells' (README, docs/perturbations.md, EVAL.md)."""
+    assert detectable_loss(20, 0.05, 21) == 10  # 10 of 20 pairs: 50 points
+    for page in ("README.md", "docs/perturbations.md"):
+        assert "no drop of 50 points or more" in (REPO / page).read_text()
+
+
+def test_the_association_resolution_the_readme_quotes_is_the_grids():
+    """'the intervals resolve |r| of about 0.11-0.16': half the width of every seed-cluster interval in EVAL.md's
+    Robustness section that holds 0."""
+    section = (REPO / EVAL).read_text().split("\n## Robustness\n")[1]
+    intervals = [(float(a), float(b)) for a, b in re.findall(r"seed-cluster 95% \[([-+.\d]+), ([-+.\d]+)\]", section)]
+    halves = [(b - a) / 2 for a, b in intervals if a <= 0 <= b]
+    assert len(halves) >= 3
+    quoted = f"{min(halves):.2f}-{max(halves):.2f}"
+    assert f"|r| of about {quoted}" in (REPO / "README.md").read_text(), quoted
