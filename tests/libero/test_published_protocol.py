@@ -16,21 +16,13 @@ import numpy as np
 import pytest
 
 import envs
-from envs.libero_env import LiberoEnvironmentMissing, libero_python
+from envs.libero_env import libero_python
 from envs.options import to_convention
 from harness.run.settings import build_protocol
+from tests.helpers import needs_libero as _needs_libero
 
 REPO = Path(__file__).resolve().parents[2]
 TASK, SUITE, INDEX, STATE = "libero_object/0", "libero_object", 0, 0
-
-
-def _needs_libero() -> None:  # as tests/test_libero.py: skip outside CI, fail under CI=true
-    try:
-        libero_python()
-    except LiberoEnvironmentMissing as exc:
-        if os.environ.get("CI", "").strip().lower() in ("1", "true", "yes"):
-            pytest.fail(f"CI=true and {exc}")
-        pytest.skip(str(exc))
 
 
 def _published(tmp_path: Path) -> dict[str, np.ndarray]:
