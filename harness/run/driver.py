@@ -241,11 +241,11 @@ def execute(
             if manifest is not None and manifest.get("platform_fingerprint") not in (None, platform_fp):
                 log.warning("resuming run %s on another platform (differs: %s); its episodes record where they ran",
                             name, ", ".join(platform_differences(manifest.get("platform"), platform_now)) or "unknown")
-            rows = store.load_rows({j.key for j in jobs}) if manifest is not None else {}
+            rows = store.load_rows({j.key: j.seed for j in jobs}) if manifest is not None else {}
             if manifest is not None and manifest.get("run") != name:  # a copied or renamed run folder
                 rows = _rename_run(store, manifest, rows, name)
                 manifest = store.read_manifest()
-            done = _verified(store, rows, retry_failed)
+            done = _verified(store, rows, retry_failed, manifest)
             pending = [j for j in jobs if j.key not in done]
             goals = None
             if model is None and (pending or manifest is None):  # a finished run needs no model
@@ -323,7 +323,7 @@ def execute(
                           skipped=len(jobs) - len(pending))
 
 
-def _verified(store: RunStore, rows: dict, retry_failed: bool) -> set[tuple[str, int]]:
+def _verified(store: RunStore, rows: dict, retry_failed: bool, manifest: dict | None = None) -> set[tuple[str, int]]:
     """Jobs whose rows stand: failed ones (unless retried) and finished ones whose folder holds the files its row
     records, unchanged (harness/runfolder/integrity.py). A finished episode whose files are missing or damaged, or
     whose folder is a symlink or leads out of the run, is said on stderr and run again (its folder is removed as
@@ -337,7 +337,7 @@ def _verified(store: RunStore, rows: dict, retry_failed: bool) -> set[tuple[str,
         directory = f"{row.task}/episode_{row.episode}"
         try:
             problem = episode_problem(store.dir, directory, row.to_dict(), f"{store.dir / 'results.jsonl'}",
-                                      legacy=LEGACY_RESUME)
+                                      legacy=LEGACY_RESUME, manifest=manifest)
         except MalformedRunError as exc:  # leads out of the run folder or loops: the run's own folder is rewritten
             problem = str(exc).split("; ")[0]
         if problem is None:
