@@ -32,7 +32,7 @@ MAX_TOML_BYTES = 1 * MiB  # protocol files, a checkpoint's harness.toml
 MAX_TEXT_BYTES = 16 * MiB  # other text a command reads (a tokenizer.json is larger: MAX_JSON_BYTES)
 MAX_DEPTH = 64  # nesting of [ and { in a JSON or TOML document (the run store's deepest is 5)
 MAX_NPZ_BYTES = 8 << 30  # what the arrays of one .npz may hold once loaded, whatever the caller expects
-MAX_STEP_BYTES = 64 * MiB  # what one step of one array may hold (a 2048 px camera frame is 12 MiB)
+MAX_STEP_BYTES = 16 * MiB  # what one step of one array may hold (a 2048 px camera frame is 12 MiB)
 MAX_NPZ_MEMBERS = 10_000
 CUT = 200  # characters of a bad value echoed in a one-line error
 
@@ -182,18 +182,32 @@ def npz_headers(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], np.
     return out
 
 
+STATIC_MEMBERS = ("seed", "instruction", "phase_names")  # array members with no step axis (and tokens/*, *_names)
+MAX_STATIC_BYTES = 16 * MiB  # what one such member may hold
+
+
+def _per_step(name: str) -> bool:
+    return not (name in STATIC_MEMBERS or name.startswith("tokens/") or name.endswith("_names"))
+
+
 def check_npz(path: str | os.PathLike, steps: int | None = None, axes: Mapping[str, Mapping[int, int]] | None = None,
               headers: Mapping[str, tuple[tuple[int, ...], np.dtype]] | None = None) -> dict:
-    """The headers of `path` checked against what its episode implies: `steps` (the row's step count: no array has
-    more rows than steps, and no step of an array holds more than MAX_STEP_BYTES) and `axes` ({member: {axis: size}},
-    e.g. {"readout_attention": {1: layers}}). Returns the headers; BoundsError names the member and the limit."""
+    """The headers of `path` checked against what its episode implies: `steps` (the row's step count: no per-step
+    array has more rows than steps, no step of one holds more than MAX_STEP_BYTES, no other member more than
+    MAX_STATIC_BYTES) and `axes` ({member: {axis: size}}, e.g. {"readout_attention": {1: layers}}). Returns the
+    headers; BoundsError names the member and the limit."""
     headers = npz_headers(path) if headers is None else headers
     for name, (shape, dtype) in headers.items():
-        if steps is not None and shape and name != "seed" and not name.startswith("tokens/"):
+        nbytes = int(np.prod(shape, dtype=object)) * dtype.itemsize
+        if not _per_step(name) or not shape:
+            if nbytes > MAX_STATIC_BYTES:
+                raise BoundsError(f"{path}: {name} holds {nbytes} bytes ({shape} {dtype}), over the "
+                                  f"{_mib(MAX_STATIC_BYTES)} such a member may hold")
+        elif steps is not None:
             if shape[0] > max(steps, 1):
                 raise BoundsError(f"{path}: {name} holds {shape[0]} steps, but its row records {steps}; the file is "
                                   "damaged or not this episode's")
-            per_step = int(np.prod(shape[1:], dtype=object)) * dtype.itemsize
+            per_step = nbytes // max(shape[0], 1)
             if per_step > MAX_STEP_BYTES:
                 raise BoundsError(f"{path}: {name} holds {per_step} bytes per step ({shape} {dtype}), over the "
                                   f"{_mib(MAX_STEP_BYTES)} a step may hold")
@@ -211,3 +225,9 @@ def read_npz(path: str | os.PathLike, names: Iterable[str] = (), steps: int | No
     wanted = list(names) or list(headers)
     with np.load(path, allow_pickle=False) as z:
         return {k: z[k] for k in wanted}
+
+
+def open_npz(path: str | os.PathLike, steps: int | None = None, axes: Mapping[str, Mapping[int, int]] | None = None):
+    """np.load of a .npz (lazy: members load when indexed), its headers checked first (`check_npz`); no pickles."""
+    check_npz(path, steps, axes)
+    return np.load(path, allow_pickle=False)

@@ -12,6 +12,9 @@ import threading
 from pathlib import Path
 
 USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, KeyError, FileNotFoundError, PermissionError)
+# An unexpected exception in any command (a bug): its own code, never 1 (a verdict for compare and regress, "an episode
+# failed" for run) nor 2 (bad input). docs/running.md#exit-codes
+INTERNAL_ERROR = 5
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -42,6 +45,16 @@ def _video_attention(text: str):
     except ValueError:
         raise argparse.ArgumentTypeError(f"--video-attention takes a layer index, 'rollout' or one of "
                                          f"{', '.join(ATTRIBUTION_VIDEO)}, got {text!r}") from None
+
+
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        port = None
+    if port is None or not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"takes a port number 1-65535, got {text[:40]!r}")
+    return port
 
 
 def _render_device(text: str) -> str:
@@ -106,7 +119,8 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str):
         fix = next((fix for text, fix in self.FIXES if text in message), "fix that option")
-        self.exit(2, f"error: {self.prog}: {message.splitlines()[0]}; {fix} (see {self.prog} --help)\n")
+        self.exit(2, f"error: {self.prog}: {_one_line(message.splitlines()[0] if message else message, 300)}; {fix} "
+                     f"(see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -159,9 +173,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "episode.rrd beside its files (part of the protocol); spawn streams live to a viewer on this "
                         "machine; serve hosts the web viewer for a headless server and prints its URL once "
                         "(save,spawn / save,serve: both); see docs/viewer.md")
-    r.add_argument("--viewer-port", type=int, default=None, metavar="PORT",
+    r.add_argument("--viewer-port", type=_port, default=None, metavar="PORT",
                    help="--rerun spawn/serve: the viewer's gRPC port [9876]; serve's web viewer uses --web-port")
-    r.add_argument("--web-port", type=int, default=None, metavar="PORT", help="--rerun serve: the web viewer's HTTP port [9090]")
+    r.add_argument("--web-port", type=_port, default=None, metavar="PORT", help="--rerun serve: the web viewer's HTTP port [9090]")
     r.add_argument("--normalisation", choices=["frame", "episode"], default=None, help="[frame]")
     r.add_argument("--no-video", action="store_true", default=None)
     r.add_argument("--gif", action="store_true", default=None, help="also write rollout.gif")
@@ -308,8 +322,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="serve the web viewer from this machine (a headless server) and print its URL; Ctrl-C stops it")
     vw.add_argument("--no-simulate", action="store_true",
                     help="do not re-simulate the episode for its frames: maps and measures only")
-    vw.add_argument("--viewer-port", type=int, default=None, metavar="PORT", help="the viewer's gRPC port [9876]")
-    vw.add_argument("--web-port", type=int, default=None, metavar="PORT", help="--serve: the web viewer's HTTP port [9090]")
+    vw.add_argument("--viewer-port", type=_port, default=None, metavar="PORT", help="the viewer's gRPC port [9876]")
+    vw.add_argument("--web-port", type=_port, default=None, metavar="PORT", help="--serve: the web viewer's HTTP port [9090]")
 
     san = sub.add_parser("sanity", help="sanity checks of the attribution methods, once per policy: model-parameter "
                                          "randomisation and patch additivity, open loop on recorded inputs",
@@ -483,23 +497,17 @@ def _cmd_sanity(args) -> int:
     return 0
 
 
-def _has_display() -> bool:
-    import os
-
-    return sys.platform != "linux" or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-
-
 def _cmd_view(args) -> int:
     import tempfile
 
-    from harness.outputs.rerun_sink import import_rerun, serve_file, start_viewer
+    from harness.outputs.rerun_sink import check_viewer, import_rerun, serve_file, start_viewer
     from harness.run.view import build_recording
 
     rr = import_rerun()
     if args.save is not None and args.save.suffix != ".rrd":
         raise ValueError(f"--save {args.save}: a Rerun recording's name ends in .rrd")
-    if args.save is None and not args.serve and not _has_display():
-        raise ValueError("no display here for a viewer window; pass --serve (web viewer, prints its URL) or --save PATH.rrd")
+    if args.serve or args.save is None:  # before the episode is rebuilt: no display, a port out of range or in use
+        check_viewer("serve" if args.serve else "spawn", args.viewer_port, args.web_port)
     simulate = not args.no_simulate
     if args.save is not None or args.serve:
         with tempfile.TemporaryDirectory() as scratch:
@@ -613,6 +621,23 @@ def _keep_serving(viewer, what: str = "the web viewer keeps serving") -> None:
         pass
 
 
+ECHO_LIMIT = 1000  # characters of one error line: a value echoed from a 50 MB input is cut, with its length said
+
+
+def _one_line(message, limit: int = ECHO_LIMIT) -> str:
+    """An error's text as one line, cut to `limit` characters (a 50 MB bad value never floods the terminal)."""
+    text = " ".join(str(message).splitlines())
+    return text if len(text) <= limit else f"{text[:limit - 40]}... (cut: {len(text)} characters in all)"
+
+
+def _origin(exc: BaseException) -> str:
+    """ ' (at module.py:123)' of the innermost frame that raised, for a bug report."""
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return f" (at {Path(tb.tb_frame.f_code.co_filename).name}:{tb.tb_lineno})" if tb is not None else ""
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from harness import console
@@ -648,8 +673,17 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        print(f"error: {message}", file=sys.stderr)
+        print(f"error: {_one_line(message)}", file=sys.stderr)
         return 2
+    except Exception as exc:  # noqa: BLE001 - the one place a bug becomes an exit code that is no verdict
+        if args.debug:
+            import traceback
+
+            traceback.print_exc()
+        where = _origin(exc)
+        print(f"internal error: {type(exc).__name__}: {_one_line(exc, 300)}{where}; please report it (run with "
+              f"octo-harness --debug {args.command} ... for the traceback); exit {INTERNAL_ERROR}", file=sys.stderr)
+        return INTERNAL_ERROR
     finally:
         if main_thread:
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)

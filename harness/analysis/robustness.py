@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from envs.perturbations import parse_perturb
+from harness.bounded import open_npz
 from harness.analysis.paired import PairedCounts, holm_adjust, mcnemar_exact
 from harness.analysis.stats import wilson_interval
 
@@ -84,7 +85,7 @@ def episode_measures(path) -> dict:
     """attention.npz -> {"nuisance_mass", "distractor_mass", "background_mass", "target_lift" (episode means at the
     last layer, primary camera; nan when absent), "step0_rows" (layers, keys) normalised step-0 attention,
     "step0_lift" (layers,)}."""
-    with np.load(path) as z:
+    with open_npz(path) as z:
         background = _layer_measure(z, f"mask_mass/{CAMERA}/background")
         distractors = [np.asarray(z[k], np.float64) for k in z.files
                        if k.startswith(f"measures/layer/mask_mass/{CAMERA}/distractor_")]

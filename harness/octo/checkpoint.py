@@ -17,6 +17,7 @@ from typing import Any, Mapping
 import numpy as np
 from flax import serialization, traverse_util
 
+from harness.bounded import BoundsError, read_json
 from harness.octo.errors import (
     CheckpointNotFoundError,
     CorruptCheckpointError,
@@ -146,7 +147,9 @@ def read_dataset_statistics(ckpt_dir: Path) -> dict:
         log.warning("%s is missing; actions can only be returned normalised", path)
         return {}
     try:
-        stats = json.loads(path.read_text())
+        stats = read_json(path)
+    except BoundsError as e:
+        raise CorruptCheckpointError(f"{e}; re-download the checkpoint") from None
     except json.JSONDecodeError as e:
         raise CorruptCheckpointError(f"{path} is not valid JSON ({e}); re-download the checkpoint") from None
     return _arrays(stats)

@@ -137,10 +137,53 @@ class LiveViewer:
     hub: Any = field(default=None, repr=False)  # serve: the recording stream that hosts the gRPC server (kept alive)
 
 
+NO_DISPLAY = "no display here for a viewer window; pass --serve (web viewer, prints its URL) or --save PATH.rrd"
+
+
+def has_display() -> bool:
+    """A native viewer window can open: not Linux, or DISPLAY / WAYLAND_DISPLAY set."""
+    import sys
+
+    return sys.platform != "linux" or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def check_port(port: int, option: str) -> int:
+    """`port` within 1..65535 and free on this machine (nothing listens on it), else one line naming `option`: a
+    viewer on a busy port aborted the whole process (a Rust panic, exit 134), a port out of range was a traceback."""
+    import errno
+    import socket
+
+    if not isinstance(port, int) or isinstance(port, bool) or not 1 <= port <= 65535:
+        raise ValueError(f"{option} takes a port number 1-65535, got {port!r}")
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(("", port))
+    except OSError as exc:
+        if exc.errno in (errno.EADDRINUSE, errno.EACCES):
+            why = "is in use by another process" if exc.errno == errno.EADDRINUSE else "needs privileges here"
+            raise ValueError(f"port {port} ({option}) {why}; pass {option} with a free port") from None
+        raise
+    finally:
+        sock.close()
+    return port
+
+
+def check_viewer(mode: str, grpc_port: int | None = None, web_port: int | None = None) -> None:
+    """What a live viewer needs, before anything heavy: a display for spawn (the same line as `view`'s), free ports."""
+    if mode == "spawn" and not has_display():
+        raise ValueError(NO_DISPLAY)
+    check_port(grpc_port or DEFAULT_GRPC_PORT, "--viewer-port")
+    if mode == "serve":
+        check_port(web_port or DEFAULT_WEB_PORT, "--web-port")
+
+
 def start_viewer(mode: str, grpc_port: int | None = None, web_port: int | None = None, host: str = "127.0.0.1",
                  blueprint=None) -> LiveViewer:
     """spawn: start the native Rerun viewer on this machine (it listens on `grpc_port`);
-    serve: host a gRPC server in this process and the web viewer over HTTP (`web_port`); both on `host`."""
+    serve: host a gRPC server in this process and the web viewer over HTTP (`web_port`); both on `host`.
+    `check_viewer` first: no display for spawn, or a port out of range or in use, is one line (ValueError)."""
+    check_viewer(mode, grpc_port, web_port)
     rr = import_rerun()
     port = grpc_port or DEFAULT_GRPC_PORT
     if mode == "spawn":

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.bounded import open_npz
 from harness.analysis.attention import camera_maps
 from harness.files import atomic_write_json, write_atomic
 from harness.octo.tokens import TokenMap
@@ -26,7 +27,7 @@ def _step0_maps(episode_dir: str) -> tuple[TokenMap, dict[str, np.ndarray]] | No
     path = Path(episode_dir) / "attention.npz"
     if not path.is_file():
         return None
-    with np.load(path) as z:
+    with open_npz(path) as z:
         if "readout_attention" not in z.files or not z["readout_attention"].shape[0]:
             return None
         tokens = TokenMap.from_arrays(z)

@@ -194,7 +194,7 @@ def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = 
     """
     from harness.run import execute
 
-    baseline = load_run(baseline_dir)
+    baseline = load_run(baseline_dir, legacy=False)
     protocol = candidate_protocol(baseline.manifest, model, max_episodes, str(baseline.path / "manifest.json"),
                                   text_tokenizer)
     config = SequentialConfig(alpha=alpha, max_drop=max_drop)

@@ -79,10 +79,12 @@ def run_grid(base: Protocol, conditions: tuple[str, ...], levels: tuple[int, ...
               "tasks": list(base.tasks), "runs": runs}
     existing = out / GRID_FILE
     if existing.is_file() and not overwrite:
-        import json
+        from harness.bounded import BoundsError, read_json
 
         try:
-            old = json.loads(existing.read_text())
+            old = read_json(existing)
+        except BoundsError:
+            raise
         except (OSError, ValueError):
             old = None
         if not isinstance(old, dict) or old.get("format") != record["format"]:

@@ -30,6 +30,7 @@ from typing import Any, Mapping
 
 from envs.options import EnvOptions, parse_camera
 from envs.perturbations import parse_perturb, perturb_text
+from harness.bounded import read_toml, short
 from harness.policy import PolicyConfig
 from harness.analysis.attribution import DEFAULT_METHODS
 from harness.outputs.writers import ATTRIBUTION_VIDEO
@@ -65,7 +66,7 @@ def read_protocol_file(path: str | Path) -> dict[str, Any]:
     """Settings from a TOML protocol file (keys normalised to underscores); one-line errors for bad files and keys."""
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
+        data = read_toml(path)
     except FileNotFoundError:
         raise FileNotFoundError(f"protocol file {path} does not exist") from None
     except (OSError, UnicodeDecodeError) as e:
@@ -85,7 +86,7 @@ def read_protocol_file(path: str | Path) -> dict[str, Any]:
     for key, value in settings.items():
         if not isinstance(value, FILE_KEYS[key]) or (isinstance(value, bool) and bool not in FILE_KEYS[key]):
             kinds = " or ".join(t.__name__ for t in FILE_KEYS[key])
-            raise ValueError(f"protocol file {path}: {key} must be a {kinds}, got {value!r}")
+            raise ValueError(f"protocol file {path}: {key} must be a {kinds}, got {short(value)}")
     if isinstance(settings.get("layers"), list):
         settings["layers"] = tuple(settings["layers"])
     if isinstance(settings.get("task"), str):

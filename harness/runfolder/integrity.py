@@ -24,7 +24,8 @@ import zipfile
 from harness.bounded import BoundsError, check_npz
 from harness.runfolder.schema import FIX, MalformedRunError
 
-DATA_SUFFIXES = (".npz", ".jsonl")
+DATA_SUFFIXES = (".npz", ".jsonl", ".rrd")  # .rrd: a --rerun save recording, shown by `view` as the episode's own
+VIEW_ONLY = (".rrd",)  # digested, but no command reads numbers from it: `view` checks it and rebuilds it when it differs
 RECORDED = ("attention.npz", "actions.npz")  # written by every finished episode: a row with digests names them
 LEGACY_RESUME = ("episode.json",)  # what resume requires of a finished episode whose row records no digests
 RERUN = ("re-run that episode: octo-harness run --resume RUN_DIR (it runs damaged episodes again), or re-create the run "
@@ -146,8 +147,8 @@ def episode_problem(run_dir: Path, directory: str, row: dict, where: str | None 
         path = folder / name
         if not path.is_file():
             return f"{path} is missing"
-        if files is None or name not in files:
-            continue
+        if files is None or name not in files or name.endswith(VIEW_ONLY):
+            continue  # a recording is checked by `view`, which rebuilds it from the arrays when it differs
         expected, found = files[name], file_digest(path)
         if found["size"] != expected["size"]:
             return f"{path} is damaged ({found['size']} bytes, its row records {expected['size']})"
