@@ -6,6 +6,7 @@ Only parses arguments into frozen configs, wires the runner and prints; user err
 from __future__ import annotations
 
 import argparse
+import errno
 import signal
 import sys
 import threading
@@ -15,6 +16,7 @@ USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, KeyError, FileNotFou
 # An unexpected exception in any command (a bug): its own code, never 1 (a verdict for compare and regress, "an episode
 # failed" for run) nor 2 (bad input). docs/running.md#exit-codes
 INTERNAL_ERROR = 5
+DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS)  # a write the disk refused
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -29,10 +31,11 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
 
 def _interrupt(signum, frame):
-    """SIGTERM before the run installs its own handler (loading the model, compiling): the same exit as later."""
-    exc = KeyboardInterrupt(signal.Signals(signum).name)
-    exc.signum = signum
-    raise exc
+    """SIGINT / SIGTERM before the run installs its own handler (loading the model, compiling): the same exit as
+    later, recorded first so a KeyboardInterrupt swallowed by a finaliser is not lost (harness.interrupts)."""
+    from harness import interrupts
+
+    interrupts.handler(signum, frame)
 
 
 def _video_attention(text: str):
@@ -617,8 +620,10 @@ def _keep_serving(viewer, what: str = "the web viewer keeps serving") -> None:
     try:
         while True:
             time.sleep(3600)
-    except KeyboardInterrupt:
-        pass
+    except KeyboardInterrupt:  # the way to stop serving, not an interruption of the command
+        from harness import interrupts
+
+        interrupts.reset()
 
 
 ECHO_LIMIT = 1000  # characters of one error line: a value echoed from a 50 MB input is cut, with its length said
@@ -643,8 +648,27 @@ def main(argv: list[str] | None = None) -> int:
     from harness import console
 
     console.configure(args.verbose)
+    from harness import interrupts
+
+    interrupts.reset()
     main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
+    previous = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
+    try:
+        code = _dispatch(args)
+        interrupts.check()  # a signal whose KeyboardInterrupt a finaliser swallowed: still 128 + signum
+        return code
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", 2)
+        print(f"interrupted ({'SIGTERM' if signum == 15 else 'SIGINT'}); finished episodes are recorded, "
+              "run the same command to resume", file=sys.stderr)
+        return 128 + signum
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+
+
+def _dispatch(args) -> int:
+    """The command, its errors as exit codes: 2 for bad input or a full disk, INTERNAL_ERROR for a bug."""
     try:
         _apply_render_device(getattr(args, "render_device", None))
         if args.command == "tasks":
@@ -664,29 +688,35 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "robustness":
             return _cmd_robustness(args)
         return _cmd_run(args)
-    except KeyboardInterrupt as exc:
-        signum = getattr(exc, "signum", 2)
-        print(f"interrupted ({'SIGTERM' if signum == 15 else 'SIGINT'}); finished episodes are recorded, "
-              "run the same command to resume", file=sys.stderr)
-        return 128 + signum
     except _user_errors() as exc:
         if args.debug:
             raise
         message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"error: {_one_line(message)}", file=sys.stderr)
         return 2
-    except Exception as exc:  # noqa: BLE001 - the one place a bug becomes an exit code that is no verdict
+    except OSError as exc:  # a full disk, a read-only filesystem, a quota: one line (exit 2), never a verdict
+        if exc.errno not in DISK_ERRORS:
+            return _internal_error(exc, args)
         if args.debug:
-            import traceback
+            raise
+        where = f" {exc.filename}" if exc.filename else " its outputs"
+        print(f"error: could not write{where}: {exc.strerror or exc}; free space (or pass --out on another disk) and "
+              f"run the same command again", file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - the one place a bug becomes an exit code that is no verdict
+        return _internal_error(exc, args)
 
-            traceback.print_exc()
-        where = _origin(exc)
-        print(f"internal error: {type(exc).__name__}: {_one_line(exc, 300)}{where}; please report it (run with "
-              f"octo-harness --debug {args.command} ... for the traceback); exit {INTERNAL_ERROR}", file=sys.stderr)
-        return INTERNAL_ERROR
-    finally:
-        if main_thread:
-            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+def _internal_error(exc: BaseException, args) -> int:
+    """A bug: one line saying so (the traceback with --debug), exit INTERNAL_ERROR."""
+    if args.debug:
+        import traceback
+
+        traceback.print_exception(exc)
+    where = _origin(exc)
+    print(f"internal error: {type(exc).__name__}: {_one_line(exc, 300)}{where}; please report it (run with "
+          f"octo-harness --debug {args.command} ... for the traceback); exit {INTERNAL_ERROR}", file=sys.stderr)
+    return INTERNAL_ERROR
 
 
 if __name__ == "__main__":

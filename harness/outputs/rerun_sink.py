@@ -304,10 +304,14 @@ class RerunSink:
         self.intervention = intervention
         self.control_hz = control_hz
         self.file = self.live = None
+        self._binary = self._out = None
         if self.path is not None:
+            # the encoded bytes are written here, not by Rerun's file sink: that one only logs a failed write (a full
+            # disk) and leaves a cut recording behind; here the OSError reaches the caller and the temp file goes
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._out = open(self.temp, "wb")
             self.file = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id(meta))
-            self.file.save(self.temp)
+            self._binary = self.file.binary_stream()
         if connect is not None:
             self.live = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id(meta))
             self.live.connect_grpc(connect)
@@ -484,6 +488,13 @@ class RerunSink:
         self._buffered_steps += 1
         if self.file is not None and self._buffered_steps >= self.FLUSH_STEPS:
             self._flush_columns()
+            self._drain()
+
+    def _drain(self) -> None:
+        """Write what the file stream has encoded so far (an OSError, e.g. a full disk, propagates)."""
+        data = self._binary.read(flush=True) if self._binary is not None else None
+        if data:
+            self._out.write(data)
 
     def _measure(self, name: str, values: np.ndarray, metrics: dict) -> None:
         if name.startswith("mask_area/") or values.ndim != 1:
@@ -512,9 +523,16 @@ class RerunSink:
             self._static("episode/outcome", self.rr.TextDocument("\n".join(lines), media_type="text/markdown"))
             for stream in self.streams:
                 stream.flush(blocking=True)
+            self._drain()
+            for stream in self.streams:
                 stream.disconnect()
+            self._drain()
             self.file = self.live = None
             if self.path is not None:
+                out, self._out, self._binary = self._out, None, None
+                out.flush()
+                os.fsync(out.fileno())
+                out.close()
                 os.replace(self.temp, self.path)
         except BaseException:
             self._discard()
@@ -536,5 +554,12 @@ class RerunSink:
                 pass
         self.file = self.live = None
         self._buffer = {}
+        self._binary = None
+        if self._out is not None:
+            out, self._out = self._out, None
+            try:
+                out.close()
+            except OSError:  # the close's own flush failed (a full disk): the file is deleted below anyway
+                pass
         if self.temp is not None:
             self.temp.unlink(missing_ok=True)

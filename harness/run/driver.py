@@ -24,6 +24,7 @@ from typing import Callable
 
 import numpy as np
 
+from harness import interrupts
 from harness.run import checks
 from harness.run.protocol import protocol_from_manifest
 from harness.runfolder.platform import libero_platform, platform_differences, platform_fingerprint, platform_info
@@ -43,12 +44,7 @@ class ProtocolMismatchError(ValueError):
     """An existing run folder holds a different protocol."""
 
 
-class Interrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM arrived; `signum` says which (exit code 128 + signum)."""
-
-    def __init__(self, signum: int):
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
+Interrupted = interrupts.Interrupted  # SIGINT or SIGTERM arrived; `signum` says which (exit code 128 + signum)
 
 
 @dataclass(frozen=True)
@@ -109,6 +105,7 @@ class _SignalGuard:
         self.pending: int | None = None
 
     def handler(self, signum, frame) -> None:
+        interrupts.record(signum)  # kept even if the KeyboardInterrupt below is swallowed (a __del__)
         if self.depth:
             self.pending = signum
             return
@@ -132,6 +129,7 @@ class _SignalGuard:
             return
         previous = {s: signal.signal(s, self.handler) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
+            interrupts.check()  # a signal that arrived before (loading the model) and was swallowed
             yield self
         finally:
             for s, h in previous.items():
@@ -253,6 +251,7 @@ def execute(
 
                 log.info("loading %s", protocol.model)
                 model = load_pretrained(protocol.model, text_tokenizer=protocol.text_tokenizer)
+                interrupts.check()  # Ctrl-C while loading, its KeyboardInterrupt swallowed by a finaliser
             if model is not None:
                 task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)
                 if pending:
@@ -306,6 +305,7 @@ def execute(
                         _derive(store, manifest, jobs, rows, "running", ci_method)
                     if bar is not None:
                         bar.episode(row)
+                    interrupts.check()
                 status = "complete" if all(j.key in done for j in jobs) else "interrupted"
             finally:
                 if bar is not None:
