@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -20,6 +21,7 @@ from flax import serialization, traverse_util
 from harness.bounded import BoundsError, read_json
 from harness.octo.errors import (
     CheckpointNotFoundError,
+    ConfigError,
     CorruptCheckpointError,
     HubUnavailableError,
     ParamTreeMismatchError,
@@ -100,6 +102,19 @@ def read_params(ckpt_dir: Path, step: int) -> dict:
     if default.is_dir():
         return _orbax_restore(default)
     raise CheckpointNotFoundError(f"{default} is missing; the step folder has no parameters (expected <step>/default/checkpoint)")
+
+
+_BLOCK = re.compile(r"^encoderblock_(\d+)$")
+
+
+def check_layer_count(params: Mapping, num_layers: int, config_path: Path) -> None:
+    """The transformer's layer count in config.json against the encoder blocks the parameter files hold, before any
+    model is built (tracing a config's 10000 layers took minutes and gigabytes before anything refused it)."""
+    blocks = {int(m.group(1)) for path in traverse_util.flatten_dict(dict(params)) for part in path
+              if isinstance(part, str) and (m := _BLOCK.match(part))}
+    if blocks and len(blocks) != num_layers:
+        raise ConfigError(f"{config_path} says num_layers {num_layers} but the checkpoint's parameter files hold "
+                          f"{len(blocks)} encoder blocks; restore the checkpoint's own config.json")
 
 
 def _orbax_restore(path: Path) -> dict:

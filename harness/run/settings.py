@@ -199,6 +199,9 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
             policy_given["attribution"] = f"{methods},{video_attention}"
     if "attribution" in s:
         policy_given["attribution"] = ",".join(s["attribution"]) if isinstance(s["attribution"], list) else s["attribution"]
+    if "controls_every" in s and s["controls_every"] is not None and not (
+            isinstance(s["controls_every"], int) and not isinstance(s["controls_every"], bool) and s["controls_every"] >= 1):
+        raise ValueError(f"--controls-every must be an integer >= 1 (1: every inference step), got {short(s['controls_every'])}")
     for key in ("faithfulness_every", "faithfulness_fill", "controls_every"):
         if key in s:
             policy_given[key] = s[key]
