@@ -13,7 +13,7 @@ import numpy as np
 
 from harness.bounded import open_npz
 from harness.analysis.attention import camera_maps
-from harness.files import atomic_write_json, write_atomic
+from harness.files import all_or_none, atomic_write_json, write_atomic
 from harness.octo.tokens import TokenMap
 from harness.report import html as H
 from harness.report.compare_md import difference_label, pairs_cell, to_decide
@@ -254,8 +254,9 @@ def write_comparison(result: dict, out_dir: str | Path, frames: dict | None = No
     out.mkdir(parents=True, exist_ok=True)
     markdown = markdown_summary(result, exit_code)
     paths = {"json": out / "compare.json", "markdown": out / "compare.md", "html": out / "compare.html"}
-    atomic_write_json(paths["json"], {**result, "exit_code": exit_code})
-    write_atomic(paths["markdown"], lambda f: f.write(markdown.encode()))
-    page = compare_page(result, frames, markdown)
-    write_atomic(paths["html"], lambda f: f.write(page.encode()))
+    with all_or_none(*paths.values()):
+        atomic_write_json(paths["json"], {**result, "exit_code": exit_code})
+        write_atomic(paths["markdown"], lambda f: f.write(markdown.encode()))
+        page = compare_page(result, frames, markdown)
+        write_atomic(paths["html"], lambda f: f.write(page.encode()))
     return paths
