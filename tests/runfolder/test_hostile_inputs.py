@@ -135,14 +135,18 @@ def _tmpfs(path: Path, size: str = "64k") -> None:
                           text=True)
     if done.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here ({done.stderr.strip() or done.returncode}): no full disk to test")
-    fd = os.open(path / "filler", os.O_WRONLY | os.O_CREAT)  # the disk is full before each command writes anything
     try:
-        while os.write(fd, bytes(4096)):
+        fd = os.open(path / "filler", os.O_WRONLY | os.O_CREAT)  # the disk is full before each command writes
+        try:
+            while os.write(fd, bytes(4096)):
+                pass
+        except OSError:
             pass
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+        finally:
+            os.close(fd)
+    except BaseException:
+        subprocess.run(["umount", str(path)], check=False)
+        raise
 
 
 @pytest.mark.slow
