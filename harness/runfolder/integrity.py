@@ -105,6 +105,8 @@ def arrays_problem(folder: Path, row: dict, manifest: dict | None) -> str | None
         except BoundsError as exc:
             return str(exc).split("; ")[0].rstrip(".")
         except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+            if path.name not in RECORDED:  # an optional file (controls, attribution): its section's reader leaves it out
+                continue
             return f"{path} is damaged or incomplete ({type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else 'unreadable'})"
     return None
 
