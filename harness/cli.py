@@ -588,11 +588,11 @@ def _cmd_run(args) -> int:
             raise FileNotFoundError(f"{args.resume} holds no manifest.json; pass the folder of an octo-harness run")
         protocol = protocol_from_manifest(manifest, args.resume / "manifest.json", model_fingerprint=None,
                                           goal_fingerprint=None)
-        out, name, method = args.resume.parent, args.resume.name, "wilson"
+        out, name, method = args.resume.parent, args.resume.name, None  # the manifest's statistics.ci_method
     else:
         settings = {**(read_protocol_file(args.protocol) if args.protocol else {}), **given}
         protocol = build_protocol(settings)
-        out, name, method = out_dir(settings), settings.get("run_name"), settings.get("ci_method", "wilson")
+        out, name, method = out_dir(settings), settings.get("run_name"), settings.get("ci_method")
     viewer = _live_viewer(args, modes)
     try:
         summary = execute(protocol, out, name, overwrite=args.overwrite, retry_failed=args.retry_failed, ci_method=method,

@@ -38,6 +38,7 @@ from harness.runfolder.schema import MalformedRunError
 log = logging.getLogger(__name__)
 
 ExecutorFactory = Callable[[EpisodeContext, object], Executor]
+CI_METHODS = ("wilson", "clopper-pearson")
 
 
 class ProtocolMismatchError(ValueError):
@@ -190,7 +191,7 @@ def execute(
     executor: ExecutorFactory | None = None,
     on_step: StepCallback | None = None,
     progress: bool = True,
-    ci_method: str = "wilson",
+    ci_method: str | None = None,
     viewer: str | None = None,
 ) -> RunSummary:
     """Run (or resume) the protocol's episodes into `<out>/<run_name>` and return the summary.
@@ -198,7 +199,12 @@ def execute(
     model: an already loaded model of `protocol.model` (else it is loaded after the cheap checks).
     executor: factory(context, model) -> Executor (default SequentialExecutor).
     viewer: gRPC url of a live Rerun viewer every episode streams to (harness.outputs.rerun_sink.start_viewer).
+    ci_method: the success intervals of the derived files (wilson, clopper-pearson); recorded in the manifest
+    ("statistics", outside the protocol and its hash), so a resume writes them as the run began; None: the recorded
+    one, else wilson. A different one for a run that records its own is refused (one line).
     """
+    if ci_method not in (None, *CI_METHODS):
+        raise ValueError(f"ci_method must be one of {', '.join(CI_METHODS)}, got {ci_method!r}")
     checks.check_environment()
     checks.check_libero(protocol)
     if protocol.outputs.rerun or viewer is not None:
@@ -234,6 +240,14 @@ def execute(
                         f"run {store.dir} was started with a different protocol (differs: {', '.join(differs)}); "
                         "run the same command to resume it, --overwrite to start it afresh, or choose another --run-name")
 
+            recorded_method = ((manifest or {}).get("statistics") or {}).get("ci_method")
+            if ci_method is not None and recorded_method is not None and ci_method != recorded_method:
+                raise ProtocolMismatchError(
+                    f"run {store.dir} writes its success intervals with {recorded_method} (manifest.json statistics."
+                    f"ci_method); drop --ci-method or pass --ci-method {recorded_method} to resume it, --overwrite to "
+                    "start it afresh")
+            ci_method = ci_method or recorded_method or "wilson"
+
             platform_now = platform_info(libero=libero_platform(protocol.tasks))
             platform_fp = platform_fingerprint(platform_now)
             if manifest is not None and manifest.get("platform_fingerprint") not in (None, platform_fp):
@@ -266,6 +280,8 @@ def execute(
                     "goal_images": protocol.goal_images, "git_commit": _git_commit(),
                     "versions": {"jax": platform_now["jax"]["version"], **platform_now["versions"]},
                     "platform": platform_now, "platform_fingerprint": platform_fp,
+                    # what the derived files' statistics use: not part of the protocol (the episodes are the same)
+                    "statistics": {"ci_method": ci_method, "confidence": 0.95},
                 }
                 store.write_manifest(manifest)
             store.remove_temporaries()

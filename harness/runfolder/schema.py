@@ -143,8 +143,11 @@ def check_manifest(manifest: Any, path: Path | str) -> dict:
             if job != implied:
                 raise _fail(path, f"jobs[{index}] is {_short(job)} but the protocol (tasks, episodes, seed) implies "
                                   f"{_short(implied)}: the manifest was edited by hand")
-    for name in ("model", "platform", "versions"):
+    for name in ("model", "platform", "versions", "statistics"):
         _expect(path, name, manifest.get(name), (dict,), "an object", optional=True)
+    method = (manifest.get("statistics") or {}).get("ci_method")
+    if method is not None and method not in ("wilson", "clopper-pearson"):
+        raise _fail(path, f"statistics.ci_method must be wilson or clopper-pearson, got {_short(method)}")
     _expect(path, "platform_fingerprint", manifest.get("platform_fingerprint"), (str,), "a string", optional=True)
     return manifest
 
