@@ -93,6 +93,12 @@ class Perturbation:
         return f"{self.kind}{'@' + self.camera if self.camera else ''}"
 
 
+def _cut(value, limit: int = 200) -> str:
+    """repr of a value given on the command line, cut to about `limit` characters (a 50 MB value is not echoed)."""
+    text = repr(value[: limit + 1] if isinstance(value, str) else value)
+    return text if len(text) <= limit else f"{text[:limit - 3]}... ({len(value) if isinstance(value, str) else '?'} characters)"
+
+
 def parse_perturb(value) -> tuple[Perturbation, ...]:
     """"KIND[@KEY]:LEVEL[,...]" (or a list of them, or None) -> canonical perturbations, level 0 dropped, sorted.
 
@@ -102,19 +108,22 @@ def parse_perturb(value) -> tuple[Perturbation, ...]:
         return ()
     items = value if isinstance(value, (list, tuple)) else [value]
     texts = [t.strip() for item in items for t in str(item).split(",") if t.strip()]
+    if not texts:  # "" or ",,,": no perturbation named (robustness refuses the same); nominal is no --perturb at all
+        raise PerturbationError(f"--perturb {_cut(value)} names no perturbation; pass KIND[@KEY]:LEVEL (e.g. camera:3), "
+                                "or leave --perturb out for the nominal scene")
     out: dict[tuple[str, str | None], Perturbation] = {}
     for text in texts:
         match = _SPEC.match(text)
         if not match:
-            raise PerturbationError(f"--perturb {text!r}: expected KIND[@KEY]:LEVEL, e.g. camera:3, camera@image_wrist:2, "
+            raise PerturbationError(f"--perturb {_cut(text)}: expected KIND[@KEY]:LEVEL, e.g. camera:3, camera@image_wrist:2, "
                                     f"lighting:1 (kinds: {', '.join(KINDS)}; levels 0-5)")
         kind, key, level = match.group(1), match.group(2), int(match.group(3))
         if kind not in KINDS:
-            raise PerturbationError(f"--perturb {text!r}: unknown kind {kind!r}; kinds: {', '.join(KINDS)}")
+            raise PerturbationError(f"--perturb {_cut(text)}: unknown kind {kind!r}; kinds: {', '.join(KINDS)}")
         if level not in LEVELS:
-            raise PerturbationError(f"--perturb {text!r}: level must be 0 (nominal) to 5 (severe), got {level}")
+            raise PerturbationError(f"--perturb {_cut(text)}: level must be 0 (nominal) to 5 (severe), got {level}")
         if key is not None and kind not in KEYED_KINDS:
-            raise PerturbationError(f"--perturb {text!r}: only {' and '.join(KEYED_KINDS)} take @KEY; write {kind}:{level}")
+            raise PerturbationError(f"--perturb {_cut(text)}: only {' and '.join(KEYED_KINDS)} take @KEY; write {kind}:{level}")
         if kind == "camera" and key is None:
             key = DEFAULT_CAMERA_KEY
         if (kind, key) in out or (kind == "noise" and any(k == "noise" and (key is None or c is None) for k, c in out)):

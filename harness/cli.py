@@ -6,12 +6,17 @@ Only parses arguments into frozen configs, wires the runner and prints; user err
 from __future__ import annotations
 
 import argparse
+import errno
 import signal
 import sys
 import threading
 from pathlib import Path
 
 USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, KeyError, FileNotFoundError, PermissionError)
+# An unexpected exception in any command (a bug): its own code, never 1 (a verdict for compare and regress, "an episode
+# failed" for run) nor 2 (bad input). docs/running.md#exit-codes
+INTERNAL_ERROR = 5
+DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS)  # a write the disk refused
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -26,10 +31,11 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
 
 def _interrupt(signum, frame):
-    """SIGTERM before the run installs its own handler (loading the model, compiling): the same exit as later."""
-    exc = KeyboardInterrupt(signal.Signals(signum).name)
-    exc.signum = signum
-    raise exc
+    """SIGINT / SIGTERM before the run installs its own handler (loading the model, compiling): the same exit as
+    later, recorded first so a KeyboardInterrupt swallowed by a finaliser is not lost (harness.interrupts)."""
+    from harness import interrupts
+
+    interrupts.handler(signum, frame)
 
 
 def _video_attention(text: str):
@@ -42,6 +48,16 @@ def _video_attention(text: str):
     except ValueError:
         raise argparse.ArgumentTypeError(f"--video-attention takes a layer index, 'rollout' or one of "
                                          f"{', '.join(ATTRIBUTION_VIDEO)}, got {text!r}") from None
+
+
+def _port(text: str) -> int:
+    try:
+        port = int(text)
+    except ValueError:
+        port = None
+    if port is None or not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"takes a port number 1-65535, got {text[:40]!r}")
+    return port
 
 
 def _render_device(text: str) -> str:
@@ -106,7 +122,8 @@ class OneLineParser(argparse.ArgumentParser):
 
     def error(self, message: str):
         fix = next((fix for text, fix in self.FIXES if text in message), "fix that option")
-        self.exit(2, f"error: {self.prog}: {message.splitlines()[0]}; {fix} (see {self.prog} --help)\n")
+        self.exit(2, f"error: {self.prog}: {_one_line(message.splitlines()[0] if message else message, 300)}; {fix} "
+                     f"(see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -159,9 +176,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "episode.rrd beside its files (part of the protocol); spawn streams live to a viewer on this "
                         "machine; serve hosts the web viewer for a headless server and prints its URL once "
                         "(save,spawn / save,serve: both); see docs/viewer.md")
-    r.add_argument("--viewer-port", type=int, default=None, metavar="PORT",
+    r.add_argument("--viewer-port", type=_port, default=None, metavar="PORT",
                    help="--rerun spawn/serve: the viewer's gRPC port [9876]; serve's web viewer uses --web-port")
-    r.add_argument("--web-port", type=int, default=None, metavar="PORT", help="--rerun serve: the web viewer's HTTP port [9090]")
+    r.add_argument("--web-port", type=_port, default=None, metavar="PORT", help="--rerun serve: the web viewer's HTTP port [9090]")
     r.add_argument("--normalisation", choices=["frame", "episode"], default=None, help="[frame]")
     r.add_argument("--no-video", action="store_true", default=None)
     r.add_argument("--gif", action="store_true", default=None, help="also write rollout.gif")
@@ -310,8 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="serve the web viewer from this machine (a headless server) and print its URL; Ctrl-C stops it")
     vw.add_argument("--no-simulate", action="store_true",
                     help="do not re-simulate the episode for its frames: maps and measures only")
-    vw.add_argument("--viewer-port", type=int, default=None, metavar="PORT", help="the viewer's gRPC port [9876]")
-    vw.add_argument("--web-port", type=int, default=None, metavar="PORT", help="--serve: the web viewer's HTTP port [9090]")
+    vw.add_argument("--viewer-port", type=_port, default=None, metavar="PORT", help="the viewer's gRPC port [9876]")
+    vw.add_argument("--web-port", type=_port, default=None, metavar="PORT", help="--serve: the web viewer's HTTP port [9090]")
 
     san = sub.add_parser("sanity", help="sanity checks of the attribution methods, once per policy: model-parameter "
                                          "randomisation and patch additivity, open loop on recorded inputs",
@@ -486,23 +503,17 @@ def _cmd_sanity(args) -> int:
     return 0
 
 
-def _has_display() -> bool:
-    import os
-
-    return sys.platform != "linux" or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-
-
 def _cmd_view(args) -> int:
     import tempfile
 
-    from harness.outputs.rerun_sink import import_rerun, serve_file, start_viewer
+    from harness.outputs.rerun_sink import check_viewer, import_rerun, serve_file, start_viewer
     from harness.run.view import build_recording
 
     rr = import_rerun()
     if args.save is not None and args.save.suffix != ".rrd":
         raise ValueError(f"--save {args.save}: a Rerun recording's name ends in .rrd")
-    if args.save is None and not args.serve and not _has_display():
-        raise ValueError("no display here for a viewer window; pass --serve (web viewer, prints its URL) or --save PATH.rrd")
+    if args.serve or args.save is None:  # before the episode is rebuilt: no display, a port out of range or in use
+        check_viewer("serve" if args.serve else "spawn", args.viewer_port, args.web_port)
     simulate = not args.no_simulate
     if args.save is not None or args.serve:
         with tempfile.TemporaryDirectory() as scratch:
@@ -580,11 +591,11 @@ def _cmd_run(args) -> int:
             raise FileNotFoundError(f"{args.resume} holds no manifest.json; pass the folder of an octo-harness run")
         protocol = protocol_from_manifest(manifest, args.resume / "manifest.json", model_fingerprint=None,
                                           goal_fingerprint=None)
-        out, name, method = args.resume.parent, args.resume.name, "wilson"
+        out, name, method = args.resume.parent, args.resume.name, None  # the manifest's statistics.ci_method
     else:
         settings = {**(read_protocol_file(args.protocol) if args.protocol else {}), **given}
         protocol = build_protocol(settings)
-        out, name, method = out_dir(settings), settings.get("run_name"), settings.get("ci_method", "wilson")
+        out, name, method = out_dir(settings), settings.get("run_name"), settings.get("ci_method")
     viewer = _live_viewer(args, modes)
     try:
         summary = execute(protocol, out, name, overwrite=args.overwrite, retry_failed=args.retry_failed, ci_method=method,
@@ -612,8 +623,27 @@ def _keep_serving(viewer, what: str = "the web viewer keeps serving") -> None:
     try:
         while True:
             time.sleep(3600)
-    except KeyboardInterrupt:
-        pass
+    except KeyboardInterrupt:  # the way to stop serving, not an interruption of the command
+        from harness import interrupts
+
+        interrupts.reset()
+
+
+ECHO_LIMIT = 1000  # characters of one error line: a value echoed from a 50 MB input is cut, with its length said
+
+
+def _one_line(message, limit: int = ECHO_LIMIT) -> str:
+    """An error's text as one line, cut to `limit` characters (a 50 MB bad value never floods the terminal)."""
+    text = " ".join(str(message).splitlines())
+    return text if len(text) <= limit else f"{text[:limit - 40]}... (cut: {len(text)} characters in all)"
+
+
+def _origin(exc: BaseException) -> str:
+    """ ' (at module.py:123)' of the innermost frame that raised, for a bug report."""
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    return f" (at {Path(tb.tb_frame.f_code.co_filename).name}:{tb.tb_lineno})" if tb is not None else ""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -621,8 +651,27 @@ def main(argv: list[str] | None = None) -> int:
     from harness import console
 
     console.configure(args.verbose)
+    from harness import interrupts
+
+    interrupts.reset()
     main_thread = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _interrupt) if main_thread else None
+    previous = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
+    try:
+        code = _dispatch(args)
+        interrupts.check()  # a signal whose KeyboardInterrupt a finaliser swallowed: still 128 + signum
+        return code
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", 2)
+        print(f"interrupted ({'SIGTERM' if signum == 15 else 'SIGINT'}); finished episodes are recorded, "
+              "run the same command to resume", file=sys.stderr)
+        return 128 + signum
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+
+
+def _dispatch(args) -> int:
+    """The command, its errors as exit codes: 2 for bad input or a full disk, INTERNAL_ERROR for a bug."""
     try:
         _apply_render_device(getattr(args, "render_device", None))
         if args.command == "tasks":
@@ -642,20 +691,35 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "robustness":
             return _cmd_robustness(args)
         return _cmd_run(args)
-    except KeyboardInterrupt as exc:
-        signum = getattr(exc, "signum", 2)
-        print(f"interrupted ({'SIGTERM' if signum == 15 else 'SIGINT'}); finished episodes are recorded, "
-              "run the same command to resume", file=sys.stderr)
-        return 128 + signum
     except _user_errors() as exc:
         if args.debug:
             raise
         message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        print(f"error: {message}", file=sys.stderr)
+        print(f"error: {_one_line(message)}", file=sys.stderr)
         return 2
-    finally:
-        if main_thread:
-            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+    except OSError as exc:  # a full disk, a read-only filesystem, a quota: one line (exit 2), never a verdict
+        if exc.errno not in DISK_ERRORS:
+            return _internal_error(exc, args)
+        if args.debug:
+            raise
+        where = f" {exc.filename}" if exc.filename else " its outputs"
+        print(f"error: could not write{where}: {exc.strerror or exc}; free space (or pass --out on another disk) and "
+              f"run the same command again", file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: BLE001 - the one place a bug becomes an exit code that is no verdict
+        return _internal_error(exc, args)
+
+
+def _internal_error(exc: BaseException, args) -> int:
+    """A bug: one line saying so (the traceback with --debug), exit INTERNAL_ERROR."""
+    if args.debug:
+        import traceback
+
+        traceback.print_exception(exc)
+    where = _origin(exc)
+    print(f"internal error: {type(exc).__name__}: {_one_line(exc, 300)}{where}; please report it (run with "
+          f"octo-harness --debug {args.command} ... for the traceback); exit {INTERNAL_ERROR}", file=sys.stderr)
+    return INTERNAL_ERROR
 
 
 if __name__ == "__main__":

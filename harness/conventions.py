@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from envs.options import EnvConfigError, EnvOptions
+from harness.bounded import read_toml
 
 CONVENTIONS_FILE = "harness.toml"
 FORMAT = "octo-harness-conventions/1"
@@ -148,7 +149,7 @@ class CheckpointConventions:
         if not path.is_file():
             return cls()
         try:
-            data = tomllib.loads(path.read_text())
+            data = read_toml(path)
         except tomllib.TOMLDecodeError as e:
             raise ConventionsError(f"{path}: not valid TOML ({e}); fix or delete the file") from None
         conventions = cls.parse(data, str(path))

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any, Callable
 
@@ -74,6 +75,18 @@ def write_atomic(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+@contextmanager
+def all_or_none(*paths: str | Path):
+    """Files written together as one result (compare.json, compare.md, compare.html): when the block fails (a full
+    disk), every one of them is removed, so a folder never holds part of a result beside files of an older one."""
+    try:
+        yield
+    except BaseException:
+        for path in paths:
+            Path(path).unlink(missing_ok=True)
+        raise
 
 
 def atomic_write_json(path: str | Path, obj) -> Path:

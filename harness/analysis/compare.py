@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.bounded import read_json
 from harness.analysis.paired import (
     ErroredPairs,
     PairedCounts,
@@ -536,7 +537,7 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
 
     require_complete=False: a candidate lacking the baseline's episodes is compared on the pairs it has (regress,
     whose sequential test may stop early, decides incompleteness itself)."""
-    baseline, candidate = load_run(baseline_dir), load_run(candidate_dir)
+    baseline, candidate = load_run(baseline_dir, legacy=False), load_run(candidate_dir, legacy=False)
     fields = incompatible_fields(_protocol(baseline), _protocol(candidate))
     if fields:
         raise IncompatibleRuns(f"the runs' protocols differ in fields that change outcomes: {', '.join(fields)}; "
@@ -621,7 +622,7 @@ def read_grid(path: str | Path) -> dict:
     """robustness.json of a grid folder ({"runs": {run name: perturb or None}, ...}); one line if unreadable."""
     path = Path(path) / GRID_FILE
     try:
-        grid = json.loads(path.read_text())
+        grid = read_json(path)
     except (OSError, ValueError) as exc:
         raise IncompatibleRuns(f"{path}: unreadable robustness grid ({exc}); re-create it with octo-harness robustness")
     runs = grid.get("runs") if isinstance(grid, dict) else None
@@ -644,7 +645,7 @@ def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: C
                                "baseline grid; run octo-harness robustness with the baseline's --perturb and --levels")
     details, missing, arms, truncated = [], {"baseline": [], "candidate": []}, None, (False, False)
     for name, perturb in base_grid["runs"].items():
-        baseline, candidate = load_run(Path(baseline_dir) / name), load_run(Path(candidate_dir) / name)
+        baseline, candidate = load_run(Path(baseline_dir) / name, legacy=False), load_run(Path(candidate_dir) / name, legacy=False)
         fields = incompatible_fields(_protocol(baseline), _protocol(candidate))
         if fields:
             raise IncompatibleRuns(f"condition {name}: the runs' protocols differ in fields that change outcomes: "

@@ -20,13 +20,13 @@ did there).
 
 from __future__ import annotations
 
-import json
 import math
 import re
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from harness.bounded import open_npz, read_json
 from harness.analysis.stats import wilson_interval
 
 CLOSED_BELOW = 0.5  # the "libero" action space's gripper: 1 open, 0 closed (envs.actions.libero_action's binarising)
@@ -88,12 +88,12 @@ def episode_grounding(attention_path, actions_path, episode_json: dict, cameras=
     than every other object except the `goals` (the basket, which the instruction names too)."""
     from envs.libero_tasks import named_object
 
-    with np.load(actions_path) as a:
+    with open_npz(actions_path) as a:
         grasp = grasp_step(a["executed"]) if "executed" in a.files else -1
     lifts, top = {}, {}
     objects: list[str] = []
     words = named_object(str(episode_json.get("instruction", "")))
-    with np.load(attention_path) as z:
+    with open_npz(attention_path) as z:
         for camera in cameras:
             names, mass, area = _object_measures(z, camera)
             if not names or mass.shape[0] == 0:
@@ -124,7 +124,7 @@ def collect(records) -> tuple[list[GroundingEpisode], list[str]]:
             if not is_libero(e.task) or not e.ok:
                 continue
             try:
-                meta = json.loads((e.directory / "episode.json").read_text())
+                meta = read_json(e.directory / "episode.json")
                 if not isinstance(meta, dict):
                     raise ValueError("not a JSON object")
                 spec = get_libero_task(e.task)

@@ -51,6 +51,7 @@ from harness.analysis import position as Q
 from harness.analysis.attention import camera_maps
 from harness.analysis.paired import (PairedCounts, detectable_loss, detectable_phrase, difference_interval, equivalent,
                                      holm_adjust, mcnemar_exact)
+from harness.bounded import open_npz
 from harness.analysis.stats import wilson_interval
 
 CAMERA = "image_primary"
@@ -114,7 +115,7 @@ def episode_measures(path, controls=None) -> dict:
     last layer, primary camera; nan when absent), "step0_rows" (layers, keys) normalised step-0 attention,
     "step0_lift" (layers,)}; with `controls` (the episode's controls.npz, when it has a blank control) also
     "nuisance_content", "target_lift_content", "nuisance_start_content" (content_measures)."""
-    with np.load(path) as z:
+    with open_npz(path) as z:
         background = _layer_measure(z, f"mask_mass/{CAMERA}/background")
         distractors = [np.asarray(z[k], np.float64) for k in z.files
                        if k.startswith(f"measures/layer/mask_mass/{CAMERA}/distractor_")]
@@ -123,7 +124,7 @@ def episode_measures(path, controls=None) -> dict:
         attn = np.asarray(attention[0], np.float64) if attention is not None else None
         content = {}
         if controls is not None and attention is not None:
-            with np.load(controls) as c:
+            with open_npz(controls) as c:
                 if "blank" in c.files and "step" in c.files:
                     arrays = {k: z[k] for k in z.files if k.startswith(("tokens/", f"mask_fraction/{CAMERA}/")) or k == "step"}
                     content = content_measures(attention, arrays, np.asarray(c["step"]), c["blank"])

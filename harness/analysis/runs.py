@@ -19,7 +19,6 @@ and sha256 its row records (rows written before digests were recorded are read u
 
 from __future__ import annotations
 
-import json
 import logging
 import zipfile
 from dataclasses import dataclass, field
@@ -27,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.bounded import BoundsError, loads_json, read_json, read_jsonl_text
+from harness.bounded import read_npz as bounded_npz
 from harness.runfolder.integrity import check_run_files, inside, verify_episode
 from harness.runfolder.schema import MalformedRunError, check_manifest, check_row, parse_row
 
@@ -79,7 +80,9 @@ class EpisodeRecord:
     def read_json(self) -> dict:
         """episode.json ({} when absent or unreadable)."""
         try:
-            return json.loads((self.directory / "episode.json").read_text())
+            return read_json(self.directory / "episode.json")
+        except BoundsError:
+            raise
         except (OSError, ValueError):
             return {}
 
@@ -128,7 +131,9 @@ class EpisodeArrays:
 
 def _read_json(path: Path) -> dict:
     try:
-        return json.loads(path.read_text())
+        return read_json(path)
+    except BoundsError:
+        raise
     except ValueError as exc:
         raise NotARunError(f"{path} is not valid JSON ({exc}); the run folder is damaged") from None
 
@@ -151,14 +156,22 @@ def is_run_dir(path: str | Path) -> bool:
     return (path / "manifest.json").is_file() or (path / "results.json").is_file()
 
 
-def load_run(path: str | Path) -> RunRecord:
-    """Read a run folder's manifest and results (not the arrays). Raises NotARunError for anything else."""
+def load_run(path: str | Path, legacy: bool = True) -> RunRecord:
+    """Read a run folder's manifest and results (not the arrays). Raises NotARunError for anything else.
+    legacy=False (compare, regress): a folder without manifest.json is not a run, whatever its results.json says."""
     path = Path(path).resolve()
     check_run_files(path, RUN_FILES)  # a symlink loop or a link out of the folder is named, not read as "no file"
     if (path / "manifest.json").is_file():
         return _load_store_run(path)
     if (path / "results.json").is_file():
-        return _load_legacy_run(path)
+        data = _read_json(path / "results.json")
+        store_made = isinstance(data, dict) and isinstance(data.get("manifest"), dict) \
+            and data["manifest"].get("format") == RUN_FORMAT
+        if store_made or not legacy:  # the run store's derived copy: its record (manifest.json) is gone
+            raise NotARunError(f"{path / 'manifest.json'} is missing; results.json is derived from it and cannot stand "
+                               "in for the run's record: restore manifest.json or re-create the run "
+                               "(octo-harness run ... --overwrite)")
+        return _load_legacy_run(path, data)
     raise _not_a_run(path)
 
 
@@ -207,18 +220,20 @@ def _load_store_run(path: Path) -> RunRecord:
     check_manifest(manifest, path / "manifest.json")
     protocol = manifest.get("protocol") or {}
     jobs = [(t, k, s) for t, k, s in manifest["jobs"]]
-    keys = {(t, k) for t, k, _ in jobs}
+    keys = {(t, k): s for t, k, s in jobs}
     rows: dict[tuple[str, int], dict] = {}
     results = path / "results.jsonl"
     if results.is_file():
-        text = results.read_text(errors="replace")
+        text = read_jsonl_text(results)
         lines = text.splitlines()
         for number, line in enumerate(lines, 1):
             if not line.strip():
                 continue
             if number == len(lines) and not text.endswith("\n"):
                 try:  # the last line may be being appended right now
-                    json.loads(line)
+                    loads_json(line, f"{results} line {number}")
+                except BoundsError:
+                    raise
                 except ValueError:
                     continue
             row = check_row(parse_row(line, results, number), results, number, keys)
@@ -226,7 +241,7 @@ def _load_store_run(path: Path) -> RunRecord:
     unverified = 0
     for row, number in rows.values():
         if (row.get("status") or "ok") == "ok":
-            verify_episode(path, f"{row['task']}/episode_{row['episode']}", row, f"{results} line {number}")
+            verify_episode(path, f"{row['task']}/episode_{row['episode']}", row, f"{results} line {number}", manifest)
             unverified += row.get("files") is None
     if unverified:
         log.info("%s: %d finished episodes record no file digests (rows made before digests were recorded); their "
@@ -235,8 +250,10 @@ def _load_store_run(path: Path) -> RunRecord:
     status = None
     if (path / "results.json").is_file():
         try:
-            status = json.loads((path / "results.json").read_text()).get("status")
-        except (OSError, ValueError):
+            status = read_json(path / "results.json").get("status")
+        except BoundsError:
+            raise
+        except (OSError, ValueError, AttributeError):
             status = None
     done = {(e.task, e.episode) for e in episodes}
     if all((t, k) in done for t, k, _ in jobs):
@@ -261,8 +278,7 @@ def _load_store_run(path: Path) -> RunRecord:
     )
 
 
-def _load_legacy_run(path: Path) -> RunRecord:
-    data = _read_json(path / "results.json")
+def _load_legacy_run(path: Path, data) -> RunRecord:
     if not isinstance(data, dict) or "manifest" not in data or "episodes" not in data:
         raise NotARunError(f"{path / 'results.json'} has no manifest and episodes; it is not an octo-harness run")
     manifest = data["manifest"]
@@ -293,35 +309,34 @@ def _load_legacy_run(path: Path) -> RunRecord:
 def load_episode_arrays(episode: EpisodeRecord) -> EpisodeArrays:
     """Read attention.npz of a finished episode. Raises FileNotFoundError when it is absent, MalformedRunError (a
     ValueError, one line) when it is damaged."""
+    z = read_npz(episode.attention_path, steps=episode.steps or None)
+    if "readout_attention" not in z:
+        raise _damaged(episode.attention_path, ValueError("it has no readout_attention"))
+
+    def group(prefix: str) -> dict[str, np.ndarray]:
+        return {name[len(prefix):]: value for name, value in z.items() if name.startswith(prefix)}
+
+    return EpisodeArrays(
+        readout_attention=z["readout_attention"],
+        tokens={name: value for name, value in z.items() if name.startswith("tokens/")},
+        mask_fractions=group("mask_fraction/"),
+        mask_areas=group("metrics/mask_area/"),
+        mask_mass=group("metrics/mask_mass/"),
+        step=z["step"] if "step" in z else np.arange(z["readout_attention"].shape[0]),
+    )
+
+
+def read_npz(path: Path, *names: str, steps: int | None = None) -> dict[str, np.ndarray]:
+    """An episode's .npz as {name: array} (only `names` when given), its headers checked before any data is loaded
+    (harness.bounded: no array longer than `steps`, none over the stated byte limits). A damaged or cut-short file
+    (a full disk, a killed copy) is a MalformedRunError naming it and the fix (one line, exit 2), not a traceback;
+    a missing one is FileNotFoundError."""
     try:
-        with np.load(episode.attention_path) as z:
-            files = z.files
-            if "readout_attention" not in files:
-                raise ValueError(f"{episode.attention_path} has no readout_attention")
-
-            def group(prefix: str) -> dict[str, np.ndarray]:
-                return {name[len(prefix):]: z[name] for name in files if name.startswith(prefix)}
-
-            return EpisodeArrays(
-                readout_attention=z["readout_attention"],
-                tokens={name: z[name] for name in files if name.startswith("tokens/")},
-                mask_fractions=group("mask_fraction/"),
-                mask_areas=group("metrics/mask_area/"),
-                mask_mass=group("metrics/mask_mass/"),
-                step=z["step"] if "step" in files else np.arange(z["readout_attention"].shape[0]),
-            )
+        return bounded_npz(path, names, steps=steps)
     except FileNotFoundError:
         raise
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-        raise _damaged(episode.attention_path, exc) from None
-
-
-def read_npz(path: Path, *names: str) -> dict[str, np.ndarray]:
-    """An episode's .npz as {name: array} (only `names` when given). A damaged or cut-short file (a full disk, a
-    killed copy) is a MalformedRunError naming it and the fix (one line, exit 2), not a traceback."""
-    try:
-        with np.load(path) as z:
-            return {k: z[k] for k in (names or z.files)}
+    except BoundsError:
+        raise
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         raise _damaged(path, exc) from None
 

@@ -11,14 +11,17 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 from flax import serialization, traverse_util
 
+from harness.bounded import BoundsError, read_json
 from harness.octo.errors import (
     CheckpointNotFoundError,
+    ConfigError,
     CorruptCheckpointError,
     HubUnavailableError,
     ParamTreeMismatchError,
@@ -101,6 +104,19 @@ def read_params(ckpt_dir: Path, step: int) -> dict:
     raise CheckpointNotFoundError(f"{default} is missing; the step folder has no parameters (expected <step>/default/checkpoint)")
 
 
+_BLOCK = re.compile(r"^encoderblock_(\d+)$")
+
+
+def check_layer_count(params: Mapping, num_layers: int, config_path: Path) -> None:
+    """The transformer's layer count in config.json against the encoder blocks the parameter files hold, before any
+    model is built (tracing a config's 10000 layers took minutes and gigabytes before anything refused it)."""
+    blocks = {int(m.group(1)) for path in traverse_util.flatten_dict(dict(params)) for part in path
+              if isinstance(part, str) and (m := _BLOCK.match(part))}
+    if blocks and len(blocks) != num_layers:
+        raise ConfigError(f"{config_path} says num_layers {num_layers} but the checkpoint's parameter files hold "
+                          f"{len(blocks)} encoder blocks; restore the checkpoint's own config.json")
+
+
 def _orbax_restore(path: Path) -> dict:
     import orbax.checkpoint as ocp
 
@@ -146,7 +162,9 @@ def read_dataset_statistics(ckpt_dir: Path) -> dict:
         log.warning("%s is missing; actions can only be returned normalised", path)
         return {}
     try:
-        stats = json.loads(path.read_text())
+        stats = read_json(path)
+    except BoundsError as e:
+        raise CorruptCheckpointError(f"{e}; re-download the checkpoint") from None
     except json.JSONDecodeError as e:
         raise CorruptCheckpointError(f"{path} is not valid JSON ({e}); re-download the checkpoint") from None
     return _arrays(stats)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Union
 
+from harness.bounded import BoundsError, read_json
 from harness.octo.errors import ConfigError, OctoError, UnsupportedModuleError
 
 _TOKENIZERS = "octo.model.components.tokenizers"
@@ -195,7 +196,9 @@ class OctoConfig:
     def from_json(cls, path: str | Path) -> "OctoConfig":
         path = Path(path)
         try:
-            data = json.loads(path.read_text())
+            data = read_json(path)
+        except BoundsError as e:
+            raise ConfigError(f"{e}; restore the checkpoint's config.json") from None
         except json.JSONDecodeError as e:
             raise ConfigError(f"{path} is not valid JSON ({e}); restore the checkpoint's config.json") from None
         return cls.from_dict(data)

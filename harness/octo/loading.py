@@ -53,8 +53,9 @@ def load_pretrained(uri: str, step: int | None = None, *, text_tokenizer: str | 
     t5 = _t5_config(config, ckpt)
     shapes = _input_shapes(config, example)
     start = time.perf_counter()
-    expected = jax.eval_shape(lambda key: init_params(key, config, t5_config=t5, **shapes), jax.random.PRNGKey(0))
     raw = checkpoint.read_params(ckpt, step)
+    checkpoint.check_layer_count(raw, config.transformer.num_layers, ckpt / "config.json")  # before tracing N blocks
+    expected = jax.eval_shape(lambda key: init_params(key, config, t5_config=t5, **shapes), jax.random.PRNGKey(0))
     checkpoint.check_param_tree(expected, raw)
     params = jax.tree.map(lambda e, r: jnp.asarray(r, dtype=e.dtype), expected, raw)
     del raw

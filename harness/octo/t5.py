@@ -20,7 +20,6 @@ with the highest matmul precision (the encoder runs once per task, so exactness 
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -91,8 +90,9 @@ def t5_config_for(encoder_name: str, checkpoint_dir: str | Path | None) -> T5Con
     config_path = Path(checkpoint_dir) / name_path / "config.json"
     if not config_path.is_file():
         raise UnknownT5EncoderError(f"unknown T5 encoder {encoder_name!r} (no {config_path}); {supported}")
-    with open(config_path) as f:
-        return T5Config.from_hf_dict(json.load(f))
+    from harness.bounded import read_json
+
+    return T5Config.from_hf_dict(read_json(config_path))
 
 
 def relative_position_buckets(length: int, num_buckets: int, max_distance: int) -> np.ndarray:

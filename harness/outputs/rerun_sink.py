@@ -137,10 +137,53 @@ class LiveViewer:
     hub: Any = field(default=None, repr=False)  # serve: the recording stream that hosts the gRPC server (kept alive)
 
 
+NO_DISPLAY = "no display here for a viewer window; pass --serve (web viewer, prints its URL) or --save PATH.rrd"
+
+
+def has_display() -> bool:
+    """A native viewer window can open: not Linux, or DISPLAY / WAYLAND_DISPLAY set."""
+    import sys
+
+    return sys.platform != "linux" or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def check_port(port: int, option: str) -> int:
+    """`port` within 1..65535 and free on this machine (nothing listens on it), else one line naming `option`: a
+    viewer on a busy port aborted the whole process (a Rust panic, exit 134), a port out of range was a traceback."""
+    import errno
+    import socket
+
+    if not isinstance(port, int) or isinstance(port, bool) or not 1 <= port <= 65535:
+        raise ValueError(f"{option} takes a port number 1-65535, got {port!r}")
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(("", port))
+    except OSError as exc:
+        if exc.errno in (errno.EADDRINUSE, errno.EACCES):
+            why = "is in use by another process" if exc.errno == errno.EADDRINUSE else "needs privileges here"
+            raise ValueError(f"port {port} ({option}) {why}; pass {option} with a free port") from None
+        raise
+    finally:
+        sock.close()
+    return port
+
+
+def check_viewer(mode: str, grpc_port: int | None = None, web_port: int | None = None) -> None:
+    """What a live viewer needs, before anything heavy: a display for spawn (the same line as `view`'s), free ports."""
+    if mode == "spawn" and not has_display():
+        raise ValueError(NO_DISPLAY)
+    check_port(grpc_port or DEFAULT_GRPC_PORT, "--viewer-port")
+    if mode == "serve":
+        check_port(web_port or DEFAULT_WEB_PORT, "--web-port")
+
+
 def start_viewer(mode: str, grpc_port: int | None = None, web_port: int | None = None, host: str = "127.0.0.1",
                  blueprint=None) -> LiveViewer:
     """spawn: start the native Rerun viewer on this machine (it listens on `grpc_port`);
-    serve: host a gRPC server in this process and the web viewer over HTTP (`web_port`); both on `host`."""
+    serve: host a gRPC server in this process and the web viewer over HTTP (`web_port`); both on `host`.
+    `check_viewer` first: no display for spawn, or a port out of range or in use, is one line (ValueError)."""
+    check_viewer(mode, grpc_port, web_port)
     rr = import_rerun()
     port = grpc_port or DEFAULT_GRPC_PORT
     if mode == "spawn":
@@ -261,10 +304,14 @@ class RerunSink:
         self.intervention = intervention
         self.control_hz = control_hz
         self.file = self.live = None
+        self._binary = self._out = None
         if self.path is not None:
+            # the encoded bytes are written here, not by Rerun's file sink: that one only logs a failed write (a full
+            # disk) and leaves a cut recording behind; here the OSError reaches the caller and the temp file goes
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._out = open(self.temp, "wb")
             self.file = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id(meta))
-            self.file.save(self.temp)
+            self._binary = self.file.binary_stream()
         if connect is not None:
             self.live = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id(meta))
             self.live.connect_grpc(connect)
@@ -441,6 +488,13 @@ class RerunSink:
         self._buffered_steps += 1
         if self.file is not None and self._buffered_steps >= self.FLUSH_STEPS:
             self._flush_columns()
+            self._drain()
+
+    def _drain(self) -> None:
+        """Write what the file stream has encoded so far (an OSError, e.g. a full disk, propagates)."""
+        data = self._binary.read(flush=True) if self._binary is not None else None
+        if data:
+            self._out.write(data)
 
     def _measure(self, name: str, values: np.ndarray, metrics: dict) -> None:
         if name.startswith("mask_area/") or values.ndim != 1:
@@ -469,9 +523,16 @@ class RerunSink:
             self._static("episode/outcome", self.rr.TextDocument("\n".join(lines), media_type="text/markdown"))
             for stream in self.streams:
                 stream.flush(blocking=True)
+            self._drain()
+            for stream in self.streams:
                 stream.disconnect()
+            self._drain()
             self.file = self.live = None
             if self.path is not None:
+                out, self._out, self._binary = self._out, None, None
+                out.flush()
+                os.fsync(out.fileno())
+                out.close()
                 os.replace(self.temp, self.path)
         except BaseException:
             self._discard()
@@ -493,5 +554,12 @@ class RerunSink:
                 pass
         self.file = self.live = None
         self._buffer = {}
+        self._binary = None
+        if self._out is not None:
+            out, self._out = self._out, None
+            try:
+                out.close()
+            except OSError:  # the close's own flush failed (a full disk): the file is deleted below anyway
+                pass
         if self.temp is not None:
             self.temp.unlink(missing_ok=True)

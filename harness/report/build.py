@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.bounded import open_npz
 from harness.analysis import aggregate as agg
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays, load_run
 from harness.analysis.stats import success_summary
@@ -89,7 +90,7 @@ def _analyse_episode(job: tuple, stored_only: bool = False) -> tuple[int, str, i
     run_index, task, episode, directory, bins = job
     record = EpisodeRecord(task=task, episode=episode, seed=None, status="ok", success=False, steps=0, directory=Path(directory))
     try:
-        with np.load(record.attention_path) as z:
+        with open_npz(record.attention_path) as z:
             measures = agg.measures_from_arrays({k: z[k] for k in z.files if k.startswith(agg.MEASURES)})
         if measures is None:
             if stored_only:
@@ -149,7 +150,7 @@ def _cameras(run: RunData) -> list[str]:
     for (task, episode) in run.summaries:
         path = next(e for e in run.record.episodes if (e.task, e.episode) == (task, episode)).attention_path
         try:
-            with np.load(path) as z:
+            with open_npz(path) as z:
                 return [str(k) for k in z["tokens/image_keys"]]
         except (OSError, KeyError, ValueError):
             continue

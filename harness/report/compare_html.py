@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.bounded import open_npz
 from harness.analysis.attention import camera_maps
-from harness.files import atomic_write_json, write_atomic
+from harness.files import all_or_none, atomic_write_json, write_atomic
 from harness.octo.tokens import TokenMap
 from harness.report import html as H
 from harness.report.compare_md import difference_label, pairs_cell, to_decide
@@ -26,7 +27,7 @@ def _step0_maps(episode_dir: str) -> tuple[TokenMap, dict[str, np.ndarray]] | No
     path = Path(episode_dir) / "attention.npz"
     if not path.is_file():
         return None
-    with np.load(path) as z:
+    with open_npz(path) as z:
         if "readout_attention" not in z.files or not z["readout_attention"].shape[0]:
             return None
         tokens = TokenMap.from_arrays(z)
@@ -255,8 +256,9 @@ def write_comparison(result: dict, out_dir: str | Path, frames: dict | None = No
     out.mkdir(parents=True, exist_ok=True)
     markdown = markdown_summary(result, exit_code)
     paths = {"json": out / "compare.json", "markdown": out / "compare.md", "html": out / "compare.html"}
-    atomic_write_json(paths["json"], {**result, "exit_code": exit_code})
-    write_atomic(paths["markdown"], lambda f: f.write(markdown.encode()))
-    page = compare_page(result, frames, markdown)
-    write_atomic(paths["html"], lambda f: f.write(page.encode()))
+    with all_or_none(*paths.values()):
+        atomic_write_json(paths["json"], {**result, "exit_code": exit_code})
+        write_atomic(paths["markdown"], lambda f: f.write(markdown.encode()))
+        page = compare_page(result, frames, markdown)
+        write_atomic(paths["html"], lambda f: f.write(page.encode()))
     return paths

@@ -30,6 +30,7 @@ from collections import defaultdict
 
 import numpy as np
 
+from harness.bounded import loads_json, read_jsonl_text
 from harness.analysis.faithfulness import relative_to_random
 from harness.analysis.paired import PairedCounts, mcnemar_exact, newcombe_paired_interval
 from harness.analysis.stats import wilson_interval
@@ -56,9 +57,9 @@ def read_rows(run) -> list[dict]:
     for episode in record.episodes:
         path = episode.directory / "faithfulness.jsonl"
         if episode.ok and path.is_file():
-            for line in path.read_text().splitlines():
+            for number, line in enumerate(read_jsonl_text(path, errors="strict").splitlines(), 1):
                 if line.strip():
-                    row = json.loads(line)
+                    row = loads_json(line, f"{path} line {number}")
                     row["task"], row["episode"] = episode.task, episode.episode
                     row.setdefault("fill", fill)
                     rows.append(row)

@@ -25,6 +25,7 @@ from typing import Callable
 import numpy as np
 
 from harness.analysis.attention import MEASURES_VERSION
+from harness import interrupts
 from harness.run import checks
 from harness.run.protocol import protocol_from_manifest
 from harness.runfolder.platform import libero_platform, platform_differences, platform_fingerprint, platform_info
@@ -38,18 +39,14 @@ from harness.runfolder.schema import MalformedRunError
 log = logging.getLogger(__name__)
 
 ExecutorFactory = Callable[[EpisodeContext, object], Executor]
+CI_METHODS = ("wilson", "clopper-pearson")
 
 
 class ProtocolMismatchError(ValueError):
     """An existing run folder holds a different protocol."""
 
 
-class Interrupted(KeyboardInterrupt):
-    """SIGINT or SIGTERM arrived; `signum` says which (exit code 128 + signum)."""
-
-    def __init__(self, signum: int):
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
+Interrupted = interrupts.Interrupted  # SIGINT or SIGTERM arrived; `signum` says which (exit code 128 + signum)
 
 
 @dataclass(frozen=True)
@@ -110,6 +107,7 @@ class _SignalGuard:
         self.pending: int | None = None
 
     def handler(self, signum, frame) -> None:
+        interrupts.record(signum)  # kept even if the KeyboardInterrupt below is swallowed (a __del__)
         if self.depth:
             self.pending = signum
             return
@@ -133,6 +131,7 @@ class _SignalGuard:
             return
         previous = {s: signal.signal(s, self.handler) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
+            interrupts.check()  # a signal that arrived before (loading the model) and was swallowed
             yield self
         finally:
             for s, h in previous.items():
@@ -193,7 +192,7 @@ def execute(
     executor: ExecutorFactory | None = None,
     on_step: StepCallback | None = None,
     progress: bool = True,
-    ci_method: str = "wilson",
+    ci_method: str | None = None,
     viewer: str | None = None,
 ) -> RunSummary:
     """Run (or resume) the protocol's episodes into `<out>/<run_name>` and return the summary.
@@ -201,7 +200,12 @@ def execute(
     model: an already loaded model of `protocol.model` (else it is loaded after the cheap checks).
     executor: factory(context, model) -> Executor (default SequentialExecutor).
     viewer: gRPC url of a live Rerun viewer every episode streams to (harness.outputs.rerun_sink.start_viewer).
+    ci_method: the success intervals of the derived files (wilson, clopper-pearson); recorded in the manifest
+    ("statistics", outside the protocol and its hash), so a resume writes them as the run began; None: the recorded
+    one, else wilson. A different one for a run that records its own is refused (one line).
     """
+    if ci_method not in (None, *CI_METHODS):
+        raise ValueError(f"ci_method must be one of {', '.join(CI_METHODS)}, got {ci_method!r}")
     checks.check_environment()
     checks.check_libero(protocol)
     if protocol.outputs.rerun or viewer is not None:
@@ -237,16 +241,24 @@ def execute(
                         f"run {store.dir} was started with a different protocol (differs: {', '.join(differs)}); "
                         "run the same command to resume it, --overwrite to start it afresh, or choose another --run-name")
 
+            recorded_method = ((manifest or {}).get("statistics") or {}).get("ci_method")
+            if ci_method is not None and recorded_method is not None and ci_method != recorded_method:
+                raise ProtocolMismatchError(
+                    f"run {store.dir} writes its success intervals with {recorded_method} (manifest.json statistics."
+                    f"ci_method); drop --ci-method or pass --ci-method {recorded_method} to resume it, --overwrite to "
+                    "start it afresh")
+            ci_method = ci_method or recorded_method or "wilson"
+
             platform_now = platform_info(libero=libero_platform(protocol.tasks))
             platform_fp = platform_fingerprint(platform_now)
             if manifest is not None and manifest.get("platform_fingerprint") not in (None, platform_fp):
                 log.warning("resuming run %s on another platform (differs: %s); its episodes record where they ran",
                             name, ", ".join(platform_differences(manifest.get("platform"), platform_now)) or "unknown")
-            rows = store.load_rows({j.key for j in jobs}) if manifest is not None else {}
+            rows = store.load_rows({j.key: j.seed for j in jobs}) if manifest is not None else {}
             if manifest is not None and manifest.get("run") != name:  # a copied or renamed run folder
                 rows = _rename_run(store, manifest, rows, name)
                 manifest = store.read_manifest()
-            done = _verified(store, rows, retry_failed)
+            done = _verified(store, rows, retry_failed, manifest)
             pending = [j for j in jobs if j.key not in done]
             goals = None
             if model is None and (pending or manifest is None):  # a finished run needs no model
@@ -254,6 +266,7 @@ def execute(
 
                 log.info("loading %s", protocol.model)
                 model = load_pretrained(protocol.model, text_tokenizer=protocol.text_tokenizer)
+                interrupts.check()  # Ctrl-C while loading, its KeyboardInterrupt swallowed by a finaliser
             if model is not None:
                 task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)
                 if pending:
@@ -271,6 +284,8 @@ def execute(
                     "measures_version": MEASURES_VERSION,
                     # where each env convention came from, per task family (flag, checkpoint, default:<family>)
                     **({"conventions": protocol.convention_sources} if protocol.convention_sources else {}),
+                    # what the derived files' statistics use: not part of the protocol (the episodes are the same)
+                    "statistics": {"ci_method": ci_method, "confidence": 0.95},
                 }
                 store.write_manifest(manifest)
             for line in _default_lines(protocol):
@@ -312,6 +327,7 @@ def execute(
                         _derive(store, manifest, jobs, rows, "running", ci_method)
                     if bar is not None:
                         bar.episode(row)
+                    interrupts.check()
                 status = "complete" if all(j.key in done for j in jobs) else "interrupted"
             finally:
                 if bar is not None:
@@ -329,7 +345,7 @@ def execute(
                           skipped=len(jobs) - len(pending))
 
 
-def _verified(store: RunStore, rows: dict, retry_failed: bool) -> set[tuple[str, int]]:
+def _verified(store: RunStore, rows: dict, retry_failed: bool, manifest: dict | None = None) -> set[tuple[str, int]]:
     """Jobs whose rows stand: failed ones (unless retried) and finished ones whose folder holds the files its row
     records, unchanged (harness/runfolder/integrity.py). A finished episode whose files are missing or damaged, or
     whose folder is a symlink or leads out of the run, is said on stderr and run again (its folder is removed as
@@ -343,7 +359,7 @@ def _verified(store: RunStore, rows: dict, retry_failed: bool) -> set[tuple[str,
         directory = f"{row.task}/episode_{row.episode}"
         try:
             problem = episode_problem(store.dir, directory, row.to_dict(), f"{store.dir / 'results.jsonl'}",
-                                      legacy=LEGACY_RESUME)
+                                      legacy=LEGACY_RESUME, manifest=manifest)
         except MalformedRunError as exc:  # leads out of the run folder or loops: the run's own folder is rewritten
             problem = str(exc).split("; ")[0]
         if problem is None:

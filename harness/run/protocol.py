@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -26,7 +25,7 @@ from harness.files import json_safe
 from harness.policy import PolicyConfig
 from harness.run.jobs import FORMAT, EpisodeJob  # noqa: F401  (re-exported)
 from harness.outputs.writers import OutputOptions
-from harness.runfolder.schema import FIX, MalformedRunError, check_protocol
+from harness.runfolder.schema import FIX, MalformedRunError, check_protocol, protocol_hash  # noqa: F401
 
 
 
@@ -182,9 +181,6 @@ def build(kind, data: Mapping[str, Any]):
     return kind(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
 
 
-def protocol_hash(protocol: Mapping[str, Any]) -> str:
-    """sha256 (hex) of the canonical JSON of a protocol dict."""
-    return hashlib.sha256(json.dumps(json_safe(protocol), sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:

@@ -194,7 +194,7 @@ def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = 
     """
     from harness.run import execute
 
-    baseline = load_run(baseline_dir)
+    baseline = load_run(baseline_dir, legacy=False)
     protocol = candidate_protocol(baseline.manifest, model, max_episodes, str(baseline.path / "manifest.json"),
                                   text_tokenizer)
     config = SequentialConfig(alpha=alpha, max_drop=max_drop)
@@ -334,12 +334,13 @@ def _numerics_line(replay: dict | None) -> str:
 
 def write_regress(result: dict, code: int, write_comparison) -> dict:
     """regress.json and the comparison outputs into <candidate run>/regress/; returns paths and the summary text."""
-    from harness.files import atomic_write_json
+    from harness.files import all_or_none, atomic_write_json
 
     out = Path(result["candidate_run"]) / "regress"
-    paths = write_comparison(result["compare"], out, None, None)
-    atomic_write_json(out / "regress.json", {**{k: v for k, v in result.items() if k != "compare"}, "exit_code": code,
-                                             "compare_json": str(paths["json"])})
+    with all_or_none(out / "regress.json", out / "compare.json", out / "compare.md", out / "compare.html"):
+        paths = write_comparison(result["compare"], out, None, None)
+        atomic_write_json(out / "regress.json", {**{k: v for k, v in result.items() if k != "compare"},
+                                                 "exit_code": code, "compare_json": str(paths["json"])})
     return {"json": out / "regress.json", "html": paths["html"], "summary": summary_text(result, code)}
 
 
@@ -398,10 +399,11 @@ def grid_summary_text(result: dict, code: int) -> str:
 
 
 def write_regress_grid(result: dict, code: int, write_comparison) -> dict:
-    from harness.files import atomic_write_json
+    from harness.files import all_or_none, atomic_write_json
 
     out = Path(result["candidate_run"]) / "regress"
-    paths = write_comparison(result["compare"], out, None, None)
-    atomic_write_json(out / "regress.json", {**{k: v for k, v in result.items() if k != "compare"}, "exit_code": code,
-                                             "compare_json": str(paths["json"])})
+    with all_or_none(out / "regress.json", out / "compare.json", out / "compare.md", out / "compare.html"):
+        paths = write_comparison(result["compare"], out, None, None)
+        atomic_write_json(out / "regress.json", {**{k: v for k, v in result.items() if k != "compare"},
+                                                 "exit_code": code, "compare_json": str(paths["json"])})
     return {"json": out / "regress.json", "html": paths["html"], "summary": grid_summary_text(result, code)}

@@ -97,10 +97,12 @@ def run_grid(base: Protocol, conditions: tuple[str, ...], levels: tuple[int, ...
     existing = out / GRID_FILE
     old = None
     if existing.is_file() and not overwrite:
-        import json
+        from harness.bounded import BoundsError, read_json
 
         try:
-            old = json.loads(existing.read_text())
+            old = read_json(existing)
+        except BoundsError:
+            raise
         except (OSError, ValueError):
             old = None
         if not isinstance(old, dict) or old.get("format") != "octo-harness-robustness/1":

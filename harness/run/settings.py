@@ -31,6 +31,7 @@ from typing import Any, Mapping
 
 from envs.options import EnvOptions, parse_camera
 from envs.perturbations import parse_perturb, perturb_text
+from harness.bounded import read_toml, short
 from harness.policy import PolicyConfig
 from harness.analysis.attribution import DEFAULT_METHODS
 from harness.outputs.writers import ATTRIBUTION_VIDEO
@@ -66,7 +67,7 @@ def read_protocol_file(path: str | Path) -> dict[str, Any]:
     """Settings from a TOML protocol file (keys normalised to underscores); one-line errors for bad files and keys."""
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
+        data = read_toml(path)
     except FileNotFoundError:
         raise FileNotFoundError(f"protocol file {path} does not exist") from None
     except (OSError, UnicodeDecodeError) as e:
@@ -86,7 +87,7 @@ def read_protocol_file(path: str | Path) -> dict[str, Any]:
     for key, value in settings.items():
         if not isinstance(value, FILE_KEYS[key]) or (isinstance(value, bool) and bool not in FILE_KEYS[key]):
             kinds = " or ".join(t.__name__ for t in FILE_KEYS[key])
-            raise ValueError(f"protocol file {path}: {key} must be a {kinds}, got {value!r}")
+            raise ValueError(f"protocol file {path}: {key} must be a {kinds}, got {short(value)}")
     if isinstance(settings.get("layers"), list):
         settings["layers"] = tuple(settings["layers"])
     if isinstance(settings.get("task"), str):
@@ -200,6 +201,9 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
             policy_given["attribution"] = f"{methods},{video_attention}"
     if "attribution" in s:
         policy_given["attribution"] = ",".join(s["attribution"]) if isinstance(s["attribution"], list) else s["attribution"]
+    if "controls_every" in s and s["controls_every"] is not None and not (
+            isinstance(s["controls_every"], int) and not isinstance(s["controls_every"], bool) and s["controls_every"] >= 1):
+        raise ValueError(f"--controls-every must be an integer >= 1 (1: every inference step), got {short(s['controls_every'])}")
     for key in ("faithfulness_every", "faithfulness_fill", "controls_every"):
         if key in s:
             policy_given[key] = s[key]

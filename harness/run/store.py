@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from harness.analysis.stats import success_summary
+from harness.bounded import MAX_JSONL_BYTES, BoundsError, read_bytes, read_json
 from harness.files import atomic_write_json, json_safe, write_atomic
 from harness.run.jobs import FORMAT, EpisodeJob
 from harness.runfolder.integrity import check_run_files
@@ -169,7 +170,9 @@ class RunStore:
         if not path.is_file():
             return None
         try:
-            manifest = json.loads(path.read_text())
+            manifest = read_json(path)
+        except BoundsError:
+            raise
         except (OSError, ValueError) as e:
             raise ValueError(f"{path} is unreadable ({e}); use --overwrite to start the run afresh") from None
         if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
@@ -201,14 +204,15 @@ class RunStore:
 
     # ---- results ---------------------------------------------------------------------------------
 
-    def load_rows(self, jobs: set[tuple[str, int]] | None = None) -> dict[tuple[str, int], EpisodeRow]:
+    def load_rows(self, jobs: set[tuple[str, int]] | dict[tuple[str, int], int] | None = None
+                  ) -> dict[tuple[str, int], EpisodeRow]:
         """Rows of results.jsonl by job (last line wins). A torn last line (killed mid-append) is cut off; any other
         malformed line, or a row of a job not in `jobs` (when given), is a MalformedRunError."""
         path = self.dir / RESULTS_JSONL
         check_run_files(self.dir, (RESULTS_JSONL,))
         if not path.is_file():
             return {}
-        data = path.read_bytes()
+        data = read_bytes(path, MAX_JSONL_BYTES, "JSON-lines file")
         if data and not data.endswith(b"\n"):
             keep = data.rfind(b"\n") + 1
             with open(path, "r+b") as f:
@@ -300,12 +304,10 @@ class RunStore:
                 match = _EPISODE_DIR.match(path.name)
                 if not match or (task, int(match.group(1))) in keep:
                     continue
-                if path.is_symlink():
-                    path.unlink()
-                elif path.is_dir():  # a file in an episode's place is not the run's: kept (that episode fails)
-                    shutil.rmtree(path)
+                if path.is_symlink() or not path.is_dir():  # a link, or a plain file where the episode's folder
+                    path.unlink()                          # belongs: removed (never followed), the episode runs again
                 else:
-                    continue
+                    shutil.rmtree(path)
                 removed.append(path)
         return removed
 

@@ -28,6 +28,7 @@ from harness.octo.tokens import TokenMap
 from harness.outputs.rerun_sink import RRD_NAME, RerunSink, SinkOptions, import_rerun
 from harness.records import EpisodeMeta, StepRecord
 from harness.run.protocol import protocol_from_manifest
+from harness.runfolder.integrity import file_digest
 
 
 class ViewInputError(ValueError):
@@ -149,7 +150,14 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
     ep = pick_episode(run, task, episode)
     existing = ep.directory / RRD_NAME
     damaged = None
-    if existing.is_file():  # made with --rerun save; a file the run folder holds is checked before it is trusted
+    recorded = (ep.row.get("files") or {}).get(RRD_NAME)  # its size and sha256, as the episode's run wrote it
+    if existing.is_file() and recorded is None:  # not written by this episode's run (another run's, or copied in)
+        damaged = (f"the episode folder's {existing.name} is not recorded in its row (results.jsonl), so it is not "
+                   "known to be this episode's; rebuilt from the run's files")
+    elif existing.is_file() and file_digest(existing) != {"size": recorded["size"], "sha256": recorded["sha256"]}:
+        damaged = (f"the run's {existing.name} is unreadable or changed (its size or sha256 differs from its row's); "
+                   "rebuilt from the run's files")
+    elif existing.is_file():  # made with --rerun save; a file the run folder holds is checked before it is trusted
         try:
             import_rerun().dataframe.load_recording(str(existing))
         except Exception as exc:  # noqa: BLE001 - any failure to read it: rebuild from the other files instead
@@ -160,8 +168,8 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
         return ViewResult(ep, "recording", f"the run's own recording {existing}", None,
                           Path(save) if save is not None else existing)
 
-    attention = read_npz(ep.attention_path)
-    actions = read_npz(ep.directory / "actions.npz")
+    attention = read_npz(ep.attention_path, steps=ep.steps or None)
+    actions = read_npz(ep.directory / "actions.npz", steps=ep.steps or None)
     if "readout_attention" not in attention:
         raise ViewInputError(f"{ep.attention_path} has no readout_attention; re-run the episode")
     tokens = TokenMap.from_arrays(attention)

@@ -19,12 +19,17 @@ import hashlib
 import os
 from pathlib import Path
 
+import zipfile
+
+from harness.bounded import BoundsError, check_npz
 from harness.runfolder.schema import FIX, MalformedRunError
 
-DATA_SUFFIXES = (".npz", ".jsonl")
+DATA_SUFFIXES = (".npz", ".jsonl", ".rrd")  # .rrd: a --rerun save recording, shown by `view` as the episode's own
+VIEW_ONLY = (".rrd",)  # digested, but no command reads numbers from it: `view` checks it and rebuilds it when it differs
 RECORDED = ("attention.npz", "actions.npz")  # written by every finished episode: a row with digests names them
 LEGACY_RESUME = ("episode.json",)  # what resume requires of a finished episode whose row records no digests
-RERUN = "re-run that episode: octo-harness run --resume RUN_DIR (it runs damaged episodes again)"
+RERUN = ("re-run that episode: octo-harness run --resume RUN_DIR (it runs damaged episodes again), or re-create the run "
+         "with --overwrite")
 
 
 def file_digest(path: str | os.PathLike, chunk: int = 1 << 20) -> dict:
@@ -78,25 +83,59 @@ def check_run_files(run_dir: Path, names) -> None:
             inside(run_dir, path)
 
 
+def array_axes(manifest: dict | None) -> dict[str, dict[int, int]]:
+    """What the manifest implies about an episode's arrays: {member: {axis: size}} (layers, action horizon)."""
+    model = (manifest or {}).get("model") or {}
+    axes: dict[str, dict[int, int]] = {}
+    if isinstance(model.get("layers"), int) and not isinstance(model["layers"], bool):
+        axes["readout_attention"] = {1: model["layers"]}
+    if isinstance(model.get("action_horizon"), int) and not isinstance(model["action_horizon"], bool):
+        axes["predicted"] = {1: model["action_horizon"]}
+    return axes
+
+
+def arrays_problem(folder: Path, row: dict, manifest: dict | None) -> str | None:
+    """The headers of every .npz in a finished episode's folder against its row (steps) and the manifest (layers,
+    action horizon), before any array is loaded (harness.bounded.check_npz); a problem phrase or None."""
+    steps = row.get("steps") if isinstance(row.get("steps"), int) else None
+    axes = array_axes(manifest)
+    for path in sorted(folder.glob("*.npz")):
+        try:
+            check_npz(path, steps, axes)
+        except BoundsError as exc:
+            return str(exc).split("; ")[0].rstrip(".")
+        except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+            if path.name not in RECORDED:  # an optional file (controls, attribution): its section's reader leaves it out
+                continue
+            return f"{path} is damaged or incomplete ({type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else 'unreadable'})"
+    return None
+
+
 def episode_problem(run_dir: Path, directory: str, row: dict, where: str | None = None,
-                    legacy: tuple[str, ...] = ()) -> str | None:
+                    legacy: tuple[str, ...] = (), manifest: dict | None = None) -> str | None:
     """What is wrong with a finished episode's folder `run_dir/directory` as its `row` describes it, or None.
 
     A problem is a phrase starting with the path (e.g. ".../attention.npz is missing"). Confinement (a folder or a
     file that leads outside the run folder or loops) is raised as a MalformedRunError instead, except for the
     episode folder itself being a symlink, which is a problem (resume replaces it by a real folder). `where`: the row's
     place (e.g. "results.jsonl line 3"), named in a confinement error. `legacy`: the files required of a row that
-    records no digests (readers: none, such a row is unverified; resume: episode.json, its completion mark)."""
+    records no digests (readers: none, such a row is unverified; resume: episode.json, its completion mark); such a row
+    still needs its arrays (`RECORDED`) when its folder exists or the manifest is one `run` wrote (it records the
+    platform): only hand-made outcome-only run folders hold rows without episode files. `manifest`: the run's, whose
+    model implies the arrays' layers and action horizon (`arrays_problem`)."""
     folder = Path(run_dir) / directory
     for link in (folder.parent, folder):
         if link.is_symlink():
             return f"{link} is a symlink, not a folder the run wrote"
     folder = inside(run_dir, folder, named_by=where)
     files = row.get("files")
-    if files is None and not legacy:
-        return None  # unverified: nothing recorded to check against
+    if files is None:
+        made_by_run = isinstance(manifest, dict) and "platform_fingerprint" in manifest
+        legacy = tuple(dict.fromkeys((*legacy, *(RECORDED if made_by_run or os.path.lexists(folder) else ()))))
+        if not legacy:
+            return None  # unverified: nothing recorded to check against, and no episode files to check
     if not folder.is_dir():
-        return f"{folder} is missing"
+        return f"{folder} is {'not a folder' if os.path.lexists(folder) else 'missing'}"
     for root, dirs, names in os.walk(folder, followlinks=False):
         for name in dirs + names:
             entry = Path(root) / name
@@ -110,19 +149,20 @@ def episode_problem(run_dir: Path, directory: str, row: dict, where: str | None 
         path = folder / name
         if not path.is_file():
             return f"{path} is missing"
-        if files is None or name not in files:
-            continue
+        if files is None or name not in files or name.endswith(VIEW_ONLY):
+            continue  # a recording is checked by `view`, which rebuilds it from the arrays when it differs
         expected, found = files[name], file_digest(path)
         if found["size"] != expected["size"]:
             return f"{path} is damaged ({found['size']} bytes, its row records {expected['size']})"
         if found["sha256"] != expected["sha256"]:
             return f"{path} is damaged (its sha256 differs from the one its row records)"
-    return None
+    return arrays_problem(folder, row, manifest)
 
 
-def verify_episode(run_dir: Path, directory: str, row: dict, where: str | None = None) -> None:
+def verify_episode(run_dir: Path, directory: str, row: dict, where: str | None = None,
+                   manifest: dict | None = None) -> None:
     """A reader's check of a finished episode: a MalformedRunError (one line, naming the file and the fix) when
     `episode_problem` finds one."""
-    problem = episode_problem(run_dir, directory, row, where)
+    problem = episode_problem(run_dir, directory, row, where, manifest=manifest)
     if problem is not None:
         raise MalformedRunError(f"{problem}; {RERUN}")

@@ -11,9 +11,13 @@ checked by harness/runfolder/integrity.py, called by the same readers.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
+
+from harness.bounded import MAX_JSON_BYTES, BoundsError, loads_json, read_json, short
 
 FIX = "repair the file or re-create the run (octo-harness run ... --overwrite)"
 ROW_STATUSES = ("ok", "failed")
@@ -45,8 +49,42 @@ def _expect(path, name: str, value: Any, kinds: tuple, label: str, optional: boo
 
 
 def _short(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
+    return short(value, 40)
+
+
+def protocol_hash(protocol: Mapping[str, Any]) -> str:
+    """sha256 (hex) of the canonical JSON of a protocol dict: what a manifest's `protocol_hash` records."""
+    from harness.files import json_safe
+
+    return hashlib.sha256(json.dumps(json_safe(protocol), sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def expected_jobs(protocol: Mapping[str, Any]) -> list[list]:
+    """The jobs a protocol implies: [task, k, seed + k] for each task, k = 0..episodes-1 (as Protocol.jobs())."""
+    return [[task, k, protocol["seed"] + k] for task in protocol["tasks"] for k in range(protocol["episodes"])]
+
+
+def _flat(data: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(data, Mapping) and data:
+        out: dict[str, Any] = {}
+        for key, value in data.items():
+            out.update(_flat(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: data}
+
+
+def _edited_fields(protocol: Mapping[str, Any], path: Path | str) -> list[str]:
+    """Fields of `protocol` that differ from the copy the run's derived results.json holds (to name what was edited
+    by hand); [] when there is no such copy."""
+    copy_path = Path(path).with_name("results.json")
+    try:
+        copy = read_json(copy_path, MAX_JSON_BYTES)["manifest"]["protocol"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+    if not isinstance(copy, Mapping):
+        return []
+    a, b = _flat(dict(copy)), _flat(dict(protocol))
+    return sorted(k for k in set(a) | set(b) if a.get(k, ...) != b.get(k, ...))
 
 
 def check_protocol(protocol: Any, path: Path | str) -> dict:
@@ -99,10 +137,33 @@ def check_manifest(manifest: Any, path: Path | str) -> dict:
     if protocol is not None and len(jobs) != len(protocol["tasks"]) * protocol["episodes"]:
         raise _fail(path, f"jobs holds {len(jobs)} episodes but protocol asks for {len(protocol['tasks'])} tasks x "
                           f"{protocol['episodes']} episodes")
-    for name in ("model", "platform", "versions"):
+    if protocol is not None:
+        check_protocol_hash(manifest, path)
+        for index, (job, implied) in enumerate(zip(jobs, expected_jobs(protocol))):
+            if job != implied:
+                raise _fail(path, f"jobs[{index}] is {_short(job)} but the protocol (tasks, episodes, seed) implies "
+                                  f"{_short(implied)}: the manifest was edited by hand")
+    for name in ("model", "platform", "versions", "statistics"):
         _expect(path, name, manifest.get(name), (dict,), "an object", optional=True)
+    method = (manifest.get("statistics") or {}).get("ci_method")
+    if method is not None and method not in ("wilson", "clopper-pearson"):
+        raise _fail(path, f"statistics.ci_method must be wilson or clopper-pearson, got {_short(method)}")
     _expect(path, "platform_fingerprint", manifest.get("platform_fingerprint"), (str,), "a string", optional=True)
     return manifest
+
+
+def check_protocol_hash(manifest: dict, path: Path | str) -> None:
+    """The stored protocol_hash against the hash of the protocol as stored: a protocol edited by hand (a seed,
+    max_steps) no longer matches it. MalformedRunError naming the field (from results.json's copy, when present)."""
+    stored = manifest.get("protocol_hash")
+    if not isinstance(stored, str):
+        raise _fail(path, f"protocol_hash must be the protocol's sha256, got {_short(stored)} (every run records it)")
+    if stored != protocol_hash(manifest["protocol"]):
+        edited = _edited_fields(manifest["protocol"], path)
+        named = (f"protocol.{', protocol.'.join(edited[:5])} differ(s) from results.json's copy" if edited
+                 else "a field of protocol was changed")
+        raise _fail(path, f"protocol does not match its protocol_hash ({named}): the manifest was edited by hand after "
+                          "the run started")
 
 
 def check_files_field(files, where: str) -> None:
@@ -120,15 +181,16 @@ def check_files_field(files, where: str) -> None:
 
 def parse_row(line: str, path: Path | str, number: int) -> Any:
     """One results.jsonl line (1-based `number`) -> its JSON value, or a MalformedRunError naming the line."""
-    import json
-
     try:
-        return json.loads(line)
+        return loads_json(line, f"{path} line {number}")
+    except BoundsError:
+        raise
     except ValueError as exc:
         raise _fail(f"{path} line {number}", f"not JSON ({exc})") from None
 
 
-def check_row(row: Any, path: Path | str, line: int, jobs: set[tuple[str, int]] | None = None) -> dict:
+def check_row(row: Any, path: Path | str, line: int,
+              jobs: set[tuple[str, int]] | Mapping[tuple[str, int], int | None] | None = None) -> dict:
     """One results.jsonl row (1-based `line`): returns it unchanged or raises MalformedRunError. Its `directory`
     must be the folder the run writes for its job, `<task>/episode_<k>` (relative, so it cannot name a folder
     outside the run); its `files` digests are checked for form here and against the files by
@@ -149,6 +211,10 @@ def check_row(row: Any, path: Path | str, line: int, jobs: set[tuple[str, int]] 
         raise _fail(where, f"steps must be >= 0, got {row['steps']}")
     if jobs is not None and (row["task"], row["episode"]) not in jobs:
         raise _fail(where, f"({row['task']!r}, episode {row['episode']}) is not one of the manifest's jobs")
+    if isinstance(jobs, Mapping) and row.get("seed") is not None and jobs[(row["task"], row["episode"])] is not None \
+            and row["seed"] != jobs[(row["task"], row["episode"])]:
+        raise _fail(where, f"seed {row['seed']} is not its job's seed {jobs[(row['task'], row['episode'])]} "
+                           "(manifest.json jobs): the row or the manifest was edited by hand")
     directory = row.get("directory")
     if directory is not None and directory != f"{row['task']}/episode_{row['episode']}":
         raise _fail(where, f"directory must be the job's folder {row['task']}/episode_{row['episode']!s} inside the run "

@@ -7,6 +7,7 @@ import pytest
 from harness import cli
 from harness.analysis.compare import compare_runs, exit_code, incompatible_fields
 from harness.analysis.paired import holm_adjust, mcnemar_exact
+from harness.runfolder.schema import protocol_hash
 
 PROTOCOL = {"model": "m", "model_fingerprint": "x", "tasks": ["Lift", "Stack"], "episodes": 10, "seed": 0,
             "max_steps": 50, "execution": "temporal_ensemble:0", "instruction": None, "goal_images": None,
@@ -26,6 +27,7 @@ def write_run(folder, successes: dict[str, list[bool | None]], protocol=None, mo
     folder.mkdir(parents=True)
     (folder / "manifest.json").write_text(json.dumps({
         "format": "octo-harness-run/1", "run": folder.name, "protocol": protocol, "jobs": jobs,
+        "protocol_hash": protocol_hash(protocol),
         "model": {"source": model, "is_random": False}}))
     rows = [{"run": folder.name, "task": task, "episode": k, "seed": k, "status": "ok" if flag is not None else "failed",
              "success": flag, "steps": 5, "directory": f"{task}/episode_{k}"}

@@ -11,6 +11,7 @@ from harness.analysis.bootstrap import bootstrap_mean_ci
 from harness.analysis.runs import NotARunError, load_run
 from harness.analysis.attention import mask_area_fraction, mask_fractions, step_metrics
 from harness.octo.tokens import build_token_map
+from harness.runfolder.schema import protocol_hash
 
 # a small Octo-like layout: 3 language tokens, window 2 x (primary 4x4, wrist 2x2, 2 language, 1 readout)
 TOKENS = build_token_map(
@@ -189,8 +190,9 @@ def test_representative_is_closest_to_the_median():
 
 def _store_run(path, rows, jobs, status="running", is_random=True):
     path.mkdir(parents=True)
-    manifest = {"format": "octo-harness-run/1", "run": path.name, "jobs": jobs,
-                "protocol": {"tasks": sorted({j[0] for j in jobs}), "episodes": 2, "seed": 0},
+    protocol = {"tasks": sorted({j[0] for j in jobs}), "episodes": 2, "seed": 0}
+    manifest = {"format": "octo-harness-run/1", "run": path.name, "jobs": jobs, "protocol": protocol,
+                "protocol_hash": protocol_hash(protocol),
                 "model": {"source": "random:octo-small-1.5", "is_random": is_random, "text_tokenizer": "t5-base",
                           "dataset_key": None}, "versions": {"jax": "0.7.1"}}
     (path / "manifest.json").write_text(json.dumps(manifest))

@@ -21,6 +21,7 @@ import pytest
 from harness.analysis.equivalence import Tolerances, action_change, action_scale, attention_change, first_change
 from harness.cli import main
 from harness.policy import input_digest
+from runfolder_edits import rehash
 
 REPO = Path(__file__).resolve().parents[2]
 BASELINE = REPO / "results" / "baselines" / "reference-lift"
@@ -149,6 +150,7 @@ def test_a_run_whose_model_is_not_here_names_the_fix(tmp_path, capsys):
     manifest = json.loads((run / "manifest.json").read_text())
     manifest["protocol"]["model"] = str(tmp_path / "gone")
     (run / "manifest.json").write_text(json.dumps(manifest))
+    rehash(run)  # a run made where the model was, not a hand-edited manifest
     assert main(["replay", str(run)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "is not on this machine" in err[0] and "pass the model to replay with --model" in err[0]

@@ -13,6 +13,7 @@ import pytest
 from harness.octo import OctoError, load_pretrained
 from harness.octo.errors import (
     CheckpointNotFoundError,
+    ConfigError,
     CorruptCheckpointError,
     HubUnavailableError,
     InputError,
@@ -113,10 +114,11 @@ def test_mismatched_parameter_tree_lists_paths_and_shapes(tiny_copy):
 
 
 def test_extra_layer_reported_as_missing_in_checkpoint(tiny_copy):
+    """The layer count is checked against the parameter files before the model is traced (issue 44)."""
     _edit_config(tiny_copy, lambda m: m["transformer_kwargs"].update(num_layers=3))
-    with pytest.raises(ParamTreeMismatchError) as err:
+    with pytest.raises(ConfigError) as err:
         load_pretrained(str(tiny_copy))
-    assert "encoderblock_2" in _one_line(err) and "missing in checkpoint" in str(err.value)
+    assert "num_layers 3" in _one_line(err) and "2 encoder blocks" in str(err.value)
 
 
 def test_unknown_dataset_key_lists_available(tiny):

@@ -11,6 +11,7 @@ import pytest
 
 from harness.cli import main
 from harness.runfolder.schema import MalformedRunError, check_manifest, check_row
+from runfolder_edits import rehash
 
 REPO = Path(__file__).resolve().parents[2]
 BASELINE = REPO / "results" / "baselines" / "reference-lift"
@@ -55,6 +56,7 @@ def runs(tmp_path):
         shutil.copytree(BASELINE, run)
         # the committed manifest names the model where the baseline was made; this checkout's copy is the same files
         _set(run, lambda m: m["protocol"].update(model=str(REPO / "models" / "octo-reference-robosuite")))
+        rehash(run)
     return good, bad
 
 

@@ -23,6 +23,7 @@ from harness.analysis.runs import load_run
 from harness.outputs.writers import OutputOptions
 from harness.run import Protocol, execute
 from harness.runfolder.integrity import file_digest
+from runfolder_edits import rehash
 
 REPO = Path(__file__).resolve().parents[2]
 BASELINE = REPO / "results" / "baselines" / "reference-lift"
@@ -315,6 +316,7 @@ def _two_task_copy(run: Path, dest: Path) -> Path:
     manifest["protocol"]["tasks"] = ["Lift", "Stack"]
     manifest["jobs"] = manifest["jobs"] + [["Stack", k, s] for _, k, s in manifest["jobs"]]
     (dest / "manifest.json").write_text(json.dumps(manifest))
+    rehash(dest)  # as a Lift + Stack run would have recorded it
     shutil.copytree(dest / "Lift", dest / "Stack")
     rows = _rows(dest)
     _write_rows(dest, rows + [{**r, "task": "Stack", "directory": r["directory"].replace("Lift", "Stack")} for r in rows])

@@ -1,0 +1,44 @@
+"""SIGINT and SIGTERM that cannot be lost: the signal is recorded before the KeyboardInterrupt is raised.
+
+Python raises a signal handler's exception wherever the main thread happens to be. When that is a `__del__`, a
+weakref callback or a `finally` that swallows it (MuJoCo's render context is finalised while a model loads), the
+KeyboardInterrupt is printed as "Exception ignored" and lost, and the command went on to exit 0 (2 of 8 Ctrl-C
+during model loading). `handler` records the signal in `received` first; the run driver and the command line
+`check()` it at their next safe point, so the command still ends with 128 + signum.
+"""
+
+from __future__ import annotations
+
+import signal
+
+received: int | None = None  # the first SIGINT / SIGTERM since `reset()`
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM arrived; `signum` says which (exit code 128 + signum)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def record(signum: int) -> None:
+    global received
+    if received is None:
+        received = signum
+
+
+def handler(signum, frame) -> None:
+    record(signum)
+    raise Interrupted(signum)
+
+
+def check() -> None:
+    """Raise Interrupted when a signal arrived whose KeyboardInterrupt may have been swallowed."""
+    if received is not None:
+        raise Interrupted(received)
+
+
+def reset() -> None:
+    global received
+    received = None

@@ -1,0 +1,250 @@
+"""Hostile inputs (issue 44): every reader and command over each class of the corpus (hostile_corpus.py) in a
+subprocess with a timeout and a memory cap, answering its documented exit code with one line, in bounded time and
+memory; plus what needs more than a file: a full disk (a small tmpfs), SIGINT while the model loads, resume over a
+plain file in an episode's place, and an exception injected into compare (the internal-error code, never 0 or 1).
+
+One tiny-model Lift run (1 episode, 2 steps) is made per session and copied per case; nothing else simulates,
+except the resume test (slow) which runs its episode again.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from hostile_corpus import make_cases
+
+REPO = Path(__file__).resolve().parents[2]
+MEMORY_CAP = 3 << 30  # address space of each command (RLIMIT_AS): the 640 MB bomb would not fit twice
+TIMEOUT = 60  # seconds a command may take on a damaged input (measured: 2-5 s each on 2 busy cores)
+ENV = {**os.environ, "PYTHONPATH": str(REPO), "HF_HUB_OFFLINE": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+       "PYOPENGL_PLATFORM": os.environ.get("PYOPENGL_PLATFORM", "egl")}
+# the memory cap is set by the child itself, before it imports anything (no preexec_fn: a fork of this process,
+# which runs JAX threads, is what Python warns about)
+COMMAND = [sys.executable, "-c", "import resource, sys; resource.setrlimit(resource.RLIMIT_AS, "
+           f"({MEMORY_CAP}, {MEMORY_CAP})); from harness.cli import main; sys.exit(main(sys.argv[1:]))"]
+UNCAPPED = [sys.executable, "-c", "import sys; from harness.cli import main; sys.exit(main(sys.argv[1:]))"]
+WORKERS = 2  # cases run two at a time (each is a process of its own)
+
+
+def octo(argv: list[str], env: dict | None = None, timeout: float = TIMEOUT, capped: bool = True
+         ) -> tuple[int, str, str, float]:
+    """(exit code, stdout, stderr, seconds) of `octo-harness argv` in a subprocess (memory-capped unless it must
+    simulate: MuJoCo's EGL context reserves more address space than the cap)."""
+    start = time.perf_counter()
+    done = subprocess.run([*(COMMAND if capped else UNCAPPED), *argv], capture_output=True, text=True, timeout=timeout, cwd=REPO,
+                          env={**ENV, **(env or {})})
+    return done.returncode, done.stdout, done.stderr, time.perf_counter() - start
+
+
+def one_error_line(stderr: str) -> str:
+    """The single `error: ` line of a refused command (log lines such as "[harness.run.driver] loading" may precede
+    it); no traceback."""
+    assert "Traceback" not in stderr, stderr[-2000:]
+    errors = [line for line in stderr.splitlines() if line.startswith("error: ")]
+    assert len(errors) == 1, stderr[-2000:]
+    return errors[0]
+
+
+@pytest.fixture(scope="module")
+def made(fixtures_dir, tmp_path_factory):
+    """One finished run of the tiny model: Lift, 1 episode, 2 steps, recorded inputs."""
+    from envs.options import EnvOptions
+    from harness.outputs.writers import OutputOptions
+    from harness.run.driver import execute
+    from harness.run.protocol import Protocol
+
+    out = tmp_path_factory.mktemp("hostile")
+    protocol = Protocol(model=str(fixtures_dir / "tiny"), tasks=("Lift",), episodes=1, max_steps=2,
+                        env=EnvOptions(masks=False, fast_render=True),
+                        outputs=OutputOptions(png_every=0, video=False, record_inputs=True))
+    execute(protocol, out, "run", progress=False)
+    return out / "run"
+
+
+@pytest.fixture(scope="module")
+def foreign_rrd(made, tmp_path_factory):
+    """A valid recording the run's rows do not record (rebuilt from the run's files: another process's file)."""
+    pytest.importorskip("rerun")
+    from harness.run.view import build_recording
+
+    path = tmp_path_factory.mktemp("rrd") / "other.rrd"
+    build_recording(made, save=path, simulate=False)
+    return path
+
+
+@pytest.mark.slow
+def test_every_hostile_input_gives_its_code_and_one_line_in_bounded_time(made, foreign_rrd, fixtures_dir, tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    cases = make_cases(made, tmp_path / "corpus", str(fixtures_dir / "tiny"), foreign_rrd)
+    failures, timings = [], {}
+
+    def answer(case):
+        try:
+            return octo(case.argv, case.env)
+        except subprocess.TimeoutExpired:
+            return None
+
+    with ThreadPoolExecutor(WORKERS) as pool:
+        answers = list(pool.map(answer, cases))
+    for case, answered in zip(cases, answers):
+        if answered is None:
+            failures.append(f"{case.name}: no answer in {TIMEOUT} s")
+            continue
+        code, out, err, seconds = answered
+        timings[case.name] = seconds
+        try:
+            assert code == case.code, f"exit {code}, expected {case.code}: {err.strip()[-600:]}"
+            if case.code == 0:
+                assert case.says in out, out[-600:]
+            else:
+                assert case.says in one_error_line(err), err[-600:]
+        except AssertionError as exc:
+            failures.append(f"{case.name} ({case.cls}): {exc}")
+    print("seconds per case:", json.dumps({k: round(v, 1) for k, v in timings.items()}))
+    assert not failures, "\n".join(failures)
+    assert max(timings.values()) < TIMEOUT
+    assert {c.cls for c in cases} >= {"deep nesting", "sparse giant", "zip bomb", "edited manifest", "viewer", "small"}
+
+
+@pytest.mark.slow
+def test_a_port_in_use_is_one_line_before_anything_heavy(made):
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        code, _, err, seconds = octo(["view", str(made), "--serve", "--no-simulate", "--viewer-port", str(port)])
+    assert code == 2 and f"port {port} (--viewer-port) is in use" in one_error_line(err), err[-1000:]
+
+
+def _tmpfs(path: Path, size: str = "64k") -> None:
+    path.mkdir(parents=True, exist_ok=True)
+    if os.geteuid() != 0:
+        pytest.skip("a full disk needs a small tmpfs, and mounting one needs root")
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True,
+                          text=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({done.stderr.strip() or done.returncode}): no full disk to test")
+    try:
+        fd = os.open(path / "filler", os.O_WRONLY | os.O_CREAT)  # the disk is full before each command writes
+        try:
+            while os.write(fd, bytes(4096)):
+                pass
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
+    except BaseException:
+        subprocess.run(["umount", str(path)], check=False)
+        raise
+
+
+@pytest.mark.slow
+def test_a_full_disk_is_one_line_exit_2_and_leaves_no_temporary_file(made, tmp_path):
+    full = tmp_path / "full"
+    _tmpfs(full)
+    try:
+        commands = {
+            "report": ["report", str(made), "--out", str(full / "report")],
+            "view --save": ["view", str(made), "--no-simulate", "--save", str(full / "episode.rrd")],
+            "compare": ["compare", str(made), str(made), "--no-frames", "--out", str(full / "cmp")],
+            "replay": ["replay", str(made), "--out", str(full / "replay")],
+        }
+        for name, argv in commands.items():
+            code, _, err, _ = octo(argv)
+            assert code == 2, (name, err[-1000:])
+            assert "No space left on device" in one_error_line(err), (name, err[-1000:])
+            left = [p.name for p in full.rglob("*") if p.is_file() and p.name != "filler"]
+            assert left == [], (name, left)  # nothing half-written, no temporary file
+    finally:
+        subprocess.run(["umount", str(full)], check=False)
+
+
+@pytest.mark.slow
+def test_sigint_while_the_model_loads_exits_130_every_time(fixtures_dir, tmp_path):
+    """Ctrl-C at several moments of loading (after the driver says "loading", at 0 to 1.5 s): 130 each time."""
+    codes = []
+    for delay in (0.0, 0.3, 0.8, 1.5):
+        out = tmp_path / f"out{delay}"
+        process = subprocess.Popen([*COMMAND, "run", "--model", str(fixtures_dir / "tiny"), "--task", "Lift",
+                                    "--max-steps", "2", "--no-video", "--png-every", "0", "--no-masks", "--fast-render",
+                                    "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                   cwd=REPO, env=ENV)
+        seen = ""
+        while "loading" not in seen and process.poll() is None:
+            seen += process.stderr.readline()
+        time.sleep(delay)
+        process.send_signal(signal.SIGINT)
+        _, err = process.communicate(timeout=TIMEOUT)
+        codes.append(process.returncode)
+        assert process.returncode == 130, (delay, process.returncode, (seen + err)[-1500:])
+        assert "interrupted (SIGINT)" in err
+    assert codes == [130] * 4
+
+
+@pytest.mark.slow
+def test_resume_replaces_a_plain_file_in_an_episodes_place_and_runs_it_again(made, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(made, run)
+    episode = run / "Lift" / "episode_0"
+    shutil.rmtree(episode)
+    episode.write_text("not a folder")
+    code, out, err, _ = octo(["run", "--resume", str(run)], timeout=300, capped=False)
+    assert code == 0, err[-1500:]
+    assert episode.is_dir() and (episode / "episode.json").is_file() and (episode / "actions.npz").is_file()
+    rows = [json.loads(line) for line in (run / "results.jsonl").read_text().splitlines()]
+    assert [r["status"] for r in rows] == ["ok", "ok"]  # the old row, then the episode run again
+
+
+def test_an_exception_injected_into_compare_exits_with_the_internal_error_code(monkeypatch, capsys):
+    """A bug is exit 5 (one line, "internal error"), never 0 (passes) or 1 (REGRESSED); --debug shows the traceback."""
+    from harness import cli
+    from harness.analysis import compare
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("injected")
+
+    monkeypatch.setattr(compare, "compare_runs", broken)
+    baseline = str(REPO / "results" / "baselines" / "reference-lift")
+    assert cli.main(["compare", baseline, baseline, "--no-frames"]) == cli.INTERNAL_ERROR == 5
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("internal error: RuntimeError: injected") and "please report" in err[0]
+    assert cli.main(["--debug", "compare", baseline, baseline, "--no-frames"]) == 5
+    assert "Traceback" in capsys.readouterr().err
+
+
+def test_a_recursion_error_and_a_memory_error_are_internal_errors_too(monkeypatch, capsys):
+    from harness import cli
+    from harness.analysis import compare
+
+    for exc in (RecursionError("deep"), MemoryError(), OSError(5, "Input/output error")):
+        def broken(*args, exc=exc, **kwargs):
+            raise exc
+
+        monkeypatch.setattr(compare, "compare_runs", broken)
+        baseline = str(REPO / "results" / "baselines" / "reference-lift")
+        assert cli.main(["compare", baseline, baseline, "--no-frames"]) == 5, exc
+        assert capsys.readouterr().err.startswith("internal error: ")
+
+
+def test_the_committed_baseline_still_verifies():
+    """results/baselines/reference-lift: its protocol hash recomputes, its jobs follow from its protocol, its rows
+    match its jobs, its arrays' headers fit its rows' steps and its model's layers."""
+    from harness.analysis.runs import load_run
+    from harness.runfolder.schema import protocol_hash
+
+    path = REPO / "results" / "baselines" / "reference-lift"
+    manifest = json.loads((path / "manifest.json").read_text())
+    assert manifest["protocol_hash"] == protocol_hash(manifest["protocol"])
+    run = load_run(path, legacy=False)
+    assert run.status == "complete" and len(run.episodes) == 8
