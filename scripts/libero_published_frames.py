@@ -5,7 +5,7 @@ The loop the published Octo/OpenVLA LIBERO numbers come from, as its steps read 
 with `set_init_state`, take 10 no-op actions (arm still, gripper open: [0, 0, 0, 0, 0, 0, -1]) so objects settle,
 then turn each camera's frame by 180 degrees (`[::-1, ::-1]`), which is what the policy is fed. Nothing of the
 harness is imported, so this is a recording of LIBERO's own path that the harness's default input is checked
-against (tests/envs/test_libero_published_protocol.py).
+against (tests/libero/test_published_protocol.py).
 
 Run in LIBERO's environment (`bash scripts/setup_libero.sh` first):
     LIBERO_CONFIG_PATH=.venv-libero/libero-config .venv-libero/bin/python scripts/libero_published_frames.py \

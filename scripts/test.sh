@@ -19,5 +19,5 @@ bash "$(dirname "$0")/setup_libero.sh"
 echo "[setup] LIBERO environment ready ($(( $(date +%s) - libero_start )) s)"
 export HF_HUB_OFFLINE=1
 # Two test processes (pytest-xdist): a test file runs on one of them, so its module-scoped runs are made once (see
-# tests/conftest.py). OCTO_TEST_WORKERS=0 runs in this process alone (e.g. with a debugger); -n N overrides.
-exec .venv/bin/python -m pytest -n "${OCTO_TEST_WORKERS:-2}" --dist loadgroup "$@"
+# tests/conftest.py; --dist loadgroup does not group under pytest 9). OCTO_TEST_WORKERS=0 runs in this process alone (e.g. with a debugger); -n N overrides.
+exec .venv/bin/python -m pytest -n "${OCTO_TEST_WORKERS:-2}" --dist loadfile "$@"

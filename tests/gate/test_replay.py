@@ -21,7 +21,7 @@ import pytest
 from harness.analysis.equivalence import Tolerances, action_change, action_scale, attention_change, first_change
 from harness.cli import main
 from harness.policy import input_digest
-from runfolder_edits import rehash
+from tests.runfolder.edits import drop_output, make_legacy, rehash
 
 REPO = Path(__file__).resolve().parents[2]
 BASELINE = REPO / "results" / "baselines" / "reference-lift"
@@ -137,8 +137,7 @@ def test_a_candidate_with_one_weight_tensor_perturbed_is_changed_from_step_0(cap
 def test_a_run_without_recorded_inputs_is_one_line_and_exit_2(tmp_path, capsys):
     run = tmp_path / "run"
     shutil.copytree(BASELINE, run)
-    for path in run.glob("*/*/inputs.npz"):
-        path.unlink()
+    drop_output(run, "inputs.npz")  # a run made without --record-inputs
     assert main(["replay", str(run), "--model", str(MODEL)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "has no inputs.npz; replay needs a run made with --record-inputs" in err[0]
@@ -189,12 +188,17 @@ def test_a_candidate_that_outputs_nan_is_changed_not_equivalent(capsys, tmp_path
     assert code == 1 and result["verdict"] == "CHANGED" and result["first_change"]["first_changed_step"] == 0, out
 
 
+@pytest.mark.parametrize("legacy, found", [(False, "is damaged (200 bytes, its row records"),
+                                           (True, "is damaged or incomplete")])
 @pytest.mark.parametrize("name", ["inputs.npz", "attention.npz"])
-def test_a_damaged_recorded_file_is_one_line_and_exit_2(name, tmp_path, capsys):
+def test_a_damaged_recorded_file_is_one_line_and_exit_2(name, legacy, found, tmp_path, capsys):
+    """Found by its recorded size and digest, or, in rows made before those were recorded, by its reader."""
     run = tmp_path / "run"
     shutil.copytree(BASELINE, run)
+    if legacy:
+        make_legacy(run)
     path = run / "Lift" / "episode_3" / name
     path.write_bytes(path.read_bytes()[:200])  # cut short, as a full disk leaves it
     assert main(["replay", str(run), "--model", str(MODEL)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and f"episode_3/{name} is damaged or incomplete" in err[0]
+    assert len(err) == 1 and f"episode_3/{name} {found}" in err[0]

@@ -362,20 +362,30 @@ def test_the_scripted_expert_places_the_named_object_in_the_basket(task, state):
     assert result["success"], result
 
 
-@pytest.mark.slow
-def test_tiny_fixture_runs_a_libero_task_and_two_workers_equal_sequential_bit_for_bit(fixtures_dir, tmp_path):
+@pytest.fixture(scope="module")
+def libero_run(fixtures_dir, tmp_path_factory):
+    """One sequential LIBERO run of the tiny fixture (libero_object/0, 2 episodes from stored states, 4 steps, PNGs,
+    MP4, recorded inputs), shared by the tests that compare other executors with it."""
     _needs_libero()
     from harness.octo import load_pretrained
     from harness.outputs.writers import OutputOptions
     from harness.run import execute
     from harness.run.protocol import Protocol
-    from harness.run.workers import WorkersExecutor
 
     tiny = load_pretrained(str(fixtures_dir / "tiny"))
     protocol = Protocol(model=tiny.source, tasks=("libero_object/0",), episodes=2, seed=4, max_steps=4,
                         env=EnvOptions(masks=True, cameras=CAMERAS),
                         outputs=OutputOptions(png_every=2, video=True, record_inputs=True))
-    sequential = execute(protocol, tmp_path, "seq", model=tiny, progress=False)
+    out = tmp_path_factory.mktemp("libero")
+    return tiny, protocol, execute(protocol, out, "seq", model=tiny, progress=False)
+
+
+@pytest.mark.slow
+def test_tiny_fixture_runs_a_libero_task_and_two_workers_equal_sequential_bit_for_bit(libero_run, tmp_path):
+    from harness.run import execute
+    from harness.run.workers import WorkersExecutor
+
+    tiny, protocol, sequential = libero_run
     parallel = execute(protocol, tmp_path, "w2", model=tiny, progress=False,
                        executor=lambda context, model: WorkersExecutor(context, model, workers=2))
     manifest = json.loads((sequential.run_dir / "manifest.json").read_text())
@@ -429,24 +439,17 @@ def test_random_octo_small_runs_a_libero_task_from_the_command_line_and_resumes(
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("ray")  # with tests/run/test_parallel.py: one local Ray cluster at a time
-def test_ray_env_workers_run_libero_tasks_with_the_sequential_bits(fixtures_dir, tmp_path):
-    """Each Ray env actor starts its own LIBERO server; the episodes equal a sequential run's bit for bit."""
-    _needs_libero()
-    from harness.octo import load_pretrained
-    from harness.outputs.writers import OutputOptions
+def test_ray_env_workers_run_libero_tasks_with_the_sequential_bits(libero_run, tmp_path):
+    """Each Ray env actor starts its own LIBERO server; the episodes equal the sequential run's bit for bit."""
     from harness.run import execute
-    from harness.run.protocol import Protocol
     from harness.run.ray_executor import RayExecutor
 
-    tiny = load_pretrained(str(fixtures_dir / "tiny"))
-    protocol = Protocol(model=tiny.source, tasks=("libero_object/2",), episodes=1, seed=9, max_steps=3,
-                        env=EnvOptions(masks=True, cameras=CAMERAS), outputs=OutputOptions(png_every=0, video=False))
-    sequential = execute(protocol, tmp_path, "seq", model=tiny, progress=False)
+    tiny, protocol, sequential = libero_run
     ray = execute(protocol, tmp_path, "ray", model=tiny, progress=False,
                   executor=lambda context, model: RayExecutor(context, model, workers=1))
-    (a,), (b,) = sequential.rows, ray.rows
-    assert (a.status, b.status, a.steps, b.steps) == ("ok", "ok", 3, 3)
-    with np.load(sequential.episode_dir(a) / "attention.npz") as za, np.load(ray.episode_dir(b) / "attention.npz") as zb:
-        np.testing.assert_array_equal(za["readout_attention"], zb["readout_attention"])
-        np.testing.assert_array_equal(za["metrics/mask_mass/image_primary/target"], zb["metrics/mask_mass/image_primary/target"])
+    for a, b in zip(sequential.rows, ray.rows):
+        assert (a.status, b.status, a.steps, b.steps) == ("ok", "ok", 4, 4)
+        with np.load(sequential.episode_dir(a) / "attention.npz") as za, np.load(ray.episode_dir(b) / "attention.npz") as zb:
+            np.testing.assert_array_equal(za["readout_attention"], zb["readout_attention"])
+            np.testing.assert_array_equal(za["metrics/mask_mass/image_primary/target"],
+                                          zb["metrics/mask_mass/image_primary/target"])

@@ -25,8 +25,6 @@ from harness.run.execution import executor_factory
 from harness.run.workers import WorkersExecutor, max_workers, warmup_request, PolicyShape
 from harness.outputs.writers import OutputOptions
 
-pytestmark = pytest.mark.xdist_group("ray")  # with the LIBERO Ray test: one local Ray cluster at a time
-
 STEPS = 8
 CAMERAS = (("image_primary", "agentview", 64), ("image_wrist", "robot0_eye_in_hand", 32))  # the tiny model's sizes
 REPO = Path(__file__).resolve().parents[2]
@@ -78,19 +76,19 @@ def _assert_replay_is_exact(summary, model) -> None:
     assert result["action_change_max"] == 0.0 and result["attention_js_max"] == 0.0
 
 
-def _run_three_while(tiny, tmp_path, name, factory, killer):
-    """Run 3 episodes with `factory` while `killer` (a thread) kills a worker."""
+def _run_while(tiny, tmp_path, name, factory, killer, episodes: int = 3):
+    """Run 3 (or `episodes`) episodes with `factory` while `killer` (a thread) kills a worker."""
     thread = threading.Thread(target=killer, daemon=True)
     thread.start()
-    summary = execute(_protocol(tiny, episodes=3), tmp_path, name, model=tiny, executor=factory, progress=False)
+    summary = execute(_protocol(tiny, episodes=episodes), tmp_path, name, model=tiny, executor=factory, progress=False)
     thread.join()
     return summary
 
 
-def _the_one_failed_episode(summary):
-    """A 3-episode run that lost one worker: complete, one failed row (its folder holds only episode.json), the
+def _the_one_failed_episode(summary, episodes: int = 3):
+    """A run of `episodes` that lost one worker: complete, one failed row (its folder holds only episode.json), the
     other episodes whole, no temporaries. Returns the failed row."""
-    assert summary.status == "complete" and len(summary.rows) == 3
+    assert summary.status == "complete" and len(summary.rows) == episodes
     failed = [r for r in summary.rows if r.status == "failed"]
     assert len(failed) == 1
     assert all(r.status == "ok" and r.steps == STEPS for r in summary.rows if r is not failed[0])
@@ -203,9 +201,9 @@ def test_a_worker_killed_mid_episode_fails_that_episode_is_replaced_and_the_run_
     killed = []
 
     def kill_a_busy_worker():
-        """Kills a worker while both workers run the first two episodes, so the third is still queued and the pool
-        must start a replacement for it, however slowly the machine runs (no timing assumption: under load the
-        first episodes may end before any given number of inference calls)."""
+        """Kills a worker while both workers run the first two of four episodes: two are queued, and the pool must
+        start a replacement for them however slowly the machine runs. (No timing assumption: under load the other
+        worker may finish its episode and take the third before the death is seen; the fourth is still queued.)"""
         deadline = time.monotonic() + 300
         while time.monotonic() < deadline and not killed:
             pool = executors[0].pool if executors else None
@@ -220,9 +218,9 @@ def test_a_worker_killed_mid_episode_fails_that_episode_is_replaced_and_the_run_
                     return
             time.sleep(0.001)
 
-    summary = _run_three_while(tiny, tmp_path, "kill", factory, kill_a_busy_worker)
+    summary = _run_while(tiny, tmp_path, "kill", factory, kill_a_busy_worker, episodes=4)
     assert killed, "no worker was killed"
-    failed = _the_one_failed_episode(summary)
+    failed = _the_one_failed_episode(summary, episodes=4)
     assert (failed.task, failed.episode) == (killed[0].task, killed[0].episode)
     assert "worker process died: signal 9" in failed.error
     assert executors[0].pool.replacements == 1
@@ -396,10 +394,12 @@ def test_ray_executor_with_two_workers_gives_the_sequential_episodes(tiny, seque
 
 
 def _busy_ray_env_workers() -> list[int]:
-    """Pids of Ray env-worker actors inside `run` (Ray titles the process `ray::EnvWorker.run` meanwhile)."""
+    """Pids of this test's Ray env-worker actors inside `run` (Ray titles the process `ray::EnvWorker.run`
+    meanwhile): descendants of this process only, since another test process may run a Ray cluster of its own."""
     pids = []
+    ours = _children(os.getpid())
     for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
+        if entry.name.isdigit() and int(entry.name) in ours:
             try:
                 if (entry / "cmdline").read_bytes().startswith(b"ray::EnvWorker.run"):
                     pids.append(int(entry.name))
@@ -428,7 +428,7 @@ def test_a_ray_env_worker_killed_during_a_job_fails_that_episode_is_replaced_and
                 return
             time.sleep(0.02)
 
-    summary = _run_three_while(tiny, tmp_path, "raykill", factory, kill_a_busy_actor)
+    summary = _run_while(tiny, tmp_path, "raykill", factory, kill_a_busy_actor)
     assert killed, "no Ray env worker was killed"
     failed = _the_one_failed_episode(summary)
     assert f"worker process died (pid {killed[0]}" in failed.error

@@ -27,3 +27,26 @@ def rehash(run_dir: Path) -> None:
     manifest = json.loads(path.read_text())
     manifest["protocol_hash"] = protocol_hash(manifest["protocol"])
     path.write_text(json.dumps(manifest))
+
+
+def drop_output(run_dir: Path, name: str, rows: int | None = None) -> None:
+    """Delete episode file `name` (e.g. "inputs.npz") and its record in the first `rows` finished rows (all by
+    default), as a run made without that output holds them: the readers then see an output that was never written,
+    not a written file that went missing."""
+    results = Path(run_dir) / "results.jsonl"
+    kept = [json.loads(line) for line in results.read_text().splitlines() if line.strip()]
+    for row in kept[:rows]:
+        (Path(run_dir) / row["directory"] / name).unlink(missing_ok=True)
+        if row.get("files"):
+            row["files"].pop(name, None)
+    results.write_text("".join(json.dumps(row) + "\n" for row in kept))
+
+
+def make_legacy(run_dir: Path) -> None:
+    """Drop every row's recorded sizes and digests, as rows written before they were recorded hold them (the
+    readers then read the files unverified, and a damaged one is found by its own reader)."""
+    results = Path(run_dir) / "results.jsonl"
+    rows = [json.loads(line) for line in results.read_text().splitlines() if line.strip()]
+    for row in rows:
+        row.pop("files", None)
+    results.write_text("".join(json.dumps(row) + "\n" for row in rows))

@@ -11,7 +11,7 @@ import pytest
 
 from harness.cli import main
 from harness.runfolder.schema import MalformedRunError, check_manifest, check_row
-from runfolder_edits import rehash
+from tests.runfolder.edits import rehash
 
 REPO = Path(__file__).resolve().parents[2]
 BASELINE = REPO / "results" / "baselines" / "reference-lift"
@@ -129,4 +129,4 @@ def test_a_cut_short_episode_array_is_one_line_and_exit_2_in_compare(runs, tmp_p
     path = bad / "Lift" / "episode_2" / "attention.npz"
     path.write_bytes(path.read_bytes()[:300])
     _one_line_exit_2(["compare", str(good), str(bad), "--out", str(tmp_path / "cmp")], capsys,
-                     "episode_2/attention.npz is damaged or incomplete")
+                     "episode_2/attention.npz is damaged (300 bytes, its row records")

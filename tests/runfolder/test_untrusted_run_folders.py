@@ -23,7 +23,7 @@ from harness.analysis.runs import load_run
 from harness.outputs.writers import OutputOptions
 from harness.run import Protocol, execute
 from harness.runfolder.integrity import file_digest
-from runfolder_edits import rehash
+from tests.runfolder.edits import make_legacy, rehash
 
 REPO = Path(__file__).resolve().parents[2]
 BASELINE = REPO / "results" / "baselines" / "reference-lift"
@@ -265,13 +265,15 @@ def test_a_failed_episode_whose_folder_is_a_self_symlink_is_retried(runs, capsys
 # ---- old rows (no digests): the committed baseline ----------------------------------------------------------------
 
 def test_legacy_rows_are_read_unverified_and_compare_says_so(tmp_path, capsys):
-    """Rows made before digests were recorded (the committed baseline) are still read; compare says which were not
-    verified."""
-    run = load_run(BASELINE)
+    """Rows made before digests were recorded (copies of the committed baseline as such rows hold them) are still
+    read; compare says which were not verified."""
+    legacy, copy = tmp_path / "legacy", tmp_path / "copy"
+    for folder in (legacy, copy):
+        shutil.copytree(BASELINE, folder)
+        make_legacy(folder)
+    run = load_run(legacy)
     assert run.status == "complete" and run.unverified == len(run.episodes) == 8
-    copy = tmp_path / "copy"
-    shutil.copytree(BASELINE, copy)
-    assert cli.main(["compare", str(BASELINE), str(copy), "--no-frames", "--out", str(tmp_path / "cmp")]) == 0
+    assert cli.main(["compare", str(legacy), str(copy), "--no-frames", "--out", str(tmp_path / "cmp")]) == 0
     out = capsys.readouterr().out
     assert "compare: IDENTICAL" in out
     assert "Files read unverified (rows made before sizes and digests were recorded): reference-lift 8, " \
