@@ -220,6 +220,7 @@ def test_octo_step_function_is_the_policy(reference):
         assert all(m.shape == grids[k] and np.isfinite(m).all() for k, m in maps.items())
 
 
+@pytest.mark.slow
 def test_the_diffusion_head_is_differentiated_with_the_steps_rng(fixtures_dir):
     from harness.octo import load_pretrained
 

@@ -116,6 +116,7 @@ def test_blocks_schedules_and_redrawn_weights():
         S.randomised_params(tree, [("octo_transformer", "nope")], seed=0)
 
 
+@pytest.mark.slow
 def test_randomisation_known_answer_one_patch_model():
     """Trained: the action depends on patch TARGET alone, so saliency and occlusion rank it first; re-drawn weights
     (N(mean, std) of the one-hot vector) spread the dependence over every patch, and the maps stop ranking it first.
@@ -281,6 +282,7 @@ def test_patch_effects_additive_and_interacting():
 # ------------------------------------------------------------------------------------------- the command
 
 
+@pytest.mark.slow
 def test_sanity_command_on_the_committed_baselines_recorded_inputs(tmp_path, capsys):
     """The real reference policy on the committed baseline's recorded inputs: every block's randomisation changes
     the maps (the cascade's last stage leaves no attention layer intact), the random map is unchanged, files are

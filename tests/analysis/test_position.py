@@ -184,6 +184,7 @@ def _noise(seed, size):
     return np.random.default_rng(seed).integers(0, 256, (size, size, 3), dtype=np.uint8)
 
 
+@pytest.mark.slow
 def test_a_fixed_bias_on_one_token_gets_that_patch_flagged_and_no_other(model):
     patch = 19  # row 2, col 3 of the 8x8 primary grid
     biased = bias_model(model, patch)

@@ -69,6 +69,7 @@ def test_simulated_outcomes_have_the_requested_rates():
     assert y.mean() == pytest.approx(-0.3, abs=0.01)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rate, correlation", [(0.5, 0.0), (0.8, 0.5)])
 def test_type_one_error_on_equal_policies_is_at_most_alpha(rate, correlation):
     start = time.perf_counter()
@@ -81,6 +82,7 @@ def test_type_one_error_on_equal_policies_is_at_most_alpha(rate, correlation):
     assert time.perf_counter() - start < 20
 
 
+@pytest.mark.slow
 def test_power_on_a_30_point_drop_and_early_stopping():
     start = time.perf_counter()
     y = simulate_pairs(0.8, 0.5, pairs=200, runs=2000, rng=np.random.default_rng(12))

@@ -118,6 +118,7 @@ def _frames(env, seed, steps=2):
     return np.stack(out), info
 
 
+@pytest.mark.slow
 def test_level_zero_is_the_nominal_scene_bit_for_bit():
     plain = envs.make("Lift", fast_render=True)
     zero = envs.make("Lift", fast_render=True, perturb="camera:0,lighting:0,distractors:0,noise:0,texture:0")
@@ -130,6 +131,7 @@ def test_level_zero_is_the_nominal_scene_bit_for_bit():
         zero.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("spec", ["camera:3,lighting:3,texture:3", "distractors:3,init-state:3,noise:3"])
 def test_same_seed_and_level_give_the_same_frames_twice_and_in_a_fresh_env(spec):
     env = envs.make("Stack", fast_render=True, perturb=spec)
@@ -159,6 +161,7 @@ def _target_centroid(mask: np.ndarray) -> np.ndarray:
     return np.array([rows.mean(), cols.mean()])
 
 
+@pytest.mark.slow
 def test_camera_shift_moves_the_target_by_the_predicted_pixels():
     seed, size = 4, 256
     nominal = envs.make("Lift", masks=True, fast_render=True)
@@ -193,6 +196,7 @@ def test_camera_shift_moves_the_target_by_the_predicted_pixels():
         shifted.close()
 
 
+@pytest.mark.slow
 def test_distractor_masks_cover_distractors_and_never_the_target():
     env = envs.make("Lift", masks=True, fast_render=True, perturb="distractors:5")
     try:
@@ -211,6 +215,7 @@ def test_distractor_masks_cover_distractors_and_never_the_target():
         env.close()
 
 
+@pytest.mark.slow
 def test_lighting_levels_darken_the_frame():
     means = []
     for level in (0, 1, 3, 5):
@@ -223,6 +228,7 @@ def test_lighting_levels_darken_the_frame():
     assert means[0] > means[1] > means[2] > means[3], means
 
 
+@pytest.mark.slow
 def test_noise_changes_what_the_policy_is_fed_not_the_scene():
     env = envs.make("Lift", masks=True, fast_render=True, perturb="noise:4")
     plain = envs.make("Lift", masks=True, fast_render=True)
@@ -239,6 +245,7 @@ def test_noise_changes_what_the_policy_is_fed_not_the_scene():
         plain.close()
 
 
+@pytest.mark.slow
 def test_texture_changes_the_arena_never_the_target():
     env = envs.make("Lift", masks=True, fast_render=True, perturb="texture:5")
     plain = envs.make("Lift", masks=True, fast_render=True)
@@ -256,6 +263,7 @@ def test_texture_changes_the_arena_never_the_target():
         plain.close()
 
 
+@pytest.mark.slow
 def test_a_paraphrase_is_the_instruction_the_env_reports():
     env = envs.make("Lift", fast_render=True, perturb="language:2")
     try:

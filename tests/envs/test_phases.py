@@ -127,6 +127,7 @@ def _expert_episode(task: str, seed: int, max_steps: int = 300):
         env.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task,seed", [("Lift", 0), ("Stack", 1), ("PickPlaceCan", 2)])
 def test_expert_drives_the_phases_in_order_near_its_own_switches(task, seed):
     trace, success = _expert_episode(task, seed)
@@ -140,6 +141,7 @@ def test_expert_drives_the_phases_in_order_near_its_own_switches(task, seed):
         assert abs(onset - switch) <= BOUNDARY_STEPS, f"{phase} at step {onset}, the expert's {EXPERT_SWITCH[phase]} at {switch}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["Stack", "PickPlaceCan"])
 def test_gripper_inside_robot_and_goal_apart_from_target_at_reset(task):
     env = envs.make(task, masks=True, fast_render=True)
@@ -158,6 +160,7 @@ def test_gripper_inside_robot_and_goal_apart_from_target_at_reset(task):
         env.close()
 
 
+@pytest.mark.slow
 def test_every_phase_task_gives_a_phase_and_others_none():
     for task in ("NutAssemblySquare", "PickPlaceMilk", "Door"):
         env = envs.make(task, cameras={})
@@ -168,6 +171,7 @@ def test_every_phase_task_gives_a_phase_and_others_none():
             env.close()
 
 
+@pytest.mark.slow
 def test_a_random_weights_policy_rarely_leaves_approach(tmp_path):
     from harness.cli import main
 

@@ -50,6 +50,7 @@ def _cli(args, tmp_path, **env):
                           text=True, timeout=600)
 
 
+@pytest.mark.slow
 def test_a_render_device_that_conflicts_is_one_line_before_anything_runs(tmp_path, fixtures_dir):
     done = _cli(["run", "--render-device", "gpu", "--task", "Lift", "--model", str(fixtures_dir / "tiny"), "--out",
                  str(tmp_path), "--run-name", "r"], tmp_path, MUJOCO_GL="osmesa")

@@ -118,6 +118,7 @@ def test_same_seed_gives_identical_episode_start_whatever_ran_before(lift):
     assert not np.array_equal(first["proprio"], other["proprio"])
 
 
+@pytest.mark.slow
 def test_two_envs_with_same_seed_agree_step_by_step(lift, lift_twin):
     """Also checks that two environments in one process render their own scenes (GL context switching)."""
     a, _ = lift.reset(seed=11)
@@ -308,6 +309,7 @@ def test_vector_env_uses_spawned_workers_and_matches_single_env():
         single.close()
 
 
+@pytest.mark.slow
 def test_osmesa_fallback_renders_or_names_the_apt_fix():
     """In a fresh process forced onto OSMesa: render when libOSMesa is installed, else one line naming the fix."""
     script = (
@@ -330,6 +332,7 @@ def test_osmesa_fallback_renders_or_names_the_apt_fix():
         assert envs.gl.APT_OSMESA in report["error"] and envs.gl.APT_EGL in report["error"]
 
 
+@pytest.mark.slow
 def test_fast_render_looks_like_default_render(lift):
     """fast_render drops reflections and anti-aliasing only: the same scene, nearly the same pixels, same masks."""
     fast = envs.make("Lift", masks=True, fast_render=True)

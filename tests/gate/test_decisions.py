@@ -129,6 +129,7 @@ def test_monte_carlo_a_broken_task_with_an_improved_one_fails_the_gate():
     assert np.mean(codes != 0) >= 0.99
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rates, correlation", [([(0.8, 0.8), (0.5, 0.5)], 0.5),
                                                 ([(0.5, 0.5), (0.5, 0.5), (0.9, 0.9)], 0.0)])
 def test_monte_carlo_no_change_keeps_the_family_wise_error(rates, correlation):

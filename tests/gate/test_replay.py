@@ -170,6 +170,7 @@ def test_intervention_runs_replay_exactly_on_the_inputs_the_policy_saw(intervent
     assert result["action_change_max"] == 0.0 and result["attention_js_max"] == 0.0
 
 
+@pytest.mark.slow
 def test_replay_tokenizes_the_instruction_as_the_run_did(tmp_path, capsys):
     """A run made with --text-tokenizer fallback replays with that tokenizer (else the comparison measures the
     tokenizer, not the model)."""
@@ -181,6 +182,7 @@ def test_replay_tokenizes_the_instruction_as_the_run_did(tmp_path, capsys):
     assert code == 0 and result["action_change_max"] == 0.0, out
 
 
+@pytest.mark.slow
 def test_a_candidate_that_outputs_nan_is_changed_not_equivalent(capsys, tmp_path):
     """NaN compares false with any tolerance; replay must count it as a change."""
     candidate = perturbed_model(tmp_path / "nan", std=float("nan"))

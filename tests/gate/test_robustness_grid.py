@@ -55,6 +55,7 @@ def _same(a: dict, b: dict) -> bool:
         a[e].keys() == b[e].keys() and all(np.array_equal(a[e][k], b[e][k]) for k in a[e]) for e in a)
 
 
+@pytest.mark.slow
 def test_level_zero_run_is_the_plain_run(model, tmp_path):
     plain = execute(_protocol(), tmp_path, "plain", model=model, progress=False)
     zero = execute(_protocol(perturb="camera:0,noise:0"), tmp_path, "zero", model=model, progress=False)
@@ -63,6 +64,7 @@ def test_level_zero_run_is_the_plain_run(model, tmp_path):
     assert _same(_actions(plain.run_dir), _actions(zero.run_dir))
 
 
+@pytest.mark.slow
 def test_perturbed_protocol_is_bit_identical_with_two_workers(model, tmp_path):
     protocol = _protocol(perturb="camera:2,noise:2,distractors:1")
     sequential = execute(protocol, tmp_path / "a", "run", model=model, progress=False)
@@ -76,6 +78,7 @@ def test_perturbed_protocol_is_bit_identical_with_two_workers(model, tmp_path):
     assert set(drawn) == {"camera@image_primary", "distractors", "noise"}
 
 
+@pytest.mark.slow
 def test_a_paraphrase_is_what_the_model_receives_and_what_is_recorded(model, tmp_path):
     summary = execute(_protocol(perturb="language:2", record_inputs=True), tmp_path, "lang", model=model, progress=False)
     assert summary.manifest["protocol"]["perturb"] == "language:2"
@@ -93,6 +96,7 @@ def _step0_change(a: dict, b: dict) -> float:
     return max(float(np.abs(a[e]["predicted"][0] - b[e]["predicted"][0]).max()) for e in a)
 
 
+@pytest.mark.slow
 def test_mask_all_primary_makes_actions_blind_to_a_primary_camera_shift(model, tmp_path):
     """mask-all fills every patch with the frame's per-channel mean (harness.interventions), so of the primary camera
     the policy still sees three numbers, its mean colour; a shift changes those slightly. Known answer: the step-0
@@ -116,6 +120,7 @@ def _rows(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 def test_robustness_grid_resumes_and_reports_in_chromium(tmp_path, capsys):
     out = tmp_path / "grid"
     argv = ["robustness", "--model", str(MODEL), "--task", "Lift", "--perturb", "distractors,lighting", "--levels", "0,2",

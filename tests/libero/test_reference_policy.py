@@ -347,6 +347,7 @@ def test_libero_dagger_labels_the_policys_own_states_and_appends_them(tmp_path):
     assert len(merged["action"]) == 7 + 12 and merged["episode"].max() == 2
 
 
+@pytest.mark.slow
 def test_the_pipeline_trains_libero_tasks_warm_started_from_the_robosuite_reference(tmp_path):
     """Two training steps on synthetic frames of two LIBERO-Object tasks, warm-started from the committed robosuite
     reference: every parameter copied except the frozen T5 word table (another vocabulary: kept fresh); the result
@@ -382,6 +383,7 @@ def test_the_pipeline_trains_libero_tasks_warm_started_from_the_robosuite_refere
     assert 'action_space = "libero"' in (tmp_path / "harness.toml").read_text()
 
 
+@pytest.mark.slow
 def test_a_dagger_round_trains_stage_1_collects_once_then_fine_tunes_on_demonstrations_and_corrections(tmp_path):
     """pipeline.dagger_round with a stand-in collection (the collection itself is tested on LIBERO above): stage 1
     is trained into <data>/stage1, the collector is handed that checkpoint, the fine-tuning sees the corrections'
@@ -479,6 +481,7 @@ def test_the_committed_policy_runs_libero_object_and_the_report_shows_its_ground
     assert text.count("## Language grounding") == 1 and "| libero_object/0 |" in text
 
 
+@pytest.mark.slow
 def test_a_grounding_section_of_runs_without_libero_object_episodes_is_refused_in_one_line(tmp_path, capsys):
     from harness.report import grounding
 

@@ -93,6 +93,7 @@ def test_token_map_of_goal_model_and_attention_tokens(tiny_goal, inputs):
         np.testing.assert_array_equal(att.tokens.to_arrays()[key], value)
 
 
+@pytest.mark.slow
 def test_released_architecture_token_map(caplog):
     with caplog.at_level(logging.WARNING):
         model = load_pretrained("random:octo-small-1.5")
@@ -218,6 +219,7 @@ def test_orbax_layout_checkpoint_loads(fixtures_dir, tiny, tmp_path):
     assert flat.keys() == ref.keys() and all(np.array_equal(flat[k], ref[k]) for k in ref)
 
 
+@pytest.mark.slow
 def test_continuous_map_head_and_proprio_tokenizer(fixtures_dir, tmp_path):
     """An L1 head with MAP pooling and a LowdimObsTokenizer: parsed, initialised and sampled (random weights)."""
     import json

@@ -56,6 +56,7 @@ def test_rng_stream_matches_a_recorded_probe(expected):
     assert threefry_flag(expected["tiny"]) == ("true" if jax.config.jax_threefry_partitionable else "false")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(CASES))
 def test_final_attention_mask_is_exact(forward, case):
     _, e, prefix, out = forward[case]
@@ -105,6 +106,7 @@ def test_stem_and_t5_tokenizer_outputs(forward, case):
         np.testing.assert_array_equal(np.asarray(mask).astype(bool), e[f"tokenizer/{name}/mask"].astype(bool))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["tiny", "tiny_goal"])
 def test_denoiser_features_and_eps(models, expected, name):
     m, e = models[name], expected[name]
@@ -133,6 +135,7 @@ def test_cosine_schedule(expected):
     np.testing.assert_allclose(s.alpha_hats, e["diffusion/alpha_hats"], rtol=1e-5, atol=1e-7)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["tiny", "tiny_goal"])
 @pytest.mark.parametrize("flag", ["true", "false"])
 def test_teacher_forced_sampler_steps(models, expected, name, flag):

@@ -25,6 +25,7 @@ def test_no_gpu_asked_for_is_no_check():
     check_accelerator({"JAX_PLATFORMS": "cpu"})
 
 
+@pytest.mark.slow
 def test_gpu_asked_for_where_jax_finds_none_is_one_line(tmp_path):
     probe = subprocess.run([sys.executable, "-c", "import jax; jax.devices('gpu')"], capture_output=True,
                            env=dict(os.environ, JAX_PLATFORMS=""))

@@ -130,6 +130,7 @@ def test_padding_tokens_do_not_change_real_token_outputs(tiny_t5):
     assert not np.allclose(after[~real], before[~real])
 
 
+@pytest.mark.slow
 def test_gated_gelu_feed_forward_parameter_names():
     config = T5Config(vocab_size=10, d_model=8, d_kv=2, d_ff=16, num_layers=2, num_heads=4,
                       feed_forward_proj="gated-gelu")

@@ -261,6 +261,7 @@ def _cli(*args, env=None, timeout=300) -> subprocess.CompletedProcess:
                            *args], capture_output=True, text=True, timeout=timeout, cwd=REPO, env=env)
 
 
+@pytest.mark.slow
 def test_without_the_extra_rerun_is_one_line_naming_the_install(fixtures_dir, tmp_path):
     blocker = tmp_path / "block"
     (blocker / "rerun").mkdir(parents=True)

@@ -180,6 +180,7 @@ def test_action_dimension_mismatch_is_one_line_before_the_episode(fixtures_dir, 
     assert "\n" not in str(e.value) and steps == []
 
 
+@pytest.mark.slow
 def test_missing_lowdim_key_is_one_line(fixtures_dir, tmp_path, env):
     model = load_pretrained(f"random:{build_finetune_checkpoint(tmp_path / 'state', fixtures_dir, lowdim_key='state', save=False)}")
     assert model.lowdim_sizes == {"state": 8}

@@ -43,6 +43,7 @@ def _labeller_episode(seed: int, push_steps: range = range(0), noise: float = 0.
         env.close()
 
 
+@pytest.mark.slow
 def test_state_expert_places_the_can_under_noise():
     success, grippers = _labeller_episode(seed=0)
     assert success
@@ -51,6 +52,7 @@ def test_state_expert_places_the_can_under_noise():
     assert changes[:3] == [OPEN, CLOSED, OPEN]
 
 
+@pytest.mark.slow
 def test_state_expert_recovers_after_the_arm_is_pushed_away():
     # a push can tip the can over (then no expert recovers): 3 of 4 seeds succeed here, demand 2 of 3
     successes = [_labeller_episode(seed=seed, push_steps=range(30, 50))[0] for seed in (1, 3, 7)]
@@ -88,6 +90,7 @@ def test_dagger_seeds_are_disjoint_from_demonstrations_and_evaluation():
         dagger.DaggerConfig(episodes=2)
 
 
+@pytest.mark.slow
 def test_collection_labels_the_policys_own_states(tmp_path):
     config = dagger.DaggerConfig(episodes=4, max_steps=12)
     summary = dagger.collect(MODEL, tmp_path / "c", config, workers=1)

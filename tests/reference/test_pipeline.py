@@ -27,6 +27,7 @@ def _expert_succeeds(task: str, seed: int) -> bool:
         env.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task,seed", [("Lift", 3), ("Stack", 4), ("PickPlaceCan", 5)])
 def test_expert_succeeds_in_the_simulator(task, seed):
     assert _expert_succeeds(task, seed)
@@ -48,6 +49,7 @@ def test_training_seeds_are_disjoint_from_evaluation_seeds():
     assert all(a_high <= b_low for (_, a_high), (b_low, _) in zip(blocks, blocks[1:]))
 
 
+@pytest.mark.slow
 def test_recorded_episode_is_what_the_policy_sees():
     env = envs.make("Lift", fast_render=True, action_space="robosuite", max_episode_steps=120)
     try:
@@ -67,6 +69,7 @@ def test_recorded_episode_is_what_the_policy_sees():
     assert episode["image_primary"].std() > 5  # a rendered scene, not a blank frame
 
 
+@pytest.mark.slow
 def test_recording_writes_whole_episodes_and_is_found_again(tmp_path):
     config = demos_mod.DemoConfig(tasks=("Lift",), episodes=(("Lift", 2),), jobs_per_task=2,
                                   image_sizes=(("image_primary", 32), ("image_wrist", 32)))
@@ -93,6 +96,7 @@ def _stuck_frames(episode: dict) -> int:
     return sum(1 for i in range(len(a) - 5) if a[i, 6] > 0 and a[i, 0] > 0.9 and abs(p[i + 5, 0] - p[i, 0]) < 0.002)
 
 
+@pytest.mark.slow
 def test_can_expert_carries_to_a_point_the_arm_reaches():
     """The carry point over the can's bin is inside the arm's reach, so the carry phase ends on arrival (a
     state), not by timing out while pushing against the reach limit (a label the policy cannot read off the
@@ -198,6 +202,7 @@ def test_grid_embedding_resize_known_answer():
         resize_grid_embedding(np.zeros((1, 6, 8)), 16)
 
 
+@pytest.mark.slow
 def test_warm_start_copies_an_earlier_checkpoint_and_resamples_the_patch_grid(tmp_path):
     """A 32-px model warm-starts a 64-px one: every parameter copied, the primary position embeddings
     resampled from 2x2 to 4x4 patches (lr 0: the saved model is the warm start itself)."""

@@ -43,6 +43,7 @@ def report(run) -> Path:
     return run.parent / "report"
 
 
+@pytest.mark.slow
 def test_run_records_phases_and_controls(run):
     manifest = json.loads((run / "manifest.json").read_text())
     policy = manifest["protocol"]["policy"]
@@ -67,6 +68,7 @@ def test_run_records_phases_and_controls(run):
             assert phases["furthest"] == "lift"  # the final state, after the last recorded step, counts
 
 
+@pytest.mark.slow
 def test_position_bound_csv_has_the_issue_columns_and_agrees_with_the_arrays(run, report):
     rows = _rows(report / "tables" / "position_bound.csv")
     assert list(rows[0]) == ["run", "task", "camera", "layer", "head", "row", "col", "real", "blank", "mirrored",
@@ -144,6 +146,7 @@ def test_foreign_and_damaged_files_are_left_out(run, tmp_path):
     assert "id='position'" not in html and "id='phases'" in html
 
 
+@pytest.mark.slow
 def test_a_run_without_phases_or_controls_has_neither_section(tmp_path, fixtures_dir):
     code = cli.main(["run", "--task", "Door", "--episodes", "1", "--max-steps", "2", "--model", str(fixtures_dir / "tiny"),
                      "--out", str(tmp_path), "--run-name", "door", "--fast-render", "--png-every", "0", "--no-video"])
@@ -156,6 +159,7 @@ def test_a_run_without_phases_or_controls_has_neither_section(tmp_path, fixtures
     assert _rows(tmp_path / "report" / "tables" / "position_bound.csv") == []
 
 
+@pytest.mark.slow
 def test_two_env_workers_give_the_same_phases_and_controls_bit_for_bit(run, tmp_path):
     code = cli.main(["run", "--model", str(MODEL), "--task", "Lift", "--episodes", "2", "--seed", "1", "--max-steps", "40",
                      "--attention-controls", "blank,mirror", "--controls-every", str(EVERY), "--record-inputs",
@@ -170,6 +174,7 @@ def test_two_env_workers_give_the_same_phases_and_controls_bit_for_bit(run, tmp_
                     assert np.array_equal(a[key], b[key]), (directory.name, name, key)
 
 
+@pytest.mark.slow
 def test_a_run_without_masks_reports_its_phases_and_says_why_nothing_is_tested(run, tmp_path):
     copy = tmp_path / "nomask"
     shutil.copytree(run, copy)

@@ -106,6 +106,7 @@ def test_readout_rows_sum_to_one_over_unmasked_keys_and_skip_padded_timestep(tin
     assert step0.chunk.shape == (4, 7) and np.isfinite(step0.chunk).all()
 
 
+@pytest.mark.slow
 def test_failing_episode_is_recorded_and_the_run_goes_on(tiny, tmp_path):
     blocker = tmp_path / "r" / "Lift" / "episode_0"
     blocker.parent.mkdir(parents=True)
@@ -118,6 +119,7 @@ def test_failing_episode_is_recorded_and_the_run_goes_on(tiny, tmp_path):
     assert blocker.read_text() == "not a folder"  # nothing already written is lost
 
 
+@pytest.mark.slow
 def test_cli_runs_an_episode_and_rejects_an_unknown_task(fixtures_dir, tmp_path, capsys):
     code = cli.main(["run", "--task", "Lift", "--model", str(fixtures_dir / "tiny"), "--max-steps", "2",
                      "--out", str(tmp_path), "--run-name", "cli", "--png-every", "2", "--layers", "1", "--fast-render"])
@@ -156,6 +158,7 @@ def test_goal_conditioned_model_needs_goal_images_and_runs_with_them(fixtures_di
     assert "task_language" not in groups and "obs_primary" in groups
 
 
+@pytest.mark.slow
 def test_receding_horizon_executes_k_actions_per_inference(tiny):
     env = envs.make("Lift", cameras={"image_primary": ("agentview", 64), "image_wrist": ("robot0_eye_in_hand", 32)})
     try:

@@ -110,6 +110,7 @@ def test_concurrent_run_refuses_naming_the_holder(capsys, tmp_path, tiny, no_mod
         holder.unlock()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args,needle", [
     (("--layers", "0,99"), "--layers 99 is out of range"),
     (("--video-attention", "50"), "--video-attention 50 is out of range"),

@@ -51,6 +51,7 @@ def test_one_error_prefix_for_every_user_error():
     assert 'print(f"Error' not in source and "print('Error" not in source
 
 
+@pytest.mark.slow
 def test_headless_gl_failure_is_one_error_line_not_a_traceback(tmp_path):
     """PyOpenGL told another platform than MuJoCo's EGL: the GL check's message, as every user error, exit 2."""
     env = dict(os.environ, HF_HUB_OFFLINE="1", MUJOCO_GL="egl", PYOPENGL_PLATFORM="glfw", PYTHONPATH=str(REPO))
@@ -82,6 +83,7 @@ def test_copied_run_folder_takes_its_new_name_in_every_record(fixtures_dir, tmp_
     assert json.loads((tmp_path / "a" / "manifest.json").read_text())["run"] == "a"  # the original is untouched
 
 
+@pytest.mark.slow
 def test_episode_failing_while_finishing_its_files_records_the_steps_that_ran(fixtures_dir, tmp_path, capsys,
                                                                              monkeypatch):
     import harness.files
@@ -105,6 +107,7 @@ def test_episode_failing_while_finishing_its_files_records_the_steps_that_ran(fi
     assert episode["status"] == "failed" and episode["steps"] == 3
 
 
+@pytest.mark.slow
 def test_sigterm_while_the_model_loads_exits_143_with_a_message(tmp_path):
     env = dict(os.environ, HF_HUB_OFFLINE="1", PYTHONPATH=str(REPO))
     proc = subprocess.Popen([sys.executable, "-m", "harness.cli", "run", "--task", "Lift", "--model",

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from hostile_corpus import make_cases
+from tests.runfolder.hostile_corpus import make_cases
 
 REPO = Path(__file__).resolve().parents[2]
 MEMORY_CAP = 3 << 30  # address space of each command (RLIMIT_AS): the 640 MB bomb would not fit twice
