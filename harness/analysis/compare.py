@@ -56,6 +56,7 @@ from harness.analysis.equivalence import attention_divergence
 from harness.analysis.provenance import input_agreement, provenance
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
 from harness.analysis.stats import wilson_interval
+from harness.runfolder.schema import flatten
 
 FORMAT = "octo-harness-compare/1"
 BASELINE_MARKER = "BASELINE.json"  # written by scripts/make_baseline.py into a committed baseline
@@ -132,18 +133,9 @@ def _protocol(run: RunRecord) -> dict:
     return {k: v for k, v in manifest.items() if k not in ("jobs", "run", "created", "format")}  # legacy
 
 
-def _flatten(data, prefix: str = "") -> dict:
-    if isinstance(data, dict) and data:
-        out = {}
-        for key, value in data.items():
-            out.update(_flatten(value, f"{prefix}{key}."))
-        return out
-    return {prefix[:-1]: data}
-
-
 def incompatible_fields(baseline: dict, candidate: dict) -> list[str]:
     """Dotted protocol fields that differ and change outcomes (everything but MAY_DIFFER)."""
-    a, b = _flatten(json.loads(json.dumps(baseline))), _flatten(json.loads(json.dumps(candidate)))
+    a, b = flatten(json.loads(json.dumps(baseline))), flatten(json.loads(json.dumps(candidate)))
     missing = object()
     differ = sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, missing) != b.get(k, missing))
     if a.get("execution", missing) != b.get("execution", missing) and not any(k.startswith("policy.") for k in differ):
@@ -161,7 +153,7 @@ def what_differs(baseline: dict, candidate: dict) -> dict:
     differs, "other": [{"field", "baseline", "candidate"}] (fields that change the policy's inputs or actions but are
     not the model: an intervention, ...), "cause": who a difference belongs to, "drift_label": what the step-0 drift
     measures}."""
-    a, b = _flatten(json.loads(json.dumps(baseline))), _flatten(json.loads(json.dumps(candidate)))
+    a, b = flatten(json.loads(json.dumps(baseline))), flatten(json.loads(json.dumps(candidate)))
     missing = object()
     differ = sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, missing) != b.get(k, missing))
 

@@ -25,7 +25,7 @@ from harness.files import json_safe
 from harness.policy import PolicyConfig
 from harness.run.jobs import FORMAT, EpisodeJob  # noqa: F401  (re-exported)
 from harness.outputs.writers import OutputOptions
-from harness.runfolder.schema import FIX, MalformedRunError, check_protocol, protocol_hash  # noqa: F401
+from harness.runfolder.schema import FIX, MalformedRunError, check_protocol, flatten, protocol_hash  # noqa: F401
 
 
 
@@ -183,18 +183,9 @@ def build(kind, data: Mapping[str, Any]):
 
 
 
-def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
-    if isinstance(data, Mapping) and data:
-        out: dict[str, Any] = {}
-        for key, value in data.items():
-            out.update(_flatten(value, f"{prefix}{key}."))
-        return out
-    return {prefix[:-1]: data}
-
-
 def diff(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
     """Dotted names of the fields whose values differ between two protocol dicts (sorted; derived "execution" skipped)."""
-    a, b = _flatten(json_safe(dict(old))), _flatten(json_safe(dict(new)))
+    a, b = flatten(json_safe(dict(old))), flatten(json_safe(dict(new)))
     return sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, _MISSING) != b.get(k, _MISSING))
 
 

@@ -64,11 +64,12 @@ def expected_jobs(protocol: Mapping[str, Any]) -> list[list]:
     return [[task, k, protocol["seed"] + k] for task in protocol["tasks"] for k in range(protocol["episodes"])]
 
 
-def _flat(data: Any, prefix: str = "") -> dict[str, Any]:
+def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested mappings -> {"a.b.c": leaf} (an empty mapping is a leaf)."""
     if isinstance(data, Mapping) and data:
         out: dict[str, Any] = {}
         for key, value in data.items():
-            out.update(_flat(value, f"{prefix}{key}."))
+            out.update(flatten(value, f"{prefix}{key}."))
         return out
     return {prefix[:-1]: data}
 
@@ -83,7 +84,7 @@ def _edited_fields(protocol: Mapping[str, Any], path: Path | str) -> list[str]:
         return []
     if not isinstance(copy, Mapping):
         return []
-    a, b = _flat(dict(copy)), _flat(dict(protocol))
+    a, b = flatten(dict(copy)), flatten(dict(protocol))
     return sorted(k for k in set(a) | set(b) if a.get(k, ...) != b.get(k, ...))
 
 
