@@ -249,6 +249,7 @@ class WorkerPool:
         self._pool: dict[int, _Worker] = {}
         self._next_index = 0
         self.replacements = 0
+        self.queued: collections.deque = collections.deque()
         self._warm = False
         self.batches: list[int] = []  # number of real requests in each inference call (for statistics/tests)
         self.max_batch = spec.policy.inference_batch  # requests per inference call (see the module docstring)
@@ -306,6 +307,7 @@ class WorkerPool:
         """Yield one row per job as each finishes. The workers stay for the next `run` until `shutdown()`;
         Ctrl-C (or closing the generator early) stops them at once, leaving no process behind."""
         queue = collections.deque(jobs)
+        self.queued = queue  # the jobs not yet handed to a worker (read-only outside: statistics, tests)
         if not queue:
             return
         finished: list = []
