@@ -540,8 +540,8 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
         raise IncompatibleRuns(f"no (task, seed) pair is finished in both {baseline.path} and {candidate.path}; "
                                "run the candidate on the baseline's tasks and seeds")
     truncated = (_truncated(baseline), _truncated(candidate))
-    changed = measures_versions(baseline, candidate)[0] != measures_versions(baseline, candidate)[1]
-    details = [_compare_pair(task, seed, b, c, truncated, config, changed) for task, seed, b, c in pairs]
+    before, after = measures_versions(baseline, candidate)
+    details = [_compare_pair(task, seed, b, c, truncated, config, before != after) for task, seed, b, c in pairs]
     return _result(baseline, candidate, details, missing, truncated, config, differs, require_complete)
 
 
@@ -650,8 +650,8 @@ def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: C
         cond_truncated = (_truncated(baseline), _truncated(candidate))
         truncated = (truncated[0] or cond_truncated[0], truncated[1] or cond_truncated[1])
         for task, seed, b, c in pairs:
-            versions = measures_versions(baseline, candidate)
-            d = _compare_pair(task, seed, b, c, cond_truncated, config, versions[0] != versions[1])
+            before, after = measures_versions(baseline, candidate)
+            d = _compare_pair(task, seed, b, c, cond_truncated, config, before != after)
             details.append({**d, "task": f"{task} / {name}", "condition": name})
         for side in ("baseline", "candidate"):
             missing[side] += [[f"{t} / {name}", s] for t, s in miss[side]]

@@ -16,8 +16,8 @@ from harness import cli
 from harness.analysis import position as Q
 from harness.analysis.attention import camera_maps
 from harness.octo.tokens import TokenMap
-from tests.runfolder.edits import redigest  # as if a run had written the edited files
-from tests.helpers import browser as _browser, chromium as _chromium
+from tests.runfolder.edits import redigest, strip_masks  # as if a run had written the edited files
+from tests.helpers import browser as _browser
 
 MODEL = Path(__file__).resolve().parents[2] / "models" / "octo-reference-robosuite"
 EVERY = 3
@@ -178,12 +178,7 @@ def test_two_env_workers_give_the_same_phases_and_controls_bit_for_bit(run, tmp_
 def test_a_run_without_masks_reports_its_phases_and_says_why_nothing_is_tested(run, tmp_path):
     copy = tmp_path / "nomask"
     shutil.copytree(run, copy)
-    for npz in copy.glob("*/episode_*/attention.npz"):
-        with np.load(npz) as z:
-            kept = {k: z[k] for k in z.files
-                    if not k.startswith(("mask_fraction/", "metrics/mask_", "measures/layer/mask_", "measures/head/mask_"))}
-        np.savez(npz, **kept)
-    redigest(copy)
+    strip_masks(copy)
     assert cli.main(["report", str(copy), "--out", str(tmp_path / "report"), "--resamples", "50"]) == 0
     assert len(_rows(tmp_path / "report" / "tables" / "phase_steps.csv")) == 3
     assert _rows(tmp_path / "report" / "tables" / "phase_tests.csv") == []

@@ -7,7 +7,6 @@ import io
 import json
 import re
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +15,8 @@ from PIL import Image
 
 from harness import cli
 from harness.analysis.aggregate import TABLE_COLUMNS
-from tests.runfolder.edits import redigest
-from tests.helpers import chromium as _chromium, browser as _browser
+from tests.runfolder.edits import redigest, strip_masks
+from tests.helpers import browser as _browser
 
 pytestmark = pytest.mark.slow
 
@@ -41,12 +40,7 @@ def runs(fixtures_dir, tmp_path_factory):
     full = _run(fixtures_dir, out, "full", "Lift,Stack", 2, STEPS)
     # `full` as a --no-masks run writes it (no mask arrays), without paying for a second model load and compile
     nomask = _copy(full, out / "nomask")
-    for npz in nomask.glob("*/episode_*/attention.npz"):
-        with np.load(npz) as z:
-            kept = {k: z[k] for k in z.files
-                    if not k.startswith(("mask_fraction/", "metrics/mask_", "measures/layer/mask_", "measures/head/mask_"))}
-        np.savez(npz, **kept)
-    redigest(nomask)
+    strip_masks(nomask)
     # an interrupted copy of `full`: the last job has no result yet, one episode failed, and the model is marked random
     partial = _copy(full, out / "partial")
     rows = [json.loads(line) for line in (partial / "results.jsonl").read_text().splitlines()][:3]

@@ -50,3 +50,18 @@ def make_legacy(run_dir: Path) -> None:
     for row in rows:
         row.pop("files", None)
     results.write_text("".join(json.dumps(row) + "\n" for row in rows))
+
+
+MASK_PREFIXES = ("mask_fraction/", "metrics/mask_", "measures/layer/mask_", "measures/head/mask_")
+
+
+def strip_masks(run_dir: Path) -> None:
+    """Drop every mask measure from the episodes' attention.npz and re-record the digests, as a --no-masks run
+    writes them (without paying for a second run)."""
+    import numpy as np
+
+    for npz in Path(run_dir).glob("*/episode_*/attention.npz"):
+        with np.load(npz) as z:
+            kept = {k: z[k] for k in z.files if not k.startswith(MASK_PREFIXES)}
+        np.savez(npz, **kept)
+    redigest(run_dir)
