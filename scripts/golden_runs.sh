@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Golden runs for refactors that must not change behaviour (issue 42): a Lift run of the committed reference policy
+# (PNG overlays, MP4, arrays, recorded inputs), a compare of that run against a second run of the same protocol, and
+# an HTML report. Writes them under OUT (default results/golden) and prints one line per file: its SHA-256 and path,
+# with fields that hold wall-clock times or host paths blanked first (scripts/golden_digest.py), so that
+#   bash scripts/golden_runs.sh /tmp/before > before.txt   # on the old commit
+#   bash scripts/golden_runs.sh /tmp/after > after.txt     # on the new one
+#   diff before.txt after.txt                              # empty: the same files, byte for byte
+# Same machine only (numerics differ across CPUs). About a minute on 2 cores.
+set -euo pipefail
+OUT="${1:-results/golden}"
+cd "$(dirname "$0")/.."
+PY=.venv/bin/python
+export HF_HUB_OFFLINE=1 MUJOCO_GL="${MUJOCO_GL:-egl}"
+rm -rf "$OUT"
+mkdir -p "$OUT"
+run() { "$PY" -m harness.cli run --model models/octo-reference-robosuite --task Lift --episodes 2 --max-steps 12 \
+        --seed 0 --png-every 4 --record-inputs --fast-render --out "$OUT" "$@" >/dev/null 2>&1; }
+run --run-name a
+run --run-name b
+"$PY" -m harness.cli compare "$OUT/a" "$OUT/b" --out "$OUT/compare" >/dev/null 2>&1 || true
+"$PY" -m harness.cli report "$OUT/a" --out "$OUT/report" >/dev/null 2>&1
+"$PY" scripts/golden_digest.py "$OUT"
