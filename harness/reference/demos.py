@@ -68,10 +68,12 @@ def record_episode(env, expert: ScriptedExpert, seed: int, sizes: dict[str, int]
 
 
 def noisy_episode(env, obs: dict, act, sizes: dict[str, int], noise: float, rng: np.random.Generator,
-                  max_steps: int) -> dict | None:
+                  max_steps: int, perturb=None) -> dict | None:
     """From observation `obs`, step `env` with the labels `act(obs)` whose first three (position) entries carry
     Gaussian noise of std `noise` (clipped to [-1, 1]; the stored label stays clean) until success, truncation or
-    `max_steps`; the frames resized to `sizes` ({key: side}), proprio and labels -> arrays, or None without success."""
+    `max_steps`; the frames resized to `sizes` ({key: side}), proprio and labels -> arrays, or None without success.
+    `perturb(executed, label, rng) -> executed`, when given, further changes what is executed after the noise (the
+    recovery bursts of harness.reference.libero_demos.Bursts); the label stays the expert's."""
     from harness.policy import resize_frame
 
     frames = {k: [] for k in sizes}
@@ -85,6 +87,8 @@ def noisy_episode(env, obs: dict, act, sizes: dict[str, int], noise: float, rng:
         actions.append(label)
         executed = label.copy()
         executed[:3] = np.clip(executed[:3] + noise * rng.standard_normal(3), -1.0, 1.0)
+        if perturb is not None:
+            executed = perturb(executed, label, rng)
         obs, _, terminated, truncated, info = env.step(executed)
         success = bool(info["success"])
         if success or truncated:
@@ -143,20 +147,35 @@ def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, fil
     """Split each task's `episodes` over `config.jobs_per_task` jobs `(task, first seed, count, config)` (seed blocks
     from `config.task_seed_base(task)`), run `job` over them in `workers` spawned processes (harness.reference
     recorders: each returns (episodes, seeds, dropped)), save each task into `out_dir/file_of(task)` and
-    summary.json; returns the summary per task."""
+    summary.json; returns the summary per task.
+
+    Resumable: each finished job is saved at once into `out_dir/jobs/` with this configuration's fingerprint, and a
+    later call with the same configuration runs only the jobs not saved there, so a stop loses at most the jobs
+    under way. A job's episodes depend only on its arguments, so the files are the same however often it stopped."""
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    parts_dir = out_dir / "jobs"
+    parts_dir.mkdir(parents=True, exist_ok=True)
+    fingerprint = config_fingerprint(config)
     jobs = []
     for task, total in episodes.items():
         counts = np.full(config.jobs_per_task, total // config.jobs_per_task)
         counts[: total % config.jobs_per_task] += 1
         for j, count in enumerate(counts):
             jobs.append((task, config.task_seed_base(task) + j * seeds_per_job, int(count), config))
+    part_of = {id(args): parts_dir / f"{file_of(args[0])[:-4]}_{args[1]}.npz" for args in jobs}
     start = time.perf_counter()
-    results = run_jobs(job, jobs, workers)
+    pending = [args for args in jobs if _load_part(part_of[id(args)], fingerprint, args[2]) is None]
+    if len(pending) < len(jobs):
+        log.info("reusing %d of %d recording jobs in %s", len(jobs) - len(pending), len(jobs), parts_dir)
+    for args, (recorded, seeds, dropped) in zip(pending, run_jobs(job, pending, workers)):
+        lengths = save_episodes(part_of[id(args)], recorded, seeds,
+                                {"dropped": np.array(dropped, np.int64),
+                                 "fingerprint": np.array(json.dumps(fingerprint, sort_keys=True))})
+        log.info("%s seeds %d..: %d episodes (%d steps), %d dropped", args[0], args[1], len(recorded),
+                 int(lengths.sum()), dropped)
     summary = {}
     for task in episodes:
-        parts = [r for job_args, r in zip(jobs, results) if job_args[0] == task]
+        parts = [_load_part(part_of[id(args)], fingerprint, args[2]) for args in jobs if args[0] == task]
         recorded = [e for p in parts for e in p[0]]
         seeds = [s for p in parts for s in p[1]]
         lengths = save_episodes(out_dir / file_of(task), recorded, seeds)
@@ -164,17 +183,36 @@ def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, fil
                          "dropped": int(sum(p[2] for p in parts)), "seed_min": int(min(seeds)), "seed_max": int(max(seeds))}
         log.info("%s: %s", task, summary[task])
     summary["seconds"] = time.perf_counter() - start
-    summary["config"] = config_fingerprint(config)
+    summary["config"] = fingerprint
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
 
 
-def run_jobs(function, jobs: list, workers: int) -> list:
-    """`function` over `jobs`, in `workers` spawned processes (never fork after rendering) or in this one."""
-    if workers > 1:
+def _load_part(path: Path, fingerprint: dict, count: int) -> tuple[list[dict], list[int], int] | None:
+    """A saved recording job (episodes, seeds, dropped) when `path` holds `count` episodes recorded with this
+    configuration `fingerprint`, else None (missing, unreadable, or of another configuration: recorded again)."""
+    try:
+        with np.load(path) as data:
+            if json.loads(str(data["fingerprint"])) != fingerprint or len(data["lengths"]) != count:
+                return None
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError, KeyError, EOFError):
+        return None
+    keys = [k for k in arrays if k not in ("episode", "step", "seeds", "lengths", "dropped", "fingerprint")]
+    bounds = np.concatenate([[0], np.cumsum(arrays["lengths"])])
+    episodes = [{k: arrays[k][a:b] for k in keys} for a, b in zip(bounds[:-1], bounds[1:])]
+    return episodes, [int(s) for s in arrays["seeds"]], int(arrays["dropped"])
+
+
+def run_jobs(function, jobs: list, workers: int):
+    """`function` over `jobs`, in `workers` spawned processes (never fork after rendering) or in this one; yields the
+    results in the jobs' order, each as soon as it and those before it are done."""
+    if workers > 1 and len(jobs) > 1:
         with multiprocessing.get_context("spawn").Pool(workers) as pool:
-            return pool.map(function, jobs, chunksize=1)
-    return [function(job) for job in jobs]
+            yield from pool.imap(function, jobs, chunksize=1)
+        return
+    for job in jobs:
+        yield function(job)
 
 
 def save_episodes(path: Path, episodes: list[dict], seeds: list[int], extra: dict | None = None) -> np.ndarray:

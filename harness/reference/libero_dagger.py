@@ -76,7 +76,7 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: LiberoDaggerConf
     jobs = [(str(model_dir), config, task, config.seeds(task)[j::config.jobs_per_task])
             for task in config.tasks for j in range(config.jobs_per_task)]
     start = time.perf_counter()
-    results = run_jobs(_collect_job, jobs, workers)
+    results = list(run_jobs(_collect_job, jobs, workers))
     summary = {}
     for task in config.tasks:
         episodes = [e for t, part in results if t == task for e in part]

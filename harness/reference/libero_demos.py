@@ -33,14 +33,62 @@ LIBERO_SEED_BASE = 1_000_000  # placement seeds of task i: 1_000_000 + 10_000 i 
 SEEDS_PER_JOB = 1_000
 LIBERO_OBJECT_TASKS = tuple(f"libero_object/{i}" for i in range(10))
 # the reference model's cameras: observation key -> (LIBERO camera, square size rendered)
-LIBERO_CAMERAS = (("image_primary", "agentview", 128), ("image_wrist", "robot0_eye_in_hand", 64))
+# (the wrist at 128 px = 8x8 patches, as the robosuite reference reads it; the first LIBERO policy read 64 px = 4x4)
+LIBERO_CAMERAS = (("image_primary", "agentview", 128), ("image_wrist", "robot0_eye_in_hand", 128))
+
+
+@dataclass(frozen=True)
+class BurstConfig:
+    """Recovery bursts (DART-style, beyond the Gaussian noise): stretches of steps whose *executed* input is not the
+    expert's, so that the recording holds the states a learned policy drifts into and the expert's way back out.
+    Per step, when no burst runs: with probability `push` a push starts (`push_steps` steps of a constant horizontal
+    input of size `push_size` in a random direction: an off-centre approach, a nudged object), and with probability
+    `gripper` a premature close starts (`gripper_steps` steps with the gripper closed while the expert holds it open:
+    a grasp closed on nothing or beside the object). Labels stay the expert's, who reads the state and recovers."""
+    push: float = 0.02
+    push_steps: tuple[int, int] = (3, 7)  # inclusive range
+    push_size: float = 0.6
+    gripper: float = 0.015
+    gripper_steps: tuple[int, int] = (4, 10)
+
+
+class Bursts:
+    """`perturb(executed, label, rng) -> executed` for harness.reference.demos.noisy_episode (see BurstConfig)."""
+
+    def __init__(self, config: BurstConfig):
+        self.config = config
+        self.left = 0  # steps left in the running burst
+        self.kind = ""
+        self.direction = np.zeros(2)
+
+    def __call__(self, executed: np.ndarray, label: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        from harness.reference.libero_expert import CLOSED, OPEN
+
+        c = self.config
+        if self.left == 0:
+            draw = rng.random()
+            if draw < c.push:
+                self.kind, self.left = "push", int(rng.integers(c.push_steps[0], c.push_steps[1] + 1))
+                angle = rng.uniform(0.0, 2 * np.pi)
+                self.direction = c.push_size * np.array([np.cos(angle), np.sin(angle)])
+            elif draw < c.push + c.gripper and label[6] == OPEN:
+                self.kind, self.left = "gripper", int(rng.integers(c.gripper_steps[0], c.gripper_steps[1] + 1))
+        if self.left == 0:
+            return executed
+        self.left -= 1
+        executed = executed.copy()
+        if self.kind == "push":
+            executed[:2] = self.direction
+        else:
+            executed[6] = CLOSED
+        return executed
 
 
 @dataclass(frozen=True)
 class LiberoDemoConfig:
     tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS
-    episodes: int = 20  # demonstrations per task
-    jobs_per_task: int = 2  # fixed split, so the data do not depend on the number of workers
+    episodes: int = 50  # demonstrations per task (LIBERO's own count)
+    jobs_per_task: int = 5  # fixed split, so the data do not depend on the number of workers; each job saved alone
     cameras: tuple[tuple[str, str, int], ...] = LIBERO_CAMERAS
     image_convention: str = "rot180"
     fast_render: bool = True
@@ -49,7 +97,8 @@ class LiberoDemoConfig:
     expert: LiberoExpertConfig = field(default_factory=LiberoExpertConfig)
     # "timed": LiberoObjectExpert, whose close phase is a 12-step timer no single frame shows (the committed policy's);
     # "state": LiberoObjectLabeller, whose phase is read off the state (it lifts once the fingers hold the object)
-    demonstrator: str = "timed"
+    demonstrator: str = "state"
+    bursts: BurstConfig | None = field(default_factory=BurstConfig)  # None: Gaussian noise only (the first policy)
 
     def __post_init__(self) -> None:
         if self.demonstrator not in DEMONSTRATORS:
@@ -78,7 +127,8 @@ def record_episode(env, target: str, seed: int, config: LiberoDemoConfig) -> dic
     obs, info = env.reset(seed=seed, options={"initial_state": "sampled"})
     expert = DEMONSTRATORS[config.demonstrator](target, config=config.expert)
     sizes = {k: s for k, _, s in config.cameras}  # rendered at the model's sizes: stored as rendered
-    return noisy_episode(env, obs, lambda o: expert.act(env, o), sizes, config.noise, rng, config.max_steps)
+    perturb = Bursts(config.bursts) if config.bursts is not None else None
+    return noisy_episode(env, obs, lambda o: expert.act(env, o), sizes, config.noise, rng, config.max_steps, perturb)
 
 
 def _record_job(args: tuple) -> tuple[list[dict], list[int], int]:

@@ -29,6 +29,13 @@ class LiberoExpertConfig:
     floor_clearance: float = 0.012  # lowest grasp height above the object's bottom
     carry_clearance: float = 0.08  # metres between the object's bottom and the basket's rim while carrying
     release_above_rim: float = 0.03
+    # the state-based labeller's radii (LiberoObjectLabeller): horizontal distance from the object's centre within
+    # which the hand descends onto it, and within which (and `grasp_height` of the grasp height) the fingers close.
+    # The first labeller used 0.015 / 0.012 (3-D), tighter than the learned policy's reach error (about 2.3 cm), so it
+    # said "keep approaching" where the policy closed; 0.03 matches that precision (issue 46)
+    centred: float = 0.03
+    at_grasp: float = 0.03
+    grasp_height: float = 0.012
 
 
 @dataclass(frozen=True)
@@ -148,8 +155,7 @@ class LiberoObjectLabeller:
                                          hand is at the grasp point.
     """
 
-    CENTRED = 0.015  # metres (horizontal) within which the hand descends onto the object / counts as over the basket
-    AT_GRASP = 0.012  # metres from the grasp point within which the fingers close (the expert stops at 0.008)
+    BASKET_CENTRED = 0.03  # metres (horizontal) from the basket's centre within which the held object is lowered
     EMPTY_FINGERS = 0.01  # summed finger opening below which closed fingers hold nothing (open: ~0.08)
 
     def __init__(self, target: str, basket: str = "basket_1", config: LiberoExpertConfig = LiberoExpertConfig()):
@@ -168,7 +174,7 @@ class LiberoObjectLabeller:
             below_hand = hand[2] - bottom
             carry_z = rim + c.carry_clearance + below_hand
             release_z = rim + c.release_above_rim + below_hand
-            if np.linalg.norm(hand[:2] - basket_xy) > self.CENTRED * 2:
+            if np.linalg.norm(hand[:2] - basket_xy) > self.BASKET_CENTRED:
                 if hand[2] < carry_z - 0.03:  # rise first (as the expert's lift), then carry
                     return np.array([hand[0], hand[1], carry_z]), CLOSED
                 return np.array([basket_xy[0], basket_xy[1], carry_z]), CLOSED
@@ -180,9 +186,9 @@ class LiberoObjectLabeller:
         hover_z = top + c.hover
         if fingers < self.EMPTY_FINGERS:  # closed on nothing: open and back up
             return np.array([hand[0], hand[1], max(hover_z, hand[2])]), OPEN
-        if np.linalg.norm(hand - grasp) <= self.AT_GRASP:
+        if np.linalg.norm(hand[:2] - grasp[:2]) <= c.at_grasp and abs(hand[2] - grasp[2]) <= c.grasp_height:
             return grasp, CLOSED
-        if np.linalg.norm(hand[:2] - grasp[:2]) > self.CENTRED:
+        if np.linalg.norm(hand[:2] - grasp[:2]) > c.centred:
             if hand[2] < hover_z - 0.03:  # off-centre and low: rise before moving across
                 return np.array([hand[0], hand[1], hover_z]), OPEN
             return np.array([grasp[0], grasp[1], max(hover_z, hand[2])]), OPEN

@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=TrainConfig.seed, help="training seed")
     parser.add_argument("--demonstrator", choices=sorted(DEMONSTRATORS), default=LiberoDemoConfig.demonstrator,
                         help="timed: the phase expert (12-step close); state: the state-based expert, which lifts once "
-                             "the fingers hold the object [timed]")
+                             "the fingers hold the object [state]")
     parser.add_argument("--dagger-episodes", type=int, default=0,
                         help="episodes per task of the trained policy to label for a DAgger round (0 = no round)")
     parser.add_argument("--dagger-steps", type=int, default=1500, help="fine-tuning steps of the DAgger round")
