@@ -24,6 +24,7 @@ import json
 import logging
 import multiprocessing
 import time
+import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -161,7 +162,8 @@ def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, fil
         counts = np.full(config.jobs_per_task, total // config.jobs_per_task)
         counts[: total % config.jobs_per_task] += 1
         for j, count in enumerate(counts):
-            jobs.append((task, config.task_seed_base(task) + j * seeds_per_job, int(count), config))
+            if count:  # fewer episodes than jobs: the empty jobs are none
+                jobs.append((task, config.task_seed_base(task) + j * seeds_per_job, int(count), config))
     part_of = {id(args): parts_dir / f"{file_of(args[0])[:-4]}_{args[1]}.npz" for args in jobs}
     start = time.perf_counter()
     pending = [args for args in jobs if _load_part(part_of[id(args)], fingerprint, args[2]) is None]
@@ -196,7 +198,7 @@ def _load_part(path: Path, fingerprint: dict, count: int) -> tuple[list[dict], l
             if json.loads(str(data["fingerprint"])) != fingerprint or len(data["lengths"]) != count:
                 return None
             arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError, KeyError, EOFError):
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
         return None
     keys = [k for k in arrays if k not in ("episode", "step", "seeds", "lengths", "dropped", "fingerprint")]
     bounds = np.concatenate([[0], np.cumsum(arrays["lengths"])])

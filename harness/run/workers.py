@@ -65,6 +65,7 @@ from harness.run.store import EpisodeRow
 log = logging.getLogger(__name__)
 
 STOP_TIMEOUT_S = 10.0  # how long stopping workers may take before they are terminated
+LIVENESS_S = 0.5  # the longest the pool waits for a message before it checks that its workers still live
 
 
 @dataclass(frozen=True)
@@ -249,6 +250,7 @@ class WorkerPool:
         self._pool: dict[int, _Worker] = {}
         self._next_index = 0
         self.replacements = 0
+        self.late_sentinels = 0  # deaths seen by waitpid before their sentinel was readable (statistics, tests)
         self.queued: collections.deque = collections.deque()
         self._warm = False
         self.batches: list[int] = []  # number of real requests in each inference call (for statistics/tests)
@@ -341,7 +343,7 @@ class WorkerPool:
         for w in self._pool.values():
             handles[w.conn] = w
             handles[w.process.sentinel] = w
-        ready = wait(list(handles), timeout=None if block else 0)
+        ready = wait(list(handles), timeout=LIVENESS_S if block else 0)
         dead = []
         for handle in ready:
             w = handles[handle]
@@ -349,6 +351,11 @@ class WorkerPool:
                 dead.append(w)
                 continue
             self._receive(w, queue, waiting, on_row)
+        for w in self._pool.values():  # a death whose sentinel is not readable yet: the kernel's word (waitpid) first
+            if w not in dead and not w.process.is_alive():
+                log.info("env worker %d: death seen by waitpid before its sentinel", w.index)
+                self.late_sentinels += 1
+                dead.append(w)
         for w in dict.fromkeys(dead):
             if w.index not in self._pool:
                 continue

@@ -205,8 +205,8 @@ def test_the_demonstrator_is_part_of_the_recording_fingerprint_and_unknown_ones_
     from harness.reference.libero_demos import LiberoDemoConfig
     from harness.reference.libero_pipeline import main
 
-    timed, state = LiberoDemoConfig(), LiberoDemoConfig(demonstrator="state")
-    assert timed.demonstrator == "timed"  # the committed policy's demonstrations
+    state, timed = LiberoDemoConfig(), LiberoDemoConfig(demonstrator="timed")
+    assert state.demonstrator == "state"  # the second recipe's (issue 46); "timed" made the first committed policy
     assert config_fingerprint(timed) != config_fingerprint(state)  # a recording is never reused across them
     with pytest.raises(ValueError, match="use one of state, timed"):
         LiberoDemoConfig(demonstrator="scripted")
@@ -271,7 +271,7 @@ def test_a_demonstration_from_a_sampled_placement_is_recorded_as_the_policy_sees
     assert episode is not None  # the expert succeeds under the recording noise
     n = len(episode["action"])
     assert 50 < n < config.max_steps
-    assert episode["image_primary"].shape == (n, 128, 128, 3) and episode["image_wrist"].shape == (n, 64, 64, 3)
+    assert episode["image_primary"].shape == (n, 128, 128, 3) and episode["image_wrist"].shape == (n, 128, 128, 3)
     assert episode["proprio"].shape == (n, 8)
     assert set(np.unique(episode["action"][:, 6])) == {0.0, 1.0}  # the libero gripper: 1 open, 0 closed
     assert np.abs(episode["action"][:, :6]).max() <= 1.0

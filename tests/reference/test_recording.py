@@ -1,0 +1,114 @@
+"""Demonstration recording: resumable job by job, and the LIBERO recovery bursts (harness.reference.demos,
+harness.reference.libero_demos). Hand-made jobs in this process, no simulator: the recorders' own episodes are
+checked in tests/libero/test_reference_policy.py."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from harness.reference.demos import record_tasks
+from harness.reference.libero_demos import BurstConfig, Bursts
+from harness.reference.libero_expert import CLOSED, OPEN
+
+CALLS: list[tuple[str, int]] = []
+
+
+@dataclass(frozen=True)
+class _Config:
+    jobs_per_task: int = 3
+    tag: str = "a"  # part of the fingerprint
+
+    def task_seed_base(self, task: str) -> int:
+        return {"t0": 100, "t1": 200}[task]
+
+
+def _job(args):
+    """A recorder whose episode k of seed s has s + k steps of arrays that encode the seed; seeds divisible by 7 fail."""
+    task, first_seed, count, config = args
+    CALLS.append((task, first_seed))
+    episodes, seeds, dropped, seed = [], [], 0, first_seed
+    while len(episodes) < count:
+        if seed % 7 == 0:
+            dropped += 1
+        else:
+            n = 2 + seed % 3
+            episodes.append({"action": np.full((n, 7), seed, np.float32),
+                             "image_primary": np.full((n, 4, 4, 3), seed % 255, np.uint8)})
+            seeds.append(seed)
+        seed += 1
+    return episodes, seeds, dropped
+
+
+def _record(out, config=_Config()):
+    CALLS.clear()
+    return record_tasks(_job, config, {"t0": 5, "t1": 2}, out, lambda t: f"{t}.npz", workers=1, seeds_per_job=10)
+
+
+def _files(out):
+    return {p.name: p.read_bytes() for p in sorted(out.glob("*.npz"))}
+
+
+def test_a_stopped_recording_records_only_the_jobs_it_had_not_saved(tmp_path):
+    whole = tmp_path / "whole"
+    _record(whole)
+    assert len(CALLS) == 5  # t0: 3 jobs (2+2+1), t1: 2 jobs of one episode (the third would be empty: none)
+    first = _files(whole)
+
+    stopped = tmp_path / "stopped"
+    _record(stopped)
+    parts = sorted((stopped / "jobs").glob("*.npz"))
+    for part in parts[1:]:  # a stop after the first job: the others never saved
+        part.unlink()
+    (stopped / "summary.json").unlink()
+    _record(stopped)
+    assert len(CALLS) == 4 and CALLS[0] != ("t0", 100)  # only the missing jobs ran again
+    assert _files(stopped) == first  # byte for byte the files of the uninterrupted recording
+    summary = json.loads((stopped / "summary.json").read_text())
+    assert summary["t0"]["episodes"] == 5 and summary["t1"]["episodes"] == 2
+
+    _record(stopped)
+    assert CALLS == []  # everything saved: nothing runs
+
+
+def test_a_saved_job_of_another_configuration_or_a_torn_file_is_recorded_again(tmp_path):
+    _record(tmp_path)
+    part = sorted((tmp_path / "jobs").glob("*.npz"))[0]
+    part.write_bytes(part.read_bytes()[:100])  # torn
+    _record(tmp_path)
+    assert len(CALLS) == 1
+    _record(tmp_path, _Config(tag="b"))
+    assert len(CALLS) == 5  # another configuration: none of the saved jobs counts
+
+
+def test_bursts_change_what_is_executed_never_the_label():
+    rng = np.random.default_rng(0)
+    bursts = Bursts(BurstConfig(push=0.05, gripper=0.05))
+    label = np.array([0.1, -0.2, 0.3, 0, 0, 0, OPEN], np.float32)
+    pushes = closes = 0
+    for _ in range(2000):
+        executed = bursts(label.copy(), label, rng)
+        pushes += not np.allclose(executed[:2], label[:2])
+        closes += executed[6] == CLOSED
+        if not np.allclose(executed[:2], label[:2]):
+            assert np.linalg.norm(executed[:2]) == pytest.approx(0.6, rel=1e-5)  # the push's size
+    assert label[6] == OPEN and label[0] == np.float32(0.1)  # the label is never written
+    # each kind starts with probability 0.05 a step when no burst runs: bursts run in a sizeable share of the steps
+    assert 0.1 < pushes / 2000 < 0.5 and 0.1 < closes / 2000 < 0.6
+    held = np.array([0, 0, 0, 0, 0, 0, CLOSED], np.float32)
+    bursts = Bursts(BurstConfig(push=0.0, gripper=1.0))
+    assert all(bursts(held.copy(), held, rng)[6] == CLOSED for _ in range(50))  # never opens a held grasp
+
+
+def test_bursts_are_a_function_of_the_episode_seed():
+    def trace(seed):
+        rng = np.random.default_rng(seed)
+        bursts = Bursts(BurstConfig())
+        label = np.array([0, 0, 0, 0, 0, 0, OPEN], np.float32)
+        return np.stack([bursts(label.copy(), label, rng) for _ in range(300)])
+
+    np.testing.assert_array_equal(trace(1), trace(1))
+    assert not np.array_equal(trace(1), trace(2))
