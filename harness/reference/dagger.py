@@ -161,8 +161,12 @@ def append_corrections(demos: dict[str, dict[str, np.ndarray]], out_dir: str | P
     base = demos[task]
     first = int(base["episode"].max()) + 1
     merged = {}
+    if "weight" in extra and "weight" not in base:  # weighted corrections: the demonstrations weigh 1
+        base = {**base, "weight": np.ones(len(base["action"]), np.float64)}
     for key, value in base.items():
-        if key == "episode":
+        if key == "weight" and key not in extra:
+            merged[key] = np.concatenate([value, np.ones(len(extra["action"]), value.dtype)])
+        elif key == "episode":
             merged[key] = np.concatenate([value, extra[key] + first])
         elif key in extra:
             merged[key] = np.concatenate([value, extra[key].astype(value.dtype)])

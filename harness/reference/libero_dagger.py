@@ -7,7 +7,8 @@ stored evaluation states), and `LiberoObjectLabeller` says at every visited stat
 open and back up after a grasp closed beside the object, re-centre when off, carry and release once it holds.
 Episodes run in spawned processes in a fixed split of jobs per task, so the data do not depend on the workers.
 
-Output: `<out>/<suite>_<index>.npz` per task (the layout of harness.reference.demos plus `success`) and
+Output: `<out>/<suite>_<index>.npz` per task (the layout of harness.reference.demos plus `success`, and `weight`:
+`near_weight` for states near the grasp, else 1, the fine-tuning's sampling weight) and
 `<out>/summary.json` (per task: episodes, steps, policy successes; seconds; configuration and checkpoint).
 """
 
@@ -39,14 +40,21 @@ class LiberoDaggerConfig:
     jobs_per_task: int = 2  # fixed split (not the worker count), so the data do not depend on the workers
     max_steps: int = 280  # LIBERO-Object's step limit
     expert: LiberoExpertConfig = field(default_factory=LiberoExpertConfig)  # the labeller's waypoints; fingerprinted
+    round: int = 1  # DAgger round: its own block of placement seeds (1000 per round within the task's block)
+    # states with the hand within `near_radius` (m) of the grasp point, object not yet held, are drawn `near_weight`
+    # times as often in fine-tuning (the grasp is where the policy fails: issue 46)
+    near_radius: float = 0.06
+    near_weight: float = 3.0
 
     def __post_init__(self) -> None:
         if self.episodes < self.jobs_per_task or self.max_steps < 1:
             raise ValueError(f"--dagger-episodes must be >= {self.jobs_per_task} per task (one per job) and "
                              "--max-steps >= 1")
+        if not 1 <= self.round <= 9 or self.episodes > 1000 or not self.near_weight > 0:
+            raise ValueError("a DAgger round is 1..9 with at most 1000 episodes per task and a near-grasp weight > 0")
 
     def seeds(self, task: str) -> list[int]:
-        base = LIBERO_DAGGER_SEED_BASE + 10_000 * int(task.split("/")[1])
+        base = LIBERO_DAGGER_SEED_BASE + 10_000 * int(task.split("/")[1]) + 1_000 * (self.round - 1)
         return [base + k for k in range(self.episodes)]
 
 
@@ -61,8 +69,15 @@ def _collect_job(args: tuple) -> tuple[str, list[dict]]:
     try:
         for seed in seeds:
             obs, info = env.reset(seed=seed, options={"initial_state": "sampled"})
-            episodes.append(labelled_episode(env, policy, lambda o: labeller.act(env, o), obs, info, seed,
-                                             config.max_steps))
+            near: list[bool] = []
+
+            def label(o):
+                near.append(labeller.near_grasp(env, o, config.near_radius))
+                return labeller.act(env, o)
+
+            episode = labelled_episode(env, policy, label, obs, info, seed, config.max_steps)
+            episode["weight"] = np.where(near, config.near_weight, 1.0)
+            episodes.append(episode)
     finally:
         env.close()
     return task, episodes

@@ -194,6 +194,13 @@ class LiberoObjectLabeller:
             return np.array([grasp[0], grasp[1], max(hover_z, hand[2])]), OPEN
         return grasp, OPEN
 
+    def near_grasp(self, env, obs: dict, radius: float) -> bool:
+        """Whether the hand is within `radius` (m) of the grasp point while the object is not yet held: the states
+        where a learned policy's grasps succeed or fail."""
+        hand = np.asarray(obs["proprio"][:3], np.float64)
+        g = _geometry(env.object_poses(), self.target, self.basket, self.config)
+        return bool(np.linalg.norm(hand - g["grasp"]) <= radius and not env.grasping(self.target))
+
     def act(self, env, obs: dict) -> np.ndarray:
         """(7,) float32 "libero" action the expert gives in this state (same signature as LiberoObjectExpert.act)."""
         proprio = np.asarray(obs["proprio"], np.float64)

@@ -12,7 +12,8 @@ paraphrases), warm-started from `--init-from` (every parameter whose shape is un
 harness.toml stating the LIBERO conventions (the "libero" action space, rot180 images, the cameras above).
 With `--dagger-episodes N`, (2) writes `<data>/stage1`, which then runs N episodes per task from further sampled
 placements while the state-based expert labels every state it visits (harness.reference.libero_dagger, into
-`<data>/dagger`), and (3) fine-tunes from it on demonstrations + corrections into `--out`.
+`<data>/dagger`), and (3) fine-tunes from it on demonstrations + corrections (states near the grasp drawn more
+often) into `--out`; `--dagger-rounds R` repeats (3) with each round's checkpoint acting (pipeline.dagger_rounds).
 Everything is seeded, so the same command on the same machine gives the same data and weights; a finished
 recording with the same configuration is reused.
 """
@@ -30,7 +31,7 @@ from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, Liber
                                             load_libero_demos, record_libero_demos)
 from harness.reference import libero_dagger
 from harness.reference.libero_dagger import LiberoDaggerConfig
-from harness.reference.pipeline import dagger_round
+from harness.reference.pipeline import dagger_rounds
 from harness.reference.train import TrainConfig, train
 
 log = logging.getLogger(__name__)
@@ -75,7 +76,9 @@ def main(argv: list[str] | None = None) -> int:
                              "the fingers hold the object [state]")
     parser.add_argument("--dagger-episodes", type=int, default=0,
                         help="episodes per task of the trained policy to label for a DAgger round (0 = no round)")
-    parser.add_argument("--dagger-steps", type=int, default=1500, help="fine-tuning steps of the DAgger round")
+    parser.add_argument("--dagger-steps", type=int, default=1500, help="fine-tuning steps of each DAgger round")
+    parser.add_argument("--dagger-rounds", type=int, default=1,
+                        help="DAgger rounds, each acting with the previous round's checkpoint [1]")
     parser.add_argument("--dagger-learning-rate", type=float, default=3e-4, help="peak learning rate of the DAgger round")
     parser.add_argument("--init-from", default=DEFAULT_INIT, metavar="CHECKPOINT",
                         help="warm start from this checkpoint folder ('none': random initialisation)")
@@ -84,9 +87,9 @@ def main(argv: list[str] | None = None) -> int:
     for noisy in ("jax._src.xla_bridge", "robosuite_logs"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     if args.episodes < 2 or args.steps < 1 or args.batch_size < 1 or not args.learning_rate > 0 \
-            or args.dagger_steps < 1 or not args.dagger_learning_rate > 0:
-        parser.error("--episodes must be >= 2 (one per recording job), --steps, --dagger-steps and --batch-size >= 1, "
-                     "learning rates > 0")
+            or args.dagger_steps < 1 or not args.dagger_learning_rate > 0 or not 1 <= args.dagger_rounds <= 9:
+        parser.error("--episodes must be >= 2, --steps, --dagger-steps and --batch-size >= 1, learning rates > 0, "
+                     "--dagger-rounds 1..9")
     dagger_config = None
     if args.dagger_episodes:
         try:
@@ -114,10 +117,11 @@ def main(argv: list[str] | None = None) -> int:
     if dagger_config is None:
         result = train(demos, args.out, train_config, **train_kwargs)
     else:
-        result = dagger_round(
-            demos, train_config, args.data, args.out,
-            collect=lambda model, out: libero_dagger.collect(model, out, dagger_config, workers=args.workers),
-            existing=lambda model, out: libero_dagger.existing(dagger_config, model, out),
+        of_round = lambda r: replace(dagger_config, round=r)  # noqa: E731
+        result = dagger_rounds(
+            demos, train_config, args.data, args.out, rounds=args.dagger_rounds,
+            collect=lambda model, out, r: libero_dagger.collect(model, out, of_round(r), workers=args.workers),
+            existing=lambda model, out, r: libero_dagger.existing(of_round(r), model, out),
             append=lambda d, out: libero_dagger.append_all(d, out, dagger_config.tasks),
             steps=args.dagger_steps, learning_rate=args.dagger_learning_rate,
             what=f"{dagger_config.episodes} episodes per task", train_kwargs=train_kwargs)

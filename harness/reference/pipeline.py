@@ -104,6 +104,22 @@ def dagger_round(demos: dict, train_config: TrainConfig, data_dir: str | Path, o
     finished one), then fine-tuning from stage 1 on demonstrations + corrections (`append(demos, out)`) for `steps`
     at peak `learning_rate`, with training seed + 1 and the demonstrations' normalisation, into `out`.
     Returns the fine-tuning summary with "stage1" and "dagger" added."""
+    return dagger_rounds(demos, train_config, data_dir, out, rounds=1, collect=lambda model, folder, r: collect(model, folder),
+                         existing=lambda model, folder, r: existing(model, folder), append=append, steps=steps,
+                         learning_rate=learning_rate, what=what, train_kwargs=train_kwargs)
+
+
+def dagger_rounds(demos: dict, train_config: TrainConfig, data_dir: str | Path, out: str | Path, *, rounds: int,
+                  collect, existing, append, steps: int, learning_rate: float, what: str,
+                  train_kwargs: dict | None = None) -> dict:
+    """Behaviour cloning into `<data_dir>/stage1`, then `rounds` DAgger rounds. Round r: the latest checkpoint
+    (stage 1, then `<data_dir>/round<r-1>`) acts and the expert labels the states it visits (`collect(model, folder,
+    r)` into `<data_dir>/dagger` for round 1 and `<data_dir>/dagger<r>` after; reused when `existing(model, folder,
+    r)` finds a finished one), then fine-tuning from that checkpoint on the demonstrations + every round's
+    corrections so far (`append(demos, folder)` each) for `steps` at peak `learning_rate`, with training seed + r and
+    the demonstrations' normalisation, into `<data_dir>/round<r>` (the last round: into `out`). Every finished
+    stage is reused, so a stopped build resumes at the stage it was in. Returns the last fine-tuning's summary with
+    "stage1" and "dagger" (the last round's collection) and "rounds" (per round: collection and final loss)."""
     train_kwargs = train_kwargs or {}
     stage1 = Path(data_dir) / "stage1"
     first = finished_training(stage1, train_config, demos)
@@ -111,19 +127,29 @@ def dagger_round(demos: dict, train_config: TrainConfig, data_dir: str | Path, o
         first = train(demos, stage1, train_config, **train_kwargs)
     else:
         log.info("reusing the stage-1 checkpoint in %s (trained in %.0f s)", stage1, first["train_seconds"])
-    corrections = Path(data_dir) / "dagger"
-    collected = existing(stage1, corrections)
-    if collected is None:
-        log.info("DAgger: %s of %s, labelled by the expert", what, stage1)
-        collected = collect(stage1, corrections)
-    else:
-        log.info("reusing the corrections in %s (collected in %.0f s)", corrections, collected["seconds"])
-    fine_tune = replace(train_config, steps=steps, learning_rate=learning_rate, seed=train_config.seed + 1,
-                        init_from=str(stage1))
-    result = train(append(demos, corrections), out, fine_tune, normalise_with=demos, **train_kwargs)
+    model, data, history, total = stage1, demos, [], first["total_seconds"]
+    for r in range(1, rounds + 1):
+        corrections = Path(data_dir) / ("dagger" if r == 1 else f"dagger{r}")
+        collected = existing(model, corrections, r)
+        if collected is None:
+            log.info("DAgger round %d: %s of %s, labelled by the expert", r, what, model)
+            collected = collect(model, corrections, r)
+        else:
+            log.info("reusing the corrections in %s (collected in %.0f s)", corrections, collected["seconds"])
+        data = append(data, corrections)
+        fine_tune = replace(train_config, steps=steps, learning_rate=learning_rate, seed=train_config.seed + r,
+                            init_from=str(model))
+        target = Path(out) if r == rounds else Path(data_dir) / f"round{r}"
+        result = finished_training(target, fine_tune, data) if r < rounds else None
+        if result is None:
+            result = train(data, target, fine_tune, normalise_with=demos, **train_kwargs)
+        total += result["total_seconds"] + collected["seconds"]
+        history.append({"round": r, "acted": str(model), "collection": collected, "final_loss": result.get("final_loss")})
+        model = target
     result["stage1"] = {k: first.get(k) for k in ("frames", "train_seconds", "final_loss", "config", "warm_start")}
     result["dagger"] = collected
-    result["total_seconds"] += first["total_seconds"] + collected["seconds"]
+    result["rounds"] = history
+    result["total_seconds"] = total
     return result
 
 

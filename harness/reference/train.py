@@ -202,6 +202,18 @@ class Dataset:
     action_mask: np.ndarray  # (n, horizon) bool, False past the episode's end
     task: np.ndarray  # (n,) int32 index into the task list
     statistics: dict
+    weight: np.ndarray | None = None  # (n,) float64 sampling weight within its task; None: uniform (demonstrations)
+
+
+def frame_drawer(by_task: list[np.ndarray], weight: np.ndarray | None):
+    """`draw(tasks, rng) -> frame indices`: for each drawn task, one of its frames (`by_task[t]`), uniformly when
+    `weight` is None (the draws of every policy trained before frame weights), else with probability proportional
+    to the frame's weight within its task."""
+    if weight is None:
+        return lambda tasks, rng: np.array([by_task[t][rng.integers(0, len(by_task[t]))] for t in tasks])
+    cdf = [np.cumsum(weight[f]) / weight[f].sum() for f in by_task]
+    return lambda tasks, rng: np.array([by_task[t][min(np.searchsorted(cdf[t], rng.random(), side="right"),
+                                                       len(by_task[t]) - 1)] for t in tasks])
 
 
 def _stats(x: np.ndarray, mask: np.ndarray) -> dict:
@@ -246,7 +258,14 @@ def build_dataset(demos: dict[str, dict[str, np.ndarray]], horizon: int,
         "action": action_stats, "proprio": proprio_stats, "num_transitions": n,
         "num_trajectories": int(sum(len(demos[t]["lengths"]) for t in tasks)),
     }}
-    return Dataset(images, norm_proprio.astype(np.float32), norm_actions.astype(np.float32), valid, task, statistics)
+    weight = None  # frames that carry a "weight" (DAgger corrections near the grasp) are drawn more often
+    if any("weight" in demos[t] for t in tasks):
+        weight = np.concatenate([np.asarray(demos[t].get("weight", np.ones(len(demos[t]["action"]))), np.float64)
+                                 for t in tasks])
+        if not (np.all(np.isfinite(weight)) and np.all(weight > 0)):
+            raise ValueError("frame weights must be finite and > 0")
+    return Dataset(images, norm_proprio.astype(np.float32), norm_actions.astype(np.float32), valid, task, statistics,
+                   weight)
 
 
 # ----------------------------------------------------------------------------- model maths
@@ -492,9 +511,11 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     p_task = np.array([weights.get(t, 1.0) for t in tasks], np.float64)
     p_task /= p_task.sum()
 
+    draw = frame_drawer(by_task, data.weight)
+
     def sample_batch():
         task = rng.choice(len(tasks), cfg.batch_size, p=p_task)
-        idx = np.array([by_task[t][rng.integers(0, len(by_task[t]))] for t in task])
+        idx = draw(task, rng)
         phrase = (np.where(rng.random(cfg.batch_size) < cfg.paraphrase_probability,
                            rng.integers(1, per_task, cfg.batch_size), 0) if per_task > 1
                   else np.zeros(cfg.batch_size, np.int64))

@@ -19,6 +19,8 @@ from tests.helpers import needs_libero as _needs_libero  # skips outside CI, fai
 
 REPO = Path(__file__).resolve().parents[2]
 MODEL = REPO / "models" / "octo-reference-libero-object"
+# the trainer's default sizes (the synthetic frames below): the first LIBERO policy's cameras
+WRIST_64 = (("image_primary", "agentview", 128), ("image_wrist", "robot0_eye_in_hand", 64))
 
 
 # ------------------------------------------------------------------------------------------------ quick, no LIBERO
@@ -130,7 +132,7 @@ def test_libero_conventions_parse_and_name_the_libero_action_space(tmp_path):
     conventions = CheckpointConventions.read(tmp_path)
     options = conventions.env_options()
     assert options.action_space == "libero" and options.image_convention == "rot180"
-    assert options.camera_dict == {"image_primary": ("agentview", 128), "image_wrist": ("robot0_eye_in_hand", 64)}
+    assert options.camera_dict == {"image_primary": ("agentview", 128), "image_wrist": ("robot0_eye_in_hand", 128)}
     assert conventions.policy_config().dataset_key == DATASET_KEY
 
 
@@ -372,7 +374,7 @@ def test_the_pipeline_trains_libero_tasks_warm_started_from_the_robosuite_refere
     config = replace(TrainConfig(), steps=2, batch_size=4, log_every=1, checkpoint_every=2, warmup_steps=1,
                      task_weights=(), init_from=str(REPO / "models" / "octo-reference-robosuite"))
     summary = train(demos, tmp_path, config, instructions=instructions(tasks), dataset_key=DATASET_KEY,
-                    conventions=conventions_toml())
+                    conventions=conventions_toml(WRIST_64))
     assert [f.split()[0] for f in summary["warm_start"]["fresh"]] == [
         "octo_transformer/task_tokenizers_language/hf_model/shared/embedding"]
     assert summary["warm_start"]["copied"] > 100 and not summary["warm_start"]["resized"]
@@ -422,7 +424,7 @@ def test_a_dagger_round_trains_stage_1_collects_once_then_fine_tunes_on_demonstr
 
     config = replace(TrainConfig(), steps=2, batch_size=4, log_every=1, checkpoint_every=2, warmup_steps=1,
                      task_weights=(), init_from=None)
-    kwargs = {"instructions": instructions((task,)), "dataset_key": DATASET_KEY, "conventions": conventions_toml()}
+    kwargs = {"instructions": instructions((task,)), "dataset_key": DATASET_KEY, "conventions": conventions_toml(WRIST_64)}
     result = dagger_round(demos, config, tmp_path / "data", tmp_path / "out", collect=collect, existing=existing,
                           append=append, steps=2, learning_rate=1e-4, what="test", train_kwargs=kwargs)
     assert collected == [tmp_path / "data" / "stage1"]
@@ -433,6 +435,28 @@ def test_a_dagger_round_trains_stage_1_collects_once_then_fine_tunes_on_demonstr
     again = dagger_round(demos, config, tmp_path / "data", tmp_path / "out2", collect=collect, existing=existing,
                          append=append, steps=2, learning_rate=1e-4, what="test", train_kwargs=kwargs)
     assert len(collected) == 1 and again["frames"] == 11  # stage 1 and the corrections reused
+
+    # two rounds: round 2's collector acts with round 1's checkpoint; its corrections weigh more near the grasp
+    from harness.reference.pipeline import dagger_rounds
+
+    acted = []
+
+    def collect_round(model, out, r):
+        acted.append((r, Path(model), Path(out).name))
+        return {"seconds": 1.0}
+
+    def append_weighted(d, out):
+        extra = {**corrections, "weight": np.full(5, 3.0)}
+        base = {**d[task], "weight": d[task].get("weight", np.ones(len(d[task]["action"])))}
+        return {task: {k: np.concatenate([base[k], extra[k]]) for k in base}}
+
+    two = dagger_rounds(demos, config, tmp_path / "data2", tmp_path / "out3", rounds=2, collect=collect_round,
+                        existing=lambda model, out, r: None, append=append_weighted, steps=2, learning_rate=1e-4,
+                        what="test", train_kwargs=kwargs)
+    assert acted == [(1, tmp_path / "data2" / "stage1", "dagger"), (2, tmp_path / "data2" / "round1", "dagger2")]
+    assert (tmp_path / "data2" / "round1" / "2" / "default" / "checkpoint").is_file()
+    assert two["frames"] == 16 and two["config"]["seed"] == config.seed + 2
+    assert two["config"]["init_from"] == str(tmp_path / "data2" / "round1") and len(two["rounds"]) == 2
 
 
 # ------------------------------------------------------------------------------------------------ the committed policy

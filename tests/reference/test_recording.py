@@ -112,3 +112,39 @@ def test_bursts_are_a_function_of_the_episode_seed():
 
     np.testing.assert_array_equal(trace(1), trace(1))
     assert not np.array_equal(trace(1), trace(2))
+
+
+def test_weighted_frames_are_drawn_in_proportion_within_their_task_and_uniform_draws_are_unchanged():
+    from harness.reference.train import frame_drawer
+
+    by_task = [np.arange(0, 4), np.arange(4, 6)]
+    weight = np.array([1.0, 1.0, 1.0, 3.0, 1.0, 1.0])
+    draws = frame_drawer(by_task, weight)(np.zeros(60_000, int), np.random.default_rng(0))
+    share = np.bincount(draws, minlength=6) / len(draws)
+    np.testing.assert_allclose(share[:4], [1 / 6, 1 / 6, 1 / 6, 1 / 2], atol=0.01)  # frame 3 three times as often
+    assert set(frame_drawer(by_task, weight)(np.ones(500, int), np.random.default_rng(1))) == {4, 5}
+    # without weights: exactly the draws the trainer made before frame weights existed
+    rng_a, rng_b = np.random.default_rng(2), np.random.default_rng(2)
+    old = np.array([by_task[t][rng_a.integers(0, len(by_task[t]))] for t in [0, 1, 1, 0]])
+    np.testing.assert_array_equal(frame_drawer(by_task, None)(np.array([0, 1, 1, 0]), rng_b), old)
+
+
+def test_corrections_with_weights_append_to_demonstrations_that_have_none(tmp_path):
+    from harness.reference.dagger import append_corrections
+    from harness.reference.train import build_dataset
+
+    def frames(n, seed):
+        r = np.random.default_rng(seed)
+        return {"image_primary": r.integers(0, 255, (n, 8, 8, 3), np.uint8), "proprio": r.normal(size=(n, 8)),
+                "action": r.uniform(-1, 1, (n, 7)).astype(np.float32), "episode": np.zeros(n, np.int32),
+                "step": np.arange(n, dtype=np.int32), "lengths": np.array([n], np.int32)}
+
+    extra = {**frames(3, 1), "weight": np.array([3.0, 1.0, 3.0])}
+    np.savez(tmp_path / "t.npz", **extra)
+    merged = append_corrections({"t": frames(4, 0)}, tmp_path, "t", "t.npz")["t"]
+    np.testing.assert_array_equal(merged["weight"], [1, 1, 1, 1, 3, 1, 3])
+    assert merged["episode"].tolist() == [0, 0, 0, 0, 1, 1, 1]
+    assert build_dataset({"t": merged}, 2).weight.tolist() == [1, 1, 1, 1, 3, 1, 3]
+    assert build_dataset({"t": frames(4, 0)}, 2).weight is None
+    with pytest.raises(ValueError, match="weights must be finite and > 0"):
+        build_dataset({"t": {**merged, "weight": np.r_[merged["weight"][:-1], 0.0]}}, 2)

@@ -201,9 +201,11 @@ def test_a_worker_killed_mid_episode_fails_that_episode_is_replaced_and_the_run_
     killed = []
 
     def kill_a_busy_worker():
-        """Kills a worker while both workers run the first two of four episodes: two are queued, and the pool must
-        start a replacement for them however slowly the machine runs. (No timing assumption: under load the other
-        worker may finish its episode and take the third before the death is seen; the fourth is still queued.)"""
+        """Kills a worker while both workers run the first two of four episodes and two are queued. The other
+        worker is stopped (SIGSTOP) from before the kill until the pool has buried the killed one, so it cannot take
+        the queued jobs meanwhile: a SIGKILL takes effect only when the process leaves the kernel (a worker in an
+        fsync under load dies seconds later), and then the queue may have emptied. With the other worker held, the
+        pool must start a replacement, however slowly the machine runs."""
         deadline = time.monotonic() + 300
         while time.monotonic() < deadline and not killed:
             pool = executors[0].pool if executors else None
@@ -213,8 +215,17 @@ def test_a_worker_killed_mid_episode_fails_that_episode_is_replaced_and_the_run_
                 except RuntimeError:  # the pool changed while we looked
                     continue
                 if len(busy) == 2 and {w.job.episode for w in busy} == {0, 1} and len(pool.queued) == 2:
-                    killed.append(busy[0].job)
-                    os.kill(busy[0].process.pid, signal.SIGKILL)
+                    victim, other = busy
+                    os.kill(other.process.pid, signal.SIGSTOP)
+                    try:
+                        if victim.job is None or len(pool.queued) != 2:  # it moved on meanwhile: look again
+                            continue
+                        killed.append(victim.job)
+                        os.kill(victim.process.pid, signal.SIGKILL)
+                        while victim.index in pool._pool and time.monotonic() < deadline:
+                            time.sleep(0.005)  # until the pool has buried it
+                    finally:
+                        os.kill(other.process.pid, signal.SIGCONT)
                     return
             time.sleep(0.001)
 
