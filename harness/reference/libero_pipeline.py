@@ -37,7 +37,14 @@ from harness.reference.train import TrainConfig, train
 log = logging.getLogger(__name__)
 
 DATASET_KEY = "libero_object_reference"
+# the demonstrations of each recipe (docs/libero-reference.md): "first" made the committed checkpoint (commit 53c1e7a)
+RECIPES = {
+    "first": LiberoDemoConfig(episodes=20, jobs_per_task=2, demonstrator="timed", bursts=None,
+                              cameras=(("image_primary", "agentview", 128), ("image_wrist", "robot0_eye_in_hand", 64))),
+    "second": LiberoDemoConfig(),
+}
 DEFAULT_STEPS = 2500
+RECIPE_STEPS = {"first": DEFAULT_STEPS, "second": 5000}  # the robosuite reference needed 6000
 DEFAULT_INIT = "models/octo-reference-robosuite"
 
 
@@ -65,15 +72,19 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_pipeline", description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="models/octo-reference-libero-object", help="checkpoint folder to write")
     parser.add_argument("--data", default="data/libero_object_demos", help="folder for the demonstrations (not committed)")
-    parser.add_argument("--episodes", type=int, default=LiberoDemoConfig.episodes, help="demonstrations per task")
-    parser.add_argument("--steps", type=int, default=DEFAULT_STEPS, help="training steps")
+    parser.add_argument("--recipe", choices=sorted(RECIPES), default="second",
+                        help="first: the committed checkpoint's demonstrations (timed expert, wrist 64 px, 20 a task, "
+                             "Gaussian noise only); second: issue 46's (state expert, wrist 128 px, 50 a task, recovery "
+                             "bursts) [second]")
+    parser.add_argument("--episodes", type=int, default=None, help="demonstrations per task [the recipe's]")
+    parser.add_argument("--steps", type=int, default=None, help="training steps [first 2500, second 5000]")
     parser.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
     parser.add_argument("--learning-rate", type=float, default=TrainConfig.learning_rate)
     parser.add_argument("--workers", type=int, default=2, help="recording processes (spawned)")
     parser.add_argument("--seed", type=int, default=TrainConfig.seed, help="training seed")
-    parser.add_argument("--demonstrator", choices=sorted(DEMONSTRATORS), default=LiberoDemoConfig.demonstrator,
+    parser.add_argument("--demonstrator", choices=sorted(DEMONSTRATORS), default=None,
                         help="timed: the phase expert (12-step close); state: the state-based expert, which lifts once "
-                             "the fingers hold the object [state]")
+                             "the fingers hold the object [the recipe's]")
     parser.add_argument("--dagger-episodes", type=int, default=0,
                         help="episodes per task of the trained policy to label for a DAgger round (0 = no round)")
     parser.add_argument("--dagger-steps", type=int, default=1500, help="fine-tuning steps of each DAgger round")
@@ -86,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     for noisy in ("jax._src.xla_bridge", "robosuite_logs"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
-    if args.episodes < 2 or args.steps < 1 or args.batch_size < 1 or not args.learning_rate > 0 \
+    args.steps = RECIPE_STEPS[args.recipe] if args.steps is None else args.steps
+    if (args.episodes is not None and args.episodes < 2) or args.steps < 1 or args.batch_size < 1 or not args.learning_rate > 0 \
             or args.dagger_steps < 1 or not args.dagger_learning_rate > 0 or not 1 <= args.dagger_rounds <= 9:
         parser.error("--episodes must be >= 2, --steps, --dagger-steps and --batch-size >= 1, learning rates > 0, "
                      "--dagger-rounds 1..9")
@@ -101,10 +113,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--init-from {init}: no checkpoint there (a folder with config.json); use 'none' to train "
                      "from scratch")
     start = time.perf_counter()
-    demo_config = LiberoDemoConfig(episodes=args.episodes, demonstrator=args.demonstrator)
+    demo_config = RECIPES[args.recipe]
+    demo_config = replace(demo_config, episodes=args.episodes or demo_config.episodes,
+                          demonstrator=args.demonstrator or demo_config.demonstrator)
     summary = existing_libero_demos(demo_config, args.data)
     if summary is None:
-        log.info("recording %d demonstrations per task into %s", args.episodes, args.data)
+        log.info("recording %d demonstrations per task into %s", demo_config.episodes, args.data)
         summary = record_libero_demos(demo_config, args.data, workers=args.workers)
     else:
         log.info("reusing the demonstrations in %s (recorded in %.0f s)", args.data, summary["seconds"])

@@ -148,3 +148,22 @@ def test_corrections_with_weights_append_to_demonstrations_that_have_none(tmp_pa
     assert build_dataset({"t": frames(4, 0)}, 2).weight is None
     with pytest.raises(ValueError, match="weights must be finite and > 0"):
         build_dataset({"t": {**merged, "weight": np.r_[merged["weight"][:-1], 0.0]}}, 2)
+
+
+def test_the_first_recipe_still_describes_the_committed_checkpoints_demonstrations():
+    """`--recipe first` must rebuild the committed LIBERO checkpoint: its recorded demonstration summary names the
+    configuration it was made with, which must equal the first recipe's apart from fields added since (whose
+    defaults leave the first recipe's data unchanged: bursts None, the labeller's radii unused by the timed expert)."""
+    from harness.reference.demos import config_fingerprint
+    from harness.reference.libero_pipeline import RECIPES
+    from tests.helpers import REPO
+
+    summary = json.loads((REPO / "models" / "octo-reference-libero-object" / "training_summary.json").read_text())
+    recorded = summary["demonstrations"]["config"]
+    first = config_fingerprint(RECIPES["first"])
+    added = {"bursts", "demonstrator"}  # the committed checkpoint predates both: it used the timed expert
+    assert {k: v for k, v in first.items() if k not in added and k != "expert"} == \
+        {k: v for k, v in recorded.items() if k != "expert"}
+    assert first["bursts"] is None and first["demonstrator"] == "timed"
+    assert {k: v for k, v in first["expert"].items() if k in recorded["expert"]} == recorded["expert"]
+    assert RECIPES["second"].cameras[1][2] == 128 and RECIPES["second"].bursts is not None
