@@ -6,7 +6,8 @@
 #   bash scripts/golden_runs.sh /tmp/before > before.txt   # on the old commit
 #   bash scripts/golden_runs.sh /tmp/after > after.txt     # on the new one
 #   diff before.txt after.txt                              # empty: the same files, byte for byte
-# Same machine only (numerics differ across CPUs). About a minute on 2 cores.
+# Same machine only (numerics differ across CPUs). About a minute on 2 cores. The model is read from a copy at one
+# fixed path (GOLDEN_MODEL), since its path is recorded and drawn.
 set -euo pipefail
 OUT="${1:-results/golden}"
 cd "$(dirname "$0")/.."
@@ -14,7 +15,13 @@ PY=.venv/bin/python
 export HF_HUB_OFFLINE=1 MUJOCO_GL="${MUJOCO_GL:-egl}"
 rm -rf "$OUT"
 mkdir -p "$OUT"
-run() { "$PY" -m harness.cli run --model models/octo-reference-robosuite --task Lift --episodes 2 --max-steps 12 \
+# the model's path is recorded (episode.json, manifest.json) and drawn on the overlays: read it from one fixed place,
+# so that every checkout (worktree) digests the same
+MODEL="${GOLDEN_MODEL:-/tmp/octo-harness-golden-model}"
+if ! diff -rq models/octo-reference-robosuite "$MODEL" >/dev/null 2>&1; then
+  rm -rf "$MODEL.tmp.$$" && cp -r models/octo-reference-robosuite "$MODEL.tmp.$$" && rm -rf "$MODEL" && mv "$MODEL.tmp.$$" "$MODEL"
+fi
+run() { "$PY" -m harness.cli run --model "$MODEL" --task Lift --episodes 2 --max-steps 12 \
         --seed 0 --png-every 4 --record-inputs --fast-render --out "$OUT" "$@" >/dev/null 2>&1; }
 run --run-name a
 run --run-name b
