@@ -99,15 +99,19 @@ def file_keys(*classes) -> dict[str, tuple[type, ...]]:
 
 
 def given(cls, settings: Mapping[str, Any], skip: Iterable[str] = ()) -> dict[str, Any]:
-    """{field name: value} of `cls` from a settings dict (None = not given): each given option converted, and the
-    run's own value (`Option.absent`) of those not given that declare one."""
+    """{field name: value} of `cls` from a settings dict (None = not given): each given option converted (a value
+    converted to None, as 'all' layers, is left to the field's default), and the run's own value (`Option.absent`)
+    of those not given that declare one."""
     out = {}
     for field, o in options(cls):
         if field.name in skip:
             continue
-        if settings.get(o.key) is not None:
-            out[field.name] = o.convert(settings[o.key]) if o.convert is not None else settings[o.key]
-        elif o.absent is not UNSET:
+        value = settings.get(o.key)
+        if value is not None and o.convert is not None:
+            value = o.convert(value)
+        if value is not None:
+            out[field.name] = value
+        elif o.absent is not UNSET and settings.get(o.key) is None:
             out[field.name] = o.absent
     return out
 

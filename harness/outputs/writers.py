@@ -155,7 +155,7 @@ class OutputOptions:
         False, "--rerun", "Rerun recording of every episode (pip install 'octo-harness[viewer]'): save writes "
         "episode.rrd beside its files (part of the protocol); spawn streams live to a viewer on this machine; serve "
         "hosts the web viewer for a headless server and prints its URL once (save,spawn / save,serve: both); see "
-        "docs/viewer.md", file=(bool,), metavar="save|spawn|serve", sparse=True)
+        "docs/viewer.md", file=(bool,), metavar="save|spawn|serve", convert=bool, sparse=True)
 
     def to_dict(self) -> dict:
         """The fields as plain data; the options added since protocols were first hashed only when not at their
