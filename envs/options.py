@@ -148,10 +148,14 @@ class EnvOptions:
             "the manifest's `conventions` says which")})
     image_convention: str = field(default="upright", metadata={"option": dict(  # "upright" | "opengl" | "rot180"
         flag="--image-convention", help="orientation of the frames the model was trained on (rot180: OpenVLA's LIBERO "
-        "datasets) [upright]", file=(str,), choices=IMAGE_CONVENTIONS)})
+        "datasets) [upright]", file=(str,), choices=IMAGE_CONVENTIONS,
+        doc="orientation of the frames the model was trained on (rot180: OpenVLA's LIBERO datasets) [the checkpoint's "
+            "`harness.toml`, else the task family's: robosuite upright, LIBERO rot180]")})
     action_space: str = field(default="octo-delta", metadata={"option": dict(  # "octo-delta" | "robosuite" | "libero"
         flag="--action-space", help="what the model's actions mean [octo-delta, or the checkpoint's harness.toml]",
-        file=(str,), choices=ACTION_SPACES)})
+        file=(str,), choices=ACTION_SPACES,
+        doc="what the model's actions mean [the checkpoint's `harness.toml`, else the task family's: robosuite "
+            "octo-delta, LIBERO libero]")})
     # gripper value held for 6-D (arm-only) models; the env then takes 6-D actions
     hold_gripper: float | None = field(default=None, metadata={"option": dict(
         flag="--hold-gripper", help="for a 6-D (arm-only) model: the env takes 6-D actions and holds the gripper at "

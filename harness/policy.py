@@ -60,14 +60,17 @@ class PolicyConfig:
                                         "default; a finite number [0]")
     dataset_key: str | None = option(  # unnormalisation statistics key; None = model's default choice
         None, "--dataset-key", "dataset statistics used to unnormalise actions (default: bridge_dataset when present)",
-        file=(str,), metavar="KEY",
+        file=(str,),
         doc="statistics used to unnormalise actions [bridge_dataset when the checkpoint has it; random presets have "
             "no statistics: their actions stay normalised]")
     full_attention: bool = False  # also return (layers, heads, queries, keys) matrices (needed by attention rollout)
     action_normalization: str = option(  # how the head's actions are unnormalised: mean/std | p01/p99 bounds
         "normal", "--action-normalization",
         "how actions are unnormalised: mean/std or p01/p99 bounds [checkpoint's harness.toml, else normal]",
-        file=(str,), choices=("normal", "bounds"))
+        file=(str,), choices=("normal", "bounds"),
+        doc="how the head's actions are unnormalised: mean/std or p01/p99 bounds (see [finetuned checkpoints]"
+            "(octo-runtime.md#finetuned-checkpoints-cameras-proprio-action-space-image-convention)) [the checkpoint's "
+            "`harness.toml`, else normal]")
     proprio_normalization: str = option(  # low-dim inputs: "normal" | "bounds" | "none" (harness.octo.normalization)
         "normal", "--proprio-normalization", "how proprio inputs are normalised [checkpoint's harness.toml, else normal]",
         file=(str,), choices=("normal", "bounds", "none"))

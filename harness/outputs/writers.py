@@ -109,7 +109,8 @@ class OutputOptions:
     # layers to render as PNG (negative counts from the end); None = all
     layers: tuple[int, ...] | None = option(None, "--layers", "overlay layers, e.g. 0,5,11 [all]", file=(str, list),
                                             convert=layer_list)
-    video: bool = option(True, "--no-video", None, file=(bool,), action="store_true", convert=lambda v: not v,
+    video: bool = option(True, "--no-video", {"robustness": "no rollout.mp4 per episode"}, file=(bool,),
+                         action="store_true", convert=lambda v: not v,
                          doc="no rollout.mp4")  # write rollout.mp4
     # overlay in the video: a layer index, "rollout" (needs full attention) or an attribution method of ATTRIBUTION_VIDEO
     # (its maps come with the records: the run computes them, --attribution)

@@ -49,11 +49,10 @@ DEFAULT_RECEDING_STEPS = 4
 class Destination:
     """Where a run's folder goes: `<out>/<run_name>` (its path, not part of the protocol)."""
 
-    out: str = option(DEFAULT_OUT, "--out", "output root [results/runs]", type=Path, file=(str,), hashed=False,
-                      metavar="DIR")
+    out: str = option(DEFAULT_OUT, "--out", "output root [results/runs]", type=Path, file=(str,), hashed=False)
     run_name: str | None = option(
         None, "--run-name", "folder name of this run [<model>_<protocol hash>: the same command resumes the same run]",
-        file=(str,), hashed=False, metavar="NAME",
+        file=(str,), hashed=False,
         doc="the run folder is `DIR/NAME` [`results/runs/<model>_<protocol hash>`, so the same command resumes the "
             "same run]; NAME is a plain folder name")
 
