@@ -34,10 +34,8 @@ class OneLineParser(argparse.ArgumentParser):
 
 def add_verbose(parser: argparse.ArgumentParser, top: bool = False) -> None:
     """--verbose, declared once: before the command (octo-harness --verbose run) or after it (run, regress)."""
-    if top:
-        parser.add_argument("--verbose", action="store_true", help=VERBOSE_HELP + " (hidden by default)")
-    else:
-        parser.add_argument("--verbose", action="store_true", default=argparse.SUPPRESS, help=VERBOSE_HELP)
+    where = {"help": VERBOSE_HELP + " (hidden by default)"} if top else {"default": argparse.SUPPRESS, "help": VERBOSE_HELP}
+    parser.add_argument("--verbose", action="store_true", **where)
 
 
 def add_gate_options(parser: argparse.ArgumentParser, command: str, keys: tuple[str, ...]) -> None:
