@@ -31,7 +31,7 @@ Fields:
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 import numpy as np
@@ -128,12 +128,42 @@ def _gripper_value(value: Any, action_space: str) -> float:
 
 @dataclass(frozen=True)
 class EnvOptions:
-    masks: bool = False
-    fast_render: bool = False
-    cameras: tuple[tuple[str, str, int], ...] | None = None  # None: the task's default cameras; () renders nothing
-    image_convention: str = "upright"  # "upright" | "opengl"
-    action_space: str = "octo-delta"  # "octo-delta" | "robosuite"
-    hold_gripper: float | None = None  # gripper value held for 6-D (arm-only) models; the env then takes 6-D actions
+    # The command line's options (metadata "option": harness.options.Option's fields as a plain dict, as envs/ sits
+    # below harness/; a run resolves them: flags over the checkpoint's harness.toml over the task family's defaults)
+    masks: bool = field(default=False, metadata={"option": dict(
+        flag="--no-masks", help="do not render target/robot masks", file=(bool,), action="store_true",
+        convert=lambda v: not v, absent=True)})
+    fast_render: bool = field(default=False, metadata={"option": dict(
+        flag="--fast-render", help={"run": "render without reflections, shadows and anti-aliasing (~3.6x faster frames)",
+                                    "robustness": "as for `run --fast-render`"},
+        file=(bool,), action="store_true", convert=bool, absent=False)})
+    # None: the task's default cameras; () renders nothing
+    cameras: tuple[tuple[str, str, int], ...] | None = field(default=None, metadata={"option": dict(
+        flag="--camera", help="observation key fed by a robosuite camera at a square size, e.g. "
+        "image_primary=agentview:84 (repeat; default: the task's cameras or the checkpoint's harness.toml)",
+        file=(str, list, dict), action="append", metavar="KEY=camera:size",
+        convert=lambda v: tuple(parse_camera(c) for c in v) or None,
+        doc="observation key fed by a robosuite camera at a square size (repeat); default: the checkpoint's "
+            "`harness.toml`, else the task family's (robosuite: the task's cameras; LIBERO: the published protocol); "
+            "the manifest's `conventions` says which")})
+    image_convention: str = field(default="upright", metadata={"option": dict(  # "upright" | "opengl" | "rot180"
+        flag="--image-convention", help="orientation of the frames the model was trained on (rot180: OpenVLA's LIBERO "
+        "datasets) [upright]", file=(str,), choices=IMAGE_CONVENTIONS,
+        doc="orientation of the frames the model was trained on (rot180: OpenVLA's LIBERO datasets) [the checkpoint's "
+            "`harness.toml`, else the task family's: robosuite upright, LIBERO rot180]")})
+    action_space: str = field(default="octo-delta", metadata={"option": dict(  # "octo-delta" | "robosuite" | "libero"
+        flag="--action-space", help="what the model's actions mean [octo-delta, or the checkpoint's harness.toml]",
+        file=(str,), choices=ACTION_SPACES,
+        doc="what the model's actions mean [the checkpoint's `harness.toml`, else the task family's: robosuite "
+            "octo-delta, LIBERO libero]")})
+    # gripper value held for 6-D (arm-only) models; the env then takes 6-D actions
+    hold_gripper: float | None = field(default=None, metadata={"option": dict(
+        flag="--hold-gripper", help="for a 6-D (arm-only) model: the env takes 6-D actions and holds the gripper at "
+        "this value (octo-delta: 1 open, 0 closed; robosuite: -1 open, +1 closed); part of the protocol",
+        file=(str, int, float), metavar="open|closed|VALUE", sparse=True,
+        doc="a 6-D (arm-only) model: the env takes the 6 arm values and holds the gripper at this value (octo-delta: "
+            "1 open, 0 closed; robosuite: -1 open, +1 closed); without it such a model is refused with a line naming "
+            "this option")})
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "cameras", _camera_tuple(self.cameras))

@@ -33,6 +33,7 @@ from PIL import Image
 from harness.octo.diffusion import SAMPLERS
 from harness.octo.normalization import NORMALIZATIONS, normalize
 from harness.octo.tokens import TokenMap
+from harness.options import joined, option, record
 
 
 MAX_INFERENCE_BATCH = 256  # a larger compiled batch only costs memory: no machine here gains from it
@@ -44,32 +45,75 @@ class EnvMismatchError(ValueError):
 
 @dataclass(frozen=True)
 class PolicyConfig:
-    execution: str = "temporal_ensemble"  # "temporal_ensemble" | "receding_horizon"
-    receding_steps: int = 1  # actions executed per inference when execution == "receding_horizon"
-    ensemble_weight: float = 0.0  # temporal ensemble: weight exp(-w * age_rank), 0 = plain average (Octo's default)
-    dataset_key: str | None = None  # unnormalisation statistics key; None = model's default choice
+    execution: str = option("temporal_ensemble", "--execution", "[temporal_ensemble]", file=(str,),
+                            choices=("temporal_ensemble", "receding_horizon"),
+                            doc="`temporal_ensemble` (infer every step, average overlapping chunk predictions) or "
+                                "`receding_horizon` (execute `--receding-steps` actions of each chunk) [temporal_ensemble]")
+    # actions executed per inference when execution == "receding_horizon" (a run's default there: 4)
+    receding_steps: int = option(1, "--receding-steps", "actions executed per inference (receding horizon) [4]",
+                                 type=int, file=(int,))
+    # temporal ensemble: weight exp(-w * age_rank), 0 = plain average (Octo's default)
+    ensemble_weight: float = option(0.0, "--ensemble-weight", "temporal ensemble weight exp(-w*i); 0 = mean [0]",
+                                    type=float, file=(int, float),
+                                    doc="temporal ensemble: of the overlapping predictions for this step, the i-th "
+                                        "oldest (i = 0 the oldest) weighs exp(-w·i); 0 is the plain mean, Octo's "
+                                        "default; a finite number [0]")
+    dataset_key: str | None = option(  # unnormalisation statistics key; None = model's default choice
+        None, "--dataset-key", "dataset statistics used to unnormalise actions (default: bridge_dataset when present)",
+        file=(str,),
+        doc="statistics used to unnormalise actions [bridge_dataset when the checkpoint has it; random presets have "
+            "no statistics: their actions stay normalised]")
     full_attention: bool = False  # also return (layers, heads, queries, keys) matrices (needed by attention rollout)
-    action_normalization: str = "normal"  # how the head's actions are unnormalised: "normal" (mean/std) | "bounds" (p01/p99)
-    proprio_normalization: str = "normal"  # low-dim inputs: "normal" | "bounds" | "none" (see harness.octo.normalization)
-    sampler: str = "latest"  # diffusion heads: "latest" (the latest original code, any checkpoint) | "v0.1.0"
+    action_normalization: str = option(  # how the head's actions are unnormalised: mean/std | p01/p99 bounds
+        "normal", "--action-normalization",
+        "how actions are unnormalised: mean/std or p01/p99 bounds [checkpoint's harness.toml, else normal]",
+        file=(str,), choices=("normal", "bounds"),
+        doc="how the head's actions are unnormalised: mean/std or p01/p99 bounds (see [finetuned checkpoints]"
+            "(octo-runtime.md#finetuned-checkpoints-cameras-proprio-action-space-image-convention)) [the checkpoint's "
+            "`harness.toml`, else normal]")
+    proprio_normalization: str = option(  # low-dim inputs: "normal" | "bounds" | "none" (harness.octo.normalization)
+        "normal", "--proprio-normalization", "how proprio inputs are normalised [checkpoint's harness.toml, else normal]",
+        file=(str,), choices=("normal", "bounds", "none"))
+    sampler: str = option(  # diffusion heads: "latest" (the latest original code, any checkpoint) | "v0.1.0"
+        "latest", "--sampler", "diffusion sampling as the latest original Octo code does, or as v0.1.0 did [latest]",
+        file=(str,), choices=("latest", "v0.1.0"))
     # examples per compiled inference call: every call (sequential, --workers, Ray) is padded to exactly this size, so
     # an example's numbers never depend on what shares its call, the worker count or the load (XLA's results depend
     # on the batch shape; 1 is fastest on a CPU, where one inference already uses every core)
-    inference_batch: int = 1
-    # closed-loop intervention (harness/interventions.py), e.g. "mask-top:4:attention:2"; None = none. Recorded in
-    # the protocol only when set, so protocols without one keep their hash
-    intervention: str | None = None
+    inference_batch: int = option(
+        1, "--inference-batch", "examples per compiled inference call; every call is padded to it, so actions are "
+        "bit-identical whatever --workers or the load (part of the protocol; >1 pays on a GPU) [1]", type=int, file=(int,))
+    # closed-loop intervention (harness/interventions.py), e.g. "mask-top:4:attention:2"; None = none
+    intervention: str | None = option(
+        None, "--intervene", "closed-loop intervention at every step (part of the protocol): mask-top:K:METHOD[:LAYER]"
+        "[@CAMERA], mask-bottom:K:METHOD[:LAYER][@CAMERA], mask-random:K[@CAMERA], mask-all[@CAMERA], "
+        "ablate-heads:L:H[,L:H...] (METHOD: attention, rollout, grad-attention, saliency)",
+        file=(str,), metavar="SPEC", sparse=True)
     # attribution maps at every inference step (harness/analysis/attribution.py: "attention,rollout,grad-attention,
     # saliency"; random is always added) and open-loop faithfulness every k-th step (0 = never), deleted patches
-    # filled with "mean", "blur" or "impute" (ROAD's noisy linear imputation). They do not change actions; recorded only when set
-    attribution: str | None = None
-    faithfulness_every: int = 0
-    faithfulness_fill: str = "mean"
+    # filled with "mean", "blur" or "impute" (ROAD's noisy linear imputation). They do not change actions
+    attribution: str | None = option(
+        None, "--attribution", "store attribution maps at every inference step in attribution.npz: comma-separated "
+        "attention (every layer; attention:L one), rollout, grad-attention, saliency; random is always added",
+        file=(str, list), metavar="METHODS", convert=joined, sparse=True)
+    faithfulness_every: int = option(
+        0, "--faithfulness-every", "open-loop faithfulness (deletion/insertion curves, top/random/bottom-k) of every "
+        "attribution method every K-th step, in faithfulness.jsonl [0 = never; methods default to all]",
+        type=int, file=(int,), metavar="K", sparse=True)
+    faithfulness_fill: str = option(
+        "mean", "--faithfulness-fill", "what a deleted patch becomes in the faithfulness curves: the frame's mean "
+        "colour, a blur of the frame, or noisy linear imputation from the surrounding pixels (ROAD; in distribution, "
+        "no shape leak) [mean]", file=(str,), choices=("mean", "blur", "impute"), sparse=True)
     # position-against-content controls (harness/analysis/position.py): every `controls_every`-th inference step is
     # asked again, open loop, with every camera's frames blanked to their mean colour / mirrored left-right; the
-    # control attention goes to controls.npz. They do not change actions; recorded only when set
-    attention_controls: str | None = None
-    controls_every: int = 0
+    # control attention goes to controls.npz. They do not change actions
+    attention_controls: str | None = option(
+        None, "--attention-controls", "position-against-content controls: ask the model each control step again with "
+        "every camera's frames blanked to their mean colour and/or mirrored left-right; attention in controls.npz "
+        "(docs/phases-and-position.md)", file=(str, list), metavar="blank,mirror", convert=joined, sparse=True)
+    controls_every: int = option(
+        0, "--controls-every", "run the attention controls at every N-th inference step [1 with --attention-controls]",
+        type=int, file=(int,), metavar="N", sparse=True)
 
     def __post_init__(self) -> None:
         if self.execution not in ("temporal_ensemble", "receding_horizon"):
@@ -114,14 +158,8 @@ class PolicyConfig:
             raise ValueError("--controls-every needs --attention-controls (e.g. --attention-controls blank,mirror)")
 
     def to_dict(self) -> dict:
-        """The fields as plain data; `intervention` only when set (protocols without one keep their hash)."""
-        data = dataclasses.asdict(self)
-        defaults = {"intervention": None, "attribution": None, "faithfulness_every": 0, "faithfulness_fill": "mean",
-                    "attention_controls": None, "controls_every": 0}
-        for key, default in defaults.items():
-            if data[key] == default:
-                del data[key]
-        return data
+        """The fields as plain data; the sparse options only when set (protocols without them keep their hash)."""
+        return record(self)
 
     def describe(self) -> str:
         if self.execution == "receding_horizon":

@@ -74,6 +74,7 @@ from harness.outputs.overlays import (attribution_panel, check_interpolation, co
 from harness.policy import input_digest
 from harness.records import EpisodeMeta, StepRecord
 from harness.files import atomic_write_json, json_safe, write_atomic
+from harness.options import camera_list, layer_list, option, record
 from harness.outputs.video import GifWriter, Mp4Writer
 
 PNG_NAME = "step_{step:04d}_layer_{layer:02d}.png"
@@ -84,25 +85,56 @@ _STOP = object()
 ATTRIBUTION_VIDEO = ("grad-attention", "saliency", "occlusion")  # attribution maps the MP4 can show (--video-attention)
 
 
+def parse_video_attention(text: str):
+    """--video-attention's text -> a layer index, 'rollout' or an attribution method of ATTRIBUTION_VIDEO."""
+    import argparse
+
+    if text in ("rollout", *ATTRIBUTION_VIDEO):
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--video-attention takes a layer index, 'rollout' or one of "
+                                         f"{', '.join(ATTRIBUTION_VIDEO)}, got {text!r}") from None
+
+
 class WriterError(RuntimeError):
     """The background writer failed; the cause is chained."""
 
 
 @dataclass(frozen=True)
 class OutputOptions:
-    png_every: int = 1  # PNG panels every n-th step; 0 = none
-    layers: tuple[int, ...] | None = None  # layers to render as PNG (negative counts from the end); None = all
-    video: bool = True  # write rollout.mp4
+    # PNG panels every n-th step; 0 = none
+    png_every: int = option(1, "--png-every", "write overlays every n-th step (0 = none) [1]", type=int, file=(int,))
+    # layers to render as PNG (negative counts from the end); None = all
+    layers: tuple[int, ...] | None = option(None, "--layers", "overlay layers, e.g. 0,5,11 [all]", file=(str, list),
+                                            convert=layer_list)
+    video: bool = option(True, "--no-video", {"robustness": "no rollout.mp4 per episode"}, file=(bool,),
+                         action="store_true", convert=lambda v: not v,
+                         doc="no rollout.mp4")  # write rollout.mp4
     # overlay in the video: a layer index, "rollout" (needs full attention) or an attribution method of ATTRIBUTION_VIDEO
     # (its maps come with the records: the run computes them, --attribution)
-    video_attention: str | int = -1
+    video_attention: str | int = option(
+        -1, "--video-attention", "attention shown in the MP4: a layer index (default -1 = last), 'rollout', or an "
+        "attribution map: grad-attention, saliency, occlusion (computed at every step, as --attribution)",
+        type=parse_video_attention, file=(int, str),
+        doc="attention shown in the MP4: a layer index (default `-1`, last), `rollout` (attention rollout; captures "
+            "full matrices, slower), or an attribution map: `grad-attention`, `saliency`, `occlusion` (computed at "
+            "every step, see [faithfulness](faithfulness.md))")
     # observation key(s) shown in the video, one row each (--video-cameras); None = every camera the model reads, in
     # the model's order (a single key, as older protocols hold it, is one row)
-    video_camera: str | tuple[str, ...] | None = None
-    gif: bool = False  # also write rollout.gif (every gif_every-th frame, half size)
+    video_camera: str | tuple[str, ...] | None = option(
+        None, "--video-cameras", "cameras shown in the MP4, one row each (frame | overlay), e.g. image_primary or "
+        "image_primary,image_wrist [all: every camera the model reads]", file=(str, list), metavar="KEYS",
+        convert=camera_list)
+    gif: bool = option(False, "--gif", "also write rollout.gif", file=(bool,), action="store_true",
+                       convert=bool)  # every gif_every-th frame, half size
     gif_every: int = 2
-    normalisation: str = "frame"  # PNG colour range: "frame" (this step) or "episode" (rendered at finish)
-    bbox: bool = True  # draw the target mask's bounding box
+    normalisation: str = option(  # PNG colour range: "frame" (this step) or "episode" (rendered at finish)
+        "frame", "--normalisation", "[frame]", file=(str,), choices=("frame", "episode"),
+        doc="heatmap colour range per frame or per episode [frame]")
+    bbox: bool = option(True, "--bbox", "draw the target object's bounding box on overlays", file=(bool,),
+                        action="store_true", convert=bool, absent=False)  # draw the target mask's bounding box
     fps: float = 10.0
     head_fusion: str = "mean"  # the fused-head column / video map: "mean", "max" or "min"
     cmap: str = "jet"
@@ -110,18 +142,26 @@ class OutputOptions:
     queue_size: int = 4  # steps waiting for the writer before add_step blocks
     png_compress_level: int = 2  # zlib level 0-9 (low: fast, larger files)
     png_workers: int = 2  # threads compressing PNGs in parallel (zlib releases the GIL); 0 = in the writer thread
-    record_inputs: bool = False  # write inputs.npz: the policy's inputs at every step, for `octo-harness replay`
-    overlay_interpolation: str = "nearest"  # how patch maps are enlarged in PNGs, MP4 and recording: nearest | bilinear
-    rerun: bool = False  # write episode.rrd, a Rerun recording of the episode (--rerun save; needs the viewer extra)
+    record_inputs: bool = option(  # write inputs.npz: the policy's inputs at every step, for `octo-harness replay`
+        False, "--record-inputs", "write each episode's policy inputs (inputs.npz: resized frames, proprio, seed, "
+        "instruction; compressed) so `octo-harness replay` can run any model open loop on them", file=(bool,),
+        action="store_true", convert=bool)
+    overlay_interpolation: str = option(  # how patch maps are enlarged in PNGs, MP4 and recording: nearest | bilinear
+        "nearest", "--overlay-interpolation", "how patch-grid maps are enlarged in PNGs, MP4 and recording: nearest "
+        "(the honest patch grid) or bilinear (smooth, as the original attention-visualisation scripts) [nearest]",
+        file=(str,), choices=("nearest", "bilinear"), sparse=True)
+    # write episode.rrd, a Rerun recording of the episode (--rerun save; needs the viewer extra); the live modes
+    # (spawn, serve) are chosen on the command line only (harness/cli/run.py)
+    rerun: bool = option(
+        False, "--rerun", "Rerun recording of every episode (pip install 'octo-harness[viewer]'): save writes "
+        "episode.rrd beside its files (part of the protocol); spawn streams live to a viewer on this machine; serve "
+        "hosts the web viewer for a headless server and prints its URL once (save,spawn / save,serve: both); see "
+        "docs/viewer.md", file=(bool,), metavar="save|spawn|serve", convert=bool, sparse=True)
 
     def to_dict(self) -> dict:
-        """The fields as plain data; the fields added since protocols were first hashed only when not at their default
-        (protocols that do not use them keep their hash and their run name)."""
-        data = dataclasses.asdict(self)
-        for key, default in {"overlay_interpolation": "nearest", "rerun": False}.items():
-            if data[key] == default:
-                del data[key]
-        return data
+        """The fields as plain data; the options added since protocols were first hashed only when not at their
+        default (protocols that do not use them keep their hash and their run name)."""
+        return record(self)
 
     def __post_init__(self) -> None:
         if self.png_every < 0:

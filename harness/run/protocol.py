@@ -22,6 +22,7 @@ from typing import Any, Mapping
 from envs.options import EnvOptions
 from envs.perturbations import parse_perturb, perturb_text
 from harness.files import json_safe
+from harness.options import option, options
 from harness.policy import PolicyConfig
 from harness.run.jobs import FORMAT, EpisodeJob  # noqa: F401  (re-exported)
 from harness.outputs.writers import OutputOptions
@@ -47,21 +48,55 @@ def harness_version() -> str:
 
 @dataclass(frozen=True)
 class Protocol:
-    model: str  # hf://owner/name, a checkpoint folder (absolute path), or random:<preset>
-    tasks: tuple[str, ...]  # registry names, in run order, no duplicates
-    episodes: int = 1  # per task
-    seed: int = 0  # episode k of every task is reset with seed + k
-    max_steps: int | None = None  # None = each task's own limit
-    instruction: str | None = None  # override of every task's instruction
-    goal_images: str | None = None  # absolute folder holding <obs key>.png goal images
+    model: str = option(  # hf://owner/name, a checkpoint folder (absolute path), or random:<preset>
+        flag="--model", file=(str,), help={
+            "run": "hf://owner/name, a local checkpoint folder, or random:octo-small-1.5 / random:octo-base-1.5 "
+                   "[hf://rail-berkeley/octo-small-1.5]",
+            "robustness": "model (as for `run --model`)"})
+    tasks: tuple[str, ...] = option(  # registry names, in run order, no duplicates
+        flag="--task", file=(str, list), action="append", help={
+            "run": "task name (repeat or comma-separate for several; 'all' for every registered task)",
+            "robustness": "task name(s), repeat or comma-separate"})
+    episodes: int = option(1, "--episodes", {"run": "episodes per task [1]",  # per task
+                                             "robustness": "episodes per task and condition [20]"}, type=int, file=(int,))
+    seed: int = option(0, "--seed", {"run": "episode k uses seed + k [0]",  # episode k of every task: seed + k
+                                     "robustness": "episode k uses seed + k in every condition [0]"},
+                       type=int, file=(int,),
+                       doc="episode k of each task is reset with seed `S + k` (same seed → same actions, attention, "
+                           "images) [0]")
+    max_steps: int | None = option(  # None = each task's own limit
+        None, "--max-steps", "stop each episode after N control steps [task's limit]", type=int, file=(int,))
+    instruction: str | None = option(  # override of every task's instruction
+        None, "--instruction", "override the task's language instruction", file=(str,))
+    goal_images: str | None = option(  # absolute folder holding <obs key>.png goal images
+        None, "--goal-images", "folder with <obs key>.png goal images (image_primary.png, ...) for goal-conditioned "
+        "models", type=Path, file=(str,), convert=lambda v: str(Path(v).expanduser().resolve()),
+        doc="goal-conditioned models: `DIR/image_primary.png`, `DIR/image_wrist.png` (resized to the model's goal "
+            "size)")
     env: EnvOptions = field(default_factory=lambda: EnvOptions(masks=True))
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     outputs: OutputOptions = field(default_factory=OutputOptions)
     model_fingerprint: str | None = None  # filled by `fingerprinted()`: sha256 of the checkpoint files, or the preset
     goal_fingerprint: str | None = None  # sha256 of the goal image files
     harness_version: str = field(default_factory=harness_version)
-    text_tokenizer: str | None = None  # None: the checkpoint's own (auto); "fallback"; or an absolute tokenizer.json path
-    perturb: str | None = None  # canonical "KIND[@KEY]:LEVEL,..." (envs.perturbations); None = nominal (level 0 too)
+    text_tokenizer: str | None = option(  # None: the checkpoint's own (auto); "fallback"; or an absolute path
+        None, "--text-tokenizer", "text tokenizer: the checkpoint's own (t5-base from the Hugging Face cache), the "
+        "deterministic fallback (not T5), or a tokenizer.json / folder; part of the model fingerprint [auto]",
+        file=(str,), metavar="auto|fallback|PATH", sparse=True,
+        doc="the text tokenizer: `auto` the one the checkpoint's config names (t5-base from the Hugging Face cache, or a "
+            "tokenizer folder inside the checkpoint), `fallback` the deterministic hash tokenizer (not T5: for running "
+            "offline when t5-base is not cached), or a `tokenizer.json` / a folder holding one; also `[text] "
+            "tokenizer` in `harness.toml`. The tokenizer's identity (kind, vocabulary size, sha256 of its file) is in "
+            "the manifest (`model.tokenizer`) and in the model fingerprint [auto]")
+    perturb: str | None = option(  # canonical "KIND[@KEY]:LEVEL,..." (envs.perturbations); None = nominal (level 0 too)
+        None, "--perturb", {
+            "run": "controlled perturbation of the scene (part of the protocol; docs/perturbations.md): camera, "
+                   "lighting, texture, distractors, init-state, noise, language at level 0 (nominal) to 5; "
+                   "camera@KEY / noise@KEY pick a camera, e.g. camera:3,lighting:1 [none]",
+            "robustness": "comma-separated kinds (camera, lighting, texture, distractors, init-state, noise, language; "
+                          "camera@KEY / noise@KEY for one camera)"},
+        file=(str, list), metavar="KIND[@KEY]:LEVEL[,...]", sparse=True,
+        convert=lambda v: perturb_text(parse_perturb(v)))
     # a run mixing task families (robosuite, LIBERO): {family: {env option: value}} where a family's own default
     # convention differs from `env` (harness.conventions.family_defaults); None when every task takes `env`
     family_env: Mapping[str, Mapping[str, Any]] | None = None
@@ -133,10 +168,10 @@ class Protocol:
             "policy": _plain(self.policy),
             "outputs": _plain(self.outputs),
             "harness_version": self.harness_version,
-            # only when chosen, so protocols (and run names) of the automatic choice keep their hash
-            **({"text_tokenizer": self.text_tokenizer} if self.text_tokenizer is not None else {}),
-            # only when set: a nominal protocol (no flag, or every level 0) keeps its hash and its run folder
-            **({"perturb": self.perturb} if self.perturb is not None else {}),
+            # the options not listed above (text_tokenizer, perturb, ...): a sparse one only when set, so protocols
+            # of the automatic choice or the nominal scene keep their hash and their run folder
+            **{f.name: getattr(self, f.name) for f, o in options(Protocol) if o.hashed and f.name not in _LISTED
+               and not (o.sparse and getattr(self, f.name) == f.default)},
             **({"family_env": {f: dict(v) for f, v in self.family_env.items()}} if self.family_env else {}),
         })
 
@@ -160,6 +195,25 @@ class Protocol:
 
     def hash(self) -> str:
         return protocol_hash(self.to_dict())
+
+
+_LISTED = ("model", "tasks", "episodes", "seed", "max_steps", "instruction", "goal_images")  # to_dict's fixed keys
+
+CI_METHODS = ("wilson", "clopper-pearson")
+
+
+@dataclass(frozen=True)
+class RunStatistics:
+    """How a run's derived files (results.json, summary.csv, statistics.csv) compute success intervals: recorded in
+    the manifest ("statistics"), outside the protocol and its hash (the episodes are the same), so a resume, `run
+    --resume` included, writes them as the run began."""
+
+    ci_method: str = option(
+        "wilson", "--ci-method", "confidence interval of success rates (95%%) [wilson]", file=(str,), choices=CI_METHODS,
+        hashed=False, doc="95% interval of success rates: Wilson score or the exact Clopper-Pearson; a resume (also "
+        "`--resume`) writes the derived files with the recorded one; another method for a run that records one is "
+        "refused (one line, exit 2) [wilson]")
+    confidence: float = 0.95
 
 
 def _is_int(x) -> bool:

@@ -19,7 +19,7 @@ its jobs is INCOMPLETE (exit 4), as in compare. `gate_on_outcomes` is the same d
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -33,6 +33,7 @@ from harness.analysis.compare import (
     outcome_verdicts,
     overall_verdict,
 )
+from harness.analysis.gate import GateConfig
 from harness.analysis.paired import PairedCounts, errored_most, mcnemar_exact_sample_size, worst
 from harness.analysis.runs import load_run
 from harness.analysis.sequential import SequentialConfig, TaskwiseTest
@@ -185,20 +186,22 @@ def _check_baseline(baseline: dict, jobs: Sequence[EpisodeJob], path) -> None:
                              "(octo-harness run --retry-failed)")
 
 
-def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = None, out: str | Path = "results/runs",
-            run_name: str | None = None, alpha: float = 0.05, max_drop: float = 0.1, loaded_model=None,
-            executor=None, progress: bool = True, text_tokenizer: str | None = None) -> dict:
+def regress(baseline_dir: str | Path, model: str, gate: GateConfig | None = None, *, out: str | Path = "results/runs",
+            run_name: str | None = None, loaded_model=None, executor=None, progress: bool = True) -> dict:
     """Run the sequential regression (see the module docstring); returns the result dict (regress.json).
 
+    gate: alpha, max_drop, max_episodes, the candidate's text_tokenizer and the replay tolerances (default GateConfig()).
     executor: factory(context, model) -> Executor for the candidate's episodes (default SequentialExecutor).
     """
     from harness.run import execute
 
+    gate = gate if gate is not None else GateConfig()
+    alpha = gate.alpha
     baseline = load_run(baseline_dir, legacy=False)
-    protocol = candidate_protocol(baseline.manifest, model, max_episodes, str(baseline.path / "manifest.json"),
-                                  text_tokenizer)
-    config = SequentialConfig(alpha=alpha, max_drop=max_drop)
-    compare_config = CompareConfig(max_drop=max_drop, alpha=alpha)
+    protocol = candidate_protocol(baseline.manifest, model, gate.max_episodes, str(baseline.path / "manifest.json"),
+                                  gate.text_tokenizer)
+    config = gate.sequential()
+    compare_config = gate.compare()
     base_outcomes = _outcomes(baseline)
     jobs = protocol.jobs()
     if not any((j.task, j.seed) in base_outcomes for j in jobs):
@@ -214,13 +217,13 @@ def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = 
     summary = execute(protocol, out, run_name, model=loaded_model, executor=factory, progress=progress)
     candidate = load_run(summary.run_dir)
     cand = _outcomes(candidate)
-    gate = gate_on_outcomes(base_outcomes, cand, jobs, protocol.tasks, alpha, max_drop)
-    test: TaskwiseTest = gate["test"]
+    decision = gate_on_outcomes(base_outcomes, cand, jobs, protocol.tasks, alpha, gate.max_drop)
+    test: TaskwiseTest = decision["test"]
     used = [(j.task, j.seed) for paired in _rounds(base_outcomes, jobs, protocol.tasks)[: test.rounds] for j in paired]
     outcome_pairs = [k for k in used if base_outcomes[k] is not None and cand[k] is not None]
     counts = PairedCounts.from_outcomes([base_outcomes[k] for k in outcome_pairs], [cand[k] for k in outcome_pairs])
     comparison = compare_runs(baseline.path, candidate.path, compare_config, require_complete=False)
-    replay = replay_baseline(baseline, model, loaded_model, protocol.text_tokenizer)
+    replay = replay_baseline(baseline, model, replace(gate, text_tokenizer=protocol.text_tokenizer), loaded_model)
     sequential = test.summary()
     stopped_errored = errored_tasks(base_outcomes, cand, jobs)
     if stopped_errored:
@@ -261,14 +264,14 @@ def regress(baseline_dir: str | Path, model: str, *, max_episodes: int | None = 
     }
 
 
-def replay_baseline(baseline, model: str, loaded_model=None, text_tokenizer: str | None = None) -> dict | None:
+def replay_baseline(baseline, model: str, gate: GateConfig, loaded_model=None) -> dict | None:
     """The candidate on the baseline's recorded inputs (harness/run/replay.py): its model numerics, isolated from
-    the simulator and the platform; None when the baseline recorded no inputs."""
+    the simulator and the platform, within the gate's tolerances; None when the baseline recorded no inputs."""
     from harness.run.replay import INPUTS, replay_run
 
     if not all((e.directory / INPUTS).is_file() for e in baseline.episodes if e.ok):
         return None
-    result = replay_run(baseline.path, model, loaded_model=loaded_model, text_tokenizer=text_tokenizer)
+    result = replay_run(baseline.path, model, gate, loaded_model=loaded_model)
     return {k: v for k, v in result.items() if k != "episode_details"}
 
 
@@ -344,9 +347,9 @@ def write_regress(result: dict, code: int, write_comparison) -> dict:
     return {"json": out / "regress.json", "html": paths["html"], "summary": summary_text(result, code)}
 
 
-def regress_grid(baseline_grid: str | Path, model: str, *, max_episodes: int | None = None,
-                 out: str | Path = "results/runs", run_name: str | None = None, alpha: float = 0.05,
-                 max_drop: float = 0.1, executor=None, progress: bool = True, text_tokenizer: str | None = None) -> dict:
+def regress_grid(baseline_grid: str | Path, model: str, gate: GateConfig | None = None, *,
+                 out: str | Path = "results/runs", run_name: str | None = None, executor=None,
+                 progress: bool = True) -> dict:
     """`regress` condition by condition over a robustness grid (octo-harness robustness): each condition's
     sequential test runs at alpha / conditions (and, inside it, alpha / conditions / tasks per task), so the family
     of every (task, condition) cell holds alpha; then the pairs run are compared as a grid (compare_grids: Holm over
@@ -356,6 +359,8 @@ def regress_grid(baseline_grid: str | Path, model: str, *, max_episodes: int | N
     from harness.octo import load_pretrained
     from harness.run.robustness import GRID_FILE
 
+    gate = gate if gate is not None else GateConfig()
+    alpha = gate.alpha
     baseline_grid = Path(baseline_grid)
     grid = read_grid(baseline_grid)
     names = list(grid["runs"])
@@ -363,14 +368,13 @@ def regress_grid(baseline_grid: str | Path, model: str, *, max_episodes: int | N
     folder = Path(out) / (run_name or f"{short}_{baseline_grid.resolve().name}")
     folder.mkdir(parents=True, exist_ok=True)
     atomic_write_json(folder / GRID_FILE, {**grid, "regress_of": str(baseline_grid.resolve())})
-    loaded = load_pretrained(model, text_tokenizer=text_tokenizer)
+    loaded = load_pretrained(model, text_tokenizer=gate.text_tokenizer)
     per_condition = {}
     for name in names:
         log.info("regress: condition %s at alpha %.3g", name, alpha / len(names))
-        per_condition[name] = regress(baseline_grid / name, model, max_episodes=max_episodes, out=folder, run_name=name,
-                                      alpha=alpha / len(names), max_drop=max_drop, loaded_model=loaded, executor=executor,
-                                      progress=progress, text_tokenizer=text_tokenizer)
-    comparison = compare_grids(baseline_grid, folder, CompareConfig(max_drop=max_drop, alpha=alpha),
+        per_condition[name] = regress(baseline_grid / name, model, gate.at(alpha / len(names)), out=folder,
+                                      run_name=name, loaded_model=loaded, executor=executor, progress=progress)
+    comparison = compare_grids(baseline_grid, folder, gate.compare(),
                                require_complete=False)  # the sequential test may stop a condition early
     verdicts = [r["verdict"] for r in per_condition.values()] + [comparison["verdict"]]
     return {

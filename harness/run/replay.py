@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.analysis.gate import GateConfig
 from harness.analysis.equivalence import Tolerances, action_change, action_scale, attention_change, first_change
 from harness.analysis.runs import EpisodeRecord, load_run, read_npz
 from harness.run.protocol import protocol_from_manifest
@@ -118,16 +119,17 @@ def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolera
     return result
 
 
-def replay_run(run_dir: str | Path, model_source: str | None = None, tolerances: Tolerances | None = None,
-               loaded_model=None, text_tokenizer: str | None = None) -> dict:
+def replay_run(run_dir: str | Path, model_source: str | None = None, gate: GateConfig | None = None,
+               loaded_model=None) -> dict:
     """Replay every finished episode of a run with recorded inputs (see the module docstring); returns replay.json.
 
-    text_tokenizer: auto|fallback|PATH for the replayed model (None: the run's own choice)."""
+    gate: the tolerances and the replayed model's text_tokenizer, auto|fallback|PATH (None: the run's own choice)."""
     from harness.octo import load_pretrained
     from harness.policy import BatchInference, resize_frame
     from harness.run import checks
 
-    tolerances = tolerances if tolerances is not None else Tolerances()
+    gate = gate if gate is not None else GateConfig()
+    tolerances, text_tokenizer = gate.tolerances(), gate.text_tokenizer
     run = load_run(run_dir)
     if run.format == "legacy":
         raise ReplayInputError(f"{run.path} was made before the run store and recorded no inputs; re-run it with "

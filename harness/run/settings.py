@@ -29,38 +29,40 @@ import tomllib
 from pathlib import Path
 from typing import Any, Mapping
 
-from envs.options import EnvOptions, parse_camera
-from envs.perturbations import parse_perturb, perturb_text
+from dataclasses import dataclass
+
+from envs.options import EnvOptions
 from harness.bounded import read_toml, short
+from harness.options import file_keys, given, option
 from harness.policy import PolicyConfig
 from harness.analysis.attribution import DEFAULT_METHODS
 from harness.outputs.writers import ATTRIBUTION_VIDEO
-from harness.run.protocol import Protocol
+from harness.run.protocol import Protocol, RunStatistics
 from harness.outputs.writers import OutputOptions
 
 DEFAULT_MODEL = "hf://rail-berkeley/octo-small-1.5"
 DEFAULT_OUT = "results/runs"
 DEFAULT_RECEDING_STEPS = 4
 
-# key -> expected TOML type(s); the same names as the `run` flags
-FILE_KEYS: dict[str, tuple[type, ...]] = {
-    "intervene": (str,),  # harness/interventions.py; recorded as policy.intervention
-    "attribution": (str, list), "faithfulness_every": (int,), "faithfulness_fill": (str,),  # harness/analysis/attribution.py
-    "attention_controls": (str, list), "controls_every": (int,),  # harness/analysis/position.py
-    "task": (str, list), "episodes": (int,), "model": (str,), "max_steps": (int,), "out": (str,), "run_name": (str,),
-    "seed": (int,), "instruction": (str,), "dataset_key": (str,), "execution": (str,), "receding_steps": (int,),
-    "ensemble_weight": (int, float), "png_every": (int,), "layers": (str, list), "video_attention": (int, str),
-    "normalisation": (str,), "no_video": (bool,), "gif": (bool,), "bbox": (bool,), "no_masks": (bool,),
-    "goal_images": (str,), "fast_render": (bool,), "camera": (str, list, dict), "image_convention": (str,),
-    "action_space": (str,), "ci_method": (str,), "sampler": (str,), "action_normalization": (str,),
-    "proprio_normalization": (str,), "inference_batch": (int,), "record_inputs": (bool,),
-    "text_tokenizer": (str,), "hold_gripper": (str, int, float),
-    "video_cameras": (str, list), "overlay_interpolation": (str,),
-    "rerun": (bool,),  # true: write each episode's episode.rrd (live viewers are chosen on the command line)
-    "perturb": (str, list),
-}
-POLICY_KEYS = ("execution", "receding_steps", "ensemble_weight", "dataset_key", "sampler", "action_normalization",
-               "proprio_normalization", "inference_batch")
+
+@dataclass(frozen=True)
+class Destination:
+    """Where a run's folder goes: `<out>/<run_name>` (its path, not part of the protocol)."""
+
+    out: str = option(DEFAULT_OUT, "--out", "output root [results/runs]", type=Path, file=(str,), hashed=False)
+    run_name: str | None = option(
+        None, "--run-name", "folder name of this run [<model>_<protocol hash>: the same command resumes the same run]",
+        file=(str,), hashed=False,
+        doc="the run folder is `DIR/NAME` [`results/runs/<model>_<protocol hash>`, so the same command resumes the "
+            "same run]; NAME is a plain folder name")
+
+
+# The options of `run`, each declared once on the field that holds it, and where the manifest records each class
+RUN_OPTIONS = ((Protocol, "protocol"), (EnvOptions, "protocol.env"), (PolicyConfig, "protocol.policy"),
+               (OutputOptions, "protocol.outputs"), (RunStatistics, "statistics"), (Destination, ""))
+# key -> expected TOML type(s); the same names as the `run` flags (rerun: true writes each episode's episode.rrd;
+# live viewers are chosen on the command line)
+FILE_KEYS: dict[str, tuple[type, ...]] = file_keys(*(cls for cls, _ in RUN_OPTIONS))
 
 
 def read_protocol_file(path: str | Path) -> dict[str, Any]:
@@ -173,72 +175,36 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
     model = normalise_model(str(s.get("model", DEFAULT_MODEL)))
     conventions = _conventions(model)
 
-    env_given: dict[str, Any] = {"masks": not s.get("no_masks", False), "fast_render": bool(s.get("fast_render", False))}
-    if s.get("camera"):
-        env_given["cameras"] = tuple(parse_camera(c) for c in s["camera"])
-    for key in ("image_convention", "action_space", "hold_gripper"):
-        if key in s:
-            env_given[key] = s[key]
+    env_given: dict[str, Any] = given(EnvOptions, s)
     tasks = resolve_tasks(s.get("task"))
     env, family_env, sources = _family_env(conventions, env_given, tasks)
 
     video_attention = s.get("video_attention", -1)
-    policy_given: dict[str, Any] = {k: s[k] for k in POLICY_KEYS if k in s}
+    policy_given: dict[str, Any] = given(PolicyConfig, s)
     if policy_given.get("execution") == "receding_horizon" and "receding_steps" not in policy_given \
             and not (conventions is not None and "receding_steps" in conventions.policy):
         policy_given["receding_steps"] = DEFAULT_RECEDING_STEPS
     policy_given["full_attention"] = video_attention == "rollout"
-    if "intervene" in s:
-        policy_given["intervention"] = s["intervene"]
-    if video_attention in ATTRIBUTION_VIDEO:  # the MP4 shows an attribution map: the run computes it
-        methods = policy_given.get("attribution") or s.get("attribution")
-        methods = ",".join(methods) if isinstance(methods, list) else methods
-        if not methods and s.get("faithfulness_every"):
-            methods = DEFAULT_METHODS
+    if video_attention in ATTRIBUTION_VIDEO and "attribution" not in s:  # the MP4 shows an attribution map: computed
+        methods = DEFAULT_METHODS if s.get("faithfulness_every") else None
         if not methods:
             policy_given["attribution"] = video_attention
         elif video_attention not in methods.split(","):
             policy_given["attribution"] = f"{methods},{video_attention}"
-    if "attribution" in s:
-        policy_given["attribution"] = ",".join(s["attribution"]) if isinstance(s["attribution"], list) else s["attribution"]
     if "controls_every" in s and s["controls_every"] is not None and not (
             isinstance(s["controls_every"], int) and not isinstance(s["controls_every"], bool) and s["controls_every"] >= 1):
         raise ValueError(f"--controls-every must be an integer >= 1 (1: every inference step), got {short(s['controls_every'])}")
-    for key in ("faithfulness_every", "faithfulness_fill", "controls_every"):
-        if key in s:
-            policy_given[key] = s[key]
-    if "attention_controls" in s:
-        controls = s["attention_controls"]
-        policy_given["attention_controls"] = ",".join(controls) if isinstance(controls, list) else controls
     policy = conventions.policy_config(policy_given) if conventions is not None else PolicyConfig(**policy_given)
 
-    outputs = OutputOptions(
-        png_every=s.get("png_every", 1),
-        layers=_layers(s.get("layers")),
-        video=not s.get("no_video", False),
-        video_attention=video_attention,
-        gif=bool(s.get("gif", False)),
-        normalisation=s.get("normalisation", "frame"),
-        bbox=bool(s.get("bbox", False)),
-        record_inputs=bool(s.get("record_inputs", False)),
-        video_camera=_cameras(s.get("video_cameras")),
-        overlay_interpolation=s.get("overlay_interpolation", "nearest"),
-        rerun=bool(s.get("rerun", False)),
-    )
-    goal_images = s.get("goal_images")
+    outputs = OutputOptions(**given(OutputOptions, s))
     return Protocol(
         model=model,
         tasks=tasks,
-        episodes=s.get("episodes", 1),
-        seed=s.get("seed", 0),
-        max_steps=s.get("max_steps"),
-        instruction=s.get("instruction"),
-        goal_images=str(Path(goal_images).expanduser().resolve()) if goal_images is not None else None,
         env=env,
         policy=policy,
         outputs=outputs,
         text_tokenizer=text_tokenizer_choice(s.get("text_tokenizer", conventions.text_tokenizer if conventions else None)),
-        perturb=perturb_text(parse_perturb(s.get("perturb"))),
+        **given(Protocol, s, skip=("model", "tasks", "text_tokenizer")),
         family_env=family_env,
         convention_sources=sources,
     )
@@ -274,27 +240,5 @@ def text_tokenizer_choice(value: str | None) -> str | None:
     return value
 
 
-def _cameras(value) -> tuple[str, ...] | None:
-    """--video-cameras image_primary,image_wrist (or a list) -> the keys; None / 'all' -> None (every camera)."""
-    if value is None or value == "all":
-        return None
-    keys = [k.strip() for v in ([value] if isinstance(value, str) else value) for k in str(v).split(",") if k.strip()]
-    if not keys:
-        raise ValueError(f"--video-cameras takes comma-separated observation keys (e.g. image_primary,image_wrist) or "
-                         f"'all'; got {value!r}")
-    return tuple(keys)
-
-
-def _layers(value) -> tuple[int, ...] | None:
-    if value is None or value == "all":
-        return None
-    if isinstance(value, str):
-        try:
-            return tuple(int(x) for x in value.split(","))
-        except ValueError:
-            raise ValueError(f"layers takes comma-separated layer indices or 'all', got {value!r}") from None
-    return tuple(int(x) for x in value)
-
-
 def out_dir(settings: Mapping[str, Any]) -> Path:
-    return Path(os.path.expanduser(str(settings.get("out") or DEFAULT_OUT)))
+    return Path(os.path.expanduser(str(settings.get("out") or Destination.out)))

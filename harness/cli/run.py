@@ -1,0 +1,108 @@
+"""`octo-harness run`: run (or resume) the closed-loop episodes of a protocol into one run folder.
+
+Its options are the fields of harness.run.settings.RUN_OPTIONS (protocol, env, policy, output, statistics and
+destination options, each declared once on its field); here only what controls the command itself (protocol file,
+resume, overwrite, execution, render device, the live viewer)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from harness.cli.common import add_execution_args, add_render_arg, add_verbose, add_viewer_ports, execution, keep_serving
+from harness.options import add_arguments, options
+
+
+def _classes():
+    from harness.run.settings import RUN_OPTIONS
+
+    return [cls for cls, _ in RUN_OPTIONS]
+
+
+def add_parser(sub) -> None:
+    r = sub.add_parser("run", help="run (or resume) closed-loop episodes and record attention",
+                       description="Run the episodes of an evaluation protocol into <out>/<run-name>; running the same "
+                                   "command again resumes it. Defaults are shown in brackets.")
+    r.add_argument("--protocol", type=Path, default=None,
+                   help="TOML file whose keys mirror these flags (task, model, episodes, ...); flags given here override it")
+    r.add_argument("--resume", type=Path, default=None, metavar="RUN_DIR",
+                   help="continue the run in RUN_DIR with the protocol from its manifest.json")
+    r.add_argument("--overwrite", action="store_true", help="start the run afresh, deleting what the run folder holds")
+    r.add_argument("--retry-failed", action="store_true", help="on resume, run episodes that failed with an error again")
+    add_arguments(r, _classes())
+    add_viewer_ports(r, "run")
+    add_verbose(r)
+    add_execution_args(r)
+    add_render_arg(r)
+    r.set_defaults(func=main)
+
+
+def _live_viewer(args, modes: tuple[str, ...]):
+    """--rerun modes -> the live viewer started for spawn / serve, or None. A missing viewer extra is one line."""
+    from harness.outputs.rerun_sink import import_rerun, start_viewer
+
+    if (args.viewer_port is not None or args.web_port is not None) and not {"spawn", "serve"} & set(modes):
+        raise ValueError("--viewer-port and --web-port need --rerun spawn or --rerun serve")
+    if modes:
+        import_rerun()
+    live = next((m for m in modes if m in ("spawn", "serve")), None)
+    if live is None:
+        return None
+    viewer = start_viewer(live, args.viewer_port, args.web_port)
+    if live == "serve":
+        print(f"Rerun web viewer: {viewer.web_url}  (on a remote server: ssh -L {args.web_port or 9090}:localhost:"
+              f"{args.web_port or 9090} -L {args.viewer_port or 9876}:localhost:{args.viewer_port or 9876} <server>)",
+              flush=True)
+    else:
+        print(f"Rerun viewer spawned; episodes stream to {viewer.url}", flush=True)
+    return viewer
+
+
+def _protocol(args, given: dict):
+    """(protocol, out, run name, ci method) from the manifest of --resume RUN_DIR, or from --protocol and the flags."""
+    from harness.run import RunStore
+    from harness.run.protocol import protocol_from_manifest
+    from harness.run.settings import build_protocol, out_dir, read_protocol_file
+
+    if args.resume is None:
+        settings = {**(read_protocol_file(args.protocol) if args.protocol else {}), **given}
+        return build_protocol(settings), out_dir(settings), settings.get("run_name"), settings.get("ci_method")
+    if given or args.protocol is not None:
+        raise ValueError(f"--resume takes the protocol from {args.resume}/manifest.json; drop "
+                         + ", ".join("--" + k.replace("_", "-") for k in (given or {"protocol": 1})))
+    manifest = RunStore(args.resume).read_manifest()
+    if manifest is None:
+        raise FileNotFoundError(f"{args.resume} holds no manifest.json; pass the folder of an octo-harness run")
+    protocol = protocol_from_manifest(manifest, args.resume / "manifest.json", model_fingerprint=None,
+                                      goal_fingerprint=None)
+    return protocol, args.resume.parent, args.resume.name, None  # None: the manifest's statistics.ci_method
+
+
+def main(args) -> int:
+    from harness.outputs.rerun_sink import parse_modes
+    from harness.run import ResultsWriteError, execute
+
+    factory = execution(args)
+    modes = parse_modes(args.rerun)  # a bad --rerun is one line, before anything heavy
+    given = {o.key: getattr(args, o.key) for _, o in options(*_classes())
+             if o.key != "rerun" and getattr(args, o.key) is not None}
+    if "save" in modes:
+        given["rerun"] = True  # an output option of the protocol (spawn and serve are not)
+    protocol, out, name, method = _protocol(args, given)
+    viewer = _live_viewer(args, modes)
+    try:
+        summary = execute(protocol, out, name, overwrite=args.overwrite, retry_failed=args.retry_failed, ci_method=method,
+                          executor=factory, viewer=viewer.url if viewer is not None else None)
+    except ResultsWriteError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    if summary.skipped:
+        print(f"resumed: {summary.skipped} of {len(summary.manifest['jobs'])} episodes were already finished")
+    print(summary.table())
+    if summary.manifest["model"].get("is_random"):
+        print(f"NOTE: {summary.manifest['model']['source']} has random weights; this run checks the pipeline, not Octo's behaviour.")
+    print(f"results: {summary.run_dir}")
+    code = 0 if all(r.status == "ok" for r in summary.rows) else 1
+    if viewer is not None and viewer.mode == "serve":
+        keep_serving(viewer, "run finished; the web viewer keeps serving its recordings")
+    return code
