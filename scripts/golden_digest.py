@@ -1,7 +1,7 @@
 """Digest every file under a golden-runs folder (scripts/golden_runs.sh): one line `sha256  path` per file, sorted.
 
 Fields that differ between two runs of the same code on one machine are blanked before hashing: wall-clock times
-(`timings`), durations, dates, host paths and the run folder's own name (`run`). JSON and JSONL are parsed and re-serialised with those
+(`timings`), durations, dates, commits, host paths and the run folder's own name (`run`). JSON and JSONL are parsed and re-serialised with those
 keys removed, CSV without those columns; HTML and Markdown have the golden folder's path replaced; everything else (npz, PNG, MP4, CSV) is
 hashed as written. An npz is hashed member by member (its zip headers hold file times).
 """
@@ -51,6 +51,7 @@ def digest(path: Path, root: Path) -> str:
     elif path.suffix in (".html", ".md", ".txt", ".log"):
         text = data.decode()
         text = re.sub(r"\d{4}-\d\d-\d\d[ T]\d\d:\d\d(:\d\d(\.\d+)?)?(Z|[+-]\d\d:?\d\d)?", "<date>", text)
+        text = re.sub(r"\b[0-9a-f]{40}\b", "<commit>", text)  # the harness commit the page names
         data = text.encode()
     return hashlib.sha256(data).hexdigest()
 
