@@ -290,7 +290,9 @@ def test_sanity_command_on_the_committed_baselines_recorded_inputs(tmp_path, cap
     from harness.cli import main
 
     out = tmp_path / "sanity"
-    code = main(["sanity", str(ROOT / "results/baselines/reference-lift"), "--every", "50", "--max-steps", "2",
+    # --model: the baseline records the absolute model path of the checkout that made it, absent on other machines
+    code = main(["sanity", str(ROOT / "results/baselines/reference-lift"), "--model",
+                 str(ROOT / "models/octo-reference-robosuite"), "--every", "50", "--max-steps", "2",
                  "--methods", "attention:3,saliency", "--additivity", "--fills", "mean,impute", "--out", str(out)])
     assert code == 0
     result = json.loads((out / "sanity.json").read_text())
