@@ -49,7 +49,7 @@ from envs.actions import ActionAdapterConfig, controller_action
 from envs.camera import project_points
 from envs.libero_tasks import SETTLE_STEPS, suite_and_index
 from envs.options import EnvConfigError, to_convention
-from envs.tasks import TaskSpec
+from envs.taskspec import TaskSpec
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SERVER = Path(__file__).with_name("libero_server.py")

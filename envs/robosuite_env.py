@@ -51,7 +51,7 @@ from envs.render import CameraSpec, SceneRenderer
 from envs import perturbations as perturb
 from envs.phases import PHASE_SPECS, PhaseState, phase_of
 from envs.segmentation import TARGET, geom_categories, labelled_masks, scene_labels, scene_lookup
-from envs.tasks import TaskSpec
+from envs.taskspec import TaskSpec
 
 ROBOT_BODY_PREFIXES = ("robot0_", "gripper0_", "fixed_mount0_", "mount0_")
 GRIPPER_BODY_PREFIXES = ("robot0_right_hand", "gripper0_")  # the Panda's hand link and the gripper's bodies
