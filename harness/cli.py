@@ -432,13 +432,13 @@ def _cmd_regress(args) -> int:
     from harness.analysis.compare import is_grid
 
     if is_grid(args.baseline):  # a robustness grid: condition by condition, Holm over every task x condition
-        from harness.run.regress import regress_grid, write_regress_grid
+        from harness.run.regress import regress_grid
 
         result = regress_grid(args.baseline, args.model, max_episodes=args.max_episodes, out=args.out,
                               run_name=args.run_name, alpha=args.alpha, max_drop=args.max_drop, executor=factory,
                               text_tokenizer=args.text_tokenizer)
         code = exit_code(result, args.fail_on if args.fail_on != "changed" else "suspect")
-        paths = write_regress_grid(result, code, write_comparison)
+        paths = write_regress(result, code, write_comparison)
         print(paths["summary"])
         print(f"regress: {paths['json']}")
         return code

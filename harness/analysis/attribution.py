@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from harness.analysis.attention import _patch_index, camera_keys, rollout_readout_rows
+from harness.analysis.attention import camera_keys, patch_index, rollout_readout_rows
 from harness.octo.tokens import TokenMap
 
 BASE_METHODS = ("attention", "rollout", "grad-attention", "saliency", "occlusion", "random")
@@ -177,8 +177,8 @@ def grad_attention_map(analysis: StepAnalysis) -> dict[str, np.ndarray]:
 def patch_sums(pixels: np.ndarray, rows: int, cols: int) -> np.ndarray:
     """pixels (H, W) -> (rows, cols) sums over each patch (proportional coordinates, as upsample_map)."""
     height, width = pixels.shape
-    ry = _patch_index(height, rows)
-    cx = _patch_index(width, cols)
+    ry = patch_index(height, rows)
+    cx = patch_index(width, cols)
     patch = (ry[:, None] * cols + cx[None, :]).ravel()
     return np.bincount(patch, weights=np.asarray(pixels, np.float64).ravel(), minlength=rows * cols).reshape(rows, cols)
 

@@ -27,7 +27,7 @@ from harness.analysis import sanity as S
 from harness.analysis.attribution import OctoFunctions, analyse, attribute, parse_methods
 from harness.analysis.faithfulness import FILLS, k_values, ranking
 from harness.analysis.runs import load_run
-from harness.run.replay import ReplayInputError, _inputs_path, recorded_inputs
+from harness.run.replay import ReplayInputError, inputs_path, recorded_inputs
 from harness.run.protocol import protocol_from_manifest
 
 log = logging.getLogger(__name__)
@@ -69,7 +69,7 @@ def _steps(runs: list[Path], every: int):
         if not episodes:
             raise ReplayInputError(f"{run.path} has no finished episode; finish the run first")
         for e in episodes:
-            _inputs_path(e)
+            inputs_path(e)
         out.append((run, episodes))
     return out
 
@@ -230,12 +230,12 @@ def _profile(trained: dict, images: dict, where: dict, agreement: list, profiles
 
 def _patch_means(frames: list) -> np.ndarray:
     """[(frame (H, W, 3), (rows, cols))] -> (steps, rows, cols, 3) mean colour of each patch."""
-    from harness.analysis.attention import _patch_index
+    from harness.analysis.attention import patch_index
 
     out = []
     for frame, (rows, cols) in frames:
         h, w = frame.shape[:2]
-        index = _patch_index(h, rows)[:, None] * cols + _patch_index(w, cols)[None, :]
+        index = patch_index(h, rows)[:, None] * cols + patch_index(w, cols)[None, :]
         sums = np.stack([np.bincount(index.ravel(), weights=frame[..., ch].ravel(), minlength=rows * cols)
                          for ch in range(3)], axis=-1)
         counts = np.bincount(index.ravel(), minlength=rows * cols)[:, None]
