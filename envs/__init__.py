@@ -33,7 +33,9 @@ from envs.robosuite_env import EnvConfig, EnvConfigError, RobosuiteEnv, WrongThr
 from envs.robosuite_env import quiet_robosuite_import  # noqa: E402
 
 quiet_robosuite_import()
-from envs.tasks import TaskSpec, UnknownTaskError, get_task, list_tasks, task_table  # noqa: E402
+from envs.resolver import get_task  # noqa: E402
+from envs.tasks import list_tasks, task_table  # noqa: E402
+from envs.taskspec import TaskSpec, UnknownTaskError  # noqa: E402
 
 __all__ = [
     "ACTION_SPACES",

@@ -3,7 +3,8 @@
 A MuJoCo camera looks along its local -z axis with +y up and a vertical field of view `fovy`; square
 pixels, principal point at the image centre. Pixel coordinates returned here are (row, col) of the
 upright image (row 0 at the top) in *index* units: the centre of pixel (i, j) is at (i, j), so
-`np.round(...).astype(int)` gives the pixel that contains the point.
+`np.round(...).astype(int)` gives the pixel that contains the point. `image_pixels` turns them into the
+pixels of an image in an env's image convention (envs.options), for both simulators' envs.
 """
 
 from __future__ import annotations
@@ -38,3 +39,15 @@ def project_points(points: np.ndarray, cam_pos: np.ndarray, cam_xmat: np.ndarray
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = np.where(depth > 0, pixels[:, :2] / depth, np.nan)  # (n, 2) continuous (u, v)
     return np.stack([uv[:, 1] - 0.5, uv[:, 0] - 0.5], axis=1)
+
+
+def image_pixels(points: np.ndarray, cam_pos: np.ndarray, cam_xmat: np.ndarray, fovy_degrees: float, size: int,
+                 convention: str) -> np.ndarray:
+    """(n, 3) world points -> (n, 2) float32 (row, col) in a square `size` image of `convention` (envs.options:
+    "upright"; "opengl" rows bottom first; "rot180" also columns flipped, as the env returns its images)."""
+    rc = project_points(points, cam_pos, cam_xmat, fovy_degrees, size, size)
+    if convention == "opengl":
+        rc[:, 0] = (size - 1) - rc[:, 0]
+    elif convention == "rot180":
+        rc[:, 1] = (size - 1) - rc[:, 1]
+    return rc.astype(np.float32)

@@ -202,3 +202,25 @@ def ensure_context(backend: str | None = None, create: bool = True) -> None:
                                   "choose an EGL device this machine has (--render-device 0, 1, ...) or "
                                   "--render-device cpu") from exc
         raise HeadlessGLError(error_message(backend, exc)) from exc
+
+
+def context_strings() -> dict:
+    """{vendor, renderer, version} of an offscreen MuJoCo GL context made with this process's MUJOCO_GL, or
+    {error: one line} when none can be made (provenance: never raises). The run's platform record
+    (harness.runfolder.platform) and the LIBERO server (envs/libero_server.py, in its own environment) both read it."""
+    out: dict = {}
+    try:
+        import mujoco
+        from OpenGL import GL
+
+        context = mujoco.GLContext(1, 1)
+        context.make_current()
+        try:
+            for name, enum in (("vendor", GL.GL_VENDOR), ("renderer", GL.GL_RENDERER), ("version", GL.GL_VERSION)):
+                value = GL.glGetString(enum)
+                out[name] = value.decode(errors="replace") if value else None
+        finally:
+            context.free()
+    except Exception as exc:  # noqa: BLE001 - provenance only
+        out["error"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
+    return out

@@ -46,10 +46,11 @@ import numpy as np
 
 from envs import libero_wire
 from envs.actions import ActionAdapterConfig, controller_action
-from envs.camera import project_points
+from envs.camera import image_pixels
+from envs.libero_names import owner
 from envs.libero_tasks import SETTLE_STEPS, suite_and_index
 from envs.options import EnvConfigError, to_convention
-from envs.tasks import TaskSpec
+from envs.taskspec import TaskSpec
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SERVER = Path(__file__).with_name("libero_server.py")
@@ -204,7 +205,7 @@ class LiberoEnv(gym.Env):
                                                                     rotation_max=float(output_max[3]))
         instances = self.description["instances"]
         ids = {name: i + 1 for i, name in enumerate(instances)}
-        self._interest_ids = np.array(sorted({ids[_owner(n, instances)] for n in self.description["interest"]}), np.int64)
+        self._interest_ids = np.array(sorted({ids[owner(n, instances)] for n in self.description["interest"]}), np.int64)
         self._robot_ids = np.array([ids[n] for n in self.description["robot"]], np.int64)
         self._object_ids = {n: ids[n] for n in self.description["objects"]}
         self._camera_sizes = {spec.key: spec.size for spec in config.cameras}
@@ -318,12 +319,8 @@ class LiberoEnv(gym.Env):
         pixels = {}
         for key, size in self._camera_sizes.items():
             pos, xmat = raw["cameras"][key]
-            rc = project_points(raw["target_centres"], pos, xmat, self.description["fovy"][key], size, size)
-            if self.image_convention == "opengl":
-                rc[:, 0] = (size - 1) - rc[:, 0]
-            elif self.image_convention == "rot180":
-                rc[:, 1] = (size - 1) - rc[:, 1]
-            pixels[key] = rc.astype(np.float32)
+            pixels[key] = image_pixels(raw["target_centres"], pos, xmat, self.description["fovy"][key], size,
+                                       self.image_convention)
         return pixels
 
     def masks(self) -> dict[str, dict[str, np.ndarray]]:
@@ -374,7 +371,7 @@ class LiberoEnv(gym.Env):
         "placed": [objects in/on a goal object], "held": [objects both finger pads touch], "objects": the movable
         objects it considered}."""
         poses = self.object_poses()
-        interest = [_owner(n, self.description["instances"]) for n in self.description["interest"]]
+        interest = [owner(n, self.description["instances"]) for n in self.description["interest"]]
         goals = [g for g in dict.fromkeys(interest[1:]) if g in poses]
         movable = [n for n in self.description.get("movable", self.description["objects"]) if n in poses and n not in goals]
         placed = [name for name in movable if any(in_goal(poses[name], poses[goal]) for goal in goals)]
@@ -401,14 +398,3 @@ def in_goal(pose: dict, goal: dict) -> bool:
     (`horizontally_within`), its bottom at most 3 cm above the goal's top and its top above the goal's bottom."""
     return horizontally_within(pose, goal) and bool(pose["low"][2] <= goal["high"][2] + 0.03
                                                     and pose["high"][2] >= goal["low"][2])
-
-
-def _owner(name: str, instances: list[str]) -> str:
-    """An object of interest -> the scene instance that holds it: itself, or the longest instance name it starts
-    with (a BDDL region such as "wooden_cabinet_1_top_side" belongs to "wooden_cabinet_1")."""
-    if name in instances:
-        return name
-    owners = [i for i in instances if name.startswith(i + "_")]
-    if not owners:
-        raise LiberoServerError(f"object of interest {name!r} belongs to no scene object ({', '.join(instances)})")
-    return max(owners, key=len)

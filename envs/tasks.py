@@ -7,36 +7,13 @@ object(s) the robot has to grasp, push or move, so that attention on them can be
 name where the target has to go (Stack: cubeB; the PickPlace tasks: bin2, the bin the objects go to; the nut
 tasks: the nut's peg), for the goal mask; empty where the task has no goal region. A task's phases (approach,
 grasp, ...) are read off the simulator state by `envs.phases`.
+A task is an `envs.taskspec.TaskSpec`; `envs.resolver.get_task` finds one by name here or in LIBERO's suites
+(envs.libero_tasks).
 """
 
 from __future__ import annotations
 
-import difflib
-from dataclasses import dataclass
-
-
-@dataclass(frozen=True)
-class TaskSpec:
-    name: str  # registry name, also the gymnasium id "octo_harness/<name>-v0"
-    robosuite_env: str  # robosuite environment class name
-    instruction: str  # default language instruction
-    paraphrases: tuple[str, ...]  # alternative phrasings of the same instruction
-    targets: tuple[str, ...]  # body-name prefixes of the target object(s)
-    max_episode_steps: int  # truncation limit at 20 Hz control
-    primary_camera: str = "agentview"  # robosuite camera behind the default image_primary
-    robosuite_options: tuple[tuple[str, object], ...] = ()  # fixed extra kwargs for robosuite.make
-    simulator: str = "robosuite"  # "robosuite" (robosuite 1.5 in this environment) | "libero" (envs.libero_env)
-    initial_states: int = 0  # LIBERO: stored initial states (episode seed s starts from state s)
-    goal: tuple[str, ...] = ()  # body-name prefixes of the goal region (where the target goes), for the goal mask
-
-    @property
-    def gym_id(self) -> str:
-        return f"octo_harness/{self.name}-v0"
-
-
-class UnknownTaskError(ValueError):
-    """A task name that is not in the registry."""
-
+from envs.taskspec import TaskSpec
 
 _TASKS: tuple[TaskSpec, ...] = (
     TaskSpec(
@@ -155,33 +132,9 @@ _TASKS: tuple[TaskSpec, ...] = (
     ),
 )
 
-_BY_NAME: dict[str, TaskSpec] = {task.name: task for task in _TASKS}
-
-
 def list_tasks() -> list[TaskSpec]:
     """Every registered task, in registry order."""
     return list(_TASKS)
-
-
-def get_task(name: str) -> TaskSpec:
-    """The task called `name` (a robosuite task, or a LIBERO task "libero_object/3"); an unknown name raises
-    `UnknownTaskError` listing the known ones and the closest."""
-    if name in _BY_NAME:
-        return _BY_NAME[name]
-    from envs import libero_tasks
-
-    if libero_tasks.is_libero(name):
-        if "/" not in name:
-            raise UnknownTaskError(f"{name!r} is a LIBERO suite, not one task; name a task ({name}/0) or pass the suite "
-                                   "to --task, which runs all its tasks")
-        return libero_tasks.get_libero_task(name)
-    lowered = {task.lower(): task for task in _BY_NAME}
-    if name.lower() in lowered:
-        return _BY_NAME[lowered[name.lower()]]
-    close = difflib.get_close_matches(name.lower(), list(lowered), n=1, cutoff=0.4)
-    hint = f"did you mean {lowered[close[0]]!r}? " if close else ""
-    raise UnknownTaskError(f"unknown task {name!r}; {hint}known tasks: {', '.join(_BY_NAME)}; LIBERO suites: "
-                           "libero_spatial, libero_object, libero_goal, libero_10, libero_90 (see `octo-harness tasks`)")
 
 
 def task_table(tasks: list[TaskSpec] | None = None, libero: bool = False) -> str:

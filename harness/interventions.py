@@ -98,10 +98,11 @@ def parse_intervention(spec: str) -> Intervention:
     if not method:
         raise ValueError(f"intervention {text!r} needs a METHOD; {USAGE}")
     base, _, layer = method.partition(":")
-    if base not in A.BASE_METHODS or base == "random":
-        raise ValueError(f"intervention {text!r}: unknown method {method!r}; use attention[:LAYER], rollout, "
-                         "grad-attention, saliency or occlusion (mask-random:K for random patches)")
-    if base != "attention" and layer:
+    if base not in A.METHODS or A.METHODS[base].control:
+        names = [f"{n}[:LAYER]" if m.layered else n for n, m in A.METHODS.items() if not m.control]
+        raise ValueError(f"intervention {text!r}: unknown method {method!r}; use {', '.join(names[:-1])} or {names[-1]} "
+                         "(mask-random:K for random patches)")
+    if not A.METHODS[base].layered and layer:
         raise ValueError(f"intervention {text!r}: only attention takes a layer")
     if base == "attention" and layer:
         try:
@@ -123,7 +124,7 @@ class Intervener:
         self.intervention = intervention
         self.check(model)
         self._functions = A.OctoFunctions(model) if intervention.kind in ("mask-top", "mask-bottom") else None
-        self._needs_gradient = intervention.method in ("grad-attention", "saliency")
+        self._needs_gradient = A.needs_gradients([intervention.method or ""])
 
     def check(self, model) -> None:
         """One-line ValueError when the intervention does not fit the model (layers, heads, cameras)."""
@@ -176,7 +177,7 @@ class Intervener:
         scores = None
         if self._functions is not None:
             step_fn = self._functions.at(observation, task, rng)
-            analysis = A.analyse(step_fn, gradients=self._needs_gradient, occlusion=iv.method == "occlusion")
+            analysis = A.analyse(step_fn, gradients=self._needs_gradient, occlusion=A.needs_occlusion([iv.method or ""]))
             scores = A.attribute(analysis, iv.method)
         out = {}
         for key in cameras:

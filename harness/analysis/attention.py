@@ -193,7 +193,7 @@ def timestep_shares(rows: np.ndarray, tokens: TokenMap) -> dict[str, np.ndarray]
     return _shares(rows, _timestep_parts(tokens))
 
 
-def _patch_index(size: int, cells: int) -> np.ndarray:
+def patch_index(size: int, cells: int) -> np.ndarray:
     """(size,) patch index of each pixel along one axis: proportional coordinates floor(i * cells / size)."""
     return (np.arange(size) * cells) // size
 
@@ -206,8 +206,8 @@ def upsample_map(attn_map: np.ndarray, height: int, width: int) -> np.ndarray:
     """
     attn_map = np.asarray(attn_map)
     rows, cols = attn_map.shape[-2:]
-    ry = _patch_index(height, rows)
-    cx = _patch_index(width, cols)
+    ry = patch_index(height, rows)
+    cx = patch_index(width, cols)
     return attn_map[..., ry[:, None], cx[None, :]]
 
 
@@ -220,8 +220,8 @@ def mask_patch_fraction(mask: np.ndarray, rows: int, cols: int) -> np.ndarray:
     height, width = mask.shape
     if height < rows or width < cols:
         raise ValueError(f"mask {height}x{width} is smaller than the patch grid {rows}x{cols}; pass the image-resolution mask")
-    ry = _patch_index(height, rows)
-    cx = _patch_index(width, cols)
+    ry = patch_index(height, rows)
+    cx = patch_index(width, cols)
     patch = (ry[:, None] * cols + cx[None, :]).ravel()  # (H*W,) patch id of each pixel
     pixels = np.bincount(patch, minlength=rows * cols)
     inside = np.bincount(patch, weights=mask.ravel().astype(np.float64), minlength=rows * cols)

@@ -5,7 +5,8 @@ float pixels 0..255) -> the normalised action chunk (horizon, action_dim), with 
 attention of every layer. `analyse(step)` runs it once forward and once backward (one `jax.vjp`) and keeps
 what every method needs (`StepAnalysis`); the methods are then pure numpy functions
 `method(analysis) -> {observation key: (rows, cols)}` on the current frame's patch grid of each camera
-(Captum's shape: any method is interchangeable with any other; a new one is one function):
+(Captum's shape: any method is interchangeable with any other; a new one is one function and one row of the
+table `METHODS`, which also holds the one default list, DEFAULT_METHODS):
 
   attention:<layer>   raw readout attention of a layer, mean over heads and readout tokens
   rollout             attention rollout (Abnar & Zuidema 2020; harness.analysis.attention)
@@ -35,11 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from harness.analysis.attention import _patch_index, camera_keys, rollout_readout_rows
+from harness.analysis.attention import camera_keys, patch_index, rollout_readout_rows
 from harness.octo.tokens import TokenMap
-
-BASE_METHODS = ("attention", "rollout", "grad-attention", "saliency", "occlusion", "random")
-
 
 @dataclass(frozen=True, eq=False)
 class StepFunction:
@@ -177,8 +175,8 @@ def grad_attention_map(analysis: StepAnalysis) -> dict[str, np.ndarray]:
 def patch_sums(pixels: np.ndarray, rows: int, cols: int) -> np.ndarray:
     """pixels (H, W) -> (rows, cols) sums over each patch (proportional coordinates, as upsample_map)."""
     height, width = pixels.shape
-    ry = _patch_index(height, rows)
-    cx = _patch_index(width, cols)
+    ry = patch_index(height, rows)
+    cx = patch_index(width, cols)
     patch = (ry[:, None] * cols + cx[None, :]).ravel()
     return np.bincount(patch, weights=np.asarray(pixels, np.float64).ravel(), minlength=rows * cols).reshape(rows, cols)
 
@@ -209,19 +207,18 @@ def parse_methods(spec: str | tuple[str, ...] | list[str], layers: int) -> tuple
         if base not in BASE_METHODS:
             raise ValueError(f"unknown attribution method {item!r}; use {', '.join(BASE_METHODS)} "
                              "(attention:LAYER for one layer)")
-        if base == "attention":
+        if METHODS[base].layered:
             if layer:
                 index = _layer_index(layer, layers)
-                names = [f"attention:{index}"]
+                names = [f"{base}:{index}"]
             else:
-                names = [f"attention:{i}" for i in range(layers)]
+                names = [f"{base}:{i}" for i in range(layers)]
         elif layer:
             raise ValueError(f"{base} takes no layer (got {item!r}); only attention:LAYER does")
         else:
             names = [base]
         out += [n for n in names if n not in out]
-    if "random" not in out:
-        out.append("random")
+    out += [name for name, m in METHODS.items() if m.control and name not in out]
     return tuple(out)
 
 
@@ -235,24 +232,70 @@ def _layer_index(text: str, layers: int) -> int:
     return index % layers
 
 
+def occlusion_map(analysis: StepAnalysis) -> dict[str, np.ndarray]:
+    """The single-patch deletion changes `analyse(step, occlusion=True)` computed."""
+    if analysis.occlusion is None:
+        raise ValueError("occlusion needs analyse(step, occlusion=True) (one forward pass per patch)")
+    return {k: np.asarray(v, np.float64) for k, v in analysis.occlusion.items()}
+
+
+@dataclass(frozen=True)
+class Method:
+    """One attribution method of the table: `fn(analysis, layer, seed) -> {obs key: (rows, cols)}` (layer: the text
+    after "attention:", "" for none) and what `analyse` must compute for it."""
+
+    name: str
+    fn: Callable
+    default: bool  # in DEFAULT_METHODS (what --attribution and --faithfulness-every compute unless told)
+    gradients: bool = False  # reads the backward pass (dS/dA, dS/dpixels)
+    occlusion: bool = False  # reads one forward pass per patch (costly on large grids)
+    layered: bool = False  # takes :LAYER (attention:2)
+    control: bool = False  # the random control every method is measured against (always computed)
+
+
+# The attribution methods, in the order they are listed and drawn (a new method is one row and one function).
+METHODS: dict[str, Method] = {m.name: m for m in (
+    Method("attention", lambda a, layer, seed: attention_map(a, int(layer) if layer else -1), True, layered=True),
+    Method("rollout", lambda a, layer, seed: rollout_map(a), True),
+    Method("grad-attention", lambda a, layer, seed: grad_attention_map(a), True, gradients=True),
+    Method("saliency", lambda a, layer, seed: saliency_map(a), True, gradients=True),
+    Method("occlusion", lambda a, layer, seed: occlusion_map(a), False, occlusion=True),
+    Method("random", lambda a, layer, seed: random_map(a, seed), False, control=True),
+)}
+BASE_METHODS = tuple(METHODS)
+DEFAULT_METHODS = ",".join(name for name, m in METHODS.items() if m.default)  # attention,rollout,grad-attention,saliency
+
+
+def base_of(method: str) -> str:
+    """"attention:2" -> "attention"."""
+    return method.partition(":")[0]
+
+
+def needs_gradients(methods) -> bool:
+    """Whether any of `methods` (names, with or without :LAYER) reads the backward pass."""
+    return any(METHODS[base_of(m)].gradients for m in methods if base_of(m) in METHODS)
+
+
+def needs_occlusion(methods) -> bool:
+    """Whether any of `methods` reads the per-patch deletion passes (`analyse(..., occlusion=True)`)."""
+    return any(METHODS[base_of(m)].occlusion for m in methods if base_of(m) in METHODS)
+
+
+def display_rank(base: str) -> int:
+    """Where a method stands in tables and figures: the maps in table order, then the random control, then the
+    occlusion reference (and a name not in the table)."""
+    maps = [name for name, m in METHODS.items() if not (m.control or m.occlusion)]
+    if base in maps:
+        return maps.index(base)
+    return len(maps) if base in METHODS and METHODS[base].control else len(maps) + 1
+
+
 def attribute(analysis: StepAnalysis, method: str, seed=0) -> dict[str, np.ndarray]:
     """One method by name (see the module docstring) -> {obs key: (rows, cols)} scores (higher = more used)."""
     base, _, layer = method.partition(":")
-    if base == "attention":
-        return attention_map(analysis, int(layer) if layer else -1)
-    if base == "rollout":
-        return rollout_map(analysis)
-    if base == "grad-attention":
-        return grad_attention_map(analysis)
-    if base == "saliency":
-        return saliency_map(analysis)
-    if base == "random":
-        return random_map(analysis, seed)
-    if base == "occlusion":
-        if analysis.occlusion is None:
-            raise ValueError("occlusion needs analyse(step, occlusion=True) (one forward pass per patch)")
-        return {k: np.asarray(v, np.float64) for k, v in analysis.occlusion.items()}
-    raise ValueError(f"unknown attribution method {method!r}; use {', '.join(BASE_METHODS)}")
+    if base not in METHODS:
+        raise ValueError(f"unknown attribution method {method!r}; use {', '.join(BASE_METHODS)}")
+    return METHODS[base].fn(analysis, layer, seed)
 
 
 def attribute_all(analysis: StepAnalysis, methods: tuple[str, ...], seed: int = 0) -> dict[str, dict[str, np.ndarray]]:
@@ -357,7 +400,7 @@ class Probe:
         self.methods = parse_methods(methods or DEFAULT_METHODS, self.functions.layers)
         self.every = int(every)
         self.fill = fill
-        self.gradients = any(m in ("grad-attention", "saliency") for m in self.methods)
+        self.gradients = needs_gradients(self.methods)
 
     def __call__(self, observations: Mapping, task: Mapping, rng, seed: int, step: int) -> dict:
         import time
@@ -366,7 +409,7 @@ class Probe:
 
         start = time.perf_counter()
         fn = self.functions.at(observations, task, rng)
-        analysis = analyse(fn, gradients=self.gradients, occlusion="occlusion" in self.methods)
+        analysis = analyse(fn, gradients=self.gradients, occlusion=needs_occlusion(self.methods))
         maps = {m: attribute(analysis, m, seed=[int(seed), int(step)]) for m in self.methods}
         rows = []
         if self.every > 0 and step % self.every == 0:
@@ -375,5 +418,3 @@ class Probe:
         maps = {m: {k: v.astype(np.float32) for k, v in by.items()} for m, by in maps.items()}
         return {"maps": maps, "faithfulness": rows, "seconds": time.perf_counter() - start}
 
-
-DEFAULT_METHODS = "attention,rollout,grad-attention,saliency"

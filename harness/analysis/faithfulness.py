@@ -40,7 +40,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 from scipy.ndimage import gaussian_filter
 
-from harness.analysis.attention import _patch_index
+from harness.analysis.attention import patch_index
 
 FILLS = ("mean", "blur", "impute")
 IMPUTE_NOISE = 2.55  # std of the noise added to imputed pixels, pixel units (1% of the 0..255 range)
@@ -165,8 +165,8 @@ def impute_factor(height: int, width: int, rows: int, cols: int, cells: int = IM
 def pixel_mask(deleted: np.ndarray, height: int, width: int) -> np.ndarray:
     """deleted (..., rows, cols) bool -> (..., height, width) bool: every pixel of a deleted patch."""
     deleted = np.asarray(deleted, bool)
-    ry = _patch_index(height, deleted.shape[-2])
-    cx = _patch_index(width, deleted.shape[-1])
+    ry = patch_index(height, deleted.shape[-2])
+    cx = patch_index(width, deleted.shape[-1])
     return deleted[..., ry[:, None], cx[None, :]]
 
 

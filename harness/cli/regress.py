@@ -38,11 +38,11 @@ def main(args) -> int:
     factory = execution(args)
     gate = GateConfig.from_args(args)
     if is_grid(args.baseline):  # a robustness grid: condition by condition, Holm over every task x condition
-        from harness.run.regress import regress_grid, write_regress_grid
+        from harness.run.regress import regress_grid
 
         result = regress_grid(args.baseline, args.model, gate, out=args.out, run_name=args.run_name, executor=factory)
         code = exit_code(result, gate.fail_on if gate.fail_on != "changed" else "suspect")
-        paths = write_regress_grid(result, code, write_comparison)
+        paths = write_regress(result, code, write_comparison)
         print(paths["summary"])
         print(f"regress: {paths['json']}")
         return code

@@ -185,7 +185,7 @@ def t5_config_dict(vocab_size: int, width: int) -> dict:
 
 def task_instructions() -> dict[str, tuple[str, ...]]:
     """{task: (default instruction, paraphrases...)} from the env's task registry."""
-    from envs.tasks import get_task
+    from envs.resolver import get_task
     from harness.reference.experts import EXPERT_TASKS
 
     return {t: (get_task(t).instruction, *get_task(t).paraphrases) for t in EXPERT_TASKS}

@@ -43,9 +43,10 @@ from harness.bounded import open_npz
 from harness.analysis import aggregate as agg
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays, load_run
 from harness.analysis.stats import success_summary
-from harness.report import faithfulness, figures, grounding, page, phases, position, robustness
+from harness.report import faithfulness, figures, page
 from harness.report.rundata import RunData, episode_headline, representative
 from harness.report.rundata import csv_bytes as _csv
+from harness.report.sections import SECTIONS
 
 VIDEO_DISPLAY = 256  # harness.outputs.overlays.video_frame's `display`: the camera frame fills the video's top-left display x w
 
@@ -299,14 +300,8 @@ def _tables(runs: list[RunData], summaries: dict | None = None) -> dict[str, byt
         "progress.csv": _csv(agg.PROGRESS_COLUMNS, [r for run in runs for r in run.rows["progress"]]),
         "success.csv": _csv(success_cols, success_rows),
         "episodes.csv": _csv(episode_cols, episode_rows),
-        **faithfulness.tables(runs),  # faithfulness.csv, interventions.csv (harness/report/faithfulness.py)
-        **phases.tables(runs, (summaries or {}).get("phases")),  # phase_*.csv (harness/report/phases.py)
-        **position.tables(runs, (summaries or {}).get("position")),  # position_*.csv (harness/report/position.py)
-        # robustness*.csv when a run was perturbed (harness/report/robustness.py)
-        **{name: _csv(cols, rows) for name, (cols, rows) in robustness.tables(
-            [run.record for run in runs], (summaries or {}).get("robustness")).items()},
-        # grounding_*.csv when a run holds LIBERO-Object episodes (harness/report/grounding.py)
-        **{name: _csv(cols, rows) for name, (cols, rows) in grounding.tables([run.record for run in runs]).items()},
+        # each section's files (harness/report/sections.py): faithfulness, phase_*, position_*, robustness*, grounding_*
+        **{name: data for s in SECTIONS for name, data in s.tables(runs, (summaries or {}).get(s.anchor)).items()},
     }
 
 
@@ -368,9 +363,7 @@ def build_report(run_dirs: list[str | Path], out: str | Path | None = None, opti
     for run in runs:
         _aggregate(run, options)
     tasks = list(dict.fromkeys(t for run in runs for t in run.record.tasks))
-    summaries = {"phases": [phases.summarise(run, options.resamples, options.seed) for run in runs],
-                 "position": [position.summarise(run) for run in runs],
-                 "robustness": robustness.analyse(records, options.margin)}  # None unless a run was perturbed
+    summaries = {s.anchor: s.summarise(runs, options) for s in SECTIONS}  # each read once, for tables and page
 
     with ThreadPoolExecutor(max_workers=3) as pool:  # overlay grids decode videos in ffmpeg processes meanwhile
         overlays = {}

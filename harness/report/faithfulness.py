@@ -31,6 +31,7 @@ from collections import defaultdict
 import numpy as np
 
 from harness.bounded import loads_json, read_jsonl_text
+from harness.analysis.attribution import display_rank
 from harness.analysis.faithfulness import relative_to_random
 from harness.analysis.paired import PairedCounts, mcnemar_exact, newcombe_paired_interval
 from harness.analysis.stats import wilson_interval
@@ -121,8 +122,7 @@ def beats_random_from(rows: list[dict], control: list[dict], margin: float = 1.1
 
 def _order(method: str) -> tuple:
     base, _, layer = method.partition(":")
-    rank = {"attention": 0, "rollout": 1, "grad-attention": 2, "saliency": 3, "random": 4}.get(base, 5)
-    return rank, int(layer) if layer.lstrip("-").isdigit() else 0
+    return display_rank(base), int(layer) if layer.lstrip("-").isdigit() else 0
 
 
 def _policy(run) -> dict:

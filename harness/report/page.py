@@ -12,9 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.report import faithfulness, figures, grounding, phases, position, robustness
+from harness.report import figures
 from harness.report import html as H
 from harness.report.rundata import RunData, episode_headline, representative, share_categories
+from harness.report.sections import SECTIONS
 
 SHARE_COLOURS = {"primary": "#4c72b0", "wrist": "#55a868", "language": "#c44e52", "readout": "#8172b2",
                  "lowdim": "#ccb974", "proprio": "#ccb974", "other": "#999999", "earlier timesteps": "#64b5cd"}
@@ -23,8 +24,8 @@ SHARE_COLOURS = {"primary": "#4c72b0", "wrist": "#55a868", "language": "#c44e52"
 def render(runs: list[RunData], tasks: list[str], out: Path, overlays: dict[tuple[str, str], Future],
            summaries: dict | None = None) -> tuple[str, dict[str, bytes]]:
     """(report.html text, {plot file name: PNG bytes}); `out` is the report folder (videos are linked relative to it),
-    overlays: (run label, task) -> future of (PNG, caption) or None; summaries: {"phases": [per run], "position":
-    [per run]} (harness.report.phases / position.summarise; computed here when None)."""
+    overlays: (run label, task) -> future of (PNG, caption) or None; summaries: {section anchor: what the section's
+    `summarise` made} (harness.report.sections; a section computes what it needs when its entry is missing)."""
     summaries = summaries or {}
     plots = _Plots()
     body = [_status_banners(runs), H.Raw("<p class='note'>Every number here comes from the CSV files in "
@@ -33,25 +34,18 @@ def render(runs: list[RunData], tasks: list[str], out: Path, overlays: dict[tupl
     body.append(_cross_task(runs, tasks, plots))
     for task in tasks:
         body.append(_task_section(runs, task, out, plots, overlays))
-    faith = faithfulness.section(runs, plots)  # "" unless a run measured faithfulness or ran an intervention
-    body.append(faith)
-    phase_html = phases.section(runs, plots, summaries.get("phases"))  # "" unless a run recorded task phases
-    body.append(phase_html)
-    position_html = position.section(runs, plots, summaries.get("position"))  # "" unless a run has attention controls
-    body.append(position_html)
-    robust = robustness.section([run.record for run in runs], plots, summaries.get("robustness"))  # "" unless a run was perturbed
-    body.append(robust)
-    grounded = grounding.section([run.record for run in runs])  # "" unless a run holds LIBERO-Object episodes
-    body.append(grounded)
+    present = []
+    for section in SECTIONS:  # each "" unless the runs hold what it reads
+        html_ = section.section(runs, plots, summaries.get(section.anchor))
+        body.append(html_)
+        if html_:
+            present.append((section.anchor, section.name))
     body.append(H.section("Run manifest", "".join(_manifest_section(run) for run in runs), anchor="manifest"))
     body.append(H.section("Definitions", H.Raw(_DEFINITIONS), anchor="definitions"))
     toc = [("cross-task", "Cross-task comparison")] + [(H.anchor_id("task-" + t), t) for t in tasks] + [
         ("manifest", "Run manifest"), ("definitions", "Definitions")]
-    for html_, anchor, name in ((faith, "faithfulness", "Faithfulness"), (phase_html, "phases", "Phases"),
-                                (position_html, "position", "Position"), (robust, "robustness", "Robustness"),
-                                (grounded, "grounding", "Grounding")):
-        if html_:
-            toc.insert(-2, (anchor, name))
+    for entry in present:
+        toc.insert(-2, entry)
     title = "Attention report: " + " vs ".join(run.label for run in runs)
     subtitle = (f"{len(runs)} run(s), {len(tasks)} task(s), {sum(len(r.summaries) for r in runs)} episodes analysed; "
                 f"generated {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")

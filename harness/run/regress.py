@@ -42,6 +42,7 @@ from harness.run.protocol import EpisodeJob, Protocol
 from harness.run.store import EpisodeRow, RunStore
 
 log = logging.getLogger(__name__)
+GRID_FORMAT = "octo-harness-regress-grid/1"  # regress_grid's result (regress's own: octo-harness-regress/2)
 
 
 def candidate_protocol(baseline_manifest: dict, model: str, max_episodes: int | None = None,
@@ -336,7 +337,8 @@ def _numerics_line(replay: dict | None) -> str:
 
 
 def write_regress(result: dict, code: int, write_comparison) -> dict:
-    """regress.json and the comparison outputs into <candidate run>/regress/; returns paths and the summary text."""
+    """regress.json and the comparison outputs into <candidate run>/regress/ (a grid's: <candidate grid>/regress/),
+    all or none; returns paths and the summary text (a `regress` or a `regress_grid` result)."""
     from harness.files import all_or_none, atomic_write_json
 
     out = Path(result["candidate_run"]) / "regress"
@@ -344,7 +346,8 @@ def write_regress(result: dict, code: int, write_comparison) -> dict:
         paths = write_comparison(result["compare"], out, None, None)
         atomic_write_json(out / "regress.json", {**{k: v for k, v in result.items() if k != "compare"},
                                                  "exit_code": code, "compare_json": str(paths["json"])})
-    return {"json": out / "regress.json", "html": paths["html"], "summary": summary_text(result, code)}
+    summary = grid_summary_text if result["format"] == GRID_FORMAT else summary_text
+    return {"json": out / "regress.json", "html": paths["html"], "summary": summary(result, code)}
 
 
 def regress_grid(baseline_grid: str | Path, model: str, gate: GateConfig | None = None, *,
@@ -354,10 +357,9 @@ def regress_grid(baseline_grid: str | Path, model: str, gate: GateConfig | None 
     sequential test runs at alpha / conditions (and, inside it, alpha / conditions / tasks per task), so the family
     of every (task, condition) cell holds alpha; then the pairs run are compared as a grid (compare_grids: Holm over
     every cell). The candidate grid goes to <out>/<run_name> (default <model>_<baseline grid name>)."""
-    from harness.analysis.compare import compare_grids, read_grid
+    from harness.analysis.compare import GRID_FILE, compare_grids, read_grid
     from harness.files import atomic_write_json
     from harness.octo import load_pretrained
-    from harness.run.robustness import GRID_FILE
 
     gate = gate if gate is not None else GateConfig()
     alpha = gate.alpha
@@ -378,7 +380,7 @@ def regress_grid(baseline_grid: str | Path, model: str, gate: GateConfig | None 
                                require_complete=False)  # the sequential test may stop a condition early
     verdicts = [r["verdict"] for r in per_condition.values()] + [comparison["verdict"]]
     return {
-        "format": "octo-harness-regress-grid/1",
+        "format": GRID_FORMAT,
         "verdict": worst(verdicts),
         "conditions": {name: {"verdict": r["verdict"], "sequential_verdict": r["sequential_verdict"],
                               "compare_verdict": r["compare_verdict"], "pairs_used": r["pairs_used"],
@@ -400,14 +402,3 @@ def grid_summary_text(result: dict, code: int) -> str:
     lines += [f"    {note}" for note in result["compare"]["outcomes"].get("notes", [])]
     lines.append(f"exit code {code}")
     return "\n".join(lines)
-
-
-def write_regress_grid(result: dict, code: int, write_comparison) -> dict:
-    from harness.files import all_or_none, atomic_write_json
-
-    out = Path(result["candidate_run"]) / "regress"
-    with all_or_none(out / "regress.json", out / "compare.json", out / "compare.md", out / "compare.html"):
-        paths = write_comparison(result["compare"], out, None, None)
-        atomic_write_json(out / "regress.json", {**{k: v for k, v in result.items() if k != "compare"},
-                                                 "exit_code": code, "compare_json": str(paths["json"])})
-    return {"json": out / "regress.json", "html": paths["html"], "summary": grid_summary_text(result, code)}

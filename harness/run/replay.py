@@ -39,10 +39,10 @@ class ReplayInputError(ValueError):
 
 def recorded_inputs(episode: EpisodeRecord) -> dict[str, np.ndarray]:
     """inputs.npz of an episode as {name: array}; ReplayInputError when the run did not record inputs."""
-    return read_npz(_inputs_path(episode))
+    return read_npz(inputs_path(episode))
 
 
-def _inputs_path(episode: EpisodeRecord) -> Path:
+def inputs_path(episode: EpisodeRecord) -> Path:
     """The episode's inputs.npz; ReplayInputError when the run did not record inputs."""
     path = episode.directory / INPUTS
     if not path.is_file():
@@ -139,7 +139,7 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, gate: GateC
     if not episodes:
         raise ReplayInputError(f"{run.path} has no finished episode to replay; finish the run first")
     for e in episodes:  # before the model loads: every episode must have its inputs
-        _inputs_path(e)
+        inputs_path(e)
     source = model_source or protocol.model
     if model_source is None and Path(source).is_absolute() and not Path(source).exists():
         raise ReplayInputError(f"the run's model {source} is not on this machine (a run copied from elsewhere); "

@@ -22,11 +22,11 @@ import logging
 from pathlib import Path
 
 from envs.perturbations import KEYED_KINDS, KINDS, LEVELS, PerturbationError, parse_perturb
+from harness.analysis.compare import GRID_FILE  # the grid's robustness.json, read by compare and regress
 from harness.files import atomic_write_json
 from harness.run.protocol import Protocol
 
 log = logging.getLogger(__name__)
-GRID_FILE = "robustness.json"
 NOMINAL = "nominal"
 
 

@@ -24,16 +24,19 @@ from pathlib import Path
 import numpy as np
 
 from harness.analysis import sanity as S
-from harness.analysis.attribution import OctoFunctions, analyse, attribute, parse_methods
+from harness.analysis.attribution import (METHODS, OctoFunctions, analyse, attribute, needs_gradients, needs_occlusion,
+                                          parse_methods)
 from harness.analysis.faithfulness import FILLS, k_values, ranking
 from harness.analysis.runs import load_run
-from harness.run.replay import ReplayInputError, _inputs_path, recorded_inputs
+from harness.run.replay import ReplayInputError, inputs_path, recorded_inputs
 from harness.run.protocol import protocol_from_manifest
 
 log = logging.getLogger(__name__)
 
 FORMAT = "octo-harness-sanity/1"
-DEFAULT_METHODS = "attention,rollout,grad-attention,saliency,occlusion"
+# sanity's own default: every method of the table (harness.analysis.attribution.METHODS) but the random control,
+# which is always added; so occlusion too, unlike a run's default: it is the reference the checks compare maps with
+DEFAULT_METHODS = ",".join(name for name, method in METHODS.items() if not method.control)
 RANDOMISATION_COLUMNS = ("schedule", "stage", "method", "camera", "steps", "spearman", "spearman_low", "spearman_high",
                          "ssim", "ssim_low", "ssim_high", "verdict")
 ADDITIVITY_COLUMNS = ("task", "camera", "fill", "steps", "whole_change", "single_max", "single_sum", "single_sum_over_whole",
@@ -69,7 +72,7 @@ def _steps(runs: list[Path], every: int):
         if not episodes:
             raise ReplayInputError(f"{run.path} has no finished episode; finish the run first")
         for e in episodes:
-            _inputs_path(e)
+            inputs_path(e)
         out.append((run, episodes))
     return out
 
@@ -104,7 +107,7 @@ def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions =
     last_stage = [stage for schedule, stage, _ in stages if schedule == "cascading"][-1]
     window = int(model.window_size)
     wanted = [*model.image_sizes, *getattr(model, "lowdim_sizes", {})]
-    gradients = any(m in ("grad-attention", "saliency") for m in methods)
+    gradients, occlusion = needs_gradients(methods), needs_occlusion(methods)
 
     per_step, effects, agreement, profiles, frames, count = [], [], [], {}, {}, 0
     for run, episodes in loaded:
@@ -129,12 +132,12 @@ def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions =
                 observations, tasks, keys = inference._inputs([InferenceRequest(obs, task, seed, step)])
                 where = {"task": episode.task, "episode": episode.episode, "step": step}
                 fn = functions.at(observations, tasks, keys[0])
-                trained_analysis = analyse(fn, gradients=gradients, occlusion="occlusion" in methods)
+                trained_analysis = analyse(fn, gradients=gradients, occlusion=occlusion)
                 trained = {m: attribute(trained_analysis, m, seed=[seed, step]) for m in methods}
                 _profile(trained, fn.images, where, agreement, profiles, frames)
                 for schedule, stage, params in variants:
                     a = analyse(functions.at(observations, tasks, keys[0], params=params), gradients=gradients,
-                                occlusion="occlusion" in methods)
+                                occlusion=occlusion)
                     randomised = {m: attribute(a, m, seed=[seed, step]) for m in methods}
                     for row in S.compare_maps(trained, randomised):
                         per_step.append({**where, "schedule": schedule, "stage": stage, **row})
@@ -230,12 +233,12 @@ def _profile(trained: dict, images: dict, where: dict, agreement: list, profiles
 
 def _patch_means(frames: list) -> np.ndarray:
     """[(frame (H, W, 3), (rows, cols))] -> (steps, rows, cols, 3) mean colour of each patch."""
-    from harness.analysis.attention import _patch_index
+    from harness.analysis.attention import patch_index
 
     out = []
     for frame, (rows, cols) in frames:
         h, w = frame.shape[:2]
-        index = _patch_index(h, rows)[:, None] * cols + _patch_index(w, cols)[None, :]
+        index = patch_index(h, rows)[:, None] * cols + patch_index(w, cols)[None, :]
         sums = np.stack([np.bincount(index.ravel(), weights=frame[..., ch].ravel(), minlength=rows * cols)
                          for ch in range(3)], axis=-1)
         counts = np.bincount(index.ravel(), minlength=rows * cols)[:, None]

@@ -110,27 +110,12 @@ def read_protocol_file(path: str | Path) -> dict[str, Any]:
 def resolve_tasks(values: list[str] | tuple[str, ...] | None) -> tuple[str, ...]:
     """Task names as given (repeated and/or comma-separated; 'all' = every robosuite task; a LIBERO suite name = its
     tasks, "libero_object/3" = one) -> registry names, case-insensitive, deduplicated."""
-    import envs
+    from envs.resolver import resolve_names
 
     names = [t.strip() for v in (values or []) for t in str(v).split(",") if t.strip()]
     if not names:
         raise ValueError("no task given; pass --task NAME (see `octo-harness tasks`)")
-    from envs import libero_tasks
-
-    registry = {spec.name.lower(): spec.name for spec in envs.list_tasks()}
-    if [n.lower() for n in names] == ["all"]:  # the robosuite tasks; LIBERO suites are named one by one
-        return tuple(registry.values())
-    resolved = []
-    for name in names:
-        if libero_tasks.is_libero(name):  # "libero_object" (the whole suite) or "libero_object/3"
-            canonicals = libero_tasks.expand(name)
-        else:
-            canonical = registry.get(name.lower())
-            if canonical is None:
-                envs.get_task(name)  # raises the registry's error naming the closest task
-            canonicals = [canonical]
-        resolved += [c for c in canonicals if c not in resolved]
-    return tuple(resolved)
+    return resolve_names(names)
 
 
 def _model_folder(model: str) -> Path | None:

@@ -58,20 +58,9 @@ def gl_info(backend: str | None = None) -> dict:
                  # where rendering was asked to happen (--render-device; "auto": MuJoCo's choice) and the EGL device
                  "render_device": os.environ.get("OCTO_HARNESS_RENDER_DEVICE", "").strip().lower() or "auto",
                  "egl_device_id": os.environ.get("MUJOCO_EGL_DEVICE_ID") or None}
-    try:
-        import mujoco
-        from OpenGL import GL
+    from envs.gl import context_strings
 
-        context = mujoco.GLContext(1, 1)
-        context.make_current()
-        try:
-            for name, enum in (("vendor", GL.GL_VENDOR), ("renderer", GL.GL_RENDERER), ("version", GL.GL_VERSION)):
-                value = GL.glGetString(enum)
-                out[name] = value.decode(errors="replace") if value else None
-        finally:
-            context.free()
-    except Exception as exc:  # noqa: BLE001 - provenance must never stop a run
-        out["error"] = f"{type(exc).__name__}: {exc}".splitlines()[0]
+    out.update(context_strings())  # vendor, renderer, version; or error when no context can be made
     return out
 
 
