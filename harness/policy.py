@@ -114,6 +114,16 @@ class PolicyConfig:
     controls_every: int = option(
         0, "--controls-every", "run the attention controls at every N-th inference step [1 with --attention-controls]",
         type=int, file=(int,), metavar="N", sparse=True)
+    # region reliance (harness/analysis/reliance.py): each labelled region of every camera replaced by the fill, open
+    # loop with the step's rng, the action chunk's change recorded in reliance.jsonl; needs the env's masks
+    reliance_every: int = option(
+        0, "--reliance-every", "region reliance every N-th step: each labelled region (target, gripper, goal, "
+        "distractors, background...) of every camera replaced by --reliance-fill, and how much the predicted action "
+        "chunk changes, in reliance.jsonl [0 = never]", type=int, file=(int,), metavar="N", sparse=True)
+    reliance_fill: str = option(
+        "impute", "--reliance-fill", "what a replaced region becomes for --reliance-every: the frame's mean colour, a "
+        "blur of the frame, or noisy linear imputation from the surrounding pixels [impute]", file=(str,),
+        choices=("mean", "blur", "impute"), sparse=True)
 
     def __post_init__(self) -> None:
         if self.execution not in ("temporal_ensemble", "receding_horizon"):
@@ -156,6 +166,10 @@ class PolicyConfig:
                 object.__setattr__(self, "controls_every", 1)
         elif self.controls_every:
             raise ValueError("--controls-every needs --attention-controls (e.g. --attention-controls blank,mirror)")
+        if isinstance(self.reliance_every, bool) or not isinstance(self.reliance_every, int) or self.reliance_every < 0:
+            raise ValueError(f"--reliance-every must be an integer >= 0 (0 = never), got {self.reliance_every!r}")
+        if self.reliance_fill not in ("mean", "blur", "impute"):
+            raise ValueError(f"--reliance-fill must be 'mean', 'blur' or 'impute', got {self.reliance_fill!r}")
 
     def to_dict(self) -> dict:
         """The fields as plain data; the sparse options only when set (protocols without them keep their hash)."""
@@ -181,6 +195,7 @@ class PolicyStep:
     inputs: dict | None = None
     attribution: dict | None = None  # attribution maps / faithfulness rows of this step's inference (or None)
     controls: dict | None = None  # {control: (layers, heads, readouts, keys)} of this step's inference (or None)
+    reliance: dict | None = None  # region reliance of this step's inference (harness.analysis.reliance.RelianceProbe)
 
 
 def default_dataset_key(model) -> str | None:
@@ -242,6 +257,8 @@ class InferenceRequest:
     task: TaskSpec
     seed: int  # the episode's rng stream: key = fold_in(PRNGKey(seed), step)
     step: int
+    # the env's masks of the current frame {obs key: {name: (h, w) bool}} (env convention), only at reliance steps
+    masks: dict | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -256,6 +273,7 @@ class InferenceResult:
     observed: dict | None = None  # {obs key: (H, W, 3) uint8} current frames an intervention changed (masked)
     attribution: dict | None = None  # attribution maps / faithfulness rows (harness.analysis.attribution.Probe)
     controls: dict | None = None  # {control: (layers, heads, readouts, keys) float32} at control steps (--attention-controls)
+    reliance: dict | None = None  # {"rows", "seconds"} at reliance steps (harness.analysis.reliance.RelianceProbe)
 
 
 def make_task(model, spec: TaskSpec) -> dict:
@@ -308,6 +326,12 @@ class BatchInference:
             from harness.analysis.position import CONTROLS, parse_controls
 
             self.controls = {name: CONTROLS[name] for name in parse_controls(config.attention_controls)}
+        self.reliance = None  # region reliance every k-th step (shares the attribution probe's compiled functions)
+        if config.reliance_every:
+            from harness.analysis.reliance import RelianceProbe
+
+            self.reliance = RelianceProbe(self._model, config.reliance_every, config.reliance_fill,
+                                          getattr(self.probe, "functions", None))
 
     def task(self, spec: TaskSpec) -> dict:
         if spec.key not in self._tasks:
@@ -374,8 +398,14 @@ class BatchInference:
                 by_control = self.control_attention([requests[i] for i in due], self.controls)
                 for j, i in enumerate(due):
                     controls[i] = {name: values[j] for name, values in by_control.items()}
+        reliance = [None] * n
+        if self.reliance is not None:
+            for i, request in enumerate(requests):
+                if self.reliance.due(request.step) and request.masks is not None:  # a warm-up request has none
+                    observations, tasks, keys = self._inputs([request])
+                    reliance[i] = self.reliance(observations, tasks, keys[0], request.seed, request.step, request.masks)
         return [InferenceResult(chunks[i], readout[i], None if full is None else full[i], elapsed, attention.tokens,
-                                changed[i][1], probes[i], controls[i]) for i in range(n)]
+                                changed[i][1], probes[i], controls[i], reliance[i]) for i in range(n)]
 
     def control_attention(self, requests: list[InferenceRequest], transforms: dict) -> dict[str, np.ndarray]:
         """{name: (len(requests), layers, heads, readouts, keys) float32}: the requests' readout attention with every
@@ -447,7 +477,7 @@ class EpisodeState:
         """History -> image_* (window, H, W, 3), timestep_pad_mask (window,), pad_mask_dict; left-padded as HistoryWrapper."""
         return window_from_entries(list(self._history), self.window, [*self.image_sizes, *self.lowdim_sizes])
 
-    def observe(self, observation: dict[str, np.ndarray]) -> "InferenceRequest | PolicyStep":
+    def observe(self, observation: dict[str, np.ndarray], masks: dict | None = None) -> "InferenceRequest | PolicyStep":
         check_observation(observation, self.image_sizes, self.lowdim_sizes)
         entry = {k: resize_frame(observation[k], s) for k, s in self.image_sizes.items()}
         entry.update({k: np.asarray(observation[k], np.float32) for k in self.lowdim_sizes})
@@ -458,7 +488,11 @@ class EpisodeState:
             last = self._last
             return PolicyStep(self._pending.pop(0), last.chunk, last.readout_attention, last.full_attention, False, 0.0,
                               last.tokens, entry)
-        return InferenceRequest(self._observation_window(), self.task, self.seed, self.t)
+        every = self.config.reliance_every
+        if every and self.t % every == 0 and masks is None:
+            raise EnvMismatchError("--reliance-every needs the env's masks at every reliance step; drop --no-masks")
+        return InferenceRequest(self._observation_window(), self.task, self.seed, self.t,
+                                masks if every and self.t % every == 0 else None)  # sent to the server only when used
 
     def complete(self, result: InferenceResult, seconds: float | None = None) -> PolicyStep:
         """The action to execute now from this step's inference; `seconds` overrides the recorded inference time."""
@@ -480,6 +514,8 @@ class EpisodeState:
             self._last = dataclasses.replace(self._last, attribution=result.attribution)
         if result.controls is not None:
             self._last = dataclasses.replace(self._last, controls=result.controls)
+        if result.reliance is not None:
+            self._last = dataclasses.replace(self._last, reliance=result.reliance)
         return self._last
 
 
@@ -512,9 +548,10 @@ class OctoPolicy:
         """One-line EnvMismatchError when `env` lacks an input of the model or takes another action dimension."""
         check_env(self.image_sizes, self.lowdim_sizes, self.action_dim, env)
 
-    def step(self, observation: dict[str, np.ndarray]) -> PolicyStep:
-        """observation: env dict with image_* (H, W, 3) uint8 -> the action to execute now (+ attention when inferred)."""
-        decision = self._state.observe(observation)
+    def step(self, observation: dict[str, np.ndarray], masks: dict | None = None) -> PolicyStep:
+        """observation: env dict with image_* (H, W, 3) uint8 -> the action to execute now (+ attention when inferred);
+        masks: the env's masks of this observation (info["masks"]), used only at reliance steps."""
+        decision = self._state.observe(observation, masks)
         if isinstance(decision, PolicyStep):
             return decision
         start = time.perf_counter()

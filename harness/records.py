@@ -37,6 +37,8 @@ class StepRecord:
     # the same inference with every camera's frames replaced by their mean colour / mirrored left-right (upright);
     # None at steps without controls
     controls: dict | None = None
+    # --reliance-every: {"rows": [one per camera x region, harness.analysis.reliance], "seconds"} at reliance steps
+    reliance: dict | None = None
 
 
 @dataclass(frozen=True)

@@ -70,7 +70,7 @@ def rollout(
     seen_phases = [info.get("phase")]
     while t < limit:
         start = time.perf_counter()
-        decision = policy.step(observation)
+        decision = policy.step(observation, info.get("masks"))  # masks: used only at reliance steps
         if not np.all(np.isfinite(decision.action)):  # MuJoCo would integrate NaN silently: the episode errors instead
             raise FloatingPointError(f"step {t}: the policy's action is not finite ({np.asarray(decision.action).tolist()}); "
                                      "the model's weights or dataset statistics hold NaN or inf")
@@ -97,6 +97,7 @@ def rollout(
             policy_inputs=decision.inputs,
             phase=info.get("phase"),
             controls=getattr(decision, "controls", None),  # over keys, as readout_attention: the token map is flipped
+            reliance=getattr(decision, "reliance", None),  # scalars per camera and region: no orientation
         )
         sink(record)
         end = time.perf_counter()
