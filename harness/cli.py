@@ -506,7 +506,8 @@ def _cmd_sanity(args) -> int:
 def _cmd_view(args) -> int:
     import tempfile
 
-    from harness.outputs.rerun_sink import check_viewer, import_rerun, serve_file, start_viewer
+    from harness.outputs.rerun_sink import import_rerun
+    from harness.outputs.rerun_viewer import check_viewer, serve_file, start_viewer
     from harness.run.view import build_recording
 
     rr = import_rerun()
@@ -550,7 +551,8 @@ RUN_CONTROL = ("protocol", "resume", "overwrite", "retry_failed", "workers", "ex
 
 def _live_viewer(args, modes: tuple[str, ...]):
     """--rerun modes -> the live viewer started for spawn / serve, or None. A missing viewer extra is one line."""
-    from harness.outputs.rerun_sink import import_rerun, start_viewer
+    from harness.outputs.rerun_sink import import_rerun
+    from harness.outputs.rerun_viewer import start_viewer
 
     if (args.viewer_port is not None or args.web_port is not None) and not {"spawn", "serve"} & set(modes):
         raise ValueError("--viewer-port and --web-port need --rerun spawn or --rerun serve")
