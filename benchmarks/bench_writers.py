@@ -24,7 +24,8 @@ from harness.octo.tokens import build_token_map
 from harness.outputs.overlays import heatmap_overlay, layer_panel, video_frame
 from harness.records import EpisodeMeta, StepRecord
 from harness.outputs.video import Mp4Writer
-from harness.outputs.writers import EpisodeWriter, OutputOptions, encode_png
+from harness.outputs.panels import encode_png
+from harness.outputs.writers import EpisodeWriter, OutputOptions
 
 LAYERS, HEADS = 12, 6
 

@@ -39,7 +39,8 @@ def add_parser(sub) -> None:
 
 def _live_viewer(args, modes: tuple[str, ...]):
     """--rerun modes -> the live viewer started for spawn / serve, or None. A missing viewer extra is one line."""
-    from harness.outputs.rerun_sink import import_rerun, start_viewer
+    from harness.outputs.rerun_sink import import_rerun
+    from harness.outputs.rerun_viewer import start_viewer
 
     if (args.viewer_port is not None or args.web_port is not None) and not {"spawn", "serve"} & set(modes):
         raise ValueError("--viewer-port and --web-port need --rerun spawn or --rerun serve")

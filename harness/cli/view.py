@@ -30,7 +30,8 @@ def add_parser(sub) -> None:
 def main(args) -> int:
     import tempfile
 
-    from harness.outputs.rerun_sink import check_viewer, import_rerun, serve_file, start_viewer
+    from harness.outputs.rerun_sink import import_rerun
+    from harness.outputs.rerun_viewer import check_viewer, serve_file, start_viewer
     from harness.run.view import build_recording
 
     rr = import_rerun()

@@ -396,18 +396,7 @@ def video_frame(
     if not frames or not len(frames) == len(overlays) == len(strips) == len(boxes):
         raise ValueError(f"video_frame needs one overlay, strip and box per camera row; got {len(frames)} frames, "
                          f"{len(overlays)} overlays, {len(strips)} strips, {len(boxes)} boxes")
-    shapes = []  # per row: (h, w, dw, thumb_w, thumb_h, strip rows)
-    dw_max = max(max(1, int(round(display * f.shape[1] / f.shape[0]))) for f in frames)
-    top_width = 3 * dw_max + 2 * PAD
-    for f, m in zip(frames, strips):
-        h, w = f.shape[:2]
-        dw = max(1, int(round(display * w / h)))
-        ncol = max(1, min(m.shape[0], strip_columns))
-        thumb_w = min((top_width - (ncol - 1) * PAD) // ncol, dw // 2)
-        shapes.append((h, w, dw, thumb_w, max(1, int(round(thumb_w * h / w))), ncol, -(-m.shape[0] // ncol)))
-    row_heights = [display + PAD + nrow * (th + PAD) for _, _, _, _, th, _, nrow in shapes]
-    width = _round_up(top_width, 16)
-    height = _round_up(sum(row_heights), 16)
+    shapes, row_heights, height, width = _video_rows(frames, strips, display, strip_columns)
     canvas = np.full((height, width, 3), BACKGROUND, np.uint8)
     dh = display
 
@@ -433,6 +422,29 @@ def video_frame(
     draw = ImageDraw.Draw(image)
     for rect in rects:
         _draw_box(draw, *rect)
+    _draw_video_text(draw, strip_labels, texts, dh)
+    return np.asarray(image)
+
+
+def _video_rows(frames: list[np.ndarray], strips: list[np.ndarray], display: int, strip_columns: int):
+    """video_frame's layout: per camera row (h, w, display width, thumb width, thumb height, strip columns, strip
+    rows), the rows' heights, and the frame's height and width (padded to multiples of 16)."""
+    shapes = []
+    dw_max = max(max(1, int(round(display * f.shape[1] / f.shape[0]))) for f in frames)
+    top_width = 3 * dw_max + 2 * PAD
+    for f, m in zip(frames, strips):
+        h, w = f.shape[:2]
+        dw = max(1, int(round(display * w / h)))
+        ncol = max(1, min(m.shape[0], strip_columns))
+        thumb_w = min((top_width - (ncol - 1) * PAD) // ncol, dw // 2)
+        shapes.append((h, w, dw, thumb_w, max(1, int(round(thumb_w * h / w))), ncol, -(-m.shape[0] // ncol)))
+    row_heights = [display + PAD + nrow * (th + PAD) for _, _, _, _, th, _, nrow in shapes]
+    return shapes, row_heights, _round_up(sum(row_heights), 16), _round_up(top_width, 16)
+
+
+def _draw_video_text(draw: ImageDraw.ImageDraw, strip_labels: list, texts: list, dh: int) -> None:
+    """video_frame's text: "layer i" on each strip thumbnail ((x, y, i)), and each row's lines ((x, top, dw, lines))
+    wrapped beside it, cut at the row's `dh` pixels."""
     font = _font(13)
     small = _font(11)
     for x, y, i in strip_labels:
@@ -446,4 +458,3 @@ def video_frame(
                     break
                 draw.text((x, y), piece, fill=TEXT, font=font)
                 y += 16
-    return np.asarray(image)

@@ -4,33 +4,16 @@ Optional: it needs the `viewer` extra (`pip install 'octo-harness[viewer]'`, rer
 when a recording is asked for; without it `import_rerun` raises one line naming that command. A Rerun viewer reads
 only recordings of its own minor version, so the version is pinned and checked.
 
-`RerunSink(meta, options, save=PATH, connect=URL)` receives the same `StepRecord`s as `EpisodeWriter` (which calls
-it from its background thread, with the step's metrics it already computed) and logs them with Rerun's own APIs:
-compressed images (JPEG, with the encoder `rr.Image(...).compress()` uses; the target mask as a transparent PNG),
-tensors, scalars (`rr.Scalars`, sent as columns with
-`rr.send_columns` at the end of a saved episode), text documents, and a default blueprint (`rerun.blueprint`) that
-lays out the first view. `save`: the recording goes to `<name>.tmp.<pid>.rrd` and is moved onto `PATH` by
-`finish()` (never half-written under its final name; `abort()` deletes it). `connect`: streamed to a live viewer's
-gRPC address (`start_viewer`: a local native viewer, `spawn`, or a web viewer served for a headless machine,
-`serve`). Both at once log every step to both.
-
-Timelines: `step` (the control step) and `sim_time` (step / control frequency, seconds). Entity tree:
-
-  camera/<obs key>                     the frame the model saw (JPEG), upright
-  camera/<obs key>/target              the target object's mask (class 1) over it, logged when it changes
-  attention/<obs key>/layer_<ll>       that layer's head-mean readout attention drawn over the frame (JPEG; the frame
-                                       shrunk by an integer factor to at most 128 px high, `overlay_base`)
-  attention/<obs key>/heads            (layer, head, row, col) float32 tensor: every head's map, readouts averaged,
-                                       from the attention rounded to float16 as attention.npz stores it (equal values)
-  attribution/<method>/<obs key>       attribution map over the frame, at steps that carry maps (--attribution)
-  intervention/<obs key>               what the policy was fed when an intervention masks its inputs (--intervene)
-  actions/executed, actions/predicted  the action sent to the env; the first action of this step's chunk
-  actions/chunk                        (horizon, action dim) tensor: the predicted chunk
-  scalars/reward, scalars/success      per step
-  scalars/new_chunk                    a marker (1) at every step where a new action chunk was inferred
-  measures/share/<group>, measures/timestep_share/<part>, measures/entropy, measures/mask_mass/<obs>/<mask>,
-  measures/mask_lift/<obs>/<mask>      per layer, one series each (attention.step_metrics; lift = mass / area)
-  episode/instruction, episode/outcome text documents (static)
+`RerunSink(meta, options, save=PATH, connect=URL)` receives `StepRecord`s with their token map and metrics and logs
+them with Rerun's own APIs: compressed images (JPEG, with the encoder `rr.Image(...).compress()` uses; the target mask
+as a transparent PNG), tensors, scalars (`rr.Scalars`, sent as columns with `rr.send_columns` at the end of a saved
+episode), text documents, and a default blueprint (`rerun.blueprint`) that lays out the first view. `save`: the
+recording goes to `<name>.tmp.<pid>.rrd` and is moved onto `PATH` by `finish()` (never half-written under its final
+name; `abort()` deletes it). `connect`: streamed to a live viewer's gRPC address (harness.outputs.rerun_viewer: a
+local native viewer, `spawn`, or a web viewer served for a headless machine, `serve`). Both at once log every step to
+both. `RerunRecording` is the episode writer's sink around it (OutputOptions.rerun, or a live viewer's url); `view`
+uses `RerunSink` directly to build a recording from a run's arrays. The timelines and entity tree are
+harness.outputs.rerun_layout's.
 
 Overlays use the same colours and interpolation as the PNGs and the MP4 (OutputOptions.overlay_interpolation).
 """
@@ -39,11 +22,10 @@ from __future__ import annotations
 
 import io
 import os
-import re
-from dataclasses import dataclass, field
+import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-from urllib.parse import quote
 
 import numpy as np
 from PIL import Image
@@ -53,6 +35,8 @@ from harness.analysis.attention import camera_maps, fuse_heads
 from harness.files import temp_path
 from harness.octo.tokens import TokenMap
 from harness.outputs.overlays import heatmap_overlays, resize_nearest
+from harness.outputs.rerun_layout import blueprint, entity, mask_png, overlay_base
+from harness.outputs.steps import EpisodeEnd, FinishedStep, Sink
 from harness.records import EpisodeMeta, StepRecord
 
 RERUN_MINOR = "0.23"  # recordings are readable by viewers of this minor version only
@@ -63,10 +47,6 @@ MODES = ("save", "spawn", "serve")
 JPEG_QUALITY = 90
 TENSOR_DIMS = ["layer", "head", "row", "col"]
 TARGET_DRAW_ORDER = 5.0  # the target mask is drawn above the frame (images default to -10)
-TARGET_COLOUR = (0, 255, 0, 110)  # RGBA of target pixels; the rest is transparent
-OVERLAY_HEIGHT = 128  # overlays are drawn on the frame shrunk by an integer factor to at most this height (size, time)
-DEFAULT_GRPC_PORT = 9876
-DEFAULT_WEB_PORT = 9090
 
 
 class ViewerUnavailableError(ValueError):
@@ -102,165 +82,6 @@ def parse_modes(text: str | None) -> tuple[str, ...]:
 
 def recording_id(meta: EpisodeMeta) -> str:
     return f"{meta.run}/{meta.task}/episode_{meta.episode}"
-
-
-def entity(*parts: str) -> str:
-    """An entity path from parts that may hold characters Rerun reserves (e.g. '/' inside a mask name)."""
-    return "/".join(re.sub(r"[^A-Za-z0-9_\-.]", "_", str(p)) for p in parts)
-
-
-def overlay_base(frame: np.ndarray, height: int = OVERLAY_HEIGHT) -> np.ndarray:
-    """frame (H, W, 3) -> the frame the overlays are drawn on: every k-th pixel, k the smallest integer factor that
-    brings the height to at most `height` (k = 1 for small frames); maps are at most a 16 x 16 patch grid."""
-    k = max(1, -(-frame.shape[0] // height))
-    return np.ascontiguousarray(frame[::k, ::k])
-
-
-def mask_png(mask: np.ndarray) -> bytes:
-    """mask (H, W) bool -> PNG bytes, RGBA: TARGET_COLOUR where True, transparent elsewhere (a few hundred bytes)."""
-    rgba = np.zeros((*mask.shape, 4), np.uint8)
-    rgba[mask] = TARGET_COLOUR
-    out = io.BytesIO()
-    Image.fromarray(rgba, "RGBA").save(out, format="PNG", optimize=False, compress_level=6)
-    return out.getvalue()
-
-
-# ---------------------------------------------------------------------------------------------- live viewers
-
-@dataclass
-class LiveViewer:
-    """A viewer recordings stream to: `url` is the gRPC address each episode's recording connects to."""
-
-    mode: str  # "spawn" | "serve"
-    url: str
-    web_url: str | None = None  # serve: open this in a browser (through an SSH tunnel of both ports on a server)
-    hub: Any = field(default=None, repr=False)  # serve: the recording stream that hosts the gRPC server (kept alive)
-
-
-NO_DISPLAY = "no display here for a viewer window; pass --serve (web viewer, prints its URL) or --save PATH.rrd"
-
-
-def has_display() -> bool:
-    """A native viewer window can open: not Linux, or DISPLAY / WAYLAND_DISPLAY set."""
-    import sys
-
-    return sys.platform != "linux" or bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-
-
-def check_port(port: int, option: str) -> int:
-    """`port` within 1..65535 and free on this machine (nothing listens on it), else one line naming `option`: a
-    viewer on a busy port aborted the whole process (a Rust panic, exit 134), a port out of range was a traceback."""
-    import errno
-    import socket
-
-    if not isinstance(port, int) or isinstance(port, bool) or not 1 <= port <= 65535:
-        raise ValueError(f"{option} takes a port number 1-65535, got {port!r}")
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind(("", port))
-    except OSError as exc:
-        if exc.errno in (errno.EADDRINUSE, errno.EACCES):
-            why = "is in use by another process" if exc.errno == errno.EADDRINUSE else "needs privileges here"
-            raise ValueError(f"port {port} ({option}) {why}; pass {option} with a free port") from None
-        raise
-    finally:
-        sock.close()
-    return port
-
-
-def check_viewer(mode: str, grpc_port: int | None = None, web_port: int | None = None) -> None:
-    """What a live viewer needs, before anything heavy: a display for spawn (the same line as `view`'s), free ports."""
-    if mode == "spawn" and not has_display():
-        raise ValueError(NO_DISPLAY)
-    check_port(grpc_port or DEFAULT_GRPC_PORT, "--viewer-port")
-    if mode == "serve":
-        check_port(web_port or DEFAULT_WEB_PORT, "--web-port")
-
-
-def start_viewer(mode: str, grpc_port: int | None = None, web_port: int | None = None, host: str = "127.0.0.1",
-                 blueprint=None) -> LiveViewer:
-    """spawn: start the native Rerun viewer on this machine (it listens on `grpc_port`);
-    serve: host a gRPC server in this process and the web viewer over HTTP (`web_port`); both on `host`.
-    `check_viewer` first: no display for spawn, or a port out of range or in use, is one line (ValueError)."""
-    check_viewer(mode, grpc_port, web_port)
-    rr = import_rerun()
-    port = grpc_port or DEFAULT_GRPC_PORT
-    if mode == "spawn":
-        rr.spawn(port=port, connect=False, hide_welcome_screen=True)
-        return LiveViewer("spawn", f"rerun+http://{host}:{port}/proxy")
-    if mode != "serve":
-        raise ValueError(f"a live viewer is spawn or serve; got {mode!r}")
-    hub = rr.RecordingStream(APPLICATION_ID, recording_id="octo-harness-live")
-    url = hub.serve_grpc(grpc_port=port, default_blueprint=blueprint)
-    web = web_port or DEFAULT_WEB_PORT
-    rr.serve_web_viewer(web_port=web, open_browser=False, connect_to=url)
-    return LiveViewer("serve", url, f"http://{host}:{web}/?url={quote(url, safe='')}", hub)
-
-
-def serve_file(path: str | Path, grpc_port: int | None = None, web_port: int | None = None,
-               host: str = "127.0.0.1") -> LiveViewer:
-    """Serve a saved recording to the web viewer (for `octo-harness view --serve`): the file is streamed into a
-    gRPC server in this process (kept while the process runs)."""
-    rr = import_rerun()
-    viewer = start_viewer("serve", grpc_port, web_port, host)
-    viewer.hub.log_file_from_path(Path(path))
-    viewer.hub.flush()
-    return viewer
-
-
-# ---------------------------------------------------------------------------------------------- blueprint
-
-def blueprint(cameras: list[str], layers: int, methods: list[str] = (), intervention: bool = False):
-    """The default layout: per camera its frame (with masks) beside the layer tabs of attention overlays (last layer
-    shown); the per-head tensor with sliders over layer and head; the measures, actions and rewards on the timeline;
-    the instruction and outcome."""
-    import rerun.blueprint as rrb
-    from rerun.blueprint.datatypes import TensorDimensionIndexSlider
-    from rerun.datatypes import TensorDimensionIndexSelection, TensorDimensionSelection
-
-    image_rows = []
-    for cam in cameras:
-        names = [f"{cam} layer {layer}" for layer in range(layers)]
-        layer_tabs = rrb.Tabs(*[rrb.Spatial2DView(origin=entity("attention", cam, f"layer_{layer:02d}"), name=name)
-                                for layer, name in enumerate(names)],
-                              active_tab=names[-1] if names else None, name=f"{cam} attention by layer")
-        extra = []
-        for method in methods:
-            extra.append(rrb.Spatial2DView(origin=entity("attribution", method, cam), name=f"{cam} {method}"))
-        if intervention:
-            extra.append(rrb.Spatial2DView(origin=entity("intervention", cam), name=f"{cam} as the policy saw it"))
-        heads = rrb.TensorView(
-            origin=entity("attention", cam, "heads"), name=f"{cam} every head (sliders: layer, head)",
-            slice_selection=rrb.TensorSliceSelection(
-                width=TensorDimensionSelection(3), height=TensorDimensionSelection(2),
-                indices=[TensorDimensionIndexSelection(0, max(layers - 1, 0)), TensorDimensionIndexSelection(1, 0)],
-                slider=[TensorDimensionIndexSlider(0), TensorDimensionIndexSlider(1)]),
-            scalar_mapping=rrb.TensorScalarMapping(colormap="turbo", mag_filter="nearest"),
-        )
-        views = [rrb.Spatial2DView(origin=entity("camera", cam), name=cam), layer_tabs, heads]
-        if extra:
-            views.append(rrb.Tabs(*extra, name=f"{cam} attribution"))
-        image_rows.append(rrb.Horizontal(*views))
-    measures = rrb.Tabs(
-        rrb.TimeSeriesView(origin="measures/mask_lift", contents=[entity("measures", "mask_lift", cam, "target")
-                                                                  for cam in cameras],
-                           name="target lift per layer (1 = chance)"),
-        rrb.TimeSeriesView(origin="measures/share", name="modality shares per layer"),
-        rrb.TimeSeriesView(origin="measures/timestep_share", name="timestep shares per layer"),
-        rrb.TimeSeriesView(origin="measures/entropy", name="entropy per layer"),
-        rrb.TimeSeriesView(origin="measures/mask_mass", name="mask mass per layer"),
-        active_tab="target lift per layer (1 = chance)", name="attention measures")
-    plots = rrb.Vertical(
-        measures,
-        rrb.TimeSeriesView(origin="actions", name="actions (executed; first of the predicted chunk)"),
-        rrb.TimeSeriesView(origin="scalars", name="reward, success, new chunks"),
-        rrb.Horizontal(rrb.TextDocumentView(origin="episode/instruction", name="episode"),
-                       rrb.TextDocumentView(origin="episode/outcome", name="outcome")),
-        row_shares=[3, 2, 1.5, 1.5],
-    )
-    return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*image_rows), plots, column_shares=[3, 2]),
-                         rrb.TimePanel(expanded=True), collapse_panels=True)
 
 
 # ---------------------------------------------------------------------------------------------- the sink
@@ -563,3 +384,39 @@ class RerunSink:
                 pass
         if self.temp is not None:
             self.temp.unlink(missing_ok=True)
+
+
+class RerunRecording(Sink):
+    """The episode writer's Rerun sink: episode.rrd with OutputOptions.rerun, and/or a live viewer's gRPC url
+    (`viewer`). A stale episode.rrd is removed when it starts; its outcome is the writer's (`EpisodeEnd.outcome`)."""
+
+    @classmethod
+    def wanted(cls, options, viewer) -> bool:
+        return options.rerun or viewer is not None
+
+    def __init__(self, directory, meta: EpisodeMeta, options, viewer: str | None = None):
+        super().__init__(directory, meta, options, viewer)
+        (self.dir / RRD_NAME).unlink(missing_ok=True)  # never a stale recording beside a new episode
+        self.sink = RerunSink(
+            meta, SinkOptions(cmap=options.cmap, alpha=options.alpha, head_fusion=options.head_fusion,
+                              interpolation=options.overlay_interpolation),
+            save=self.dir / RRD_NAME if options.rerun else None, connect=viewer,
+            intervention=bool(meta.extra.get("intervention")), control_hz=meta.extra.get("control_hz"))
+        self.seconds = 0.0  # logging the recording (in the writer thread) and closing it
+
+    def add(self, step: FinishedStep) -> None:
+        start = time.perf_counter()
+        self.sink.log_step(step.record, step.tokens, step.metrics)
+        self.seconds += time.perf_counter() - start
+
+    def close(self, end: EpisodeEnd) -> dict[str, Any]:
+        start = time.perf_counter()
+        path = self.sink.finish(end.outcome)
+        self.seconds += time.perf_counter() - start
+        return {"rerun": path.name} if path is not None else {}
+
+    def abort(self) -> None:
+        self.sink.abort()
+
+    def timings(self) -> dict[str, Any]:
+        return {"rerun": self.seconds}

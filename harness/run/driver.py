@@ -204,7 +204,7 @@ def execute(
 
     model: an already loaded model of `protocol.model` (else it is loaded after the cheap checks).
     executor: factory(context, model) -> Executor (default SequentialExecutor).
-    viewer: gRPC url of a live Rerun viewer every episode streams to (harness.outputs.rerun_sink.start_viewer).
+    viewer: gRPC url of a live Rerun viewer every episode streams to (harness.outputs.rerun_viewer.start_viewer).
     ci_method: the success intervals of the derived files (wilson, clopper-pearson); recorded in the manifest
     ("statistics", outside the protocol and its hash), so a resume writes them as the run began; None: the recorded
     one, else wilson. A different one for a run that records its own is refused (one line).

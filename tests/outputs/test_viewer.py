@@ -381,7 +381,7 @@ def test_live_streaming_to_a_served_viewer_with_and_without_saving(tmp_path):
     sys.path.insert(0, str(Path(__file__).parent))
     from tests.outputs.test_writers import meta, records, tiny_tokens
 
-    from harness.outputs.rerun_sink import start_viewer
+    from harness.outputs.rerun_viewer import start_viewer
     from harness.outputs.writers import EpisodeWriter, OutputOptions
 
     viewer = start_viewer("serve", grpc_port=9889, web_port=9099)

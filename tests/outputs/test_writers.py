@@ -261,7 +261,7 @@ def test_encode_png_round_trips_through_pillow():
     image[10:20] = 200  # flat area next to noise: exercises the Up filter's wraparound both ways
     import io
 
-    from harness.outputs.writers import encode_png
+    from harness.outputs.panels import encode_png
 
     for level in (0, 2, 9):
         with Image.open(io.BytesIO(encode_png(image, level))) as im:

@@ -194,7 +194,7 @@ def test_killed_runs_resume_to_the_files_of_an_uninterrupted_run(fixtures_dir, t
 def _failing_write(monkeypatch, names):
     """Make the writers' atomic writes of `names` fail as on a full disk."""
     import harness.files
-    import harness.outputs.writers
+    import harness.outputs.data_files
 
     original = harness.files.write_atomic
 
@@ -203,7 +203,7 @@ def _failing_write(monkeypatch, names):
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         return original(path, write)
 
-    monkeypatch.setattr(harness.outputs.writers, "write_atomic", write_atomic)
+    monkeypatch.setattr(harness.outputs.data_files, "write_atomic", write_atomic)  # the npz and jsonl sinks
 
 
 def test_disk_full_fails_the_episode_and_a_failed_results_append_stops_with_one_line(fixtures_dir, tmp_path, capsys,

@@ -87,7 +87,7 @@ def test_copied_run_folder_takes_its_new_name_in_every_record(fixtures_dir, tmp_
 def test_episode_failing_while_finishing_its_files_records_the_steps_that_ran(fixtures_dir, tmp_path, capsys,
                                                                              monkeypatch):
     import harness.files
-    import harness.outputs.writers
+    import harness.outputs.data_files
 
     original = harness.files.write_atomic
 
@@ -96,7 +96,7 @@ def test_episode_failing_while_finishing_its_files_records_the_steps_that_ran(fi
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         return original(path, write)
 
-    monkeypatch.setattr(harness.outputs.writers, "write_atomic", write_atomic)
+    monkeypatch.setattr(harness.outputs.data_files, "write_atomic", write_atomic)  # the npz and jsonl sinks
     code = cli.main(["run", "--task", "Lift", "--model", str(fixtures_dir / "tiny"), "--max-steps", "3",
                      "--png-every", "0", "--fast-render", "--out", str(tmp_path), "--run-name", "full"])
     capsys.readouterr()
