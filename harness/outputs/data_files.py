@@ -8,6 +8,7 @@ One sink per file (shapes in harness.outputs.writers' docstring), each written a
   MetricLines       metrics.jsonl    one row per step: ids, reward, success, phase, metrics, timings
   AttributionFiles  attribution.npz  maps at the steps that carry them; faithfulness.jsonl when measured
   ControlArrays     controls.npz     attention of the control inferences (--attention-controls), at their steps
+  RelianceLines     reliance.jsonl   region reliance (--reliance-every): one row per step x camera x region
 """
 
 from __future__ import annotations
@@ -252,3 +253,30 @@ class ControlArrays(Sink):
             controls[name] = np.stack([c[name] for _, c in self.controls])
         write_atomic(self.dir / "controls.npz", lambda f: np.savez(f, **controls))
         return {"controls": "controls.npz"}
+
+
+class RelianceLines(Sink):
+    """reliance.jsonl (--reliance-every): one row per reliance step x camera x region, in harness.analysis.reliance's
+    schema, with the run, task, episode and seed in front; not written when no step measured reliance."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.rows: list[dict] = []
+        self.seconds = 0.0
+
+    def add(self, step: FinishedStep) -> None:
+        reliance = step.record.reliance
+        if reliance is None:
+            return
+        ids = {"run": self.meta.run, "task": self.meta.task, "episode": self.meta.episode, "seed": self.meta.seed}
+        self.rows.extend({**ids, **row} for row in reliance.get("rows", ()))
+        self.seconds += float(reliance.get("seconds", 0.0))
+
+    def close(self, end: EpisodeEnd) -> dict[str, Any]:
+        if not self.rows:
+            return {}
+        write_lines(self.dir / "reliance.jsonl", [json.dumps(json_safe(row)) for row in self.rows])
+        return {"reliance": "reliance.jsonl"}
+
+    def timings(self) -> dict[str, Any]:
+        return {"reliance": round(self.seconds, 6)} if self.rows else {}

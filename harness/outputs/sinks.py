@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from harness.outputs.data_files import (ActionArrays, AttentionArrays, AttributionFiles, ControlArrays, InputArrays,
-                                        MetricLines)
+                                        MetricLines, RelianceLines)
 from harness.outputs.panels import PngPanels
 from harness.outputs.rerun_sink import RerunRecording
 from harness.outputs.rollout_video import RolloutVideo
@@ -23,6 +23,7 @@ SINKS: tuple[type[Sink], ...] = (
     MetricLines,  # metrics.jsonl
     AttributionFiles,  # attribution.npz, faithfulness.jsonl (steps with attribution maps)
     ControlArrays,  # controls.npz (--attention-controls)
+    RelianceLines,  # reliance.jsonl (--reliance-every)
     PngPanels,  # step_<tttt>_layer_<ll>.png, step_<tttt>_attribution.png
     RolloutVideo,  # rollout.mp4, rollout.gif
     RerunRecording,  # episode.rrd and/or a live viewer (--rerun)

@@ -126,6 +126,8 @@ class Protocol:
         if self.max_steps is not None and self.max_steps > MAX_STEPS:
             raise ValueError(f"--max-steps {self.max_steps} is more than an episode may run ({MAX_STEPS} control steps: "
                              "its arrays are held in memory until it ends); choose a smaller --max-steps")
+        if self.policy.reliance_every and not self.env.masks:
+            raise ValueError("--reliance-every replaces the labelled regions of the env's masks; drop --no-masks")
         object.__setattr__(self, "perturb", perturb_text(parse_perturb(self.perturb)))  # level 0 -> None: nominal
         weight = float(self.policy.ensemble_weight)
         if weight != weight or weight in (float("inf"), float("-inf")):
