@@ -1,6 +1,7 @@
 """What a run writes is decided once (issue 43 item 6): `--ci-method` is recorded in the manifest (outside the protocol
 and its hash) and a resume, `--resume RUN_DIR` included, writes the derived files with it, so a resumed run's derived
-files equal an uninterrupted run's, byte for byte but for timings."""
+files equal an uninterrupted run's, byte for byte but for timings; the same command without the flag resumes it with
+the recorded method, and another method is refused (issue 42's "--ci-method survives resume", merged here)."""
 
 from __future__ import annotations
 
@@ -24,15 +25,13 @@ def _without_timings(rows: list[dict]) -> list[dict]:
 
 @pytest.mark.slow
 def test_a_resumed_clopper_pearson_run_keeps_its_intervals_and_its_derived_files(fixtures_dir, tmp_path, capsys):
-    from envs.options import EnvOptions
-    from harness.outputs.writers import OutputOptions
-    from harness.run.driver import execute
-    from harness.run.protocol import Protocol
     from harness.runfolder.schema import protocol_hash
 
-    protocol = Protocol(model=str(fixtures_dir / "tiny"), tasks=("Lift",), episodes=1, max_steps=2,
-                        env=EnvOptions(masks=False, fast_render=True), outputs=OutputOptions(png_every=0, video=False))
-    full = execute(protocol, tmp_path, "full", progress=False, ci_method="clopper-pearson").run_dir
+    # made on the command line (the flag reaches the driver)
+    command = ["run", "--task", "Lift", "--model", str(fixtures_dir / "tiny"), "--max-steps", "2", "--png-every", "0",
+               "--no-video", "--no-masks", "--fast-render", "--out", str(tmp_path), "--run-name", "full"]
+    assert cli.main([*command, "--ci-method", "clopper-pearson"]) == 0
+    full = tmp_path / "full"
     manifest = json.loads((full / "manifest.json").read_text())
     assert manifest["statistics"] == {"ci_method": "clopper-pearson", "confidence": 0.95}
     assert manifest["protocol_hash"] == protocol_hash(manifest["protocol"])  # the protocol (and its hash) unchanged
@@ -58,8 +57,9 @@ def test_a_resumed_clopper_pearson_run_keeps_its_intervals_and_its_derived_files
     assert cli.main(["run", "--resume", str(full)]) == 0
     assert ((full / "statistics.csv").read_bytes(), (full / "summary.csv").read_bytes()) == before
 
-    # another method for a run that records one is refused (one line on the command line, exit 2), before any model
-    from harness.run.driver import ProtocolMismatchError
-
-    with pytest.raises(ProtocolMismatchError, match="statistics.ci_method.*--ci-method clopper-pearson"):
-        execute(protocol, tmp_path, "full", progress=False, ci_method="wilson")
+    # the same command without the flag resumes it with the recorded method; another method is one line, exit 2
+    assert cli.main(command) == 0 and (full / "statistics.csv").read_bytes() == before[0]
+    capsys.readouterr()
+    assert cli.main([*command, "--ci-method", "wilson"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "--ci-method clopper-pearson" in err[0]
