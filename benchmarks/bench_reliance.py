@@ -9,7 +9,9 @@ off of the policy alone and of a whole closed-loop step (plus the median simulat
 sampled step costs one batched call of 1 + sum over cameras (regions with pixels + 1) forward passes.
 
     .venv/bin/python benchmarks/bench_reliance.py [--model models/octo-reference-robosuite] [--every 4]
-        [--steps 8] [--reps 5] [--fill impute] [--task Lift]
+        [--steps 8] [--reps 5] [--fill impute] [--task Lift] [--save-inputs FILE | --inputs FILE]
+
+`--save-inputs` keeps the recording; `--inputs` replays it on a machine without the simulator (the GPU figure).
 
 Off is the code path without reliance: BatchInference builds no RelianceProbe and no request carries masks.
 """
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import pickle
 import statistics
 import time
 
@@ -25,7 +28,6 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
-import envs  # noqa: E402
 from harness.conventions import CheckpointConventions  # noqa: E402
 from harness.octo import load_pretrained  # noqa: E402
 from harness.policy import OctoPolicy  # noqa: E402
@@ -64,16 +66,28 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=8)
     parser.add_argument("--reps", type=int, default=5)
     parser.add_argument("--fill", default="impute")
+    parser.add_argument("--save-inputs", metavar="FILE", help="also save the recorded inputs (pickle) for --inputs")
+    parser.add_argument("--inputs", metavar="FILE", help="read the inputs --save-inputs saved instead of simulating "
+                        "(a machine without the simulator, e.g. a GPU box)")
     args = parser.parse_args()
     model = load_pretrained(args.model)
     conventions = CheckpointConventions.read(args.model if os.path.isdir(args.model) else None)
-    env = envs.make(args.task, conventions.env_options({"masks": True, "fast_render": True}))
-    try:
-        off = OctoPolicy(model, conventions.policy_config())
-        on = OctoPolicy(model, conventions.policy_config({"reliance_every": args.every, "reliance_fill": args.fill}))
-        inputs, instruction, sim = record(env, off, args.steps)
-    finally:
-        env.close()
+    off = OctoPolicy(model, conventions.policy_config())
+    on = OctoPolicy(model, conventions.policy_config({"reliance_every": args.every, "reliance_fill": args.fill}))
+    if args.inputs:
+        with open(args.inputs, "rb") as f:
+            inputs, instruction, sim = pickle.load(f)
+    else:
+        import envs
+
+        env = envs.make(args.task, conventions.env_options({"masks": True, "fast_render": True}))
+        try:
+            inputs, instruction, sim = record(env, off, args.steps)
+        finally:
+            env.close()
+    if args.save_inputs:
+        with open(args.save_inputs, "wb") as f:
+            pickle.dump((inputs, instruction, sim), f)
     policies = {"off": off, "on": on}
     for policy in policies.values():  # compile and warm up
         episode_seconds(policy, inputs, instruction)
@@ -92,7 +106,11 @@ def main() -> None:
     print(f"{med['off']:18.4f} {med['on']:17.4f} {sim:11.4f} {med['on'] / med['off']:9.2f} "
           f"{(med['on'] + sim) / (med['off'] + sim):19.2f}")
     print("reps off:", " ".join(f"{t:.4f}" for t in times["off"]), "| on:", " ".join(f"{t:.4f}" for t in times["on"]))
-    print(f"machine: {os.cpu_count()} CPUs, load average {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
+    import jax
+
+    print(f"machine: {os.cpu_count()} CPUs, load average {' '.join(f'{x:.1f}' for x in os.getloadavg())}, "
+          f"JAX {jax.__version__} on {jax.devices()[0].device_kind}"
+          + ("" if not args.inputs else f"; inputs from {args.inputs} (sim s/step as recorded there)"))
 
 
 if __name__ == "__main__":
