@@ -256,6 +256,32 @@ def nuisance_reliance(rows: Sequence[Mapping], camera: str = CAMERA) -> dict:
             "nuisance_reliance_start": mean("nuisance_reliance", lambda s: s < START_STEPS)}
 
 
+FILE = "reliance.jsonl"
+EPISODE_FIELDS = ("nuisance_reliance", "background_reliance", "distractor_reliance", "nuisance_reliance_start")
+
+
+def read_rows(path) -> list[dict]:
+    """An episode's reliance.jsonl -> its rows, read with the bounded readers (harness.bounded: size, depth); a
+    damaged file raises ValueError (or OSError) naming the file and line, for the caller to note, not crash on."""
+    from harness.bounded import loads_json, read_jsonl_text
+
+    rows = []
+    for number, line in enumerate(read_jsonl_text(path, errors="strict").splitlines(), 1):
+        if line.strip():
+            row = loads_json(line, f"{path} line {number}")
+            if not isinstance(row, dict) or not {"step", "camera", "region", "reliance_share"} <= set(row):
+                raise ValueError(f"{path} line {number}: not a reliance row (step, camera, region, reliance_share)")
+            rows.append(row)
+    return rows
+
+
+def episode_reliance(path, camera: str = CAMERA) -> dict:
+    """reliance.jsonl -> {EPISODE_FIELDS: episode means} (`nuisance_reliance` on `camera`); nan when the camera has
+    no sampled step."""
+    means = nuisance_reliance(read_rows(path), camera)
+    return {k: means[k] for k in EPISODE_FIELDS}
+
+
 # ------------------------------------------------------------------------------------------- in a run
 
 
