@@ -260,6 +260,32 @@ FILE = "reliance.jsonl"
 EPISODE_FIELDS = ("nuisance_reliance", "background_reliance", "distractor_reliance", "nuisance_reliance_start")
 
 
+def attention_regions(mass: Mapping[str, float], regions: Sequence[str]) -> dict[str, float]:
+    """One camera's attention mass per env mask name at one step ({name: mask_mass}, the attention's
+    measures/layer/mask_mass/<camera>/<name> at a layer) -> {region: share} over `regions` (the regions the reliance
+    rows of that camera and step hold), summing to 1: each mask's mass goes to its REGION_TABLE row (as
+    `region_masks` partitions the pixels; the env's masks are disjoint), the remainder (task_objects, or LIBERO's
+    background) gets what no mask holds (1 - their sum, at least 0); {} when the camera's map has no mass (nan)."""
+    mass = {k: float(v) for k, v in mass.items()}
+    if any(math.isnan(v) for v in mass.values()):
+        return {}
+    out: dict[str, float] = {}
+    used: set[str] = set()
+    for region, sources, unless in REGION_TABLE:
+        if any(u in mass for u in unless):
+            continue
+        names = [k for k in mass if k not in used and any(fnmatch.fnmatchcase(k, s) for s in sources)]
+        if names:
+            used.update(names)
+            out[region] = sum(mass[k] for k in names)
+    rest = max(0.0, 1.0 - sum(out.values()))
+    remainder = TASK_OBJECTS if "background" in out else "background"
+    out[remainder] = out.get(remainder, 0.0) + rest
+    kept = {r: out.get(r, 0.0) for r in regions}
+    total = sum(kept.values())
+    return {r: v / total for r, v in kept.items()} if total > 0 else {}
+
+
 def read_rows(path) -> list[dict]:
     """An episode's reliance.jsonl -> its rows, read with the bounded readers (harness.bounded: size, depth); a
     damaged file raises ValueError (or OSError) naming the file and line, for the caller to note, not crash on."""
