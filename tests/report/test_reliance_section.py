@@ -157,7 +157,7 @@ def test_the_report_shows_the_section_and_its_table_in_chromium(run, tmp_path):
     assert cli.main(["report", str(run), "--out", str(out), "--resamples", "200"]) == 0
     table = list(csv.DictReader((out / "tables" / "reliance.csv").open()))
     assert len(table) == 10 and {r["region"] for r in table} == set(REGIONS)
-    dom = _browser(out / "index.html", tmp_path, "--dump-dom").stdout
+    dom = _browser(out / "report.html", tmp_path, "--dump-dom").stdout
     section = re.search(r"<section id=\"reliance\">(.*?)</section>\s*(?:<section id|</main|$)", dom, re.S)
     assert section, "no Reliance section in the rendered page"
     text = section.group(1)
