@@ -308,6 +308,24 @@ def episode_reliance(path, camera: str = CAMERA) -> dict:
     return {k: means[k] for k in EPISODE_FIELDS}
 
 
+def add_reliance(rows: Sequence, records) -> tuple[list, list[str]]:
+    """robustness.EpisodeRow rows (robustness.collect) -> (the rows with EPISODE_FIELDS read from each episode's
+    reliance.jsonl, where the episode has one; notes): a damaged file is a note and leaves its fields nan."""
+    from dataclasses import replace
+
+    episodes = {(record.name, e.task, e.episode): e for record in records for e in record.episodes}
+    out, notes = [], []
+    for row in rows:
+        e = episodes.get((row.run, row.task, row.episode))
+        if e is not None and e.ok and (e.directory / FILE).is_file():
+            try:
+                row = replace(row, **episode_reliance(e.directory / FILE))
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                notes.append(f"{row.run}/{row.task}/episode_{row.episode}: unreadable {FILE} ({exc})")
+        out.append(row)
+    return out, notes
+
+
 # ------------------------------------------------------------------------------------------- in a run
 
 

@@ -84,6 +84,7 @@ class EpisodeRow:
     nuisance_start_content: float = math.nan
     nuisance_reliance: float = math.nan  # reliance.jsonl (--reliance-every): the reliance share of background +
     background_reliance: float = math.nan  # distractors, and of each, mean over the sampled steps; nan without it
+    # (filled by harness.analysis.reliance.add_reliance: this module cannot import it)
     distractor_reliance: float = math.nan
     nuisance_reliance_start: float = math.nan
 
@@ -235,8 +236,6 @@ def point_biserial(success, values, confidence: float = 0.95) -> tuple[float, fl
 def collect(records) -> tuple[list[EpisodeRow], list[tuple], list[str]]:
     """Episode rows, shift rows (run, task, condition, level, seed, layer, js_bits, lift_change) and notes
     (runs left out) from run records (harness.analysis.runs.RunRecord)."""
-    from harness.analysis.reliance import EPISODE_FIELDS as RELIANCE_FIELDS, FILE as RELIANCE_FILE, episode_reliance
-
     rows, notes, measures = [], [], {}
     for record in records:
         cond = run_condition(record.manifest)
@@ -251,19 +250,13 @@ def collect(records) -> tuple[list[EpisodeRow], list[tuple], list[str]]:
                     m = episode_measures(e.attention_path, controls if controls.is_file() else None)
                 except (OSError, ValueError, KeyError) as exc:
                     notes.append(f"{record.name}/{e.task}/episode_{e.episode}: unreadable attention.npz ({exc})")
-            if e.ok and (e.directory / RELIANCE_FILE).is_file():
-                try:
-                    m = {**m, **episode_reliance(e.directory / RELIANCE_FILE)}
-                except (OSError, ValueError, KeyError, TypeError) as exc:
-                    notes.append(f"{record.name}/{e.task}/episode_{e.episode}: unreadable {RELIANCE_FILE} ({exc})")
             measures[(record.name, e.task, e.seed)] = m
             rows.append(EpisodeRow(record.name, e.task, cond[0], cond[1], e.seed if e.seed is not None else -1, e.episode,
                                    e.status, bool(e.success), m.get("nuisance_mass", math.nan),
                                    m.get("target_lift", math.nan), m.get("distractor_mass", math.nan),
                                    m.get("background_mass", math.nan), m.get("nuisance_start", math.nan),
                                    m.get("nuisance_content", math.nan), m.get("target_lift_content", math.nan),
-                                   m.get("nuisance_start_content", math.nan),
-                                   *(m.get(k, math.nan) for k in RELIANCE_FIELDS)))
+                                   m.get("nuisance_start_content", math.nan)))
     nominal = {(r.task, r.seed): r.run for r in rows if r.condition == "nominal"}
     shifts = []
     for r in rows:

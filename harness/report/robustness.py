@@ -14,6 +14,7 @@ import math
 import numpy as np
 
 from harness.analysis import robustness as R
+from harness.analysis.reliance import add_reliance
 from harness.report import html as H
 
 EPISODE_COLUMNS = ("run", "task", "condition", "level", "seed", "episode", "status", "success", "nuisance_mass",
@@ -29,6 +30,8 @@ def analyse(records, margin: float = R.MARGIN):
     if not R.is_perturbed(records):
         return None
     rows, shifts, notes = R.collect(records)
+    rows, reliance_notes = add_reliance(rows, records)  # nuisance reliance beside nuisance mass (--reliance-every)
+    notes = notes + reliance_notes
     return rows, shifts, notes, R.success_rows(rows), R.association_rows(rows), R.paired_rows(rows, margin=margin)
 
 

@@ -13,6 +13,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from harness.analysis import reliance
 from harness.analysis import robustness as R
 from harness.report import robustness as report
 from harness.report.rundata import csv_bytes
@@ -52,7 +53,7 @@ def test_episode_rows_carry_nuisance_reliance_beside_nuisance_mass(tmp_path):
                 _episode(tmp_path / "nominal" / "ep2", 2, False, None, text='{"step": 0, "camera": \n')]
     record = SimpleNamespace(name="nominal", manifest={"protocol": {"perturb": "lighting:1", "policy": {}}},
                              episodes=episodes)
-    out, _, notes = R.collect([record])
+    out, _, notes, *_ = report.analyse([record])  # robustness.collect, then reliance.add_reliance
     measured, plain, damaged = out
     assert measured.nuisance_mass == pytest.approx(0.6, abs=1e-6)  # the attention's measure is unchanged
     assert measured.nuisance_reliance == pytest.approx(0.35)  # mean of 0.5 and 0.2
@@ -68,3 +69,10 @@ def test_episode_rows_carry_nuisance_reliance_beside_nuisance_mass(tmp_path):
     csv_rows = list(csv.DictReader(io.StringIO(csv_bytes(columns, table).decode())))
     assert [float(csv_rows[0][f]) for f in FIELDS] == pytest.approx([0.35, 0.15, 0.2, 0.5])
     assert all(csv_rows[i][f] == "" for i in (1, 2) for f in FIELDS)  # empty when not measured
+
+
+def test_add_reliance_leaves_rows_without_a_file_as_they_are(tmp_path):
+    episodes = [_episode(tmp_path / "n" / "ep0", 0, True, None)]
+    record = SimpleNamespace(name="n", manifest={"protocol": {"perturb": None, "policy": {}}}, episodes=episodes)
+    rows, _, _ = R.collect([record])
+    assert reliance.add_reliance(rows, [record]) == (rows, [])
