@@ -76,3 +76,20 @@ def test_add_reliance_leaves_rows_without_a_file_as_they_are(tmp_path):
     record = SimpleNamespace(name="n", manifest={"protocol": {"perturb": None, "policy": {}}}, episodes=episodes)
     rows, _, _ = R.collect([record])
     assert reliance.add_reliance(rows, [record]) == (rows, [])
+
+
+def test_attention_regions_follow_the_region_table():
+    # robosuite: robot is not a region beside gripper and arm; distractor_<i> join; the rest is task_objects
+    robosuite = {"target": 0.3, "gripper": 0.1, "arm": 0.1, "robot": 0.2, "distractor_0": 0.1, "distractor_1": 0.05,
+                 "background": 0.25}
+    shares = reliance.attention_regions(robosuite, ["target", "gripper", "arm", "distractors", "task_objects",
+                                                    "background"])
+    assert shares == pytest.approx({"target": 0.3, "gripper": 0.1, "arm": 0.1, "distractors": 0.15,
+                                    "task_objects": 0.1, "background": 0.25})
+    # LIBERO: no background mask, so the remainder is the background; object.<name> masks are no region;
+    # normalised over the regions the reliance rows hold (goal absent from them here)
+    libero = {"target": 0.2, "robot": 0.2, "goal": 0.1, "distractors": 0.1, "object.bowl_1": 0.2}
+    shares = reliance.attention_regions(libero, ["target", "robot", "distractors", "background"])
+    assert shares == pytest.approx({"target": 0.2 / 0.9, "robot": 0.2 / 0.9, "distractors": 0.1 / 0.9,
+                                    "background": 0.4 / 0.9})
+    assert reliance.attention_regions({"target": float("nan")}, ["target"]) == {}
