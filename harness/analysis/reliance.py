@@ -256,6 +256,76 @@ def nuisance_reliance(rows: Sequence[Mapping], camera: str = CAMERA) -> dict:
             "nuisance_reliance_start": mean("nuisance_reliance", lambda s: s < START_STEPS)}
 
 
+FILE = "reliance.jsonl"
+EPISODE_FIELDS = ("nuisance_reliance", "background_reliance", "distractor_reliance", "nuisance_reliance_start")
+
+
+def attention_regions(mass: Mapping[str, float], regions: Sequence[str]) -> dict[str, float]:
+    """One camera's attention mass per env mask name at one step ({name: mask_mass}, the attention's
+    measures/layer/mask_mass/<camera>/<name> at a layer) -> {region: share} over `regions` (the regions the reliance
+    rows of that camera and step hold), summing to 1: each mask's mass goes to its REGION_TABLE row (as
+    `region_masks` partitions the pixels; the env's masks are disjoint), the remainder (task_objects, or LIBERO's
+    background) gets what no mask holds (1 - their sum, at least 0); {} when the camera's map has no mass (nan)."""
+    mass = {k: float(v) for k, v in mass.items()}
+    if any(math.isnan(v) for v in mass.values()):
+        return {}
+    out: dict[str, float] = {}
+    used: set[str] = set()
+    for region, sources, unless in REGION_TABLE:
+        if any(u in mass for u in unless):
+            continue
+        names = [k for k in mass if k not in used and any(fnmatch.fnmatchcase(k, s) for s in sources)]
+        if names:
+            used.update(names)
+            out[region] = sum(mass[k] for k in names)
+    rest = max(0.0, 1.0 - sum(out.values()))
+    remainder = TASK_OBJECTS if "background" in out else "background"
+    out[remainder] = out.get(remainder, 0.0) + rest
+    kept = {r: out.get(r, 0.0) for r in regions}
+    total = sum(kept.values())
+    return {r: v / total for r, v in kept.items()} if total > 0 else {}
+
+
+def read_rows(path) -> list[dict]:
+    """An episode's reliance.jsonl -> its rows, read with the bounded readers (harness.bounded: size, depth); a
+    damaged file raises ValueError (or OSError) naming the file and line, for the caller to note, not crash on."""
+    from harness.bounded import loads_json, read_jsonl_text
+
+    rows = []
+    for number, line in enumerate(read_jsonl_text(path, errors="strict").splitlines(), 1):
+        if line.strip():
+            row = loads_json(line, f"{path} line {number}")
+            if not isinstance(row, dict) or not {"step", "camera", "region", "reliance_share"} <= set(row):
+                raise ValueError(f"{path} line {number}: not a reliance row (step, camera, region, reliance_share)")
+            rows.append(row)
+    return rows
+
+
+def episode_reliance(path, camera: str = CAMERA) -> dict:
+    """reliance.jsonl -> {EPISODE_FIELDS: episode means} (`nuisance_reliance` on `camera`); nan when the camera has
+    no sampled step."""
+    means = nuisance_reliance(read_rows(path), camera)
+    return {k: means[k] for k in EPISODE_FIELDS}
+
+
+def add_reliance(rows: Sequence, records) -> tuple[list, list[str]]:
+    """robustness.EpisodeRow rows (robustness.collect) -> (the rows with EPISODE_FIELDS read from each episode's
+    reliance.jsonl, where the episode has one; notes): a damaged file is a note and leaves its fields nan."""
+    from dataclasses import replace
+
+    episodes = {(record.name, e.task, e.episode): e for record in records for e in record.episodes}
+    out, notes = [], []
+    for row in rows:
+        e = episodes.get((row.run, row.task, row.episode))
+        if e is not None and e.ok and (e.directory / FILE).is_file():
+            try:
+                row = replace(row, **episode_reliance(e.directory / FILE))
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                notes.append(f"{row.run}/{row.task}/episode_{row.episode}: unreadable {FILE} ({exc})")
+        out.append(row)
+    return out, notes
+
+
 # ------------------------------------------------------------------------------------------- in a run
 
 

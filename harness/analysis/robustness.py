@@ -82,6 +82,11 @@ class EpisodeRow:
     nuisance_content: float = math.nan  # the same measures on the content-only maps at the control steps
     target_lift_content: float = math.nan
     nuisance_start_content: float = math.nan
+    nuisance_reliance: float = math.nan  # reliance.jsonl (--reliance-every): the reliance share of background +
+    background_reliance: float = math.nan  # distractors, and of each, mean over the sampled steps; nan without it
+    # (filled by harness.analysis.reliance.add_reliance: this module cannot import it)
+    distractor_reliance: float = math.nan
+    nuisance_reliance_start: float = math.nan
 
     def nuisance(self, map_: str = "raw") -> tuple[float, float]:
         """(episode mean, first START_STEPS steps) of the nuisance mass on the raw or content-only map."""

@@ -17,6 +17,8 @@ harness.outputs.rerun_sink.RerunSink):
   scalars/new_chunk                    a marker (1) at every step where a new action chunk was inferred
   measures/share/<group>, measures/timestep_share/<part>, measures/entropy, measures/mask_mass/<obs>/<mask>,
   measures/mask_lift/<obs>/<mask>      per layer, one series each (attention.step_metrics; lift = mass / area)
+  reliance/<obs key>/<region>          the region's reliance share at --reliance-every steps (harness.analysis.reliance;
+                                       not logged where the camera was not used)
   episode/instruction, episode/outcome text documents (static)
 """
 
@@ -53,10 +55,11 @@ def mask_png(mask: np.ndarray) -> bytes:
     return out.getvalue()
 
 
-def blueprint(cameras: list[str], layers: int, methods: list[str] = (), intervention: bool = False):
+def blueprint(cameras: list[str], layers: int, methods: list[str] = (), intervention: bool = False,
+              reliance: bool = False):
     """The default layout: per camera its frame (with masks) beside the layer tabs of attention overlays (last layer
-    shown); the per-head tensor with sliders over layer and head; the measures, actions and rewards on the timeline;
-    the instruction and outcome."""
+    shown); the per-head tensor with sliders over layer and head; the measures (and, with `reliance`, the reliance
+    share per region and camera), actions and rewards on the timeline; the instruction and outcome."""
     import rerun.blueprint as rrb
     from rerun.blueprint.datatypes import TensorDimensionIndexSlider
     from rerun.datatypes import TensorDimensionIndexSelection, TensorDimensionSelection
@@ -92,6 +95,7 @@ def blueprint(cameras: list[str], layers: int, methods: list[str] = (), interven
         rrb.TimeSeriesView(origin="measures/timestep_share", name="timestep shares per layer"),
         rrb.TimeSeriesView(origin="measures/entropy", name="entropy per layer"),
         rrb.TimeSeriesView(origin="measures/mask_mass", name="mask mass per layer"),
+        *([rrb.TimeSeriesView(origin="reliance", name="reliance share per region")] if reliance else []),
         active_tab="target lift per layer (1 = chance)", name="attention measures")
     plots = rrb.Vertical(
         measures,

@@ -222,7 +222,8 @@ class RerunSink:
         rr = self.rr
         self._styled = set()
         methods = sorted(((record.attribution or {}).get("maps") or {}).keys())
-        bp = blueprint(cameras, layers, methods, self.intervention)
+        reliance = bool(getattr(record, "reliance", None))  # step 0 is a reliance step of every --reliance-every
+        bp = blueprint(cameras, layers, methods, self.intervention, reliance)
         for stream in self.streams:
             stream.send_blueprint(bp, make_active=True, make_default=True)
         meta = self.meta
@@ -304,6 +305,10 @@ class RerunSink:
         if record.phase in phases:  # the task phase on the timeline, as its index (envs.phases)
             self._scalars("scalars/phase", float(phases.index(record.phase)),
                           ["phase: " + ", ".join(f"{i} {name}" for i, name in enumerate(phases))])
+        for row in (getattr(record, "reliance", None) or {}).get("rows", ()):  # --reliance-every steps only
+            if row.get("reliance_share") is not None:  # null: the camera was not used at this step
+                self._scalars(entity("reliance", row["camera"], row["region"]), float(row["reliance_share"]),
+                              [f"{row['region']} reliance share"])
         for name, values in (metrics or {}).items():
             self._measure(name, np.asarray(values, np.float32), metrics)
         self._buffered_steps += 1

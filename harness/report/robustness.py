@@ -14,11 +14,13 @@ import math
 import numpy as np
 
 from harness.analysis import robustness as R
+from harness.analysis.reliance import add_reliance
 from harness.report import html as H
 
 EPISODE_COLUMNS = ("run", "task", "condition", "level", "seed", "episode", "status", "success", "nuisance_mass",
                    "distractor_mass", "background_mass", "target_lift", "nuisance_start", "nuisance_content",
-                   "target_lift_content", "nuisance_start_content")
+                   "target_lift_content", "nuisance_start_content", "nuisance_reliance", "background_reliance",
+                   "distractor_reliance", "nuisance_reliance_start")
 
 
 def analyse(records, margin: float = R.MARGIN):
@@ -28,6 +30,8 @@ def analyse(records, margin: float = R.MARGIN):
     if not R.is_perturbed(records):
         return None
     rows, shifts, notes = R.collect(records)
+    rows, reliance_notes = add_reliance(rows, records)  # nuisance reliance beside nuisance mass (--reliance-every)
+    notes = notes + reliance_notes
     return rows, shifts, notes, R.success_rows(rows), R.association_rows(rows), R.paired_rows(rows, margin=margin)
 
 
@@ -39,7 +43,8 @@ def tables(records, analysis=None) -> dict[str, list]:
     rows, shifts, _, success, association, paired = analysis
     episodes = [(r.run, r.task, r.condition, r.level, r.seed, r.episode, r.status, r.success, r.nuisance_mass,
                  r.distractor_mass, r.background_mass, r.target_lift, r.nuisance_start, r.nuisance_content,
-                 r.target_lift_content, r.nuisance_start_content) for r in rows]
+                 r.target_lift_content, r.nuisance_start_content, r.nuisance_reliance, r.background_reliance,
+                 r.distractor_reliance, r.nuisance_reliance_start) for r in rows]
     return {"robustness.csv": (R.SUCCESS_COLUMNS, success), "robustness_episodes.csv": (EPISODE_COLUMNS, episodes),
             "robustness_shift.csv": (R.SHIFT_COLUMNS, shifts),
             "robustness_association.csv": (R.ASSOCIATION_COLUMNS, association),

@@ -6,6 +6,7 @@ the page's contents. `SECTIONS` is the order on the page; `harness.report.build`
 it, so a new section is one class here (and its module: tables, figures, HTML).
 
   Faithfulness  tables/faithfulness*.csv, interventions.csv   harness/report/faithfulness.py
+  Reliance      tables/reliance.csv (--reliance-every runs)   harness/report/reliance.py
   Phases        tables/phase_*.csv                             harness/report/phases.py
   Position      tables/position_*.csv                          harness/report/position.py
   Robustness    tables/robustness*.csv (perturbed runs)        harness/report/robustness.py
@@ -16,7 +17,7 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
-from harness.report import faithfulness, grounding, phases, position, robustness
+from harness.report import faithfulness, grounding, phases, position, reliance, robustness
 from harness.report.rundata import RunData
 from harness.report.rundata import csv_bytes as _csv
 
@@ -54,6 +55,19 @@ class Faithfulness:
 
     def section(self, runs, figures, summary):
         return faithfulness.section(runs, figures)
+
+
+class Reliance:
+    name, anchor = "Reliance", "reliance"  # runs with reliance.jsonl (--reliance-every)
+
+    def summarise(self, runs, options):
+        return reliance.summarise(runs, options.resamples, options.seed)
+
+    def tables(self, runs, summary):
+        return reliance.tables(summary)
+
+    def section(self, runs, figures, summary):
+        return reliance.section(summary, figures)
 
 
 class Phases:
@@ -108,4 +122,4 @@ class Grounding:
         return grounding.section(_records(runs))
 
 
-SECTIONS: tuple[ReportSection, ...] = (Faithfulness(), Phases(), Position(), Robustness(), Grounding())
+SECTIONS: tuple[ReportSection, ...] = (Faithfulness(), Reliance(), Phases(), Position(), Robustness(), Grounding())
