@@ -110,12 +110,15 @@ ROBOSUITE_IMPORT_NOISE = ("private macro file", "setup_macros.py", "import robos
 
 
 class _DropImportNoise:
-    """A logging filter dropping records whose message holds one of `fragments`."""
+    """A logging filter dropping records whose message holds one of `fragments`, unless OCTO_HARNESS_VERBOSE=1 when
+    the record is logged (the command line may import envs, and so install this, before it reads --verbose)."""
 
     def __init__(self, fragments: tuple[str, ...]):
         self.fragments = fragments
 
     def filter(self, record) -> bool:
+        if os.environ.get("OCTO_HARNESS_VERBOSE", "") not in ("", "0"):
+            return True
         message = record.getMessage()
         return not any(fragment in message for fragment in self.fragments)
 
@@ -127,8 +130,7 @@ def quiet_robosuite_import() -> None:
     import logging
 
     logger = logging.getLogger("robosuite_logs")
-    if os.environ.get("OCTO_HARNESS_VERBOSE", "") in ("", "0") \
-            and not any(isinstance(f, _DropImportNoise) for f in logger.filters):
+    if not any(isinstance(f, _DropImportNoise) for f in logger.filters):
         logger.addFilter(_DropImportNoise(ROBOSUITE_IMPORT_NOISE))
     logger.propagate = False
 
