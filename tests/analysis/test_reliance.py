@@ -197,8 +197,7 @@ def test_the_policy_hook_is_off_by_default_and_sends_masks_only_at_its_steps():
 @pytest.mark.slow
 def test_one_real_lift_step_of_the_tiny_model(fixtures_dir):
     """Real masks of a Lift step (128 px renders, resized to the model's 64 and 32 px), the tiny model through the
-    closed loop's hook: every labelled region reported per camera, bit-identical twice, the one batched call equal to
-    one call per variant within float32 tolerance."""
+    closed loop's hook: every labelled region reported per camera, bit-identical twice and outside the loop."""
     import envs
     from harness.octo import load_pretrained
     from harness.policy import OctoPolicy
@@ -232,14 +231,10 @@ def test_one_real_lift_step_of_the_tiny_model(fixtures_dir):
         shares = [r["reliance_share"] for r in camera.values() if r["reliance_share"] is not None]
         assert len(shares) == len(camera) and sum(shares) == pytest.approx(1.0)
         assert camera["background"]["camera_change"] > 0
-    # the batched call against one call per variant (another compiled batch shape: float32 tolerance)
+    # the batched call of the closed loop again, outside it: the same rows (one call per variant is checked with
+    # stand-in policies above; a second compiled batch shape of the real model costs a cold compile in CI)
     policy.reset(info["instruction"], seed=0)
     request = policy._state.observe(obs, info["masks"])
     inference = policy._infer
     observations, tasks, keys = inference._inputs([request])
-    batched = inference.reliance(observations, tasks, keys[0], 0, 0, request.masks)["rows"]
-    single = inference.reliance(observations, tasks, keys[0], 0, 0, request.masks, per_call=1)["rows"]
-    assert batched == rows
-    np.testing.assert_allclose([r["change"] for r in single], [r["change"] for r in batched], rtol=1e-3, atol=1e-5)
-    np.testing.assert_allclose([r["camera_change"] for r in single], [r["camera_change"] for r in batched],
-                               rtol=1e-3, atol=1e-5)
+    assert inference.reliance(observations, tasks, keys[0], 0, 0, request.masks)["rows"] == rows

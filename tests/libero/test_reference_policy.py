@@ -450,13 +450,14 @@ def test_a_dagger_round_trains_stage_1_collects_once_then_fine_tunes_on_demonstr
         base = {**d[task], "weight": d[task].get("weight", np.ones(len(d[task]["action"])))}
         return {task: {k: np.concatenate([base[k], extra[k]]) for k in base}}
 
-    two = dagger_rounds(demos, config, tmp_path / "data2", tmp_path / "out3", rounds=2, collect=collect_round,
+    two = dagger_rounds(demos, config, tmp_path / "data", tmp_path / "out3", rounds=2, collect=collect_round,
                         existing=lambda model, out, r: None, append=append_weighted, steps=2, learning_rate=1e-4,
                         what="test", train_kwargs=kwargs)
-    assert acted == [(1, tmp_path / "data2" / "stage1", "dagger"), (2, tmp_path / "data2" / "round1", "dagger2")]
-    assert (tmp_path / "data2" / "round1" / "2" / "default" / "checkpoint").is_file()
+    # stage 1 reused from above; round 1's checkpoint acts in round 2
+    assert acted == [(1, tmp_path / "data" / "stage1", "dagger"), (2, tmp_path / "data" / "round1", "dagger2")]
+    assert (tmp_path / "data" / "round1" / "2" / "default" / "checkpoint").is_file()
     assert two["frames"] == 16 and two["config"]["seed"] == config.seed + 2
-    assert two["config"]["init_from"] == str(tmp_path / "data2" / "round1") and len(two["rounds"]) == 2
+    assert two["config"]["init_from"] == str(tmp_path / "data" / "round1") and len(two["rounds"]) == 2
 
 
 # ------------------------------------------------------------------------------------------------ the committed policy
