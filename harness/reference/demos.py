@@ -164,20 +164,22 @@ def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, fil
         for j, count in enumerate(counts):
             if count:  # fewer episodes than jobs: the empty jobs are none
                 jobs.append((task, config.task_seed_base(task) + j * seeds_per_job, int(count), config))
-    part_of = {id(args): parts_dir / f"{file_of(args[0])[:-4]}_{args[1]}.npz" for args in jobs}
+    def part_of(args) -> Path:  # the file of a job (task, first seed, ...)
+        return parts_dir / f"{file_of(args[0])[:-4]}_{args[1]}.npz"
+
     start = time.perf_counter()
-    pending = [args for args in jobs if _load_part(part_of[id(args)], fingerprint, args[2]) is None]
+    pending = [args for args in jobs if not _saved_part(part_of(args), fingerprint, args[2])]
     if len(pending) < len(jobs):
         log.info("reusing %d of %d recording jobs in %s", len(jobs) - len(pending), len(jobs), parts_dir)
     for args, (recorded, seeds, dropped) in zip(pending, run_jobs(job, pending, workers)):
-        lengths = save_episodes(part_of[id(args)], recorded, seeds,
+        lengths = save_episodes(part_of(args), recorded, seeds,
                                 {"dropped": np.array(dropped, np.int64),
                                  "fingerprint": np.array(json.dumps(fingerprint, sort_keys=True))})
         log.info("%s seeds %d..: %d episodes (%d steps), %d dropped", args[0], args[1], len(recorded),
                  int(lengths.sum()), dropped)
     summary = {}
     for task in episodes:
-        parts = [_load_part(part_of[id(args)], fingerprint, args[2]) for args in jobs if args[0] == task]
+        parts = [_load_part(part_of(args)) for args in jobs if args[0] == task]
         recorded = [e for p in parts for e in p[0]]
         seeds = [s for p in parts for s in p[1]]
         lengths = save_episodes(out_dir / file_of(task), recorded, seeds)
@@ -190,16 +192,20 @@ def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, fil
     return summary
 
 
-def _load_part(path: Path, fingerprint: dict, count: int) -> tuple[list[dict], list[int], int] | None:
-    """A saved recording job (episodes, seeds, dropped) when `path` holds `count` episodes recorded with this
-    configuration `fingerprint`, else None (missing, unreadable, or of another configuration: recorded again)."""
+def _saved_part(path: Path, fingerprint: dict, count: int) -> bool:
+    """Whether `path` holds a recording job of `count` episodes made with this configuration `fingerprint` (reads
+    only those two small members; a missing, unreadable or foreign file is not one: recorded again)."""
     try:
         with np.load(path) as data:
-            if json.loads(str(data["fingerprint"])) != fingerprint or len(data["lengths"]) != count:
-                return None
-            arrays = {k: data[k] for k in data.files}
+            return json.loads(str(data["fingerprint"])) == fingerprint and len(data["lengths"]) == count
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-        return None
+        return False
+
+
+def _load_part(path: Path) -> tuple[list[dict], list[int], int]:
+    """A saved recording job (episodes, seeds, dropped), checked by _saved_part."""
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
     keys = [k for k in arrays if k not in ("episode", "step", "seeds", "lengths", "dropped", "fingerprint")]
     bounds = np.concatenate([[0], np.cumsum(arrays["lengths"])])
     episodes = [{k: arrays[k][a:b] for k in keys} for a, b in zip(bounds[:-1], bounds[1:])]
