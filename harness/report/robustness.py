@@ -203,7 +203,7 @@ VERDICT_NOTE = ("Verdicts per perturbed cell (paired with the nominal seeds): BR
                 "drop's upper bound.")
 
 
-def markdown(records, note: str = "", margin: float = R.MARGIN) -> str:
+def markdown(records, note: str = "", margin: float = R.MARGIN, section: str = SECTION) -> str:
     """The Robustness section as Markdown (EVAL.md): per task a sentence and a table of success against level per
     condition with each cell's verdict, target lift and nuisance mass; the association line per task."""
     analysis = analyse(records, margin)
@@ -212,7 +212,7 @@ def markdown(records, note: str = "", margin: float = R.MARGIN) -> str:
     rows, _, notes, success, association, paired = analysis
     drops = {(p[0], p[3]): p for p in paired}
     predictors = P.predictor_rows(rows)
-    lines = [SECTION, "", note, ""] if note else [SECTION, ""]
+    lines = [section, "", note, ""] if note else [section, ""]
     lines += [VERDICT_NOTE.format(margin=round(100 * margin)), "", map_note(records), ""]
     lines += [f"- {n}" for n in notes]
     content = R.has_content(rows)
@@ -239,11 +239,15 @@ def main(argv=None) -> int:
 
     parser = argparse.ArgumentParser(add_help=False)
     parser.add_argument("--margin", type=float, default=R.MARGIN)
+    parser.add_argument("--section", default=SECTION[3:])
     known, rest = parser.parse_known_args(argv)
+    section = f"## {known.section}"
+    options = (("--margin", f"{known.margin:g}") if known.margin != R.MARGIN else ()) + \
+        (("--section", known.section) if section != SECTION else ())
     return eval_md_section_main(rest, "python -m harness.report.robustness", "Write the Robustness section of an EVAL.md "
-                                "from grid runs (--margin M: the drop a HOLDS verdict rules out [0.15]).", SECTION,
-                                functools.partial(markdown, margin=known.margin),
-                                options=("--margin", f"{known.margin:g}") if known.margin != R.MARGIN else ())
+                                "from grid runs (--margin M: the drop a HOLDS verdict rules out [0.15]; --section "
+                                "TITLE: the section's heading, for a second grid [Robustness]).", section,
+                                functools.partial(markdown, margin=known.margin, section=section), options=options)
 
 
 if __name__ == "__main__":
