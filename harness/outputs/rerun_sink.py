@@ -6,8 +6,8 @@ only recordings of its own minor version, so the version is pinned and checked.
 
 `RerunSink(meta, options, save=PATH, connect=URL)` receives `StepRecord`s with their token map and metrics and logs
 them with Rerun's own APIs: compressed images (JPEG, with the encoder `rr.Image(...).compress()` uses; the target mask
-as a transparent PNG), tensors, scalars (`rr.Scalars`, sent as columns with `rr.send_columns` at the end of a saved
-episode), text documents, and a default blueprint (`rerun.blueprint`) that lays out the first view. `save`: the
+and the reliance map as transparent PNGs), tensors, scalars (`rr.Scalars`, sent as columns with `rr.send_columns` at
+the end of a saved episode), text documents, and a default blueprint (`rerun.blueprint`) that lays out the first view. `save`: the
 recording goes to `<name>.tmp.<pid>.rrd` and is moved onto `PATH` by `finish()` (never half-written under its final
 name; `abort()` deletes it). `connect`: streamed to a live viewer's gRPC address (harness.outputs.rerun_viewer: a
 local native viewer, `spawn`, or a web viewer served for a headless machine, `serve`). Both at once log every step to
