@@ -3,8 +3,8 @@ and rows has the expected value on every pixel; the recording sink logs it at re
 gets an empty layer, a camera without masks none) with the values reliance.jsonl stores; reliance.jsonl is read back
 by step for `view`, refusing a row of the wrong types; and a real short run (tiny fixture model, Lift, 3 steps,
 --reliance-every 2, masks on, --rerun save) holds the layer at steps 0 and 2, tied to its reliance.jsonl, and
-`view`'s rebuild from the run's files gives the same entities, layers and reliance scalars, read back with Rerun's
-own loader."""
+`view`'s rebuild from the run's files gives the same entities, layers and reliance scalars (without re-simulation:
+the scalars, no layer), read back with Rerun's own loader."""
 
 from __future__ import annotations
 
@@ -200,3 +200,7 @@ def test_a_run_holds_the_layer_at_reliance_steps_and_view_rebuilds_it(fixtures_d
         tuple(e.split("/")[2:]) for e in scalars}
     for entity in scalars:
         assert _scalars(rebuilt, entity) == _scalars(live, entity), entity
+    # without the re-simulation there are no masks to draw the map on: the reliance scalars only
+    build_recording(copy, save=tmp_path / "maps.rrd", simulate=False)
+    entities = _entities(tmp_path / "maps.rrd")
+    assert set(scalars) <= entities and not layers & entities
