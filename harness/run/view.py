@@ -3,6 +3,7 @@
 A run made with `--rerun save` holds `episode.rrd` already: it is opened (or copied with `--save`). Otherwise the
 recording is rebuilt through the run folder readers (harness.analysis.runs): attention, token map and measures from
 attention.npz, actions, rewards, success and new-chunk steps from actions.npz, attribution maps from attribution.npz,
+region reliance from reliance.jsonl (the map layer needs the re-simulated masks),
 each step fed to the same sink a live run uses (harness.outputs.rerun_sink), so the values equal those of a
 `--rerun save` recording of the same protocol.
 
@@ -25,6 +26,7 @@ import numpy as np
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
 from harness.files import write_atomic
 from harness.octo.tokens import TokenMap
+from harness.outputs.rerun_reliance import rows_by_step
 from harness.outputs.rerun_sink import RRD_NAME, RerunSink, SinkOptions, import_rerun
 from harness.records import EpisodeMeta, StepRecord
 from harness.run.protocol import protocol_from_manifest
@@ -177,6 +179,7 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
     steps = attn.shape[0]
     metric_names = [k[len("metrics/"):] for k in attention if k.startswith("metrics/")]
     attribution = _attribution_by_step(ep)
+    reliance = rows_by_step(ep.directory)  # reliance.jsonl: the scalars, and the map layer over re-simulated frames
     meta = episode_meta(run, ep)
     protocol = run.manifest.get("protocol") or {}
     outputs = protocol.get("outputs") or {}
@@ -215,7 +218,8 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
                 action_executed=actions["executed"][i], reward=float(actions["reward"][i]),
                 success=bool(actions["success"][i]), masks=again.masks if again is not None else None,
                 inferred=bool(inferred[i]), attribution=attribution.get(step),
-                policy_inputs=again.policy_inputs if again is not None else None, phase=phase)
+                policy_inputs=again.policy_inputs if again is not None else None, phase=phase,
+                reliance=reliance.get(step))
             metrics = {name: attention[f"metrics/{name}"][i] for name in metric_names}
             sink.log_step(record, tokens, {k: v for k, v in metrics.items() if np.all(np.isfinite(v))})
         summary = ep.read_json()
