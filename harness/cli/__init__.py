@@ -62,16 +62,18 @@ def _origin(exc: BaseException) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    from harness import console
+    from harness import console, interrupts
 
-    console.configure(args.verbose)
-    from harness import interrupts
-
+    # the handler goes in before anything is parsed: building the parser imports the simulators, and a Ctrl-C there
+    # would meet Python's default handler, whose KeyboardInterrupt an importer may swallow (the command then went on
+    # to exit 0) or turn into a traceback with exit 1
     interrupts.reset()
     main_thread = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
     try:
+        args = build_parser().parse_args(argv)
+        console.configure(args.verbose)
+        interrupts.check()  # a signal while parsing whose KeyboardInterrupt was swallowed
         code = _dispatch(args)
         interrupts.check()  # a signal whose KeyboardInterrupt a finaliser swallowed: still 128 + signum
         return code
