@@ -49,6 +49,7 @@ from envs.camera import image_pixels
 from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvConfigError, to_convention
 from envs.render import CameraSpec, SceneRenderer
 from envs import perturbations as perturb
+from envs.scene_edits import DISTRACTOR_PREFIX, class_with_distractors
 from envs.phases import PHASE_SPECS, PhaseState, phase_of
 from envs.segmentation import TARGET, geom_categories, labelled_masks, scene_labels, scene_lookup
 from envs.taskspec import TaskSpec
@@ -250,7 +251,7 @@ class RobosuiteEnv(gym.Env):
         if distractors:
             from robosuite.environments.base import REGISTERED_ENVS
 
-            env = perturb.class_with_distractors(REGISTERED_ENVS[task.robosuite_env], distractors)(**options)
+            env = class_with_distractors(REGISTERED_ENVS[task.robosuite_env], distractors)(**options)
         else:
             env = robosuite.make(task.robosuite_env, **options)
         return env, options["controller_configs"]["body_parts"]["right"]  # the user's controller if one was passed
@@ -274,7 +275,7 @@ class RobosuiteEnv(gym.Env):
         self._geom_label = scene_labels(
             self._geom_category, model.geom_bodyid, body_names, model.body_parentid,
             tuple(f"{name}_" for name in objects if not f"{name}_".startswith(task.targets)),
-            tuple(f"{perturb.DISTRACTOR_PREFIX}{i}_" for i in range(self._distractor_count)))
+            tuple(f"{DISTRACTOR_PREFIX}{i}_" for i in range(self._distractor_count)))
 
     # ---------------------------------------------------------------- gymnasium API
 
@@ -367,7 +368,7 @@ class RobosuiteEnv(gym.Env):
         """(k, 2) plane positions distractors keep clear of: the targets, every task object and placement goal."""
         points = [self.target_centres()[:, :2]]
         points += [pose[0][None, :2] for name, pose in self.object_poses().items()
-                   if not name.startswith(perturb.DISTRACTOR_PREFIX)]
+                   if not name.startswith(DISTRACTOR_PREFIX)]
         points += [goal[None, :2] for goal in self.placement_targets().values()]
         return np.concatenate(points, axis=0)
 
