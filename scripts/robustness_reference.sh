@@ -10,6 +10,9 @@
 # the reduced grid in EVAL.md was: bash scripts/robustness_reference.sh Lift <every kind> 0,3,5 5
 # (run first with camera,lighting,distractors, then extended with the other kinds: a grid folder grows)
 # Resumable: re-running the same command finishes what a killed grid left.
+# RELIANCE=N adds --reliance-every N to every run (issue 45) and writes EVAL.md's "## Reliance" section from the
+# nominal run; SECTION=TITLE writes the grid's table under "## TITLE" instead of "## Robustness" (a second grid, as
+# scripts/wrist_reliance_reference.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 TASKS="${1:-Lift,Stack,PickPlaceCan}"
@@ -18,6 +21,8 @@ LEVELS="${3:-0,1,3,5}"
 EPISODES="${4:-20}"
 OUT="${5:-results/robustness-reference}"
 WORKERS="${6:-}"
+RELIANCE="${RELIANCE:-}"
+SECTION="${SECTION:-Robustness}"
 CPU="$(lscpu 2>/dev/null | sed -n 's/^Model name: *//p' | head -1)"
 NOTE="${NOTE:-Measured on ${CPU:-an unnamed CPU}, $(nproc) cores, CPU only.}"
 MODEL=models/octo-reference-robosuite
@@ -25,15 +30,31 @@ export HF_HUB_OFFLINE=1 MUJOCO_GL="${MUJOCO_GL:-egl}"
 PY="${PYTHON:-.venv/bin/python}"
 workers=()
 [ -n "$WORKERS" ] && workers=(--workers "$WORKERS")
+measures=()
+RELIANCE_FLAG=""
+RELIANCE_NOTE=""
+if [ -n "$RELIANCE" ]; then
+  measures=(--reliance-every "$RELIANCE")
+  RELIANCE_FLAG=" --reliance-every $RELIANCE"
+  RELIANCE_NOTE=" Nuisance reliance: the primary camera's background and distractor share of the reliance at every step a multiple of $RELIANCE (docs/faithfulness.md)."
+fi
+SCRIPT="bash scripts/robustness_reference.sh $TASKS $KINDS $LEVELS $EPISODES"
+[ "$SECTION" != Robustness ] && SCRIPT="SECTION=\"$SECTION\" $SCRIPT $OUT"
+[ -n "$RELIANCE" ] && SCRIPT="RELIANCE=$RELIANCE $SCRIPT"
 "$PY" -m harness.cli robustness --model "$MODEL" --task "$TASKS" --perturb "$KINDS" --levels "$LEVELS" \
-    --episodes "$EPISODES" --seed 0 --fast-render --png-every 0 --no-video --out "$OUT" "${workers[@]}"
+    --episodes "$EPISODES" --seed 0 --fast-render --png-every 0 --no-video --out "$OUT" "${workers[@]}" \
+    "${measures[@]}"
 runs=()
 for d in "$OUT"/*/; do [ -f "$d/manifest.json" ] && runs+=("$d"); done
 "$PY" -m harness.cli report "${runs[@]}" --out "$OUT/report"
-# EVAL.md's "## Robustness" section (other sections stay)
-"$PY" -m harness.report.robustness "${runs[@]}" --eval-md "$MODEL/EVAL.md" \
-    --command "bash scripts/robustness_reference.sh $TASKS $KINDS $LEVELS $EPISODES" --note \
-    "Made by \`bash scripts/robustness_reference.sh $TASKS $KINDS $LEVELS $EPISODES\`: \`octo-harness robustness --model $MODEL --task $TASKS --perturb $KINDS --levels $LEVELS --episodes $EPISODES --seed 0 --fast-render --png-every 0 --no-video\` (held-out seeds 0..$((EPISODES - 1)), each task at its own step limit, masks on; kinds and levels: docs/perturbations.md). Target lift and nuisance mass: primary camera, last layer, mean over each episode's steps. $NOTE"
+# EVAL.md's "## Robustness" section (other sections stay), or "## $SECTION"
+"$PY" -m harness.report.robustness "${runs[@]}" --eval-md "$MODEL/EVAL.md" --section "$SECTION" --command "$SCRIPT" \
+    --note "Made by \`$SCRIPT\`: \`octo-harness robustness --model $MODEL --task $TASKS --perturb $KINDS --levels $LEVELS --episodes $EPISODES --seed 0 --fast-render --png-every 0 --no-video$RELIANCE_FLAG\` (held-out seeds 0..$((EPISODES - 1)), each task at its own step limit, masks on; kinds and levels: docs/perturbations.md). Target lift and nuisance mass: primary camera, last layer, mean over each episode's steps.$RELIANCE_NOTE $NOTE"
+# with reliance: EVAL.md's "## Reliance" section from the nominal run (attention share beside reliance share)
+if [ -n "$RELIANCE" ] && [ -f "$OUT/nominal/manifest.json" ]; then
+  "$PY" -m harness.report.reliance "$OUT/nominal" --eval-md "$MODEL/EVAL.md" --command "$SCRIPT" --note \
+      "Made by \`$SCRIPT\` from its nominal run ($OUT/nominal: held-out seeds 0..$((EPISODES - 1)), --reliance-every $RELIANCE, --reliance-fill impute). $NOTE"
+fi
 # the figures docs/perturbations.md shows (only for the default grid folder, whose numbers the docs quote)
 if [ "$OUT" = results/robustness-reference ]; then
     for png in "$OUT"/report/plots/robustness_*.png; do

@@ -188,6 +188,7 @@ def command_text(prog: str, runs, rest: list[str]) -> str:
     """The command that makes a section, for its provenance line: `prog RUN... rest`, the runs named by their common
     folder and count when there are more than 3."""
     import os
+    import shlex
 
     runs = [str(r) for r in runs]
     if len(runs) > 3:
@@ -195,7 +196,7 @@ def command_text(prog: str, runs, rest: list[str]) -> str:
         named = f"{os.path.relpath(parent)}/<{len(runs)} runs>"
     else:
         named = " ".join(runs)
-    return " ".join([prog, named, *rest])
+    return " ".join([prog, named, shlex.join(rest)] if rest else [prog, named])
 
 
 def with_provenance(text: str, line: str) -> str:

@@ -92,6 +92,8 @@ class EpisodeRow:
         """(episode mean, first START_STEPS steps) of the nuisance mass on the raw or content-only map."""
         if map_ == "content":
             return self.nuisance_content, self.nuisance_start_content
+        if map_ == "reliance":  # not an attention map: the share of the action's dependence (--reliance-every)
+            return self.nuisance_reliance, self.nuisance_reliance_start
         return self.nuisance_mass, self.nuisance_start
 
 
@@ -349,10 +351,16 @@ def has_content(rows: list[EpisodeRow]) -> bool:
     return any(math.isfinite(r.nuisance_content) for r in rows)
 
 
+def has_reliance(rows: list[EpisodeRow]) -> bool:
+    """Whether any episode has nuisance reliance (a run with --reliance-every)."""
+    return any(math.isfinite(r.nuisance_reliance) for r in rows)
+
+
 def association_rows(rows: list[EpisodeRow], maps: tuple[str, ...] | None = None) -> list[tuple]:
-    """Per task and map (ASSOCIATION_COLUMNS): the association of nuisance mass with success on the raw maps and,
-    when `maps` holds "content" (default: when any episode has content-only measures), on the content-only maps."""
-    maps = maps or (MAPS if has_content(rows) else ("raw",))
+    """Per task and measure (ASSOCIATION_COLUMNS, `map`): the association of nuisance mass with success on the raw
+    maps and, when `maps` holds "content" (default: when any episode has content-only measures), on the content-only
+    maps; "reliance" (default: when any episode has it): the same for nuisance reliance."""
+    maps = maps or ((MAPS if has_content(rows) else ("raw",)) + (("reliance",) if has_reliance(rows) else ()))
     out = []
     for task in dict.fromkeys(r.task for r in rows):
         ok = [r for r in rows if r.task == task and r.status == "ok"]
@@ -433,12 +441,12 @@ def _interval(low: float, high: float) -> str:
     return f" (seed-cluster 95% [{low:+.2f}, {high:+.2f}])" if math.isfinite(low) and math.isfinite(high) else ""
 
 
-def _verdict(low: float, high: float) -> str:
+def _verdict(low: float, high: float, what: str = "nuisance attention") -> str:
     if not (math.isfinite(low) and math.isfinite(high)):
         return f"too few seeds, successes or failures (< {MIN_CLASS}) for an interval"
-    return ("more nuisance attention goes with failure" if high < 0 else
-            "more nuisance attention goes with success" if low > 0 else
-            f"nuisance attention does not predict success here (the interval holds 0; {detectable_r(low, high)})")
+    return (f"more {what} goes with failure" if high < 0 else
+            f"more {what} goes with success" if low > 0 else
+            f"{what} does not predict success here (the interval holds 0; {detectable_r(low, high)})")
 
 
 def detectable_r(low: float, high: float) -> str:
@@ -447,16 +455,17 @@ def detectable_r(low: float, high: float) -> str:
     return f"the smallest |r| it could tell from 0 at this n is about {(high - low) / 2:.2f}"
 
 
-def _association_parts(a: tuple, prefix: str) -> list[str]:
+def _association_parts(a: tuple, prefix: str, measure: str = "nuisance mass",
+                       what: str = "nuisance attention") -> list[str]:
     """The association clauses of one ASSOCIATION_COLUMNS row: over episodes, within conditions, at the start."""
-    parts = [f"{prefix}point-biserial r of nuisance mass and success {a[2]:+.2f} over {a[1]} episodes of {a[9]} seeds"
-             f"{_interval(a[5], a[6])}: {_verdict(a[5], a[6])}"]
+    parts = [f"{prefix}point-biserial r of {measure} and success {a[2]:+.2f} over {a[1]} episodes of {a[9]} seeds"
+             f"{_interval(a[5], a[6])}: {_verdict(a[5], a[6], what)}"]
     if math.isfinite(a[13]):
         parts.append(f"within conditions (centred per run), r {a[13]:+.2f}{_interval(a[14], a[15])}: "
-                     f"{_verdict(a[14], a[15])}")
+                     f"{_verdict(a[14], a[15], what)}")
     if math.isfinite(a[10]):
         parts.append(f"over the first {START_STEPS} steps only, r {a[10]:+.2f}{_interval(a[11], a[12])}: "
-                     f"{_verdict(a[11], a[12])}")
+                     f"{_verdict(a[11], a[12], what)}")
     return parts
 
 
@@ -491,4 +500,10 @@ def sentence(task: str, success: list[tuple], association: list[tuple], paired: 
     elif content:
         parts.append("on the content-only maps: too few episodes with controls or no variation to estimate an "
                      "association")
+    reliance = [a for a in association if a[0] == task and len(a) > 16 and a[16] == "reliance"]
+    if reliance and math.isfinite(reliance[0][2]):
+        parts += _association_parts(reliance[0], "nuisance reliance (--reliance-every steps): ", "nuisance reliance",
+                                    "nuisance reliance")
+    elif reliance:
+        parts.append("nuisance reliance: too few episodes with reliance or no variation to estimate an association")
     return "; ".join(parts) + "."

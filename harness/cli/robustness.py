@@ -13,6 +13,8 @@ from harness.options import add_arguments
 SHARED = ("model", "task", "perturb")  # run's options the grid requires
 SETTINGS = ("episodes", "seed", "max_steps")  # run's options each run of the grid takes
 OUTPUTS = ("fast_render", "png_every", "no_video")
+# the per-step measures each run of the grid may add (they never change actions): position controls, region reliance
+MEASURES = ("attention_controls", "controls_every", "reliance_every", "reliance_fill")
 DIFFERS = {"model": {"required": True}, "task": {"required": True},
            "perturb": {"required": True, "metavar": "KINDS"},  # kinds only: the grid sets the levels
            "episodes": {"default": 20},
@@ -33,24 +35,31 @@ def add_parser(sub) -> None:
     rob.add_argument("--out", type=Path, default=Path("results/robustness"), help="grid folder [results/robustness]")
     rob.add_argument("--protocol", type=Path, default=None, help="TOML protocol file for every other run setting")
     add_arguments(rob, classes, "robustness", only=OUTPUTS, overrides=DIFFERS)
+    add_arguments(rob, classes, "robustness", only=MEASURES, overrides=DIFFERS)
     rob.add_argument("--overwrite", action="store_true", help="start every run of the grid afresh")
     add_execution_args(rob)
     rob.set_defaults(func=main)
 
 
-def main(args) -> int:
-    from harness.cli.common import execution
-    from harness.run.robustness import parse_kinds, parse_levels, run_grid
+def grid_protocol(args):
+    """The protocol every run of the grid shares (before each run's perturbation): the protocol file, then the flags."""
     from harness.run.settings import build_protocol, read_protocol_file
 
-    conditions, levels = parse_kinds(args.perturb), parse_levels(args.levels)
-    factory = execution(args)
-    given = {key: getattr(args, key) for key in ("model", "task", *SETTINGS, *OUTPUTS)}
+    given = {key: getattr(args, key) for key in ("model", "task", *SETTINGS, *OUTPUTS, *MEASURES)}
     settings = {**(read_protocol_file(args.protocol) if args.protocol else {}),
                 **{k: v for k, v in given.items() if v is not None}}
     if settings.get("perturb"):
         raise ValueError("the grid sets each run's perturbation; drop perturb from the protocol file")
-    summaries = run_grid(build_protocol(settings), conditions, levels, args.out, executor=factory,
+    return build_protocol(settings)
+
+
+def main(args) -> int:
+    from harness.cli.common import execution
+    from harness.run.robustness import parse_kinds, parse_levels, run_grid
+
+    conditions, levels = parse_kinds(args.perturb), parse_levels(args.levels)
+    factory = execution(args)
+    summaries = run_grid(grid_protocol(args), conditions, levels, args.out, executor=factory,
                          overwrite=args.overwrite)
     for name, summary in summaries.items():
         s = summary.statistics["overall"]

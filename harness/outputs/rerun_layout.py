@@ -5,6 +5,9 @@ harness.outputs.rerun_sink.RerunSink):
 
   camera/<obs key>                     the frame the model saw (JPEG), upright
   camera/<obs key>/target              the target object's mask (class 1) over it, logged when it changes
+  camera/<obs key>/reliance            the reliance map over it (--reliance-every; harness.outputs.rerun_reliance):
+                                       each region's reliance per pixel, logged at reliance steps only, so a step
+                                       shows the map of the last reliance step at or before it
   attention/<obs key>/layer_<ll>       that layer's head-mean readout attention drawn over the frame (JPEG; the frame
                                        shrunk by an integer factor to at most 128 px high, `overlay_base`)
   attention/<obs key>/heads            (layer, head, row, col) float32 tensor: every head's map, readouts averaged,
@@ -57,9 +60,10 @@ def mask_png(mask: np.ndarray) -> bytes:
 
 def blueprint(cameras: list[str], layers: int, methods: list[str] = (), intervention: bool = False,
               reliance: bool = False):
-    """The default layout: per camera its frame (with masks) beside the layer tabs of attention overlays (last layer
-    shown); the per-head tensor with sliders over layer and head; the measures (and, with `reliance`, the reliance
-    share per region and camera), actions and rewards on the timeline; the instruction and outcome."""
+    """The default layout: per camera its frame (with masks; with `reliance`, the reliance map) beside the layer tabs
+    of attention overlays (last layer shown); the per-head tensor with sliders over layer and head; the measures (and,
+    with `reliance`, the reliance share per region and camera), actions and rewards on the timeline; the instruction
+    and outcome."""
     import rerun.blueprint as rrb
     from rerun.blueprint.datatypes import TensorDimensionIndexSlider
     from rerun.datatypes import TensorDimensionIndexSelection, TensorDimensionSelection
@@ -83,7 +87,8 @@ def blueprint(cameras: list[str], layers: int, methods: list[str] = (), interven
                 slider=[TensorDimensionIndexSlider(0), TensorDimensionIndexSlider(1)]),
             scalar_mapping=rrb.TensorScalarMapping(colormap="turbo", mag_filter="nearest"),
         )
-        views = [rrb.Spatial2DView(origin=entity("camera", cam), name=cam), layer_tabs, heads]
+        views = [rrb.Spatial2DView(origin=entity("camera", cam), name=f"{cam}, reliance map over it" if reliance else cam),
+                 layer_tabs, heads]
         if extra:
             views.append(rrb.Tabs(*extra, name=f"{cam} attribution"))
         image_rows.append(rrb.Horizontal(*views))

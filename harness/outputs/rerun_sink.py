@@ -6,8 +6,8 @@ only recordings of its own minor version, so the version is pinned and checked.
 
 `RerunSink(meta, options, save=PATH, connect=URL)` receives `StepRecord`s with their token map and metrics and logs
 them with Rerun's own APIs: compressed images (JPEG, with the encoder `rr.Image(...).compress()` uses; the target mask
-as a transparent PNG), tensors, scalars (`rr.Scalars`, sent as columns with `rr.send_columns` at the end of a saved
-episode), text documents, and a default blueprint (`rerun.blueprint`) that lays out the first view. `save`: the
+and the reliance map as transparent PNGs), tensors, scalars (`rr.Scalars`, sent as columns with `rr.send_columns` at
+the end of a saved episode), text documents, and a default blueprint (`rerun.blueprint`) that lays out the first view. `save`: the
 recording goes to `<name>.tmp.<pid>.rrd` and is moved onto `PATH` by `finish()` (never half-written under its final
 name; `abort()` deletes it). `connect`: streamed to a live viewer's gRPC address (harness.outputs.rerun_viewer: a
 local native viewer, `spawn`, or a web viewer served for a headless machine, `serve`). Both at once log every step to
@@ -36,6 +36,7 @@ from harness.files import temp_path
 from harness.octo.tokens import TokenMap
 from harness.outputs.overlays import heatmap_overlays, resize_nearest
 from harness.outputs.rerun_layout import blueprint, entity, mask_png, overlay_base
+from harness.outputs.rerun_reliance import LAYER_DRAW_ORDER, reliance_layers, stored_rows
 from harness.outputs.steps import EpisodeEnd, FinishedStep, Sink
 from harness.records import EpisodeMeta, StepRecord
 
@@ -47,6 +48,7 @@ MODES = ("save", "spawn", "serve")
 JPEG_QUALITY = 90
 TENSOR_DIMS = ["layer", "head", "row", "col"]
 TARGET_DRAW_ORDER = 5.0  # the target mask is drawn above the frame (images default to -10)
+DRAW_ORDER = {"png": TARGET_DRAW_ORDER, "layer": LAYER_DRAW_ORDER}  # PNG layers over a frame: target mask, reliance map
 
 
 class ViewerUnavailableError(ValueError):
@@ -155,12 +157,13 @@ class RerunSink:
 
     def _emit(self, path: str, kind: str, value) -> None:
         """One entity's value at the current step: logged live at once, buffered as a column for the file.
-        kind: "jpeg" / "png" (encoded bytes), "tensor" ((array, dim names)), "scalars" ((n,) float64)."""
+        kind: "jpeg", "png" (the target mask) / "layer" (the reliance map): encoded bytes; "tensor" ((array, dim
+        names)), "scalars" ((n,) float64)."""
         if self.live is not None:
             rr = self.rr
-            if kind in ("jpeg", "png"):
-                archetype = rr.EncodedImage(contents=value, media_type=f"image/{kind}",
-                                            draw_order=TARGET_DRAW_ORDER if kind == "png" else None)
+            if kind in ("jpeg", "png", "layer"):
+                archetype = rr.EncodedImage(contents=value, media_type="image/jpeg" if kind == "jpeg" else "image/png",
+                                            draw_order=DRAW_ORDER.get(kind))
             elif kind == "tensor":
                 archetype = rr.Tensor(value[0], dim_names=value[1])
             else:
@@ -205,10 +208,10 @@ class RerunSink:
             indexes = [rr.TimeColumn("step", sequence=index)]
             if self.control_hz:
                 indexes.append(rr.TimeColumn("sim_time", duration=index / self.control_hz))
-            if kind in ("jpeg", "png"):
-                columns = rr.EncodedImage.columns(blob=values, media_type=[f"image/{kind}"] * len(values),
-                                                  **({"draw_order": [TARGET_DRAW_ORDER] * len(values)}
-                                                     if kind == "png" else {}))
+            if kind in ("jpeg", "png", "layer"):
+                columns = rr.EncodedImage.columns(blob=values, media_type=["image/jpeg" if kind == "jpeg" else "image/png"]
+                                                  * len(values), **({"draw_order": [DRAW_ORDER[kind]] * len(values)}
+                                                                    if kind in DRAW_ORDER else {}))
             else:
                 columns = rr.Scalars.columns(scalars=np.stack(values))
             self.file.send_columns(path, indexes=indexes, columns=columns)
@@ -233,6 +236,9 @@ class RerunSink:
         if self.intervention:
             header.append(f"- intervention: {meta.extra.get('intervention')}")
         header.append("- green over the frames: the target object's mask")
+        if reliance:
+            header.append("- coloured over the frames: the reliance map of the last --reliance-every step at or before "
+                          "the shown one (each region's reliance per pixel; transparent: not relied on)")
         if meta.extra.get("frames_note"):
             header.append(f"- frames: {meta.extra['frames_note']}")
         self._static("episode/instruction", rr.TextDocument("\n".join(header), media_type="text/markdown"))
@@ -305,7 +311,10 @@ class RerunSink:
         if record.phase in phases:  # the task phase on the timeline, as its index (envs.phases)
             self._scalars("scalars/phase", float(phases.index(record.phase)),
                           ["phase: " + ", ".join(f"{i} {name}" for i, name in enumerate(phases))])
-        for row in (getattr(record, "reliance", None) or {}).get("rows", ()):  # --reliance-every steps only
+        reliance = stored_rows(getattr(record, "reliance", None))  # --reliance-every steps only, as reliance.jsonl holds them
+        for cam, layer in reliance_layers(reliance, record.frames, record.masks, opts.cmap).items():
+            self._emit(entity("camera", cam, "reliance"), "layer", layer)  # latest-at keeps it until the next one
+        for row in reliance:
             if row.get("reliance_share") is not None:  # null: the camera was not used at this step
                 self._scalars(entity("reliance", row["camera"], row["region"]), float(row["reliance_share"]),
                               [f"{row['region']} reliance share"])

@@ -237,3 +237,41 @@ def section(summary, figures) -> str:
                             [(r[4], r[5], H.fmt(r[8], 2), H.fmt(r[7], 2), H.fmt(r[6], 3), r[9]) for r in group],
                             numeric=(2, 3, 4, 5)))
     return H.section("Reliance", "".join(str(b) for b in body), anchor="reliance")
+
+
+SECTION = "## Reliance"
+
+
+def markdown(records, note: str = "") -> str:
+    """The Reliance section as Markdown (EVAL.md): per run and task, the disagreement and agreement sentences per
+    camera and a table of attention share beside reliance share per region (the numbers of reliance.csv)."""
+    rows, notes = summarise(records)
+    if not rows:
+        raise ValueError("no run here has reliance.jsonl: give runs made with --reliance-every")
+    lines = [SECTION, "", note, ""] if note else [SECTION, ""]
+    lines += [f"- {n}" for n in notes] + ([""] if notes else [])
+    for key in dict.fromkeys(r[:4] for r in rows):
+        label, task, condition, level = key
+        group = [r for r in rows if r[:4] == key]
+        name = condition if condition == "nominal" else f"{condition} level {level}"
+        lines += [f"### {task}: {name} (run {label})", ""]
+        for camera in dict.fromkeys(r[4] for r in group):
+            cam = [r for r in group if r[4] == camera]
+            lines.append(f"- {disagreement(cam)} {_agreement(cam)}")
+        lines += ["", "| camera | region | attention share | reliance share | reliance per pixel | episodes |",
+                  "|---|---|---:|---:|---:|---:|"]
+        lines += [f"| {r[4]} | {r[5]} | {H.fmt(r[8], 2)} | {H.fmt(r[7], 2)} | {H.fmt(r[6], 3)} | {r[9]} |"
+                  for r in group]
+        lines.append("")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    from harness.report.rundata import eval_md_section_main
+
+    return eval_md_section_main(argv, "python -m harness.report.reliance", "Write the Reliance section of an EVAL.md "
+                                "from runs made with --reliance-every.", SECTION, markdown)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -3,7 +3,9 @@ lift and nuisance mass against level, the step-0 attention shift, and the associ
 
 `analyse(records)` reads every perturbed episode once (None when no run was perturbed); the report passes its result to
 `tables(records, analysis)` -> {"robustness.csv", "robustness_episodes.csv", "robustness_shift.csv", "robustness_association.csv",
-"robustness_paired.csv"} (the paired test of each perturbed cell against the nominal seeds: which cells break a task);
+"robustness_paired.csv"} (the paired test of each perturbed cell against the nominal seeds: which cells break a task),
+and with --reliance-every runs "robustness_predictors.csv" (harness.analysis.predictors: which of nuisance reliance
+and nuisance attention goes with failure more strongly, within conditions);
 `section(records, plots, analysis)` -> HTML ("" when no run was perturbed). Every number on the page is in those CSVs.
 """
 
@@ -13,6 +15,7 @@ import math
 
 import numpy as np
 
+from harness.analysis import predictors as P
 from harness.analysis import robustness as R
 from harness.analysis.reliance import add_reliance
 from harness.report import html as H
@@ -48,7 +51,9 @@ def tables(records, analysis=None) -> dict[str, list]:
     return {"robustness.csv": (R.SUCCESS_COLUMNS, success), "robustness_episodes.csv": (EPISODE_COLUMNS, episodes),
             "robustness_shift.csv": (R.SHIFT_COLUMNS, shifts),
             "robustness_association.csv": (R.ASSOCIATION_COLUMNS, association),
-            "robustness_paired.csv": (R.PAIRED_COLUMNS, paired)}
+            "robustness_paired.csv": (R.PAIRED_COLUMNS, paired),
+            **({"robustness_predictors.csv": (P.PREDICTOR_COLUMNS, predictors)} if (predictors := P.predictor_rows(rows))
+               else {})}
 
 
 def level_plot(task: str, success: list[tuple]) -> bytes:
@@ -99,6 +104,7 @@ def section(records, plots, analysis=None) -> str:
         return ""
     rows, shifts, notes, success, association, paired = analysis
     drops = {(p[0], p[3]): p for p in paired}
+    predictors = P.predictor_rows(rows)
     body = [H.note("Success against perturbation level per condition (level 0 = the nominal run), with Wilson 95% "
                    "bands; target lift and nuisance mass (attention on the background and distractors: neither robot, "
                    "target nor another task object) of the primary camera at the last layer, mean over each "
@@ -108,6 +114,8 @@ def section(records, plots, analysis=None) -> str:
     for task in dict.fromkeys(r.task for r in rows):
         body.append(H.section(task, "", level=3))
         body.append(H.Raw(f"<p>{H.esc(R.sentence(task, success, association, paired))}</p>"))
+        if predictors and (which := P.predictor_sentence(task, predictors)):
+            body.append(H.Raw(f"<p>{H.esc(which)}</p>"))
         body.append(plots.add(f"robustness_{H.anchor_id(task)[2:]}", level_plot(task, success), f"robustness {task}",
                               "Success (Wilson band), target lift and nuisance mass against level, per condition."))
         content = R.has_content(rows)
@@ -128,7 +136,7 @@ def section(records, plots, analysis=None) -> str:
                                         else math.nan, 2))
                                  for (c, lvl, layer), v in sorted(table.items())], numeric=(1, 2, 3)))
     body.append(H.table(("task", "map", "episodes", "seeds", "point-biserial r [Fisher 95%]", "seed-cluster 95%",
-                         "nuisance mass: successes", "failures", "within conditions: r [seed-cluster 95%]",
+                         "nuisance: successes", "failures", "within conditions: r [seed-cluster 95%]",
                          f"first {R.START_STEPS} steps: r [seed-cluster 95%]"),
                         [(a[0], MAP_NAMES[a[16]], a[1], a[9], H.fmt_ci(a[2], a[3], a[4], 2),
                           f"[{H.fmt(a[5], 2)}, {H.fmt(a[6], 2)}]", H.fmt(a[7], 3), H.fmt(a[8], 3),
@@ -140,7 +148,7 @@ def section(records, plots, analysis=None) -> str:
 SECTION = "## Robustness"
 
 
-MAP_NAMES = {"raw": "raw", "content": "content only"}
+MAP_NAMES = {"raw": "raw", "content": "content only", "reliance": "nuisance reliance"}
 
 
 def _measure_headers(content: bool) -> tuple[str, ...]:
@@ -195,7 +203,7 @@ VERDICT_NOTE = ("Verdicts per perturbed cell (paired with the nominal seeds): BR
                 "drop's upper bound.")
 
 
-def markdown(records, note: str = "", margin: float = R.MARGIN) -> str:
+def markdown(records, note: str = "", margin: float = R.MARGIN, section: str = SECTION) -> str:
     """The Robustness section as Markdown (EVAL.md): per task a sentence and a table of success against level per
     condition with each cell's verdict, target lift and nuisance mass; the association line per task."""
     analysis = analyse(records, margin)
@@ -203,13 +211,15 @@ def markdown(records, note: str = "", margin: float = R.MARGIN) -> str:
         raise ValueError("no run here was perturbed: give the runs of a robustness grid")
     rows, _, notes, success, association, paired = analysis
     drops = {(p[0], p[3]): p for p in paired}
-    lines = [SECTION, "", note, ""] if note else [SECTION, ""]
+    predictors = P.predictor_rows(rows)
+    lines = [section, "", note, ""] if note else [section, ""]
     lines += [VERDICT_NOTE.format(margin=round(100 * margin)), "", map_note(records), ""]
     lines += [f"- {n}" for n in notes]
     content = R.has_content(rows)
     measures = _measure_headers(content)
     for task in dict.fromkeys(r.task for r in rows):
-        lines += [R.sentence(task, success, association, paired), "",
+        which = P.predictor_sentence(task, predictors)
+        lines += [R.sentence(task, success, association, paired), "", *([which, ""] if which else []),
                   "| condition | level | success | Wilson 95% | paired: lost / gained | Holm p | verdict (drop's upper "
                   "bound, points) | " + " | ".join(measures) + " |", "|---" * (7 + len(measures)) + "|"]
         for s in success:
@@ -229,11 +239,15 @@ def main(argv=None) -> int:
 
     parser = argparse.ArgumentParser(add_help=False)
     parser.add_argument("--margin", type=float, default=R.MARGIN)
+    parser.add_argument("--section", default=SECTION[3:])
     known, rest = parser.parse_known_args(argv)
+    section = f"## {known.section}"
+    options = (("--margin", f"{known.margin:g}") if known.margin != R.MARGIN else ()) + \
+        (("--section", known.section) if section != SECTION else ())
     return eval_md_section_main(rest, "python -m harness.report.robustness", "Write the Robustness section of an EVAL.md "
-                                "from grid runs (--margin M: the drop a HOLDS verdict rules out [0.15]).", SECTION,
-                                functools.partial(markdown, margin=known.margin),
-                                options=("--margin", f"{known.margin:g}") if known.margin != R.MARGIN else ())
+                                "from grid runs (--margin M: the drop a HOLDS verdict rules out [0.15]; --section "
+                                "TITLE: the section's heading, for a second grid [Robustness]).", section,
+                                functools.partial(markdown, margin=known.margin, section=section), options=options)
 
 
 if __name__ == "__main__":

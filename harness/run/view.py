@@ -3,6 +3,7 @@
 A run made with `--rerun save` holds `episode.rrd` already: it is opened (or copied with `--save`). Otherwise the
 recording is rebuilt through the run folder readers (harness.analysis.runs): attention, token map and measures from
 attention.npz, actions, rewards, success and new-chunk steps from actions.npz, attribution maps from attribution.npz,
+region reliance from reliance.jsonl (the map layer needs the re-simulated masks),
 each step fed to the same sink a live run uses (harness.outputs.rerun_sink), so the values equal those of a
 `--rerun save` recording of the same protocol.
 
@@ -25,6 +26,7 @@ import numpy as np
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
 from harness.files import write_atomic
 from harness.octo.tokens import TokenMap
+from harness.outputs.rerun_reliance import rows_by_step
 from harness.outputs.rerun_sink import RRD_NAME, RerunSink, SinkOptions, import_rerun
 from harness.records import EpisodeMeta, StepRecord
 from harness.run.protocol import protocol_from_manifest
@@ -164,6 +166,7 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
     steps = attention["readout_attention"].shape[0]  # (steps, layers, heads, readouts, keys) float16
     metric_names = [k[len("metrics/"):] for k in attention if k.startswith("metrics/")]
     attribution = _attribution_by_step(ep)
+    reliance = rows_by_step(ep.directory)  # reliance.jsonl: the scalars, and the map layer over re-simulated frames
     meta = episode_meta(run, ep)
     outputs = (run.manifest.get("protocol") or {}).get("outputs") or {}
 
@@ -187,7 +190,8 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
                      control_hz=hz)
     try:
         for i in range(steps):
-            record = _recorded_step(i, attention, actions, records[i] if i < len(records) else None, attribution)
+            record = _recorded_step(i, attention, actions, records[i] if i < len(records) else None, attribution,
+                                    reliance)
             metrics = {name: attention[f"metrics/{name}"][i] for name in metric_names}
             sink.log_step(record, tokens, {k: v for k, v in metrics.items() if np.all(np.isfinite(v))})
         path = sink.finish(_outcome(ep, actions, steps))
@@ -213,9 +217,10 @@ def _recording_damage(existing: Path, recorded: dict | None) -> str | None:
     return None
 
 
-def _recorded_step(i: int, attention: dict, actions: dict, again: StepRecord | None, attribution: dict) -> StepRecord:
-    """Step `i` as the run's files hold it (attention, actions, the task phase, attribution maps), with the frames,
-    masks and policy inputs of the re-simulated step `again` where there is one."""
+def _recorded_step(i: int, attention: dict, actions: dict, again: StepRecord | None, attribution: dict,
+                   reliance: dict) -> StepRecord:
+    """Step `i` as the run's files hold it (attention, actions, the task phase, attribution maps, region reliance),
+    with the frames, masks and policy inputs of the re-simulated step `again` where there is one."""
     step = int(attention["step"][i]) if "step" in attention else i
     predicted = actions.get("predicted")
     inferred = actions.get("inferred")
@@ -229,7 +234,8 @@ def _recorded_step(i: int, attention: dict, actions: dict, again: StepRecord | N
         action_executed=actions["executed"][i], reward=float(actions["reward"][i]),
         success=bool(actions["success"][i]), masks=again.masks if again is not None else None,
         inferred=bool(inferred[i]) if inferred is not None else True, attribution=attribution.get(step),
-        policy_inputs=again.policy_inputs if again is not None else None, phase=phase)
+        policy_inputs=again.policy_inputs if again is not None else None, phase=phase,
+        reliance=reliance.get(step))
 
 
 def _outcome(ep: EpisodeRecord, actions: dict, steps: int) -> dict:

@@ -168,6 +168,13 @@ def test_robustness_grid_resumes_and_reports_in_chromium(tmp_path, capsys):
     assert text.count("\nProvenance: command `python -m harness.report.robustness ") == 1  # its own line, once
     level2 = next(r for r in success if r["condition"] == "distractors" and r["level"] == "2")
     assert f"| distractors | 2 | {level2['successes']}/2 |" in text
+    # a second grid goes under its own heading (--section): the first grid's section stays as it was
+    assert robustness_main([*runs, "--eval-md", str(eval_md), "--section", "Robustness of the wrist camera"]) == 0
+    capsys.readouterr()
+    second = eval_md.read_text()
+    assert second.startswith(text.rstrip("\n")) and second.count("\n## Robustness of the wrist camera\n") == 1
+    assert "--section 'Robustness of the wrist camera'" in second[len(text):]  # the provenance names the option
+    text = second
     # an unperturbed run alone is one line and leaves EVAL.md as it was
     nominal = next(r for r in runs if Path(r).name == "nominal")
     assert robustness_main([nominal, "--eval-md", str(eval_md)]) == 2

@@ -399,9 +399,9 @@ def test_a_dagger_round_trains_stage_1_collects_once_then_fine_tunes_on_demonstr
     rng = np.random.default_rng(1)
     task = "libero_object/2"
 
-    def frames(n):
-        return {"image_primary": rng.integers(0, 255, (n, 128, 128, 3), np.uint8),
-                "image_wrist": rng.integers(0, 255, (n, 64, 64, 3), np.uint8),
+    def frames(n):  # small frames and a small model: the round's bookkeeping does not depend on the model's size
+        return {"image_primary": rng.integers(0, 255, (n, 32, 32, 3), np.uint8),
+                "image_wrist": rng.integers(0, 255, (n, 16, 16, 3), np.uint8),
                 "proprio": rng.normal(size=(n, 8)).astype(np.float32),
                 "action": rng.uniform(-1, 1, (n, 7)).astype(np.float32),
                 "episode": np.zeros(n, np.int32), "step": np.arange(n, dtype=np.int32),
@@ -423,7 +423,8 @@ def test_a_dagger_round_trains_stage_1_collects_once_then_fine_tunes_on_demonstr
         return {task: merged}
 
     config = replace(TrainConfig(), steps=2, batch_size=4, log_every=1, checkpoint_every=2, warmup_steps=1,
-                     task_weights=(), init_from=None)
+                     task_weights=(), init_from=None, width=32, layers=1, heads=2, mlp_dim=64,
+                     stem_features=(32, 32, 32, 32), t5_width=16, image_sizes=(("image_primary", 32), ("image_wrist", 16)))
     kwargs = {"instructions": instructions((task,)), "dataset_key": DATASET_KEY, "conventions": conventions_toml(WRIST_64)}
     result = dagger_round(demos, config, tmp_path / "data", tmp_path / "out", collect=collect, existing=existing,
                           append=append, steps=2, learning_rate=1e-4, what="test", train_kwargs=kwargs)

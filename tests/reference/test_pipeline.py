@@ -159,22 +159,32 @@ def test_word_tokenizer_uses_t5_special_ids():
     assert tok.encode("pick up the blue cube").ids[3] == 2  # unknown word
 
 
+# the diffusion test's small model; the warm-start test starts from its checkpoint (one training shared by both)
+SMALL = dict(width=32, layers=1, heads=2, mlp_dim=64, stem_features=(32, 32, 32, 32), head="diffusion", head_hidden=32,
+             t5_width=16, action_horizon=2)
+
+
+@pytest.fixture(scope="module")
+def diffusion(tmp_path_factory):
+    """(checkpoint folder, summary, toy demo) of a 60-step diffusion-head training at 32/16 px."""
+    demo = _toy_demos(lengths=(12, 10))
+    demo["image_wrist"] = demo["image_primary"][:, :16, :16].copy()
+    out = tmp_path_factory.mktemp("diffusion")
+    cfg = TrainConfig(steps=60, batch_size=16, log_every=10, checkpoint_every=30, warmup_steps=5, learning_rate=1e-3,
+                      image_sizes=(("image_primary", 32), ("image_wrist", 16)), **SMALL)
+    return out, train({"Lift": demo}, out, cfg), demo
+
+
 @pytest.mark.slow
-def test_tiny_diffusion_training_reduces_loss_and_saves_a_loadable_octo_checkpoint(tmp_path):
+def test_tiny_diffusion_training_reduces_loss_and_saves_a_loadable_octo_checkpoint(diffusion):
     """The diffusion head's training path (the committed model, tested in test_reference_model.py, uses L1)."""
     from harness.octo import load_pretrained
 
-    demo = _toy_demos(lengths=(12, 10))
-    demo["image_wrist"] = demo["image_primary"][:, :16, :16].copy()
-    cfg = TrainConfig(steps=60, batch_size=16, log_every=10, checkpoint_every=30, warmup_steps=5, learning_rate=1e-3,
-                      width=32, layers=1, heads=2, mlp_dim=64, stem_features=(32, 32, 32, 32), head="diffusion", head_hidden=32,
-                      t5_width=16,
-                      image_sizes=(("image_primary", 32), ("image_wrist", 16)), action_horizon=2)
-    summary = train({"Lift": demo}, tmp_path, cfg)
-    curve = _read_curve(tmp_path / "training_curve.csv")
+    out, summary, _ = diffusion
+    curve = _read_curve(out / "training_curve.csv")
     assert curve[-1]["loss"] < 0.7 * curve[0]["loss"]
-    assert sorted(p.name for p in tmp_path.iterdir() if p.name.isdigit()) == ["60"]  # older steps replaced
-    model = load_pretrained(str(tmp_path))  # checks every parameter path and shape against config.json
+    assert sorted(p.name for p in out.iterdir() if p.name.isdigit()) == ["60"]  # older steps replaced
+    model = load_pretrained(str(out))  # checks every parameter path and shape against config.json
     assert model.text_tokenizer.tokenizer is not None  # the tokenizer inside the checkpoint, not the fallback
     assert model.action_horizon == 2 and model.window_size == 1
     stats = model.unnormalization_statistics(DATASET_KEY)
@@ -203,25 +213,21 @@ def test_grid_embedding_resize_known_answer():
 
 
 @pytest.mark.slow
-def test_warm_start_copies_an_earlier_checkpoint_and_resamples_the_patch_grid(tmp_path):
-    """A 32-px model warm-starts a 64-px one: every parameter copied, the primary position embeddings
-    resampled from 2x2 to 4x4 patches (lr 0: the saved model is the warm start itself)."""
+def test_warm_start_copies_an_earlier_checkpoint_and_resamples_the_patch_grid(diffusion, tmp_path):
+    """A 32-px model (the diffusion test's) warm-starts a 64-px one: every parameter copied, the primary position
+    embeddings resampled from 2x2 to 4x4 patches (lr 0: the saved model is the warm start itself)."""
     from flax import traverse_util
 
     from harness.octo.checkpoint import read_params
     from harness.reference.warm_start import resize_grid_embedding
 
-    demo = _toy_demos(lengths=(12, 10))
-    demo["image_wrist"] = demo["image_primary"][:, :16, :16].copy()
-    small = dict(batch_size=4, log_every=1, checkpoint_every=10, warmup_steps=1, width=32, layers=1, heads=2, mlp_dim=64,
-                 stem_features=(32, 32, 32, 32), t5_width=16, action_horizon=2)
-    train({"Lift": demo}, tmp_path / "a", TrainConfig(steps=2, image_sizes=(("image_primary", 32), ("image_wrist", 16)),
-                                                       **small))
+    source, _, demo = diffusion
+    small = dict(batch_size=4, log_every=1, checkpoint_every=10, warmup_steps=1, **SMALL)
     big = dict(demo, image_primary=np.repeat(np.repeat(demo["image_primary"], 2, axis=1), 2, axis=2))
     summary = train({"Lift": big}, tmp_path / "b", TrainConfig(
         steps=1, learning_rate=0.0, weight_decay=0.0, image_sizes=(("image_primary", 64), ("image_wrist", 16)),
-        init_from=str(tmp_path / "a"), **small))
-    a = traverse_util.flatten_dict(read_params(tmp_path / "a", 2))
+        init_from=str(source), **small))
+    a = traverse_util.flatten_dict(read_params(source, 60))
     b = traverse_util.flatten_dict(read_params(tmp_path / "b", 1))
     assert a.keys() == b.keys()
     key = ("octo_transformer", "obs_primary_pos_embedding")
@@ -233,5 +239,5 @@ def test_warm_start_copies_an_earlier_checkpoint_and_resamples_the_patch_grid(tm
     assert summary["warm_start"]["resized"] and summary["warm_start"]["copied"] == len(a) - 1
     with pytest.raises(ValueError, match="only patch-grid position embeddings can change size"):
         train({"Lift": demo}, tmp_path / "c", TrainConfig(
-            steps=1, image_sizes=(("image_primary", 32), ("image_wrist", 16)), init_from=str(tmp_path / "a"),
+            steps=1, image_sizes=(("image_primary", 32), ("image_wrist", 16)), init_from=str(source),
             **{**small, "mlp_dim": 128}))

@@ -166,3 +166,20 @@ def test_the_report_shows_the_section_and_its_table_in_chromium(run, tmp_path):
     assert re.search(r"<a [^>]*href=\"#reliance\"", dom)  # an entry in the page's contents
     gripper = next(r for r in table if r["camera"] == "image_primary" and r["region"] == "gripper")
     assert f"{float(gripper['reliance_share']):.2g}" in text  # the page's number comes from the CSV
+
+
+def test_eval_md_gets_a_reliance_section_with_provenance_and_keeps_the_others(run, tmp_path):
+    eval_md = tmp_path / "EVAL.md"
+    eval_md.write_text("# EVAL\n\n## Robustness\n\nkept\n\n## Reliance\n\nstale\n")
+    assert R.main([str(run), "--eval-md", str(eval_md), "--note", "the note"]) == 0
+    text = eval_md.read_text()
+    assert "## Robustness\n\nkept\n" in text and "stale" not in text and text.count("## Reliance\n") == 1
+    section = text[text.index("## Reliance"):]
+    assert "Provenance: command" in section and "the note" in section
+    assert "### Lift: nominal (run reference-lift)" in section
+    assert ("- Lift, image_primary: attention and reliance disagree most on gripper: 50% of the reliance, 10% of the "
+            "attention") in section
+    assert "| image_wrist | background |" in section and "episode_2: unreadable reliance.jsonl" in section
+    # a run without reliance is one line, exit 2, EVAL.md untouched
+    before = eval_md.read_text()
+    assert R.main([str(REFERENCE), "--eval-md", str(eval_md)]) == 2 and eval_md.read_text() == before

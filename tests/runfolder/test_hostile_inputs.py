@@ -150,7 +150,9 @@ def _tmpfs(path: Path, size: str = "64k") -> None:
 
 
 @pytest.mark.slow
-def test_a_full_disk_is_one_line_exit_2_and_leaves_no_temporary_file(made, tmp_path):
+def test_a_full_disk_is_one_line_exit_2_and_leaves_no_temporary_file(made, fixtures_dir, tmp_path):
+    """Every command that writes (report, view --save, compare, replay, regress, robustness) on a full disk."""
+    tiny = fixtures_dir / "tiny"
     full = tmp_path / "full"
     _tmpfs(full)
     try:
@@ -159,6 +161,10 @@ def test_a_full_disk_is_one_line_exit_2_and_leaves_no_temporary_file(made, tmp_p
             "view --save": ["view", str(made), "--no-simulate", "--save", str(full / "episode.rrd")],
             "compare": ["compare", str(made), str(made), "--no-frames", "--out", str(full / "cmp")],
             "replay": ["replay", str(made), "--out", str(full / "replay")],
+            "regress": ["regress", "--baseline", str(made), "--model", str(tiny), "--out", str(full / "reg")],
+            "robustness": ["robustness", "--model", str(tiny), "--task", "Lift", "--perturb", "lighting", "--levels",
+                           "0,1", "--episodes", "1", "--max-steps", "2", "--fast-render", "--no-video",
+                           "--out", str(full / "grid")],
         }
         for name, argv in commands.items():
             code, _, err, _ = octo(argv)

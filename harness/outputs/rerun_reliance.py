@@ -1,0 +1,115 @@
+"""The reliance map layer of a Rerun recording (issue 45): where the policy relies, over each camera, beside where it
+looks (the attention overlays).
+
+At a `--reliance-every` step the step record carries region reliance rows (harness.analysis.reliance: one per camera
+x labelled region) and the env's masks of the frame the model saw. The map of a camera (`reliance_map`): every pixel
+of the frame gets the `reliance_per_pixel` of the region it belongs to (the region's share of the chunk's change per
+unit of area), regions drawn from the step's masks by reliance.region_masks, resized to the frame (the partition the
+rows were measured on, at the frame's resolution); 0 for a region without a row (the remainder that has pixels only
+at the frame's resolution). A camera the policy did not use at that step (its shares null: the chunk hardly changed
+whichever region was replaced) gets a map of zeros.
+
+The layer (`layer_png`, entity camera/<obs key>/reliance): an RGBA PNG at the frame's size, colour through the
+overlays' colormap over [0, the map's maximum], opacity proportional to the value (LAYER_ALPHA at the maximum,
+transparent at 0: a region the policy does not rely on leaves the frame as it is), drawn above the frame and below
+the target mask. It is logged at reliance steps only: between them Rerun's latest-at shows the map of the last
+reliance step at or before the shown step (0, N, 2N, ... with --reliance-every N), drawn on that step's masks.
+
+Row values are taken as reliance.jsonl stores them (`stored_rows`: harness.files.json_safe, 6 significant digits),
+so a live recording and `octo-harness view`'s rebuild from the file (`rows_by_step`) hold the same scalars and maps.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+from PIL import Image
+
+from harness.analysis.reliance import FILE, read_rows, region_masks
+from harness.files import json_safe
+from harness.outputs.overlays import colorize
+
+LAYER_ALPHA = 0.6  # opacity of the map's maximum; 0 is transparent
+LAYER_DRAW_ORDER = 0.0  # above the frame (images default to -10), below the target mask (5)
+
+
+def stored_rows(reliance: Mapping | None) -> list[dict]:
+    """A step record's `reliance` ({"rows": [...], "seconds"} or None) -> its rows as reliance.jsonl stores them."""
+    return [json_safe(dict(row)) for row in (reliance or {}).get("rows", ())]
+
+
+def reliance_map(masks: Mapping[str, np.ndarray | None], rows: Sequence[Mapping], size: tuple[int, int]) -> np.ndarray:
+    """One camera at one step: masks {env mask name: (h, w) bool} (upright, as the step record holds them), rows the
+    reliance rows of that camera and step, size (H, W) the frame -> (H, W) float32, each pixel the reliance per pixel
+    of its region (0 without a row, or everywhere when the camera's shares are null)."""
+    out = np.zeros(tuple(size), np.float32)
+    if not rows or any(row.get("reliance_share") is None for row in rows):
+        return out
+    per_pixel = {row["region"]: float(row.get("reliance_per_pixel") or 0.0) for row in rows}
+    for region, mask in region_masks(masks, tuple(size)).items():
+        out[mask] = max(0.0, per_pixel.get(region, 0.0))
+    return out
+
+
+def layer_png(values: np.ndarray, cmap: str = "jet") -> bytes:
+    """values (H, W) float32 >= 0 -> PNG bytes, RGBA: colour cmap(value / max), alpha LAYER_ALPHA * value / max
+    (all transparent when the maximum is 0)."""
+    values = np.asarray(values, np.float32)
+    rgba = np.zeros((*values.shape, 4), np.uint8)
+    top = float(values.max()) if values.size else 0.0
+    if top > 0:
+        rgba[..., :3] = colorize(values, 0.0, top, cmap)
+        rgba[..., 3] = np.round(255 * LAYER_ALPHA * np.clip(values / top, 0.0, 1.0)).astype(np.uint8)
+    out = io.BytesIO()
+    Image.fromarray(rgba, "RGBA").save(out, format="PNG", optimize=False, compress_level=6)
+    return out.getvalue()
+
+
+def reliance_layers(rows: Sequence[Mapping], frames: Mapping[str, np.ndarray], masks: Mapping | None,
+                    cmap: str = "jet") -> dict[str, bytes]:
+    """One step's stored rows, frames {obs key: (H, W, 3)} and masks {obs key: {name: (h, w) bool}} -> {obs key:
+    layer PNG} for every camera that has rows, a frame and masks (in the rows' camera order)."""
+    by_camera: dict[str, list[Mapping]] = {}
+    for row in rows:
+        by_camera.setdefault(row["camera"], []).append(row)
+    out = {}
+    for cam, cam_rows in by_camera.items():
+        named = (masks or {}).get(cam)
+        if cam in frames and named:
+            out[cam] = layer_png(reliance_map(named, cam_rows, np.shape(frames[cam])[:2]), cmap)
+    return out
+
+
+def rows_by_step(directory: str | Path) -> dict[int, dict]:
+    """An episode folder's reliance.jsonl -> {step: {"rows": [its rows]}} ({} without the file), as a step record's
+    `reliance` holds them, for `view`'s rebuild. A row of the wrong types is a ValueError naming the file and row."""
+    path = Path(directory) / FILE
+    if not path.is_file():
+        return {}
+    out: dict[int, dict] = {}
+    for number, row in enumerate(read_rows(path), 1):
+        problem = _row_problem(row)
+        if problem:
+            raise ValueError(f"{path} row {number}: {problem}; repair the file or re-create the run "
+                             "(octo-harness run ... --overwrite)")
+        out.setdefault(int(row["step"]), {"rows": []})["rows"].append(row)
+    return out
+
+
+def _row_problem(row: Mapping) -> str | None:
+    def number(value) -> bool:
+        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0
+
+    if not isinstance(row["step"], int) or isinstance(row["step"], bool) or row["step"] < 0:
+        return f"step must be a step index, got {row['step']!r}"
+    for key in ("camera", "region"):
+        if not isinstance(row[key], str):
+            return f"{key} must be a name, got {row[key]!r}"
+    for key in ("reliance_share", "reliance_per_pixel"):
+        if row.get(key) is not None and not number(row[key]):
+            return f"{key} must be a number >= 0 or null, got {row[key]!r}"
+    return None
