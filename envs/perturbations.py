@@ -46,6 +46,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from envs.scene_edits import (DISTRACTOR_PREFIX, NO_DISTRACTOR_ROOM, TEXTURE_PATTERNS, PerturbationError, distractor_region,
+                              material_texture, perturbed_camera, place_distractors, rotate, texture_pattern,
+                              uniform_samplers, unit_vector)
+
 LEVELS = tuple(range(6))
 DEFAULT_CAMERA_KEY = "image_primary"
 # KINDS (names in order) and KEYED_KINDS (those that take @KEY, an observation key) come from the table of kind
@@ -66,15 +70,7 @@ LANGUAGE_LEVELS = {1: "capitalised, full stop", 2: "a paraphrase from the task's
                    5: "level 4 in capitals"}
 PREFIXES = ("please ", "robot, ", "now ")
 SUFFIXES = (" now", " please", ", thanks")
-# tasks whose scene has no free surface for distractors (one line before the first episode)
-NO_DISTRACTOR_ROOM = {"Door": "the door's arena has no free table surface",
-                      "ToolHang": "the stand and the tool fill the table's reachable area"}
-
 _SPEC = re.compile(r"^([a-z-]+)(?:@([A-Za-z_]\w*))?:(-?\d+)$")
-
-
-class PerturbationError(ValueError):
-    """A perturbation that cannot be parsed or that a task cannot take (message: one line naming the fix)."""
 
 
 @dataclass(frozen=True, order=True)
@@ -164,39 +160,14 @@ def rng(seed: int, p: Perturbation, *extra: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed), KINDS.index(p.kind), int(p.level), key, *extra]))
 
 
-def _unit(rng_: np.random.Generator) -> np.ndarray:
-    v = rng_.normal(size=3)
-    return v / np.linalg.norm(v)
-
-
-def axis_angle_quat(axis: np.ndarray, degrees: float) -> np.ndarray:
-    """(w, x, y, z) quaternion of a rotation by `degrees` about unit `axis`."""
-    half = np.deg2rad(degrees) / 2.0
-    return np.concatenate([[np.cos(half)], np.sin(half) * np.asarray(axis, float)])
-
-
-def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of (w, x, y, z) quaternions."""
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
-
-
 def camera_draw(seed: int, p: Perturbation) -> dict:
     """{"offset": (3,) m in the camera's parent frame, "axis": (3,) in the camera frame, "degrees", "fovy_delta"}."""
     g = rng(seed, p)
     m = MAGNITUDES["camera"]
-    offset = _unit(g) * m["position_m"] * p.level
-    axis = _unit(g)
+    offset = unit_vector(g) * m["position_m"] * p.level
+    axis = unit_vector(g)
     fovy = float(np.sign(g.uniform(-1, 1)) or 1.0) * m["fovy_deg"] * p.level
     return {"offset": offset, "axis": axis, "degrees": m["rotation_deg"] * p.level, "fovy_delta": fovy}
-
-
-def perturbed_camera(pos: np.ndarray, quat: np.ndarray, fovy: float, draw: dict) -> tuple[np.ndarray, np.ndarray, float]:
-    """Nominal camera (pos (3,), quat (w, x, y, z), fovy deg) -> the perturbed one (pure; the env and the tests share it)."""
-    new_quat = quat_mul(np.asarray(quat, float), axis_angle_quat(draw["axis"], draw["degrees"]))
-    return np.asarray(pos, float) + draw["offset"], new_quat / np.linalg.norm(new_quat), float(fovy) + draw["fovy_delta"]
 
 
 def lighting_draw(seed: int, p: Perturbation, lights: int) -> dict:
@@ -209,13 +180,6 @@ def lighting_draw(seed: int, p: Perturbation, lights: int) -> dict:
     tint = 1.0 + g.uniform(-1, 1, size=(lights, 3)) * m["tint"] * p.level
     return {"scale": 1.0 - m["intensity_drop"] * p.level, "axes": axes, "degrees": m["direction_deg"] * p.level,
             "tint": tint}
-
-
-def rotate(vector: np.ndarray, axis: np.ndarray, degrees: float) -> np.ndarray:
-    """Rodrigues rotation of (3,) `vector` about unit `axis`."""
-    t = np.deg2rad(degrees)
-    v, k = np.asarray(vector, float), np.asarray(axis, float)
-    return v * np.cos(t) + np.cross(k, v) * np.sin(t) + k * np.dot(k, v) * (1 - np.cos(t))
 
 
 def instruction_for(task, instruction: str, seed: int, perturbations: tuple[Perturbation, ...]) -> str:
@@ -254,68 +218,6 @@ def noise_frame(frame: np.ndarray, seed: int, p: Perturbation, step: int, key: s
     if not ok:
         raise RuntimeError("JPEG encoding failed")
     return np.ascontiguousarray(cv2.imdecode(encoded, cv2.IMREAD_UNCHANGED).reshape(out.shape))
-
-
-# ---------------------------------------------------------------------------------------------- distractor models
-
-DISTRACTOR_PREFIX = "distractor"
-
-
-def distractor_objects(count: int) -> list:
-    """`count` robosuite object models, named distractor0.. (lemon, bottle, blue ball, yellow cylinder, purple box)."""
-    from robosuite.models.objects import BallObject, BottleObject, BoxObject, CylinderObject, LemonObject
-
-    makers = (
-        lambda n: LemonObject(n),
-        lambda n: BottleObject(n),
-        lambda n: BallObject(n, size=[0.025], rgba=[0.15, 0.35, 0.9, 1.0]),
-        lambda n: CylinderObject(n, size=[0.022, 0.035], rgba=[0.95, 0.8, 0.1, 1.0]),
-        lambda n: BoxObject(n, size=[0.024, 0.024, 0.024], rgba=[0.6, 0.25, 0.8, 1.0]),
-    )
-    return [makers[i % len(makers)](f"{DISTRACTOR_PREFIX}{i}") for i in range(count)]
-
-
-def class_with_distractors(base, count: int):
-    """A subclass of robosuite env class `base` whose model also holds `count` distractor objects (free joints)."""
-
-    def _load_model(self):
-        base._load_model(self)
-        self._octo_distractors = distractor_objects(count)
-        self.model.merge_objects(self._octo_distractors)
-
-    return type(f"{base.__name__}OctoDistractors{count}", (base,), {"_load_model": _load_model})
-
-
-def distractor_region(env) -> tuple[np.ndarray, np.ndarray, float]:
-    """((2,) low xy, (2,) high xy, surface z) where distractors may stand in robosuite env `env`."""
-    if hasattr(env, "bin1_pos") and hasattr(env, "bin_size"):  # PickPlace: the start bin
-        centre, half = np.asarray(env.bin1_pos, float), np.asarray(env.bin_size[:2], float) / 2 - 0.05
-        return centre[:2] - half, centre[:2] + half, float(centre[2])
-    offset = getattr(env, "table_offset", None)
-    size = getattr(env, "table_full_size", None)
-    if offset is None or size is None:
-        raise PerturbationError(f"distractors: {type(env).__name__} has no table or bin to place them on; drop distractors")
-    half = np.asarray(size[:2], float) / 2 - 0.08
-    return np.asarray(offset[:2], float) - half, np.asarray(offset[:2], float) + half, float(offset[2])
-
-
-def place_distractors(g: np.random.Generator, low: np.ndarray, high: np.ndarray, avoid: np.ndarray, count: int,
-                      clearance: float, spacing: float, tries: int = 2000) -> np.ndarray:
-    """(count, 2) xy positions in [low, high], >= clearance from every row of `avoid` (k, 2), >= spacing apart."""
-    placed: list[np.ndarray] = []
-    for _ in range(tries):
-        if len(placed) == count:
-            break
-        xy = g.uniform(low, high)
-        if len(avoid) and np.min(np.linalg.norm(avoid - xy, axis=1)) < clearance:
-            continue
-        if placed and np.min(np.linalg.norm(np.array(placed) - xy, axis=1)) < spacing:
-            continue
-        placed.append(xy)
-    if len(placed) < count:
-        raise PerturbationError(f"distractors: no room for {count} objects {clearance:.2f} m from the task's objects "
-                                "on this surface; use a lower level")
-    return np.array(placed).reshape(count, 2)
 
 
 # ---------------------------------------------------------------------------------------------- the env side
@@ -364,45 +266,6 @@ class ScenePerturber:
         h, w, c = int(model.tex_height[tex]), int(model.tex_width[tex]), int(model.tex_nchannel[tex])
         adr = int(model.tex_adr[tex])
         return model.tex_data[adr: adr + h * w * c].reshape(h, w, c)
-
-
-TEXTURE_PATTERNS = ("rgb", "checker", "noise", "gradient")
-
-
-def texture_pattern(g: np.random.Generator, variation: str, shape: tuple) -> np.ndarray:
-    """(h, w, c) float pattern in 0-255: a flat colour, an 8x8 checker, noise of two colours, or a gradient."""
-    h, w, c = shape
-    a, b = g.uniform(0, 255, size=(2, c))
-    if variation == "rgb":
-        return np.broadcast_to(a, shape).astype(np.float64)
-    if variation == "checker":
-        cells = ((np.arange(h)[:, None] * 8 // max(h, 1)) + (np.arange(w)[None, :] * 8 // max(w, 1))) % 2
-        return np.where(cells[..., None] == 1, a, b)
-    if variation == "noise":
-        mask = g.uniform(size=(h, w)) < g.uniform(0.1, 0.9)
-        return np.where(mask[..., None], a, b)
-    t = np.linspace(0.0, 1.0, h)[:, None, None]
-    return np.broadcast_to((1 - t) * a + t * b, shape).astype(np.float64)
-
-
-def _material_texture(model, mat: int) -> int:
-    """The RGB texture of material `mat` (-1: none); MuJoCo 3 stores one texture per role."""
-    if mat < 0:
-        return -1
-    ids = np.atleast_1d(np.asarray(model.mat_texid[mat]))
-    if ids.size > 1 and ids[1] >= 0:  # mjTEXROLE_RGB
-        return int(ids[1])
-    valid = ids[ids >= 0]
-    return int(valid[0]) if valid.size else -1
-
-
-def _uniform_samplers(sampler) -> list:
-    """The UniformRandomSampler leaves of robosuite placement sampler `sampler` (composite samplers unrolled)."""
-    if sampler is None:
-        return []
-    if hasattr(sampler, "samplers"):
-        return [leaf for child in sampler.samplers.values() for leaf in _uniform_samplers(child)]
-    return [sampler] if hasattr(sampler, "x_range") else []
 
 
 # ---------------------------------------------------------------------------------------------- the kinds
@@ -510,7 +373,7 @@ class TextureKind(Kind):
         arena, used_elsewhere = [], set()
         for g in range(model.ngeom):
             name = model.geom_id2name(g) or ""
-            tex = _material_texture(model, int(model.geom_matid[g]))
+            tex = material_texture(model, int(model.geom_matid[g]))
             if foreign_body[model.geom_bodyid[g]] or g in targets:
                 if tex >= 0:
                     used_elsewhere.add(tex)
@@ -577,7 +440,7 @@ class InitStateKind(Kind):
     name, visual = "init-state", False
 
     def setup(self, perturber, p):
-        samplers = _uniform_samplers(getattr(perturber.env, "placement_initializer", None))
+        samplers = uniform_samplers(getattr(perturber.env, "placement_initializer", None))
         return (np.array(perturber.env.robots[0].init_qpos, float),
                 [(s, tuple(s.x_range), tuple(s.y_range)) for s in samplers])
 

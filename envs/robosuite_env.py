@@ -49,6 +49,7 @@ from envs.camera import image_pixels
 from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvConfigError, to_convention
 from envs.render import CameraSpec, SceneRenderer
 from envs import perturbations as perturb
+from envs.scene_edits import DISTRACTOR_PREFIX, class_with_distractors
 from envs.phases import PHASE_SPECS, PhaseState, phase_of
 from envs.segmentation import TARGET, geom_categories, labelled_masks, scene_labels, scene_lookup
 from envs.taskspec import TaskSpec
@@ -146,22 +147,42 @@ def _import_robosuite():
     return robosuite
 
 
+def _check_config(config: EnvConfig) -> None:
+    """EnvConfigError (one line) for options that cannot go together or are unknown, before robosuite is imported."""
+    if config.masks and not config.cameras:
+        raise EnvConfigError("masks=True needs at least one camera")
+    if config.render_mode not in (None, "rgb_array"):
+        raise EnvConfigError(f"render_mode {config.render_mode!r} unsupported; use None or 'rgb_array'")
+    if config.render_mode == "rgb_array" and not config.cameras:
+        raise EnvConfigError("render_mode='rgb_array' needs at least one camera")
+    if config.image_convention not in IMAGE_CONVENTIONS:
+        raise EnvConfigError(f"image convention {config.image_convention!r} unknown; use one of {', '.join(IMAGE_CONVENTIONS)}")
+    if config.action_space not in ACTION_SPACES:
+        raise EnvConfigError(f"action space {config.action_space!r} unknown; use one of {', '.join(ACTION_SPACES)}")
+
+
+def _action_space(config: EnvConfig, adapter: ActionAdapterConfig) -> gym.spaces.Box:
+    """The action space of `config.action_space` (7-D; 6-D with `hold_gripper`)."""
+    if config.action_space == "robosuite":  # the controller's own input range
+        space = gym.spaces.Box(-1.0, 1.0, (7,), dtype=np.float32)
+    elif config.action_space == "libero":  # OSC input, gripper 1 open / 0 closed (envs.actions.libero_action)
+        space = gym.spaces.Box(np.array([-1.0] * 6 + [0.0], np.float32), np.ones(7, np.float32))
+    else:  # the range the adapter passes unclipped: +-position_max metres, about +-rotation_max radians, gripper [0, 1]
+        high = np.array([adapter.position_max] * 3 + [adapter.rotation_max] * 3 + [1.0], dtype=np.float32)
+        low = np.concatenate([-high[:6], [0.0]]).astype(np.float32)
+        space = gym.spaces.Box(low, high, dtype=np.float32)
+    if config.hold_gripper is not None:  # arm-only actions; the gripper is held at the given value
+        space = gym.spaces.Box(space.low[:6], space.high[:6], dtype=np.float32)
+    return space
+
+
 class RobosuiteEnv(gym.Env):
     """A robosuite task with Octo-style observations and actions; see the module docstring."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FREQUENCY_HZ}
 
     def __init__(self, task: TaskSpec, config: EnvConfig = EnvConfig()) -> None:
-        if config.masks and not config.cameras:
-            raise EnvConfigError("masks=True needs at least one camera")
-        if config.render_mode not in (None, "rgb_array"):
-            raise EnvConfigError(f"render_mode {config.render_mode!r} unsupported; use None or 'rgb_array'")
-        if config.render_mode == "rgb_array" and not config.cameras:
-            raise EnvConfigError("render_mode='rgb_array' needs at least one camera")
-        if config.image_convention not in IMAGE_CONVENTIONS:
-            raise EnvConfigError(f"image convention {config.image_convention!r} unknown; use one of {', '.join(IMAGE_CONVENTIONS)}")
-        if config.action_space not in ACTION_SPACES:
-            raise EnvConfigError(f"action space {config.action_space!r} unknown; use one of {', '.join(ACTION_SPACES)}")
+        _check_config(config)
         self.task = task
         self.config = config
         self.render_mode = config.render_mode
@@ -170,6 +191,44 @@ class RobosuiteEnv(gym.Env):
         self._thread = threading.get_ident()
 
         gl.ensure_context(create=bool(config.cameras))
+        distractors = perturb.find(config.perturbations, "distractors")
+        self._env, arm = self._make_robosuite(distractors[0].level if distractors else 0)
+        self.adapter = config.action_adapter or ActionAdapterConfig(
+            position_max=float(arm["output_max"][0]), rotation_max=float(arm["output_max"][3])
+        )
+        sim = self._env.sim
+        self._renderer = SceneRenderer(sim, config.cameras, fast=config.fast_render) if config.cameras else None
+        self._distractor_count = distractors[0].level if distractors else 0
+        self._label_scene()
+        self._camera_fovy = {spec.key: float(sim.model.cam_fovy[self._renderer.camera_id(spec.key)])
+                             for spec in config.cameras}
+        self._camera_sizes = {spec.key: spec.size for spec in config.cameras}
+        self._perturber = None
+        self.perturbation_record: dict = {}  # what this episode's perturbations drew (empty: nominal)
+        if config.perturbations:
+            perturb.check_task(task, config.perturbations, tuple(spec.key for spec in config.cameras), config.instruction)
+            self._perturber = perturb.ScenePerturber(self._env, config.perturbations,
+                                                     {spec.key: spec.camera for spec in config.cameras},
+                                                     upload=self._renderer.upload_texture if self._renderer else None,
+                                                     target_geoms=self._target_geoms)
+        self._base_instruction = self.instruction
+        self._perturb_seed = 0
+
+        images = {spec.key: gym.spaces.Box(0, 255, (spec.size, spec.size, 3), np.uint8) for spec in config.cameras}
+        self.observation_space = gym.spaces.Dict({**images, "proprio": PROPRIO_SPACE})
+        self.image_convention = config.image_convention
+        self.action_space = _action_space(config, self.adapter)
+
+        self._step_index = 0
+        self._clipped = 0
+        self._last_obs: dict[str, np.ndarray] | None = None
+        self._phase_spec = PHASE_SPECS.get(task.name)
+        self._rest_height = 0.0  # the phase object's height at reset
+
+    def _make_robosuite(self, distractors: int):
+        """The robosuite env of the task (its class extended with `distractors` objects when asked for: extra objects
+        are part of the model, built in, placed at every reset); returns (env, the arm controller's config)."""
+        task, config = self.task, self.config
         robosuite = _import_robosuite()
         from robosuite.controllers import load_composite_controller_config
 
@@ -189,26 +248,21 @@ class RobosuiteEnv(gym.Env):
         )
         options.update(dict(task.robosuite_options))
         options.update(dict(config.robosuite_options))
-        distractors = perturb.find(config.perturbations, "distractors")
-        if distractors:  # extra objects are part of the model: built in, placed at every reset
+        if distractors:
             from robosuite.environments.base import REGISTERED_ENVS
 
-            cls = perturb.class_with_distractors(REGISTERED_ENVS[task.robosuite_env], distractors[0].level)
-            self._env = cls(**options)
+            env = class_with_distractors(REGISTERED_ENVS[task.robosuite_env], distractors)(**options)
         else:
-            self._env = robosuite.make(task.robosuite_env, **options)
-        arm = options["controller_configs"]["body_parts"]["right"]  # the user's controller if one was passed
-        self.adapter = config.action_adapter or ActionAdapterConfig(
-            position_max=float(arm["output_max"][0]), rotation_max=float(arm["output_max"][3])
-        )
-        sim = self._env.sim
-        self._renderer = SceneRenderer(sim, config.cameras, fast=config.fast_render) if config.cameras else None
+            env = robosuite.make(task.robosuite_env, **options)
+        return env, options["controller_configs"]["body_parts"]["right"]  # the user's controller if one was passed
 
-        model = sim.model
+    def _label_scene(self) -> None:
+        """Each geom's category (robot, gripper, target, goal, ...) and scene label, and the visual geoms of each
+        target prefix (group 1, whose centres average to the target's centre)."""
+        task, model = self.task, self._env.sim.model
         body_names = [model.body_id2name(i) or "" for i in range(model.nbody)]
         self._geom_category = geom_categories(model.geom_bodyid, body_names, model.body_parentid, task.targets,
                                               ROBOT_BODY_PREFIXES, GRIPPER_BODY_PREFIXES, task.goal)
-        # per target prefix: visual geoms (group 1) whose centres average to the target's centre
         target_geoms = []
         for prefix in task.targets:
             one = geom_categories(model.geom_bodyid, body_names, model.body_parentid, (prefix,), ())
@@ -218,44 +272,10 @@ class RobosuiteEnv(gym.Env):
             target_geoms.append(ids)
         self._target_geoms = tuple(target_geoms)
         objects = [obj.name for obj in getattr(self._env.model, "mujoco_objects", ())]
-        self._distractor_count = distractors[0].level if distractors else 0
         self._geom_label = scene_labels(
             self._geom_category, model.geom_bodyid, body_names, model.body_parentid,
             tuple(f"{name}_" for name in objects if not f"{name}_".startswith(task.targets)),
-            tuple(f"{perturb.DISTRACTOR_PREFIX}{i}_" for i in range(self._distractor_count)))
-        self._camera_fovy = {spec.key: float(model.cam_fovy[self._renderer.camera_id(spec.key)]) for spec in config.cameras}
-        self._camera_sizes = {spec.key: spec.size for spec in config.cameras}
-        self._perturber = None
-        self.perturbation_record: dict = {}  # what this episode's perturbations drew (empty: nominal)
-        if config.perturbations:
-            perturb.check_task(task, config.perturbations, tuple(spec.key for spec in config.cameras), config.instruction)
-            self._perturber = perturb.ScenePerturber(self._env, config.perturbations,
-                                                     {spec.key: spec.camera for spec in config.cameras},
-                                                     upload=self._renderer.upload_texture if self._renderer else None,
-                                                     target_geoms=self._target_geoms)
-        self._base_instruction = self.instruction
-        self._perturb_seed = 0
-
-        images = {spec.key: gym.spaces.Box(0, 255, (spec.size, spec.size, 3), np.uint8) for spec in config.cameras}
-        self.observation_space = gym.spaces.Dict({**images, "proprio": PROPRIO_SPACE})
-        self.image_convention = config.image_convention
-        if config.action_space == "robosuite":  # the controller's own input range
-            self.action_space = gym.spaces.Box(-1.0, 1.0, (7,), dtype=np.float32)
-        elif config.action_space == "libero":  # OSC input, gripper 1 open / 0 closed (envs.actions.libero_action)
-            self.action_space = gym.spaces.Box(np.array([-1.0] * 6 + [0.0], np.float32), np.ones(7, np.float32))
-        else:  # the range the adapter passes unclipped: +-position_max metres, about +-rotation_max radians, gripper [0, 1]
-            high = np.array([self.adapter.position_max] * 3 + [self.adapter.rotation_max] * 3 + [1.0], dtype=np.float32)
-            low = np.concatenate([-high[:6], [0.0]]).astype(np.float32)
-            self.action_space = gym.spaces.Box(low, high, dtype=np.float32)
-        if config.hold_gripper is not None:  # arm-only actions; the gripper is held at the given value
-            space = self.action_space
-            self.action_space = gym.spaces.Box(space.low[:6], space.high[:6], dtype=np.float32)
-
-        self._step_index = 0
-        self._clipped = 0
-        self._last_obs: dict[str, np.ndarray] | None = None
-        self._phase_spec = PHASE_SPECS.get(task.name)
-        self._rest_height = 0.0  # the phase object's height at reset
+            tuple(f"{DISTRACTOR_PREFIX}{i}_" for i in range(self._distractor_count)))
 
     # ---------------------------------------------------------------- gymnasium API
 
@@ -348,7 +368,7 @@ class RobosuiteEnv(gym.Env):
         """(k, 2) plane positions distractors keep clear of: the targets, every task object and placement goal."""
         points = [self.target_centres()[:, :2]]
         points += [pose[0][None, :2] for name, pose in self.object_poses().items()
-                   if not name.startswith(perturb.DISTRACTOR_PREFIX)]
+                   if not name.startswith(DISTRACTOR_PREFIX)]
         points += [goal[None, :2] for goal in self.placement_targets().values()]
         return np.concatenate(points, axis=0)
 

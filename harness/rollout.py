@@ -71,34 +71,14 @@ def rollout(
     while t < limit:
         start = time.perf_counter()
         decision = policy.step(observation, info.get("masks"))  # masks: used only at reliance steps
-        if not np.all(np.isfinite(decision.action)):  # MuJoCo would integrate NaN silently: the episode errors instead
-            raise FloatingPointError(f"step {t}: the policy's action is not finite ({np.asarray(decision.action).tolist()}); "
-                                     "the model's weights or dataset statistics hold NaN or inf")
+        _check_finite(t, decision.action)
         after_policy = time.perf_counter()
         next_observation, reward, terminated, truncated, next_info = env.step(decision.action)
         after_sim = time.perf_counter()
         success = bool(next_info.get("success", False))
         total_reward += float(reward)
-        record = StepRecord(
-            step=t,
-            frames={key: to_convention(observation[key], convention) for key in policy.image_sizes},
-            readout_attention=decision.readout_attention,
-            actions_predicted=decision.chunk,
-            action_executed=np.asarray(decision.action, dtype=np.float32),
-            reward=float(reward),
-            success=success,
-            masks=_upright_masks(info.get("masks"), convention),  # masks of `observation`, the frame the model saw
-            full_attention=decision.full_attention,
-            timings={"inference": decision.inference_seconds, "simulation": after_sim - after_policy},
-            inferred=decision.inferred,
-            tokens=upright_tokens(decision.tokens),
-            attribution=_upright_attribution(getattr(decision, "attribution", None), upright_tokens.flipped_keys,
-                                             convention),
-            policy_inputs=decision.inputs,
-            phase=info.get("phase"),
-            controls=getattr(decision, "controls", None),  # over keys, as readout_attention: the token map is flipped
-            reliance=getattr(decision, "reliance", None),  # scalars per camera and region: no orientation
-        )
+        record = _step_record(t, observation, info, decision, float(reward), success, after_sim - after_policy,
+                              policy.image_sizes, convention, upright_tokens)
         sink(record)
         end = time.perf_counter()
         totals["inference"] += decision.inference_seconds
@@ -122,6 +102,39 @@ def rollout(
         actions_clipped=int(info.get("action_clipped", 0)),
         timings=totals,
         phases=_phase_summary(names, seen_phases[:-1], seen_phases),
+    )
+
+
+def _check_finite(t: int, action) -> None:
+    """MuJoCo would integrate a NaN action silently: the episode errors instead (FloatingPointError, one line)."""
+    if not np.all(np.isfinite(action)):
+        raise FloatingPointError(f"step {t}: the policy's action is not finite ({np.asarray(action).tolist()}); "
+                                 "the model's weights or dataset statistics hold NaN or inf")
+
+
+def _step_record(t: int, observation: dict, info: dict, decision, reward: float, success: bool, simulation: float,
+                 image_keys, convention: str, upright_tokens: _UprightTokens) -> StepRecord:
+    """The record of step `t`: the frames the model saw (`observation`, upright) and their masks, what it decided,
+    what the env returned; the token maps and attributions turned upright as the frames are."""
+    return StepRecord(
+        step=t,
+        frames={key: to_convention(observation[key], convention) for key in image_keys},
+        readout_attention=decision.readout_attention,
+        actions_predicted=decision.chunk,
+        action_executed=np.asarray(decision.action, dtype=np.float32),
+        reward=reward,
+        success=success,
+        masks=_upright_masks(info.get("masks"), convention),  # masks of `observation`, the frame the model saw
+        full_attention=decision.full_attention,
+        timings={"inference": decision.inference_seconds, "simulation": simulation},
+        inferred=decision.inferred,
+        tokens=upright_tokens(decision.tokens),
+        attribution=_upright_attribution(getattr(decision, "attribution", None), upright_tokens.flipped_keys,
+                                         convention),
+        policy_inputs=decision.inputs,
+        phase=info.get("phase"),
+        controls=getattr(decision, "controls", None),  # over keys, as readout_attention: the token map is flipped
+        reliance=getattr(decision, "reliance", None),  # scalars per camera and region: no orientation
     )
 
 

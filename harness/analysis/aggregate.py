@@ -112,34 +112,9 @@ def episode_measures(
     selectors = metric_selectors(tokens)
     names = list(selectors)
     cam_names = sorted({name.split("/")[0] for name in masks})
-    static = np.zeros((keys, 1 + len(names) + len(cam_names)), np.float32)  # total | selectors | camera keys
-    static[:, 0] = 1.0
-    for i, name in enumerate(names):
-        static[selectors[name], 1 + i] = 1.0
-    cam_keys = {obs: camera_keys(tokens, obs) for obs in cam_names}  # (rows*cols,) key of each patch, row-major
-    for i, obs in enumerate(cam_names):
-        static[cam_keys[obs], 1 + len(names) + i] = 1.0
-    weights = np.zeros((steps, keys, len(masks)), np.float32)  # per step: coverage at the camera's current keys
-    valid = np.ones((steps, len(masks)), bool)
-    for j, name in enumerate(masks):
-        obs = name.split("/")[0]
-        frac = np.asarray(mask_fractions[name], np.float32).reshape(steps, -1)  # (steps, rows*cols)
-        if frac.shape[1] != cam_keys[obs].size:
-            raise ValueError(f"mask coverage {name} has {frac.shape[1]} patches but the token map has {cam_keys[obs].size}")
-        valid[:, j] = np.isfinite(frac).all(axis=1)
-        weights[:, cam_keys[obs], j] = np.where(np.isfinite(frac), frac, 0.0)
-
-    rows = layers * heads * readouts
-    sums = np.empty((steps, rows, static.shape[1]), np.float64)
-    inside = np.empty((steps, rows, len(masks)), np.float64)
-    xlogx = np.empty((steps, rows), np.float64)
-    for s0 in range(0, steps, chunk):  # chunks keep the float32 copy small (cache friendly, bounded memory)
-        block = attn[s0:s0 + chunk].reshape(-1, rows, keys)
-        x = block.astype(np.float32)
-        sums[s0:s0 + chunk] = x @ static
-        if masks:
-            inside[s0:s0 + chunk] = np.matmul(x, weights[s0:s0 + chunk])
-        xlogx[s0:s0 + chunk] = _row_xlogx(block)
+    static, cam_keys = _key_columns(tokens, selectors, cam_names)
+    weights, valid = _mask_weights(mask_fractions, masks, cam_keys, steps, keys)
+    sums, inside, xlogx = _row_sums(attn, static, weights, chunk)
 
     shape = (steps, layers, heads, readouts)
     sums = sums.reshape(*shape, -1)
@@ -159,19 +134,8 @@ def episode_measures(
     head["entropy"] = row_entropy.mean(axis=3)
     layer["entropy"] = row_entropy.mean(axis=(2, 3))
     for j, name in enumerate(masks):
-        obs = name.split("/")[0]
-        cam_h = sums[..., 1 + len(names) + cam_names.index(obs)].sum(axis=3)  # (steps, layers, heads) camera mass
-        in_h = inside[..., j].sum(axis=3)
-        mass_h = _ratio(in_h, cam_h)
-        mass_l = _ratio(in_h.sum(axis=2), cam_h.sum(axis=2))
-        mass_h[~valid[:, j]] = np.nan
-        mass_l[~valid[:, j]] = np.nan
-        head[f"mask_mass/{name}"] = mass_h
-        layer[f"mask_mass/{name}"] = mass_l
-        if name in mask_areas:
-            area = np.asarray(mask_areas[name], np.float64).reshape(steps)
-            head[f"mask_lift/{name}"] = _ratio(mass_h, area[:, None, None])
-            layer[f"mask_lift/{name}"] = _ratio(mass_l, area[:, None])
+        cam_h = sums[..., 1 + len(names) + cam_names.index(name.split("/")[0])].sum(axis=3)  # (steps, layers, heads)
+        _mask_measures(name, inside[..., j].sum(axis=3), cam_h, valid[:, j], mask_areas, layer, head)
     for name, stored in (stored_mask_mass or {}).items():  # older runs: head-mean mask mass only
         if name in masks or name.split("/")[0] not in cameras:
             continue
@@ -180,6 +144,74 @@ def episode_measures(
         if name in mask_areas:
             layer[f"mask_lift/{name}"] = _ratio(mass_l, np.asarray(mask_areas[name], np.float64).reshape(steps)[:, None])
     return EpisodeMeasures(layer=layer, head=head)
+
+
+def _key_columns(tokens: TokenMap, selectors: dict[str, np.ndarray], cam_names: list[str]
+                 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(keys, 1 + selectors + cameras) float32 columns: all ones | each selector's keys | each masked camera's keys,
+    and {camera: (rows*cols,) key of each patch, row-major}."""
+    keys = tokens.num_keys
+    static = np.zeros((keys, 1 + len(selectors) + len(cam_names)), np.float32)  # total | selectors | camera keys
+    static[:, 0] = 1.0
+    for i, name in enumerate(selectors):
+        static[selectors[name], 1 + i] = 1.0
+    cam_keys = {obs: camera_keys(tokens, obs) for obs in cam_names}  # (rows*cols,) key of each patch, row-major
+    for i, obs in enumerate(cam_names):
+        static[cam_keys[obs], 1 + len(selectors) + i] = 1.0
+    return static, cam_keys
+
+
+def _mask_weights(mask_fractions: dict[str, np.ndarray], masks: list[str], cam_keys: dict[str, np.ndarray], steps: int,
+                  keys: int) -> tuple[np.ndarray, np.ndarray]:
+    """((steps, keys, masks) float32 coverage of each mask at its camera's keys, 0 where unknown; (steps, masks) bool:
+    the step has the mask)."""
+    weights = np.zeros((steps, keys, len(masks)), np.float32)  # per step: coverage at the camera's current keys
+    valid = np.ones((steps, len(masks)), bool)
+    for j, name in enumerate(masks):
+        obs = name.split("/")[0]
+        frac = np.asarray(mask_fractions[name], np.float32).reshape(steps, -1)  # (steps, rows*cols)
+        if frac.shape[1] != cam_keys[obs].size:
+            raise ValueError(f"mask coverage {name} has {frac.shape[1]} patches but the token map has {cam_keys[obs].size}")
+        valid[:, j] = np.isfinite(frac).all(axis=1)
+        weights[:, cam_keys[obs], j] = np.where(np.isfinite(frac), frac, 0.0)
+    return weights, valid
+
+
+def _row_sums(attn: np.ndarray, static: np.ndarray, weights: np.ndarray, chunk: int
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per step and attention row (layers*heads*readouts): the sums over each column of `static` (steps, rows,
+    columns), the masses inside each mask (steps, rows, masks) and sum x log x (steps, rows), float64, a chunk of
+    steps at a time."""
+    steps, layers, heads, readouts, keys = attn.shape
+    rows = layers * heads * readouts
+    masks = weights.shape[2]
+    sums = np.empty((steps, rows, static.shape[1]), np.float64)
+    inside = np.empty((steps, rows, masks), np.float64)
+    xlogx = np.empty((steps, rows), np.float64)
+    for s0 in range(0, steps, chunk):  # chunks keep the float32 copy small (cache friendly, bounded memory)
+        block = attn[s0:s0 + chunk].reshape(-1, rows, keys)
+        x = block.astype(np.float32)
+        sums[s0:s0 + chunk] = x @ static
+        if masks:
+            inside[s0:s0 + chunk] = np.matmul(x, weights[s0:s0 + chunk])
+        xlogx[s0:s0 + chunk] = _row_xlogx(block)
+    return sums, inside, xlogx
+
+
+def _mask_measures(name: str, in_h: np.ndarray, cam_h: np.ndarray, valid: np.ndarray, mask_areas: dict,
+                   layer: dict, head: dict) -> None:
+    """Into `layer` and `head`: mask mass (the camera's attention inside mask `name`) and, given its area, mask lift
+    (mass over area, chance = 1); nan at steps without the mask. in_h, cam_h: (steps, layers, heads) masses."""
+    mass_h = _ratio(in_h, cam_h)
+    mass_l = _ratio(in_h.sum(axis=2), cam_h.sum(axis=2))
+    mass_h[~valid] = np.nan
+    mass_l[~valid] = np.nan
+    head[f"mask_mass/{name}"] = mass_h
+    layer[f"mask_mass/{name}"] = mass_l
+    if name in mask_areas:
+        area = np.asarray(mask_areas[name], np.float64).reshape(len(valid))
+        head[f"mask_lift/{name}"] = _ratio(mass_h, area[:, None, None])
+        layer[f"mask_lift/{name}"] = _ratio(mass_l, area[:, None])
 
 
 MEASURES = "measures/"  # attention.npz prefix of stored per-step measures: measures/layer/<metric>, measures/head/<metric>

@@ -269,32 +269,12 @@ def camera_faithfulness(
     orders = {name: ranking(m) for name, m in maps.items()}
     controls = [rng.permutation(n) for _ in range(random_orders)]
 
-    # one batch: full deletion; per ranking MoRF deletion and insertion at every k; LeRF per method (its first
-    # top-k points are the bottom-k); each distinct deleted set is filled and evaluated once
-    blocks: list[np.ndarray] = [np.ones((1, n), bool)]
-    for order in [*orders.values(), *controls]:
-        chosen = first_k(order, ks)
-        blocks += [chosen, ~chosen]
-    for order in orders.values():
-        blocks.append(first_k(order[::-1], ks))
-    deleted = np.concatenate(blocks)
-    distinct, inverse = np.unique(deleted, axis=0, return_inverse=True)
+    deleted = _deleted_sets(list(orders.values()), controls, ks, n)
+    distinct, inverse = np.unique(deleted, axis=0, return_inverse=True)  # each distinct set filled, evaluated once
     noise_seed = [*np.atleast_1d(np.asarray(seed, np.int64)).tolist(), 7]
     filled = delete_patches(image, distinct.reshape(-1, rows, cols), fill, seed=noise_seed)
     changes = action_change(evaluate(filled), reference)[np.asarray(inverse).ravel()]
-
-    change_all = float(changes[0])
-    at = 1
-    curves = []
-    for _ in range(len(orders) + len(controls)):
-        d = changes[at:at + len(ks)]
-        i = changes[at + len(ks):at + 2 * len(ks)]
-        curves.append((d, i))
-        at += 2 * len(ks)
-    lerfs = []
-    for _ in orders:
-        lerfs.append(changes[at:at + len(ks)])
-        at += len(ks)
+    change_all, curves, lerfs = _split_changes(changes, len(orders), len(controls), len(ks))
 
     valid = change_all >= MIN_CHANGE
     area = lambda c: float(auc(fractions, c)) if valid else np.nan  # noqa: E731
@@ -327,6 +307,35 @@ def camera_faithfulness(
             row[f"bottom_k/{k}"] = float(lerf[position[k]])
         out.append(row)
     return out
+
+
+def _deleted_sets(orders: list[np.ndarray], controls: list[np.ndarray], ks: np.ndarray, n: int) -> np.ndarray:
+    """(sets, n) bool, the deleted patches of one batch: full deletion; per ranking (methods, then random controls)
+    MoRF deletion and insertion at every k; LeRF per method (its first top-k points are the bottom-k)."""
+    blocks: list[np.ndarray] = [np.ones((1, n), bool)]
+    for order in [*orders, *controls]:
+        chosen = first_k(order, ks)
+        blocks += [chosen, ~chosen]
+    for order in orders:
+        blocks.append(first_k(order[::-1], ks))
+    return np.concatenate(blocks)
+
+
+def _split_changes(changes: np.ndarray, methods: int, controls: int, points: int
+                   ) -> tuple[float, list[tuple[np.ndarray, np.ndarray]], list[np.ndarray]]:
+    """The batch's action changes (in `_deleted_sets` order) -> (full deletion's change, [(deletion curve, insertion
+    curve)] per method then per control, [LeRF curve] per method)."""
+    change_all = float(changes[0])
+    at = 1
+    curves = []
+    for _ in range(methods + controls):
+        curves.append((changes[at:at + points], changes[at + points:at + 2 * points]))
+        at += 2 * points
+    lerfs = []
+    for _ in range(methods):
+        lerfs.append(changes[at:at + points])
+        at += points
+    return change_all, curves, lerfs
 
 
 def _ks_with(n: int, topk: Sequence[int], max_points: int) -> np.ndarray:

@@ -58,7 +58,7 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from harness.analysis.faithfulness import FILLS, MIN_CHANGE, action_change, baseline_image, impute, impute_factor
-from harness.analysis.robustness import CAMERA, START_STEPS
+from harness.analysis.robustness_measures import CAMERA, START_STEPS
 
 DEFAULT_FILL = "impute"
 PATCH = 16  # pixels per patch side when no patch grid is given (Octo's image stems)

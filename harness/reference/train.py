@@ -1,8 +1,8 @@
 """Train the reference policy: a small Octo-architecture model, from scratch, on the scripted demonstrations.
 
-The forward pass is the runtime's own Flax modules (`OctoTransformer`, `pool_readouts`, `ScoreNetwork`),
-so parameter names are Octo's and `harness.octo.load_pretrained(folder)` reads the result. Heads and losses
-are Octo's, over the valid (not past the episode's end) entries of each action chunk:
+The forward pass (harness.reference.train_step) is the runtime's own Flax modules (`OctoTransformer`,
+`pool_readouts`, `ScoreNetwork`), so parameter names are Octo's and `harness.octo.load_pretrained(folder)` reads the
+result. Heads and losses are Octo's, over the valid (not past the episode's end) entries of each action chunk:
   "l1" (default, L1ActionHead as in Octo's finetuning example): mean |prediction - normalised action|;
   "diffusion" (DiffusionActionHead.loss): t ~ U{0..steps-1}, x_t = sqrt(a_t) x_0 + sqrt(1 - a_t) eps, MSE
   between the predicted and the true eps. At this CPU budget (2000 steps) the diffusion head did not
@@ -36,14 +36,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from flax import serialization, traverse_util
+from flax import serialization
 
 from harness.octo.config import OctoConfig
-from harness.octo.diffusion import make_schedule
-from harness.octo.config import DiffusionHeadConfig
-from harness.octo.heads import ContinuousHead, ScoreNetwork, pool_readouts
-from harness.octo.network import LanguageTokenizer, OctoTransformer, init_params
+from harness.octo.network import LanguageTokenizer, init_params
 from harness.octo.t5 import T5Config
+from harness.reference.train_step import make_train_step
 from harness.reference.warm_start import warm_start
 
 log = logging.getLogger(__name__)
@@ -268,69 +266,7 @@ def build_dataset(demos: dict[str, dict[str, np.ndarray]], horizon: int,
                    weight)
 
 
-# ----------------------------------------------------------------------------- model maths
-
-
-def _shift(images: jax.Array, offsets: jax.Array, pad: int) -> jax.Array:
-    """Random-shift augmentation: (b, H, W, 3) uint8, (b, 2) int offsets in [0, 2 pad] -> (b, H, W, 3)."""
-    h, w = images.shape[1:3]
-    padded = jnp.pad(images, ((0, 0), (pad, pad), (pad, pad), (0, 0)), mode="edge")
-    crop = lambda img, o: jax.lax.dynamic_slice(img, (o[0], o[1], 0), (h, w, 3))  # noqa: E731
-    return jax.vmap(crop)(padded, offsets)
-
-
-def readout_embedding(params: dict, config: OctoConfig, batch: dict, encodings: jax.Array) -> jax.Array:
-    """The action head's input (b, 1, D): the transformer's readout tokens, pooled as the head does.
-
-    batch: image_<key> (b, 1, S, S, 3) uint8, proprio (b, 1, 8), instruction (b,) int32 index into
-    encodings (k, tokens, d_t5); params without the frozen T5 encoder.
-    """
-    head = config.action_head
-    b = batch["proprio"].shape[0]
-    obs = {k: v for k, v in batch.items() if k.startswith("image_") or k == "proprio"}
-    ones = jnp.ones((b, 1), bool)
-    obs["pad_mask_dict"] = {k: ones for k in obs}
-    task = {"pad_mask_dict": {"language_instruction": jnp.ones((b,), bool)}}
-    encoding = encodings[batch["instruction"]]
-    out = OctoTransformer(config, capture_rows=()).apply({"params": params["octo_transformer"]}, obs, task, encoding, ones)
-    tokens, mask = out["groups"][head.readout_key]
-    return pool_readouts(params["heads_action"], head, tokens, mask)  # (b, 1, D)
-
-
-def _chunk_mask(batch: dict, head) -> jax.Array:
-    """(b, horizon, dim) float32: 1 for chunk entries inside the episode."""
-    b = batch["action_mask"].shape[0]
-    return jnp.broadcast_to(batch["action_mask"][:, :, None], (b, head.action_horizon, head.action_dim)).astype(jnp.float32)
-
-
-def l1_loss(params: dict, config: OctoConfig, batch: dict, encodings: jax.Array, rng: jax.Array,
-            alpha_hats: jax.Array | None = None) -> jax.Array:
-    """Octo's L1ActionHead loss: mean |predicted - normalised action| over valid chunk entries (rng unused)."""
-    head = config.action_head
-    embedding = readout_embedding(params, config, batch, encodings)
-    predicted = ContinuousHead(head).apply({"params": {"mean_proj": params["heads_action"]["mean_proj"]}}, embedding)[:, 0]
-    target = jnp.clip(batch["actions"], -head.max_action, head.max_action)  # (b, horizon, 7)
-    mask = _chunk_mask(batch, head)
-    return jnp.sum(jnp.abs(predicted - target) * mask) / jnp.maximum(jnp.sum(mask), 1)
-
-
-def diffusion_loss(params: dict, config: OctoConfig, batch: dict, encodings: jax.Array, rng: jax.Array,
-                   alpha_hats: jax.Array) -> jax.Array:
-    """Octo's DiffusionActionHead loss (eps MSE over valid chunk entries); batch as `readout_embedding` plus
-    actions (b, horizon, 7) normalised and action_mask (b, horizon) bool."""
-    head = config.action_head
-    b = batch["actions"].shape[0]
-    embedding = readout_embedding(params, config, batch, encodings)
-    actions = jnp.clip(batch["actions"], -head.max_action, head.max_action).reshape(b, 1, -1)  # (b, 1, horizon*7)
-    t_key, n_key = jax.random.split(rng)
-    t = jax.random.randint(t_key, (b, 1, 1), 0, head.diffusion_steps)
-    noise = jax.random.normal(n_key, actions.shape)
-    alpha_hat = alpha_hats[t]
-    noisy = jnp.sqrt(alpha_hat) * actions + jnp.sqrt(1 - alpha_hat) * noise
-    eps = ScoreNetwork(head).apply({"params": params["heads_action"]["diffusion_model"]}, embedding, noisy,
-                                   t.astype(jnp.float32))
-    mask = _chunk_mask(batch, head).reshape(b, 1, -1)
-    return jnp.sum(jnp.square(eps - noise) * mask) / jnp.maximum(jnp.sum(mask), 1)
+# ----------------------------------------------------------------------------- parameters
 
 
 def split_t5(params: dict, language: str = "language") -> tuple[dict, dict]:
@@ -458,27 +394,7 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     log.info("reference model: %d parameters (%.1f MB float32), %d frames, vocab %d", n_params, n_params * 4 / 2**20,
              len(data.actions), vocab)
 
-    from harness.octo.text import load_text_tokenizer  # the runtime's own padding and truncation
-
-    write_static_files(out_dir, config_dict, tokenizer, t5_dict, data.statistics, {})
-    text = load_text_tokenizer(str(out_dir / TOKENIZER_FOLDER / "tokenizer.json"), LANGUAGE_TOKENS)
-    encoded = text.encode(texts)
-    encodings = LanguageTokenizer(t5).apply({"params": t5_params}, jnp.asarray(encoded["input_ids"]),
-                                            jnp.asarray(encoded["attention_mask"]))  # (k, tokens, d_t5)
-    example_batch = {
-        "observation": {
-            **{k: np.zeros((1, 1, s, s, 3), np.uint8) for k, s in sizes.items()},
-            "proprio": np.zeros((1, 1, PROPRIO_DIM), np.float32),
-            "timestep_pad_mask": np.ones((1, 1), bool),
-            "pad_mask_dict": {**{k: np.ones((1, 1), bool) for k in sizes}, "proprio": np.ones((1, 1), bool)},
-        },
-        "task": {
-            "language_instruction": {k: np.asarray(v[:1]) for k, v in encoded.items()},
-            "pad_mask_dict": {"language_instruction": np.ones((1,), bool)},
-        },
-        "action": np.zeros((1, 1, cfg.action_horizon, ACTION_DIM), np.float32),
-    }
-    write_static_files(out_dir, config_dict, tokenizer, t5_dict, data.statistics, example_batch)
+    encodings = _write_model_files(out_dir, cfg, config_dict, tokenizer, t5, t5_dict, t5_params, data.statistics, texts)
     (out_dir / "harness.toml").write_text(conventions if conventions is not None else conventions_toml(cfg))
     for name, content in (extra_files or {}).items():
         (out_dir / name).write_text(content)
@@ -489,43 +405,8 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     optimizer = optax.chain(optax.clip_by_global_norm(cfg.grad_clip),
                             optax.adamw(schedule, weight_decay=cfg.weight_decay))
     opt_state = optimizer.init(trainable)
-    diffusion = isinstance(config.action_head, DiffusionHeadConfig)
-    alpha_hats = make_schedule(config.action_head.diffusion_steps).alpha_hats if diffusion else None
-    loss_fn = diffusion_loss if diffusion else l1_loss
-
-    @jax.jit
-    def train_step(trainable, opt_state, batch, rng):
-        aug_key, loss_key = jax.random.split(rng)
-        batch = dict(batch)
-        for i, k in enumerate(sizes):
-            offsets = jax.random.randint(jax.random.fold_in(aug_key, i), (batch[k].shape[0], 2), 0, 2 * cfg.shift_pixels + 1)
-            batch[k] = _shift(batch[k][:, 0], offsets, cfg.shift_pixels)[:, None]
-        loss, grads = jax.value_and_grad(loss_fn)(trainable, config, batch, encodings, loss_key, alpha_hats)
-        updates, opt_state = optimizer.update(grads, opt_state, trainable)
-        return optax.apply_updates(trainable, updates), opt_state, loss
-
-    rng = np.random.default_rng(cfg.seed)
-    by_task = [np.flatnonzero(data.task == i) for i in range(len(tasks))]
-
-    weights = dict(cfg.task_weights)
-    p_task = np.array([weights.get(t, 1.0) for t in tasks], np.float64)
-    p_task /= p_task.sum()
-
-    draw = frame_drawer(by_task, data.weight)
-
-    def sample_batch():
-        task = rng.choice(len(tasks), cfg.batch_size, p=p_task)
-        idx = draw(task, rng)
-        phrase = (np.where(rng.random(cfg.batch_size) < cfg.paraphrase_probability,
-                           rng.integers(1, per_task, cfg.batch_size), 0) if per_task > 1
-                  else np.zeros(cfg.batch_size, np.int64))
-        return {
-            **{k: data.images[k][idx][:, None] for k in sizes},
-            "proprio": data.proprio[idx][:, None],
-            "actions": data.actions[idx],
-            "action_mask": data.action_mask[idx],
-            "instruction": (data.task[idx] * per_task + phrase).astype(np.int32),
-        }
+    train_step = make_train_step(config, optimizer, encodings, tuple(sizes), cfg.shift_pixels)
+    sample_batch = _batch_sampler(data, tasks, per_task, cfg)
 
     rows, window, t0 = [], [], time.perf_counter()
     for step in range(1, cfg.steps + 1):
@@ -549,3 +430,64 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
                "warm_start": warm}
     (out_dir / "training_summary.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary
+
+
+def _write_model_files(out_dir: Path, cfg: TrainConfig, config_dict: dict, tokenizer, t5: T5Config, t5_dict: dict,
+                       t5_params: dict, statistics: dict, texts: list[str]) -> jax.Array:
+    """The checkpoint's files but its parameters (config.json, dataset statistics, tokenizer, T5 config, example
+    batch); returns the frozen T5's encodings of `texts` (k, tokens, d_t5), tokenised by the runtime's own tokenizer
+    read back from the folder (its padding and truncation)."""
+    from harness.octo.text import load_text_tokenizer
+
+    write_static_files(out_dir, config_dict, tokenizer, t5_dict, statistics, {})
+    text = load_text_tokenizer(str(out_dir / TOKENIZER_FOLDER / "tokenizer.json"), LANGUAGE_TOKENS)
+    encoded = text.encode(texts)
+    encodings = LanguageTokenizer(t5).apply({"params": t5_params}, jnp.asarray(encoded["input_ids"]),
+                                            jnp.asarray(encoded["attention_mask"]))  # (k, tokens, d_t5)
+    sizes = dict(cfg.image_sizes)
+    example_batch = {
+        "observation": {
+            **{k: np.zeros((1, 1, s, s, 3), np.uint8) for k, s in sizes.items()},
+            "proprio": np.zeros((1, 1, PROPRIO_DIM), np.float32),
+            "timestep_pad_mask": np.ones((1, 1), bool),
+            "pad_mask_dict": {**{k: np.ones((1, 1), bool) for k in sizes}, "proprio": np.ones((1, 1), bool)},
+        },
+        "task": {
+            "language_instruction": {k: np.asarray(v[:1]) for k, v in encoded.items()},
+            "pad_mask_dict": {"language_instruction": np.ones((1,), bool)},
+        },
+        "action": np.zeros((1, 1, cfg.action_horizon, ACTION_DIM), np.float32),
+    }
+    write_static_files(out_dir, config_dict, tokenizer, t5_dict, statistics, example_batch)
+    return encodings
+
+
+def _batch_sampler(data: Dataset, tasks: list[str], per_task: int, cfg: TrainConfig):
+    """`sample_batch() -> batch` drawn from one generator seeded with `cfg.seed`: tasks in `cfg.task_weights`'
+    proportions, frames within a task by `frame_drawer`, a paraphrase of the instruction with
+    `cfg.paraphrase_probability`."""
+    rng = np.random.default_rng(cfg.seed)
+    by_task = [np.flatnonzero(data.task == i) for i in range(len(tasks))]
+
+    weights = dict(cfg.task_weights)
+    p_task = np.array([weights.get(t, 1.0) for t in tasks], np.float64)
+    p_task /= p_task.sum()
+
+    draw = frame_drawer(by_task, data.weight)
+    image_keys = [k for k, _ in cfg.image_sizes]
+
+    def sample_batch():
+        task = rng.choice(len(tasks), cfg.batch_size, p=p_task)
+        idx = draw(task, rng)
+        phrase = (np.where(rng.random(cfg.batch_size) < cfg.paraphrase_probability,
+                           rng.integers(1, per_task, cfg.batch_size), 0) if per_task > 1
+                  else np.zeros(cfg.batch_size, np.int64))
+        return {
+            **{k: data.images[k][idx][:, None] for k in image_keys},
+            "proprio": data.proprio[idx][:, None],
+            "actions": data.actions[idx],
+            "action_mask": data.action_mask[idx],
+            "instruction": (data.task[idx] * per_task + phrase).astype(np.int32),
+        }
+
+    return sample_batch

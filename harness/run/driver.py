@@ -209,6 +209,35 @@ def execute(
     ("statistics", outside the protocol and its hash), so a resume writes them as the run began; None: the recorded
     one, else wilson. A different one for a run that records its own is refused (one line).
     """
+    protocol, out, name, goal_images, fingerprint_details = _checked_inputs(protocol, out, run_name, ci_method, viewer)
+    store = RunStore(out / name)
+    jobs = protocol.jobs()
+    created = not store.dir.exists()
+    with store:
+        try:
+            opened = _open_run(store, protocol, jobs, name, goal_images, fingerprint_details, overwrite=overwrite,
+                               retry_failed=retry_failed, model=model, ci_method=ci_method)
+        except BaseException:
+            if created and not (store.dir / MANIFEST).exists():  # a check failed: leave no empty run folder behind
+                shutil.rmtree(store.dir, ignore_errors=True)
+            raise
+        if len(opened.pending) < len(jobs):
+            log.info("resuming run %s: %d of %d episodes already finished", name, len(jobs) - len(opened.pending),
+                     len(jobs))
+        context = EpisodeContext(protocol=protocol, run_dir=str(store.dir.resolve()), run=name,
+                                 model=opened.manifest["model"], goals=opened.goals, viewer=viewer)
+        status = _run_pending(store, protocol, jobs, opened, context, executor, on_step, progress)
+        rows = opened.rows
+        ordered = tuple(rows[j.key] for j in jobs if j.key in rows)
+        return RunSummary(store.dir, ordered, opened.manifest, status,
+                          statistics(ordered, protocol.tasks, method=opened.ci_method),
+                          skipped=len(jobs) - len(opened.pending))
+
+
+def _checked_inputs(protocol: Protocol, out: str | Path, run_name: str | None, ci_method: str | None,
+                    viewer: str | None) -> tuple[Protocol, Path, str, dict | None, dict]:
+    """The checks that need no run folder and no model, in order, then the fingerprints; returns (protocol with its
+    model and goal fingerprints, destination, run name, decoded goal images, the model fingerprint's details)."""
     if ci_method not in (None, *CI_METHODS):
         raise ValueError(f"ci_method must be one of {', '.join(CI_METHODS)}, got {ci_method!r}")
     checks.check_environment()
@@ -226,128 +255,162 @@ def execute(
     protocol = protocol.replace(model_fingerprint=fingerprint, goal_fingerprint=goals_fp)
     goal_images = checks.decode_goal_images(protocol.goal_images) if protocol.goal_images else None
     name = checks.check_run_name(run_name) if run_name is not None else default_run_name(protocol)
-    store = RunStore(out / name)
-    jobs = protocol.jobs()
+    return protocol, out, name, goal_images, fingerprint_details
+
+
+@dataclass
+class _OpenedRun:
+    """A run folder past its checks: its manifest (recorded or just written), its rows (by job key), the jobs that
+    stand, the jobs left to run, the model and goal images they need, the success interval method and the platform."""
+    manifest: dict
+    rows: dict
+    done: set
+    pending: list
+    model: object
+    goals: dict | None
+    ci_method: str
+    platform_fp: str
+
+
+def _open_run(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], name: str, goal_images: dict | None,
+              fingerprint_details: dict, *, overwrite: bool, retry_failed: bool, model, ci_method: str | None
+              ) -> _OpenedRun:
+    """Inside the store's lock: compare with what the folder holds, load the model if any job is left (or the run is
+    new), check it against the protocol and the first env, write a new run's manifest and clear leftovers."""
     protocol_dict = protocol.to_dict()
-    created = not store.dir.exists()
-    with store:
+    manifest = _recorded_manifest(store, protocol, protocol_dict, overwrite)
+    ci_method = _recorded_ci_method(store, manifest, ci_method)
+    platform_now = platform_info(libero=libero_platform(protocol.tasks))
+    platform_fp = platform_fingerprint(platform_now)
+    if manifest is not None and manifest.get("platform_fingerprint") not in (None, platform_fp):
+        log.warning("resuming run %s on another platform (differs: %s); its episodes record where they ran",
+                    name, ", ".join(platform_differences(manifest.get("platform"), platform_now)) or "unknown")
+    rows = store.load_rows({j.key: j.seed for j in jobs}) if manifest is not None else {}
+    if manifest is not None and manifest.get("run") != name:  # a copied or renamed run folder
+        rows = _rename_run(store, manifest, rows, name)
+        manifest = store.read_manifest()
+    done = _verified(store, rows, retry_failed, manifest)
+    pending = [j for j in jobs if j.key not in done]
+    goals = None
+    if model is None and (pending or manifest is None):  # a finished run needs no model
+        from harness.octo import load_pretrained
+
+        log.info("loading %s", protocol.model)
+        model = load_pretrained(protocol.model, text_tokenizer=protocol.text_tokenizer)
+        interrupts.check()  # Ctrl-C while loading, its KeyboardInterrupt swallowed by a finaliser
+    if model is not None:
+        task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)
+        if pending:
+            _check_env(protocol, model, pending[0].task)
+    if overwrite:
+        store.clear()  # only now: every check has passed
+    if manifest is None:
+        manifest = _new_manifest(protocol, protocol_dict, jobs, name, _model_info(model, dataset_key, fingerprint_details),
+                                 task_inputs, platform_now, platform_fp, ci_method)
+        store.write_manifest(manifest)
+    for line in _default_lines(protocol):
+        log.info("%s", line)
+    store.remove_temporaries()
+    store.remove_incomplete(protocol.tasks, keep=done)
+    return _OpenedRun(manifest, rows, done, pending, model, goals, ci_method, platform_fp)
+
+
+def _recorded_manifest(store: RunStore, protocol: Protocol, protocol_dict: dict, overwrite: bool) -> dict | None:
+    """The manifest the run folder holds (None for a new run, or with `overwrite`); refuses a folder that is not a
+    run, and a run of another protocol (ProtocolMismatchError naming the differing fields)."""
+    foreign = store.foreign_content(protocol.tasks)
+    if foreign:
+        raise ValueError(f"{store.dir} exists and is not an octo-harness run (holds {', '.join(foreign[:3])}); "
+                         "choose another --run-name")
+    manifest = None if overwrite else store.read_manifest()
+    if manifest is not None:
+        # through Protocol, so a field added since the run started compares at its default
+        recorded = protocol_from_manifest(manifest, store.dir / MANIFEST).to_dict()
+        differs = diff(recorded, protocol_dict)
+        if differs:
+            raise ProtocolMismatchError(
+                f"run {store.dir} was started with a different protocol (differs: {', '.join(differs)}); "
+                "run the same command to resume it, --overwrite to start it afresh, or choose another --run-name")
+    return manifest
+
+
+def _recorded_ci_method(store: RunStore, manifest: dict | None, ci_method: str | None) -> str:
+    """The success interval method: the one asked for, else the run's recorded one, else wilson; a different one than
+    the run records is refused."""
+    recorded_method = ((manifest or {}).get("statistics") or {}).get("ci_method")
+    if ci_method is not None and recorded_method is not None and ci_method != recorded_method:
+        raise ProtocolMismatchError(
+            f"run {store.dir} writes its success intervals with {recorded_method} (manifest.json statistics."
+            f"ci_method); drop --ci-method or pass --ci-method {recorded_method} to resume it, --overwrite to "
+            "start it afresh")
+    return ci_method or recorded_method or "wilson"
+
+
+def _new_manifest(protocol: Protocol, protocol_dict: dict, jobs: list[EpisodeJob], name: str, model_info: dict,
+                  task_inputs: list[str], platform_now: dict, platform_fp: str, ci_method: str) -> dict:
+    """manifest.json of a new run: its protocol and jobs, the model, where and with what it runs."""
+    return {
+        "format": FORMAT, "run": name, "created": now_utc(), "protocol": protocol_dict,
+        "protocol_hash": protocol.hash(), "jobs": [[j.task, j.episode, j.seed] for j in jobs],
+        "model": model_info, "task_inputs": task_inputs,
+        "goal_images": protocol.goal_images, "git_commit": _git_commit(),
+        "versions": {"jax": platform_now["jax"]["version"], **platform_now["versions"]},
+        "platform": platform_now, "platform_fingerprint": platform_fp,
+        "measures_version": MEASURES_VERSION,
+        # where each env convention came from, per task family (flag, checkpoint, default:<family>)
+        **({"conventions": protocol.convention_sources} if protocol.convention_sources else {}),
+        # what the derived files' statistics use: not part of the protocol (the episodes are the same)
+        "statistics": {"ci_method": ci_method, "confidence": 0.95},
+    }
+
+
+def _run_pending(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], opened: _OpenedRun,
+                 context: EpisodeContext, executor: ExecutorFactory | None, on_step: StepCallback | None,
+                 progress: bool) -> str:
+    """The executor loop: each finished row is appended and the derived files rewritten, inside the signal guard's
+    critical sections; returns "complete" or "interrupted" (then leftovers are removed). `opened.rows` and
+    `opened.done` grow with the rows."""
+    manifest, rows, done, method = opened.manifest, opened.rows, opened.done, opened.ci_method
+    status = "interrupted"
+    bar = Progress(len(jobs), done=len(done), successes=sum(rows[k].status == "ok" and bool(rows[k].success)
+                                                            for k in done)) if progress else None
+
+    def step(job, t, record):
+        if bar is not None:
+            bar.step(job, t, record)
+        if on_step is not None:
+            on_step(job, t, record)
+
+    guard = _SignalGuard()
+    with guard.installed():
+        runner = None
         try:
-            foreign = store.foreign_content(protocol.tasks)
-            if foreign:
-                raise ValueError(f"{store.dir} exists and is not an octo-harness run (holds {', '.join(foreign[:3])}); "
-                                 "choose another --run-name")
-            manifest = None if overwrite else store.read_manifest()
-            if manifest is not None:
-                # through Protocol, so a field added since the run started compares at its default
-                recorded = protocol_from_manifest(manifest, store.dir / MANIFEST).to_dict()
-                differs = diff(recorded, protocol_dict)
-                if differs:
-                    raise ProtocolMismatchError(
-                        f"run {store.dir} was started with a different protocol (differs: {', '.join(differs)}); "
-                        "run the same command to resume it, --overwrite to start it afresh, or choose another --run-name")
-
-            recorded_method = ((manifest or {}).get("statistics") or {}).get("ci_method")
-            if ci_method is not None and recorded_method is not None and ci_method != recorded_method:
-                raise ProtocolMismatchError(
-                    f"run {store.dir} writes its success intervals with {recorded_method} (manifest.json statistics."
-                    f"ci_method); drop --ci-method or pass --ci-method {recorded_method} to resume it, --overwrite to "
-                    "start it afresh")
-            ci_method = ci_method or recorded_method or "wilson"
-
-            platform_now = platform_info(libero=libero_platform(protocol.tasks))
-            platform_fp = platform_fingerprint(platform_now)
-            if manifest is not None and manifest.get("platform_fingerprint") not in (None, platform_fp):
-                log.warning("resuming run %s on another platform (differs: %s); its episodes record where they ran",
-                            name, ", ".join(platform_differences(manifest.get("platform"), platform_now)) or "unknown")
-            rows = store.load_rows({j.key: j.seed for j in jobs}) if manifest is not None else {}
-            if manifest is not None and manifest.get("run") != name:  # a copied or renamed run folder
-                rows = _rename_run(store, manifest, rows, name)
-                manifest = store.read_manifest()
-            done = _verified(store, rows, retry_failed, manifest)
-            pending = [j for j in jobs if j.key not in done]
-            goals = None
-            if model is None and (pending or manifest is None):  # a finished run needs no model
-                from harness.octo import load_pretrained
-
-                log.info("loading %s", protocol.model)
-                model = load_pretrained(protocol.model, text_tokenizer=protocol.text_tokenizer)
-                interrupts.check()  # Ctrl-C while loading, its KeyboardInterrupt swallowed by a finaliser
-            if model is not None:
-                task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)
-                if pending:
-                    _check_env(protocol, model, pending[0].task)
-            if overwrite:
-                store.clear()  # only now: every check has passed
-            if manifest is None:
-                manifest = {
-                    "format": FORMAT, "run": name, "created": now_utc(), "protocol": protocol_dict,
-                    "protocol_hash": protocol.hash(), "jobs": [[j.task, j.episode, j.seed] for j in jobs],
-                    "model": _model_info(model, dataset_key, fingerprint_details), "task_inputs": task_inputs,
-                    "goal_images": protocol.goal_images, "git_commit": _git_commit(),
-                    "versions": {"jax": platform_now["jax"]["version"], **platform_now["versions"]},
-                    "platform": platform_now, "platform_fingerprint": platform_fp,
-                    "measures_version": MEASURES_VERSION,
-                    # where each env convention came from, per task family (flag, checkpoint, default:<family>)
-                    **({"conventions": protocol.convention_sources} if protocol.convention_sources else {}),
-                    # what the derived files' statistics use: not part of the protocol (the episodes are the same)
-                    "statistics": {"ci_method": ci_method, "confidence": 0.95},
-                }
-                store.write_manifest(manifest)
-            for line in _default_lines(protocol):
-                log.info("%s", line)
-            store.remove_temporaries()
-            store.remove_incomplete(protocol.tasks, keep=done)
-        except BaseException:
-            if created and not (store.dir / MANIFEST).exists():  # a check failed: leave no empty run folder behind
-                shutil.rmtree(store.dir, ignore_errors=True)
-            raise
-        if len(pending) < len(jobs):
-            log.info("resuming run %s: %d of %d episodes already finished", name, len(jobs) - len(pending), len(jobs))
-
-        context = EpisodeContext(protocol=protocol, run_dir=str(store.dir.resolve()), run=name, model=manifest["model"],
-                                 goals=goals, viewer=viewer)
-        status = "interrupted"
-        bar = Progress(len(jobs), done=len(done), successes=sum(rows[k].status == "ok" and bool(rows[k].success)
-                                                                for k in done)) if progress else None
-
-        def step(job, t, record):
-            if bar is not None:
-                bar.step(job, t, record)
-            if on_step is not None:
-                on_step(job, t, record)
-
-        guard = _SignalGuard()
-        with guard.installed():
-            runner = None
-            try:
+            with guard.critical():
+                _derive(store, manifest, jobs, rows, "running", method)
+                runner = (executor or SequentialExecutor)(context, opened.model) if opened.pending else None
+            for row in (runner.run(opened.pending, on_step=step) if runner is not None else ()):
+                row = dataclasses.replace(row, platform=opened.platform_fp)  # where this episode's numbers came from
                 with guard.critical():
-                    _derive(store, manifest, jobs, rows, "running", ci_method)
-                    runner = (executor or SequentialExecutor)(context, model) if pending else None
-                for row in (runner.run(pending, on_step=step) if runner is not None else ()):
-                    row = dataclasses.replace(row, platform=platform_fp)  # where this episode's numbers came from
-                    with guard.critical():
-                        store.append(row)
-                        rows[row.key] = row
-                        done.add(row.key)
-                        _derive(store, manifest, jobs, rows, "running", ci_method)
-                    if bar is not None:
-                        bar.episode(row)
-                    interrupts.check()
-                status = "complete" if all(j.key in done for j in jobs) else "interrupted"
-            finally:
+                    store.append(row)
+                    rows[row.key] = row
+                    done.add(row.key)
+                    _derive(store, manifest, jobs, rows, "running", method)
                 if bar is not None:
-                    bar.close()
-                try:
-                    if runner is not None:
-                        runner.close()
-                finally:
-                    if status != "complete":  # nothing half-written stays behind
-                        store.remove_temporaries()
-                        store.remove_incomplete(protocol.tasks, keep=done)
-                    _derive(store, manifest, jobs, rows, status, ci_method)
-        ordered = tuple(rows[j.key] for j in jobs if j.key in rows)
-        return RunSummary(store.dir, ordered, manifest, status, statistics(ordered, protocol.tasks, method=ci_method),
-                          skipped=len(jobs) - len(pending))
+                    bar.episode(row)
+                interrupts.check()
+            status = "complete" if all(j.key in done for j in jobs) else "interrupted"
+        finally:
+            if bar is not None:
+                bar.close()
+            try:
+                if runner is not None:
+                    runner.close()
+            finally:
+                if status != "complete":  # nothing half-written stays behind
+                    store.remove_temporaries()
+                    store.remove_incomplete(protocol.tasks, keep=done)
+                _derive(store, manifest, jobs, rows, status, method)
+    return status
 
 
 def _verified(store: RunStore, rows: dict, retry_failed: bool, manifest: dict | None = None) -> set[tuple[str, int]]:

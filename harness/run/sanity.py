@@ -79,20 +79,16 @@ def _steps(runs: list[Path], every: int):
 
 def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions = SanityOptions(),
                model_source: str | None = None, loaded_model=None) -> dict:
+    """Check the attribution methods on the runs' recorded inputs (see the module docstring); writes and returns
+    the result. loaded_model: the model of `model_source` (or of the runs) already loaded."""
     from harness.files import atomic_write_json, write_atomic
     from harness.octo import load_pretrained
-    from harness.policy import BatchInference, InferenceRequest, TaskSpec, window_from_entries
+    from harness.policy import BatchInference
 
     start = time.perf_counter()
     runs = [Path(r) for r in runs]
     loaded = _steps(runs, options.every)
-    first = loaded[0][0]
-    protocol = protocol_from_manifest(first.manifest, first.path / "manifest.json")
-    for run, _ in loaded[1:]:
-        other = protocol_from_manifest(run.manifest, run.path / "manifest.json")
-        if model_source is None and other.model_fingerprint != protocol.model_fingerprint:
-            raise ReplayInputError(f"{run.path} was made with another model than {first.path}; check one policy at a "
-                                   "time (or pass --model)")
+    protocol = _common_protocol(loaded, model_source)
     source = model_source or protocol.model
     model = loaded_model if loaded_model is not None else load_pretrained(source, text_tokenizer=protocol.text_tokenizer)
     config = dataclasses.replace(protocol.policy, inference_batch=1, intervention=None, attribution=None,
@@ -105,64 +101,20 @@ def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions =
     variants = [(schedule, stage, S.randomised_params(functions.params, paths, options.seed))
                 for schedule, stage, paths in stages]
     last_stage = [stage for schedule, stage, _ in stages if schedule == "cascading"][-1]
-    window = int(model.window_size)
-    wanted = [*model.image_sizes, *getattr(model, "lowdim_sizes", {})]
-    gradients, occlusion = needs_gradients(methods), needs_occlusion(methods)
-
-    per_step, effects, agreement, profiles, frames, count = [], [], [], {}, {}, 0
-    for run, episodes in loaded:
-        for episode in episodes:
-            inputs = recorded_inputs(episode)
-            for key, (h, w) in model.image_sizes.items():
-                have = inputs.get(f"input/{key}")
-                if have is None or tuple(have.shape[1:3]) != (h, w):
-                    raise ReplayInputError(f"the model reads {key} at {h}x{w} but {run.path} recorded "
-                                           f"{'no ' + key if have is None else 'x'.join(map(str, have.shape[1:3]))}")
-            task = TaskSpec.of(str(inputs["instruction"]))
-            seed = int(inputs["seed"])
-            entries = [{k: inputs[f"input/{k}"][t] for k in wanted} for t in range(int(inputs["step"].shape[0]))]
-            for t in range(len(entries)):
-                step = int(inputs["step"][t])
-                if not bool(inputs["inferred"][t]) or step % options.every:
-                    continue
-                if options.max_steps is not None and count >= options.max_steps:
-                    break
-                count += 1
-                obs = window_from_entries(entries[:t + 1], window, wanted)
-                observations, tasks, keys = inference._inputs([InferenceRequest(obs, task, seed, step)])
-                where = {"task": episode.task, "episode": episode.episode, "step": step}
-                fn = functions.at(observations, tasks, keys[0])
-                trained_analysis = analyse(fn, gradients=gradients, occlusion=occlusion)
-                trained = {m: attribute(trained_analysis, m, seed=[seed, step]) for m in methods}
-                _profile(trained, fn.images, where, agreement, profiles, frames)
-                for schedule, stage, params in variants:
-                    a = analyse(functions.at(observations, tasks, keys[0], params=params), gradients=gradients,
-                                occlusion=occlusion)
-                    randomised = {m: attribute(a, m, seed=[seed, step]) for m in methods}
-                    for row in S.compare_maps(trained, randomised):
-                        per_step.append({**where, "schedule": schedule, "stage": stage, **row})
-                if options.additivity:
-                    effects += _effects(fn, trained_analysis, options, where, seed, step)
-    if not count:
+    found = _compare_steps(loaded, model, inference, functions, methods, variants, options)
+    if not found.count:
         raise ReplayInputError(f"no inferred step is a multiple of --every {options.every} in the runs given")
-    summary = S.summarise_randomisation(per_step, seed=options.seed)
+    summary = S.summarise_randomisation(found.per_step, seed=options.seed)
     verdicts = S.verdict(summary, last_stage)
     for row in summary:
         row["verdict"] = verdicts.get((row["method"], row["camera"]), "") if row["stage"] == last_stage else ""
-    additivity = _summarise_effects(effects)
-    occlusion_agreement = S.summarise_randomisation(
-        [{**r, "schedule": "occlusion", "stage": "trained"} for r in agreement], seed=options.seed)
-    patch_profile = [{"camera": camera, "method": method, "map_share": (np.mean(grids, axis=0)).round(4).tolist()}
-                     for (camera, method), grids in profiles.items()]
-    patch_profile += [{"camera": camera, "method": "pixel std over steps",
-                       "map_share": np.asarray(stack).std(axis=0).mean(axis=-1).round(2).tolist()}
-                      for camera, stack in ((c, _patch_means(f)) for c, f in frames.items())]
+    additivity = _summarise_effects(found.effects)
     result = {
         "format": FORMAT,
         "model": source,
         "model_fingerprint": protocol.model_fingerprint,
         "runs": [str(r.path) for r, _ in loaded],
-        "steps": count,
+        "steps": found.count,
         "options": dataclasses.asdict(options),
         "blocks": [{"name": name, "paths": ["/".join(p) for p in paths]} for name, paths in blocks],
         "rule": f"pass: with every block randomised ({last_stage}), the upper 95% bound of the mean Spearman "
@@ -170,10 +122,8 @@ def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions =
         "verdicts": [{"method": m, "camera": c, "verdict": v} for (m, c), v in verdicts.items()],
         "randomisation": summary,
         "additivity": additivity,
-        "occlusion_agreement": [{k: r[k] for k in ("method", "camera", "steps", "spearman", "spearman_low",
-                                                   "spearman_high")} for r in occlusion_agreement],
-        "patch_profile": patch_profile,
-        "per_step": per_step,
+        **_agreement_and_profile(found, options.seed),
+        "per_step": found.per_step,
         "seconds": time.perf_counter() - start,
     }
     out = Path(out)
@@ -181,6 +131,95 @@ def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions =
     write_atomic(out / "additivity.csv", lambda f: f.write(_csv(ADDITIVITY_COLUMNS, additivity)))
     atomic_write_json(out / "sanity.json", result)
     return result
+
+
+def _common_protocol(loaded: list, model_source: str | None):
+    """The first run's protocol; every run must have been made with its model, unless another model is given."""
+    first = loaded[0][0]
+    protocol = protocol_from_manifest(first.manifest, first.path / "manifest.json")
+    for run, _ in loaded[1:]:
+        other = protocol_from_manifest(run.manifest, run.path / "manifest.json")
+        if model_source is None and other.model_fingerprint != protocol.model_fingerprint:
+            raise ReplayInputError(f"{run.path} was made with another model than {first.path}; check one policy at a "
+                                   "time (or pass --model)")
+    return protocol
+
+
+@dataclasses.dataclass
+class _Found:
+    """What the selected steps gave: randomisation rows per step, additivity effects, agreement with occlusion,
+    per-patch map shares {(camera, method): [grids]}, the frames {camera: [(frame, grid shape)]}, the step count."""
+    per_step: list = dataclasses.field(default_factory=list)
+    effects: list = dataclasses.field(default_factory=list)
+    agreement: list = dataclasses.field(default_factory=list)
+    profiles: dict = dataclasses.field(default_factory=dict)
+    frames: dict = dataclasses.field(default_factory=dict)
+    count: int = 0
+
+
+def _compare_steps(loaded: list, model, inference, functions, methods, variants: list, options: SanityOptions) -> _Found:
+    """Every `every`-th inferred step of every episode (at most `max_steps` in all): the trained maps against each
+    randomised variant's, the occlusion agreement and profiles, and (with `additivity`) the patch effects."""
+    from harness.policy import InferenceRequest, TaskSpec, window_from_entries
+
+    window = int(model.window_size)
+    wanted = [*model.image_sizes, *getattr(model, "lowdim_sizes", {})]
+    gradients, occlusion = needs_gradients(methods), needs_occlusion(methods)
+    found = _Found()
+    for run, episodes in loaded:
+        for episode in episodes:
+            inputs = recorded_inputs(episode)
+            _check_recorded_sizes(model, inputs, run)
+            task = TaskSpec.of(str(inputs["instruction"]))
+            seed = int(inputs["seed"])
+            entries = [{k: inputs[f"input/{k}"][t] for k in wanted} for t in range(int(inputs["step"].shape[0]))]
+            for t in range(len(entries)):
+                step = int(inputs["step"][t])
+                if not bool(inputs["inferred"][t]) or step % options.every:
+                    continue
+                if options.max_steps is not None and found.count >= options.max_steps:
+                    break
+                found.count += 1
+                obs = window_from_entries(entries[:t + 1], window, wanted)
+                observations, tasks, keys = inference._inputs([InferenceRequest(obs, task, seed, step)])
+                where = {"task": episode.task, "episode": episode.episode, "step": step}
+                fn = functions.at(observations, tasks, keys[0])
+                trained_analysis = analyse(fn, gradients=gradients, occlusion=occlusion)
+                trained = {m: attribute(trained_analysis, m, seed=[seed, step]) for m in methods}
+                _profile(trained, fn.images, where, found.agreement, found.profiles, found.frames)
+                for schedule, stage, params in variants:
+                    a = analyse(functions.at(observations, tasks, keys[0], params=params), gradients=gradients,
+                                occlusion=occlusion)
+                    randomised = {m: attribute(a, m, seed=[seed, step]) for m in methods}
+                    for row in S.compare_maps(trained, randomised):
+                        found.per_step.append({**where, "schedule": schedule, "stage": stage, **row})
+                if options.additivity:
+                    found.effects += _effects(fn, trained_analysis, options, where, seed, step)
+    return found
+
+
+def _check_recorded_sizes(model, inputs, run) -> None:
+    """The recorded frames of every camera the model reads are at its sizes (ReplayInputError, one line)."""
+    for key, (h, w) in model.image_sizes.items():
+        have = inputs.get(f"input/{key}")
+        if have is None or tuple(have.shape[1:3]) != (h, w):
+            raise ReplayInputError(f"the model reads {key} at {h}x{w} but {run.path} recorded "
+                                   f"{'no ' + key if have is None else 'x'.join(map(str, have.shape[1:3]))}")
+
+
+def _agreement_and_profile(found: _Found, seed: int) -> dict:
+    """{"occlusion_agreement": each method's Spearman with occlusion over steps, "patch_profile": each map's mean
+    share per patch, and each camera's pixel spread per patch over the steps}."""
+    occlusion_agreement = S.summarise_randomisation(
+        [{**r, "schedule": "occlusion", "stage": "trained"} for r in found.agreement], seed=seed)
+    patch_profile = [{"camera": camera, "method": method, "map_share": (np.mean(grids, axis=0)).round(4).tolist()}
+                     for (camera, method), grids in found.profiles.items()]
+    patch_profile += [{"camera": camera, "method": "pixel std over steps",
+                       "map_share": np.asarray(stack).std(axis=0).mean(axis=-1).round(2).tolist()}
+                      for camera, stack in ((c, _patch_means(f)) for c, f in found.frames.items())]
+    return {"occlusion_agreement": [{k: r[k] for k in ("method", "camera", "steps", "spearman", "spearman_low",
+                                                       "spearman_high")} for r in occlusion_agreement],
+            "patch_profile": patch_profile}
 
 
 def _effects(fn, analysis, options: SanityOptions, where: dict, seed: int, step: int) -> list[dict]:

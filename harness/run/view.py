@@ -151,19 +151,7 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
     run = load_run(run_dir)
     ep = pick_episode(run, task, episode)
     existing = ep.directory / RRD_NAME
-    damaged = None
-    recorded = (ep.row.get("files") or {}).get(RRD_NAME)  # its size and sha256, as the episode's run wrote it
-    if existing.is_file() and recorded is None:  # not written by this episode's run (another run's, or copied in)
-        damaged = (f"the episode folder's {existing.name} is not recorded in its row (results.jsonl), so it is not "
-                   "known to be this episode's; rebuilt from the run's files")
-    elif existing.is_file() and file_digest(existing) != {"size": recorded["size"], "sha256": recorded["sha256"]}:
-        damaged = (f"the run's {existing.name} is unreadable or changed (its size or sha256 differs from its row's); "
-                   "rebuilt from the run's files")
-    elif existing.is_file():  # made with --rerun save; a file the run folder holds is checked before it is trusted
-        try:
-            import_rerun().dataframe.load_recording(str(existing))
-        except Exception as exc:  # noqa: BLE001 - any failure to read it: rebuild from the other files instead
-            damaged = f"the run's {existing.name} is unreadable ({type(exc).__name__}); rebuilt from the run's files"
+    damaged = _recording_damage(existing, (ep.row.get("files") or {}).get(RRD_NAME)) if existing.is_file() else None
     if existing.is_file() and damaged is None:
         if save is not None and Path(save).resolve() != existing.resolve():
             write_atomic(Path(save), lambda f: f.write(existing.read_bytes()))
@@ -175,14 +163,12 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
     if "readout_attention" not in attention:
         raise ViewInputError(f"{ep.attention_path} has no readout_attention; re-run the episode")
     tokens = TokenMap.from_arrays(attention)
-    attn = attention["readout_attention"]  # (steps, layers, heads, readouts, keys) float16
-    steps = attn.shape[0]
+    steps = attention["readout_attention"].shape[0]  # (steps, layers, heads, readouts, keys) float16
     metric_names = [k[len("metrics/"):] for k in attention if k.startswith("metrics/")]
     attribution = _attribution_by_step(ep)
     reliance = rows_by_step(ep.directory)  # reliance.jsonl: the scalars, and the map layer over re-simulated frames
     meta = episode_meta(run, ep)
-    protocol = run.manifest.get("protocol") or {}
-    outputs = protocol.get("outputs") or {}
+    outputs = (run.manifest.get("protocol") or {}).get("outputs") or {}
 
     records: list[StepRecord] = []
     hz = meta.extra.get("control_hz")
@@ -203,32 +189,60 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
     sink = RerunSink(meta, options, save=save, connect=connect, intervention=bool(meta.extra.get("intervention")),
                      control_hz=hz)
     try:
-        predicted = actions.get("predicted")
-        inferred = actions.get("inferred", np.ones(steps, bool))
-        phase_index, phase_list = attention.get("phase"), [str(n) for n in attention.get("phase_names", ())]
         for i in range(steps):
-            step = int(attention["step"][i]) if "step" in attention else i
-            again = records[i] if i < len(records) else None
-            phase = (phase_list[int(phase_index[i])] if phase_index is not None and 0 <= int(phase_index[i]) < len(phase_list)
-                     else None)  # the task phase attention.npz recorded (envs.phases)
-            record = StepRecord(
-                step=step, frames=dict(again.frames) if again is not None else {},
-                readout_attention=attn[i],
-                actions_predicted=predicted[i] if predicted is not None and len(predicted) > i else np.zeros((0, 0)),
-                action_executed=actions["executed"][i], reward=float(actions["reward"][i]),
-                success=bool(actions["success"][i]), masks=again.masks if again is not None else None,
-                inferred=bool(inferred[i]), attribution=attribution.get(step),
-                policy_inputs=again.policy_inputs if again is not None else None, phase=phase,
-                reliance=reliance.get(step))
+            record = _recorded_step(i, attention, actions, records[i] if i < len(records) else None, attribution,
+                                    reliance)
             metrics = {name: attention[f"metrics/{name}"][i] for name in metric_names}
             sink.log_step(record, tokens, {k: v for k, v in metrics.items() if np.all(np.isfinite(v))})
-        summary = ep.read_json()
-        outcome = {"success": bool(summary.get("success", ep.success)), "steps": steps,
-                   "return": float(np.sum(actions["reward"])) if steps else 0.0}
-        if "actions_clipped" in summary:
-            outcome["actions_clipped"] = summary["actions_clipped"]
-        path = sink.finish(outcome)
+        path = sink.finish(_outcome(ep, actions, steps))
     except BaseException:
         sink.abort()
         raise
     return ViewResult(ep, "files", note, identical, path)
+
+
+def _recording_damage(existing: Path, recorded: dict | None) -> str | None:
+    """Why the episode folder's own recording cannot be trusted (None: it can): not in the episode's row (another
+    run's, or copied in), not the size and sha256 its row records, or not readable by Rerun."""
+    if recorded is None:  # not written by this episode's run (another run's, or copied in)
+        return (f"the episode folder's {existing.name} is not recorded in its row (results.jsonl), so it is not "
+                "known to be this episode's; rebuilt from the run's files")
+    if file_digest(existing) != {"size": recorded["size"], "sha256": recorded["sha256"]}:
+        return (f"the run's {existing.name} is unreadable or changed (its size or sha256 differs from its row's); "
+                "rebuilt from the run's files")
+    try:  # made with --rerun save; a file the run folder holds is checked before it is trusted
+        import_rerun().dataframe.load_recording(str(existing))
+    except Exception as exc:  # noqa: BLE001 - any failure to read it: rebuild from the other files instead
+        return f"the run's {existing.name} is unreadable ({type(exc).__name__}); rebuilt from the run's files"
+    return None
+
+
+def _recorded_step(i: int, attention: dict, actions: dict, again: StepRecord | None, attribution: dict,
+                   reliance: dict) -> StepRecord:
+    """Step `i` as the run's files hold it (attention, actions, the task phase, attribution maps, region reliance),
+    with the frames, masks and policy inputs of the re-simulated step `again` where there is one."""
+    step = int(attention["step"][i]) if "step" in attention else i
+    predicted = actions.get("predicted")
+    inferred = actions.get("inferred")
+    phase_index, phase_list = attention.get("phase"), [str(n) for n in attention.get("phase_names", ())]
+    phase = (phase_list[int(phase_index[i])] if phase_index is not None and 0 <= int(phase_index[i]) < len(phase_list)
+             else None)  # the task phase attention.npz recorded (envs.phases)
+    return StepRecord(
+        step=step, frames=dict(again.frames) if again is not None else {},
+        readout_attention=attention["readout_attention"][i],
+        actions_predicted=predicted[i] if predicted is not None and len(predicted) > i else np.zeros((0, 0)),
+        action_executed=actions["executed"][i], reward=float(actions["reward"][i]),
+        success=bool(actions["success"][i]), masks=again.masks if again is not None else None,
+        inferred=bool(inferred[i]) if inferred is not None else True, attribution=attribution.get(step),
+        policy_inputs=again.policy_inputs if again is not None else None, phase=phase,
+        reliance=reliance.get(step))
+
+
+def _outcome(ep: EpisodeRecord, actions: dict, steps: int) -> dict:
+    """The episode's outcome as its summary (episode.json) and actions.npz record it."""
+    summary = ep.read_json()
+    outcome = {"success": bool(summary.get("success", ep.success)), "steps": steps,
+               "return": float(np.sum(actions["reward"])) if steps else 0.0}
+    if "actions_clipped" in summary:
+        outcome["actions_clipped"] = summary["actions_clipped"]
+    return outcome

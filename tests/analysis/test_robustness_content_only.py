@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from harness.analysis import robustness as R
+from harness.analysis import robustness_measures as M
 from harness.octo.tokens import TokenMap
 from harness.report import robustness as report
 
@@ -35,7 +36,7 @@ def test_position_bound_nuisance_shows_raw_and_not_content_only():
     fractions = {"background": np.stack([LEFT] * 3), "target": np.stack([TARGET] * 3)}
     raw_nuisance = (real * fractions["background"]).sum(axis=(1, 2)) / real.sum(axis=(1, 2))
     assert np.allclose(raw_nuisance, 0.6)
-    out = R.content_means(real, blank, fractions, np.array([0, 5, 10]))
+    out = M.content_means(real, blank, fractions, np.array([0, 5, 10]))
     assert out["nuisance_content"] == 0.0
     assert out["target_lift_content"] == pytest.approx(16.0)  # all content-bound attention on 1 of 16 patches
     assert out["nuisance_start_content"] == 0.0  # steps 0 and 5 (< START_STEPS)
@@ -44,7 +45,7 @@ def test_position_bound_nuisance_shows_raw_and_not_content_only():
 def test_content_bound_nuisance_stays_content_only():
     real = np.stack([_map(0.6, 0.4)] * 2)
     blank = np.full((2, ROWS, COLS), 1 / 16)  # a blank frame spreads attention evenly: little is position-bound
-    out = R.content_means(real, blank, {"background": np.stack([LEFT] * 2), "distractor_0": np.zeros((2, ROWS, COLS))},
+    out = M.content_means(real, blank, {"background": np.stack([LEFT] * 2), "distractor_0": np.zeros((2, ROWS, COLS))},
                           np.array([20, 25]))
     # content: left column 4 x (0.15 - 1/16), target 0.4 - 1/16, the rest 0
     assert out["nuisance_content"] == pytest.approx(0.35 / (0.35 + 0.4 - 1 / 16))
@@ -152,7 +153,7 @@ def test_a_real_grid_with_controls_gets_content_only_figures(fixtures_dir, tmp_p
     with np.load(episode.attention_path) as z, np.load(episode.directory / "controls.npz") as c:
         arrays = {k: z[k] for k in z.files}
         steps = c["step"]
-        no_blank = R.content_measures(arrays["readout_attention"], arrays, steps, np.zeros_like(c["blank"]))
+        no_blank = M.content_measures(arrays["readout_attention"], arrays, steps, np.zeros_like(c["blank"]))
     stored = arrays["measures/layer/mask_mass/image_primary/background"][steps, -1]
     assert no_blank["nuisance_content"] == pytest.approx(float(np.mean(stored)), abs=2e-3)
     text = report.markdown(records)
