@@ -8,14 +8,16 @@ HARNESS = Path(__file__).resolve().parents[1] / "harness"
 ENVS = HARNESS.parent / "envs"
 
 # The data path, lowest stage first. A module may import its own stage and the stages before it, never a later one.
-# `policy` sits above `analysis` because the policy computes attributions (harness.analysis.attribution) and the
-# interventions mask by them; `runfolder` (a run folder's schema, integrity and platform record) sits below both
-# `analysis` (which reads run folders) and `run` (which writes them). `reference` trains the reference policies
-# with the closed loop and the statistics; nothing but the command line sits above `report`.
+# `measures` (the per-step maths: attention slicing, attribution, deletion fills, the controls' frame transforms,
+# region reliance) sits below `policy`, which computes them at a step; `runfolder` (a run folder's schema,
+# integrity and platform record) sits below both `analysis` (which reads run folders) and `run` (which writes
+# them). `reference` trains the reference policies with the closed loop and the statistics; nothing but the
+# command line sits above `report`.
 STAGES = (
     ("envs", ("envs",)),
     ("base", ("harness", "harness.files", "harness.console")),
     ("octo", ("harness.octo",)),
+    ("measures", ("harness.measures",)),
     ("runfolder", ("harness.runfolder",)),
     ("analysis", ("harness.analysis",)),
     ("policy", ("harness.interventions", "harness.policy", "harness.conventions")),

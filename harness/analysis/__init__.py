@@ -1,1 +1,1 @@
-"""Analysis: attention maths, success statistics, paired and sequential tests, run reading, aggregation, comparison."""
+"""Analysis: success statistics, paired and sequential tests, run reading, aggregation, comparison."""

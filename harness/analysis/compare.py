@@ -51,7 +51,7 @@ from harness.analysis.paired import (
     regressed_reachable,
     worst,
 )
-from harness.analysis.attention import DERIVED_PREFIXES
+from harness.measures.attention import DERIVED_PREFIXES
 from harness.analysis.equivalence import attention_divergence
 from harness.analysis.provenance import input_agreement, provenance
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz

@@ -48,7 +48,7 @@ import numpy as np
 
 from envs.perturbations import parse_perturb
 from harness.analysis import position as Q
-from harness.analysis.attention import camera_maps
+from harness.measures.attention import camera_maps
 from harness.analysis.paired import (PairedCounts, detectable_loss, detectable_phrase, difference_interval, equivalent,
                                      holm_adjust, mcnemar_exact)
 from harness.bounded import open_npz

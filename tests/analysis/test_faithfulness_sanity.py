@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
-from harness.analysis import attribution as A
-from harness.analysis import faithfulness as F
+from harness.measures import attribution as A
+from harness.measures import faithfulness as F
 from harness.analysis import sanity as S
 from harness.octo.tokens import TokenMap
 

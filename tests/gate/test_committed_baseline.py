@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.analysis.attention import MEASURES_VERSION
+from harness.measures.attention import MEASURES_VERSION
 from harness.analysis.compare import compare_runs, exit_code
 from harness.run import execute
 from harness.runfolder.platform import platform_fingerprint, platform_info

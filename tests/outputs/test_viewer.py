@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from harness import cli
-from harness.analysis.attention import camera_maps
+from harness.measures.attention import camera_maps
 from harness.octo import load_pretrained
 from harness.octo.tokens import TokenMap
 from harness.outputs.overlays import heatmap_overlays, upsample_bilinear
