@@ -431,7 +431,7 @@ class BatchInference:
 def window_from_entries(entries: list[dict], window: int, keys: list[str]) -> dict:
     """The observation window after the last of `entries` (oldest first): image_* (window, H, W, 3), low-dim
     (window, dims), timestep_pad_mask (window,) and pad_mask_dict, left-padded with the first entry as Octo's
-    HistoryWrapper does. `EpisodeState` and replay (harness/run/replay.py) build windows with this one function."""
+    HistoryWrapper does. `EpisodeState` and replay (harness/gate/replay.py) build windows with this one function."""
     frames = list(entries[-window:])
     n = len(frames)
     frames = [frames[0]] * (window - n) + frames  # left-pad with the first observation

@@ -11,7 +11,8 @@ ENVS = HARNESS.parent / "envs"
 # `measures` (the per-step maths: attention slicing, attribution, deletion fills, the controls' frame transforms,
 # region reliance) sits below `policy`, which computes them at a step; `runfolder` (a run folder's schema,
 # integrity and platform record) sits below both `analysis` (which reads run folders) and `run` (which writes
-# them). `reference` trains the reference policies with the closed loop and the statistics; nothing but the
+# them). The gate commands (regress, replay, sanity, view, robustness grids) sit above the run store they read
+# and run. `reference` trains the reference policies with the closed loop and the statistics; nothing but the
 # command line sits above `report`.
 STAGES = (
     ("envs", ("envs",)),
@@ -24,6 +25,7 @@ STAGES = (
     ("rollout", ("harness.records", "harness.rollout")),
     ("outputs", ("harness.outputs",)),
     ("run", ("harness.run",)),
+    ("gate", ("harness.gate",)),
     ("reference", ("harness.reference",)),
     ("report", ("harness.report",)),
     ("cli", ("harness.cli",)),

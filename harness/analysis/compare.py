@@ -602,7 +602,7 @@ def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], miss
     }
 
 
-GRID_FILE = "robustness.json"  # harness.run.robustness writes it into a grid folder
+GRID_FILE = "robustness.json"  # harness.gate.robustness writes it into a grid folder
 
 
 def is_grid(path: str | Path) -> bool:

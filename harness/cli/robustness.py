@@ -40,7 +40,7 @@ def add_parser(sub) -> None:
 
 def main(args) -> int:
     from harness.cli.common import execution
-    from harness.run.robustness import parse_kinds, parse_levels, run_grid
+    from harness.gate.robustness import parse_kinds, parse_levels, run_grid
     from harness.run.settings import build_protocol, read_protocol_file
 
     conditions, levels = parse_kinds(args.perturb), parse_levels(args.levels)

@@ -33,7 +33,7 @@ def test_the_passes_follow_the_rows():
 
 
 def test_one_default_list_and_sanitys_own_choice():
-    from harness.run import sanity
+    from harness.gate import sanity
 
     assert A.DEFAULT_METHODS == "attention,rollout,grad-attention,saliency"  # what a run computes unless told
     assert sanity.DEFAULT_METHODS == "attention,rollout,grad-attention,saliency,occlusion"  # plus the reference

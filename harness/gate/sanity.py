@@ -28,7 +28,7 @@ from harness.measures.attribution import (METHODS, OctoFunctions, analyse, attri
                                           parse_methods)
 from harness.measures.faithfulness import FILLS, k_values, ranking
 from harness.analysis.runs import load_run
-from harness.run.replay import ReplayInputError, inputs_path, recorded_inputs
+from harness.gate.replay import ReplayInputError, inputs_path, recorded_inputs
 from harness.run.protocol import protocol_from_manifest
 
 log = logging.getLogger(__name__)
