@@ -55,7 +55,7 @@ from harness.measures.attention import DERIVED_PREFIXES
 from harness.analysis.equivalence import attention_divergence
 from harness.analysis.provenance import input_agreement, provenance
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
-from harness.analysis.stats import wilson_interval
+from harness.measures.stats import wilson_interval
 from harness.runfolder.schema import flatten
 
 FORMAT = "octo-harness-compare/1"

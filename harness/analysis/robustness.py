@@ -52,7 +52,7 @@ from harness.measures.attention import camera_maps
 from harness.analysis.paired import (PairedCounts, detectable_loss, detectable_phrase, difference_interval, equivalent,
                                      holm_adjust, mcnemar_exact)
 from harness.bounded import open_npz
-from harness.analysis.stats import wilson_interval
+from harness.measures.stats import wilson_interval
 
 CAMERA = "image_primary"
 START_STEPS = 10

@@ -43,7 +43,7 @@ from harness.bounded import open_npz
 from harness.analysis import aggregate as agg
 from harness.measures.episode import MEASURES, episode_measures, measures_from_arrays
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays, load_run
-from harness.analysis.stats import success_summary
+from harness.measures.stats import success_summary
 from harness.report import faithfulness, figures, page
 from harness.report.rundata import RunData, episode_headline, representative
 from harness.report.rundata import csv_bytes as _csv

@@ -34,7 +34,7 @@ from harness.bounded import loads_json, read_jsonl_text
 from harness.measures.attribution import display_rank
 from harness.measures.faithfulness import relative_to_random
 from harness.analysis.paired import PairedCounts, mcnemar_exact, newcombe_paired_interval
-from harness.analysis.stats import wilson_interval
+from harness.measures.stats import wilson_interval
 from harness.report import html as H
 from harness.report.rundata import csv_bytes as _csv
 
