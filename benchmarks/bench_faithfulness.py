@@ -1,4 +1,4 @@
-"""What attribution and open-loop faithfulness cost per control step (harness/analysis/attribution.Probe).
+"""What attribution and open-loop faithfulness cost per control step (harness/measures/attribution.Probe).
 
 For each model: the policy's own inference (BatchInference, batch 1, as a run calls it), the attribution maps
 alone (what `--attribution` adds at every inference step: one forward + one backward), and one faithfulness
@@ -83,7 +83,7 @@ def compare_fills(args) -> None:
     """One faithfulness step per fill, reps alternating between fills; medians and ratios to mean fill."""
     import time
 
-    from harness.analysis.attribution import Probe
+    from harness.measures.attribution import Probe
 
     fills = [f.strip() for f in args.fills.split(",") if f.strip()]
     print(f"{'model':<36} {'methods':<44} " + " ".join(f"{f + ' s':>9}" for f in fills)

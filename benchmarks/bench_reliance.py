@@ -1,4 +1,4 @@
-"""What region reliance costs per control step (harness/analysis/reliance.py, issue 45): a policy with a reliance
+"""What region reliance costs per control step (harness/measures/reliance.py, issue 45): a policy with a reliance
 interval (default 4) against the same policy with none, on the same recorded closed-loop inputs, in one process.
 
 A Lift episode of the model is recorded first (its observations and the env's masks, `--steps` steps, with its

@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.analysis.aggregate import measure_arrays
-from harness.analysis.attention import camera_keys
+from harness.measures.episode import measure_arrays
+from harness.measures.attention import camera_keys
 from harness.octo.tokens import build_token_map
 from harness.outputs.overlays import heatmap_overlay, video_frame
 from harness.report.build import ReportOptions, build_report

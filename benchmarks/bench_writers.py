@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.analysis.attention import camera_maps, step_metrics
+from harness.measures.attention import camera_maps, step_metrics
 from harness.octo.tokens import build_token_map
 from harness.outputs.overlays import heatmap_overlay, layer_panel, video_frame
 from harness.records import EpisodeMeta, StepRecord

@@ -19,7 +19,7 @@ The first rule that holds wins. The function is memoryless (a dropped object goe
 episode's furthest phase is the maximum over its states. Tasks without a phase function (PickPlace with four
 objects, NutAssembly with two nuts, Door, Wipe, ToolHang) record no phase (null).
 
-A change to a phase rule changes the stored measures: bump harness.analysis.attention.MEASURES_VERSION.
+A change to a phase rule changes the stored measures: bump harness.measures.attention.MEASURES_VERSION.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ object it came from (objtype, objid). `geom_categories` labels every model geom 
 (target / goal / gripper / robot / other); `scene_lookup` turns one render's scene into a `segid + 1 -> category` table;
 `masks_from_segmentation` is then a single numpy gather per image, with no per-pixel Python.
 
-A change to what a label covers changes the stored measures: bump harness.analysis.attention.MEASURES_VERSION.
+A change to what a label covers changes the stored measures: bump harness.measures.attention.MEASURES_VERSION.
 """
 
 from __future__ import annotations

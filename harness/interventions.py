@@ -3,7 +3,7 @@
 An intervention is part of a run's protocol (`PolicyConfig.intervention`, a spec string), so it is recorded,
 fingerprinted and compared like any other setting; `octo-harness compare` pairs an intervention run with a
 plain run of the same seeds. Specs (K patches per camera; CAMERA an observation key, default every camera the
-model reads; METHOD an attribution method of harness.analysis.attribution, LAYER for `attention`):
+model reads; METHOD an attribution method of harness.measures.attribution, LAYER for `attention`):
 
   mask-top:K:METHOD[:LAYER][@CAMERA]     the K patches the method ranks highest on this step's unmasked frame
   mask-bottom:K:METHOD[:LAYER][@CAMERA]  the K it ranks lowest
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import jax
 import numpy as np
 
-from harness.analysis import attribution as A
-from harness.analysis.faithfulness import baseline_image, compose, first_k, ranking
+from harness.measures import attribution as A
+from harness.measures.faithfulness import baseline_image, compose, first_k, ranking
 
 KINDS = ("mask-top", "mask-bottom", "mask-random", "mask-all", "ablate-heads")
 USAGE = ("use mask-top:K:METHOD[:LAYER][@CAMERA], mask-bottom:K:METHOD[:LAYER][@CAMERA], mask-random:K[@CAMERA], "

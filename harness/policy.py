@@ -89,7 +89,7 @@ class PolicyConfig:
         "[@CAMERA], mask-bottom:K:METHOD[:LAYER][@CAMERA], mask-random:K[@CAMERA], mask-all[@CAMERA], "
         "ablate-heads:L:H[,L:H...] (METHOD: attention, rollout, grad-attention, saliency)",
         file=(str,), metavar="SPEC", sparse=True)
-    # attribution maps at every inference step (harness/analysis/attribution.py: "attention,rollout,grad-attention,
+    # attribution maps at every inference step (harness/measures/attribution.py: "attention,rollout,grad-attention,
     # saliency"; random is always added) and open-loop faithfulness every k-th step (0 = never), deleted patches
     # filled with "mean", "blur" or "impute" (ROAD's noisy linear imputation). They do not change actions
     attribution: str | None = option(
@@ -104,7 +104,7 @@ class PolicyConfig:
         "mean", "--faithfulness-fill", "what a deleted patch becomes in the faithfulness curves: the frame's mean "
         "colour, a blur of the frame, or noisy linear imputation from the surrounding pixels (ROAD; in distribution, "
         "no shape leak) [mean]", file=(str,), choices=("mean", "blur", "impute"), sparse=True)
-    # position-against-content controls (harness/analysis/position.py): every `controls_every`-th inference step is
+    # position-against-content controls (harness/measures/controls.py): every `controls_every`-th inference step is
     # asked again, open loop, with every camera's frames blanked to their mean colour / mirrored left-right; the
     # control attention goes to controls.npz. They do not change actions
     attention_controls: str | None = option(
@@ -114,7 +114,7 @@ class PolicyConfig:
     controls_every: int = option(
         0, "--controls-every", "run the attention controls at every N-th inference step [1 with --attention-controls]",
         type=int, file=(int,), metavar="N", sparse=True)
-    # region reliance (harness/analysis/reliance.py): each labelled region of every camera replaced by the fill, open
+    # region reliance (harness/measures/reliance.py): each labelled region of every camera replaced by the fill, open
     # loop with the step's rng, the action chunk's change recorded in reliance.jsonl; needs the env's masks
     reliance_every: int = option(
         0, "--reliance-every", "region reliance every N-th step: each labelled region (target, gripper, goal, "
@@ -149,17 +149,17 @@ class PolicyConfig:
         if self.faithfulness_fill not in ("mean", "blur", "impute"):
             raise ValueError(f"--faithfulness-fill must be 'mean', 'blur' or 'impute', got {self.faithfulness_fill!r}")
         if self.faithfulness_every and self.attribution is None:
-            from harness.analysis.attribution import DEFAULT_METHODS
+            from harness.measures.attribution import DEFAULT_METHODS
 
             object.__setattr__(self, "attribution", DEFAULT_METHODS)
         if self.attribution is not None:
-            from harness.analysis.attribution import parse_methods
+            from harness.measures.attribution import parse_methods
 
             parse_methods(self.attribution, 1 << 16)  # names checked here; layers against the model at start
         if isinstance(self.controls_every, bool) or not isinstance(self.controls_every, int) or self.controls_every < 0:
             raise ValueError(f"--controls-every must be an integer >= 1, got {self.controls_every!r}")
         if self.attention_controls is not None:
-            from harness.analysis.position import parse_controls
+            from harness.measures.controls import parse_controls
 
             object.__setattr__(self, "attention_controls", ",".join(parse_controls(self.attention_controls)))
             if self.controls_every == 0:
@@ -195,7 +195,7 @@ class PolicyStep:
     inputs: dict | None = None
     attribution: dict | None = None  # attribution maps / faithfulness rows of this step's inference (or None)
     controls: dict | None = None  # {control: (layers, heads, readouts, keys)} of this step's inference (or None)
-    reliance: dict | None = None  # region reliance of this step's inference (harness.analysis.reliance.RelianceProbe)
+    reliance: dict | None = None  # region reliance of this step's inference (harness.measures.reliance.RelianceProbe)
 
 
 def default_dataset_key(model) -> str | None:
@@ -271,9 +271,9 @@ class InferenceResult:
     seconds: float  # wall time of the batched call that produced it
     tokens: TokenMap | None = None  # what each attention key is
     observed: dict | None = None  # {obs key: (H, W, 3) uint8} current frames an intervention changed (masked)
-    attribution: dict | None = None  # attribution maps / faithfulness rows (harness.analysis.attribution.Probe)
+    attribution: dict | None = None  # attribution maps / faithfulness rows (harness.measures.attribution.Probe)
     controls: dict | None = None  # {control: (layers, heads, readouts, keys) float32} at control steps (--attention-controls)
-    reliance: dict | None = None  # {"rows", "seconds"} at reliance steps (harness.analysis.reliance.RelianceProbe)
+    reliance: dict | None = None  # {"rows", "seconds"} at reliance steps (harness.measures.reliance.RelianceProbe)
 
 
 def make_task(model, spec: TaskSpec) -> dict:
@@ -318,17 +318,17 @@ class BatchInference:
             self._model = self.intervener.model_for_inference()
         self.probe = None  # attribution maps and faithfulness at inference steps (what the policy saw, same rng)
         if config.attribution is not None:
-            from harness.analysis.attribution import Probe
+            from harness.measures.attribution import Probe
 
             self.probe = Probe(self._model, config.attribution, config.faithfulness_every, config.faithfulness_fill)
-        self.controls: dict = {}  # control name -> frame transform (harness.analysis.position.CONTROLS)
+        self.controls: dict = {}  # control name -> frame transform (harness.measures.controls.CONTROLS)
         if config.attention_controls is not None:
-            from harness.analysis.position import CONTROLS, parse_controls
+            from harness.measures.controls import CONTROLS, parse_controls
 
             self.controls = {name: CONTROLS[name] for name in parse_controls(config.attention_controls)}
         self.reliance = None  # region reliance every k-th step (shares the attribution probe's compiled functions)
         if config.reliance_every:
-            from harness.analysis.reliance import RelianceProbe
+            from harness.measures.reliance import RelianceProbe
 
             self.reliance = RelianceProbe(self._model, config.reliance_every, config.reliance_fill,
                                           getattr(self.probe, "functions", None))
@@ -431,7 +431,7 @@ class BatchInference:
 def window_from_entries(entries: list[dict], window: int, keys: list[str]) -> dict:
     """The observation window after the last of `entries` (oldest first): image_* (window, H, W, 3), low-dim
     (window, dims), timestep_pad_mask (window,) and pad_mask_dict, left-padded with the first entry as Octo's
-    HistoryWrapper does. `EpisodeState` and replay (harness/run/replay.py) build windows with this one function."""
+    HistoryWrapper does. `EpisodeState` and replay (harness/gate/replay.py) build windows with this one function."""
     frames = list(entries[-window:])
     n = len(frames)
     frames = [frames[0]] * (window - n) + frames  # left-pad with the first observation

@@ -30,14 +30,14 @@ class StepRecord:
     policy_inputs: dict[str, np.ndarray] | None = None  # what the policy was fed at this step (PolicyStep.inputs), in the
     # env's image convention: image_* (height, width, 3) uint8 resized, low-dim (dims,) float32
     # --attribution / --faithfulness-every: {"maps": {method: {obs key: (rows, cols)}}, "faithfulness": [rows],
-    # "seconds"} of this step's inference (harness.analysis.attribution.Probe), maps upright; None otherwise
+    # "seconds"} of this step's inference (harness.measures.attribution.Probe), maps upright; None otherwise
     attribution: dict | None = None
     phase: str | None = None  # the task phase of the state the model saw (envs.phases; None: the task has no phases)
     # --attention-controls: {"blank": (layers, heads, readouts, keys) float32, "mirror": ...} readout attention of
     # the same inference with every camera's frames replaced by their mean colour / mirrored left-right (upright);
     # None at steps without controls
     controls: dict | None = None
-    # --reliance-every: {"rows": [one per camera x region, harness.analysis.reliance], "seconds"} at reliance steps
+    # --reliance-every: {"rows": [one per camera x region, harness.measures.reliance], "seconds"} at reliance steps
     reliance: dict | None = None
 
 

@@ -37,7 +37,7 @@ def fixtures_dir() -> Path:
 # runs are made once; files are handed out in collection order, so the longest stages go first and the short ones
 # fill in at the end (the order of the measured file durations; it changes only how fast, never what runs).
 LONGEST_FIRST = ("libero", "run", "gate", "reference", "policy", "octo", "envs", "outputs", "rollout", "report",
-                 "analysis", "runfolder", "docs")
+                 "analysis", "measures", "runfolder", "docs")
 
 
 # A local Ray cluster is several times slower while the other process loads both cores: its file goes last.

@@ -8,20 +8,24 @@ HARNESS = Path(__file__).resolve().parents[1] / "harness"
 ENVS = HARNESS.parent / "envs"
 
 # The data path, lowest stage first. A module may import its own stage and the stages before it, never a later one.
-# `policy` sits above `analysis` because the policy computes attributions (harness.analysis.attribution) and the
-# interventions mask by them; `runfolder` (a run folder's schema, integrity and platform record) sits below both
-# `analysis` (which reads run folders) and `run` (which writes them). `reference` trains the reference policies
-# with the closed loop and the statistics; nothing but the command line sits above `report`.
+# `measures` (the per-step maths: attention slicing, attribution, deletion fills, the controls' frame transforms,
+# region reliance; and the success statistics the run store writes) sits below `policy`, which computes them at a
+# step; `runfolder` (a run folder's schema, integrity and platform record) sits below both `run` (which writes run
+# folders) and `analysis` (which reads them, offline, above the run store). The gate commands (regress, replay,
+# sanity, view, robustness grids) read analysis and run the run store, so they sit above both. `reference` trains
+# the reference policies with the closed loop and the statistics; nothing but the command line sits above `report`.
 STAGES = (
     ("envs", ("envs",)),
     ("base", ("harness", "harness.files", "harness.console")),
     ("octo", ("harness.octo",)),
-    ("runfolder", ("harness.runfolder",)),
-    ("analysis", ("harness.analysis",)),
+    ("measures", ("harness.measures",)),
     ("policy", ("harness.interventions", "harness.policy", "harness.conventions")),
     ("rollout", ("harness.records", "harness.rollout")),
     ("outputs", ("harness.outputs",)),
+    ("runfolder", ("harness.runfolder",)),
     ("run", ("harness.run",)),
+    ("analysis", ("harness.analysis",)),
+    ("gate", ("harness.gate",)),
     ("reference", ("harness.reference",)),
     ("report", ("harness.report",)),
     ("cli", ("harness.cli",)),
@@ -68,9 +72,11 @@ def test_no_module_imports_a_later_stage():
 
 
 def test_the_stage_check_sees_an_upward_import():
-    """The check above can fail: analysis reading the run package (what issue 28 found) is reported."""
-    assert stage_of("harness.analysis.runs") < stage_of("harness.run.store")
-    assert stage_of("harness.runfolder.schema") < stage_of("harness.analysis.runs") < stage_of("harness.report.build")
+    """The check above can fail: the run store reading analysis (which sits above it now), the policy reading
+    analysis (what issue 42 moved into measures) or analysis reading a gate command is reported."""
+    assert stage_of("harness.measures.attribution") < stage_of("harness.policy") < stage_of("harness.run.store")
+    assert stage_of("harness.runfolder.schema") < stage_of("harness.run.store") < stage_of("harness.analysis.runs")
+    assert stage_of("harness.analysis.runs") < stage_of("harness.gate.regress") < stage_of("harness.report.build")
     assert [name for name, _ in STAGES].index("cli") == len(STAGES) - 1
 
 

@@ -1,1 +1,2 @@
-"""Analysis: attention maths, success statistics, paired and sequential tests, run reading, aggregation, comparison."""
+"""Analysis of finished run folders, offline, above the run store: the run reader, aggregation, comparison, paired and
+sequential tests, robustness, phases, grounding, position and sanity analysis, provenance."""

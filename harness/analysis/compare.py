@@ -51,11 +51,11 @@ from harness.analysis.paired import (
     regressed_reachable,
     worst,
 )
-from harness.analysis.attention import DERIVED_PREFIXES
+from harness.measures.attention import DERIVED_PREFIXES
 from harness.analysis.equivalence import attention_divergence
 from harness.analysis.provenance import input_agreement, provenance
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
-from harness.analysis.stats import wilson_interval
+from harness.measures.stats import wilson_interval
 from harness.runfolder.schema import flatten
 
 FORMAT = "octo-harness-compare/1"
@@ -602,7 +602,7 @@ def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], miss
     }
 
 
-GRID_FILE = "robustness.json"  # harness.run.robustness writes it into a grid folder
+GRID_FILE = "robustness.json"  # harness.gate.robustness writes it into a grid folder
 
 
 def is_grid(path: str | Path) -> bool:

@@ -1,4 +1,4 @@
-"""Is a model's output on the same inputs the same? Pure maths of `octo-harness replay` (harness/run/replay.py).
+"""Is a model's output on the same inputs the same? Pure maths of `octo-harness replay` (harness/gate/replay.py).
 
 Open loop on recorded inputs, the only differences between two forward passes are the model's and the
 float arithmetic's (instruction set, XLA version, batch shape): the closed loop, which turns a 1e-6 change

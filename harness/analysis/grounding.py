@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from harness.bounded import open_npz, read_json
-from harness.analysis.stats import wilson_interval
+from harness.measures.stats import wilson_interval
 
 CLOSED_BELOW = 0.5  # the "libero" action space's gripper: 1 open, 0 closed (envs.actions.libero_action's binarising)
 MASK_PREFIX = "object."

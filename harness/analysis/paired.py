@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import beta, binom, binomtest, norm
 
-from harness.analysis.stats import wilson_interval
+from harness.measures.stats import wilson_interval
 
 # worst first: an overall verdict is the worst of its tasks' (and the pooled table's) verdicts
 VERDICTS = ("ERRORED", "REGRESSED", "SUSPECT", "UNDERPOWERED", "HELD", "IMPROVED", "IDENTICAL")

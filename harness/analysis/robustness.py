@@ -49,7 +49,7 @@ from envs.perturbations import parse_perturb
 from harness.analysis.paired import (PairedCounts, detectable_loss, detectable_phrase, difference_interval, equivalent,
                                      holm_adjust, mcnemar_exact)
 from harness.analysis.robustness_measures import START_STEPS, episode_measures, js_divergence_bits
-from harness.analysis.stats import wilson_interval
+from harness.measures.stats import wilson_interval
 
 CLUSTER_RESAMPLES = 2000
 MIN_CLASS = 5

@@ -13,7 +13,7 @@ import warnings
 import numpy as np
 
 from harness.analysis import position as Q
-from harness.analysis.attention import camera_maps
+from harness.measures.attention import camera_maps
 from harness.bounded import open_npz
 
 CAMERA = "image_primary"

@@ -197,7 +197,7 @@ def patch_effects(
     name: {"change": (s,) RMS change of the set, "sum_single": (s,) RMS of the summed single changes,
     "additivity": (s,) change / sum_single, "cosine": (s,) cosine of the set's change vector and the summed one}}.
     """
-    from harness.analysis.faithfulness import delete_patches
+    from harness.measures.faithfulness import delete_patches
 
     rows, cols = next(iter(sets.values())).shape[1:] if sets else (None, None)
     if rows is None:
@@ -227,6 +227,6 @@ def patch_effects(
 
 def nested_sets(order: np.ndarray, ks: Sequence[int], rows: int, cols: int) -> np.ndarray:
     """order (n,) patch indices, ks -> (len(ks), rows, cols) bool: the first k patches of the order for each k."""
-    from harness.analysis.faithfulness import first_k
+    from harness.measures.faithfulness import first_k
 
     return first_k(np.asarray(order), ks).reshape(len(ks), rows, cols)

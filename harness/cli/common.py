@@ -39,8 +39,8 @@ def add_verbose(parser: argparse.ArgumentParser, top: bool = False) -> None:
 
 
 def add_gate_options(parser: argparse.ArgumentParser, command: str, keys: tuple[str, ...]) -> None:
-    """The gate options `keys` (harness.analysis.gate.GateConfig's fields: --max-drop, --alpha, --fail-on, ...)."""
-    from harness.analysis.gate import GateConfig
+    """The gate options `keys` (harness.gate.config.GateConfig's fields: --max-drop, --alpha, --fail-on, ...)."""
+    from harness.gate.config import GateConfig
 
     add_arguments(parser, (GateConfig,), command, only=keys,
                   overrides={k: {"default": getattr(GateConfig, k)} for k in ("max_drop", "alpha", "first_steps",

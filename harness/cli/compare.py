@@ -27,7 +27,7 @@ def add_parser(sub) -> None:
 
 def main(args) -> int:
     from harness.analysis.compare import compare_grids, compare_runs, exit_code, is_grid
-    from harness.analysis.gate import GateConfig
+    from harness.gate.config import GateConfig
     from harness.report.compare_html import step0_frames, write_comparison
 
     gate = GateConfig.from_args(args)

@@ -31,14 +31,14 @@ def add_parser(sub) -> None:
 
 def main(args) -> int:
     from harness.analysis.compare import is_grid
-    from harness.analysis.gate import GateConfig
+    from harness.gate.config import GateConfig
     from harness.report.compare_html import write_comparison
-    from harness.run.regress import exit_code, regress, write_regress
+    from harness.gate.regress import exit_code, regress, write_regress
 
     factory = execution(args)
     gate = GateConfig.from_args(args)
     if is_grid(args.baseline):  # a robustness grid: condition by condition, Holm over every task x condition
-        from harness.run.regress import regress_grid
+        from harness.gate.regress import regress_grid
 
         result = regress_grid(args.baseline, args.model, gate, out=args.out, run_name=args.run_name, executor=factory)
         code = exit_code(result, gate.fail_on if gate.fail_on != "changed" else "suspect")

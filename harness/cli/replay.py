@@ -22,9 +22,9 @@ def add_parser(sub) -> None:
 
 
 def main(args) -> int:
-    from harness.analysis.gate import GateConfig
+    from harness.gate.config import GateConfig
     from harness.files import atomic_write_json
-    from harness.run.replay import exit_code, replay_run, summary_text
+    from harness.gate.replay import exit_code, replay_run, summary_text
 
     gate = GateConfig.from_args(args)
     gate.tolerances()  # bad tolerances: one line, before the run is read

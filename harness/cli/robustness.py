@@ -55,7 +55,7 @@ def grid_protocol(args):
 
 def main(args) -> int:
     from harness.cli.common import execution
-    from harness.run.robustness import parse_kinds, parse_levels, run_grid
+    from harness.gate.robustness import parse_kinds, parse_levels, run_grid
 
     conditions, levels = parse_kinds(args.perturb), parse_levels(args.levels)
     factory = execution(args)

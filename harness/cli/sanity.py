@@ -32,7 +32,7 @@ def add_parser(sub) -> None:
 
 
 def main(args) -> int:
-    from harness.run.sanity import DEFAULT_METHODS, SanityOptions, markdown, run_sanity
+    from harness.gate.sanity import DEFAULT_METHODS, SanityOptions, markdown, run_sanity
 
     fills = tuple(f.strip() for f in args.fills.split(",") if f.strip()) if args.fills else SanityOptions.fills
     options = SanityOptions(every=args.every, methods=args.methods or DEFAULT_METHODS, additivity=args.additivity,

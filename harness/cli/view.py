@@ -32,7 +32,7 @@ def main(args) -> int:
 
     from harness.outputs.rerun_sink import import_rerun
     from harness.outputs.rerun_viewer import check_viewer, serve_file, start_viewer
-    from harness.run.view import build_recording
+    from harness.gate.view import build_recording
 
     rr = import_rerun()
     if args.save is not None and args.save.suffix != ".rrd":

@@ -120,7 +120,7 @@ class MultiHeadAttention(nn.Module):
         q = q / jnp.sqrt(head_dim).astype(q.dtype)
         weights = masked_softmax(jnp.einsum("bqhd,bkhd->bhqk", q, k), mask)  # (batch, heads, queries, keys)
         # a no-op unless a "perturbations" collection is passed: then d(output)/d(weights) is its gradient
-        # (gradient-weighted attention relevance, harness.analysis.attribution)
+        # (gradient-weighted attention relevance, harness.measures.attribution)
         weights = self.perturb("weights", weights)
         mixed = jnp.einsum("bhqk,bkhd->bqhd", weights, v)
         out = nn.DenseGeneral(d, axis=(-2, -1), kernel_init=init, name="out")(mixed)

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from harness.analysis.aggregate import measure_arrays
-from harness.analysis.attention import mask_fractions
+from harness.measures.episode import measure_arrays
+from harness.measures.attention import mask_fractions
 from harness.files import json_safe, write_atomic
 from harness.outputs.steps import EpisodeEnd, FinishedStep, Sink, phase_names_of
 from harness.policy import input_digest
@@ -192,7 +192,7 @@ class MetricLines(Sink):
 
 class AttributionFiles(Sink):
     """attribution.npz: step (n,), seconds (n,), map/<method>/<obs key> (n, rows, cols) float32 at the steps that
-    carry maps; faithfulness.jsonl: one row per step x camera x method (harness.analysis.faithfulness), when
+    carry maps; faithfulness.jsonl: one row per step x camera x method (harness.measures.faithfulness), when
     measured. Neither is written when no step carries an attribution."""
 
     def __init__(self, *args, **kwargs):
@@ -256,7 +256,7 @@ class ControlArrays(Sink):
 
 
 class RelianceLines(Sink):
-    """reliance.jsonl (--reliance-every): one row per reliance step x camera x region, in harness.analysis.reliance's
+    """reliance.jsonl (--reliance-every): one row per reliance step x camera x region, in harness.measures.reliance's
     schema, with the run, task, episode and seed in front; not written when no step measured reliance."""
 
     def __init__(self, *args, **kwargs):

@@ -3,7 +3,7 @@
 Fast enough to run every control step: colours come from a 256-entry lookup table built once per
 colormap from matplotlib's colormaps (no figures), blending is integer numpy, text and boxes are
 drawn with Pillow's ImageDraw. Maps are drawn patch-constant by default (interpolation "nearest",
-`harness.analysis.attention.upsample_map`: a patch of the model's grid lights exactly the block of pixels it was
+`harness.measures.attention.upsample_map`: a patch of the model's grid lights exactly the block of pixels it was
 cut from, in the frame's own orientation); interpolation "bilinear" interpolates the map's values between patch
 centres before colouring (the smooth look of the original attention-visualisation scripts; it shows no detail the
 patch grid does not have).
@@ -23,7 +23,7 @@ from typing import Sequence
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from harness.analysis.attention import fuse_heads
+from harness.measures.attention import fuse_heads
 
 INTERPOLATIONS = ("nearest", "bilinear")  # how a patch-grid map is enlarged to its frame (--overlay-interpolation)
 BACKGROUND = 255
@@ -259,7 +259,7 @@ def attribution_panel(
     min_cell: int = 128,
     interpolation: str = "nearest",
 ) -> np.ndarray:
-    """One step: rows = cameras, columns = attribution methods (`harness.analysis.attribution`).
+    """One step: rows = cameras, columns = attribution methods (`harness.measures.attribution`).
 
     maps: method -> observation key -> (rows, cols) scores on that camera's patch grid. Methods have
     unrelated units (attention mass, gradient magnitudes, action change), so each cell is coloured

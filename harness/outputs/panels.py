@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.analysis.attention import fuse_heads
+from harness.measures.attention import fuse_heads
 from harness.files import write_atomic
 from harness.outputs.overlays import attribution_panel, layer_panel
 from harness.outputs.steps import EpisodeEnd, FinishedStep, Sink

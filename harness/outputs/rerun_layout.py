@@ -20,7 +20,7 @@ harness.outputs.rerun_sink.RerunSink):
   scalars/new_chunk                    a marker (1) at every step where a new action chunk was inferred
   measures/share/<group>, measures/timestep_share/<part>, measures/entropy, measures/mask_mass/<obs>/<mask>,
   measures/mask_lift/<obs>/<mask>      per layer, one series each (attention.step_metrics; lift = mass / area)
-  reliance/<obs key>/<region>          the region's reliance share at --reliance-every steps (harness.analysis.reliance;
+  reliance/<obs key>/<region>          the region's reliance share at --reliance-every steps (harness.measures.reliance;
                                        not logged where the camera was not used)
   episode/instruction, episode/outcome text documents (static)
 """

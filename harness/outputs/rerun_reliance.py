@@ -1,10 +1,10 @@
 """The reliance map layer of a Rerun recording (issue 45): where the policy relies, over each camera, beside where it
 looks (the attention overlays).
 
-At a `--reliance-every` step the step record carries region reliance rows (harness.analysis.reliance: one per camera
-x labelled region) and the env's masks of the frame the model saw. The map of a camera (`reliance_map`): every pixel
+At a `--reliance-every` step the step record carries region reliance rows (harness.measures.reliance: one per camera x
+labelled region) and the env's masks of the frame the model saw. The map of a camera (`reliance_map`): every pixel
 of the frame gets the `reliance_per_pixel` of the region it belongs to (the region's share of the chunk's change per
-unit of area), regions drawn from the step's masks by reliance.region_masks, resized to the frame (the partition the
+unit of area), regions drawn from the step's masks by measures.reliance.region_masks, resized to the frame (the partition the
 rows were measured on, at the frame's resolution); 0 for a region without a row (the remainder that has pixels only
 at the frame's resolution). A camera the policy did not use at that step (its shares null: the chunk hardly changed
 whichever region was replaced) gets a map of zeros.
@@ -16,21 +16,20 @@ the target mask. It is logged at reliance steps only: between them Rerun's lates
 reliance step at or before the shown step (0, N, 2N, ... with --reliance-every N), drawn on that step's masks.
 
 Row values are taken as reliance.jsonl stores them (`stored_rows`: harness.files.json_safe, 6 significant digits),
-so a live recording and `octo-harness view`'s rebuild from the file (`rows_by_step`) hold the same scalars and maps.
+so a live recording and `octo-harness view`'s rebuild from the file (harness.analysis.reliance.rows_by_step) hold
+the same scalars and maps.
 """
 
 from __future__ import annotations
 
 import io
-import math
-from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
 from PIL import Image
 
-from harness.analysis.reliance import FILE, read_rows, region_masks
 from harness.files import json_safe
+from harness.measures.reliance import region_masks
 from harness.outputs.overlays import colorize
 
 LAYER_ALPHA = 0.6  # opacity of the map's maximum; 0 is transparent
@@ -82,34 +81,3 @@ def reliance_layers(rows: Sequence[Mapping], frames: Mapping[str, np.ndarray], m
         if cam in frames and named:
             out[cam] = layer_png(reliance_map(named, cam_rows, np.shape(frames[cam])[:2]), cmap)
     return out
-
-
-def rows_by_step(directory: str | Path) -> dict[int, dict]:
-    """An episode folder's reliance.jsonl -> {step: {"rows": [its rows]}} ({} without the file), as a step record's
-    `reliance` holds them, for `view`'s rebuild. A row of the wrong types is a ValueError naming the file and row."""
-    path = Path(directory) / FILE
-    if not path.is_file():
-        return {}
-    out: dict[int, dict] = {}
-    for number, row in enumerate(read_rows(path), 1):
-        problem = _row_problem(row)
-        if problem:
-            raise ValueError(f"{path} row {number}: {problem}; repair the file or re-create the run "
-                             "(octo-harness run ... --overwrite)")
-        out.setdefault(int(row["step"]), {"rows": []})["rows"].append(row)
-    return out
-
-
-def _row_problem(row: Mapping) -> str | None:
-    def number(value) -> bool:
-        return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0
-
-    if not isinstance(row["step"], int) or isinstance(row["step"], bool) or row["step"] < 0:
-        return f"step must be a step index, got {row['step']!r}"
-    for key in ("camera", "region"):
-        if not isinstance(row[key], str):
-            return f"{key} must be a name, got {row[key]!r}"
-    for key in ("reliance_share", "reliance_per_pixel"):
-        if row.get(key) is not None and not number(row[key]):
-            return f"{key} must be a number >= 0 or null, got {row[key]!r}"
-    return None

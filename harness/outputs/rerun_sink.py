@@ -31,7 +31,7 @@ import numpy as np
 from PIL import Image
 
 from envs.phases import phase_names
-from harness.analysis.attention import camera_maps, fuse_heads
+from harness.measures.attention import camera_maps, fuse_heads
 from harness.files import temp_path
 from harness.octo.tokens import TokenMap
 from harness.outputs.overlays import heatmap_overlays, resize_nearest

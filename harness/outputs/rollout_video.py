@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.analysis.attention import camera_maps, fuse_heads
+from harness.measures.attention import camera_maps, fuse_heads
 from harness.outputs.overlays import heatmap_overlay, video_frame
 from harness.outputs.steps import EpisodeEnd, FinishedStep, Sink
 from harness.outputs.video import GifWriter, Mp4Writer

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.analysis.attention import camera_maps, rollout_readout_rows, step_metrics
+from harness.measures.attention import camera_maps, rollout_readout_rows, step_metrics
 from harness.octo.tokens import TokenMap
 from harness.outputs.overlays import mask_bbox
 from harness.records import EpisodeMeta, StepRecord

@@ -21,7 +21,7 @@ files when the episode closes. `finish()` closes the sinks and writes episode.js
                               coverage by the mask (attention.mask_fractions; nan where a step lacks it),
                               so mask mass can be recomputed per head / layer from readout_attention;
                               measures/layer/<m> (steps, layers), measures/head/<m> (steps, layers, heads)
-                              float32: shares, entropy, mask mass and lift per step (analysis.aggregate);
+                              float32: shares, entropy, mask mass and lift per step (measures.episode);
                               phase (steps,) int8 index into phase_names (-1: none) for tasks with phases
   actions.npz                 predicted (steps, horizon, dim), executed (steps, dim), reward, success, step,
                               inferred (steps,) bool, input_hash/<key> (steps,) uint64: a 64-bit digest of what
@@ -63,7 +63,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.analysis.attention import HEAD_FUSIONS
+from harness.measures.attention import HEAD_FUSIONS
 from harness.files import atomic_write_json
 from harness.octo.tokens import TokenMap
 from harness.outputs.overlays import check_interpolation, colormap_lut

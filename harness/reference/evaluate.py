@@ -3,7 +3,7 @@
     python -m harness.reference.evaluate RUN_DIR [RUN_DIR ...] --out models/octo-reference-robosuite
 
 Reads each run's results.jsonl (success per episode) and every episode's metrics.jsonl, and writes
-EVAL.md and eval.json: per task n, successes, rate, Wilson 95% interval (harness.analysis.stats) and the
+EVAL.md and eval.json: per task n, successes, rate, Wilson 95% interval (harness.measures.stats) and the
 target lift per layer: for each camera, the fraction of that camera's attention on the target mask divided
 by the mask's area (1 = chance), averaged over the steps where the target is visible, then over episodes.
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from harness.analysis.provenance import command_text, provenance_line, with_provenance
-from harness.analysis.stats import wilson_interval
+from harness.measures.stats import wilson_interval
 
 
 def target_lift(metrics_path: Path) -> dict[str, np.ndarray]:

@@ -54,7 +54,7 @@ def closed_loop_markdown(random_run, top_run, note: str = "") -> str:
     from scipy.stats import binomtest
 
     from harness.analysis.runs import load_run
-    from harness.analysis.stats import wilson_interval
+    from harness.measures.stats import wilson_interval
 
     records = [load_run(random_run), load_run(top_run)]
     outcome = [{(e.task, e.seed): bool(e.success) for e in r.episodes if e.ok} for r in records]

@@ -41,8 +41,9 @@ import numpy as np
 
 from harness.bounded import open_npz
 from harness.analysis import aggregate as agg
+from harness.measures.episode import MEASURES, episode_measures, measures_from_arrays
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays, load_run
-from harness.analysis.stats import success_summary
+from harness.measures.stats import success_summary
 from harness.report import faithfulness, figures, page
 from harness.report.rundata import RunData, episode_headline, representative
 from harness.report.rundata import csv_bytes as _csv
@@ -92,12 +93,12 @@ def _analyse_episode(job: tuple, stored_only: bool = False) -> tuple[int, str, i
     record = EpisodeRecord(task=task, episode=episode, seed=None, status="ok", success=False, steps=0, directory=Path(directory))
     try:
         with open_npz(record.attention_path) as z:
-            measures = agg.measures_from_arrays({k: z[k] for k in z.files if k.startswith(agg.MEASURES)})
+            measures = measures_from_arrays({k: z[k] for k in z.files if k.startswith(MEASURES)})
         if measures is None:
             if stored_only:
                 return run_index, task, episode, None, None
             arrays = load_episode_arrays(record)
-            measures = agg.episode_measures(arrays.readout_attention, TokenMap.from_arrays(arrays.tokens),
+            measures = episode_measures(arrays.readout_attention, TokenMap.from_arrays(arrays.tokens),
                                             arrays.mask_fractions, arrays.mask_areas, arrays.mask_mass)
         return run_index, task, episode, agg.summarise_episode(measures, bins), None
     except Exception as exc:  # noqa: BLE001 - one unreadable episode is reported, the report goes on
@@ -208,7 +209,7 @@ def _patch_box(coverage: np.ndarray) -> tuple[float, float, float, float] | None
 
 
 def _overlay_png(run: RunData, episode: EpisodeRecord, options: ReportOptions) -> tuple[bytes, str] | None:
-    from harness.analysis.attention import camera_maps
+    from harness.measures.attention import camera_maps
     from harness.octo.tokens import TokenMap
 
     try:

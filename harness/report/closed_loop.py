@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 
 from harness.analysis.paired import PairedCounts, mcnemar_exact, newcombe_paired_interval
-from harness.analysis.stats import wilson_interval
+from harness.measures.stats import wilson_interval
 
 INTERVENTION_COLUMNS = ("run", "baseline_run", "intervention", "task", "pairs", "baseline_successes", "baseline_rate",
                         "baseline_ci_low", "baseline_ci_high", "successes", "rate", "ci_low", "ci_high",

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from harness.bounded import open_npz
-from harness.analysis.attention import camera_maps
+from harness.measures.attention import camera_maps
 from harness.files import all_or_none, atomic_write_json, write_atomic
 from harness.octo.tokens import TokenMap
 from harness.report import html as H

@@ -2,7 +2,7 @@
 
 Open loop: every finished episode's `faithfulness.jsonl` (runs made with `--faithfulness-every k`) is summarised
 per run x task x camera x method: deletion and insertion AUC relative to the random map on the same steps
-(harness.analysis.faithfulness.relative_to_random: 1 = no better than random; deletion > 1 and insertion < 1
+(harness.measures.faithfulness.relative_to_random: 1 = no better than random; deletion > 1 and insertion < 1
 are better) with 95% bootstrap intervals over episodes, and top-k change over random-k change at each k. A
 heatmap per task (methods x cameras, deletion ratio) and one plain sentence per task.
 
@@ -11,7 +11,7 @@ Closed loop (harness.report.closed_loop): runs given together whose protocols di
 map better than chance at finding what the policy needs?): success of each arm (Wilson), the paired difference
 (Newcombe's interval for paired proportions) and the exact McNemar p-value, per task.
 
-Fills (harness.analysis.faithfulness: mean, blur, impute) and orders: each open-loop row carries its fill and the
+Fills (harness.measures.faithfulness: mean, blur, impute) and orders: each open-loop row carries its fill and the
 LeRF ratio beside deletion (MoRF) and insertion; runs of one task with different fills give a ranking-by-fill table
 (`fill_ranking`). Per camera (`camera_rows`): the closed-loop arms of that camera (mask-all@CAMERA against the
 plain run, mask-top:K:METHOD@CAMERA against mask-random:K@CAMERA) beside the open-loop ratio of the same method,
@@ -30,8 +30,8 @@ from collections import defaultdict
 import numpy as np
 
 from harness.bounded import loads_json, read_jsonl_text
-from harness.analysis.attribution import display_rank
-from harness.analysis.faithfulness import relative_to_random
+from harness.measures.attribution import display_rank
+from harness.measures.faithfulness import relative_to_random
 from harness.report import html as H
 from harness.report.closed_loop import INTERVENTION_COLUMNS, arm_name, intervention_rows, run_policy
 from harness.report.rundata import csv_bytes as _csv

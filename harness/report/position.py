@@ -26,7 +26,7 @@ from collections import defaultdict
 import numpy as np
 
 from harness.analysis import position as Q
-from harness.analysis.attention import camera_maps
+from harness.measures.attention import camera_maps
 from harness.analysis.runs import read_npz
 from harness.octo.tokens import TokenMap
 from harness.report import html as H

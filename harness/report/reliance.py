@@ -1,6 +1,6 @@
 """The report's Reliance section: where the policy looks beside what it relies on, region by region (issue 45).
 
-Runs made with `--reliance-every N` write each episode's `reliance.jsonl` (harness.analysis.reliance: per sampled
+Runs made with `--reliance-every N` write each episode's `reliance.jsonl` (harness.measures.reliance: per sampled
 step, camera and labelled region, the change of the predicted chunk when the region is replaced, its reliance per
 pixel and its reliance share). Beside each step's reliance shares this section puts the attention shares of the same
 regions at the same steps: the readout attention mass (head mean, the camera's map at the current timestep) of the
@@ -32,7 +32,8 @@ from collections import defaultdict
 import numpy as np
 
 from harness.analysis.bootstrap import bootstrap_mean_ci
-from harness.analysis.reliance import FILE, REGION_TABLE, TASK_OBJECTS, attention_regions, read_rows
+from harness.analysis.reliance import FILE, attention_regions, read_rows
+from harness.measures.reliance import REGION_TABLE, TASK_OBJECTS
 from harness.analysis.robustness import run_condition
 from harness.analysis.sanity import spearman
 from harness.bounded import open_npz

@@ -24,7 +24,7 @@ from typing import Callable
 
 import numpy as np
 
-from harness.analysis.attention import MEASURES_VERSION
+from harness.measures.attention import MEASURES_VERSION
 from harness import interrupts
 from harness.run import checks
 from harness.run.protocol import protocol_from_manifest

@@ -35,7 +35,7 @@ from envs.options import EnvOptions
 from harness.bounded import read_toml, short
 from harness.options import file_keys, given, option
 from harness.policy import PolicyConfig
-from harness.analysis.attribution import DEFAULT_METHODS
+from harness.measures.attribution import DEFAULT_METHODS
 from harness.outputs.writers import ATTRIBUTION_VIDEO
 from harness.run.protocol import Protocol, RunStatistics
 from harness.outputs.writers import OutputOptions

@@ -29,7 +29,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterable
 
-from harness.analysis.stats import success_summary
+from harness.measures.stats import success_summary
 from harness.bounded import MAX_JSONL_BYTES, BoundsError, read_bytes, read_json
 from harness.files import atomic_write_json, json_safe, write_atomic
 from harness.run.jobs import FORMAT, EpisodeJob

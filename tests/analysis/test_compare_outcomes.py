@@ -90,7 +90,7 @@ def test_regress_feeds_complete_rounds_in_order_to_each_tasks_own_test():
 
     from harness.analysis.sequential import SequentialConfig
     from harness.run.protocol import EpisodeJob
-    from harness.run.regress import round_order, sequential_state
+    from harness.gate.regress import round_order, sequential_state
 
     tasks = ("Lift", "Stack")
     jobs = [EpisodeJob(t, k, 10 + k) for t in tasks for k in range(3)]  # task-major, as a protocol lists them

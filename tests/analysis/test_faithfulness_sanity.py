@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from scipy.stats import spearmanr
 
-from harness.analysis import attribution as A
-from harness.analysis import faithfulness as F
+from harness.measures import attribution as A
+from harness.measures import faithfulness as F
 from harness.analysis import sanity as S
 from harness.octo.tokens import TokenMap
 
@@ -346,7 +346,7 @@ def test_sanity_command_names_the_fix_for_a_run_without_recorded_inputs(tmp_path
 def test_profile_agreement_with_occlusion_and_static_patches():
     """Maps that rank patches as occlusion does agree (+1), reversed ones disagree (-1); the per-patch pixel spread
     over steps is 0 for a patch that never changes."""
-    from harness.run.sanity import _patch_means, _profile
+    from harness.gate.sanity import _patch_means, _profile
 
     occ = np.arange(N, dtype=float).reshape(ROWS, COLS)
     agreement, profiles, frames = [], {}, {}

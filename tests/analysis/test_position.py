@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 
 from harness.analysis import position as Q
-from harness.analysis.attention import camera_maps
+from harness.measures import controls as C
+from harness.measures.attention import camera_maps
 from harness.octo import load_pretrained
 from harness.policy import BatchInference, InferenceRequest, PolicyConfig, TaskSpec, window_from_entries
 
@@ -31,10 +32,10 @@ KEYS = ["image_primary", "image_wrist", "proprio"]
 
 def test_blank_and_mirror_frames():
     frames = np.arange(2 * 4 * 6 * 3, dtype=np.uint8).reshape(2, 4, 6, 3)
-    mirrored = Q.mirror_frames(frames)
+    mirrored = C.mirror_frames(frames)
     assert np.array_equal(mirrored[:, :, 0], frames[:, :, -1])
-    assert np.array_equal(Q.mirror_frames(mirrored), frames)
-    blank = Q.blank_frames(frames)
+    assert np.array_equal(C.mirror_frames(mirrored), frames)
+    blank = C.blank_frames(frames)
     assert blank.shape == frames.shape and blank.dtype == np.uint8
     for i in range(2):  # each frame its own mean colour
         expected = np.rint(frames[i].reshape(-1, 3).mean(axis=0))
@@ -42,10 +43,10 @@ def test_blank_and_mirror_frames():
 
 
 def test_parse_controls():
-    assert Q.parse_controls("mirror,blank") == ("blank", "mirror")
+    assert C.parse_controls("mirror,blank") == ("blank", "mirror")
     for bad in ("", "blank,", "blur", None):
         with pytest.raises(ValueError, match="attention-controls"):
-            Q.parse_controls(bad)
+            C.parse_controls(bad)
 
 
 def test_flag_rule_on_hand_made_maps():
@@ -225,9 +226,9 @@ def test_attention_that_follows_a_bright_square_moves_under_the_mirror_and_nothi
 def test_mirroring_twice_gives_the_recorded_attention_back_bit_for_bit(model):
     request = _request(_noise(3, 128), _noise(4, 64), model.window_size)
     inference, result = _infer(model, request)
-    twice = inference.control_attention([request], {"twice": lambda x: Q.mirror_frames(Q.mirror_frames(x))})["twice"]
+    twice = inference.control_attention([request], {"twice": lambda x: C.mirror_frames(C.mirror_frames(x))})["twice"]
     assert np.array_equal(twice[0], result.readout_attention)
-    once = inference.control_attention([request], {"mirror": Q.mirror_frames})["mirror"]
+    once = inference.control_attention([request], {"mirror": C.mirror_frames})["mirror"]
     assert np.array_equal(once[0], result.controls["mirror"])  # the stored control is that pass
     assert not np.array_equal(result.controls["mirror"], result.readout_attention)
     # float16, as controls.npz and attention.npz store them: still bit for bit

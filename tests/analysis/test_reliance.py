@@ -1,5 +1,6 @@
-"""Region reliance (harness/analysis/reliance.py): stand-in policies whose answer is known, the region table, nuisance
-reliance, the per-step hook of the policy, and one real step of the tiny model on Lift."""
+"""Region reliance (harness/measures/reliance.py; nuisance reliance: harness/analysis/reliance.py): stand-in
+policies whose answer is known, the region table, nuisance reliance, the per-step hook of the policy, and one real
+step of the tiny model on Lift."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import warnings
 import numpy as np
 import pytest
 
-from harness.analysis import reliance as R
+from harness.analysis import reliance as N
+from harness.measures import reliance as R
 from harness.policy import EnvMismatchError, EpisodeState, InferenceRequest, PolicyConfig, TaskSpec
 
 SIZE = 16
@@ -102,7 +104,7 @@ def test_empty_regions_give_null_per_pixel_reliance_not_an_error():
     assert all(r["reliance_share"] is None and r["change"] == 0.0 for r in unread)
     assert by_region(unread)["goal"]["reliance_per_pixel"] is None
     assert by_region(unread)["target"]["reliance_per_pixel"] == 0.0
-    assert math.isnan(R.step_nuisance(unread)[(0, "image_primary")]["nuisance_reliance"])
+    assert math.isnan(N.step_nuisance(unread)[(0, "image_primary")]["nuisance_reliance"])
     with pytest.raises(ValueError, match="unknown reliance fill 'noise'; use one of mean, blur, impute"):
         R.region_reliance(reader({}), images, {"image_primary": masks}, fill="noise")
 
@@ -154,16 +156,16 @@ def test_nuisance_reliance_known_answer():
             row(4, "target", None), row(4, "background", None),  # nothing used at step 4: nan, left out of the means
             row(12, "target", 0.25), row(12, "background", 0.75),
             row(0, "background", 1.0, "image_wrist")]  # another camera
-    per_step = R.step_nuisance(rows)
+    per_step = N.step_nuisance(rows)
     assert per_step[(0, "image_primary")] == {"nuisance_reliance": 0.5, "background_reliance": 0.25,
                                               "distractor_reliance": 0.25}
     assert per_step[(0, "image_wrist")]["nuisance_reliance"] == 1.0
-    episode = R.nuisance_reliance(rows)
+    episode = N.nuisance_reliance(rows)
     assert episode["step"] == [0, 4, 12] and episode["per_step"][0] == 0.5 and math.isnan(episode["per_step"][1])
     assert episode["nuisance_reliance"] == pytest.approx(0.625) and episode["background_reliance"] == pytest.approx(0.5)
     assert episode["distractor_reliance"] == pytest.approx(0.125)
     assert episode["nuisance_reliance_start"] == 0.5  # steps before START_STEPS (10): step 0 only
-    assert math.isnan(R.nuisance_reliance(rows, "image_side")["nuisance_reliance"])
+    assert math.isnan(N.nuisance_reliance(rows, "image_side")["nuisance_reliance"])
 
 
 def test_the_policy_hook_is_off_by_default_and_sends_masks_only_at_its_steps():

@@ -9,7 +9,8 @@ import pytest
 from harness.analysis import aggregate as agg
 from harness.analysis.bootstrap import bootstrap_mean_ci
 from harness.analysis.runs import NotARunError, load_run
-from harness.analysis.attention import mask_area_fraction, mask_fractions, step_metrics
+from harness.measures.attention import mask_area_fraction, mask_fractions, step_metrics
+from harness.measures.episode import episode_measures
 from harness.octo.tokens import build_token_map
 from harness.runfolder.schema import protocol_hash
 
@@ -40,7 +41,7 @@ def _measures(attn, masks=None):
     fr = [mask_fractions(TOKENS, masks) for _ in range(steps)]
     fractions = {k: np.stack([f[k] for f in fr]) for k in fr[0]} if masks else {}
     areas = {f"{o}/{n}": np.full(steps, mask_area_fraction(m)) for o, d in (masks or {}).items() for n, m in d.items()}
-    return agg.episode_measures(attn, TOKENS, fractions, areas)
+    return episode_measures(attn, TOKENS, fractions, areas)
 
 
 # ---- bootstrap -------------------------------------------------------------------------------------------------
@@ -130,8 +131,8 @@ def test_per_head_mask_mass_separates_heads():
 def test_float16_entropy_table_matches_direct_entropy():
     rng = np.random.default_rng(2)
     attn = rng.dirichlet(np.full(K, 0.3), size=(2, 2, 3, 1)).astype(np.float16)
-    a = agg.episode_measures(attn, TOKENS)
-    b = agg.episode_measures(attn.astype(np.float64), TOKENS)
+    a = episode_measures(attn, TOKENS)
+    b = episode_measures(attn.astype(np.float64), TOKENS)
     np.testing.assert_allclose(a.head["entropy"], b.head["entropy"], atol=1e-6)
 
 
@@ -139,10 +140,10 @@ def test_step_without_a_mask_has_no_mass_and_runs_without_masks_have_no_mask_met
     attn = np.full((2, 1, 1, 1, K), 1.0 / K, np.float32)
     frac = mask_fractions(TOKENS, {"image_primary": {"target": _target_mask()}})["image_primary/target"]
     fractions = {"image_primary/target": np.stack([frac, np.full_like(frac, np.nan)])}
-    m = agg.episode_measures(attn, TOKENS, fractions, {"image_primary/target": np.array([0.125, np.nan])})
+    m = episode_measures(attn, TOKENS, fractions, {"image_primary/target": np.array([0.125, np.nan])})
     assert np.isfinite(m.layer["mask_mass/image_primary/target"][0]).all()
     assert np.isnan(m.layer["mask_mass/image_primary/target"][1]).all()
-    assert not any(k.startswith("mask_") for k in agg.episode_measures(attn, TOKENS).layer)
+    assert not any(k.startswith("mask_") for k in episode_measures(attn, TOKENS).layer)
 
 
 # ---- progress, summaries, aggregation ----------------------------------------------------------------------------

@@ -28,11 +28,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.analysis.attention import MEASURES_VERSION
+from harness.measures.attention import MEASURES_VERSION
 from harness.analysis.compare import compare_runs, exit_code
 from harness.run import execute
 from harness.runfolder.platform import platform_fingerprint, platform_info
-from harness.run.regress import candidate_protocol
+from harness.gate.regress import candidate_protocol
 from tests.runfolder.edits import redigest
 
 pytestmark = pytest.mark.slow

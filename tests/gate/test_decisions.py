@@ -44,7 +44,7 @@ from harness.analysis.sequential import (
     taskwise_decisions,
 )
 from harness.run.protocol import EpisodeJob
-from harness.run.regress import gate_on_outcomes, gate_verdict
+from harness.gate.regress import gate_on_outcomes, gate_verdict
 from tests.analysis.test_compare_outcomes import write_run
 
 ALPHA, MAX_DROP = 0.05, 0.1
@@ -360,7 +360,7 @@ def test_held_error_by_exact_enumeration_stays_under_nominal():
 
 
 def test_regress_on_an_all_errored_candidate_is_errored_and_stops_once_more_than_half_errored():
-    from harness.run.regress import _check_baseline, errored_tasks
+    from harness.gate.regress import _check_baseline, errored_tasks
 
     tasks, seeds = ("Lift", "Stack"), 10
     jobs = _jobs(tasks, seeds)

@@ -407,7 +407,7 @@ def test_tiny_fixture_runs_a_libero_task_and_two_workers_equal_sequential_bit_fo
             np.load(sequential.episode_dir(sequential.rows[1]) / "inputs.npz") as z1:
         first = [k for k in z0.files if "image_primary" in k][0]
         assert not np.array_equal(z0[first][0], z1[first][0])
-    from harness.run.replay import replay_run
+    from harness.gate.replay import replay_run
 
     result = replay_run(sequential.run_dir, loaded_model=tiny)
     assert result["verdict"] == "EQUIVALENT" and result["action_change_max"] == 0.0

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from harness.analysis.attention import upsample_map
+from harness.measures.attention import upsample_map
 from harness.outputs.overlays import (
     BOX,
     attribution_panel,

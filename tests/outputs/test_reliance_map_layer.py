@@ -17,8 +17,9 @@ import pytest
 import rerun as rr
 from PIL import Image
 
+from harness.analysis.reliance import rows_by_step
 from harness.outputs.overlays import colormap_lut
-from harness.outputs.rerun_reliance import LAYER_ALPHA, layer_png, reliance_map, rows_by_step
+from harness.outputs.rerun_reliance import LAYER_ALPHA, layer_png, reliance_map
 from harness.outputs.rerun_sink import RRD_NAME, RerunRecording
 from harness.outputs.writers import OutputOptions
 from tests.outputs.test_sinks import STEPS, drive, with_extras
@@ -148,7 +149,7 @@ def test_a_run_holds_the_layer_at_reliance_steps_and_view_rebuilds_it(fixtures_d
     from harness.policy import PolicyConfig
     from harness.run import execute
     from harness.run.protocol import Protocol
-    from harness.run.view import build_recording
+    from harness.gate.view import build_recording
 
     model = load_pretrained(str(fixtures_dir / "tiny"))
     protocol = Protocol(model=model.source, tasks=("Lift",), episodes=1, seed=5, max_steps=3,

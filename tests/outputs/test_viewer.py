@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from harness import cli
-from harness.analysis.attention import camera_maps
+from harness.measures.attention import camera_maps
 from harness.octo import load_pretrained
 from harness.octo.tokens import TokenMap
 from harness.outputs.overlays import heatmap_overlays, upsample_bilinear
@@ -124,7 +124,7 @@ def test_recording_holds_the_entity_tree_every_step_and_the_attention_values(run
 
 @pytest.mark.slow
 def test_view_of_a_run_without_rerun_equals_the_saved_recording(runs, tiny, tmp_path):
-    from harness.run.view import build_recording
+    from harness.gate.view import build_recording
 
     plain_run = runs["plain"].parents[1]
     result = build_recording(plain_run, "Lift", 0, save=tmp_path / "view.rrd", model=tiny)
@@ -147,7 +147,7 @@ def test_view_of_a_run_without_rerun_equals_the_saved_recording(runs, tiny, tmp_
 
 @pytest.mark.slow
 def test_view_without_simulation_names_the_option_and_keeps_the_maps(runs, tiny, tmp_path):
-    from harness.run.view import build_recording
+    from harness.gate.view import build_recording
 
     result = build_recording(runs["plain"].parents[1], save=tmp_path / "maps.rrd", simulate=False)
     assert "--rerun save" in result.frames and result.identical is None
@@ -158,7 +158,7 @@ def test_view_without_simulation_names_the_option_and_keeps_the_maps(runs, tiny,
 @pytest.mark.slow
 def test_view_reports_when_the_resimulated_actions_differ(runs, tiny, tmp_path):
     """Another platform's numerics, simulated: the recorded actions no longer match; view says so and from which step."""
-    from harness.run.view import build_recording
+    from harness.gate.view import build_recording
 
     run = tmp_path / "moved"
     shutil.copytree(runs["plain"].parents[1], run)
@@ -174,7 +174,7 @@ def test_view_reports_when_the_resimulated_actions_differ(runs, tiny, tmp_path):
 
 @pytest.mark.slow
 def test_view_opens_a_saved_recording_and_rebuilds_a_damaged_one(runs, tiny, tmp_path):
-    from harness.run.view import build_recording
+    from harness.gate.view import build_recording
 
     saved_run = runs["saved"].parents[1]
     result = build_recording(saved_run, save=tmp_path / "copy.rrd")
@@ -192,7 +192,7 @@ def test_view_opens_a_saved_recording_and_rebuilds_a_damaged_one(runs, tiny, tmp
 def test_mp4_has_a_row_per_camera(runs, tiny):
     """Both cameras the tiny model reads are in rollout.mp4, one row each; the wrist row shows the wrist frame."""
     from harness.analysis.runs import load_run
-    from harness.run.view import _resimulate
+    from harness.gate.view import _resimulate
 
     run = load_run(runs["saved"].parents[1])
     records, _ = _resimulate(run, run.episodes[0], STEPS, tiny)

@@ -7,7 +7,7 @@ import pytest
 import envs
 from envs.actions import ActionAdapterError, passthrough_action
 from envs.options import EnvConfigError, EnvOptions, parse_camera
-from harness.analysis import attention as A
+from harness.measures import attention as A
 from harness.conventions import CheckpointConventions, ConventionsError
 from harness.octo.normalization import NormalizationError, normalize
 from harness.octo.tokens import build_token_map

@@ -85,8 +85,8 @@ def test_mask_all_and_head_ablation_change_the_reference_policy_measurably(refer
 
 @pytest.mark.slow
 def test_mask_top_masks_the_k_patches_the_method_ranks_highest(reference):
-    from harness.analysis import attribution as A
-    from harness.analysis.faithfulness import ranking
+    from harness.measures import attribution as A
+    from harness.measures.faithfulness import ranking
 
     model, request = reference
     inference = BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention="mask-top:3:attention:2"))
@@ -176,7 +176,7 @@ def test_attribution_and_faithfulness_in_a_run_leave_the_actions_alone(tmp_path)
     assert sorted({r["step"] for r in rows}) == [0, 3]
     assert {(r["camera"], r["method"]) for r in rows} == {(c, m) for c in ("image_primary", "image_wrist")
                                                            for m in ("attention:2", "saliency", "random")}
-    from harness.analysis.faithfulness import _ks_with, k_values
+    from harness.measures.faithfulness import _ks_with, k_values
 
     grids = _patch_grids(episode)
     for r in rows:

@@ -14,7 +14,7 @@ import pytest
 
 from harness import cli
 from harness.analysis import position as Q
-from harness.analysis.attention import camera_maps
+from harness.measures.attention import camera_maps
 from harness.octo.tokens import TokenMap
 from tests.runfolder.edits import redigest, strip_masks  # as if a run had written the edited files
 from tests.helpers import browser as _browser

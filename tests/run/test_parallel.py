@@ -69,7 +69,7 @@ def _assert_same_episodes(reference, other) -> None:
 
 def _assert_replay_is_exact(summary, model) -> None:
     """Replay of a run on its own recorded inputs, with its own model on this machine: EQUIVALENT, and exactly 0."""
-    from harness.run.replay import replay_run
+    from harness.gate.replay import replay_run
 
     result = replay_run(summary.run_dir, loaded_model=model)
     assert result["verdict"] == "EQUIVALENT" and result["steps_compared"] == sum(r.steps for r in summary.rows)

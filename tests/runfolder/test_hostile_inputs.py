@@ -75,7 +75,7 @@ def made(fixtures_dir, tmp_path_factory):
 def foreign_rrd(made, tmp_path_factory):
     """A valid recording the run's rows do not record (rebuilt from the run's files: another process's file)."""
     pytest.importorskip("rerun")
-    from harness.run.view import build_recording
+    from harness.gate.view import build_recording
 
     path = tmp_path_factory.mktemp("rrd") / "other.rrd"
     build_recording(made, save=path, simulate=False)

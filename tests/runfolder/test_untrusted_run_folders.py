@@ -351,7 +351,7 @@ def test_a_candidate_missing_jobs_is_incomplete(runs, tmp_path, capsys):
 def test_regress_whose_candidate_never_ran_a_task_is_incomplete(made, fixtures_dir, tmp_path):
     """An executor that loses a task's jobs (a lost worker, a node gone) must not leave the gate passing."""
     from harness.run.executor import SequentialExecutor
-    from harness.run.regress import exit_code, regress
+    from harness.gate.regress import exit_code, regress
 
     class LosesStack(SequentialExecutor):
         def run(self, jobs, on_step=None):

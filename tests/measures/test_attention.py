@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from harness.analysis import attention as A
+from harness.measures import attention as A
 from harness.octo.tokens import build_token_map
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.analysis.gate import GateConfig
+from harness.gate.config import GateConfig
 from harness.analysis.equivalence import Tolerances, action_change, action_scale, attention_change, first_change
 from harness.analysis.runs import EpisodeRecord, load_run, read_npz
 from harness.run.protocol import protocol_from_manifest

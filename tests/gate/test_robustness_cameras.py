@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from harness.run.robustness import expand_conditions, grid, model_camera_keys
+from harness.gate.robustness import expand_conditions, grid, model_camera_keys
 
 KEYS = ("image_primary", "image_wrist")
 
@@ -28,7 +28,7 @@ def test_a_tiny_camera_grid_has_a_cell_per_camera_and_keeps_an_old_grids_names(f
     from harness.analysis.robustness import collect, paired_rows
     from harness.analysis.runs import load_run
     from harness.octo import load_pretrained
-    from harness.run.robustness import run_grid
+    from harness.gate.robustness import run_grid
     from harness.run.settings import build_protocol
 
     model = load_pretrained(str(fixtures_dir / "tiny"))

@@ -33,7 +33,7 @@ from harness.analysis.compare import (
     outcome_verdicts,
     overall_verdict,
 )
-from harness.analysis.gate import GateConfig
+from harness.gate.config import GateConfig
 from harness.analysis.paired import PairedCounts, errored_most, mcnemar_exact_sample_size, worst
 from harness.analysis.runs import load_run
 from harness.analysis.sequential import SequentialConfig, TaskwiseTest
@@ -266,9 +266,9 @@ def regress(baseline_dir: str | Path, model: str, gate: GateConfig | None = None
 
 
 def replay_baseline(baseline, model: str, gate: GateConfig, loaded_model=None) -> dict | None:
-    """The candidate on the baseline's recorded inputs (harness/run/replay.py): its model numerics, isolated from
+    """The candidate on the baseline's recorded inputs (harness/gate/replay.py): its model numerics, isolated from
     the simulator and the platform, within the gate's tolerances; None when the baseline recorded no inputs."""
-    from harness.run.replay import INPUTS, replay_run
+    from harness.gate.replay import INPUTS, replay_run
 
     if not all((e.directory / INPUTS).is_file() for e in baseline.episodes if e.ok):
         return None
@@ -330,7 +330,7 @@ def summary_text(result: dict, code: int) -> str:
 def _numerics_line(replay: dict | None) -> str:
     if replay is None:
         return "model numerics: not replayed (the baseline recorded no inputs; make it with --record-inputs)"
-    from harness.run.replay import summary_text as replay_summary
+    from harness.gate.replay import summary_text as replay_summary
 
     lines = replay_summary(replay).splitlines()
     return "model numerics: " + lines[0].removeprefix("replay: ") + "".join(f"\n  {line}" for line in lines[1:])

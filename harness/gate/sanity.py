@@ -24,17 +24,17 @@ from pathlib import Path
 import numpy as np
 
 from harness.analysis import sanity as S
-from harness.analysis.attribution import (METHODS, OctoFunctions, analyse, attribute, needs_gradients, needs_occlusion,
+from harness.measures.attribution import (METHODS, OctoFunctions, analyse, attribute, needs_gradients, needs_occlusion,
                                           parse_methods)
-from harness.analysis.faithfulness import FILLS, k_values, ranking
+from harness.measures.faithfulness import FILLS, k_values, ranking
 from harness.analysis.runs import load_run
-from harness.run.replay import ReplayInputError, inputs_path, recorded_inputs
+from harness.gate.replay import ReplayInputError, inputs_path, recorded_inputs
 from harness.run.protocol import protocol_from_manifest
 
 log = logging.getLogger(__name__)
 
 FORMAT = "octo-harness-sanity/1"
-# sanity's own default: every method of the table (harness.analysis.attribution.METHODS) but the random control,
+# sanity's own default: every method of the table (harness.measures.attribution.METHODS) but the random control,
 # which is always added; so occlusion too, unlike a run's default: it is the reference the checks compare maps with
 DEFAULT_METHODS = ",".join(name for name, method in METHODS.items() if not method.control)
 RANDOMISATION_COLUMNS = ("schedule", "stage", "method", "camera", "steps", "spearman", "spearman_low", "spearman_high",
@@ -224,7 +224,7 @@ def _agreement_and_profile(found: _Found, seed: int) -> dict:
 
 def _effects(fn, analysis, options: SanityOptions, where: dict, seed: int, step: int) -> list[dict]:
     """Per camera and fill: single-patch effects, whole deletion, additivity of nested occlusion-ranked and random sets."""
-    from harness.analysis.attribution import occlusion_maps
+    from harness.measures.attribution import occlusion_maps
 
     rows = []
     for _, key, r, c in analysis.tokens.image_groups:
@@ -272,7 +272,7 @@ def _profile(trained: dict, images: dict, where: dict, agreement: list, profiles
 
 def _patch_means(frames: list) -> np.ndarray:
     """[(frame (H, W, 3), (rows, cols))] -> (steps, rows, cols, 3) mean colour of each patch."""
-    from harness.analysis.attention import patch_index
+    from harness.measures.attention import patch_index
 
     out = []
     for frame, (rows, cols) in frames:

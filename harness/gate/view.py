@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.analysis.reliance import rows_by_step
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
 from harness.files import write_atomic
 from harness.octo.tokens import TokenMap
-from harness.outputs.rerun_reliance import rows_by_step
 from harness.outputs.rerun_sink import RRD_NAME, RerunSink, SinkOptions, import_rerun
 from harness.records import EpisodeMeta, StepRecord
 from harness.run.protocol import protocol_from_manifest

@@ -1,4 +1,4 @@
-"""The attribution methods' one table (harness.analysis.attribution.METHODS): every row runs through `attribute`,
+"""The attribution methods' one table (harness.measures.attribution.METHODS): every row runs through `attribute`,
 the passes `analyse` computes follow the rows, one default list for runs, and sanity's own list derived from it."""
 
 from __future__ import annotations
@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from harness.analysis import attribution as A
-from tests.analysis.test_attribution import COLS, ROWS, TARGET, toy_step
+from harness.measures import attribution as A
+from tests.measures.test_attribution import COLS, ROWS, TARGET, toy_step
 
 
 def test_every_method_of_the_table_gives_a_map_per_camera():
@@ -33,7 +33,7 @@ def test_the_passes_follow_the_rows():
 
 
 def test_one_default_list_and_sanitys_own_choice():
-    from harness.run import sanity
+    from harness.gate import sanity
 
     assert A.DEFAULT_METHODS == "attention,rollout,grad-attention,saliency"  # what a run computes unless told
     assert sanity.DEFAULT_METHODS == "attention,rollout,grad-attention,saliency,occlusion"  # plus the reference

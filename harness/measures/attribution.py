@@ -9,7 +9,7 @@ what every method needs (`StepAnalysis`); the methods are then pure numpy functi
 table `METHODS`, which also holds the one default list, DEFAULT_METHODS):
 
   attention:<layer>   raw readout attention of a layer, mean over heads and readout tokens
-  rollout             attention rollout (Abnar & Zuidema 2020; harness.analysis.attention)
+  rollout             attention rollout (Abnar & Zuidema 2020; harness.measures.attention)
   grad-attention      gradient-weighted attention relevance (Chefer, Gur & Wolf 2021, "Transformer
                       Interpretability Beyond Attention Visualization", their rule for self-attention):
                       R = I; per layer R <- R + mean_heads[(dS/dA ⊙ A)^+] @ R; the readout rows of R
@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from harness.analysis.attention import camera_keys, patch_index, rollout_readout_rows
+from harness.measures.attention import camera_keys, patch_index, rollout_readout_rows
 from harness.octo.tokens import TokenMap
 
 @dataclass(frozen=True, eq=False)
@@ -109,7 +109,7 @@ def analyse(step: StepFunction, gradients: bool = True, occlusion: bool = False)
 
 def occlusion_maps(step: StepFunction, reference: np.ndarray, fill: str = "mean") -> dict[str, np.ndarray]:
     """{obs key: (rows, cols)} RMS change of the chunk when that patch alone of the current frame is deleted."""
-    from harness.analysis.faithfulness import action_change, delete_patches
+    from harness.measures.faithfulness import action_change, delete_patches
 
     out = {}
     for _, key, rows, cols in step.tokens.image_groups:
@@ -392,7 +392,7 @@ class Probe:
     """
 
     def __init__(self, model, methods: str | None, every: int = 0, fill: str = "mean"):
-        from harness.analysis.faithfulness import FILLS
+        from harness.measures.faithfulness import FILLS
 
         if fill not in FILLS:
             raise ValueError(f"unknown faithfulness fill {fill!r}; use one of {', '.join(FILLS)}")
@@ -405,7 +405,7 @@ class Probe:
     def __call__(self, observations: Mapping, task: Mapping, rng, seed: int, step: int) -> dict:
         import time
 
-        from harness.analysis.faithfulness import step_faithfulness
+        from harness.measures.faithfulness import step_faithfulness
 
         start = time.perf_counter()
         fn = self.functions.at(observations, task, rng)

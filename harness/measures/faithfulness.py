@@ -40,7 +40,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 from scipy.ndimage import gaussian_filter
 
-from harness.analysis.attention import patch_index
+from harness.measures.attention import patch_index
 
 FILLS = ("mean", "blur", "impute")
 IMPUTE_NOISE = 2.55  # std of the noise added to imputed pixels, pixel units (1% of the 0..255 range)

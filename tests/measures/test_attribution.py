@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from harness.analysis import attribution as A
-from harness.analysis import faithfulness as F
+from harness.measures import attribution as A
+from harness.measures import faithfulness as F
 from harness.octo.tokens import TokenMap
 
 ROWS = COLS = 4

@@ -3,7 +3,7 @@ import math
 
 import pytest
 
-from harness.analysis.stats import clopper_pearson_interval, success_summary, wilson_interval
+from harness.measures.stats import clopper_pearson_interval, success_summary, wilson_interval
 
 # (successes, n, Wilson score (method 3), Clopper-Pearson exact (method 5)), 95%, 4 decimals as printed in Table I.
 NEWCOMBE_TABLE_I = [
