@@ -58,16 +58,19 @@ def paired_difference(seeds, success, first, second, confidence: float = 0.95, r
             point[0] - point[1], float(q[0, 2]), float(q[1, 2]))
 
 
-def verdict(difference_low: float, difference_high: float, attention_map: str) -> str:
-    """Which measure goes with failure more strongly, from the interval of r_reliance - r_attention."""
-    if not (math.isfinite(difference_low) and math.isfinite(difference_high)):
+def verdict(result: tuple, attention_map: str) -> str:
+    """Which measure is the better predictor of failure, from the interval of r_reliance - r_attention (`result`:
+    paired_difference's tuple), and whether the better one predicts failure by itself (its own interval below 0)."""
+    low, high = result[7], result[8]
+    if not (math.isfinite(low) and math.isfinite(high)):
         return f"too few seeds, successes or failures (< {MIN_CLASS}) to compare"
-    if difference_high < 0:
-        return "nuisance reliance goes with failure more strongly"
-    if difference_low > 0:
-        return f"{MAP_WORDS[attention_map]} goes with failure more strongly"
-    return (f"neither is shown to predict failure better (the interval of the difference holds 0; the smallest "
-            f"difference in r it could resolve is about {(difference_high - difference_low) / 2:.2f})")
+    if low <= 0 <= high:
+        return (f"neither is shown to predict failure better (the interval of the difference holds 0; the smallest "
+                f"difference in r it could resolve is about {(high - low) / 2:.2f})")
+    better, own_high = ("nuisance reliance", result[2]) if high < 0 else (MAP_WORDS[attention_map], result[5])
+    alone = ("and it predicts failure by itself (its own interval lies below 0)" if own_high < 0 else
+             "though its own interval does not lie below 0: it does not predict failure by itself here")
+    return f"{better} is the better predictor of failure (its r is lower), {alone}"
 
 
 def predictor_rows(rows: list[EpisodeRow]) -> list[tuple]:
@@ -87,7 +90,7 @@ def predictor_rows(rows: list[EpisodeRow]) -> list[tuple]:
             result = paired_difference([r.seed for r in both], success, _centred_per_run(both, "reliance"),
                                        _centred_per_run(both, map_))
             out.append((task, map_, len(both), len({r.seed for r in both}), int(len(both) - sum(success)), *result,
-                        verdict(result[7], result[8], map_)))
+                        verdict(result, map_)))
     return out
 
 

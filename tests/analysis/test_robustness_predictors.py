@@ -39,14 +39,23 @@ def test_reliance_tied_to_failure_is_named_the_better_predictor():
     assert r_rel < -0.8 and rel_hi < 0  # tied to failure by construction: an interval below 0
     assert att_lo < 0 < att_hi  # independent of success: the interval holds 0
     assert hi < 0 and diff == r_rel - r_att
-    assert verdict == "nuisance reliance goes with failure more strongly"
+    assert verdict == ("nuisance reliance is the better predictor of failure (its r is lower), and it predicts failure "
+                       "by itself (its own interval lies below 0)")
     sentence = P.predictor_sentence("Lift", [row])
     assert sentence.startswith("Lift, which predicts failure within conditions") and verdict in sentence
 
 
 def test_attention_tied_to_failure_is_named_instead():
     (row,) = P.predictor_rows(_rows(reliance_tied=False, attention_tied=True))
-    assert row[12] > 0 and row[14] == "nuisance attention (raw map) goes with failure more strongly"
+    assert row[12] > 0 and row[14].startswith("nuisance attention (raw map) is the better predictor of failure")
+    assert row[10] < 0 and row[14].endswith("it predicts failure by itself (its own interval lies below 0)")
+
+
+def test_a_better_predictor_whose_own_interval_holds_0_is_not_said_to_predict_failure():
+    result = (-0.2, -0.6, 0.2, 0.4, 0.1, 0.7, -0.6, -1.1, -0.2)  # reliance lower, but its own interval holds 0
+    assert P.verdict(result, "raw").endswith("it does not predict failure by itself here")
+    assert P.verdict((0.3, 0.0, 0.5, -0.4, -0.7, -0.1, 0.7, 0.3, 1.1), "content").startswith(
+        "nuisance attention (content-only map) is the better predictor of failure")
 
 
 def test_two_measures_equally_tied_give_neither_with_the_resolvable_difference():
