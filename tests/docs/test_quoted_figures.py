@@ -15,6 +15,14 @@ EVAL = "models/octo-reference-robosuite/EVAL.md"
 
 # (page, what the page says, source file, the line of the source it comes from: a regex)
 QUOTES = (
+    ("README.md", "take Lift from 19/20 to 11/20, Stack from 15/20 to 8/20 and PickPlaceCan from 15/20 to 7/20", EVAL,
+     r"^\| camera@image_wrist \| 1 \| 7/20 \| .* \| 9 / 1 \| 0\.0215 \| BREAKS"),
+    ("docs/perturbations.md", "| PickPlaceCan | 15/20 | 7/20: 9 lost, 1 gained, p 0.0215, BREAKS |", EVAL,
+     r"^\| camera@image_wrist \| 1 \| 7/20 \| .* \| 9 / 1 \| 0\.0215 \| BREAKS"),
+    ("docs/perturbations.md", "| Lift | 19/20 | 11/20: 8 lost, 0 gained, Holm p 0.0078, BREAKS | 0/20: 19 lost, p 7.6e-06", EVAL,
+     r"^\| camera@image_wrist \| 5 \| 0/20 \| .* \| 19 / 0 \| 7\.63e-06 \| BREAKS"),
+    ("docs/perturbations.md", "the grid could resolve a difference in r of about 0.36 (Lift), 0.42 (Stack) and 0.17", EVAL,
+     r"^Stack, which predicts failure .* resolve is about 0\.42\)"),
     ("docs/perturbations.md", "masking it takes Lift from 6/6 to 0/6, p = 0.03", EVAL,
      r"^\| Lift \| `mask-all@image_wrist` \| Lift_plain \| 6 \| 6/6 = 1\.00 .* \| 0/6 = 0\.00 .* \| 0\.0312 \|$"),
     ("docs/perturbations.md", "halves Lift in the closed-loop interventions (6/6 -> 3/6, p = 0.25", EVAL,
@@ -27,6 +35,11 @@ QUOTES = (
     ("docs/phases-and-position.md", "Stack 0.58 → 0.05 and 0.72 → 0.09", EVAL,
      r"^\| image_primary \| 1 \| target \| 335 \| 0\.72 \| 0\.09 \|$"),
     ("docs/phases-and-position.md", "layer 3: 1.65 → 2.32", EVAL, r"1\.65 → 2\.32"),
+    ("docs/faithfulness.md", "| Lift | wrist | 0.014 / 0.37 | 0.12 / 0.28 | 0.86 / 0.35 | 0.55 [0.49, 0.61] |", EVAL,
+     r"^\| image_wrist \| target \| 0\.014 \| 0\.37 \| 40\.5 \| 20 \|$"),
+    ("docs/faithfulness.md", "0.55 [0.49, 0.61]", EVAL, r"^- Lift, image_wrist: .* mean 0\.55 \[0\.49, 0\.61\]"),
+    ("docs/faithfulness.md", "| PickPlaceCan | wrist | 0.027 / 0.32 | 0.16 / 0.20 | 0.57 / 0.34 |", EVAL,
+     r"^\| image_wrist \| target \| 0\.027 \| 0\.32 \| 14\.1 \| 20 \|$"),
 )
 
 
