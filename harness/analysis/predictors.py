@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from harness.analysis.robustness import CLUSTER_RESAMPLES, MIN_CLASS, EpisodeRow, _centred_per_run, has_content
+from harness.analysis.robustness import CLUSTER_RESAMPLES, MIN_CLASS, EpisodeRow, centred_per_run, has_content
 
 PREDICTOR_COLUMNS = ("task", "attention_map", "episodes", "seeds", "failures", "reliance_r", "reliance_ci_low",
                      "reliance_ci_high", "attention_r", "attention_ci_low", "attention_ci_high", "difference",
@@ -87,8 +87,8 @@ def predictor_rows(rows: list[EpisodeRow]) -> list[tuple]:
             if not both:
                 continue
             success = [float(r.success) for r in both]
-            result = paired_difference([r.seed for r in both], success, _centred_per_run(both, "reliance"),
-                                       _centred_per_run(both, map_))
+            result = paired_difference([r.seed for r in both], success, centred_per_run(both, "reliance"),
+                                       centred_per_run(both, map_))
             out.append((task, map_, len(both), len({r.seed for r in both}), int(len(both) - sum(success)), *result,
                         verdict(result, map_)))
     return out

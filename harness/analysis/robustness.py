@@ -229,7 +229,7 @@ def seed_cluster_interval(seeds, success, values, confidence: float = 0.95, resa
     return (float(low), float(high))
 
 
-def _centred_per_run(rows: list[EpisodeRow], map_: str = "raw") -> list[float]:
+def centred_per_run(rows: list[EpisodeRow], map_: str = "raw") -> list[float]:
     """Each episode's nuisance mass minus the mean of its run (one condition and level): what is left is the
     variation within a condition, which a perturbation that moves both nuisance mass and success cannot make."""
     means = {run: _mean(r.nuisance(map_)[0] for r in rows if r.run == run) for run in {r.run for r in rows}}
@@ -257,7 +257,7 @@ def association_rows(rows: list[EpisodeRow], maps: tuple[str, ...] | None = None
         for map_ in maps:
             success, seeds = [r.success for r in ok], [r.seed for r in ok]
             mass, start = [r.nuisance(map_)[0] for r in ok], [r.nuisance(map_)[1] for r in ok]
-            within = _centred_per_run(ok, map_)
+            within = centred_per_run(ok, map_)
             r_, lo, hi, n = point_biserial(success, mass)
             out.append((task, n, r_, lo, hi, *seed_cluster_interval(seeds, success, mass),
                         _mean(m for m, r in zip(mass, ok) if r.success), _mean(m for m, r in zip(mass, ok) if not r.success),

@@ -27,15 +27,16 @@ EPISODE_COLUMNS = ("run", "task", "condition", "level", "seed", "episode", "stat
 
 
 def analyse(records, margin: float = R.MARGIN):
-    """(episode rows, step-0 shifts, notes, success rows, association rows, paired rows), or None when no run was
-    perturbed: one read of every perturbed episode's attention, shared by the report's tables and section.
+    """(episode rows, step-0 shifts, notes, success rows, association rows, paired rows, predictor rows), or None when
+    no run was perturbed: one read of every perturbed episode's attention, shared by the report's tables and section.
     `margin`: the drop a HOLDS verdict rules out."""
     if not R.is_perturbed(records):
         return None
     rows, shifts, notes = R.collect(records)
     rows, reliance_notes = add_reliance(rows, records)  # nuisance reliance beside nuisance mass (--reliance-every)
     notes = notes + reliance_notes
-    return rows, shifts, notes, R.success_rows(rows), R.association_rows(rows), R.paired_rows(rows, margin=margin)
+    return (rows, shifts, notes, R.success_rows(rows), R.association_rows(rows), R.paired_rows(rows, margin=margin),
+            P.predictor_rows(rows))
 
 
 def tables(records, analysis=None) -> dict[str, list]:
@@ -43,7 +44,7 @@ def tables(records, analysis=None) -> dict[str, list]:
     analysis = analysis or analyse(records)
     if analysis is None:
         return {}
-    rows, shifts, _, success, association, paired = analysis
+    rows, shifts, _, success, association, paired, predictors = analysis
     episodes = [(r.run, r.task, r.condition, r.level, r.seed, r.episode, r.status, r.success, r.nuisance_mass,
                  r.distractor_mass, r.background_mass, r.target_lift, r.nuisance_start, r.nuisance_content,
                  r.target_lift_content, r.nuisance_start_content, r.nuisance_reliance, r.background_reliance,
@@ -52,8 +53,7 @@ def tables(records, analysis=None) -> dict[str, list]:
             "robustness_shift.csv": (R.SHIFT_COLUMNS, shifts),
             "robustness_association.csv": (R.ASSOCIATION_COLUMNS, association),
             "robustness_paired.csv": (R.PAIRED_COLUMNS, paired),
-            **({"robustness_predictors.csv": (P.PREDICTOR_COLUMNS, predictors)} if (predictors := P.predictor_rows(rows))
-               else {})}
+            **({"robustness_predictors.csv": (P.PREDICTOR_COLUMNS, predictors)} if predictors else {})}
 
 
 def level_plot(task: str, success: list[tuple]) -> bytes:
@@ -102,9 +102,8 @@ def section(records, plots, analysis=None) -> str:
     analysis = analysis or analyse(records)
     if analysis is None:
         return ""
-    rows, shifts, notes, success, association, paired = analysis
+    rows, shifts, notes, success, association, paired, predictors = analysis
     drops = {(p[0], p[3]): p for p in paired}
-    predictors = P.predictor_rows(rows)
     body = [H.note("Success against perturbation level per condition (level 0 = the nominal run), with Wilson 95% "
                    "bands; target lift and nuisance mass (attention on the background and distractors: neither robot, "
                    "target nor another task object) of the primary camera at the last layer, mean over each "
@@ -209,9 +208,8 @@ def markdown(records, note: str = "", margin: float = R.MARGIN, section: str = S
     analysis = analyse(records, margin)
     if analysis is None:
         raise ValueError("no run here was perturbed: give the runs of a robustness grid")
-    rows, _, notes, success, association, paired = analysis
+    rows, _, notes, success, association, paired, predictors = analysis
     drops = {(p[0], p[3]): p for p in paired}
-    predictors = P.predictor_rows(rows)
     lines = [section, "", note, ""] if note else [section, ""]
     lines += [VERDICT_NOTE.format(margin=round(100 * margin)), "", map_note(records), ""]
     lines += [f"- {n}" for n in notes]
