@@ -4,7 +4,8 @@ Python raises a signal handler's exception wherever the main thread happens to b
 weakref callback or a `finally` that swallows it (MuJoCo's render context is finalised while a model loads), the
 KeyboardInterrupt is printed as "Exception ignored" and lost, and the command went on to exit 0 (2 of 8 Ctrl-C
 during model loading). `handler` records the signal in `received` first; the run driver and the command line
-`check()` it at their next safe point, so the command still ends with 128 + signum.
+`check()` it at their next safe point, so the command still ends with 128 + signum. `quiet_unraisable` keeps such a
+swallowed Interrupted from printing "Exception ignored ... Traceback" above the one line (it is recorded already).
 """
 
 from __future__ import annotations
@@ -31,6 +32,19 @@ def record(signum: int) -> None:
 def handler(signum, frame) -> None:
     record(signum)
     raise Interrupted(signum)
+
+
+def quiet_unraisable(previous):
+    """A `sys.unraisablehook` that drops an Interrupted raised where Python can only ignore it (a gc callback, a
+    `__del__`): `handler` has recorded it, and `check()` ends the command with the one line. Anything else goes to
+    `previous`."""
+
+    def hook(unraisable) -> None:
+        if isinstance(unraisable.exc_value, Interrupted):
+            return
+        previous(unraisable)
+
+    return hook
 
 
 def check() -> None:

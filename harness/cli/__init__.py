@@ -70,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     interrupts.reset()
     main_thread = threading.current_thread() is threading.main_thread()
     previous = {s: signal.signal(s, _interrupt) for s in (signal.SIGINT, signal.SIGTERM)} if main_thread else {}
+    unraisable = sys.unraisablehook
+    sys.unraisablehook = interrupts.quiet_unraisable(unraisable)  # a swallowed Ctrl-C: the one line, no traceback
     try:
         args = build_parser().parse_args(argv)
         console.configure(args.verbose)
@@ -83,6 +85,7 @@ def main(argv: list[str] | None = None) -> int:
               "run the same command to resume", file=sys.stderr)
         return 128 + signum
     finally:
+        sys.unraisablehook = unraisable
         for s, handler in previous.items():
             signal.signal(s, handler if handler is not None else signal.SIG_DFL)
 

@@ -263,3 +263,34 @@ def test_the_committed_baseline_still_verifies():
     assert manifest["protocol_hash"] == protocol_hash(manifest["protocol"])
     run = load_run(path, legacy=False)
     assert run.status == "complete" and len(run.episodes) == 8
+
+
+def test_a_ctrl_c_swallowed_by_a_finaliser_is_the_one_line_and_130_without_exception_ignored():
+    """Ctrl-C that lands in a finaliser (CI caught it in JAX's gc callback): Python can only ignore it, printing
+    "Exception ignored ... Traceback"; the command still exits 130 with its one line, and nothing else is printed.
+    The hook is the caller's again afterwards. (In a subprocess: pytest replaces the hook that prints.)"""
+    script = """
+import gc, sys
+from harness import cli, interrupts
+from harness.cli import tasks
+
+class Finalised:
+    def __del__(self):
+        interrupts.handler(2, None)  # what the SIGINT handler does when the signal lands in a finaliser
+
+def command(args):
+    Finalised()
+    gc.collect()
+    return 0
+
+before = sys.unraisablehook
+tasks.main = command
+code = cli.main(["tasks"])
+assert sys.unraisablehook is before
+sys.exit(code)
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO, env=ENV,
+                          timeout=TIMEOUT)
+    assert done.returncode == 130, done.stderr[-1500:]
+    assert done.stderr.strip().splitlines() == ["interrupted (SIGINT); finished episodes are recorded, run the same "
+                                                "command to resume"], done.stderr[-1500:]
