@@ -4,7 +4,8 @@ memory; plus what needs more than a file: a full disk (a small tmpfs), SIGINT wh
 plain file in an episode's place, and an exception injected into compare (the internal-error code, never 0 or 1).
 
 One tiny-model Lift run (1 episode, 2 steps) is made per session and copied per case; nothing else simulates,
-except the resume test (slow) which runs its episode again.
+except the resume test (slow) which runs its episode again. The corpus's commands are children of a forkserver that
+imported the command line once (tests/forked_cli.py: 0.5 s a case instead of 3), each capped and timed alone.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from pathlib import Path
 
 import pytest
 
+from tests import forked_cli
 from tests.runfolder.hostile_corpus import make_cases
 
 REPO = Path(__file__).resolve().parents[2]
@@ -89,11 +91,8 @@ def test_every_hostile_input_gives_its_code_and_one_line_in_bounded_time(made, f
     cases = make_cases(made, tmp_path / "corpus", str(fixtures_dir / "tiny"), foreign_rrd)
     failures, timings = [], {}
 
-    def answer(case):
-        try:
-            return octo(case.argv, case.env)
-        except subprocess.TimeoutExpired:
-            return None
+    def answer(case):  # the real command in a process of its own, forked from one that imported it once
+        return forked_cli.run(case.argv, {**ENV, **case.env}, cap=MEMORY_CAP, timeout=TIMEOUT)
 
     with ThreadPoolExecutor(WORKERS) as pool:
         answers = list(pool.map(answer, cases))
@@ -167,7 +166,7 @@ def test_a_full_disk_is_one_line_exit_2_and_leaves_no_temporary_file(made, fixtu
                            "--out", str(full / "grid")],
         }
         for name, argv in commands.items():
-            code, _, err, _ = octo(argv)
+            code, _, err, _ = forked_cli.run(argv, ENV, cap=MEMORY_CAP, timeout=TIMEOUT)
             assert code == 2, (name, err[-1000:])
             assert "No space left on device" in one_error_line(err), (name, err[-1000:])
             left = [p.name for p in full.rglob("*") if p.is_file() and p.name != "filler"]
