@@ -35,6 +35,13 @@ def model():
     return load_pretrained(str(MODEL))
 
 
+@pytest.fixture(scope="module")
+def nominal(model, tmp_path_factory):
+    """The unperturbed run (2 episodes, 3 steps), made once and only read: the plain run the level-0, two-worker
+    and mask-all tests hold their perturbed runs against."""
+    return execute(_protocol(), tmp_path_factory.mktemp("nominal"), "plain", model=model, progress=False)
+
+
 def _protocol(**settings):
     base = {"model": str(MODEL), "task": ["Lift"], "episodes": 2, "max_steps": STEPS, "fast_render": True,
             "png_every": 0, "no_video": True, "seed": 100}
@@ -56,8 +63,8 @@ def _same(a: dict, b: dict) -> bool:
 
 
 @pytest.mark.slow
-def test_level_zero_run_is_the_plain_run(model, tmp_path):
-    plain = execute(_protocol(), tmp_path, "plain", model=model, progress=False)
+def test_level_zero_run_is_the_plain_run(model, nominal, tmp_path):
+    plain = nominal
     zero = execute(_protocol(perturb="camera:0,noise:0"), tmp_path, "zero", model=model, progress=False)
     assert plain.manifest["protocol_hash"] == zero.manifest["protocol_hash"]
     assert "perturb" not in zero.manifest["protocol"]
@@ -65,14 +72,13 @@ def test_level_zero_run_is_the_plain_run(model, tmp_path):
 
 
 @pytest.mark.slow
-def test_perturbed_protocol_is_bit_identical_with_two_workers(model, tmp_path):
+def test_perturbed_protocol_is_bit_identical_with_two_workers(model, nominal, tmp_path):
     protocol = _protocol(perturb="camera:2,noise:2,distractors:1")
     sequential = execute(protocol, tmp_path / "a", "run", model=model, progress=False)
     parallel = execute(protocol, tmp_path / "b", "run", model=model, progress=False,
                        executor=lambda context, m: WorkersExecutor(context, m, workers=2))
     a, b = _actions(sequential.run_dir), _actions(parallel.run_dir)
     assert _same(a, b)
-    nominal = execute(_protocol(), tmp_path / "c", "run", model=model, progress=False)
     assert not _same(a, _actions(nominal.run_dir))  # the perturbation did change what the policy was fed
     drawn = json.loads((sequential.run_dir / "Lift" / "episode_0" / "episode.json").read_text())["perturbation"]
     assert set(drawn) == {"camera@image_primary", "distractors", "noise"}
@@ -97,7 +103,7 @@ def _step0_change(a: dict, b: dict) -> float:
 
 
 @pytest.mark.slow
-def test_mask_all_primary_makes_actions_blind_to_a_primary_camera_shift(model, tmp_path):
+def test_mask_all_primary_makes_actions_blind_to_a_primary_camera_shift(model, nominal, tmp_path):
     """mask-all fills every patch with the frame's per-channel mean (harness.interventions), so of the primary camera
     the policy still sees three numbers, its mean colour; a shift changes those slightly. Known answer: the step-0
     chunk moves at least 10x less with the camera masked than without, and the same masked frame gives the same
@@ -107,7 +113,7 @@ def test_mask_all_primary_makes_actions_blind_to_a_primary_camera_shift(model, t
 
     masked, masked_shift = run("masked", intervene="mask-all@image_primary"), \
         run("masked_shift", intervene="mask-all@image_primary", perturb="camera:5")
-    plain, shifted = run("plain"), run("shift", perturb="camera:5")
+    plain, shifted = _actions(nominal.run_dir), run("shift", perturb="camera:5")
     blind, seeing = _step0_change(masked, masked_shift), _step0_change(plain, shifted)
     print(f"step-0 chunk change under camera:5: masked {blind:.3g}, unmasked {seeing:.3g}")
     assert seeing > 0 and blind < 0.1 * seeing, (blind, seeing)

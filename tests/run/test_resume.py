@@ -74,11 +74,9 @@ def _args(model, out, name):
             "--fast-render", "--png-every", "1", "--out", str(out), "--run-name", name, "--seed", "3"]
 
 
-def _env(cache):
-    env = dict(os.environ, HF_HUB_OFFLINE="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"),
-               JAX_COMPILATION_CACHE_DIR=str(cache), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-               PYTHONPATH=str(REPO))
-    return env
+def _env():
+    """The suite's environment (its XLA compilation cache included: tests/conftest.py), offline, headless."""
+    return dict(os.environ, HF_HUB_OFFLINE="1", MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), PYTHONPATH=str(REPO))
 
 
 def _start(args, env, pause_at=None):
@@ -117,7 +115,7 @@ def _jsonl(run):
 @pytest.mark.slow
 def test_killed_runs_resume_to_the_files_of_an_uninterrupted_run(fixtures_dir, tmp_path, capsys):
     model = str(fixtures_dir / "tiny")
-    env = _env(tmp_path / "jax-cache")
+    env = _env()
     run = tmp_path / "out" / "k"
     args = _args(model, tmp_path / "out", "k")
 
