@@ -40,6 +40,40 @@ def resize_grid_embedding(embedding: np.ndarray, tokens: int) -> np.ndarray:
     return np.asarray(resized, np.float32).reshape(*lead, tokens, width)
 
 
+def _plan(target: dict, source: dict, folder: Path) -> dict[tuple, str]:
+    """{parameter key: "copy" | "resize" | "fresh"} for each of `target`'s (flattened; arrays or shape structs) taken
+    from `source` (the checkpoint's, flattened); ValueError naming the first that cannot be."""
+    plan = {}
+    for key, value in target.items():
+        path = "/".join(key)
+        if key not in source:
+            raise ValueError(f"--init-from {folder}: it has no parameter {path}; warm-start from a checkpoint of the "
+                             "same architecture (or train from scratch without --init-from)")
+        old = tuple(np.shape(source[key]))
+        if old == tuple(value.shape):
+            plan[key] = "copy"
+        elif path.endswith("_pos_embedding") and old[:-2] == tuple(value.shape[:-2]) and old[-1] == value.shape[-1]:
+            plan[key] = "resize"
+        elif path.startswith(FROZEN_ENCODER) and old[1:] == tuple(value.shape[1:]):
+            # the frozen language encoder's word table over another vocabulary (other tasks' words): its rows
+            # belong to other words, so the fresh (seeded) table stays
+            plan[key] = "fresh"
+        else:
+            raise ValueError(f"--init-from {folder}: {path} has shape {old}, the new model needs {tuple(value.shape)}; "
+                             "only patch-grid position embeddings can change size")
+    return plan
+
+
+def _source(folder: Path) -> dict:
+    return traverse_util.flatten_dict(read_params(folder, select_step(folder, None)))  # {(key, ...): array}
+
+
+def check_warm_start(shapes: dict, folder: str | Path) -> None:
+    """Raises warm_start's ValueError for a model of these parameter shapes (`jax.eval_shape` of its initialiser)
+    before anything is initialised or compiled."""
+    _plan(traverse_util.flatten_dict(shapes), _source(Path(folder)), Path(folder))
+
+
 def warm_start(params: dict, folder: str | Path) -> tuple[dict, dict]:
     """`params` (a freshly initialised tree) with the checkpoint in `folder` (latest step) copied in.
 
@@ -47,28 +81,20 @@ def warm_start(params: dict, folder: str | Path) -> tuple[dict, dict]:
     that is missing from the checkpoint or has a shape it cannot be resampled from.
     """
     folder = Path(folder)
-    source = traverse_util.flatten_dict(read_params(folder, select_step(folder, None)))  # {(key, ...): array}
+    source = _source(folder)
     target = traverse_util.flatten_dict(params)
     out, resized, fresh = {}, [], []
-    for key, value in target.items():
-        path = "/".join(key)
-        if key not in source:
-            raise ValueError(f"--init-from {folder}: it has no parameter {path}; warm-start from a checkpoint of the "
-                             "same architecture (or train from scratch without --init-from)")
+    for key, action in _plan(target, source, folder).items():
+        path, value = "/".join(key), target[key]
         old = np.asarray(source[key], np.float32)
-        if old.shape == value.shape:
+        if action == "copy":
             out[key] = old
-        elif path.endswith("_pos_embedding") and old.shape[:-2] == value.shape[:-2] and old.shape[-1] == value.shape[-1]:
+        elif action == "resize":
             out[key] = resize_grid_embedding(old, value.shape[-2])
             resized.append(f"{path} {old.shape} -> {value.shape}")
-        elif path.startswith(FROZEN_ENCODER) and old.shape[1:] == value.shape[1:]:
-            # the frozen language encoder's word table over another vocabulary (other tasks' words): its rows
-            # belong to other words, so the fresh (seeded) table stays
+        else:
             out[key] = np.asarray(value, np.float32)
             fresh.append(f"{path} {old.shape} -> {value.shape}")
-        else:
-            raise ValueError(f"--init-from {folder}: {path} has shape {old.shape}, the new model needs {value.shape}; "
-                             "only patch-grid position embeddings can change size")
     log.info("warm start from %s: %d parameters copied, %d resized (%s), %d kept fresh (%s)", folder,
              len(out) - len(resized) - len(fresh), len(resized), "; ".join(resized) or "none", len(fresh),
              "; ".join(fresh) or "none")

@@ -237,7 +237,21 @@ def test_warm_start_copies_an_earlier_checkpoint_and_resamples_the_patch_grid(di
         if k != key:
             np.testing.assert_array_equal(a[k], b[k], err_msg="/".join(k))
     assert summary["warm_start"]["resized"] and summary["warm_start"]["copied"] == len(a) - 1
-    with pytest.raises(ValueError, match="only patch-grid position embeddings can change size"):
-        train({"Lift": demo}, tmp_path / "c", TrainConfig(
-            steps=1, image_sizes=(("image_primary", 32), ("image_wrist", 16)), init_from=str(source),
-            **{**small, "mlp_dim": 128}))
+    # a checkpoint that cannot warm-start the model is refused before anything is initialised or compiled
+    from jax._src import monitoring
+
+    compiled = []
+
+    def listen(name, seconds, **kw):
+        if name.endswith("backend_compile_duration"):
+            compiled.append(name)
+
+    monitoring.register_event_duration_secs_listener(listen)
+    try:
+        with pytest.raises(ValueError, match="only patch-grid position embeddings can change size"):
+            train({"Lift": demo}, tmp_path / "c", TrainConfig(
+                steps=1, image_sizes=(("image_primary", 32), ("image_wrist", 16)), init_from=str(source),
+                **{**small, "mlp_dim": 128}))
+    finally:
+        monitoring._unregister_event_duration_listener_by_callback(listen)
+    assert compiled == []
