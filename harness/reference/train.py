@@ -42,7 +42,7 @@ from harness.octo.config import OctoConfig
 from harness.octo.network import LanguageTokenizer, init_params
 from harness.octo.t5 import T5Config
 from harness.reference.train_step import make_train_step
-from harness.reference.warm_start import check_warm_start, warm_start
+from harness.reference.warm_start import initialise
 
 log = logging.getLogger(__name__)
 
@@ -384,18 +384,9 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
 
     key = jax.random.PRNGKey(cfg.seed)
     init_key, key = jax.random.split(key)
-    def initial(rng):
-        return init_params(rng, config, {k: (s, s) for k, s in sizes.items()}, 1, t5_config=t5,
-                           lowdim_sizes={"proprio": PROPRIO_DIM}, language_tokens=LANGUAGE_TOKENS)
-
-    if cfg.init_from:  # a checkpoint that cannot warm-start this model: one line before anything is initialised
-        check_warm_start(jax.eval_shape(initial, init_key), cfg.init_from)
-    # one compiled program (an eager init compiles each of its ~400 operations on its own: 2.5x slower cold); its
-    # values differ from the eager ones by float rounding only (at most 3e-8 on the tiny test network)
-    params = jax.jit(initial)(init_key)
-    warm = None
-    if cfg.init_from:
-        params, warm = warm_start(params, cfg.init_from)
+    params, warm = initialise(init_key, lambda rng: init_params(
+        rng, config, {k: (s, s) for k, s in sizes.items()}, 1, t5_config=t5, lowdim_sizes={"proprio": PROPRIO_DIM},
+        language_tokens=LANGUAGE_TOKENS), cfg.init_from)
     trainable, t5_params = split_t5(params)
     n_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(params))
     log.info("reference model: %d parameters (%.1f MB float32), %d frames, vocab %d", n_params, n_params * 4 / 2**20,
