@@ -23,11 +23,15 @@ fi
 STAMP=".venv/.installed-$(sha1sum pyproject.toml | cut -c1-12)"
 if [ ! -f "$STAMP" ]; then
     echo "[setup] creating .venv and installing octo-harness (first run takes a few minutes)"
+    venv_start=$(date +%s)
     python3 -m venv .venv
     .venv/bin/pip install -q --upgrade pip
-    .venv/bin/pip install -q -e ".[test,ray,viewer]"
+    # --no-compile: Python compiles each module's bytecode when it is first imported (and keeps it), instead of pip
+    # compiling every file of every package up front (half of the LIBERO stack's install time, measured)
+    .venv/bin/pip install -q --no-compile -e ".[test,ray,viewer]"
     rm -f .venv/.installed-*
     touch "$STAMP"
+    echo "[setup] .venv ready ($(( $(date +%s) - venv_start )) s)"
 fi
 
 export MUJOCO_GL="${MUJOCO_GL:-egl}"

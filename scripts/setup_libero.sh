@@ -40,7 +40,8 @@ if [ ! -f "$VENV/.step-packages-$KEY" ]; then
     echo "[libero] installing LIBERO's stack (${PINS[*]}); first run takes a few minutes"
     rm -f "$VENV"/.step-packages-* "$VENV"/.step-check-*
 fi
-step packages "$VENV/bin/pip" install -q "${PINS[@]}"
+# --no-compile: bytecode is compiled on first import instead of for every file up front (51 s -> 26 s, measured)
+step packages "$VENV/bin/pip" install -q --no-compile "${PINS[@]}"
 
 # LIBERO's path configuration: the server sets LIBERO_CONFIG_PATH to this folder, so neither a user's own
 # ~/.config file nor a first-import prompt changes where tasks, initial states and assets come from.
