@@ -40,8 +40,11 @@ if point.startswith("step:"):
     def add_step(self, record):
         blocked = original(self, record)
         if record.step == n:
-            deadline = time.time() + 30  # let the writer thread put this step's PNGs on disk
-            while not list(self.dir.glob(f"step_{n:04d}_layer_*.png")) and time.time() < deadline:
+            # let the writer thread put this step's PNGs on disk, and ffmpeg (a process of its own, which creates its
+            # output once its encoder is up: later than the PNGs under load) its temporary MP4
+            deadline = time.time() + 30
+            while time.time() < deadline and not (list(self.dir.glob(f"step_{n:04d}_layer_*.png"))
+                                                  and list(self.dir.glob("*.tmp.*.mp4"))):
                 time.sleep(0.01)
             pause(f"{self.dir.name} step {n}")
         return blocked
