@@ -1,6 +1,7 @@
 """Shared test set-up: offline hub, headless GL, and the reference fixture location."""
 
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -52,3 +53,37 @@ def pytest_collection_modifyitems(config, items):
         return LONGEST_FIRST.index(parts[0]) if len(parts) > 1 and parts[0] in LONGEST_FIRST else len(LONGEST_FIRST)
 
     items.sort(key=stage)  # stable: the order within a stage is the collection order
+
+
+# OCTO_TEST_TIMELINE=DIR: each test process appends a line a test to DIR/<process>.jsonl (start, end, node id, and the
+# seconds this process spent compiling XLA programs during it), which scripts/test_timeline.py reads to show how the
+# two processes were loaded, where one waited on the other, and what compiling costs. Off by default; changes nothing.
+_TIMELINE = os.environ.get("OCTO_TEST_TIMELINE")
+_timeline_state = {"compile": 0.0}
+
+
+def _count_compile(event: str, duration: float, **_kwargs) -> None:
+    if event == "/jax/core/compile/backend_compile_duration":
+        _timeline_state["compile"] += duration
+
+
+def pytest_runtest_logstart(nodeid, location):
+    if _TIMELINE:
+        if "listening" not in _timeline_state:
+            from jax._src import monitoring
+
+            monitoring.register_event_duration_secs_listener(_count_compile)
+            _timeline_state["listening"] = True
+        _timeline_state.update(start=time.time(), compile_at_start=_timeline_state["compile"])
+
+
+def pytest_runtest_logfinish(nodeid, location):
+    if _TIMELINE and "start" in _timeline_state:
+        import json
+
+        process = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        line = {"process": process, "node": nodeid, "start": _timeline_state["start"], "end": time.time(),
+                "compile_s": _timeline_state["compile"] - _timeline_state["compile_at_start"]}
+        Path(_TIMELINE).mkdir(parents=True, exist_ok=True)
+        with open(Path(_TIMELINE) / f"{process}.jsonl", "a") as out:
+            out.write(json.dumps(line) + "\n")
