@@ -18,6 +18,7 @@ libero_start=$(date +%s)
 bash "$(dirname "$0")/setup_libero.sh"
 echo "[setup] LIBERO environment ready ($(( $(date +%s) - libero_start )) s)"
 export HF_HUB_OFFLINE=1
-# Two test processes (pytest-xdist): a test file runs on one of them, so its module-scoped runs are made once (see
-# tests/conftest.py; --dist loadgroup does not group under pytest 9). OCTO_TEST_WORKERS=0 runs in this process alone (e.g. with a debugger); -n N overrides.
-exec .venv/bin/python -m pytest -n "${OCTO_TEST_WORKERS:-2}" --dist loadfile "$@"
+# Two test processes (pytest-xdist): a test file runs on one of them, so its module-scoped runs are made once, longest
+# file first (tests/conftest.py; --dist loadgroup does not group under pytest 9; without --no-loadscope-reorder
+# xdist would hand files out by their number of tests instead). OCTO_TEST_WORKERS=0 runs in this process alone (e.g. with a debugger); -n N overrides.
+exec .venv/bin/python -m pytest -n "${OCTO_TEST_WORKERS:-2}" --dist loadfile --no-loadscope-reorder "$@"

@@ -34,25 +34,25 @@ def fixtures_dir() -> Path:
 
 
 
-# Under pytest-xdist (scripts/test.sh: `-n 2 --dist loadfile`) a test file runs on one worker, so its module-scoped
-# runs are made once; files are handed out in collection order, so the longest stages go first and the short ones
-# fill in at the end (the order of the measured file durations; it changes only how fast, never what runs).
-LONGEST_FIRST = ("libero", "run", "gate", "reference", "policy", "octo", "envs", "outputs", "rollout", "report",
-                 "analysis", "measures", "runfolder", "docs")
-
-
-# A local Ray cluster is several times slower while the other process loads both cores: its file goes last.
-LAST = ("run/test_ray_executor.py",)
+# Under pytest-xdist (scripts/test.sh: `-n 2 --dist loadfile --no-loadscope-reorder`) a test file runs on one
+# process, so its module-scoped runs are made once, and files are handed out in collection order as each process
+# frees up. Longest first (by tests/durations.json, the seconds each file took on a fresh clone, written by
+# `scripts/test_timeline.py DIR --write-durations`) keeps both processes busy to the end: the short files fill in
+# last. A file the record lacks counts as a median one. It changes only how fast, never what runs.
+DURATIONS = Path(__file__).with_name("durations.json")
 
 
 def pytest_collection_modifyitems(config, items):
-    def stage(item) -> int:
-        parts = Path(str(item.path)).relative_to(REPO / "tests").parts
-        if "/".join(parts) in LAST:
-            return len(LONGEST_FIRST) + 1
-        return LONGEST_FIRST.index(parts[0]) if len(parts) > 1 and parts[0] in LONGEST_FIRST else len(LONGEST_FIRST)
+    import json
+    import statistics
 
-    items.sort(key=stage)  # stable: the order within a stage is the collection order
+    seconds = json.loads(DURATIONS.read_text()) if DURATIONS.exists() else {}
+    typical = statistics.median(seconds.values()) if seconds else 0.0
+
+    def expected(item) -> float:
+        return seconds.get(Path(str(item.path)).relative_to(REPO).as_posix(), typical)
+
+    items.sort(key=lambda item: -expected(item))  # stable: a file's tests keep their order
 
 
 # OCTO_TEST_TIMELINE=DIR: each test process appends a line a test to DIR/<process>.jsonl (start, end, node id, and the

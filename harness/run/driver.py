@@ -29,7 +29,7 @@ from harness import interrupts
 from harness.run import checks
 from harness.run.protocol import protocol_from_manifest
 from harness.runfolder.platform import libero_platform, platform_differences, platform_fingerprint, platform_info
-from harness.run.executor import EpisodeContext, Executor, SequentialExecutor, StepCallback
+from harness.run.executor import CheckedEnv, EpisodeContext, Executor, SequentialExecutor, StepCallback
 from harness.run.progress import Progress
 from harness.run.protocol import FORMAT, EpisodeJob, Protocol, diff, goal_fingerprint, model_fingerprint
 from harness.run.store import MANIFEST, EpisodeRow, RunStore, now_utc, statistics
@@ -221,12 +221,16 @@ def execute(
             if created and not (store.dir / MANIFEST).exists():  # a check failed: leave no empty run folder behind
                 shutil.rmtree(store.dir, ignore_errors=True)
             raise
-        if len(opened.pending) < len(jobs):
-            log.info("resuming run %s: %d of %d episodes already finished", name, len(jobs) - len(opened.pending),
-                     len(jobs))
-        context = EpisodeContext(protocol=protocol, run_dir=str(store.dir.resolve()), run=name,
-                                 model=opened.manifest["model"], goals=opened.goals, viewer=viewer)
-        status = _run_pending(store, protocol, jobs, opened, context, executor, on_step, progress)
+        try:
+            if len(opened.pending) < len(jobs):
+                log.info("resuming run %s: %d of %d episodes already finished", name, len(jobs) - len(opened.pending),
+                         len(jobs))
+            context = EpisodeContext(protocol=protocol, run_dir=str(store.dir.resolve()), run=name,
+                                     model=opened.manifest["model"], goals=opened.goals, viewer=viewer)
+            status = _run_pending(store, protocol, jobs, opened, context, executor, on_step, progress)
+        finally:
+            if opened.checked is not None:
+                opened.checked.close()  # unless an executor took it
         rows = opened.rows
         ordered = tuple(rows[j.key] for j in jobs if j.key in rows)
         return RunSummary(store.dir, ordered, opened.manifest, status,
@@ -270,6 +274,7 @@ class _OpenedRun:
     goals: dict | None
     ci_method: str
     platform_fp: str
+    checked: CheckedEnv | None = None  # the first task's env, checked against the model; closed unless adopted
 
 
 def _open_run(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], name: str, goal_images: dict | None,
@@ -300,19 +305,24 @@ def _open_run(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], name:
         interrupts.check()  # Ctrl-C while loading, its KeyboardInterrupt swallowed by a finaliser
     if model is not None:
         task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)
-        if pending:
-            _check_env(protocol, model, pending[0].task)
-    if overwrite:
-        store.clear()  # only now: every check has passed
-    if manifest is None:
-        manifest = _new_manifest(protocol, protocol_dict, jobs, name, _model_info(model, dataset_key, fingerprint_details),
-                                 task_inputs, platform_now, platform_fp, ci_method)
-        store.write_manifest(manifest)
-    for line in _default_lines(protocol):
-        log.info("%s", line)
-    store.remove_temporaries()
-    store.remove_incomplete(protocol.tasks, keep=done)
-    return _OpenedRun(manifest, rows, done, pending, model, goals, ci_method, platform_fp)
+    checked = CheckedEnv(protocol, model, pending[0].task) if model is not None and pending else None
+    try:
+        if overwrite:
+            store.clear()  # only now: every check has passed
+        if manifest is None:
+            manifest = _new_manifest(protocol, protocol_dict, jobs, name,
+                                     _model_info(model, dataset_key, fingerprint_details), task_inputs, platform_now,
+                                     platform_fp, ci_method)
+            store.write_manifest(manifest)
+        for line in _default_lines(protocol):
+            log.info("%s", line)
+        store.remove_temporaries()
+        store.remove_incomplete(protocol.tasks, keep=done)
+    except BaseException:
+        if checked is not None:
+            checked.close()
+        raise
+    return _OpenedRun(manifest, rows, done, pending, model, goals, ci_method, platform_fp, checked)
 
 
 def _recorded_manifest(store: RunStore, protocol: Protocol, protocol_dict: dict, overwrite: bool) -> dict | None:
@@ -388,6 +398,8 @@ def _run_pending(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], op
             with guard.critical():
                 _derive(store, manifest, jobs, rows, "running", method)
                 runner = (executor or SequentialExecutor)(context, opened.model) if opened.pending else None
+                if opened.checked is not None and hasattr(runner, "adopt"):
+                    runner.adopt(opened.checked)
             for row in (runner.run(opened.pending, on_step=step) if runner is not None else ()):
                 row = dataclasses.replace(row, platform=opened.platform_fp)  # where this episode's numbers came from
                 with guard.critical():
@@ -476,18 +488,6 @@ def _default_lines(protocol: Protocol) -> list[str]:
     options = {task_family(t): protocol.env_for(t) for t in protocol.tasks}
     label = Path(protocol.model).name if not protocol.model.startswith(("hf://", "random:")) else protocol.model
     return default_lines(protocol.convention_sources, options, protocol.tasks, label, has_file)
-
-
-def _check_env(protocol: Protocol, model, task: str) -> None:
-    """The model's inputs and action dimension against the env of the first task to run (EnvMismatchError, one line)."""
-    import envs
-    from harness.policy import OctoPolicy
-
-    env = envs.make(task, protocol.env_for(task), instruction=protocol.instruction, perturb=protocol.perturb)
-    try:
-        OctoPolicy(model, protocol.policy).check_env(env)
-    finally:
-        env.close()
 
 
 def _derive(store: RunStore, manifest, jobs, rows, status, method) -> None:

@@ -50,9 +50,43 @@ def _no_temporaries(run_dir: Path) -> bool:
     return not [p for p in run_dir.rglob("*.tmp.*")]
 
 
+def _counting_envs(monkeypatch) -> list[list]:
+    """[env, closed] for each env that `envs.make` builds in this process from now on."""
+    made, original = [], envs.make
+
+    def make(*args, **kwargs):
+        entry = [original(*args, **kwargs), False]
+        close = entry[0].close
+
+        def counted_close():
+            entry[1] = True
+            return close()
+
+        entry[0].close = counted_close
+        made.append(entry)
+        return entry[0]
+
+    monkeypatch.setattr(envs, "make", make)
+    return made
+
+
+SEQUENTIAL_ENVS: list[list] = []
+
+
 @pytest.fixture(scope="module")
 def sequential(tiny, tmp_path_factory):
-    return execute(_protocol(tiny), tmp_path_factory.mktemp("seq"), "seq", model=tiny, progress=False)
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        SEQUENTIAL_ENVS[:] = made = _counting_envs(monkeypatch)
+        summary = execute(_protocol(tiny), tmp_path_factory.mktemp("seq"), "seq", model=tiny, progress=False)
+    SEQUENTIAL_ENVS[:] = made
+    return summary
+
+
+def test_a_sequential_run_steps_its_episodes_in_the_env_that_checked_the_model(sequential):
+    """The driver makes the first task's env to check the model against it; the sequential executor runs the
+    episodes in that env rather than building the same one again, and it is closed at the end."""
+    assert sequential.status == "complete" and len(sequential.rows) == 2
+    assert [closed for _, closed in SEQUENTIAL_ENVS] == [True]
 
 
 def _assert_same_episodes(reference, other) -> None:
@@ -106,7 +140,10 @@ def test_two_worker_processes_give_the_sequential_episodes_without_recompiling(t
         executors.append(WorkersExecutor(context, model, workers=2))
         return executors[-1]
 
-    summary = execute(_protocol(tiny), tmp_path, "w2", model=tiny, executor=factory, progress=False)
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        made = _counting_envs(monkeypatch)
+        summary = execute(_protocol(tiny), tmp_path, "w2", model=tiny, executor=factory, progress=False)
+    assert [closed for _, closed in made] == [True]  # the check's env: the workers make their own, it is closed
     _assert_same_episodes(sequential, summary)
     _assert_replay_is_exact(sequential, tiny)
     _assert_replay_is_exact(summary, tiny)

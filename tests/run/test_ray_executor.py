@@ -1,7 +1,8 @@
 """The Ray executor end to end (real robosuite, real JAX model, a real local Ray cluster): `--executor ray --workers 2`
 gives the sequential run's episodes step for step, and an env actor killed mid-job fails that episode only, is
-replaced, and the run completes. Its own file so that it runs last (tests/conftest.py): a local Ray cluster is
-several times slower while the other test process loads both cores (measured: 120 s against 35 s alone)."""
+replaced, and the run completes. Its own file: a local Ray cluster is several times slower while the other test
+process loads both cores (measured: 120 s against 35 s alone), and its place in the order is its measured time
+(tests/durations.json)."""
 
 from __future__ import annotations
 
