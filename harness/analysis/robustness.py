@@ -319,11 +319,14 @@ def breaking(task: str, paired: list[tuple]) -> str:
     pairs = min(p[4] for p in cells)
     power = detectable_phrase(pairs, ALPHA, len(cells)) if pairs else "no pairs to test"
     margin = cells[0][15]
-    rest = (f"{len(holds)} of the other {len(cells) - len(broken)} cells HOLD (a drop over {round(100 * margin)} "
-            f"points ruled out) and the rest are UNDETERMINED")
+    others = len(cells) - len(broken)
+    rest = (f"{len(holds)} of the other {others} cells HOLD (a drop over {round(100 * margin)} points ruled out)"
+            + (" and the rest are UNDETERMINED" if len(holds) < others else ""))
     if not broken:
         return (f"no condition breaks it at any level ({test}, adjusted p <= 0.05): {power}; {rest}")
     named = ", ".join(f"{p[1]} {p[2]} ({p[6]}/{p[4]} vs {p[5]}/{p[4]}, p = {p[11]:.3g})" for p in broken)
+    if not others:  # every cell breaks: nothing else to say of power or margins
+        return f"it breaks under every cell: {named} ({test})"
     return f"it breaks under {named} ({test}); elsewhere {power}; {rest}"
 
 

@@ -23,7 +23,9 @@ end. Its logical CPUs are max(os.cpu_count(), workers + replicas): each actor as
 
 Faults: an env-worker actor that dies (SIGKILL, segfault, OOM) fails its episode with the cause and is
 replaced; a policy error fails the episodes of its batch (their workers raise it inside the episode);
-Ctrl-C kills every actor and, for a local instance, stops Ray (no processes left behind).
+Ctrl-C kills every actor and, for a local instance, stops Ray (no processes left behind). At the end of a run
+the driver disconnects from a cluster too, so that the next run in the same process (a robustness grid's next
+cell) connects again.
 """
 
 from __future__ import annotations
@@ -208,7 +210,7 @@ class RayExecutor:
         self.replacements = 0
         self.replica_stats: list[dict] = []
         self._ray = None
-        self._started_ray = False
+        self._connected = False  # this executor called ray.init (a local instance, or a connection to `address`)
         self._actors: dict = {}
         self._replicas: list = []
         self._marker: Path | None = None
@@ -224,14 +226,18 @@ class RayExecutor:
             except (ConnectionError, RuntimeError, ValueError) as exc:
                 raise RayExecutorError(f"cannot connect to the Ray cluster at {self.address}: {str(exc).splitlines()[0]}; "
                                        "check `ray status` on the head node") from None
+            self._connected = True
         else:
             with warnings.catch_warnings():  # Ray starts its daemons with fork+exec, which JAX's fork warning flags
                 warnings.simplefilter("ignore", RuntimeWarning)
                 if self.workers is None:
                     self.workers = os.cpu_count() or 1
-                ray.init(num_cpus=max(os.cpu_count() or 1, self.workers + self.replicas), include_dashboard=False,
+                # "local": a new instance of this run's own, even where RAY_ADDRESS or /tmp/ray names a running
+                # cluster (ray.init would join it, and refuse num_cpus for it)
+                ray.init(address="local", num_cpus=max(os.cpu_count() or 1, self.workers + self.replicas),
+                         include_dashboard=False,
                          runtime_env={"env_vars": env_vars}, configure_logging=False, log_to_driver=True)
-            self._started_ray = True
+            self._connected = True
         self._ray = ray
         return ray
 
@@ -325,7 +331,7 @@ class RayExecutor:
         self._actors, self._replicas = {}, []
         if self._marker is not None:
             self._marker.unlink(missing_ok=True)
-        if self._started_ray:
+        if self._connected:  # stops a local instance; from a cluster, only disconnects (the next run connects again)
             ray.shutdown()
-            self._started_ray = False
+            self._connected = False
         self._ray = None

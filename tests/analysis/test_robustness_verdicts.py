@@ -68,6 +68,10 @@ def test_each_cell_has_a_verdict_and_the_sentence_states_its_power():
     nothing = _cell("nominal", "nominal", 0, [True] * 20) + _cell("camera-1", "camera@image_wrist", 1, [True] * 20)
     text = sentence("Lift", [], [], paired_rows(nothing, margin=0.40))
     assert "no condition breaks it" in text and "no drop of 30 points or more at 20 pairs (alpha 0.05)" in text
-    assert "1 of the other 1 cells HOLD (a drop over 40 points ruled out)" in text
+    assert "1 of the other 1 cells HOLD (a drop over 40 points ruled out)" in text and "UNDETERMINED" not in text
+    every = _cell("nominal", "nominal", 0, [True] * 20) + _cell("texture-5", "texture", 5, [False] * 20)
+    text = sentence("Lift", [], [], paired_rows(every))
+    assert "it breaks under every cell: texture 5 (0/20 vs 20/20" in text  # not "0 of the other 0 cells HOLD"
+    assert "of the other" not in text and "elsewhere" not in text
     assert math.isnan(paired_rows(_cell("nominal", "nominal", 0, [True] * 5)
                                   + _cell("c-1", "camera@image_wrist", 1, [True] * 5))[0][16])  # 5 pairs: nothing

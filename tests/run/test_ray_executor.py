@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -78,3 +79,63 @@ def test_a_ray_env_worker_killed_during_a_job_fails_that_episode_is_replaced_and
     assert f"worker process died (pid {killed[0]}" in failed.error
     assert executors[0].replacements == 1
     assert not _busy_ray_env_workers()  # every actor is gone with the run
+
+
+
+def _ray_head(log: Path, port: int, temp_dir: str):
+    """`ray start --head --block` (the cluster a user starts), in a process of its own that stops every Ray process
+    it started on SIGINT; token authentication off, as the test's own process has it. Its files go to `temp_dir`,
+    not /tmp/ray, where another test process's Ray would find it."""
+    import subprocess
+
+    command = [str(Path(sys.executable).with_name("ray")), "start", "--head", "--block", f"--port={port}",
+               "--num-cpus=2", "--include-dashboard=false", "--disable-usage-stats", f"--temp-dir={temp_dir}"]
+    head = subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT,
+                            env={**os.environ, "RAY_AUTH_MODE": "disabled"})
+    deadline = time.monotonic() + 120
+    while "Ray runtime started" not in log.read_text() and head.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert "Ray runtime started" in log.read_text(), log.read_text()[-2000:]
+    return head
+
+
+def test_runs_one_after_another_in_one_process_each_connect_to_the_cluster_at_the_address(tiny, tmp_path,
+                                                                                          monkeypatch):
+    """`--ray-address`: a robustness grid runs its cells one after another in one process. Each run's executor
+    connects and, when it closes, disconnects, so the next one connects again (left connected, the second one
+    failed with "cannot connect to the Ray cluster ... ray.init twice"). Without an address, a run starts its own
+    instance even where RAY_ADDRESS names that cluster (ray.init joined it, and refused num_cpus for it)."""
+    import shutil
+    import socket
+    import tempfile
+
+    import ray
+
+    from harness.run.executor import EpisodeContext
+    from harness.run.ray_executor import RayExecutor
+
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    temp_dir = tempfile.mkdtemp(prefix="ray-head-", dir="/tmp")  # short: Ray's socket paths live under it
+    head = _ray_head(tmp_path / "head.log", port, temp_dir)
+    try:
+        context = EpisodeContext(protocol=_protocol(tiny), run_dir=str(tmp_path), run="cell",
+                                 model={"source": tiny.source, "is_random": False}, goals=None)
+        for _ in range(2):
+            executor = RayExecutor(context, tiny, workers=1, address=f"127.0.0.1:{port}")
+            executor._init()  # what a run does first (the actors are the other tests')
+            assert ray.is_initialized() and ray.get_runtime_context().gcs_address.endswith(f":{port}")
+            executor.close()
+            assert not ray.is_initialized()  # disconnected: the next run's ray.init may connect
+        monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{port}")
+        executor = RayExecutor(context, tiny, workers=1)
+        executor._init()
+        assert not ray.get_runtime_context().gcs_address.endswith(f":{port}")  # its own instance
+        executor.close()
+        assert not ray.is_initialized()
+    finally:
+        head.send_signal(signal.SIGINT)
+        head.wait(timeout=120)
+        shutil.rmtree(temp_dir, ignore_errors=True)
