@@ -19,15 +19,14 @@ Output: Octo's save_pretrained layout,
   (word-level, T5's special ids; text_processor tokenizer_name="tokenizer"), harness.toml (evaluation
   conventions: robosuite action space, statistics key),
   training_curve.csv (step, loss, lr, seconds), training_curve.png.
-Periodic checkpoints replace the previous step folder, so a killed run keeps its latest weights.
+Periodic checkpoints replace the previous step folder, so a killed run keeps its latest weights; with each one
+goes the run's state (train_state.msgpack, removed at the end), from which calling train again resumes.
 """
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
-import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -41,6 +40,7 @@ from flax import serialization
 from harness.octo.config import OctoConfig
 from harness.octo.network import LanguageTokenizer, init_params
 from harness.octo.t5 import T5Config
+from harness.reference import train_loop
 from harness.reference.train_step import make_train_step
 from harness.reference.warm_start import initialise
 
@@ -304,52 +304,6 @@ def write_static_files(folder: Path, config_dict: dict, tokenizer, t5_dict: dict
          "model_max_length": LANGUAGE_TOKENS}, indent=2))
 
 
-def write_params(folder: Path, step: int, params: dict, keep_previous: bool = False) -> Path:
-    """<step>/default/checkpoint (one msgpack blob, as orbax's aggregate file); older steps removed."""
-    tree = jax.tree.map(lambda x: np.asarray(x, np.float32), params)
-    target = folder / str(step) / "default"
-    tmp = folder / f".tmp-{step}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "default").mkdir(parents=True)
-    (tmp / "default" / "checkpoint").write_bytes(serialization.msgpack_serialize(tree))
-    shutil.rmtree(folder / str(step), ignore_errors=True)
-    tmp.rename(folder / str(step))
-    if not keep_previous:
-        for p in folder.iterdir():
-            if p.is_dir() and p.name.isdigit() and int(p.name) != step:
-                shutil.rmtree(p)
-    return target
-
-
-def write_curve(folder: Path, rows: list[dict]) -> None:
-    path = folder / "training_curve.csv"
-    with open(path.with_suffix(".tmp"), "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    path.with_suffix(".tmp").replace(path)
-
-
-def plot_curve(folder: Path, rows: list[dict], head: str = "l1",
-               title: str = "octo-reference-robosuite: training curve") -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=120)
-    ax.plot([r["step"] for r in rows], [r["loss"] for r in rows], lw=1.2)
-    ax.set_yscale("log")
-    ax.set_xlabel("training step")
-    every = rows[1]["step"] - rows[0]["step"] if len(rows) > 1 else 1
-    ax.set_ylabel(f"{'L1' if head == 'l1' else 'diffusion'} loss (mean of {every} steps)")
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(folder / "training_curve.png")
-    plt.close(fig)
-
-
 # ----------------------------------------------------------------------------- training
 
 
@@ -357,13 +311,15 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
           extra_files: dict[str, str] | None = None,
           normalise_with: dict[str, dict[str, np.ndarray]] | None = None,
           instructions: dict[str, tuple[str, ...]] | None = None, dataset_key: str = DATASET_KEY,
-          conventions: str | None = None) -> dict:
+          conventions: str | None = None, on_step=None) -> dict:
     """Train on `demos` ({task: arrays from demos.load_demos}) and save into `out_dir`; returns a summary.
 
     `normalise_with`: the data whose statistics normalise actions and proprio (default `demos`).
     `instructions`: {task: (instruction, paraphrases...)}, the same number per task (default: the robosuite
     tasks' from the registry); `dataset_key`: the statistics key; `conventions`: harness.toml's text (default:
-    the robosuite reference's, `conventions_toml(cfg)`).
+    the robosuite reference's, `conventions_toml(cfg)`). `on_step(step)` is called after every step.
+    A run stopped at any moment resumes at its latest checkpoint when called again with the same arguments
+    (harness.reference.train_loop), and ends with the same bytes as an unstopped run.
     """
     out_dir = Path(out_dir)
     start = time.perf_counter()
@@ -404,26 +360,14 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
                             optax.adamw(schedule, weight_decay=cfg.weight_decay))
     opt_state = optimizer.init(trainable)
     train_step = make_train_step(config, optimizer, encodings, tuple(sizes), cfg.shift_pixels)
-    sample_batch = _batch_sampler(data, tasks, per_task, cfg)
+    rng = np.random.default_rng(cfg.seed)
+    sample_batch = _batch_sampler(data, tasks, per_task, cfg, rng)
 
-    rows, window, t0 = [], [], time.perf_counter()
-    for step in range(1, cfg.steps + 1):
-        key, step_key = jax.random.split(key)
-        trainable, opt_state, loss = train_step(trainable, opt_state, sample_batch(), step_key)
-        window.append(loss)
-        if step % cfg.log_every == 0 or step == cfg.steps:
-            mean = float(np.mean(jax.device_get(window)))
-            window = []
-            rows.append({"step": step, "loss": round(mean, 6), "lr": float(schedule(step)),
-                         "seconds": round(time.perf_counter() - t0, 1)})
-            log.info("step %d loss %.4f (%.2f s/step)", step, mean, (time.perf_counter() - t0) / step)
-            write_curve(out_dir, rows)
-        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-            full = {**trainable, "octo_transformer": {**trainable["octo_transformer"], "task_tokenizers_language": t5_params}}
-            write_params(out_dir, step, full)
-            log.info("checkpoint %d written", step)
-    plot_curve(out_dir, rows, cfg.head, title=f"{out_dir.name}: training curve")
-    summary = {"parameters": n_params, "frames": int(len(data.actions)), "train_seconds": time.perf_counter() - t0,
+    fp = train_loop.fingerprint(cfg, data, texts, dataset_key, conventions)
+    loop = train_loop.Loop(out_dir, fp, cfg, schedule, t5_params)
+    trainable, rows, seconds = loop.run(train_step, sample_batch, rng, key, trainable, opt_state, on_step)
+    train_loop.plot_curve(out_dir, rows, cfg.head, title=f"{out_dir.name}: training curve")
+    summary = {"parameters": n_params, "frames": int(len(data.actions)), "train_seconds": seconds,
                "total_seconds": time.perf_counter() - start, "final_loss": rows[-1]["loss"], "config": asdict(cfg),
                "warm_start": warm}
     (out_dir / "training_summary.json").write_text(json.dumps(summary, indent=2, default=str))
@@ -460,11 +404,10 @@ def _write_model_files(out_dir: Path, cfg: TrainConfig, config_dict: dict, token
     return encodings
 
 
-def _batch_sampler(data: Dataset, tasks: list[str], per_task: int, cfg: TrainConfig):
-    """`sample_batch() -> batch` drawn from one generator seeded with `cfg.seed`: tasks in `cfg.task_weights`'
-    proportions, frames within a task by `frame_drawer`, a paraphrase of the instruction with
+def _batch_sampler(data: Dataset, tasks: list[str], per_task: int, cfg: TrainConfig, rng: np.random.Generator):
+    """`sample_batch() -> batch` drawn from `rng` (seeded with `cfg.seed`; the loop saves its state): tasks in
+    `cfg.task_weights`' proportions, frames within a task by `frame_drawer`, a paraphrase of the instruction with
     `cfg.paraphrase_probability`."""
-    rng = np.random.default_rng(cfg.seed)
     by_task = [np.flatnonzero(data.task == i) for i in range(len(tasks))]
 
     weights = dict(cfg.task_weights)

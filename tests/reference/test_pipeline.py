@@ -192,6 +192,69 @@ def test_tiny_diffusion_training_reduces_loss_and_saves_a_loadable_octo_checkpoi
     assert summary["parameters"] == sum(int(np.prod(x.shape)) for x in __import__("jax").tree.leaves(model.params))
 
 
+class _Stop(Exception):
+    pass
+
+
+@pytest.mark.slow
+def test_a_stopped_training_resumes_at_its_checkpoint_and_ends_with_the_bytes_of_an_unstopped_one(diffusion, tmp_path,
+                                                                                                    caplog):
+    """Stopped after step 37 (checkpoint and state at 30), trained again with the same arguments: the same
+    checkpoint bytes, curve and batches as the diffusion fixture's unstopped 60 steps; no state left at the end."""
+    from harness.reference.train_loop import STATE_FILE
+
+    source, summary, demo = diffusion
+    cfg = TrainConfig(**summary["config"] | {"stem_features": tuple(summary["config"]["stem_features"]),
+                                             "image_sizes": tuple(map(tuple, summary["config"]["image_sizes"])),
+                                             "task_weights": tuple(map(tuple, summary["config"]["task_weights"]))})
+    out = tmp_path / "stopped"
+
+    def stop(step):
+        if step == 37:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        train({"Lift": demo}, out, cfg, on_step=stop)
+    assert (out / STATE_FILE).is_file() and sorted(p.name for p in out.iterdir() if p.name.isdigit()) == ["30"]
+    with caplog.at_level("INFO", logger="harness.reference.train_loop"):
+        resumed = train({"Lift": demo}, out, cfg)
+    assert "resuming the training in" in caplog.text and "at step 30" in caplog.text
+    assert not (out / STATE_FILE).exists()
+    assert (out / "60/default/checkpoint").read_bytes() == (source / "60/default/checkpoint").read_bytes()
+    drop_seconds = lambda rows: [{k: v for k, v in r.items() if k != "seconds"} for r in rows]  # noqa: E731
+    assert drop_seconds(_read_curve(out / "training_curve.csv")) == drop_seconds(_read_curve(source / "training_curve.csv"))
+    assert resumed["final_loss"] == summary["final_loss"]
+
+
+def test_a_training_state_of_another_run_or_a_damaged_one_is_ignored(tmp_path, caplog):
+    """The fingerprint changes with the configuration and the data; a torn or foreign state starts at step 1."""
+    import jax.numpy as jnp
+
+    from harness.reference import train_loop
+
+    demo = _toy_demos(lengths=(4, 3))
+    data = build_dataset({"Lift": demo}, horizon=2)
+    cfg = TrainConfig(steps=5)
+    fp = train_loop.fingerprint(cfg, data, ["lift it"], DATASET_KEY, None)
+    assert fp == train_loop.fingerprint(cfg, build_dataset({"Lift": _toy_demos(lengths=(4, 3))}, horizon=2),
+                                        ["lift it"], DATASET_KEY, None)
+    other_data = build_dataset({"Lift": {**demo, "action": demo["action"] + 1e-3}}, horizon=2)
+    assert len({fp, train_loop.fingerprint(replace(cfg, learning_rate=1e-3), data, ["lift it"], DATASET_KEY, None),
+                train_loop.fingerprint(cfg, other_data, ["lift it"], DATASET_KEY, None),
+                train_loop.fingerprint(cfg, data, ["lift it up"], DATASET_KEY, None)}) == 4
+    params, opt = {"w": jnp.ones(3)}, {"m": jnp.zeros(3)}
+    rng = np.random.default_rng(0)
+    train_loop.save(tmp_path, fp, 3, trainable=params, opt_state=opt, key=jnp.zeros(2, jnp.uint32), rng=rng, rows=[],
+                    window=[], seconds=1.0)
+    assert train_loop.load(tmp_path, fp, trainable=params, opt_state=opt)["step"] == 3
+    with caplog.at_level("WARNING", logger="harness.reference.train_loop"):
+        assert train_loop.load(tmp_path, "another", trainable=params, opt_state=opt) is None
+        state = tmp_path / train_loop.STATE_FILE
+        state.write_bytes(state.read_bytes()[:40])  # torn
+        assert train_loop.load(tmp_path, fp, trainable=params, opt_state=opt) is None
+    assert "belongs to another training run" in caplog.text and "is unreadable" in caplog.text
+
+
 def _read_curve(path):
     import csv
 
