@@ -15,7 +15,6 @@ is adding one field.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Mapping

@@ -92,7 +92,7 @@ def serve_file(path: str | Path, grpc_port: int | None = None, web_port: int | N
                host: str = "127.0.0.1") -> LiveViewer:
     """Serve a saved recording to the web viewer (for `octo-harness view --serve`): the file is streamed into a
     gRPC server in this process (kept while the process runs)."""
-    rr = import_rerun()
+    import_rerun()  # one clear line when rerun-sdk is missing, before a port is taken
     viewer = start_viewer("serve", grpc_port, web_port, host)
     viewer.hub.log_file_from_path(Path(path))
     viewer.hub.flush()

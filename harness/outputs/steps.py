@@ -28,6 +28,7 @@ from harness.records import EpisodeMeta, StepRecord
 
 # `options` below are harness.outputs.writers.OutputOptions (annotated by name: the writer imports the sinks, so they
 # cannot import it back)
+OutputOptions = Any
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,6 @@ never half-written or mixed with an older report's files.
 
 from __future__ import annotations
 
-import csv
 import io
 import logging
 import math

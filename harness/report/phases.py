@@ -22,7 +22,6 @@ the tables and sentences as Markdown (python -m harness.report.phases RUN...).
 from __future__ import annotations
 
 import io
-import json
 import math
 from collections import defaultdict
 from dataclasses import dataclass

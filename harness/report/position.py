@@ -19,7 +19,6 @@ harness.report.position RUN...).
 from __future__ import annotations
 
 import io
-import math
 import warnings
 from collections import defaultdict
 

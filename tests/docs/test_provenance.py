@@ -5,7 +5,6 @@ that quote measured figures (DOCS_MEASURED) hold one line
 
 from __future__ import annotations
 
-import re
 import subprocess
 from pathlib import Path
 

@@ -322,7 +322,6 @@ def test_libero_dagger_labels_the_policys_own_states_and_appends_them(tmp_path):
     further episodes of each task."""
     _needs_libero()
     from harness.reference import libero_dagger
-    from harness.reference.libero_demos import load_libero_demos
 
     config = libero_dagger.LiberoDaggerConfig(tasks=("libero_object/3",), episodes=2, max_steps=6)
     summary = libero_dagger.collect(MODEL, tmp_path / "c", config, workers=1)
