@@ -227,6 +227,43 @@ def camera_free_env():
     env.close()
 
 
+def test_the_grasp_probe_summary_known_answers_and_bad_arguments_are_one_line(capsys):
+    from harness.reference import libero_probe
+
+    rows = [dict(task="t/0", target="a", first_close=30, reach_xy_cm=1.0, held_named=True, lifted_named=True,
+                 success=True, picked="a"),
+            dict(task="t/0", target="a", first_close=40, reach_xy_cm=3.0, held_named=True, lifted_named=False,
+                 success=False, picked="b"),
+            dict(task="t/1", target="c", first_close=None, reach_xy_cm=None, held_named=False, lifted_named=False,
+                 success=False, picked=None)]
+    s = libero_probe.summarise(rows)
+    assert (s["episodes"], s["successes"], s["closed"], s["median_reach_xy_cm"], s["median_first_close"]) == (3, 1, 2, 2.0, 35.0)
+    assert (s["grasp_rate"], s["lift_rate"], s["other_object_rate"]) == (2 / 3, 1 / 3, 1 / 3)
+    assert s["successes_per_task"] == {"t/0": 1, "t/1": 0}
+    for argv, words in ((["--model", "/nonexistent"], "no checkpoint there"), (["--expert", "--states", "0,x"], "--states"),
+                        (["--expert", "--states", "50"], "50 stored states")):
+        with pytest.raises(SystemExit) as stop:
+            libero_probe.main(argv)
+        assert stop.value.code == 2 and words in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_the_grasp_probe_measures_the_expert_as_a_yardstick_and_runs_the_committed_policy():
+    """Known answer: the state-based expert closes centred on the named object, holds and lifts it, and succeeds;
+    the committed policy is probed as evaluated (its conventions) over its first steps."""
+    _needs_libero()
+    from harness.reference import libero_probe
+
+    expert = libero_probe.probe(None, [0], ("libero_object/0",), workers=1)
+    (row,) = expert["episodes"]
+    assert row["success"] and row["held_named"] and row["lifted_named"] and row["picked"] == row["target"]
+    assert row["reach_xy_cm"] < 1.0 and abs(row["reach_z_cm"]) < 1.5 and 10 < row["first_close"] < row["steps"]
+    policy = libero_probe.probe(str(MODEL), [0], ("libero_object/0",), workers=1, max_steps=45)
+    (row,) = policy["episodes"]
+    assert row["steps"] == 45 and not row["success"] and policy["model"] == str(MODEL)
+    assert row["first_close"] is not None and 0 < row["reach_xy_cm"] < 10  # it closes near the can, off its centre
+
+
 @pytest.mark.slow
 def test_sampled_placements_repeat_per_seed_and_are_none_of_the_stored_evaluation_states(camera_free_env):
     env = camera_free_env

@@ -1,0 +1,148 @@
+"""Grasp probe of a LIBERO-Object checkpoint (issue 46's table of levers): success, reach error and grasp rate on
+the suite's stored initial states, the checkpoint run as the evaluation runs it.
+
+    python -m harness.reference.libero_probe --model DIR [--states 0,1] [--workers 2] [--out FILE.json]
+    python -m harness.reference.libero_probe --expert ...      (the state-based expert acts instead: the yardstick)
+
+Per episode (stored state s of each task, the published loop: 10 settle steps, step limit 280, fast render, no
+masks): success; the first step whose gripper command closes; there, the hand's horizontal and vertical distance
+from the named object's grasp point (the expert's, harness.reference.libero_expert); whether the fingers held the
+named object at any step (both pads touching), and lifted it (its bottom 3 cm above where it stood); the object picked at the end (`episode_outcome`). The summary gives
+the success rate, the median reach error at the first close, the grasp rate (named object held at some step), the
+lift rate and the rate of ending with another object. Episodes run in spawned processes, one job a task, so the numbers do not
+depend on the workers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from harness.reference.libero_demos import LIBERO_OBJECT_TASKS
+
+log = logging.getLogger(__name__)
+
+MAX_STEPS = 280  # LIBERO-Object's published step limit
+LIFTED = 0.03  # m: the named object's bottom this far above where it stood counts as lifted
+
+
+def _actor(model_dir: str | None, task: str, max_steps: int):
+    """(env, reset(obs, info, state), act(obs) -> action): the checkpoint as evaluated, or the state-based expert."""
+    from envs.libero_tasks import get_libero_task
+    from harness.reference.libero_expert import LiberoObjectLabeller
+
+    target = get_libero_task(task).targets[0]
+    if model_dir is None:
+        import envs
+
+        env = envs.make(task, cameras={}, fast_render=True, masks=False, action_space="libero",
+                        max_episode_steps=max_steps)
+        labeller = LiberoObjectLabeller(target)
+        return env, target, lambda obs, info, state: None, lambda obs: labeller.act(env, obs)
+    from harness.reference.dagger import policy_in_env
+
+    env, policy = policy_in_env(model_dir, task, max_steps)
+    return env, target, lambda obs, info, state: policy.reset(info.get("instruction", ""), seed=state), \
+        lambda obs: policy.step(obs).action
+
+
+def _probe_job(args: tuple) -> list[dict]:
+    """Spawned worker: one task's episodes from stored states `states` -> a row each."""
+    from harness.reference.libero_expert import LiberoExpertConfig, _geometry
+
+    model_dir, task, states, max_steps = args
+    env, target, reset, act = _actor(model_dir, task, max_steps)
+    rows = []
+    try:
+        for state in states:
+            obs, info = env.reset(seed=state)
+            reset(obs, info, state)
+            row = {"task": task, "state": state, "target": target, "first_close": None, "reach_xy_cm": None,
+                   "reach_z_cm": None, "held_named": False, "lifted_named": False, "success": False, "steps": 0}
+            floor = env.object_poses()[target]["low"][2]
+            for step in range(max_steps):
+                action = np.asarray(act(obs), np.float64)
+                if row["first_close"] is None and action[-1] < 0.5:  # the "libero" gripper: 1 open, 0 closed
+                    grasp = _geometry(env.object_poses(), target, "basket_1", LiberoExpertConfig())["grasp"]
+                    hand = np.asarray(obs["proprio"][:3], np.float64)
+                    row.update(first_close=step, reach_xy_cm=round(float(np.linalg.norm(hand[:2] - grasp[:2])) * 100, 2),
+                               reach_z_cm=round(float(hand[2] - grasp[2]) * 100, 2))
+                obs, _, terminated, truncated, info = env.step(action)
+                row["held_named"] = row["held_named"] or env.grasping(target)
+                row["lifted_named"] = row["lifted_named"] or env.object_poses()[target]["low"][2] > floor + LIFTED
+                row["steps"] = step + 1
+                row["success"] = bool(info["success"])
+                if row["success"] or terminated or truncated:
+                    break
+            row["picked"] = env.episode_outcome()["picked_object"]
+            rows.append(row)
+    finally:
+        env.close()
+    return rows
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Rates over the episodes and the median reach error at the first close (over episodes that closed)."""
+    n = len(rows)
+    reach = [r["reach_xy_cm"] for r in rows if r["reach_xy_cm"] is not None]
+    per_task: dict[str, int] = {}
+    for r in rows:
+        per_task[r["task"]] = per_task.get(r["task"], 0) + int(r["success"])
+    return {"episodes": n, "successes": sum(r["success"] for r in rows),
+            "success_rate": sum(r["success"] for r in rows) / n if n else None,
+            "closed": len(reach), "median_reach_xy_cm": float(np.median(reach)) if reach else None,
+            "median_first_close": float(np.median([r["first_close"] for r in rows if r["first_close"] is not None]))
+            if reach else None,
+            "grasp_rate": sum(r["held_named"] for r in rows) / n if n else None,
+            "lift_rate": sum(r["lifted_named"] for r in rows) / n if n else None,
+            "other_object_rate": sum(r["picked"] not in (None, r["target"]) for r in rows) / n if n else None,
+            "successes_per_task": per_task}
+
+
+def probe(model_dir: str | None, states: list[int], tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS, workers: int = 2,
+          max_steps: int = MAX_STEPS) -> dict:
+    from harness.reference.demos import run_jobs
+
+    start = time.perf_counter()
+    jobs = [(model_dir, task, states, max_steps) for task in tasks]
+    rows = [row for part in run_jobs(_probe_job, jobs, workers) for row in part]
+    return {"model": model_dir or "expert", "states": states, "max_steps": max_steps, "summary": summarise(rows),
+            "episodes": rows, "seconds": round(time.perf_counter() - start, 1)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_probe", description=__doc__.splitlines()[0])
+    who = parser.add_mutually_exclusive_group(required=True)
+    who.add_argument("--model", help="checkpoint folder (with its harness.toml)")
+    who.add_argument("--expert", action="store_true", help="the state-based expert acts (the yardstick)")
+    parser.add_argument("--states", default="0,1", help="stored initial states of every task [0,1]")
+    parser.add_argument("--tasks", default=",".join(LIBERO_OBJECT_TASKS), help="LIBERO-Object tasks [all ten]")
+    parser.add_argument("--max-steps", type=int, default=MAX_STEPS)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--out", help="write the rows and the summary here (JSON)")
+    args = parser.parse_args(argv)
+    try:
+        states = [int(s) for s in args.states.split(",")]
+    except ValueError:
+        parser.error(f"--states {args.states!r}: comma-separated stored-state indices, e.g. 0,1")
+    if args.model is not None and not (Path(args.model) / "config.json").is_file():
+        parser.error(f"--model {args.model}: no checkpoint there (a folder with config.json)")
+    if not 0 < args.max_steps <= 10_000 or not all(0 <= s < 50 for s in states):
+        parser.error("--max-steps 1..10000; --states within LIBERO's 50 stored states (0..49)")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    result = probe(args.model, states, tuple(args.tasks.split(",")), args.workers, args.max_steps)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(result, indent=2))
+    s = result["summary"]
+    print(json.dumps(s))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
