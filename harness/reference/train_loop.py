@@ -109,6 +109,12 @@ def load(out_dir: Path, fp: str, *, trainable, opt_state) -> dict | None:
     path = out_dir / STATE_FILE
     if not path.is_file():
         return None
+    # parameters, Adam's two moments and a little more: anything much larger is not this run's state
+    limit = 4 * 4 * sum(int(np.size(x)) for x in jax.tree.leaves(trainable)) + 2**20
+    if path.stat().st_size > limit:
+        log.warning("%s is %d bytes, more than this run's state can be (%d): starting at step 1", path,
+                    path.stat().st_size, limit)
+        return None
     try:
         state = serialization.msgpack_restore(path.read_bytes())
         if state.get("format") != FORMAT or state.get("fingerprint") != fp:

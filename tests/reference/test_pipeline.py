@@ -252,7 +252,11 @@ def test_a_training_state_of_another_run_or_a_damaged_one_is_ignored(tmp_path, c
         state = tmp_path / train_loop.STATE_FILE
         state.write_bytes(state.read_bytes()[:40])  # torn
         assert train_loop.load(tmp_path, fp, trainable=params, opt_state=opt) is None
+        with open(state, "r+b") as f:  # huge (sparse): refused from its size, never read
+            f.truncate(2**30)
+        assert train_loop.load(tmp_path, fp, trainable=params, opt_state=opt) is None
     assert "belongs to another training run" in caplog.text and "is unreadable" in caplog.text
+    assert "more than this run's state can be" in caplog.text
 
 
 def _read_curve(path):
