@@ -47,6 +47,8 @@ DOCS_MEASURED = (
     ("docs/perturbations.md", "## Cost"),
     ("docs/perturbations.md", "## Measured: the reference policy on the grid"),
     ("docs/perturbations.md", "## Measured: the wrist camera, with reliance"),
+    ("docs/perturbations.md", "## Measured: the scene cells, with reliance"),
+    ("docs/libero-reference.md", "## Grasp probe: what each lever changes"),
     ("docs/phases-and-position.md", "## Cost"),
     ("docs/phases-and-position.md", "## Reference policy: results"),
     ("docs/regression.md", "## Across machines: provenance, replay and what a verdict can claim"),
