@@ -320,8 +320,12 @@ def breaking(task: str, paired: list[tuple]) -> str:
     power = detectable_phrase(pairs, ALPHA, len(cells)) if pairs else "no pairs to test"
     margin = cells[0][15]
     others = len(cells) - len(broken)
-    rest = (f"{len(holds)} of the other {others} cells HOLD (a drop over {round(100 * margin)} points ruled out)"
-            + (" and the rest are UNDETERMINED" if len(holds) < others else ""))
+    drop = f"a drop over {round(100 * margin)} points"
+    if others == 1:
+        rest = f"the other cell HOLDS ({drop} ruled out)" if holds else f"the other cell is UNDETERMINED ({drop} not ruled out)"
+    else:
+        rest = (f"{len(holds)} of the other {others} cells HOLD ({drop} ruled out)"
+                + (" and the rest are UNDETERMINED" if len(holds) < others else ""))
     if not broken:
         return (f"no condition breaks it at any level ({test}, adjusted p <= 0.05): {power}; {rest}")
     named = ", ".join(f"{p[1]} {p[2]} ({p[6]}/{p[4]} vs {p[5]}/{p[4]}, p = {p[11]:.3g})" for p in broken)
