@@ -7,6 +7,7 @@ process loads both cores (measured: 120 s against 35 s alone), and its place in 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import sys
 import time
@@ -82,21 +83,36 @@ def test_a_ray_env_worker_killed_during_a_job_fails_that_episode_is_replaced_and
 
 
 
-def _ray_head(log: Path, port: int, temp_dir: str):
-    """`ray start --head --block` (the cluster a user starts), in a process of its own that stops every Ray process
-    it started on SIGINT; token authentication off, as the test's own process has it. Its files go to `temp_dir`,
-    not /tmp/ray, where another test process's Ray would find it."""
+def _ray_head(log_dir: Path, tries: int = 3):
+    """`ray start --head --block` (the cluster a user starts) -> (process, port, temp dir): in a process of its own
+    that stops every Ray process it started on SIGINT; token authentication off, as the test's own process has it.
+    Its files go to a temp dir of its own, not /tmp/ray, where another test process's Ray would find it. On a loaded
+    machine `ray start` can give up by itself ("The current node timed out during startup": Ray waits 30 s for its
+    raylet, a fixed wait); then it is stopped and started again, on a fresh port and temp dir, up to `tries` times."""
+    import socket
     import subprocess
+    import tempfile
 
-    command = [str(Path(sys.executable).with_name("ray")), "start", "--head", "--block", f"--port={port}",
-               "--num-cpus=2", "--include-dashboard=false", "--disable-usage-stats", f"--temp-dir={temp_dir}"]
-    head = subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True,
-                            env={**os.environ, "RAY_AUTH_MODE": "disabled"})
-    deadline = time.monotonic() + 120
-    while "Ray runtime started" not in log.read_text() and head.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.2)
-    assert "Ray runtime started" in log.read_text(), log.read_text()[-2000:]
-    return head
+    logs = []
+    for attempt in range(tries):
+        with socket.socket() as probe:
+            probe.bind(("127.0.0.1", 0))
+            port = probe.getsockname()[1]
+        temp_dir = tempfile.mkdtemp(prefix="ray-head-", dir="/tmp")  # short: Ray's socket paths live under it
+        log = log_dir / f"head{attempt}.log"
+        command = [str(Path(sys.executable).with_name("ray")), "start", "--head", "--block", f"--port={port}",
+                   "--num-cpus=2", "--include-dashboard=false", "--disable-usage-stats", f"--temp-dir={temp_dir}"]
+        head = subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True,
+                                env={**os.environ, "RAY_AUTH_MODE": "disabled"})
+        deadline = time.monotonic() + 150
+        while "Ray runtime started" not in log.read_text() and head.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.2)
+        if "Ray runtime started" in log.read_text():
+            return head, port, temp_dir
+        _stop_head(head, temp_dir)
+        shutil.rmtree(temp_dir, ignore_errors=True)
+        logs.append(log.read_text()[-1500:])
+    raise AssertionError(f"ray start --head failed {tries} times:\n" + "\n---\n".join(logs))
 
 
 def _stop_head(head, temp_dir: str) -> None:
@@ -127,21 +143,13 @@ def test_runs_one_after_another_in_one_process_each_connect_to_the_cluster_at_th
     connects and, when it closes, disconnects, so the next one connects again (left connected, the second one
     failed with "cannot connect to the Ray cluster ... ray.init twice"). Without an address, a run starts its own
     instance even where RAY_ADDRESS names that cluster (ray.init joined it, and refused num_cpus for it)."""
-    import shutil
-    import socket
-    import tempfile
-
     import ray
 
     from harness.run.executor import EpisodeContext
     from harness.run.ray_executor import RayExecutor
 
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    temp_dir = tempfile.mkdtemp(prefix="ray-head-", dir="/tmp")  # short: Ray's socket paths live under it
-    head = _ray_head(tmp_path / "head.log", port, temp_dir)
+    head, port, temp_dir = _ray_head(tmp_path)
     try:
         context = EpisodeContext(protocol=_protocol(tiny), run_dir=str(tmp_path), run="cell",
                                  model={"source": tiny.source, "is_random": False}, goals=None)
