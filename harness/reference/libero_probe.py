@@ -3,6 +3,7 @@ the suite's stored initial states, the checkpoint run as the evaluation runs it.
 
     python -m harness.reference.libero_probe --model DIR [--states 0,1] [--workers 2] [--out FILE.json]
     python -m harness.reference.libero_probe --expert ...      (the state-based expert acts instead: the yardstick)
+    python -m harness.reference.libero_probe --table LABEL=FILE.json ...   (the lever table, markdown, from --out files)
 
 Per episode (stored state s of each task, the published loop: 10 settle steps, step limit 280, fast render, no
 masks): success; the first step whose gripper command closes; there, the hand's horizontal and vertical distance
@@ -115,17 +116,61 @@ def probe(model_dir: str | None, states: list[int], tasks: tuple[str, ...] = LIB
             "episodes": rows, "seconds": round(time.perf_counter() - start, 1)}
 
 
+TABLE_COLUMNS = ("lever", "episodes", "success", "median reach at first close (cm)", "first close (step)",
+                 "grasp rate", "lift rate", "ended with another object")
+
+
+def _rate(value) -> str:
+    return "-" if value is None else f"{100 * value:.0f}%"
+
+
+def lever_table(entries: list[tuple[str, dict]]) -> str:
+    """Markdown table of probe results, one row per (label, probe result) in the given order."""
+    lines = ["| " + " | ".join(TABLE_COLUMNS) + " |", "|" + "---|" * len(TABLE_COLUMNS)]
+    for label, result in entries:
+        s = result["summary"]
+        reach = "-" if s["median_reach_xy_cm"] is None else f"{s['median_reach_xy_cm']:.1f} ({s['closed']} closed)"
+        first = "-" if s["median_first_close"] is None else f"{s['median_first_close']:.0f}"
+        lines.append("| " + " | ".join([label, str(s["episodes"]), f"{s['successes']}/{s['episodes']}", reach, first,
+                                        _rate(s["grasp_rate"]), _rate(s["lift_rate"]),
+                                        _rate(s["other_object_rate"])]) + " |")
+    return "\n".join(lines)
+
+
+def _load_table_entry(spec: str, parser: argparse.ArgumentParser) -> tuple[str, dict]:
+    label, sep, path = spec.partition("=")
+    if not sep or not label or not path:
+        parser.error(f"--table {spec!r}: give LABEL=FILE.json (a file --out wrote)")
+    file = Path(path)
+    if not file.is_file() or file.stat().st_size > 64 << 20:
+        parser.error(f"--table {spec!r}: {path} is not a probe result under 64 MiB (write one with --out)")
+    try:
+        result = json.loads(file.read_text())
+        summary = result["summary"]
+        for key in ("episodes", "successes", "median_reach_xy_cm", "closed", "median_first_close", "grasp_rate",
+                    "lift_rate", "other_object_rate"):
+            summary[key]
+    except (ValueError, KeyError, TypeError, UnicodeDecodeError):
+        parser.error(f"--table {spec!r}: {path} is not a probe result (write one with --out)")
+    return label, result
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_probe", description=__doc__.splitlines()[0])
     who = parser.add_mutually_exclusive_group(required=True)
     who.add_argument("--model", help="checkpoint folder (with its harness.toml)")
     who.add_argument("--expert", action="store_true", help="the state-based expert acts (the yardstick)")
+    who.add_argument("--table", nargs="+", metavar="LABEL=FILE.json",
+                     help="print the lever table (markdown) of probe results that --out wrote, in this order")
     parser.add_argument("--states", default="0,1", help="stored initial states of every task [0,1]")
     parser.add_argument("--tasks", default=",".join(LIBERO_OBJECT_TASKS), help="LIBERO-Object tasks [all ten]")
     parser.add_argument("--max-steps", type=int, default=MAX_STEPS)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", help="write the rows and the summary here (JSON)")
     args = parser.parse_args(argv)
+    if args.table:
+        print(lever_table([_load_table_entry(spec, parser) for spec in args.table]))
+        return 0
     try:
         states = [int(s) for s in args.states.split(",")]
     except ValueError:

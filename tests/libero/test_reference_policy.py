@@ -247,6 +247,32 @@ def test_the_grasp_probe_summary_known_answers_and_bad_arguments_are_one_line(ca
         assert stop.value.code == 2 and words in capsys.readouterr().err
 
 
+def test_the_lever_table_reads_probe_results_in_order_and_refuses_foreign_files(tmp_path, capsys):
+    from harness.reference import libero_probe
+
+    rows = [dict(task="t/0", target="a", first_close=30, reach_xy_cm=1.0, held_named=True, lifted_named=True,
+                 success=True, picked="a"),
+            dict(task="t/1", target="c", first_close=None, reach_xy_cm=None, held_named=False, lifted_named=False,
+                 success=False, picked=None)]
+    (tmp_path / "a.json").write_text(json.dumps({"summary": libero_probe.summarise(rows)}))
+    (tmp_path / "b.json").write_text(json.dumps({"summary": libero_probe.summarise(rows[1:])}))
+    assert libero_probe.main(["--table", f"second={tmp_path / 'a.json'}", f"first={tmp_path / 'b.json'}"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[2] == "| second | 2 | 1/2 | 1.0 (1 closed) | 30 | 50% | 50% | 0% |"
+    assert lines[3] == "| first | 1 | 0/1 | - | - | 0% | 0% | 0% |" and len(lines) == 4
+    (tmp_path / "torn.json").write_text('{"summary": {"episodes": 3')
+    (tmp_path / "other.json").write_text('{"summary": [1, 2]}')
+    big = tmp_path / "big.json"
+    with open(big, "wb") as f:
+        f.truncate(65 << 20)
+    for spec, words in (("nolabel.json", "LABEL=FILE.json"), (f"x={tmp_path / 'torn.json'}", "not a probe result"),
+                        (f"x={tmp_path / 'other.json'}", "not a probe result"), (f"x={big}", "under 64 MiB"),
+                        (f"x={tmp_path}", "not a probe result")):
+        with pytest.raises(SystemExit) as stop:
+            libero_probe.main(["--table", spec])
+        assert stop.value.code == 2 and words in capsys.readouterr().err
+
+
 @pytest.mark.slow
 def test_the_grasp_probe_measures_the_expert_as_a_yardstick_and_runs_the_committed_policy():
     """Known answer: the state-based expert closes centred on the named object, holds and lifts it, and succeeds;
