@@ -33,7 +33,7 @@ LIFTED = 0.03  # m: the named object's bottom this far above where it stood coun
 
 
 def _actor(model_dir: str | None, task: str, max_steps: int):
-    """(env, reset(obs, info, state), act(obs) -> action): the checkpoint as evaluated, or the state-based expert."""
+    """(env, target, reset(info, state), act(obs) -> action): the checkpoint as evaluated, or the state-based expert."""
     from envs.libero_tasks import get_libero_task
     from harness.reference.libero_expert import LiberoObjectLabeller
 
@@ -44,11 +44,11 @@ def _actor(model_dir: str | None, task: str, max_steps: int):
         env = envs.make(task, cameras={}, fast_render=True, masks=False, action_space="libero",
                         max_episode_steps=max_steps)
         labeller = LiberoObjectLabeller(target)
-        return env, target, lambda obs, info, state: None, lambda obs: labeller.act(env, obs)
+        return env, target, lambda info, state: None, lambda obs: labeller.act(env, obs)
     from harness.reference.dagger import policy_in_env
 
     env, policy = policy_in_env(model_dir, task, max_steps)
-    return env, target, lambda obs, info, state: policy.reset(info.get("instruction", ""), seed=state), \
+    return env, target, lambda info, state: policy.reset(info.get("instruction", ""), seed=state), \
         lambda obs: policy.step(obs).action
 
 
@@ -62,7 +62,7 @@ def _probe_job(args: tuple) -> list[dict]:
     try:
         for state in states:
             obs, info = env.reset(seed=state)
-            reset(obs, info, state)
+            reset(info, state)
             row = {"task": task, "state": state, "target": target, "first_close": None, "reach_xy_cm": None,
                    "reach_z_cm": None, "held_named": False, "lifted_named": False, "success": False, "steps": 0}
             floor = env.object_poses()[target]["low"][2]
