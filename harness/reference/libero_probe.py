@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.files import atomic_write_json, json_safe
 from harness.reference.libero_demos import LIBERO_OBJECT_TASKS
 
 log = logging.getLogger(__name__)
@@ -74,8 +75,8 @@ def _probe_job(args: tuple) -> list[dict]:
                     row.update(first_close=step, reach_xy_cm=round(float(np.linalg.norm(hand[:2] - grasp[:2])) * 100, 2),
                                reach_z_cm=round(float(hand[2] - grasp[2]) * 100, 2))
                 obs, _, terminated, truncated, info = env.step(action)
-                row["held_named"] = row["held_named"] or env.grasping(target)
-                row["lifted_named"] = row["lifted_named"] or env.object_poses()[target]["low"][2] > floor + LIFTED
+                row["held_named"] = row["held_named"] or bool(env.grasping(target))
+                row["lifted_named"] = row["lifted_named"] or bool(env.object_poses()[target]["low"][2] > floor + LIFTED)
                 row["steps"] = step + 1
                 row["success"] = bool(info["success"])
                 if row["success"] or terminated or truncated:
@@ -179,13 +180,18 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--model {args.model}: no checkpoint there (a folder with config.json)")
     if not 0 < args.max_steps <= 10_000 or not all(0 <= s < 50 for s in states):
         parser.error("--max-steps 1..10000; --states within LIBERO's 50 stored states (0..49)")
+    if args.out:
+        try:  # a folder that cannot hold the result is told before the episodes run, not after
+            Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            parser.error(f"--out {args.out}: cannot write there ({exc.strerror}); give a writable path")
+        if Path(args.out).is_dir():
+            parser.error(f"--out {args.out} is a folder; give a file name such as probe.json")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     result = probe(args.model, states, tuple(args.tasks.split(",")), args.workers, args.max_steps)
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(result, indent=2))
-    s = result["summary"]
-    print(json.dumps(s))
+        atomic_write_json(args.out, result)
+    print(json.dumps(json_safe(result["summary"])))
     return 0
 
 

@@ -227,7 +227,7 @@ def camera_free_env():
     env.close()
 
 
-def test_the_grasp_probe_summary_known_answers_and_bad_arguments_are_one_line(capsys):
+def test_the_grasp_probe_summary_known_answers_and_bad_arguments_are_one_line(tmp_path, capsys):
     from harness.reference import libero_probe
 
     rows = [dict(task="t/0", target="a", first_close=30, reach_xy_cm=1.0, held_named=True, lifted_named=True,
@@ -240,8 +240,11 @@ def test_the_grasp_probe_summary_known_answers_and_bad_arguments_are_one_line(ca
     assert (s["episodes"], s["successes"], s["closed"], s["median_reach_xy_cm"], s["median_first_close"]) == (3, 1, 2, 2.0, 35.0)
     assert (s["grasp_rate"], s["lift_rate"], s["other_object_rate"]) == (2 / 3, 1 / 3, 1 / 3)
     assert s["successes_per_task"] == {"t/0": 1, "t/1": 0}
+    (tmp_path / "file").write_text("a file where --out wants a folder")
     for argv, words in ((["--model", "/nonexistent"], "no checkpoint there"), (["--expert", "--states", "0,x"], "--states"),
-                        (["--expert", "--states", "50"], "50 stored states")):
+                        (["--expert", "--states", "50"], "50 stored states"),
+                        (["--expert", "--out", str(tmp_path)], "is a folder"),
+                        (["--expert", "--out", str(tmp_path / "file" / "probe.json")], "cannot write there")):
         with pytest.raises(SystemExit) as stop:
             libero_probe.main(argv)
         assert stop.value.code == 2 and words in capsys.readouterr().err
@@ -281,6 +284,7 @@ def test_the_grasp_probe_measures_the_expert_as_a_yardstick_and_runs_the_committ
     from harness.reference import libero_probe
 
     expert = libero_probe.probe(None, [0], ("libero_object/0",), workers=1)
+    json.dumps(expert)  # what --out writes: plain JSON types only (numpy's bool_ once lost a 20-minute probe)
     (row,) = expert["episodes"]
     assert row["success"] and row["held_named"] and row["lifted_named"] and row["picked"] == row["target"]
     assert row["reach_xy_cm"] < 1.0 and abs(row["reach_z_cm"]) < 1.5 and 10 < row["first_close"] < row["steps"]
