@@ -171,7 +171,8 @@ def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, fil
     pending = [args for args in jobs if not _saved_part(part_of(args), fingerprint, args[2])]
     if len(pending) < len(jobs):
         log.info("reusing %d of %d recording jobs in %s", len(jobs) - len(pending), len(jobs), parts_dir)
-    for args, (recorded, seeds, dropped) in zip(pending, run_jobs(job, pending, workers)):
+    for i, (recorded, seeds, dropped) in jobs_as_done(job, pending, workers):  # saved as each finishes, so a slow
+        args = pending[i]  # job never holds back (in memory, unsaved) the ones finished after it
         lengths = save_episodes(part_of(args), recorded, seeds,
                                 {"dropped": np.array(dropped, np.int64),
                                  "fingerprint": np.array(json.dumps(fingerprint, sort_keys=True))})
@@ -210,6 +211,21 @@ def _load_part(path: Path) -> tuple[list[dict], list[int], int]:
     bounds = np.concatenate([[0], np.cumsum(arrays["lengths"])])
     episodes = [{k: arrays[k][a:b] for k in keys} for a, b in zip(bounds[:-1], bounds[1:])]
     return episodes, [int(s) for s in arrays["seeds"]], int(arrays["dropped"])
+
+
+def _indexed(args: tuple) -> tuple:
+    function, i, job = args
+    return i, function(job)
+
+
+def jobs_as_done(function, jobs: list, workers: int):
+    """`function` over `jobs` as `run_jobs` runs them, but yields (index in `jobs`, result) as each job finishes."""
+    if workers > 1 and len(jobs) > 1:
+        with multiprocessing.get_context("spawn").Pool(workers) as pool:
+            yield from pool.imap_unordered(_indexed, [(function, i, job) for i, job in enumerate(jobs)], chunksize=1)
+        return
+    for i, job in enumerate(jobs):
+        yield i, function(job)
 
 
 def run_jobs(function, jobs: list, workers: int):

@@ -5,7 +5,9 @@ checked in tests/libero/test_reference_policy.py."""
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,6 +23,7 @@ CALLS: list[tuple[str, int]] = []
 class _Config:
     jobs_per_task: int = 3
     tag: str = "a"  # part of the fingerprint
+    jobs_dir: str = ""  # _stopping_job: where the others' saved jobs appear
 
     def task_seed_base(self, task: str) -> int:
         return {"t0": 100, "t1": 200}[task]
@@ -41,6 +44,17 @@ def _job(args):
             seeds.append(seed)
         seed += 1
     return episodes, seeds, dropped
+
+
+def _stopping_job(args):
+    """Job t0/100 waits (up to 60 s) until the four other jobs are saved, then dies as a stopped session would."""
+    task, first_seed, _, config = args
+    if (task, first_seed) == ("t0", 100):
+        deadline = time.monotonic() + 60
+        while len(list(Path(config.jobs_dir).glob("*.npz"))) < 4 and time.monotonic() < deadline:
+            time.sleep(0.1)
+        raise RuntimeError("stopped under way")
+    return _job(args)
 
 
 def _record(out, config=_Config()):
@@ -72,6 +86,20 @@ def test_a_stopped_recording_records_only_the_jobs_it_had_not_saved(tmp_path):
 
     _record(stopped)
     assert CALLS == []  # everything saved: nothing runs
+
+
+def test_each_job_is_saved_when_it_finishes_not_behind_a_slower_one(tmp_path):
+    """Jobs finished after a slow one are on disk when it dies (spawned workers hand results back as they finish),
+    so a stop loses only the jobs under way; resuming then runs the one job that died."""
+    config = _Config(jobs_dir=str(tmp_path / "jobs"))
+    with pytest.raises(RuntimeError, match="stopped under way"):
+        record_tasks(_stopping_job, config, {"t0": 5, "t1": 2}, tmp_path, lambda t: f"{t}.npz", workers=2,
+                     seeds_per_job=10)
+    assert sorted(p.name for p in (tmp_path / "jobs").glob("*.npz")) == \
+        ["t0_110.npz", "t0_120.npz", "t1_200.npz", "t1_210.npz"]
+    CALLS.clear()
+    record_tasks(_job, config, {"t0": 5, "t1": 2}, tmp_path, lambda t: f"{t}.npz", workers=1, seeds_per_job=10)
+    assert CALLS == [("t0", 100)]
 
 
 def test_a_saved_job_of_another_configuration_or_a_torn_file_is_recorded_again(tmp_path):
