@@ -168,7 +168,7 @@ def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, fil
         return parts_dir / f"{file_of(args[0])[:-4]}_{args[1]}.npz"
 
     start = time.perf_counter()
-    pending = [args for args in jobs if not _saved_part(part_of(args), fingerprint, args[2])]
+    pending = [args for args in jobs if not saved_part(part_of(args), fingerprint, args[2])]
     if len(pending) < len(jobs):
         log.info("reusing %d of %d recording jobs in %s", len(jobs) - len(pending), len(jobs), parts_dir)
     for i, (recorded, seeds, dropped) in jobs_as_done(job, pending, workers):  # saved as each finishes, so a slow
@@ -180,7 +180,7 @@ def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, fil
                  int(lengths.sum()), dropped)
     summary = {}
     for task in episodes:
-        parts = [_load_part(part_of(args)) for args in jobs if args[0] == task]
+        parts = [load_part(part_of(args)) for args in jobs if args[0] == task]
         recorded = [e for p in parts for e in p[0]]
         seeds = [s for p in parts for s in p[1]]
         lengths = save_episodes(out_dir / file_of(task), recorded, seeds)
@@ -193,7 +193,7 @@ def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, fil
     return summary
 
 
-def _saved_part(path: Path, fingerprint: dict, count: int) -> bool:
+def saved_part(path: Path, fingerprint: dict, count: int) -> bool:
     """Whether `path` holds a recording job of `count` episodes made with this configuration `fingerprint` (reads
     only those two small members; a missing, unreadable or foreign file is not one: recorded again)."""
     try:
@@ -203,14 +203,16 @@ def _saved_part(path: Path, fingerprint: dict, count: int) -> bool:
         return False
 
 
-def _load_part(path: Path) -> tuple[list[dict], list[int], int]:
-    """A saved recording job (episodes, seeds, dropped), checked by _saved_part."""
+def load_part(path: Path, per_episode: tuple[str, ...] = ()) -> tuple[list[dict], list[int], int]:
+    """A saved recording job (episodes, seeds, dropped), checked by saved_part; the `per_episode` arrays (one value
+    an episode, such as DAgger's `success`) go into each episode as its value."""
     with np.load(path) as data:
         arrays = {k: data[k] for k in data.files}
-    keys = [k for k in arrays if k not in ("episode", "step", "seeds", "lengths", "dropped", "fingerprint")]
+    keys = [k for k in arrays if k not in ("episode", "step", "seeds", "lengths", "dropped", "fingerprint", *per_episode)]
     bounds = np.concatenate([[0], np.cumsum(arrays["lengths"])])
-    episodes = [{k: arrays[k][a:b] for k in keys} for a, b in zip(bounds[:-1], bounds[1:])]
-    return episodes, [int(s) for s in arrays["seeds"]], int(arrays["dropped"])
+    episodes = [{**{k: arrays[k][a:b] for k in keys}, **{k: arrays[k][i] for k in per_episode}}
+                for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:]))]
+    return episodes, [int(s) for s in arrays["seeds"]], int(arrays.get("dropped", 0))
 
 
 def _indexed(args: tuple) -> tuple:

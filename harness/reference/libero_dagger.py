@@ -7,6 +7,9 @@ stored evaluation states), and `LiberoObjectLabeller` says at every visited stat
 open and back up after a grasp closed beside the object, re-centre when off, carry and release once it holds.
 Episodes run in spawned processes in a fixed split of jobs per task, so the data do not depend on the workers.
 
+Resumable: each job is saved into `<out>/jobs/` as it finishes, with the configuration's and checkpoint's
+fingerprint, and a later call runs only the jobs not saved there.
+
 Output: `<out>/<suite>_<index>.npz` per task (the layout of harness.reference.demos plus `success`, and `weight`:
 `near_weight` for states near the grasp, else 1, the fine-tuning's sampling weight) and
 `<out>/summary.json` (per task: episodes, steps, policy successes; seconds; configuration and checkpoint).
@@ -24,7 +27,9 @@ import numpy as np
 
 from harness.reference.dagger import (append_corrections, checkpoint_fingerprint, labelled_episode, policy_in_env,
                                       save_collection)
-from harness.reference.demos import config_fingerprint, finished_recording, run_jobs
+from harness.files import write_atomic
+from harness.reference.demos import (config_fingerprint, finished_recording, jobs_as_done, load_part, save_episodes,
+                                     saved_part)
 from harness.reference.libero_demos import LIBERO_OBJECT_TASKS, task_file
 from harness.reference.libero_expert import LiberoExpertConfig, LiberoObjectLabeller
 
@@ -91,15 +96,33 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: LiberoDaggerConf
     jobs = [(str(model_dir), config, task, config.seeds(task)[j::config.jobs_per_task])
             for task in config.tasks for j in range(config.jobs_per_task)]
     start = time.perf_counter()
-    results = list(run_jobs(_collect_job, jobs, workers))
+    fp = fingerprint(config, model_dir)
+    parts_dir = out_dir / "jobs"  # each finished job at once, so a stop loses only the jobs under way
+    parts_dir.mkdir(exist_ok=True)
+
+    def part_of(job) -> Path:
+        return parts_dir / f"{task_file(job[2])[:-4]}_{job[3][0]}.npz"
+
+    pending = [job for job in jobs if not saved_part(part_of(job), fp, len(job[3]))]
+    if len(pending) < len(jobs):
+        log.info("reusing %d of %d collection jobs in %s", len(jobs) - len(pending), len(jobs), parts_dir)
+    for i, (task, episodes) in jobs_as_done(_collect_job, pending, workers):
+        success = np.array([e.pop("success") for e in episodes], bool)
+        seeds = [e.pop("seed") for e in episodes]
+        save_episodes(part_of(pending[i]), episodes, seeds,
+                      {"success": success, "fingerprint": np.array(json.dumps(fp, sort_keys=True))})
+        log.info("%s seeds %d..: %d episodes collected, %d successes", task, seeds[0], len(seeds), success.sum())
     summary = {}
     for task in config.tasks:
-        episodes = [e for t, part in results if t == task for e in part]
+        episodes = []
+        for job in (job for job in jobs if job[2] == task):
+            saved, seeds, _ = load_part(part_of(job), per_episode=("success",))
+            episodes += [{**e, "seed": seed} for e, seed in zip(saved, seeds)]
         summary[task] = save_collection(out_dir, episodes, task_file(task))
         log.info("%s: %s", task, summary[task])
     summary["seconds"] = time.perf_counter() - start
-    summary["config"] = fingerprint(config, model_dir)
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    summary["config"] = fp
+    write_atomic(out_dir / "summary.json", lambda f: f.write(json.dumps(summary, indent=2).encode()))
     return summary
 
 

@@ -6,6 +6,7 @@ the real LIBERO environment and are marked slow, as in tests/libero/test_libero_
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -383,7 +384,7 @@ def test_the_labeller_recovers_from_a_grasp_closed_beside_the_object():
 
 
 @pytest.mark.slow
-def test_libero_dagger_labels_the_policys_own_states_and_appends_them(tmp_path):
+def test_libero_dagger_labels_the_policys_own_states_and_appends_them(tmp_path, caplog):
     """A short collection with the committed policy: files per task in the demonstrations' layout, the seeds of its
     block, labels in the libero action space; reused only for the same configuration and checkpoint; appended as
     further episodes of each task."""
@@ -400,6 +401,23 @@ def test_libero_dagger_labels_the_policys_own_states_and_appends_them(tmp_path):
     assert arrays["proprio"].shape == (12, 8) and arrays["success"].tolist() == [False, False]
     assert set(np.unique(arrays["action"][:, 6])) <= {0.0, 1.0} and np.abs(arrays["action"][:, :6]).max() <= 1.0
     assert libero_dagger.existing(config, MODEL, tmp_path / "c") is not None
+    # a stop after the first job: only the second runs again, and the task's file holds the same arrays
+    whole = arrays
+    (tmp_path / "c" / "libero_object_3.npz").unlink()
+    (tmp_path / "c" / "jobs" / "libero_object_3_2030001.npz").unlink()
+    (tmp_path / "c" / "jobs" / "libero_object_3_2030000.npz").write_bytes(b"torn")
+    (tmp_path / "c" / "summary.json").unlink()
+    with caplog.at_level(logging.INFO, logger="harness.reference.libero_dagger"):
+        libero_dagger.collect(MODEL, tmp_path / "c", config, workers=1)
+    assert "seeds 2030000..: 1 episodes" in caplog.text and "seeds 2030001..: 1 episodes" in caplog.text
+    caplog.clear()
+    (tmp_path / "c" / "libero_object_3.npz").unlink()
+    (tmp_path / "c" / "jobs" / "libero_object_3_2030001.npz").unlink()
+    with caplog.at_level(logging.INFO, logger="harness.reference.libero_dagger"):
+        libero_dagger.collect(MODEL, tmp_path / "c", config, workers=1)
+    assert "reusing 1 of 2" in caplog.text and "seeds 2030000..:" not in caplog.text
+    with np.load(tmp_path / "c" / "libero_object_3.npz") as data:
+        assert sorted(data.files) == sorted(whole) and all(np.array_equal(data[k], whole[k]) for k in whole)
     assert libero_dagger.existing(libero_dagger.LiberoDaggerConfig(tasks=config.tasks, episodes=4, max_steps=6),
                                   MODEL, tmp_path / "c") is None
     other = tmp_path / "other"
