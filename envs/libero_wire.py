@@ -64,8 +64,15 @@ def encode_message(data) -> bytes:
 
 
 def write_message(stream, data) -> None:
-    """Send one message on a binary stream and flush it."""
-    stream.write(encode_message(data))
+    """Send one message on a binary stream and flush it. On an unbuffered stream (the server's) one write may take
+    only part of the bytes (a pipe write interrupted by a signal or a stop, as a debugger's or `kill -STOP`'s): the
+    rest is written until none is left, or the reader would wait forever for bytes never sent."""
+    view = memoryview(encode_message(data))
+    while view:
+        written = stream.write(view)
+        if written is None:  # a non-blocking stream that took nothing: never ours, but never loop on it
+            raise BlockingIOError("the LIBERO pipe is non-blocking and full")
+        view = view[written:]
     stream.flush()
 
 

@@ -70,6 +70,64 @@ def test_wire_refuses_what_it_cannot_carry_and_reports_a_closed_or_corrupt_strea
         libero_wire.read_message(io.BytesIO(b"\xff" * 16))
 
 
+class _Trickle(io.RawIOBase):
+    """An unbuffered stream that takes at most 1000 bytes a write, as a raw pipe may when a signal interrupts it."""
+
+    def __init__(self):
+        self.data = bytearray()
+
+    def writable(self):
+        return True
+
+    def write(self, b):
+        self.data += bytes(b[:1000])
+        return min(len(b), 1000)
+
+
+def test_wire_writes_every_byte_when_a_raw_write_takes_only_part():
+    stream = _Trickle()
+    data = {"image": np.random.default_rng(1).integers(0, 255, (64, 64, 3), dtype=np.uint8), "x": 1}
+    libero_wire.write_message(stream, data)
+    back = libero_wire.read_message(io.BytesIO(bytes(stream.data)))
+    np.testing.assert_array_equal(back["image"], data["image"])
+    assert back["x"] == 1
+
+
+def test_a_server_stopped_and_continued_mid_write_still_sends_whole_messages():
+    """The server writes on an unbuffered pipe. Stopping it while a write waits on the full pipe (Ctrl-Z and fg, kill
+    -STOP and -CONT, a debugger attaching) makes that write() return part of the bytes; the reader waited forever for
+    the rest (a recording hung for an hour). The real pipe and signals: both messages arrive whole."""
+    import fcntl
+    import signal
+    import struct
+    import subprocess
+    import sys
+    import termios
+    import time
+
+    writer = ("import os, sys, numpy as np; sys.path.insert(0, 'envs'); import libero_wire; "
+              "out = os.fdopen(os.dup(1), 'wb', buffering=0); "  # as envs/libero_server.py's main
+              "libero_wire.write_message(out, {'a': np.arange(1 << 20, dtype=np.float64)}); "
+              "libero_wire.write_message(out, {'end': True})")
+    process = subprocess.Popen([sys.executable, "-c", writer], stdout=subprocess.PIPE, cwd=REPO)
+    try:
+        deadline = time.monotonic() + 60
+        def waiting() -> int:  # bytes in the pipe: when it is full, the writer's 8 MiB write is blocked in it
+            return struct.unpack("i", fcntl.ioctl(process.stdout.fileno(), termios.FIONREAD, b"\0" * 4))[0]
+        while waiting() < 65536 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert waiting() >= 65536, "the writer never filled the pipe"
+        process.send_signal(signal.SIGSTOP)
+        time.sleep(0.05)
+        process.send_signal(signal.SIGCONT)
+        first = libero_wire.read_message(process.stdout)
+        np.testing.assert_array_equal(first["a"], np.arange(1 << 20, dtype=np.float64))
+        assert libero_wire.read_message(process.stdout) == {"end": True}
+    finally:
+        process.kill()
+        process.wait()
+
+
 def test_libero_action_space_follows_openvla_gripper_convention():
     osc, clipped = libero_action(np.array([0.5, -0.5, 0, 0, 0, 0.1, 1.0]))
     assert osc[6] == -1.0 and not clipped  # 1 = open -> LIBERO's -1 (open)
