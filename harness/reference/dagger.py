@@ -54,10 +54,12 @@ class DaggerConfig:
 
 
 def checkpoint_fingerprint(model_dir: str | Path) -> str:
-    """sha256 over a checkpoint folder's config, statistics and parameter files (which policy collected the data)."""
+    """sha256 over a checkpoint folder's config, statistics, conventions (harness.toml, when there) and parameter
+    files (which policy collected the data)."""
     digest = hashlib.sha256()
     root = Path(model_dir)
-    files = [root / "config.json", root / "dataset_statistics.json", *sorted(root.glob("*/default/checkpoint"))]
+    files = [root / "config.json", root / "dataset_statistics.json", *sorted(root.glob("harness.toml")),
+             *sorted(root.glob("*/default/checkpoint"))]
     for path in files:
         digest.update(path.relative_to(root).as_posix().encode())
         digest.update(path.read_bytes())

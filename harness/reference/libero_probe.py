@@ -2,6 +2,7 @@
 the suite's stored initial states, the checkpoint run as the evaluation runs it.
 
     python -m harness.reference.libero_probe --model DIR [--states 0,1] [--workers 2] [--out FILE.json]
+        (an --out file probed with the same checkpoint, states, tasks and step limit is reused, not probed again)
     python -m harness.reference.libero_probe --expert ...      (the state-based expert acts instead: the yardstick)
     python -m harness.reference.libero_probe --table LABEL=FILE.json ...   (the lever table, markdown, from --out files)
 
@@ -117,6 +118,29 @@ def probe(model_dir: str | None, states: list[int], tasks: tuple[str, ...] = LIB
             "episodes": rows, "seconds": round(time.perf_counter() - start, 1)}
 
 
+PROBE_VERSION = 1  # raise when what a probe measures changes: older result files are then probed again
+
+
+def probe_key(model_dir: str | None, states: list[int], tasks: tuple[str, ...], max_steps: int) -> dict:
+    """What a probe result depends on: the checkpoint's fingerprint (or the expert), states, tasks, step limit."""
+    from harness.reference.dagger import checkpoint_fingerprint
+
+    return {"version": PROBE_VERSION, "checkpoint": "expert" if model_dir is None else checkpoint_fingerprint(model_dir),
+            "states": list(states), "tasks": list(tasks), "max_steps": max_steps}
+
+
+def _finished(path: str, key: dict) -> dict | None:
+    """The probe result in `path` when it was made with exactly `key`, else None (missing, foreign, torn, huge)."""
+    file = Path(path)
+    try:
+        if not file.is_file() or file.stat().st_size > 64 << 20:
+            return None
+        result = json.loads(file.read_text())
+        return result if isinstance(result, dict) and result.get("key") == key and "summary" in result else None
+    except (OSError, ValueError, UnicodeDecodeError):
+        return None
+
+
 TABLE_COLUMNS = ("lever", "episodes", "success", "median reach at first close (cm)", "first close (step)",
                  "grasp rate", "lift rate", "ended with another object")
 
@@ -188,8 +212,15 @@ def main(argv: list[str] | None = None) -> int:
         if Path(args.out).is_dir():
             parser.error(f"--out {args.out} is a folder; give a file name such as probe.json")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    result = probe(args.model, states, tuple(args.tasks.split(",")), args.workers, args.max_steps)
-    if args.out:
+    tasks = tuple(args.tasks.split(","))
+    key = probe_key(args.model, states, tasks, args.max_steps)
+    done = _finished(args.out, key) if args.out else None
+    if done is not None:
+        log.info("reusing %s: the same checkpoint, states, tasks and step limit were probed there", args.out)
+        result = done
+    else:
+        result = {"key": key, **probe(args.model, states, tasks, args.workers, args.max_steps)}
+    if args.out and done is None:
         atomic_write_json(args.out, result)
     print(json.dumps(json_safe(result["summary"])))
     return 0

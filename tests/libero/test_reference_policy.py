@@ -277,6 +277,38 @@ def test_the_lever_table_reads_probe_results_in_order_and_refuses_foreign_files(
         assert stop.value.code == 2 and words in capsys.readouterr().err
 
 
+def test_a_probe_result_is_reused_only_for_the_same_checkpoint_states_tasks_and_limit(tmp_path, capsys):
+    from harness.reference import libero_probe
+
+    rows = [dict(task="libero_object/0", target="a", first_close=30, reach_xy_cm=1.0, held_named=True,
+                 lifted_named=True, success=True, picked="a")]
+    key = libero_probe.probe_key(None, [0], ("libero_object/0",), 280)
+    out = tmp_path / "expert.json"
+    out.write_text(json.dumps({"key": key, "summary": libero_probe.summarise(rows), "episodes": rows}))
+    before = out.read_bytes()
+    # the same inputs: reused at once (no simulator starts), the file untouched
+    assert libero_probe.main(["--expert", "--states", "0", "--tasks", "libero_object/0", "--out", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out)["successes"] == 1 and out.read_bytes() == before
+    assert libero_probe._finished(str(out), key) is not None
+    for other in (libero_probe.probe_key(None, [0, 1], ("libero_object/0",), 280),
+                  libero_probe.probe_key(None, [0], ("libero_object/1",), 280),
+                  libero_probe.probe_key(None, [0], ("libero_object/0",), 100),
+                  libero_probe.probe_key(MODEL, [0], ("libero_object/0",), 280)):
+        assert libero_probe._finished(str(out), other) is None
+    out.write_text(out.read_text()[:50])  # torn
+    assert libero_probe._finished(str(out), key) is None
+    with open(out, "wb") as f:
+        f.truncate(65 << 20)  # huge
+    assert libero_probe._finished(str(out), key) is None
+    edited = tmp_path / "model"
+    edited.mkdir()
+    for name in ("config.json", "dataset_statistics.json", "harness.toml"):
+        (edited / name).write_bytes((MODEL / name).read_bytes())
+    fingerprint = libero_probe.probe_key(str(edited), [0], ("libero_object/0",), 280)["checkpoint"]
+    (edited / "harness.toml").write_text((MODEL / "harness.toml").read_text() + "\n# edited\n")
+    assert libero_probe.probe_key(str(edited), [0], ("libero_object/0",), 280)["checkpoint"] != fingerprint
+
+
 @pytest.mark.slow
 def test_the_grasp_probe_measures_the_expert_as_a_yardstick_and_runs_the_committed_policy():
     """Known answer: the state-based expert closes centred on the named object, holds and lifts it, and succeeds;
