@@ -93,6 +93,11 @@ def quat_to_axis_angle(quat: np.ndarray) -> np.ndarray:
     return q[:3] * (2.0 * np.arccos(w) / sin_half)
 
 
+# seconds the server may take to answer one call (loading a scene takes seconds, a step a fraction of one): past it
+# the server is taken as hung and ended, not waited for forever
+CALL_TIMEOUT = 600.0
+
+
 class LiberoServer:
     """The server process and its pipes: `call(op, **fields) -> reply` (raises LiberoServerError)."""
 
@@ -107,8 +112,9 @@ class LiberoServer:
         for key in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV"):  # the server's imports are its environment's only
             environ.pop(key, None)
         self._stderr = tempfile.TemporaryFile()
+        # unbuffered pipes: a reply is awaited with a deadline (select sees every byte not yet read)
         self.process = subprocess.Popen([str(python), "-u", str(SERVER)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                        stderr=self._stderr, env=environ, close_fds=True)
+                                        stderr=self._stderr, env=environ, close_fds=True, bufsize=0)
 
     def stderr_tail(self, lines: int = 20) -> str:
         try:
@@ -123,7 +129,12 @@ class LiberoServer:
             raise LiberoServerError("the LIBERO server is closed")
         try:
             libero_wire.write_message(self.process.stdin, {"op": op, **fields})
-            reply = libero_wire.read_message(self.process.stdout)
+            reply = libero_wire.read_message(self.process.stdout, timeout=CALL_TIMEOUT)
+        except TimeoutError as exc:  # alive but silent (hung): end it, so the episode fails and the run goes on
+            self.process.kill()
+            self.process.wait()
+            raise LiberoServerError(f"the LIBERO server did not answer {op!r} within {CALL_TIMEOUT:.0f} s; it was "
+                                    "ended (a hung simulator or renderer)", self.stderr_tail()) from exc
         except (EOFError, BrokenPipeError, OSError, ValueError) as exc:
             try:
                 code = self.process.wait(timeout=5)
@@ -151,7 +162,7 @@ class LiberoServer:
         try:
             if process.poll() is None:
                 libero_wire.write_message(process.stdin, {"op": "close"})
-                libero_wire.read_message(process.stdout)
+                libero_wire.read_message(process.stdout, timeout=10)
         except (EOFError, BrokenPipeError, OSError, ValueError):
             pass
         for stream in (process.stdin, process.stdout):

@@ -16,7 +16,9 @@ nothing from the harness.
 from __future__ import annotations
 
 import json
+import select
 import struct
+import time
 
 import numpy as np
 
@@ -76,9 +78,13 @@ def write_message(stream, data) -> None:
     stream.flush()
 
 
-def _read_exact(stream, size: int) -> bytes:
+def _read_exact(stream, size: int, deadline: float | None = None) -> bytes:
     chunks, left = [], size
     while left > 0:
+        if deadline is not None:  # an unbuffered stream (select sees every byte not yet read)
+            ready, _, _ = select.select([stream], [], [], max(0.0, deadline - time.monotonic()))
+            if not ready:
+                raise TimeoutError("the other side of the LIBERO pipe sent nothing in time")
         chunk = stream.read(left)
         if not chunk:
             raise EOFError("the other side of the LIBERO pipe closed")
@@ -87,12 +93,15 @@ def _read_exact(stream, size: int) -> bytes:
     return b"".join(chunks)
 
 
-def read_message(stream):
-    """Receive one message from a binary stream; EOFError if it closed, ValueError if it is corrupt."""
-    (length,) = _HEADER.unpack(_read_exact(stream, _HEADER.size))
+def read_message(stream, timeout: float | None = None):
+    """Receive one message from a binary stream; EOFError if it closed, ValueError if it is corrupt. With `timeout`
+    (seconds for the whole message; `stream` must then be unbuffered, such as a pipe opened with bufsize=0),
+    TimeoutError when it has not all arrived by then."""
+    deadline = None if timeout is None else time.monotonic() + timeout
+    (length,) = _HEADER.unpack(_read_exact(stream, _HEADER.size, deadline))
     if length > MAX_HEADER_BYTES:
         raise ValueError(f"LIBERO message header of {length} bytes: the stream is corrupt")
-    header = json.loads(_read_exact(stream, length))
+    header = json.loads(_read_exact(stream, length, deadline))
     arrays = []
     specs: list = []
     _array_specs(header["data"], specs)
@@ -100,7 +109,7 @@ def read_message(stream):
     if [s["__array__"] for s in specs] != list(range(len(header["sizes"]))):
         raise ValueError("LIBERO message: array references do not match its buffers")
     for spec, size in zip(specs, header["sizes"]):
-        raw = _read_exact(stream, size)
+        raw = _read_exact(stream, size, deadline)
         dtype = np.dtype(spec["dtype"])
         array = np.frombuffer(raw, dtype=dtype).reshape(spec["shape"])
         arrays.append(array.astype(dtype.newbyteorder("="), copy=True))

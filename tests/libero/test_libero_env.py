@@ -128,6 +128,31 @@ def test_a_server_stopped_and_continued_mid_write_still_sends_whole_messages():
         process.wait()
 
 
+def test_a_server_that_never_answers_is_ended_after_the_call_timeout(tmp_path, monkeypatch):
+    """A hung server (a simulator or renderer that never returns, or a reply cut short) must not hang the run: the
+    call fails in one line once CALL_TIMEOUT has passed, and the process is gone. A real process that reads the
+    request and never answers; a second one that answers half a message."""
+    import time
+
+    from envs import libero_env
+
+    monkeypatch.setattr(libero_env, "CALL_TIMEOUT", 1.5)
+    silent = tmp_path / "silent"
+    silent.write_text("#!/bin/sh\nexec sleep 300\n")
+    half = tmp_path / "half"
+    header = libero_wire.encode_message({"ok": True, "a": np.zeros(1000)})[:200]
+    half.write_bytes(b"#!/bin/sh\nhead -c 1 > /dev/null\nprintf '" + "".join(f"\\{b:03o}" for b in header).encode()
+                     + b"'\nexec sleep 300\n")
+    for script in (silent, half):
+        script.chmod(0o755)
+        server = libero_env.LiberoServer(python=script)
+        start = time.monotonic()
+        with pytest.raises(libero_env.LiberoServerError, match="did not answer 'make' within 2 s"):
+            server.call("make", suite="libero_object", task=0)
+        assert time.monotonic() - start < 30 and server.process.poll() is not None
+        server.close()
+
+
 def test_libero_action_space_follows_openvla_gripper_convention():
     osc, clipped = libero_action(np.array([0.5, -0.5, 0, 0, 0, 0.1, 1.0]))
     assert osc[6] == -1.0 and not clipped  # 1 = open -> LIBERO's -1 (open)
