@@ -9,7 +9,9 @@ the suite's stored initial states, the checkpoint run as the evaluation runs it.
 Per episode (stored state s of each task, the published loop: 10 settle steps, step limit 280, fast render, no
 masks): success; the first step whose gripper command closes; there, the hand's horizontal and vertical distance
 from the named object's grasp point (the expert's, harness.reference.libero_expert); whether the fingers held the
-named object at any step (both pads touching), and lifted it (its bottom 3 cm above where it stood); the object picked at the end (`episode_outcome`). The summary gives
+named object at any step (both pads touching), and lifted it (its bottom 3 cm above where it stood); the movable
+object horizontally nearest the hand at the first close (which one the grasp went for); the object picked at the end
+(`episode_outcome`). The summary gives
 the success rate, the median reach error at the first close, the grasp rate (named object held at some step), the
 lift rate and the rate of ending with another object. Episodes run in spawned processes, one job a task, so the numbers do not
 depend on the workers.
@@ -61,6 +63,7 @@ def _probe_job(args: tuple) -> list[dict]:
     model_dir, task, states, max_steps = args
     env, target, reset, act = _actor(model_dir, task, max_steps)
     rows = []
+    movable = [n for n in env.description.get("movable", env.description["objects"]) if n != "basket_1"]
     try:
         for state in states:
             obs, info = env.reset(seed=state)
@@ -71,10 +74,12 @@ def _probe_job(args: tuple) -> list[dict]:
             for step in range(max_steps):
                 action = np.asarray(act(obs), np.float64)
                 if row["first_close"] is None and action[-1] < 0.5:  # the "libero" gripper: 1 open, 0 closed
-                    grasp = _geometry(env.object_poses(), target, "basket_1", LiberoExpertConfig())["grasp"]
+                    poses = env.object_poses()
+                    grasp = _geometry(poses, target, "basket_1", LiberoExpertConfig())["grasp"]
                     hand = np.asarray(obs["proprio"][:3], np.float64)
                     row.update(first_close=step, reach_xy_cm=round(float(np.linalg.norm(hand[:2] - grasp[:2])) * 100, 2),
-                               reach_z_cm=round(float(hand[2] - grasp[2]) * 100, 2))
+                               reach_z_cm=round(float(hand[2] - grasp[2]) * 100, 2),
+                               nearest_at_close=_nearest(poses, hand, movable))
                 obs, _, terminated, truncated, info = env.step(action)
                 row["held_named"] = row["held_named"] or bool(env.grasping(target))
                 row["lifted_named"] = row["lifted_named"] or bool(env.object_poses()[target]["low"][2] > floor + LIFTED)
@@ -89,10 +94,18 @@ def _probe_job(args: tuple) -> list[dict]:
     return rows
 
 
+def _nearest(poses: dict, hand: np.ndarray, movable: list[str]) -> str | None:
+    """The movable object whose box centre is horizontally nearest the hand (which one the grasp went for)."""
+    distance = {n: float(np.linalg.norm(hand[:2] - (poses[n]["low"][:2] + poses[n]["high"][:2]) / 2))
+                for n in movable if n in poses}
+    return min(distance, key=distance.get) if distance else None
+
+
 def summarise(rows: list[dict]) -> dict:
     """Rates over the episodes and the median reach error at the first close (over episodes that closed)."""
     n = len(rows)
     reach = [r["reach_xy_cm"] for r in rows if r["reach_xy_cm"] is not None]
+    nearest = [r for r in rows if r.get("nearest_at_close") is not None]
     per_task: dict[str, int] = {}
     for r in rows:
         per_task[r["task"]] = per_task.get(r["task"], 0) + int(r["success"])
@@ -104,6 +117,9 @@ def summarise(rows: list[dict]) -> dict:
             "grasp_rate": sum(r["held_named"] for r in rows) / n if n else None,
             "lift_rate": sum(r["lifted_named"] for r in rows) / n if n else None,
             "other_object_rate": sum(r["picked"] not in (None, r["target"]) for r in rows) / n if n else None,
+            # of the episodes that closed: the first close nearest the named object (None in results made before)
+            "nearest_named_rate": (sum(r["nearest_at_close"] == r["target"] for r in nearest) / len(nearest)
+                                   if nearest else None),
             "successes_per_task": per_task}
 
 
@@ -118,7 +134,7 @@ def probe(model_dir: str | None, states: list[int], tasks: tuple[str, ...] = LIB
             "episodes": rows, "seconds": round(time.perf_counter() - start, 1)}
 
 
-PROBE_VERSION = 1  # raise when what a probe measures changes: older result files are then probed again
+PROBE_VERSION = 2  # raise when what a probe measures changes: older result files are then probed again
 
 
 def probe_key(model_dir: str | None, states: list[int], tasks: tuple[str, ...], max_steps: int) -> dict:
@@ -142,7 +158,7 @@ def _finished(path: str, key: dict) -> dict | None:
 
 
 TABLE_COLUMNS = ("lever", "episodes", "success", "median reach at first close (cm)", "first close (step)",
-                 "grasp rate", "lift rate", "ended with another object")
+                 "closed nearest the named object", "grasp rate", "lift rate", "ended with another object")
 
 
 def _rate(value) -> str:
@@ -157,7 +173,7 @@ def lever_table(entries: list[tuple[str, dict]]) -> str:
         reach = "-" if s["median_reach_xy_cm"] is None else f"{s['median_reach_xy_cm']:.1f} ({s['closed']} closed)"
         first = "-" if s["median_first_close"] is None else f"{s['median_first_close']:.0f}"
         lines.append("| " + " | ".join([label, str(s["episodes"]), f"{s['successes']}/{s['episodes']}", reach, first,
-                                        _rate(s["grasp_rate"]), _rate(s["lift_rate"]),
+                                        _rate(s.get("nearest_named_rate")), _rate(s["grasp_rate"]), _rate(s["lift_rate"]),
                                         _rate(s["other_object_rate"])]) + " |")
     return "\n".join(lines)
 

@@ -232,15 +232,16 @@ def test_the_grasp_probe_summary_known_answers_and_bad_arguments_are_one_line(tm
     from harness.reference import libero_probe
 
     rows = [dict(task="t/0", target="a", first_close=30, reach_xy_cm=1.0, held_named=True, lifted_named=True,
-                 success=True, picked="a"),
+                 success=True, picked="a", nearest_at_close="a"),
             dict(task="t/0", target="a", first_close=40, reach_xy_cm=3.0, held_named=True, lifted_named=False,
-                 success=False, picked="b"),
+                 success=False, picked="b", nearest_at_close="b"),
             dict(task="t/1", target="c", first_close=None, reach_xy_cm=None, held_named=False, lifted_named=False,
                  success=False, picked=None)]
     s = libero_probe.summarise(rows)
     assert (s["episodes"], s["successes"], s["closed"], s["median_reach_xy_cm"], s["median_first_close"]) == (3, 1, 2, 2.0, 35.0)
     assert (s["grasp_rate"], s["lift_rate"], s["other_object_rate"]) == (2 / 3, 1 / 3, 1 / 3)
-    assert s["successes_per_task"] == {"t/0": 1, "t/1": 0}
+    assert s["successes_per_task"] == {"t/0": 1, "t/1": 0} and s["nearest_named_rate"] == 0.5  # of the 2 that closed
+    assert libero_probe.summarise(rows[2:])["nearest_named_rate"] is None  # none closed
     (tmp_path / "file").write_text("a file where --out wants a folder")
     for argv, words in ((["--model", "/nonexistent"], "no checkpoint there"), (["--expert", "--states", "0,x"], "--states"),
                         (["--expert", "--states", "50"], "50 stored states"),
@@ -262,8 +263,8 @@ def test_the_lever_table_reads_probe_results_in_order_and_refuses_foreign_files(
     (tmp_path / "b.json").write_text(json.dumps({"summary": libero_probe.summarise(rows[1:])}))
     assert libero_probe.main(["--table", f"second={tmp_path / 'a.json'}", f"first={tmp_path / 'b.json'}"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[2] == "| second | 2 | 1/2 | 1.0 (1 closed) | 30 | 50% | 50% | 0% |"
-    assert lines[3] == "| first | 1 | 0/1 | - | - | 0% | 0% | 0% |" and len(lines) == 4
+    assert lines[2] == "| second | 2 | 1/2 | 1.0 (1 closed) | 30 | - | 50% | 50% | 0% |"  # made before "nearest"
+    assert lines[3] == "| first | 1 | 0/1 | - | - | - | 0% | 0% | 0% |" and len(lines) == 4
     (tmp_path / "torn.json").write_text('{"summary": {"episodes": 3')
     (tmp_path / "other.json").write_text('{"summary": [1, 2]}')
     big = tmp_path / "big.json"
@@ -320,6 +321,7 @@ def test_the_grasp_probe_measures_the_expert_as_a_yardstick_and_runs_the_committ
     json.dumps(expert)  # what --out writes: plain JSON types only (numpy's bool_ once lost a 20-minute probe)
     (row,) = expert["episodes"]
     assert row["success"] and row["held_named"] and row["lifted_named"] and row["picked"] == row["target"]
+    assert row["nearest_at_close"] == row["target"] and expert["summary"]["nearest_named_rate"] == 1.0
     assert row["reach_xy_cm"] < 1.0 and abs(row["reach_z_cm"]) < 1.5 and 10 < row["first_close"] < row["steps"]
     policy = libero_probe.probe(str(MODEL), [0], ("libero_object/0",), workers=1, max_steps=45)
     (row,) = policy["episodes"]
