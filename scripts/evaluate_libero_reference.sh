@@ -8,7 +8,8 @@
 #   3. closed loop, from states 0..PROBE-1: mask-top:TOPK:attention:LAYER against mask-random:TOPK, paired by
 #      initial state (octo-harness compare) -> EVAL.md "Closed loop".
 #   bash scripts/evaluate_libero_reference.sh [STATES] [PROBE] [OUT]      (the published protocol: STATES=50)
-# LANGUAGE="swap paraphrase nonsense" (default: all three) picks the probes of stage 2; INTERVENTIONS=0 skips stage 3.
+# LANGUAGE="swap paraphrase nonsense" (default: all three) picks the probes of stage 2; INTERVENTIONS=0 skips stage 3;
+# MODEL=DIR evaluates another checkpoint (default: the committed one).
 # Runs of stages 2 and 3 are small, so they go in two parallel streams of one env worker each. Resumable: re-running
 # the same command finishes what a killed evaluation left.
 set -euo pipefail
@@ -16,7 +17,7 @@ cd "$(dirname "$0")/.."
 STATES="${1:-50}"
 PROBE="${2:-10}"
 OUT="${3:-results/libero-reference-eval}"
-MODEL=models/octo-reference-libero-object
+MODEL="${MODEL:-models/octo-reference-libero-object}"  # MODEL=DIR evaluates a candidate before it is committed
 LANGUAGE="${LANGUAGE:-swap paraphrase nonsense}"
 INTERVENTIONS="${INTERVENTIONS:-1}"
 TOPK="${TOPK:-8}"
