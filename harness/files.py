@@ -89,10 +89,22 @@ def all_or_none(*paths: str | Path):
         raise
 
 
-def atomic_write_json(path: str | Path, obj) -> Path:
-    """`json_safe(obj)` as indented JSON with sorted keys, written atomically."""
-    data = (json.dumps(json_safe(obj), indent=2, sort_keys=True) + "\n").encode()
-    return write_atomic(path, lambda f: f.write(data))
+def atomic_write_json(path: str | Path, obj, exact: bool = False) -> Path:
+    """`json_safe(obj)` as indented JSON with sorted keys, written atomically. `exact` keeps every float digit (and
+    writes other objects as strings): for summaries whose configuration is compared on reuse."""
+    body = json.dumps(obj, indent=2, sort_keys=True, default=str) if exact else \
+        json.dumps(json_safe(obj), indent=2, sort_keys=True)
+    return write_atomic(path, lambda f: f.write((body + "\n").encode()))
+
+
+def read_json_object(path: str | Path) -> dict | None:
+    """The JSON object in `path`, or None when it is missing, torn, not UTF-8 or not an object (a stale or edited
+    summary then reads as "nothing finished here" rather than a traceback)."""
+    try:
+        obj = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return obj if isinstance(obj, dict) else None
 
 
 def replace_markdown_section(path: str | Path, heading: str, section: str) -> Path:

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import logging
 import time
 from dataclasses import dataclass
@@ -29,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.files import atomic_write_json
 from harness.reference.demos import config_fingerprint, finished_recording, run_jobs, save_episodes
 from harness.reference.experts import CanLabeller, ExpertConfig
 
@@ -138,7 +138,7 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: DaggerConfig = D
     summary = {config.task: save_collection(out_dir, episodes, f"{config.task}.npz"),
                "seconds": time.perf_counter() - start,
                "config": fingerprint(config, model_dir)}
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    atomic_write_json(out_dir / "summary.json", summary, exact=True)
     log.info("%s: %s", config.task, summary[config.task])
     return summary
 

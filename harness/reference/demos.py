@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.files import atomic_write_json, read_json_object
 from harness.reference.experts import EXPERT_TASKS, ExpertConfig, ScriptedExpert
 
 log = logging.getLogger(__name__)
@@ -189,7 +190,7 @@ def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, fil
         log.info("%s: %s", task, summary[task])
     summary["seconds"] = time.perf_counter() - start
     summary["config"] = fingerprint
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    atomic_write_json(out_dir / "summary.json", summary, exact=True)
     return summary
 
 
@@ -266,10 +267,9 @@ def config_fingerprint(config) -> dict:
 def finished_recording(out_dir: str | Path, fingerprint: dict, tasks: tuple[str, ...]) -> dict | None:
     """The summary in `out_dir` when a recording with this configuration `fingerprint` finished there (its
     summary.json and every task's file exist), else None."""
-    path = Path(out_dir) / "summary.json"
-    if not path.is_file() or not all((Path(out_dir) / f"{t}.npz").is_file() for t in tasks):
+    summary = read_json_object(Path(out_dir) / "summary.json")
+    if summary is None or not all((Path(out_dir) / f"{t}.npz").is_file() for t in tasks):
         return None
-    summary = json.loads(path.read_text())
     return summary if summary.get("config") == fingerprint else None
 
 

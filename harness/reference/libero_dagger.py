@@ -27,7 +27,7 @@ import numpy as np
 
 from harness.reference.dagger import (append_corrections, checkpoint_fingerprint, labelled_episode, policy_in_env,
                                       save_collection)
-from harness.files import write_atomic
+from harness.files import atomic_write_json
 from harness.reference.demos import (config_fingerprint, finished_recording, jobs_as_done, load_part, save_episodes,
                                      saved_part)
 from harness.reference.libero_demos import LIBERO_OBJECT_TASKS, task_file
@@ -122,7 +122,7 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: LiberoDaggerConf
         log.info("%s: %s", task, summary[task])
     summary["seconds"] = time.perf_counter() - start
     summary["config"] = fp
-    write_atomic(out_dir / "summary.json", lambda f: f.write(json.dumps(summary, indent=2).encode()))
+    atomic_write_json(out_dir / "summary.json", summary, exact=True)
     return summary
 
 

@@ -25,6 +25,7 @@ import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
+from harness.files import read_json_object
 from harness.reference import dagger
 from harness.reference.demos import DemoConfig, existing_demos, load_demos, record_demos
 from harness.reference.train import TrainConfig, train
@@ -155,10 +156,9 @@ def dagger_rounds(demos: dict, train_config: TrainConfig, data_dir: str | Path, 
 
 def finished_training(folder: Path, cfg: TrainConfig, demos: dict) -> dict | None:
     """The training summary in `folder` when a run with exactly `cfg` on as many frames as `demos` finished there."""
-    path = folder / "training_summary.json"
-    if not path.is_file() or not (folder / str(cfg.steps) / "default" / "checkpoint").is_file():
+    summary = read_json_object(folder / "training_summary.json")
+    if summary is None or not (folder / str(cfg.steps) / "default" / "checkpoint").is_file():
         return None
-    summary = json.loads(path.read_text())
     frames = sum(len(arrays["action"]) for arrays in demos.values())
     if summary.get("config") != json.loads(json.dumps(asdict(cfg))) or summary.get("frames") != frames:
         return None

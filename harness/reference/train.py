@@ -37,6 +37,7 @@ import numpy as np
 import optax
 from flax import serialization
 
+from harness.files import atomic_write_json
 from harness.octo.config import OctoConfig
 from harness.octo.network import LanguageTokenizer, init_params
 from harness.octo.t5 import T5Config
@@ -370,7 +371,7 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     summary = {"parameters": n_params, "frames": int(len(data.actions)), "train_seconds": seconds,
                "total_seconds": time.perf_counter() - start, "final_loss": rows[-1]["loss"], "config": asdict(cfg),
                "warm_start": warm}
-    (out_dir / "training_summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    atomic_write_json(out_dir / "training_summary.json", summary, exact=True)
     return summary
 
 

@@ -189,6 +189,24 @@ def test_a_finished_stage_one_is_reused_only_with_the_same_configuration(tmp_pat
     assert finished_training(folder, cfg, demos) == summary
     assert finished_training(folder, replace(cfg, learning_rate=1e-3), demos) is None
     assert finished_training(folder, cfg, {"PickPlaceCan": _toy(3, 3, 0.0)}) is None  # other demonstrations
+    # a torn, non-UTF-8 or non-object summary (a stop mid-write by an older version, an edit) reads as unfinished
+    for hostile in (json.dumps(summary)[:-7].encode(), b"\xff\xfe{}", b"[1, 2]"):
+        (folder / "training_summary.json").write_bytes(hostile)
+        assert finished_training(folder, cfg, demos) is None
+
+
+def test_a_recording_summary_keeps_every_float_digit_so_it_is_found_again(tmp_path):
+    from harness.files import atomic_write_json
+    from harness.reference.demos import finished_recording
+
+    fingerprint = {"radius": 1 / 3, "scale": 2.0000001, "tiny": 1.234567891e-9, "names": ["Lift"]}
+    (tmp_path / "Lift.npz").write_bytes(b"x")
+    atomic_write_json(tmp_path / "summary.json", {"Lift": {"episodes": 2}, "config": fingerprint}, exact=True)
+    assert finished_recording(tmp_path, fingerprint, ("Lift",))["Lift"] == {"episodes": 2}
+    # the rounded writer would lose digits and the recording would be made again
+    atomic_write_json(tmp_path / "summary.json", {"config": fingerprint})
+    assert finished_recording(tmp_path, fingerprint, ("Lift",)) is None
+    assert not list(tmp_path.glob("*.tmp*"))
 
 
 def test_collection_command_names_a_folder_that_is_not_a_checkpoint(tmp_path, capsys):
