@@ -15,6 +15,8 @@ of jobs, so the data do not depend on the number of workers. An episode stops at
 Output: `<out>/<task>.npz` with the arrays of `harness.reference.demos` (the policy's resized inputs,
 proprio, the expert's label as `action`, episode, step, seeds, lengths) plus `success` (episodes,) bool,
 and `<out>/summary.json` (counts, policy success, seconds, configuration and checkpoint fingerprint).
+Resumable: each finished job is saved at once into `<out>/jobs/`, and a later call with the same configuration and
+checkpoint runs only the jobs not saved there.
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from harness.files import atomic_write_json
-from harness.reference.demos import config_fingerprint, finished_recording, run_jobs, save_episodes
+from harness.reference.demos import (config_fingerprint, finished_recording, load_part, run_saved_jobs, save_episodes,
+                                     save_part)
 from harness.reference.experts import CanLabeller, ExpertConfig
 
 log = logging.getLogger(__name__)
@@ -113,6 +116,15 @@ def save_collection(out_dir: Path, episodes: list[dict], file_name: str) -> dict
             "mean_length": float(lengths.mean())}
 
 
+def save_labelled_part(path: Path, episodes: list[dict], fingerprint: dict) -> np.ndarray:
+    """One finished collection job's episodes ({arrays..., "seed", "success"}) saved with their `success` flags and
+    the collection's `fingerprint`; returns the flags."""
+    success = np.array([e.pop("success") for e in episodes], bool)
+    seeds = [e.pop("seed") for e in episodes]
+    save_part(path, episodes, seeds, fingerprint, {"success": success})
+    return success
+
+
 def _collect_job(args: tuple) -> list[dict]:
     """Spawned worker: the episodes of seeds `seeds`, each {arrays..., "seed", "success"}."""
     model_dir, config, seeds = args
@@ -134,10 +146,19 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: DaggerConfig = D
     seeds = [DAGGER_SEED_BASE + k for k in range(config.episodes)]
     jobs = [(str(model_dir), config, seeds[j::config.jobs]) for j in range(config.jobs)]
     start = time.perf_counter()
-    episodes = [e for part in run_jobs(_collect_job, jobs, workers) for e in part]
+    fp = fingerprint(config, model_dir)
+
+    def part_of(job) -> Path:  # each finished job is saved at once, so a stop loses only the jobs under way
+        return out_dir / "jobs" / f"{config.task}_{job[2][0]}.npz"
+
+    for job, episodes in run_saved_jobs(_collect_job, jobs, workers, part_of, fp, lambda job: len(job[2])):
+        success = save_labelled_part(part_of(job), episodes, fp)
+        log.info("%s seeds %d..: %d episodes collected, %d successes", config.task, job[2][0], len(success),
+                 success.sum())
+    episodes = [{**e, "seed": seed} for job in jobs
+                for e, seed in zip(*load_part(part_of(job), per_episode=("success",))[:2])]
     summary = {config.task: save_collection(out_dir, episodes, f"{config.task}.npz"),
-               "seconds": time.perf_counter() - start,
-               "config": fingerprint(config, model_dir)}
+               "seconds": time.perf_counter() - start, "config": fp}
     atomic_write_json(out_dir / "summary.json", summary, exact=True)
     log.info("%s: %s", config.task, summary[config.task])
     return summary

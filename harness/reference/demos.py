@@ -169,16 +169,11 @@ def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, fil
         return parts_dir / f"{file_of(args[0])[:-4]}_{args[1]}.npz"
 
     start = time.perf_counter()
-    pending = [args for args in jobs if not saved_part(part_of(args), fingerprint, args[2])]
-    if len(pending) < len(jobs):
-        log.info("reusing %d of %d recording jobs in %s", len(jobs) - len(pending), len(jobs), parts_dir)
-    for i, (recorded, seeds, dropped) in jobs_as_done(job, pending, workers):  # saved as each finishes, so a slow
-        args = pending[i]  # job never holds back (in memory, unsaved) the ones finished after it
-        lengths = save_episodes(part_of(args), recorded, seeds,
-                                {"dropped": np.array(dropped, np.int64),
-                                 "fingerprint": np.array(json.dumps(fingerprint, sort_keys=True))})
+    for args, (recorded, seeds, dropped) in run_saved_jobs(job, jobs, workers, part_of, fingerprint,
+                                                           lambda args: args[2]):
+        save_part(part_of(args), recorded, seeds, fingerprint, {"dropped": np.array(dropped, np.int64)})
         log.info("%s seeds %d..: %d episodes (%d steps), %d dropped", args[0], args[1], len(recorded),
-                 int(lengths.sum()), dropped)
+                 sum(len(e["action"]) for e in recorded), dropped)
     summary = {}
     for task in episodes:
         parts = [load_part(part_of(args)) for args in jobs if args[0] == task]
@@ -231,15 +226,30 @@ def jobs_as_done(function, jobs: list, workers: int):
         yield i, function(job)
 
 
-def run_jobs(function, jobs: list, workers: int):
-    """`function` over `jobs`, in `workers` spawned processes (never fork after rendering) or in this one; yields the
-    results in the jobs' order, each as soon as it and those before it are done."""
-    if workers > 1 and len(jobs) > 1:
-        with multiprocessing.get_context("spawn").Pool(workers) as pool:
-            yield from pool.imap(function, jobs, chunksize=1)
-        return
-    for job in jobs:
-        yield function(job)
+def run_jobs(function, jobs: list, workers: int) -> list:
+    """`function` over `jobs` as `jobs_as_done` runs them; the results in the jobs' order once all are done."""
+    results = [None] * len(jobs)
+    for i, result in jobs_as_done(function, jobs, workers):
+        results[i] = result
+    return results
+
+
+def run_saved_jobs(function, jobs: list, workers: int, part_of, fingerprint: dict, count_of):
+    """Resumable jobs: `function` over the `jobs` whose file `part_of(job)` does not already hold `count_of(job)`
+    episodes made with this `fingerprint` (see saved_part); yields (job, result) as each finishes, for the caller to
+    `save_part` at once. So a stop loses only the jobs under way, and a slow job never holds back (in memory,
+    unsaved) the ones finished after it."""
+    pending = [job for job in jobs if not saved_part(part_of(job), fingerprint, count_of(job))]
+    if len(pending) < len(jobs):
+        log.info("reusing %d of %d jobs saved in %s", len(jobs) - len(pending), len(jobs), part_of(jobs[0]).parent)
+    for i, result in jobs_as_done(function, pending, workers):
+        yield pending[i], result
+
+
+def save_part(path: Path, episodes: list[dict], seeds: list[int], fingerprint: dict, extra: dict | None = None) -> None:
+    """One finished job's episodes (and `extra` arrays), marked with its configuration `fingerprint`, for saved_part."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_episodes(path, episodes, seeds, {**(extra or {}), "fingerprint": np.array(json.dumps(fingerprint, sort_keys=True))})
 
 
 def save_episodes(path: Path, episodes: list[dict], seeds: list[int], extra: dict | None = None) -> np.ndarray:

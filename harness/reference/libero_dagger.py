@@ -17,7 +17,6 @@ Output: `<out>/<suite>_<index>.npz` per task (the layout of harness.reference.de
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -25,11 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.reference.dagger import (append_corrections, checkpoint_fingerprint, labelled_episode, policy_in_env,
-                                      save_collection)
 from harness.files import atomic_write_json
-from harness.reference.demos import (config_fingerprint, finished_recording, jobs_as_done, load_part, save_episodes,
-                                     saved_part)
+from harness.reference.dagger import (append_corrections, checkpoint_fingerprint, labelled_episode, policy_in_env,
+                                      save_collection, save_labelled_part)
+from harness.reference.demos import config_fingerprint, finished_recording, load_part, run_saved_jobs
 from harness.reference.libero_demos import LIBERO_OBJECT_TASKS, task_file
 from harness.reference.libero_expert import LiberoExpertConfig, LiberoObjectLabeller
 
@@ -97,21 +95,13 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: LiberoDaggerConf
             for task in config.tasks for j in range(config.jobs_per_task)]
     start = time.perf_counter()
     fp = fingerprint(config, model_dir)
-    parts_dir = out_dir / "jobs"  # each finished job at once, so a stop loses only the jobs under way
-    parts_dir.mkdir(exist_ok=True)
 
-    def part_of(job) -> Path:
-        return parts_dir / f"{task_file(job[2])[:-4]}_{job[3][0]}.npz"
+    def part_of(job) -> Path:  # each finished job is saved at once, so a stop loses only the jobs under way
+        return out_dir / "jobs" / f"{task_file(job[2])[:-4]}_{job[3][0]}.npz"
 
-    pending = [job for job in jobs if not saved_part(part_of(job), fp, len(job[3]))]
-    if len(pending) < len(jobs):
-        log.info("reusing %d of %d collection jobs in %s", len(jobs) - len(pending), len(jobs), parts_dir)
-    for i, (task, episodes) in jobs_as_done(_collect_job, pending, workers):
-        success = np.array([e.pop("success") for e in episodes], bool)
-        seeds = [e.pop("seed") for e in episodes]
-        save_episodes(part_of(pending[i]), episodes, seeds,
-                      {"success": success, "fingerprint": np.array(json.dumps(fp, sort_keys=True))})
-        log.info("%s seeds %d..: %d episodes collected, %d successes", task, seeds[0], len(seeds), success.sum())
+    for job, (task, episodes) in run_saved_jobs(_collect_job, jobs, workers, part_of, fp, lambda job: len(job[3])):
+        success = save_labelled_part(part_of(job), episodes, fp)
+        log.info("%s seeds %d..: %d episodes collected, %d successes", task, job[3][0], len(success), success.sum())
     summary = {}
     for task in config.tasks:
         episodes = []

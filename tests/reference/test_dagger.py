@@ -3,6 +3,7 @@ finishes the task from states it did not lead to), correction collection with th
 merging corrections into the demonstrations, and normalisation that keeps the demonstrations' units."""
 
 import json
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -91,7 +92,7 @@ def test_dagger_seeds_are_disjoint_from_demonstrations_and_evaluation():
 
 
 @pytest.mark.slow
-def test_collection_labels_the_policys_own_states(tmp_path):
+def test_collection_labels_the_policys_own_states(tmp_path, caplog):
     config = dagger.DaggerConfig(episodes=4, max_steps=12)
     summary = dagger.collect(MODEL, tmp_path / "c", config, workers=1)
     with np.load(tmp_path / "c" / "PickPlaceCan.npz") as data:
@@ -119,6 +120,16 @@ def test_collection_labels_the_policys_own_states(tmp_path):
     assert dagger.existing(dagger.DaggerConfig(episodes=8, max_steps=12), MODEL, tmp_path / "c") is None
     relabelled = dagger.DaggerConfig(episodes=4, max_steps=12, expert=ExpertConfig(bin_inset=(0.0, 0.04)))
     assert dagger.existing(relabelled, MODEL, tmp_path / "c") is None  # labels from another carry point
+    # a stop after three jobs: only the fourth runs again (a torn file counts as missing), same arrays
+    whole = arrays
+    for name in ("PickPlaceCan.npz", "summary.json", f"jobs/PickPlaceCan_{dagger.DAGGER_SEED_BASE + 3}.npz"):
+        (tmp_path / "c" / name).unlink()
+    (tmp_path / "c" / "jobs" / f"PickPlaceCan_{dagger.DAGGER_SEED_BASE + 2}.npz").write_bytes(b"torn")
+    with caplog.at_level(logging.INFO, logger="harness.reference.demos"):
+        dagger.collect(MODEL, tmp_path / "c", config, workers=1)
+    assert "reusing 2 of 4 jobs" in caplog.text
+    with np.load(tmp_path / "c" / "PickPlaceCan.npz") as data:
+        assert sorted(data.files) == sorted(whole) and all(np.array_equal(data[k], whole[k]) for k in whole)
 
 
 def _toy(n_episodes: int, length: int, offset: float) -> dict:
