@@ -21,12 +21,12 @@ recording with the same configuration is reused.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 from dataclasses import replace
 from pathlib import Path
 
+from harness.files import atomic_write_json
 from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, LiberoDemoConfig, existing_libero_demos,
                                             load_libero_demos, record_libero_demos)
 from harness.reference import libero_dagger
@@ -141,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
             what=f"{dagger_config.episodes} episodes per task", train_kwargs=train_kwargs)
     result["demonstrations"] = summary
     result["pipeline_seconds_this_run"] = time.perf_counter() - start
-    Path(args.out, "training_summary.json").write_text(json.dumps(result, indent=2, default=str))
+    atomic_write_json(Path(args.out, "training_summary.json"), result, exact=True)
     log.info("done: %s (demonstrations %.0f s, training %.0f s)", args.out, summary["seconds"], result["total_seconds"])
     return 0
 

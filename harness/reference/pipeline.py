@@ -25,7 +25,7 @@ import time
 from dataclasses import asdict, replace
 from pathlib import Path
 
-from harness.files import read_json_object
+from harness.files import atomic_write_json, read_json_object
 from harness.reference import dagger
 from harness.reference.demos import DemoConfig, existing_demos, load_demos, record_demos
 from harness.reference.train import TrainConfig, train
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
             what=f"{dagger_config.episodes} {dagger_config.task} episodes")
     result["demonstrations"] = summary
     result["pipeline_seconds_this_run"] = time.perf_counter() - start
-    Path(args.out, "training_summary.json").write_text(json.dumps(result, indent=2, default=str))
+    atomic_write_json(Path(args.out, "training_summary.json"), result, exact=True)
     log.info("done: %s (demonstrations %.0f s, training %.0f s)", args.out, summary["seconds"], result["total_seconds"])
     return 0
 
