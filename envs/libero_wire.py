@@ -78,13 +78,32 @@ def write_message(stream, data) -> None:
     stream.flush()
 
 
-def _read_exact(stream, size: int, deadline: float | None = None) -> bytes:
+class _WaitBudget:
+    """Seconds this process may still wait for the other side. Waits run in slices of at most `SLICE` s, and a slice
+    counts only up to its own length: time beyond it is this process not running (stopped with Ctrl-Z or SIGSTOP, a
+    suspended job, a paused container), which says nothing about the other side, so resuming after a long stop
+    does not read as a hung server."""
+    SLICE = 1.0
+
+    def __init__(self, seconds: float):
+        self.left = seconds
+
+    def wait_readable(self, stream) -> bool:
+        while self.left > 0:
+            step = min(self.SLICE, self.left)
+            start = time.monotonic()
+            ready, _, _ = select.select([stream], [], [], step)
+            self.left -= min(time.monotonic() - start, step)
+            if ready:
+                return True
+        return False
+
+
+def _read_exact(stream, size: int, budget: _WaitBudget | None = None) -> bytes:
     chunks, left = [], size
     while left > 0:
-        if deadline is not None:  # an unbuffered stream (select sees every byte not yet read)
-            ready, _, _ = select.select([stream], [], [], max(0.0, deadline - time.monotonic()))
-            if not ready:
-                raise TimeoutError("the other side of the LIBERO pipe sent nothing in time")
+        if budget is not None and not budget.wait_readable(stream):  # an unbuffered stream: select sees every byte
+            raise TimeoutError("the other side of the LIBERO pipe sent nothing in time")
         chunk = stream.read(left)
         if not chunk:
             raise EOFError("the other side of the LIBERO pipe closed")
@@ -95,13 +114,13 @@ def _read_exact(stream, size: int, deadline: float | None = None) -> bytes:
 
 def read_message(stream, timeout: float | None = None):
     """Receive one message from a binary stream; EOFError if it closed, ValueError if it is corrupt. With `timeout`
-    (seconds for the whole message; `stream` must then be unbuffered, such as a pipe opened with bufsize=0),
-    TimeoutError when it has not all arrived by then."""
-    deadline = None if timeout is None else time.monotonic() + timeout
-    (length,) = _HEADER.unpack(_read_exact(stream, _HEADER.size, deadline))
+    (seconds of waiting for the whole message while this process runs; `stream` must then be unbuffered, such as a
+    pipe opened with bufsize=0), TimeoutError when it has not all arrived by then."""
+    budget = None if timeout is None else _WaitBudget(timeout)
+    (length,) = _HEADER.unpack(_read_exact(stream, _HEADER.size, budget))
     if length > MAX_HEADER_BYTES:
         raise ValueError(f"LIBERO message header of {length} bytes: the stream is corrupt")
-    header = json.loads(_read_exact(stream, length, deadline))
+    header = json.loads(_read_exact(stream, length, budget))
     arrays = []
     specs: list = []
     _array_specs(header["data"], specs)
@@ -109,7 +128,7 @@ def read_message(stream, timeout: float | None = None):
     if [s["__array__"] for s in specs] != list(range(len(header["sizes"]))):
         raise ValueError("LIBERO message: array references do not match its buffers")
     for spec, size in zip(specs, header["sizes"]):
-        raw = _read_exact(stream, size, deadline)
+        raw = _read_exact(stream, size, budget)
         dtype = np.dtype(spec["dtype"])
         array = np.frombuffer(raw, dtype=dtype).reshape(spec["shape"])
         arrays.append(array.astype(dtype.newbyteorder("="), copy=True))

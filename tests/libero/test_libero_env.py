@@ -130,6 +130,38 @@ def test_a_server_stopped_and_continued_mid_write_still_sends_whole_messages():
         process.wait()
 
 
+def test_a_reader_stopped_longer_than_its_timeout_still_gets_the_message_sent_after_it_resumes():
+    """The call timeout is for a hung server, not for the driver being suspended: a run stopped with Ctrl-Z (or kill
+    -STOP, a paused container) for longer than CALL_TIMEOUT and continued failed its next call at once, since the
+    deadline had passed while it slept (the kernel resumes a select it was in with the time it had left, but the
+    next one, for the rest of a message arriving in parts, got none). A real reader process with a 2 s timeout,
+    stopped for 4 s after the message's first part; the two other parts come after it resumes."""
+    import signal
+    import time
+
+    reader = ("import os, sys; sys.path.insert(0, 'envs'); import libero_wire; "
+              "stream = os.fdopen(os.dup(0), 'rb', buffering=0); print('ready', flush=True); "
+              "print(libero_wire.read_message(stream, timeout=2.0), flush=True)")
+    process = subprocess.Popen([sys.executable, "-c", reader], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, cwd=REPO)
+    try:
+        assert process.stdout.readline() == b"ready\n"
+        message = libero_wire.encode_message({"ok": True})
+        for i, part in enumerate((message[:10], message[10:20], message[20:])):
+            process.stdin.write(part)
+            process.stdin.flush()
+            time.sleep(0.3)  # the reader waits for the next part
+            if i == 0:
+                process.send_signal(signal.SIGSTOP)
+                time.sleep(4.0)
+                process.send_signal(signal.SIGCONT)
+        out, err = process.communicate(timeout=30)
+        assert out == b"{'ok': True}\n", err.decode()[-300:]
+    finally:
+        process.kill()
+        process.wait()
+
+
 def test_a_server_that_never_answers_is_ended_after_the_call_timeout(tmp_path, monkeypatch):
     """A hung server (a simulator or renderer that never returns, or a reply cut short) must not hang the run: the
     call fails in one line once CALL_TIMEOUT has passed, and the process is gone. A real process that reads the
