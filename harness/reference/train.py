@@ -366,11 +366,13 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
 
     fp = train_loop.fingerprint(cfg, data, texts, dataset_key, conventions)
     loop = train_loop.Loop(out_dir, fp, cfg, schedule, t5_params)
+    looped = time.perf_counter()
     trainable, rows, seconds = loop.run(train_step, sample_batch, rng, key, trainable, opt_state, on_step)
+    looped = time.perf_counter() - looped  # this call's share of `seconds` (a resumed run counts earlier calls too)
     train_loop.plot_curve(out_dir, rows, cfg.head, title=f"{out_dir.name}: training curve")
     summary = {"parameters": n_params, "frames": int(len(data.actions)), "train_seconds": seconds,
-               "total_seconds": time.perf_counter() - start, "final_loss": rows[-1]["loss"], "config": asdict(cfg),
-               "warm_start": warm}
+               "total_seconds": time.perf_counter() - start - looped + seconds, "final_loss": rows[-1]["loss"],
+               "config": asdict(cfg), "warm_start": warm}
     atomic_write_json(out_dir / "training_summary.json", summary, exact=True)
     return summary
 

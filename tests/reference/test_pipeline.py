@@ -1,6 +1,7 @@
 """Reference policy pipeline: scripted experts in the real simulator, demonstration recording, dataset
 chunks and statistics, and a tiny training run that reduces the loss and saves a loadable Octo checkpoint."""
 
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -210,6 +211,8 @@ def test_a_stopped_training_resumes_at_its_checkpoint_and_ends_with_the_bytes_of
     out = tmp_path / "stopped"
 
     def stop(step):
+        if step == 25:
+            time.sleep(12)  # training time before the checkpoint at 30: the resumed summary must count it
         if step == 37:
             raise _Stop
 
@@ -224,6 +227,8 @@ def test_a_stopped_training_resumes_at_its_checkpoint_and_ends_with_the_bytes_of
     drop_seconds = lambda rows: [{k: v for k, v in r.items() if k != "seconds"} for r in rows]  # noqa: E731
     assert drop_seconds(_read_curve(out / "training_curve.csv")) == drop_seconds(_read_curve(source / "training_curve.csv"))
     assert resumed["final_loss"] == summary["final_loss"]
+    # the whole training's seconds, both calls': total_seconds was this call's alone, less than its training seconds
+    assert resumed["train_seconds"] > 12 and resumed["total_seconds"] >= resumed["train_seconds"]
 
 
 def test_a_training_state_of_another_run_or_a_damaged_one_is_ignored(tmp_path, caplog):
