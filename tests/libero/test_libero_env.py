@@ -134,14 +134,15 @@ def test_a_reader_stopped_longer_than_its_timeout_still_gets_the_message_sent_af
     """The call timeout is for a hung server, not for the driver being suspended: a run stopped with Ctrl-Z (or kill
     -STOP, a paused container) for longer than CALL_TIMEOUT and continued failed its next call at once, since the
     deadline had passed while it slept (the kernel resumes a select it was in with the time it had left, but the
-    next one, for the rest of a message arriving in parts, got none). A real reader process with a 2 s timeout,
-    stopped for 4 s after the message's first part; the two other parts come after it resumes."""
+    next one, for the rest of a message arriving in parts, got none). A real reader process with a 4 s timeout,
+    stopped for 6 s after the message's first part; the two other parts come after it resumes (it counts about
+    1.6 s of waiting: the slice it was stopped in, 1 s at most, and the two 0.3 s pauses)."""
     import signal
     import time
 
     reader = ("import os, sys; sys.path.insert(0, 'envs'); import libero_wire; "
               "stream = os.fdopen(os.dup(0), 'rb', buffering=0); print('ready', flush=True); "
-              "print(libero_wire.read_message(stream, timeout=2.0), flush=True)")
+              "print(libero_wire.read_message(stream, timeout=4.0), flush=True)")
     process = subprocess.Popen([sys.executable, "-c", reader], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                stderr=subprocess.PIPE, cwd=REPO)
     try:
@@ -153,7 +154,7 @@ def test_a_reader_stopped_longer_than_its_timeout_still_gets_the_message_sent_af
             time.sleep(0.3)  # the reader waits for the next part
             if i == 0:
                 process.send_signal(signal.SIGSTOP)
-                time.sleep(4.0)
+                time.sleep(6.0)
                 process.send_signal(signal.SIGCONT)
         out, err = process.communicate(timeout=30)
         assert out == b"{'ok': True}\n", err.decode()[-300:]
