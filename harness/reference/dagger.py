@@ -125,6 +125,15 @@ def save_labelled_part(path: Path, episodes: list[dict], fingerprint: dict) -> n
     return success
 
 
+def load_labelled_parts(paths) -> list[dict]:
+    """The episodes saved by save_labelled_part in `paths`, in order, each with its "seed" and "success" again."""
+    episodes = []
+    for path in paths:
+        saved, seeds, _ = load_part(path, per_episode=("success",))
+        episodes += [{**e, "seed": seed} for e, seed in zip(saved, seeds)]
+    return episodes
+
+
 def _collect_job(args: tuple) -> list[dict]:
     """Spawned worker: the episodes of seeds `seeds`, each {arrays..., "seed", "success"}."""
     model_dir, config, seeds = args
@@ -155,8 +164,7 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: DaggerConfig = D
         success = save_labelled_part(part_of(job), episodes, fp)
         log.info("%s seeds %d..: %d episodes collected, %d successes", config.task, job[2][0], len(success),
                  success.sum())
-    episodes = [{**e, "seed": seed} for job in jobs
-                for e, seed in zip(*load_part(part_of(job), per_episode=("success",))[:2])]
+    episodes = load_labelled_parts(part_of(job) for job in jobs)
     summary = {config.task: save_collection(out_dir, episodes, f"{config.task}.npz"),
                "seconds": time.perf_counter() - start, "config": fp}
     atomic_write_json(out_dir / "summary.json", summary, exact=True)

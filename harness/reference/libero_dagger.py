@@ -26,8 +26,8 @@ import numpy as np
 
 from harness.files import atomic_write_json
 from harness.reference.dagger import (append_corrections, checkpoint_fingerprint, labelled_episode, policy_in_env,
-                                      save_collection, save_labelled_part)
-from harness.reference.demos import config_fingerprint, finished_recording, load_part, run_saved_jobs
+                                      load_labelled_parts, save_collection, save_labelled_part)
+from harness.reference.demos import config_fingerprint, finished_recording, run_saved_jobs
 from harness.reference.libero_demos import LIBERO_OBJECT_TASKS, task_file
 from harness.reference.libero_expert import LiberoExpertConfig, LiberoObjectLabeller
 
@@ -104,10 +104,7 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: LiberoDaggerConf
         log.info("%s seeds %d..: %d episodes collected, %d successes", task, job[3][0], len(success), success.sum())
     summary = {}
     for task in config.tasks:
-        episodes = []
-        for job in (job for job in jobs if job[2] == task):
-            saved, seeds, _ = load_part(part_of(job), per_episode=("success",))
-            episodes += [{**e, "seed": seed} for e, seed in zip(saved, seeds)]
+        episodes = load_labelled_parts(part_of(job) for job in jobs if job[2] == task)
         summary[task] = save_collection(out_dir, episodes, task_file(task))
         log.info("%s: %s", task, summary[task])
     summary["seconds"] = time.perf_counter() - start
