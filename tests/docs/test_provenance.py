@@ -49,6 +49,7 @@ DOCS_MEASURED = (
     ("docs/perturbations.md", "## Measured: the wrist camera, with reliance"),
     ("docs/perturbations.md", "## Measured: the scene cells, with reliance"),
     ("docs/libero-reference.md", "## Grasp probe: what each lever changes"),
+    ("docs/libero-reference.md", "## The candidate checkpoint"),
     ("docs/phases-and-position.md", "## Cost"),
     ("docs/phases-and-position.md", "## Reference policy: results"),
     ("docs/regression.md", "## Across machines: provenance, replay and what a verdict can claim"),

@@ -20,6 +20,8 @@ from tests.helpers import needs_libero as _needs_libero  # skips outside CI, fai
 
 REPO = Path(__file__).resolve().parents[2]
 MODEL = REPO / "models" / "octo-reference-libero-object"
+# issue 46's second-recipe policy, committed beside the reference until its published-protocol evaluation
+CANDIDATE = REPO / "models" / "octo-reference-libero-object-candidate"
 # the trainer's default sizes (the synthetic frames below): the first LIBERO policy's cameras
 WRIST_64 = (("image_primary", "agentview", 128), ("image_wrist", "robot0_eye_in_hand", 64))
 
@@ -659,15 +661,50 @@ def test_an_eval_md_section_is_replaced_in_place_or_appended_and_the_others_stay
     assert not list(tmp_path.glob("*.tmp.*"))  # written whole, no temporary left
 
 
-def test_the_committed_policy_is_small_and_states_its_libero_conventions():
-    total = sum(p.stat().st_size for p in MODEL.rglob("*") if p.is_file())
+@pytest.mark.parametrize("model", [MODEL, CANDIDATE], ids=["reference", "candidate"])
+def test_the_committed_policy_is_small_and_states_its_libero_conventions(model):
+    total = sum(p.stat().st_size for p in model.rglob("*") if p.is_file())
     assert total <= 25 * 2**20  # the issue's limit for a committed model folder
     from harness.conventions import CheckpointConventions
     from harness.reference.libero_pipeline import DATASET_KEY
 
-    conventions = CheckpointConventions.read(MODEL)
+    conventions = CheckpointConventions.read(model)
     assert conventions.env_options().action_space == "libero" and conventions.policy_config().dataset_key == DATASET_KEY
-    summary = json.loads((MODEL / "training_summary.json").read_text())
+    summary = json.loads((model / "training_summary.json").read_text())
     demos = summary["demonstrations"]
     # every demonstration came from a sampled placement of the training seed block, never a stored state index
     assert all(demos[f"libero_object/{i}"]["seed_min"] >= 1_000_000 for i in range(10))
+
+
+def test_the_candidate_states_the_second_recipes_cameras_and_was_trained_on_its_demonstrations():
+    """The candidate reads both cameras at 128 px, as its demonstrations were recorded (the pipeline's harness.toml
+    for the second recipe, byte for byte), and its summary names the second recipe's demonstrator and count."""
+    from harness.reference.libero_demos import LIBERO_CAMERAS
+    from harness.reference.libero_pipeline import RECIPES, conventions_toml
+
+    assert (CANDIDATE / "harness.toml").read_text() == conventions_toml(LIBERO_CAMERAS)
+    assert dict((k, s) for k, _, s in LIBERO_CAMERAS) == {"image_primary": 128, "image_wrist": 128}
+    summary = json.loads((CANDIDATE / "training_summary.json").read_text())
+    recorded = summary["demonstrations"]["config"]
+    assert recorded["demonstrator"] == RECIPES["second"].demonstrator == "state"
+    assert recorded["episodes"] == 50 and recorded["bursts"] is not None
+    assert all(summary["demonstrations"][f"libero_object/{i}"]["episodes"] == 50 for i in range(10))
+    assert summary["config"]["image_sizes"] == [["image_primary", 128], ["image_wrist", 128]]
+
+
+@pytest.mark.slow
+def test_the_candidate_runs_libero_object_closed_loop(tmp_path):
+    """A short closed-loop episode of the candidate through its own harness.toml (both cameras at 128 px)."""
+    from harness import cli
+
+    _needs_libero()
+    assert cli.main(["run", "--model", str(CANDIDATE), "--task", "libero_object/2", "--episodes", "1", "--seed", "0",
+                     "--max-steps", "4", "--fast-render", "--no-masks", "--png-every", "0", "--no-video",
+                     "--out", str(tmp_path), "--run-name", "candidate"]) == 0
+    run = tmp_path / "candidate"
+    meta = json.loads((run / "libero_object" / "2" / "episode_0" / "episode.json").read_text())
+    assert meta["steps"] == 4 and meta["outcome"]["picked_object"] in (None, *meta["outcome"]["objects"])
+    with np.load(run / "libero_object" / "2" / "episode_0" / "attention.npz") as z:
+        grids, share = z["tokens/image_grids"].tolist(), z["metrics/share/wrist"]
+    assert grids == [[8, 8], [8, 8]]  # both cameras read as 8x8 patches (the wrist at 128 px)
+    assert share.shape == (4, 4) and np.isfinite(share).all()  # the wrist camera's attention share, per step and layer
