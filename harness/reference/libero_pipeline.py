@@ -44,7 +44,7 @@ RECIPES = {
     "second": LiberoDemoConfig(),
 }
 DEFAULT_STEPS = 2500
-RECIPE_STEPS = {"first": DEFAULT_STEPS, "second": 5000}  # the robosuite reference needed 6000
+RECIPE_STEPS = {"first": DEFAULT_STEPS, "second": 6000}  # as the robosuite reference (session 13 probed 5000)
 DEFAULT_INIT = "models/octo-reference-robosuite"
 
 
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
                              "Gaussian noise only); second: issue 46's (state expert, wrist 128 px, 50 a task, recovery "
                              "bursts) [second]")
     parser.add_argument("--episodes", type=int, default=None, help="demonstrations per task [the recipe's]")
-    parser.add_argument("--steps", type=int, default=None, help="training steps [first 2500, second 5000]")
+    parser.add_argument("--steps", type=int, default=None, help="training steps [first 2500, second 6000]")
     parser.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
     parser.add_argument("--learning-rate", type=float, default=TrainConfig.learning_rate)
     parser.add_argument("--workers", type=int, default=2, help="recording processes (spawned)")

@@ -678,9 +678,10 @@ def test_the_committed_policy_is_small_and_states_its_libero_conventions(model):
 
 def test_the_candidate_states_the_second_recipes_cameras_and_was_trained_on_its_demonstrations():
     """The candidate reads both cameras at 128 px, as its demonstrations were recorded (the pipeline's harness.toml
-    for the second recipe, byte for byte), and its summary names the second recipe's demonstrator and count."""
+    for the second recipe, byte for byte), its summary names the second recipe's demonstrator and count, and it was
+    trained with the one command's defaults (steps, warm start), so `--out` alone rebuilds it."""
     from harness.reference.libero_demos import LIBERO_CAMERAS
-    from harness.reference.libero_pipeline import RECIPES, conventions_toml
+    from harness.reference.libero_pipeline import DEFAULT_INIT, RECIPE_STEPS, RECIPES, conventions_toml
 
     assert (CANDIDATE / "harness.toml").read_text() == conventions_toml(LIBERO_CAMERAS)
     assert dict((k, s) for k, _, s in LIBERO_CAMERAS) == {"image_primary": 128, "image_wrist": 128}
@@ -690,6 +691,8 @@ def test_the_candidate_states_the_second_recipes_cameras_and_was_trained_on_its_
     assert recorded["episodes"] == 50 and recorded["bursts"] is not None
     assert all(summary["demonstrations"][f"libero_object/{i}"]["episodes"] == 50 for i in range(10))
     assert summary["config"]["image_sizes"] == [["image_primary", 128], ["image_wrist", 128]]
+    assert (summary["config"]["steps"], summary["config"]["init_from"]) == (RECIPE_STEPS["second"], DEFAULT_INIT)
+    assert sorted(p.name for p in CANDIDATE.iterdir() if p.name.isdigit()) == [str(RECIPE_STEPS["second"])]
 
 
 @pytest.mark.slow
