@@ -60,8 +60,8 @@ def test_a_ray_env_worker_killed_during_a_job_fails_that_episode_is_replaced_and
 
     executors, killed = [], []
 
-    def factory(context, model):
-        executors.append(RayExecutor(context, model, workers=2))
+    def factory(context, model):  # one env actor: its replacement must run the second episode (one actor fewer to start)
+        executors.append(RayExecutor(context, model, workers=1))
         return executors[-1]
 
     def kill_a_busy_actor():
@@ -74,9 +74,10 @@ def test_a_ray_env_worker_killed_during_a_job_fails_that_episode_is_replaced_and
                 return
             time.sleep(0.02)
 
-    summary = _run_while(tiny, tmp_path, "raykill", factory, kill_a_busy_actor)
+    summary = _run_while(tiny, tmp_path, "raykill", factory, kill_a_busy_actor, episodes=2)
     assert killed, "no Ray env worker was killed"
-    failed = _the_one_failed_episode(summary)
+    failed = _the_one_failed_episode(summary, episodes=2)
+    assert failed.episode == 0  # the first job, on the first actor; the second ran on its replacement
     assert f"worker process died (pid {killed[0]}" in failed.error
     assert executors[0].replacements == 1
     assert not _busy_ray_env_workers()  # every actor is gone with the run
