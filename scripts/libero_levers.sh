@@ -2,7 +2,7 @@
 # Issue 46's table of levers (docs/libero-reference.md "Grasp probe"): probe each LIBERO-Object checkpoint on stored
 # states 0-1 of every task (20 episodes, the published loop, as the evaluation runs it), then print one markdown
 # table in the order given. LABEL=expert probes the state-based expert (the yardstick).
-#   bash scripts/libero_levers.sh expert first=models/octo-reference-libero-object second=data/libero_levers/second
+#   bash scripts/libero_levers.sh expert first=models/octo-reference-libero-object-first second=models/octo-reference-libero-object
 # Each probe is written to $OUT/LABEL.json (default data/libero_levers) and reused while its checkpoint (config,
 # statistics, harness.toml, weights), states, tasks and step limit are the same, so re-running only probes what changed.
 set -euo pipefail

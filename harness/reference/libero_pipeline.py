@@ -1,13 +1,13 @@
 """One command that builds the LIBERO-Object reference policy: record demonstrations, then train.
 
     python -m harness.reference.libero_pipeline --out models/octo-reference-libero-object \
-        --data data/libero_object_demos [--episodes 20] [--steps 2500] [--init-from models/octo-reference-robosuite]
+        --data data/libero_object_demos [--recipe second] [--episodes N] [--steps N] [--init-from models/octo-reference-robosuite]
         [--dagger-episodes N --dagger-steps 1500]
 
 (1) The scripted LIBERO-Object expert's demonstrations from sampled placements, never the suite's stored
 evaluation states (harness.reference.libero_demos), into `--data`; (2) behaviour cloning with the robosuite
-reference's trainer (harness.reference.train: the same Octo architecture, primary camera 128 px = 8x8 patches,
-wrist 64 px = 4x4, L1 head, frozen tiny T5 over a word vocabulary of the ten instructions and their
+reference's trainer (harness.reference.train: the same Octo architecture, both cameras 128 px = 8x8 patches in the
+second recipe (the first: wrist 64 px = 4x4), L1 head, frozen tiny T5 over a word vocabulary of the ten instructions and their
 paraphrases), warm-started from `--init-from` (every parameter whose shape is unchanged), into `--out`, with a
 harness.toml stating the LIBERO conventions (the "libero" action space, rot180 images, the cameras above).
 With `--dagger-episodes N`, (2) writes `<data>/stage1`, which then runs N episodes per task from further sampled
@@ -37,7 +37,8 @@ from harness.reference.train import TrainConfig, train
 log = logging.getLogger(__name__)
 
 DATASET_KEY = "libero_object_reference"
-# the demonstrations of each recipe (docs/libero-reference.md): "first" made the committed checkpoint (commit 53c1e7a)
+# the demonstrations of each recipe (docs/libero-reference.md): "first" made models/octo-reference-libero-object-first
+# (commit 53c1e7a), "second" the reference models/octo-reference-libero-object
 RECIPES = {
     "first": LiberoDemoConfig(episodes=20, jobs_per_task=2, demonstrator="timed", bursts=None,
                               cameras=(("image_primary", "agentview", 128), ("image_wrist", "robot0_eye_in_hand", 64))),

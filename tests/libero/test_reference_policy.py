@@ -19,9 +19,9 @@ from harness.analysis import grounding as G
 from tests.helpers import needs_libero as _needs_libero  # skips outside CI, fails under CI=true, without LIBERO
 
 REPO = Path(__file__).resolve().parents[2]
-MODEL = REPO / "models" / "octo-reference-libero-object"
-# issue 46's second-recipe policy, committed beside the reference until its published-protocol evaluation
-CANDIDATE = REPO / "models" / "octo-reference-libero-object-candidate"
+MODEL = REPO / "models" / "octo-reference-libero-object"  # the second recipe's policy (issue 46)
+# the first recipe's policy (the reference until issue 46), kept as the lever table's "first" row
+FIRST = REPO / "models" / "octo-reference-libero-object-first"
 # the trainer's default sizes (the synthetic frames below): the first LIBERO policy's cameras
 WRIST_64 = (("image_primary", "agentview", 128), ("image_wrist", "robot0_eye_in_hand", 64))
 
@@ -433,7 +433,7 @@ def test_libero_dagger_labels_the_policys_own_states_and_appends_them(tmp_path, 
     with np.load(tmp_path / "c" / "libero_object_3.npz") as data:
         arrays = {k: data[k] for k in data.files}
     assert arrays["seeds"].tolist() == config.seeds("libero_object/3") == [2_030_000, 2_030_001]
-    assert arrays["image_primary"].shape == (12, 128, 128, 3) and arrays["image_wrist"].shape == (12, 64, 64, 3)
+    assert arrays["image_primary"].shape == (12, 128, 128, 3) and arrays["image_wrist"].shape == (12, 128, 128, 3)
     assert arrays["proprio"].shape == (12, 8) and arrays["success"].tolist() == [False, False]
     assert set(np.unique(arrays["action"][:, 6])) <= {0.0, 1.0} and np.abs(arrays["action"][:, :6]).max() <= 1.0
     assert libero_dagger.existing(config, MODEL, tmp_path / "c") is not None
@@ -610,6 +610,8 @@ def test_the_committed_policy_runs_libero_object_and_the_report_shows_its_ground
     assert "alphabet_soup_1" in meta["outcome"]["objects"] and "milk_1" in meta["outcome"]["objects"]
     with np.load(episode / "attention.npz") as z:
         assert z["measures/layer/mask_mass/image_primary/object.alphabet_soup_1"].shape == (6, 4)
+        assert z["tokens/image_grids"].tolist() == [[8, 8], [8, 8]]  # both cameras as 8x8 patches (the wrist at 128 px)
+        assert np.isfinite(z["metrics/share/wrist"]).all() and z["metrics/share/wrist"].shape == (6, 4)
     report = tmp_path / "report"
     assert cli.main(["report", str(tmp_path / "runs" / "own"), str(tmp_path / "runs" / "swap"), "--out", str(report)]) == 0
     lift = list(csv.DictReader(io.StringIO((report / "tables" / "grounding_lift.csv").read_text())))
@@ -661,7 +663,7 @@ def test_an_eval_md_section_is_replaced_in_place_or_appended_and_the_others_stay
     assert not list(tmp_path.glob("*.tmp.*"))  # written whole, no temporary left
 
 
-@pytest.mark.parametrize("model", [MODEL, CANDIDATE], ids=["reference", "candidate"])
+@pytest.mark.parametrize("model", [MODEL, FIRST], ids=["reference", "first"])
 def test_the_committed_policy_is_small_and_states_its_libero_conventions(model):
     total = sum(p.stat().st_size for p in model.rglob("*") if p.is_file())
     assert total <= 25 * 2**20  # the issue's limit for a committed model folder
@@ -676,38 +678,20 @@ def test_the_committed_policy_is_small_and_states_its_libero_conventions(model):
     assert all(demos[f"libero_object/{i}"]["seed_min"] >= 1_000_000 for i in range(10))
 
 
-def test_the_candidate_states_the_second_recipes_cameras_and_was_trained_on_its_demonstrations():
-    """The candidate reads both cameras at 128 px, as its demonstrations were recorded (the pipeline's harness.toml
+def test_the_reference_states_the_second_recipes_cameras_and_was_trained_on_its_demonstrations():
+    """The reference reads both cameras at 128 px, as its demonstrations were recorded (the pipeline's harness.toml
     for the second recipe, byte for byte), its summary names the second recipe's demonstrator and count, and it was
     trained with the one command's defaults (steps, warm start), so `--out` alone rebuilds it."""
     from harness.reference.libero_demos import LIBERO_CAMERAS
     from harness.reference.libero_pipeline import DEFAULT_INIT, RECIPE_STEPS, RECIPES, conventions_toml
 
-    assert (CANDIDATE / "harness.toml").read_text() == conventions_toml(LIBERO_CAMERAS)
+    assert (MODEL / "harness.toml").read_text() == conventions_toml(LIBERO_CAMERAS)
     assert dict((k, s) for k, _, s in LIBERO_CAMERAS) == {"image_primary": 128, "image_wrist": 128}
-    summary = json.loads((CANDIDATE / "training_summary.json").read_text())
+    summary = json.loads((MODEL / "training_summary.json").read_text())
     recorded = summary["demonstrations"]["config"]
     assert recorded["demonstrator"] == RECIPES["second"].demonstrator == "state"
     assert recorded["episodes"] == 50 and recorded["bursts"] is not None
     assert all(summary["demonstrations"][f"libero_object/{i}"]["episodes"] == 50 for i in range(10))
     assert summary["config"]["image_sizes"] == [["image_primary", 128], ["image_wrist", 128]]
     assert (summary["config"]["steps"], summary["config"]["init_from"]) == (RECIPE_STEPS["second"], DEFAULT_INIT)
-    assert sorted(p.name for p in CANDIDATE.iterdir() if p.name.isdigit()) == [str(RECIPE_STEPS["second"])]
-
-
-@pytest.mark.slow
-def test_the_candidate_runs_libero_object_closed_loop(tmp_path):
-    """A short closed-loop episode of the candidate through its own harness.toml (both cameras at 128 px)."""
-    from harness import cli
-
-    _needs_libero()
-    assert cli.main(["run", "--model", str(CANDIDATE), "--task", "libero_object/2", "--episodes", "1", "--seed", "0",
-                     "--max-steps", "4", "--fast-render", "--no-masks", "--png-every", "0", "--no-video",
-                     "--out", str(tmp_path), "--run-name", "candidate"]) == 0
-    run = tmp_path / "candidate"
-    meta = json.loads((run / "libero_object" / "2" / "episode_0" / "episode.json").read_text())
-    assert meta["steps"] == 4 and meta["outcome"]["picked_object"] in (None, *meta["outcome"]["objects"])
-    with np.load(run / "libero_object" / "2" / "episode_0" / "attention.npz") as z:
-        grids, share = z["tokens/image_grids"].tolist(), z["metrics/share/wrist"]
-    assert grids == [[8, 8], [8, 8]]  # both cameras read as 8x8 patches (the wrist at 128 px)
-    assert share.shape == (4, 4) and np.isfinite(share).all()  # the wrist camera's attention share, per step and layer
+    assert sorted(p.name for p in MODEL.iterdir() if p.name.isdigit()) == [str(RECIPE_STEPS["second"])]

@@ -179,14 +179,14 @@ def test_corrections_with_weights_append_to_demonstrations_that_have_none(tmp_pa
 
 
 def test_the_first_recipe_still_describes_the_committed_checkpoints_demonstrations():
-    """`--recipe first` must rebuild the committed LIBERO checkpoint: its recorded demonstration summary names the
+    """`--recipe first` must rebuild the first committed LIBERO checkpoint (models/octo-reference-libero-object-first): its recorded demonstration summary names the
     configuration it was made with, which must equal the first recipe's apart from fields added since (whose
     defaults leave the first recipe's data unchanged: bursts None, the labeller's radii unused by the timed expert)."""
     from harness.reference.demos import config_fingerprint
     from harness.reference.libero_pipeline import RECIPES
     from tests.helpers import REPO
 
-    summary = json.loads((REPO / "models" / "octo-reference-libero-object" / "training_summary.json").read_text())
+    summary = json.loads((REPO / "models" / "octo-reference-libero-object-first" / "training_summary.json").read_text())
     recorded = summary["demonstrations"]["config"]
     first = config_fingerprint(RECIPES["first"])
     added = {"bursts", "demonstrator"}  # the committed checkpoint predates both: it used the timed expert
