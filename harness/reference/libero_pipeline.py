@@ -26,6 +26,8 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from harness.files import atomic_write_json
 from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, LiberoDemoConfig, existing_libero_demos,
                                             load_libero_demos, record_libero_demos)
@@ -68,6 +70,25 @@ def instructions(tasks: tuple[str, ...]) -> dict[str, tuple[str, ...]]:
     return {t: (get_libero_task(t).instruction, *get_libero_task(t).paraphrases) for t in tasks}
 
 
+def parse_task_weights(text: str, tasks: tuple[str, ...]) -> tuple[tuple[str, float], ...]:
+    """"libero_object/0=3,libero_object/6=2" -> (("libero_object/0", 3.0), ("libero_object/6", 2.0)); every task named
+    must be one the recipe trains on, every weight finite and > 0 (the others weigh 1)."""
+    weights = []
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        task, sep, value = item.partition("=")
+        try:
+            weight = float(value)
+        except ValueError:
+            weight = float("nan")
+        if not sep or task not in tasks or not np.isfinite(weight) or weight <= 0:
+            raise ValueError(f"--task-weights: {item!r} is not TASK=W with TASK one of {tasks[0]} .. {tasks[-1]} and "
+                             "W > 0, e.g. libero_object/0=3")
+        weights.append((task, weight))
+    if len({t for t, _ in weights}) != len(weights):
+        raise ValueError("--task-weights names a task twice")
+    return tuple(weights)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_pipeline", description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="models/octo-reference-libero-object", help="checkpoint folder to write")
@@ -91,6 +112,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dagger-rounds", type=int, default=1,
                         help="DAgger rounds, each acting with the previous round's checkpoint [1]")
     parser.add_argument("--dagger-learning-rate", type=float, default=3e-4, help="peak learning rate of the DAgger round")
+    parser.add_argument("--task-weights", default="", metavar="TASK=W,...",
+                        help="batches draw these tasks W times as often as the others (e.g. libero_object/0=3) [none]")
     parser.add_argument("--init-from", default=DEFAULT_INIT, metavar="CHECKPOINT",
                         help="warm start from this checkpoint folder ('none': random initialisation)")
     args = parser.parse_args(argv)
@@ -102,6 +125,10 @@ def main(argv: list[str] | None = None) -> int:
             or args.dagger_steps < 1 or not args.dagger_learning_rate > 0 or not 1 <= args.dagger_rounds <= 9:
         parser.error("--episodes must be >= 2, --steps, --dagger-steps and --batch-size >= 1, learning rates > 0, "
                      "--dagger-rounds 1..9")
+    try:
+        task_weights = parse_task_weights(args.task_weights, RECIPES[args.recipe].tasks)
+    except ValueError as e:
+        parser.error(str(e))
     dagger_config = None
     if args.dagger_episodes:
         try:
@@ -124,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
         log.info("reusing the demonstrations in %s (recorded in %.0f s)", args.data, summary["seconds"])
     demos = load_libero_demos(args.data, demo_config.tasks)
     train_config = replace(TrainConfig(), steps=args.steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
-                           seed=args.seed, init_from=init, task_weights=(),
+                           seed=args.seed, init_from=init, task_weights=task_weights,
                            image_sizes=tuple((k, s) for k, _, s in demo_config.cameras))
     train_kwargs = {"instructions": instructions(demo_config.tasks), "dataset_key": DATASET_KEY,
                     "conventions": conventions_toml(demo_config.cameras)}

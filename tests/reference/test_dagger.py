@@ -183,6 +183,28 @@ def test_pipeline_rejects_a_dagger_round_too_small_to_split(capsys):
     assert "--dagger-episodes must be 0 (no DAgger round) or >= 4 (one per collection job)" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("weights", ["libero_object/0", "libero_object/0=0", "libero_object/0=-1", "Lift=2",
+                                     "libero_object/0=inf", "libero_object/0=x", "libero_object/0=2,libero_object/0=3"])
+def test_pipeline_refuses_task_weights_it_cannot_use_in_one_line_before_loading_anything(weights, capsys):
+    from harness.reference.libero_pipeline import main as libero_pipeline_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        libero_pipeline_main(["--task-weights", weights, "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
+    assert exit_info.value.code == 2
+    (line,) = [text for text in capsys.readouterr().err.splitlines() if "error:" in text]
+    assert ("is not TASK=W with TASK one of libero_object/0 .. libero_object/9" in line
+            or "--task-weights names a task twice" in line), line
+
+
+def test_task_weights_name_libero_tasks_and_leave_the_others_at_one():
+    from harness.reference.libero_pipeline import RECIPES, parse_task_weights
+
+    tasks = RECIPES["second"].tasks
+    assert parse_task_weights("", tasks) == ()
+    assert parse_task_weights("libero_object/0=3, libero_object/8=1.5", tasks) == (
+        ("libero_object/0", 3.0), ("libero_object/8", 1.5))
+
+
 def test_a_finished_stage_one_is_reused_only_with_the_same_configuration(tmp_path):
     from dataclasses import asdict, replace
 
