@@ -89,6 +89,15 @@ def parse_task_weights(text: str, tasks: tuple[str, ...]) -> tuple[tuple[str, fl
     return tuple(weights)
 
 
+def parse_tasks(text: str, tasks: tuple[str, ...]) -> tuple[str, ...]:
+    """"libero_object/0,libero_object/6" -> those tasks in the recipe's order; "" -> every task of the recipe."""
+    named = [part.strip() for part in text.split(",") if part.strip()]
+    unknown = [t for t in named if t not in tasks]
+    if unknown:
+        raise ValueError(f"--dagger-tasks: {unknown[0]!r} is not a task of the recipe ({tasks[0]} .. {tasks[-1]})")
+    return tuple(t for t in tasks if t in named) if named else tuple(tasks)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_pipeline", description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="models/octo-reference-libero-object", help="checkpoint folder to write")
@@ -108,6 +117,8 @@ def main(argv: list[str] | None = None) -> int:
                              "the fingers hold the object [the recipe's]")
     parser.add_argument("--dagger-episodes", type=int, default=0,
                         help="episodes per task of the trained policy to label for a DAgger round (0 = no round)")
+    parser.add_argument("--dagger-tasks", default="", metavar="TASK,...",
+                        help="the tasks a DAgger round collects on (e.g. libero_object/0,libero_object/6) [every task]")
     parser.add_argument("--dagger-steps", type=int, default=1500, help="fine-tuning steps of each DAgger round")
     parser.add_argument("--dagger-rounds", type=int, default=1,
                         help="DAgger rounds, each acting with the previous round's checkpoint [1]")
@@ -132,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     dagger_config = None
     if args.dagger_episodes:
         try:
-            dagger_config = LiberoDaggerConfig(episodes=args.dagger_episodes)
+            dagger_config = LiberoDaggerConfig(episodes=args.dagger_episodes,
+                                               tasks=parse_tasks(args.dagger_tasks, RECIPES[args.recipe].tasks))
         except ValueError as e:
             parser.error(str(e))
     init = None if args.init_from.lower() == "none" else args.init_from
@@ -165,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
             existing=lambda model, out, r: libero_dagger.existing(of_round(r), model, out),
             append=lambda d, out: libero_dagger.append_all(d, out, dagger_config.tasks),
             steps=args.dagger_steps, learning_rate=args.dagger_learning_rate,
-            what=f"{dagger_config.episodes} episodes per task", train_kwargs=train_kwargs)
+            what=f"{dagger_config.episodes} episodes on each of {len(dagger_config.tasks)} tasks", train_kwargs=train_kwargs)
     result["demonstrations"] = summary
     result["pipeline_seconds_this_run"] = time.perf_counter() - start
     atomic_write_json(Path(args.out, "training_summary.json"), result, exact=True)

@@ -205,6 +205,20 @@ def test_task_weights_name_libero_tasks_and_leave_the_others_at_one():
         ("libero_object/0", 3.0), ("libero_object/8", 1.5))
 
 
+def test_dagger_tasks_keep_the_recipes_order_and_unknown_ones_are_refused_in_one_line(capsys):
+    from harness.reference.libero_pipeline import RECIPES, main as libero_pipeline_main, parse_tasks
+
+    tasks = RECIPES["second"].tasks
+    assert parse_tasks("", tasks) == tasks
+    assert parse_tasks("libero_object/8, libero_object/0", tasks) == ("libero_object/0", "libero_object/8")
+    with pytest.raises(SystemExit) as exit_info:
+        libero_pipeline_main(["--dagger-episodes", "6", "--dagger-tasks", "libero_object/0,libero_goal/1",
+                              "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
+    assert exit_info.value.code == 2
+    (line,) = [text for text in capsys.readouterr().err.splitlines() if "error:" in text]
+    assert "--dagger-tasks: 'libero_goal/1' is not a task of the recipe" in line
+
+
 def test_a_finished_stage_one_is_reused_only_with_the_same_configuration(tmp_path):
     from dataclasses import asdict, replace
 
