@@ -33,6 +33,7 @@ from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, Liber
                                             load_libero_demos, record_libero_demos)
 from harness.reference import libero_dagger
 from harness.reference.libero_dagger import LiberoDaggerConfig
+from harness.reference.libero_expert import LiberoExpertConfig
 from harness.reference.pipeline import dagger_rounds
 from harness.reference.train import TrainConfig, train
 
@@ -119,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="episodes per task of the trained policy to label for a DAgger round (0 = no round)")
     parser.add_argument("--dagger-tasks", default="", metavar="TASK,...",
                         help="the tasks a DAgger round collects on (e.g. libero_object/0,libero_object/6) [every task]")
+    parser.add_argument("--dagger-close-below-top", type=float, default=None, metavar="METRES",
+                        help="the DAgger labeller closes only with the hand this far below the object's top [no limit]")
     parser.add_argument("--dagger-steps", type=int, default=1500, help="fine-tuning steps of each DAgger round")
     parser.add_argument("--dagger-rounds", type=int, default=1,
                         help="DAgger rounds, each acting with the previous round's checkpoint [1]")
@@ -143,8 +146,11 @@ def main(argv: list[str] | None = None) -> int:
     dagger_config = None
     if args.dagger_episodes:
         try:
+            if args.dagger_close_below_top is not None and not 0 <= args.dagger_close_below_top < 0.05:
+                raise ValueError("--dagger-close-below-top must be at least 0 and under 0.05 (metres)")
             dagger_config = LiberoDaggerConfig(episodes=args.dagger_episodes,
-                                               tasks=parse_tasks(args.dagger_tasks, RECIPES[args.recipe].tasks))
+                                               tasks=parse_tasks(args.dagger_tasks, RECIPES[args.recipe].tasks),
+                                               expert=LiberoExpertConfig(close_below_top=args.dagger_close_below_top))
         except ValueError as e:
             parser.error(str(e))
     init = None if args.init_from.lower() == "none" else args.init_from
