@@ -99,8 +99,9 @@ def parse_tasks(text: str, tasks: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(t for t in tasks if t in named) if named else tuple(tasks)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_pipeline", description=__doc__.splitlines()[0])
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_pipeline",
+                                     description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="models/octo-reference-libero-object", help="checkpoint folder to write")
     parser.add_argument("--data", default="data/libero_object_demos", help="folder for the demonstrations (not committed)")
     parser.add_argument("--recipe", choices=sorted(RECIPES), default="second",
@@ -130,10 +131,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="batches draw these tasks W times as often as the others (e.g. libero_object/0=3) [none]")
     parser.add_argument("--init-from", default=DEFAULT_INIT, metavar="CHECKPOINT",
                         help="warm start from this checkpoint folder ('none': random initialisation)")
+    return parser
+
+
+def _checked(parser: argparse.ArgumentParser, argv: list[str] | None):
+    """(args, task weights, DAgger configuration or None, warm-start folder or None); a bad value is the parser's
+    one-line error (exit 2) before anything loads."""
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    for noisy in ("jax._src.xla_bridge", "robosuite_logs"):
-        logging.getLogger(noisy).setLevel(logging.WARNING)
     args.steps = RECIPE_STEPS[args.recipe] if args.steps is None else args.steps
     if (args.episodes is not None and args.episodes < 2) or args.steps < 1 or args.batch_size < 1 or not args.learning_rate > 0 \
             or args.dagger_steps < 1 or not args.dagger_learning_rate > 0 or not 1 <= args.dagger_rounds <= 9:
@@ -157,6 +161,14 @@ def main(argv: list[str] | None = None) -> int:
     if init is not None and not (Path(init) / "config.json").is_file():
         parser.error(f"--init-from {init}: no checkpoint there (a folder with config.json); use 'none' to train "
                      "from scratch")
+    return args, task_weights, dagger_config, init
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, task_weights, dagger_config, init = _checked(_parser(), argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    for noisy in ("jax._src.xla_bridge", "robosuite_logs"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
     start = time.perf_counter()
     demo_config = RECIPES[args.recipe]
     demo_config = replace(demo_config, episodes=args.episodes or demo_config.episodes,
