@@ -117,6 +117,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--demonstrator", choices=sorted(DEMONSTRATORS), default=None,
                         help="timed: the phase expert (12-step close); state: the state-based expert, which lifts once "
                              "the fingers hold the object [the recipe's]")
+    parser.add_argument("--close-below-top", type=float, default=None, metavar="METRES",
+                        help="the state-based demonstrator closes only with the hand this far below the object's top "
+                             "(a flat object's grasp) [no limit]")
     parser.add_argument("--dagger-episodes", type=int, default=0,
                         help="episodes per task of the trained policy to label for a DAgger round (0 = no round)")
     parser.add_argument("--dagger-tasks", default="", metavar="TASK,...",
@@ -145,13 +148,17 @@ def _checked(parser: argparse.ArgumentParser, argv: list[str] | None):
                      "--dagger-rounds 1..9")
     try:
         task_weights = parse_task_weights(args.task_weights, RECIPES[args.recipe].tasks)
+        for option, value in (("--close-below-top", args.close_below_top),
+                              ("--dagger-close-below-top", args.dagger_close_below_top)):
+            if value is not None and not 0 <= value < 0.05:
+                raise ValueError(f"{option} must be at least 0 and under 0.05 (metres)")
+        if args.close_below_top is not None and (args.demonstrator or RECIPES[args.recipe].demonstrator) != "state":
+            raise ValueError("--close-below-top is the state-based demonstrator's: use --demonstrator state")
     except ValueError as e:
         parser.error(str(e))
     dagger_config = None
     if args.dagger_episodes:
         try:
-            if args.dagger_close_below_top is not None and not 0 <= args.dagger_close_below_top < 0.05:
-                raise ValueError("--dagger-close-below-top must be at least 0 and under 0.05 (metres)")
             dagger_config = LiberoDaggerConfig(episodes=args.dagger_episodes,
                                                tasks=parse_tasks(args.dagger_tasks, RECIPES[args.recipe].tasks),
                                                expert=LiberoExpertConfig(close_below_top=args.dagger_close_below_top))
@@ -172,7 +179,8 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     demo_config = RECIPES[args.recipe]
     demo_config = replace(demo_config, episodes=args.episodes or demo_config.episodes,
-                          demonstrator=args.demonstrator or demo_config.demonstrator)
+                          demonstrator=args.demonstrator or demo_config.demonstrator,
+                          expert=replace(demo_config.expert, close_below_top=args.close_below_top))
     summary = existing_libero_demos(demo_config, args.data)
     if summary is None:
         log.info("recording %d demonstrations per task into %s", demo_config.episodes, args.data)

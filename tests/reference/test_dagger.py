@@ -219,16 +219,26 @@ def test_dagger_tasks_keep_the_recipes_order_and_unknown_ones_are_refused_in_one
     assert "--dagger-tasks: 'libero_goal/1' is not a task of the recipe" in line
 
 
+@pytest.mark.parametrize("option", ["--close-below-top", "--dagger-close-below-top"])
 @pytest.mark.parametrize("value", ["-0.001", "0.05", "nan", "inf"])
-def test_pipeline_refuses_a_close_below_top_out_of_range_in_one_line(value, capsys):
+def test_pipeline_refuses_a_close_below_top_out_of_range_in_one_line(option, value, capsys):
     from harness.reference.libero_pipeline import main as libero_pipeline_main
 
     with pytest.raises(SystemExit) as exit_info:
-        libero_pipeline_main(["--dagger-episodes", "6", f"--dagger-close-below-top={value}", "--out", "/nonexistent/x",
+        libero_pipeline_main(["--dagger-episodes", "6", f"{option}={value}", "--out", "/nonexistent/x",
                               "--data", "/nonexistent/d"])
     assert exit_info.value.code == 2
     (line,) = [text for text in capsys.readouterr().err.splitlines() if "error:" in text]
-    assert "--dagger-close-below-top must be at least 0 and under 0.05 (metres)" in line
+    assert f"{option} must be at least 0 and under 0.05 (metres)" in line
+
+
+def test_close_below_top_with_the_timed_demonstrator_is_refused_in_one_line(capsys):
+    from harness.reference.libero_pipeline import main as libero_pipeline_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        libero_pipeline_main(["--recipe", "first", "--close-below-top", "0.004", "--out", "/nonexistent/x"])
+    assert exit_info.value.code == 2
+    assert "--close-below-top is the state-based demonstrator's" in capsys.readouterr().err
 
 
 def test_a_finished_stage_one_is_reused_only_with_the_same_configuration(tmp_path):
