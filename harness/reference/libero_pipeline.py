@@ -125,7 +125,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--dagger-tasks", default="", metavar="TASK,...",
                         help="the tasks a DAgger round collects on (e.g. libero_object/0,libero_object/6) [every task]")
     parser.add_argument("--dagger-close-below-top", type=float, default=None, metavar="METRES",
-                        help="the DAgger labeller closes only with the hand this far below the object's top [no limit]")
+                        help="the DAgger labeller closes only with the hand this far below the object's top "
+                             "[--close-below-top's: the demonstrator's]")
     parser.add_argument("--dagger-steps", type=int, default=1500, help="fine-tuning steps of each DAgger round")
     parser.add_argument("--dagger-rounds", type=int, default=1,
                         help="DAgger rounds, each acting with the previous round's checkpoint [1]")
@@ -161,7 +162,9 @@ def _checked(parser: argparse.ArgumentParser, argv: list[str] | None):
         try:
             dagger_config = LiberoDaggerConfig(episodes=args.dagger_episodes,
                                                tasks=parse_tasks(args.dagger_tasks, RECIPES[args.recipe].tasks),
-                                               expert=LiberoExpertConfig(close_below_top=args.dagger_close_below_top))
+                                               expert=LiberoExpertConfig(close_below_top=args.close_below_top
+                                                                         if args.dagger_close_below_top is None
+                                                                         else args.dagger_close_below_top))
         except ValueError as e:
             parser.error(str(e))
     init = None if args.init_from.lower() == "none" else args.init_from

@@ -232,6 +232,19 @@ def test_pipeline_refuses_a_close_below_top_out_of_range_in_one_line(option, val
     assert f"{option} must be at least 0 and under 0.05 (metres)" in line
 
 
+def test_the_dagger_labeller_closes_as_the_demonstrator_unless_told_otherwise():
+    from harness.reference.libero_pipeline import _checked, _parser
+
+    def labeller_limit(*flags):
+        _, _, dagger, _ = _checked(_parser(), ["--dagger-episodes", "6", "--out", "/nonexistent/x", *flags])
+        return dagger.expert.close_below_top
+
+    assert labeller_limit() is None
+    assert labeller_limit("--close-below-top", "0.004") == 0.004
+    assert labeller_limit("--close-below-top", "0.004", "--dagger-close-below-top", "0") == 0.0
+    assert labeller_limit("--dagger-close-below-top", "0.002") == 0.002
+
+
 def test_close_below_top_with_the_timed_demonstrator_is_refused_in_one_line(capsys):
     from harness.reference.libero_pipeline import main as libero_pipeline_main
 
