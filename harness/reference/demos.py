@@ -268,10 +268,20 @@ def save_episodes(path: Path, episodes: list[dict], seeds: list[int], extra: dic
     return lengths
 
 
+# fields added to a recording configuration after recordings were made with it: left out of the fingerprint while
+# None (off), so those recordings stay reusable; a value other than None is part of it
+ADDED_WHEN_SET = frozenset({"close_below_top"})
+
+
 def config_fingerprint(config) -> dict:
     """JSON-able description of a recording configuration dataclass (DemoConfig, DaggerConfig), as it reads back
     from summary.json (tuples become lists), to reuse matching recordings."""
-    return json.loads(json.dumps(asdict(config)))
+    def drop_unset(value):
+        if isinstance(value, dict):
+            return {k: drop_unset(v) for k, v in value.items() if not (k in ADDED_WHEN_SET and v is None)}
+        return value
+
+    return drop_unset(json.loads(json.dumps(asdict(config))))
 
 
 def finished_recording(out_dir: str | Path, fingerprint: dict, tasks: tuple[str, ...]) -> dict | None:

@@ -26,11 +26,14 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from harness.files import atomic_write_json
 from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, LiberoDemoConfig, existing_libero_demos,
                                             load_libero_demos, record_libero_demos)
 from harness.reference import libero_dagger
 from harness.reference.libero_dagger import LiberoDaggerConfig
+from harness.reference.libero_expert import LiberoExpertConfig
 from harness.reference.pipeline import dagger_rounds
 from harness.reference.train import TrainConfig, train
 
@@ -69,8 +72,37 @@ def instructions(tasks: tuple[str, ...]) -> dict[str, tuple[str, ...]]:
     return {t: (get_libero_task(t).instruction, *get_libero_task(t).paraphrases) for t in tasks}
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_pipeline", description=__doc__.splitlines()[0])
+def parse_task_weights(text: str, tasks: tuple[str, ...]) -> tuple[tuple[str, float], ...]:
+    """"libero_object/0=3,libero_object/6=2" -> (("libero_object/0", 3.0), ("libero_object/6", 2.0)); every task named
+    must be one the recipe trains on, every weight finite and > 0 (the others weigh 1)."""
+    weights = []
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        task, sep, value = item.partition("=")
+        try:
+            weight = float(value)
+        except ValueError:
+            weight = float("nan")
+        if not sep or task not in tasks or not np.isfinite(weight) or weight <= 0:
+            raise ValueError(f"--task-weights: {item!r} is not TASK=W with TASK one of {tasks[0]} .. {tasks[-1]} and "
+                             "W > 0, e.g. libero_object/0=3")
+        weights.append((task, weight))
+    if len({t for t, _ in weights}) != len(weights):
+        raise ValueError("--task-weights names a task twice")
+    return tuple(weights)
+
+
+def parse_tasks(text: str, tasks: tuple[str, ...]) -> tuple[str, ...]:
+    """"libero_object/0,libero_object/6" -> those tasks in the recipe's order; "" -> every task of the recipe."""
+    named = [part.strip() for part in text.split(",") if part.strip()]
+    unknown = [t for t in named if t not in tasks]
+    if unknown:
+        raise ValueError(f"--dagger-tasks: {unknown[0]!r} is not a task of the recipe ({tasks[0]} .. {tasks[-1]})")
+    return tuple(t for t in tasks if t in named) if named else tuple(tasks)
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_pipeline",
+                                     description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="models/octo-reference-libero-object", help="checkpoint folder to write")
     parser.add_argument("--data", default="data/libero_object_demos", help="folder for the demonstrations (not committed)")
     parser.add_argument("--recipe", choices=sorted(RECIPES), default="second",
@@ -86,37 +118,73 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--demonstrator", choices=sorted(DEMONSTRATORS), default=None,
                         help="timed: the phase expert (12-step close); state: the state-based expert, which lifts once "
                              "the fingers hold the object [the recipe's]")
+    parser.add_argument("--close-below-top", type=float, default=None, metavar="METRES",
+                        help="the state-based demonstrator closes only with the hand this far below the object's top "
+                             "(a flat object's grasp) [no limit]")
     parser.add_argument("--dagger-episodes", type=int, default=0,
                         help="episodes per task of the trained policy to label for a DAgger round (0 = no round)")
+    parser.add_argument("--dagger-tasks", default="", metavar="TASK,...",
+                        help="the tasks a DAgger round collects on (e.g. libero_object/0,libero_object/6) [every task]")
+    parser.add_argument("--dagger-close-below-top", type=float, default=None, metavar="METRES",
+                        help="the DAgger labeller closes only with the hand this far below the object's top "
+                             "[--close-below-top's: the demonstrator's]")
     parser.add_argument("--dagger-steps", type=int, default=1500, help="fine-tuning steps of each DAgger round")
     parser.add_argument("--dagger-rounds", type=int, default=1,
                         help="DAgger rounds, each acting with the previous round's checkpoint [1]")
     parser.add_argument("--dagger-learning-rate", type=float, default=3e-4, help="peak learning rate of the DAgger round")
+    parser.add_argument("--task-weights", default="", metavar="TASK=W,...",
+                        help="batches draw these tasks W times as often as the others (e.g. libero_object/0=3) [none]")
     parser.add_argument("--init-from", default=DEFAULT_INIT, metavar="CHECKPOINT",
                         help="warm start from this checkpoint folder ('none': random initialisation)")
+    return parser
+
+
+def _checked(parser: argparse.ArgumentParser, argv: list[str] | None):
+    """(args, task weights, DAgger configuration or None, warm-start folder or None); a bad value is the parser's
+    one-line error (exit 2) before anything loads."""
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    for noisy in ("jax._src.xla_bridge", "robosuite_logs"):
-        logging.getLogger(noisy).setLevel(logging.WARNING)
     args.steps = RECIPE_STEPS[args.recipe] if args.steps is None else args.steps
     if (args.episodes is not None and args.episodes < 2) or args.steps < 1 or args.batch_size < 1 or not args.learning_rate > 0 \
             or args.dagger_steps < 1 or not args.dagger_learning_rate > 0 or not 1 <= args.dagger_rounds <= 9:
         parser.error("--episodes must be >= 2, --steps, --dagger-steps and --batch-size >= 1, learning rates > 0, "
                      "--dagger-rounds 1..9")
+    try:
+        task_weights = parse_task_weights(args.task_weights, RECIPES[args.recipe].tasks)
+        for option, value in (("--close-below-top", args.close_below_top),
+                              ("--dagger-close-below-top", args.dagger_close_below_top)):
+            if value is not None and not 0 <= value < 0.05:
+                raise ValueError(f"{option} must be at least 0 and under 0.05 (metres)")
+        if args.close_below_top is not None and (args.demonstrator or RECIPES[args.recipe].demonstrator) != "state":
+            raise ValueError("--close-below-top is the state-based demonstrator's: use --demonstrator state")
+    except ValueError as e:
+        parser.error(str(e))
     dagger_config = None
     if args.dagger_episodes:
         try:
-            dagger_config = LiberoDaggerConfig(episodes=args.dagger_episodes)
+            dagger_config = LiberoDaggerConfig(episodes=args.dagger_episodes,
+                                               tasks=parse_tasks(args.dagger_tasks, RECIPES[args.recipe].tasks),
+                                               expert=LiberoExpertConfig(close_below_top=args.close_below_top
+                                                                         if args.dagger_close_below_top is None
+                                                                         else args.dagger_close_below_top))
         except ValueError as e:
             parser.error(str(e))
     init = None if args.init_from.lower() == "none" else args.init_from
     if init is not None and not (Path(init) / "config.json").is_file():
         parser.error(f"--init-from {init}: no checkpoint there (a folder with config.json); use 'none' to train "
                      "from scratch")
+    return args, task_weights, dagger_config, init
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, task_weights, dagger_config, init = _checked(_parser(), argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    for noisy in ("jax._src.xla_bridge", "robosuite_logs"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
     start = time.perf_counter()
     demo_config = RECIPES[args.recipe]
     demo_config = replace(demo_config, episodes=args.episodes or demo_config.episodes,
-                          demonstrator=args.demonstrator or demo_config.demonstrator)
+                          demonstrator=args.demonstrator or demo_config.demonstrator,
+                          expert=replace(demo_config.expert, close_below_top=args.close_below_top))
     summary = existing_libero_demos(demo_config, args.data)
     if summary is None:
         log.info("recording %d demonstrations per task into %s", demo_config.episodes, args.data)
@@ -125,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
         log.info("reusing the demonstrations in %s (recorded in %.0f s)", args.data, summary["seconds"])
     demos = load_libero_demos(args.data, demo_config.tasks)
     train_config = replace(TrainConfig(), steps=args.steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
-                           seed=args.seed, init_from=init, task_weights=(),
+                           seed=args.seed, init_from=init, task_weights=task_weights,
                            image_sizes=tuple((k, s) for k, _, s in demo_config.cameras))
     train_kwargs = {"instructions": instructions(demo_config.tasks), "dataset_key": DATASET_KEY,
                     "conventions": conventions_toml(demo_config.cameras)}
@@ -139,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
             existing=lambda model, out, r: libero_dagger.existing(of_round(r), model, out),
             append=lambda d, out: libero_dagger.append_all(d, out, dagger_config.tasks),
             steps=args.dagger_steps, learning_rate=args.dagger_learning_rate,
-            what=f"{dagger_config.episodes} episodes per task", train_kwargs=train_kwargs)
+            what=f"{dagger_config.episodes} episodes on each of {len(dagger_config.tasks)} tasks", train_kwargs=train_kwargs)
     result["demonstrations"] = summary
     result["pipeline_seconds_this_run"] = time.perf_counter() - start
     atomic_write_json(Path(args.out, "training_summary.json"), result, exact=True)

@@ -144,6 +144,42 @@ def _box(centre, size):
     return {"low": centre - half, "high": centre + half}
 
 
+def test_a_labeller_with_close_below_top_does_not_close_over_a_flat_object():
+    """A 1.8 cm butter-like box: its grasp point (1.2 cm above its bottom) is 0.6 cm below its top, so the default
+    1.2 cm band closes with the hand over the top; with close_below_top = 3 mm it descends there and closes lower."""
+    from dataclasses import replace
+
+    from harness.reference.libero_expert import CLOSED, OPEN, LiberoExpertConfig, LiberoObjectLabeller
+
+    poses = {"butter_1": _box([0, -0.2, 0.009], [0.08, 0.04, 0.018]), "basket_1": _box([0, 0.25, 0.04], [0.2, 0.2, 0.08])}
+    c = LiberoExpertConfig()
+    grasp_z = c.floor_clearance
+    above_top = np.array([0.0, -0.2, grasp_z + 0.01])  # 0.4 cm over the box
+    assert LiberoObjectLabeller("butter_1").waypoint(above_top, 0.08, poses, held=False)[1] == CLOSED
+    capped = LiberoObjectLabeller("butter_1", config=replace(c, close_below_top=0.003))
+    goal, grip = capped.waypoint(above_top, 0.08, poses, held=False)
+    assert grip == OPEN
+    np.testing.assert_allclose(goal, [0, -0.2, grasp_z])  # down to the grasp point first
+    assert capped.waypoint(np.array([0.0, -0.2, grasp_z + 0.002]), 0.08, poses, held=False)[1] == CLOSED
+
+
+def test_recording_fingerprints_leave_out_close_below_top_while_it_is_off():
+    """The field came after the committed recordings: off (None), fingerprints are as before, so those recordings
+    stay reusable (the candidate's summary equals the second recipe's fingerprint); set, it is part of them."""
+    from dataclasses import replace
+
+    from harness.reference.demos import config_fingerprint
+    from harness.reference.libero_pipeline import RECIPES
+
+    second = RECIPES["second"]
+    assert "close_below_top" not in config_fingerprint(second)["expert"]
+    summary = json.loads((CANDIDATE / "training_summary.json").read_text())
+    assert summary["demonstrations"]["config"] == config_fingerprint(second)
+    capped = replace(second, expert=replace(second.expert, close_below_top=0.005))
+    assert config_fingerprint(capped)["expert"]["close_below_top"] == 0.005
+    assert config_fingerprint(capped) != config_fingerprint(second)
+
+
 def test_the_labeller_reads_the_phase_off_the_state_known_answers():
     """LiberoObjectLabeller's waypoint for hand-made states: a 6 cm tall object at (0, -0.2) and a basket at (0, 0.25)
     whose rim is at 0.08 m."""

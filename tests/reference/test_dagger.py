@@ -183,6 +183,77 @@ def test_pipeline_rejects_a_dagger_round_too_small_to_split(capsys):
     assert "--dagger-episodes must be 0 (no DAgger round) or >= 4 (one per collection job)" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("weights", ["libero_object/0", "libero_object/0=0", "libero_object/0=-1", "Lift=2",
+                                     "libero_object/0=inf", "libero_object/0=x", "libero_object/0=2,libero_object/0=3"])
+def test_pipeline_refuses_task_weights_it_cannot_use_in_one_line_before_loading_anything(weights, capsys):
+    from harness.reference.libero_pipeline import main as libero_pipeline_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        libero_pipeline_main(["--task-weights", weights, "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
+    assert exit_info.value.code == 2
+    (line,) = [text for text in capsys.readouterr().err.splitlines() if "error:" in text]
+    assert ("is not TASK=W with TASK one of libero_object/0 .. libero_object/9" in line
+            or "--task-weights names a task twice" in line), line
+
+
+def test_task_weights_name_libero_tasks_and_leave_the_others_at_one():
+    from harness.reference.libero_pipeline import RECIPES, parse_task_weights
+
+    tasks = RECIPES["second"].tasks
+    assert parse_task_weights("", tasks) == ()
+    assert parse_task_weights("libero_object/0=3, libero_object/8=1.5", tasks) == (
+        ("libero_object/0", 3.0), ("libero_object/8", 1.5))
+
+
+def test_dagger_tasks_keep_the_recipes_order_and_unknown_ones_are_refused_in_one_line(capsys):
+    from harness.reference.libero_pipeline import RECIPES, main as libero_pipeline_main, parse_tasks
+
+    tasks = RECIPES["second"].tasks
+    assert parse_tasks("", tasks) == tasks
+    assert parse_tasks("libero_object/8, libero_object/0", tasks) == ("libero_object/0", "libero_object/8")
+    with pytest.raises(SystemExit) as exit_info:
+        libero_pipeline_main(["--dagger-episodes", "6", "--dagger-tasks", "libero_object/0,libero_goal/1",
+                              "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
+    assert exit_info.value.code == 2
+    (line,) = [text for text in capsys.readouterr().err.splitlines() if "error:" in text]
+    assert "--dagger-tasks: 'libero_goal/1' is not a task of the recipe" in line
+
+
+@pytest.mark.parametrize("option", ["--close-below-top", "--dagger-close-below-top"])
+@pytest.mark.parametrize("value", ["-0.001", "0.05", "nan", "inf"])
+def test_pipeline_refuses_a_close_below_top_out_of_range_in_one_line(option, value, capsys):
+    from harness.reference.libero_pipeline import main as libero_pipeline_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        libero_pipeline_main(["--dagger-episodes", "6", f"{option}={value}", "--out", "/nonexistent/x",
+                              "--data", "/nonexistent/d"])
+    assert exit_info.value.code == 2
+    (line,) = [text for text in capsys.readouterr().err.splitlines() if "error:" in text]
+    assert f"{option} must be at least 0 and under 0.05 (metres)" in line
+
+
+def test_the_dagger_labeller_closes_as_the_demonstrator_unless_told_otherwise():
+    from harness.reference.libero_pipeline import _checked, _parser
+
+    def labeller_limit(*flags):
+        _, _, dagger, _ = _checked(_parser(), ["--dagger-episodes", "6", "--out", "/nonexistent/x", *flags])
+        return dagger.expert.close_below_top
+
+    assert labeller_limit() is None
+    assert labeller_limit("--close-below-top", "0.004") == 0.004
+    assert labeller_limit("--close-below-top", "0.004", "--dagger-close-below-top", "0") == 0.0
+    assert labeller_limit("--dagger-close-below-top", "0.002") == 0.002
+
+
+def test_close_below_top_with_the_timed_demonstrator_is_refused_in_one_line(capsys):
+    from harness.reference.libero_pipeline import main as libero_pipeline_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        libero_pipeline_main(["--recipe", "first", "--close-below-top", "0.004", "--out", "/nonexistent/x"])
+    assert exit_info.value.code == 2
+    assert "--close-below-top is the state-based demonstrator's" in capsys.readouterr().err
+
+
 def test_a_finished_stage_one_is_reused_only_with_the_same_configuration(tmp_path):
     from dataclasses import asdict, replace
 
