@@ -165,7 +165,7 @@ def test_a_labeller_with_close_below_top_does_not_close_over_a_flat_object():
 
 def test_recording_fingerprints_leave_out_close_below_top_while_it_is_off():
     """The field came after the committed recordings: off (None), fingerprints are as before, so those recordings
-    stay reusable (the candidate's summary equals the second recipe's fingerprint); set, it is part of them."""
+    stay reusable (the reference's summary equals the second recipe's fingerprint); set, it is part of them."""
     from dataclasses import replace
 
     from harness.reference.demos import config_fingerprint
@@ -173,7 +173,7 @@ def test_recording_fingerprints_leave_out_close_below_top_while_it_is_off():
 
     second = RECIPES["second"]
     assert "close_below_top" not in config_fingerprint(second)["expert"]
-    summary = json.loads((CANDIDATE / "training_summary.json").read_text())
+    summary = json.loads((MODEL / "training_summary.json").read_text())
     assert summary["demonstrations"]["config"] == config_fingerprint(second)
     capped = replace(second, expert=replace(second.expert, close_below_top=0.005))
     assert config_fingerprint(capped)["expert"]["close_below_top"] == 0.005
