@@ -49,6 +49,8 @@ RECIPES = {
 }
 DEFAULT_STEPS = 2500
 RECIPE_STEPS = {"first": DEFAULT_STEPS, "second": 6000}  # as the robosuite reference (session 13 probed 5000)
+# where each recipe's policy is committed: `--recipe first` without --out must not overwrite the reference
+RECIPE_OUT = {"first": "models/octo-reference-libero-object-first", "second": "models/octo-reference-libero-object"}
 DEFAULT_INIT = "models/octo-reference-robosuite"
 
 
@@ -103,7 +105,7 @@ def parse_tasks(text: str, tasks: tuple[str, ...]) -> tuple[str, ...]:
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_pipeline",
                                      description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="models/octo-reference-libero-object", help="checkpoint folder to write")
+    parser.add_argument("--out", default=None, help="checkpoint folder to write [the recipe's committed folder]")
     parser.add_argument("--data", default="data/libero_object_demos", help="folder for the demonstrations (not committed)")
     parser.add_argument("--recipe", choices=sorted(RECIPES), default="second",
                         help="first: the committed checkpoint's demonstrations (timed expert, wrist 64 px, 20 a task, "
@@ -144,6 +146,7 @@ def _checked(parser: argparse.ArgumentParser, argv: list[str] | None):
     one-line error (exit 2) before anything loads."""
     args = parser.parse_args(argv)
     args.steps = RECIPE_STEPS[args.recipe] if args.steps is None else args.steps
+    args.out = RECIPE_OUT[args.recipe] if args.out is None else args.out
     if (args.episodes is not None and args.episodes < 2) or args.steps < 1 or args.batch_size < 1 or not args.learning_rate > 0 \
             or args.dagger_steps < 1 or not args.dagger_learning_rate > 0 or not 1 <= args.dagger_rounds <= 9:
         parser.error("--episodes must be >= 2, --steps, --dagger-steps and --batch-size >= 1, learning rates > 0, "

@@ -245,6 +245,20 @@ def test_the_dagger_labeller_closes_as_the_demonstrator_unless_told_otherwise():
     assert labeller_limit("--dagger-close-below-top", "0.002") == 0.002
 
 
+def test_each_recipe_writes_its_own_committed_folder_unless_told_otherwise():
+    """`--recipe first` without --out rebuilds the first policy's folder, never the reference's."""
+    from harness.reference.libero_pipeline import _checked, _parser
+
+    def out(*flags):
+        return _checked(_parser(), list(flags))[0].out
+
+    assert out() == "models/octo-reference-libero-object"
+    assert out("--recipe", "first") == "models/octo-reference-libero-object-first"
+    assert out("--recipe", "first", "--out", "/elsewhere") == "/elsewhere"
+    for folder in (out(), out("--recipe", "first")):
+        assert (Path(__file__).parents[2] / folder / "config.json").is_file()
+
+
 def test_close_below_top_with_the_timed_demonstrator_is_refused_in_one_line(capsys):
     from harness.reference.libero_pipeline import main as libero_pipeline_main
 
