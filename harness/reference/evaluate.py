@@ -93,6 +93,22 @@ def markdown(rows: list[dict], note: str = "", title: str = "octo-reference-robo
     return "\n".join(lines) + "\n"
 
 
+def other_checkpoint(runs: list[Path], manifests: list[dict], out: Path) -> str | None:
+    """One line naming the first run made with another checkpoint than the one in `out` (compared by the files'
+    sizes and sha256, as the run recorded them), or None. An `out` that holds no checkpoint is not checked."""
+    if not (out / "config.json").is_file():
+        return None
+    from harness.run.protocol import model_fingerprint
+
+    files = model_fingerprint(str(out))[1]["files"]
+    for run, manifest in zip(runs, manifests):
+        recorded = ((manifest.get("model") or {}).get("fingerprint") or {}) if isinstance(manifest, dict) else {}
+        if isinstance(recorded, dict) and recorded.get("kind") == "files" and recorded.get("files") != files:
+            return (f"{run} was made with another checkpoint ({recorded.get('root')}) than the one in {out}: pass "
+                    "--out the folder the runs evaluated")
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m harness.reference.evaluate", description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path, help="octo-harness run folders")
@@ -101,6 +117,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--command", default=None, help="the command to name in the provenance line (a script that "
                         "calls this one) [this command]")
     args = parser.parse_args(argv)
+    try:
+        manifests = [json.loads((run / "manifest.json").read_text()) if (run / "manifest.json").is_file() else {}
+                     for run in args.runs]
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        parser.error(f"a run's manifest.json is unreadable ({e}); pass finished `octo-harness run` folders")
+    mismatch = other_checkpoint(args.runs, manifests, args.out)
+    if mismatch:
+        parser.error(mismatch)
     rows = summarise_runs(args.runs)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "eval.json").write_text(json.dumps({"note": args.note, "tasks": rows}, indent=2))
@@ -110,8 +134,6 @@ def main(argv: list[str] | None = None) -> int:
         kept = "\n## " + eval_md.read_text().split("\n## ", 1)[1]
     title = args.out.resolve().name
     command = args.command or command_text("python -m harness.reference.evaluate", args.runs, ["--out", str(args.out)])
-    manifests = [json.loads((run / "manifest.json").read_text()) if (run / "manifest.json").is_file() else {}
-                 for run in args.runs]
     text = with_provenance(markdown(rows, args.note, title), provenance_line(command, manifests))
     eval_md.write_text(text + kept)
     print(text)

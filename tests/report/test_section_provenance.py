@@ -60,3 +60,38 @@ def test_the_evaluation_table_written_twice_keeps_one_provenance_line(tmp_path):
     line = PROVENANCE_LINE.search(top).group(0)
     assert "command `bash scripts/evaluate_reference.sh`" in line and "the runs recorded no commit" in line
     assert line.endswith("2 cores, CPU only.") and "| Lift | 3 | 2 |" in top
+
+
+def test_an_evaluation_is_written_only_into_the_checkpoint_its_runs_were_made_with(fixtures_dir, tmp_path, capsys):
+    """A promoted checkpoint (the same files in another folder) takes its runs' evaluation; a checkpoint whose
+    files differ from the runs' recorded fingerprint is refused in one line, EVAL.md untouched; so is a run folder
+    whose manifest.json is not JSON."""
+    import shutil
+
+    import pytest
+
+    from harness.reference.evaluate import main
+    from harness.run.protocol import model_fingerprint
+
+    run = _run(tmp_path / "run", "Lift", [True, False])
+    fingerprint = model_fingerprint(str(fixtures_dir / "tiny"))[1]
+    (run / "manifest.json").write_text(json.dumps({"platform": XEON, "git_commit": None,
+                                                   "model": {"fingerprint": fingerprint}}))
+    promoted = tmp_path / "promoted"
+    shutil.copytree(fixtures_dir / "tiny", promoted)
+    assert main([str(run), "--out", str(promoted)]) == 0 and "| Lift | 2 | 1 |" in (promoted / "EVAL.md").read_text()
+
+    other = tmp_path / "other"
+    shutil.copytree(fixtures_dir / "tiny", other)
+    (other / "config.json").write_text((other / "config.json").read_text() + " ")
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(run), "--out", str(other)])
+    assert exit_info.value.code == 2 and not (other / "EVAL.md").exists()
+    (line,) = [text for text in capsys.readouterr().err.splitlines() if "error:" in text]
+    assert "was made with another checkpoint" in line and "pass --out the folder the runs evaluated" in line
+
+    (run / "manifest.json").write_text("{not json")
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(run), "--out", str(promoted)])
+    assert exit_info.value.code == 2 and "manifest.json is unreadable" in capsys.readouterr().err
