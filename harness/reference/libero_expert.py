@@ -13,7 +13,7 @@ delta input is 0.05 m per unit; the arm realises a fraction of a commanded step 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -41,6 +41,26 @@ class LiberoExpertConfig:
     # the learned policy's closes land (issue 46). None: no such limit, as every recording before it; a field added
     # later, so it is left out of recording fingerprints while None (harness.reference.demos.config_fingerprint)
     close_below_top: float | None = None
+
+
+RADII = ("centred", "at_grasp", "grasp_height")  # the state-based expert's radii a command line may set
+
+
+def with_radii(text: str, config: LiberoExpertConfig = LiberoExpertConfig(), option: str = "--radii") -> LiberoExpertConfig:
+    """`config` with the radii "centred=0.015,grasp_height=0.004" (metres, 1 mm to 10 cm) replaced; "" -> `config`.
+    A foreign name, a repeated one or a value out of range is a ValueError naming `option`."""
+    values: dict[str, float] = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        name, sep, value = item.partition("=")
+        try:
+            metres = float(value)
+        except ValueError:
+            metres = float("nan")
+        if not sep or name not in RADII or not 0.001 <= metres <= 0.1 or name in values:
+            raise ValueError(f"{option}: {item!r} is not NAME=METRES with NAME one of {', '.join(RADII)} (each once) "
+                             "and 0.001 <= METRES <= 0.1, e.g. grasp_height=0.004")
+        values[name] = metres
+    return replace(config, **values)
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,7 @@ from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, Liber
                                             load_libero_demos, record_libero_demos)
 from harness.reference import libero_dagger
 from harness.reference.libero_dagger import LiberoDaggerConfig
-from harness.reference.libero_expert import LiberoExpertConfig
+from harness.reference.libero_expert import LiberoExpertConfig, with_radii
 from harness.reference.pipeline import dagger_rounds
 from harness.reference.train import TrainConfig, train
 
@@ -123,6 +123,10 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--close-below-top", type=float, default=None, metavar="METRES",
                         help="the state-based demonstrator closes only with the hand this far below the object's top "
                              "(a flat object's grasp) [no limit]")
+    parser.add_argument("--demonstrator-radii", default="", metavar="NAME=METRES,...",
+                        help="the state-based demonstrator's radii (centred, at_grasp, grasp_height; the DAgger labeller "
+                             "keeps its own), e.g. grasp_height=0.004 to close only near the grasp height "
+                             "[LiberoExpertConfig's]")
     parser.add_argument("--dagger-episodes", type=int, default=0,
                         help="episodes per task of the trained policy to label for a DAgger round (0 = no round)")
     parser.add_argument("--dagger-tasks", default="", metavar="TASK,...",
@@ -157,8 +161,12 @@ def _checked(parser: argparse.ArgumentParser, argv: list[str] | None):
                               ("--dagger-close-below-top", args.dagger_close_below_top)):
             if value is not None and not 0 <= value < 0.05:
                 raise ValueError(f"{option} must be at least 0 and under 0.05 (metres)")
-        if args.close_below_top is not None and (args.demonstrator or RECIPES[args.recipe].demonstrator) != "state":
-            raise ValueError("--close-below-top is the state-based demonstrator's: use --demonstrator state")
+        for option, value in (("--close-below-top", args.close_below_top), ("--demonstrator-radii", args.demonstrator_radii)):
+            if value not in (None, "") and (args.demonstrator or RECIPES[args.recipe].demonstrator) != "state":
+                raise ValueError(f"{option} is the state-based demonstrator's: use --demonstrator state")
+        args.demonstrator_expert = with_radii(args.demonstrator_radii,
+                                              replace(RECIPES[args.recipe].expert, close_below_top=args.close_below_top),
+                                              "--demonstrator-radii")
     except ValueError as e:
         parser.error(str(e))
     dagger_config = None
@@ -187,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     demo_config = RECIPES[args.recipe]
     demo_config = replace(demo_config, episodes=args.episodes or demo_config.episodes,
                           demonstrator=args.demonstrator or demo_config.demonstrator,
-                          expert=replace(demo_config.expert, close_below_top=args.close_below_top))
+                          expert=args.demonstrator_expert)
     summary = existing_libero_demos(demo_config, args.data)
     if summary is None:
         log.info("recording %d demonstrations per task into %s", demo_config.episodes, args.data)

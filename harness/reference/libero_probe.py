@@ -29,6 +29,7 @@ import numpy as np
 
 from harness.files import atomic_write_json, json_safe
 from harness.reference.libero_demos import LIBERO_OBJECT_TASKS
+from harness.reference.libero_expert import with_radii
 
 log = logging.getLogger(__name__)
 
@@ -36,10 +37,11 @@ MAX_STEPS = 280  # LIBERO-Object's published step limit
 LIFTED = 0.03  # m: the named object's bottom this far above where it stood counts as lifted
 
 
-def _actor(model_dir: str | None, task: str, max_steps: int):
-    """(env, target, reset(info, state), act(obs) -> action): the checkpoint as evaluated, or the state-based expert."""
+def _actor(model_dir: str | None, task: str, max_steps: int, radii: str = ""):
+    """(env, target, reset(info, state), act(obs) -> action): the checkpoint as evaluated, or the state-based expert
+    (with `radii`, harness.reference.libero_expert.with_radii, in place of its own)."""
     from envs.libero_tasks import get_libero_task
-    from harness.reference.libero_expert import LiberoObjectLabeller
+    from harness.reference.libero_expert import LiberoObjectLabeller, with_radii
 
     target = get_libero_task(task).targets[0]
     if model_dir is None:
@@ -47,7 +49,7 @@ def _actor(model_dir: str | None, task: str, max_steps: int):
 
         env = envs.make(task, cameras={}, fast_render=True, masks=False, action_space="libero",
                         max_episode_steps=max_steps)
-        labeller = LiberoObjectLabeller(target)
+        labeller = LiberoObjectLabeller(target, config=with_radii(radii))
         return env, target, lambda info, state: None, lambda obs: labeller.act(env, obs)
     from harness.reference.dagger import policy_in_env
 
@@ -60,8 +62,8 @@ def _probe_job(args: tuple) -> list[dict]:
     """Spawned worker: one task's episodes from stored states `states` -> a row each."""
     from harness.reference.libero_expert import LiberoExpertConfig, _geometry
 
-    model_dir, task, states, max_steps = args
-    env, target, reset, act = _actor(model_dir, task, max_steps)
+    model_dir, task, states, max_steps, radii = args
+    env, target, reset, act = _actor(model_dir, task, max_steps, radii)
     rows = []
     movable = [n for n in env.description.get("movable", env.description["objects"]) if n != "basket_1"]
     try:
@@ -124,11 +126,11 @@ def summarise(rows: list[dict]) -> dict:
 
 
 def probe(model_dir: str | None, states: list[int], tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS, workers: int = 2,
-          max_steps: int = MAX_STEPS) -> dict:
+          max_steps: int = MAX_STEPS, radii: str = "") -> dict:
     from harness.reference.demos import run_jobs
 
     start = time.perf_counter()
-    jobs = [(model_dir, task, states, max_steps) for task in tasks]
+    jobs = [(model_dir, task, states, max_steps, radii) for task in tasks]
     rows = [row for part in run_jobs(_probe_job, jobs, workers) for row in part]
     return {"model": model_dir or "expert", "states": states, "max_steps": max_steps, "summary": summarise(rows),
             "episodes": rows, "seconds": round(time.perf_counter() - start, 1)}
@@ -137,11 +139,15 @@ def probe(model_dir: str | None, states: list[int], tasks: tuple[str, ...] = LIB
 PROBE_VERSION = 2  # raise when what a probe measures changes: older result files are then probed again
 
 
-def probe_key(model_dir: str | None, states: list[int], tasks: tuple[str, ...], max_steps: int) -> dict:
-    """What a probe result depends on: the checkpoint's fingerprint (or the expert), states, tasks, step limit."""
+def probe_key(model_dir: str | None, states: list[int], tasks: tuple[str, ...], max_steps: int, radii: str = "") -> dict:
+    """What a probe result depends on: the checkpoint's fingerprint (or the expert and the radii it was given),
+    states, tasks, step limit."""
     from harness.reference.dagger import checkpoint_fingerprint
+    from harness.reference.libero_expert import RADII, LiberoExpertConfig
 
-    return {"version": PROBE_VERSION, "checkpoint": "expert" if model_dir is None else checkpoint_fingerprint(model_dir),
+    given, default = with_radii(radii), LiberoExpertConfig()
+    expert = "expert" + "".join(f" {n}={getattr(given, n)}" for n in RADII if getattr(given, n) != getattr(default, n))
+    return {"version": PROBE_VERSION, "checkpoint": expert if model_dir is None else checkpoint_fingerprint(model_dir),
             "states": list(states), "tasks": list(tasks), "max_steps": max_steps}
 
 
@@ -203,6 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     who.add_argument("--expert", action="store_true", help="the state-based expert acts (the yardstick)")
     who.add_argument("--table", nargs="+", metavar="LABEL=FILE.json",
                      help="print the lever table (markdown) of probe results that --out wrote, in this order")
+    parser.add_argument("--expert-radii", default="", metavar="NAME=METRES,...",
+                        help="with --expert: its radii (centred, at_grasp, grasp_height), e.g. grasp_height=0.004 "
+                             "[LiberoExpertConfig's]")
     parser.add_argument("--states", default="0,1", help="stored initial states of every task [0,1]")
     parser.add_argument("--tasks", default=",".join(LIBERO_OBJECT_TASKS), help="LIBERO-Object tasks [all ten]")
     parser.add_argument("--max-steps", type=int, default=MAX_STEPS)
@@ -218,6 +227,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--states {args.states!r}: comma-separated stored-state indices, e.g. 0,1")
     if args.model is not None and not (Path(args.model) / "config.json").is_file():
         parser.error(f"--model {args.model}: no checkpoint there (a folder with config.json)")
+    if args.expert_radii:
+        if not args.expert:
+            parser.error("--expert-radii sets the expert's radii: give it with --expert")
+        try:
+            with_radii(args.expert_radii, option="--expert-radii")
+        except ValueError as e:
+            parser.error(str(e))
     if not 0 < args.max_steps <= 10_000 or not all(0 <= s < 50 for s in states):
         parser.error("--max-steps 1..10000; --states within LIBERO's 50 stored states (0..49)")
     if args.out:
@@ -229,13 +245,13 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--out {args.out} is a folder; give a file name such as probe.json")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     tasks = tuple(args.tasks.split(","))
-    key = probe_key(args.model, states, tasks, args.max_steps)
+    key = probe_key(args.model, states, tasks, args.max_steps, args.expert_radii)
     done = _finished(args.out, key) if args.out else None
     if done is not None:
         log.info("reusing %s: the same checkpoint, states, tasks and step limit were probed there", args.out)
         result = done
     else:
-        result = {"key": key, **probe(args.model, states, tasks, args.workers, args.max_steps)}
+        result = {"key": key, **probe(args.model, states, tasks, args.workers, args.max_steps, args.expert_radii)}
     if args.out and done is None:
         atomic_write_json(args.out, result)
     print(json.dumps(json_safe(result["summary"])))

@@ -259,13 +259,63 @@ def test_each_recipe_writes_its_own_committed_folder_unless_told_otherwise():
         assert (Path(__file__).parents[2] / folder / "config.json").is_file()
 
 
-def test_close_below_top_with_the_timed_demonstrator_is_refused_in_one_line(capsys):
+@pytest.mark.parametrize("option,value", [("--close-below-top", "0.004"), ("--demonstrator-radii", "grasp_height=0.004")])
+def test_the_state_demonstrators_options_with_the_timed_demonstrator_are_refused_in_one_line(option, value, capsys):
     from harness.reference.libero_pipeline import main as libero_pipeline_main
 
     with pytest.raises(SystemExit) as exit_info:
-        libero_pipeline_main(["--recipe", "first", "--close-below-top", "0.004", "--out", "/nonexistent/x"])
+        libero_pipeline_main(["--recipe", "first", option, value, "--out", "/nonexistent/x"])
     assert exit_info.value.code == 2
-    assert "--close-below-top is the state-based demonstrator's" in capsys.readouterr().err
+    assert f"{option} is the state-based demonstrator's" in capsys.readouterr().err
+
+
+def test_the_demonstrators_radii_reach_its_configuration_and_not_the_dagger_labellers():
+    """`--demonstrator-radii` sets the recording's expert (so its fingerprint: a new recording), beside
+    --close-below-top; the DAgger labeller keeps its own radii, which must accept the policy's imprecise states."""
+    from harness.reference.demos import config_fingerprint
+    from harness.reference.libero_expert import LiberoExpertConfig
+    from harness.reference.libero_pipeline import RECIPES, _checked, _parser
+
+    args, _, dagger, _ = _checked(_parser(), ["--demonstrator-radii", "grasp_height=0.004, at_grasp=0.01",
+                                              "--close-below-top", "0.003", "--dagger-episodes", "6", "--out", "/x"])
+    expert = args.demonstrator_expert
+    assert (expert.grasp_height, expert.at_grasp, expert.close_below_top) == (0.004, 0.01, 0.003)
+    assert expert.centred == LiberoExpertConfig().centred
+    assert (dagger.expert.grasp_height, dagger.expert.at_grasp) == (LiberoExpertConfig().grasp_height, LiberoExpertConfig().at_grasp)
+    plain = _checked(_parser(), ["--out", "/x"])[0].demonstrator_expert
+    assert plain == RECIPES["second"].expert  # no option: the committed recording's fingerprint, reused
+    from dataclasses import replace
+
+    assert config_fingerprint(replace(RECIPES["second"], expert=expert)) != config_fingerprint(RECIPES["second"])
+
+
+@pytest.mark.parametrize("text", ["grasp_height", "grasp_height=0", "grasp_height=0.2", "gain=3", "centred=nan",
+                                  "at_grasp=0.01,at_grasp=0.02", "close_below_top=0.004"])
+def test_bad_radii_are_refused_in_one_line_before_anything_loads(text, capsys):
+    from harness.reference.libero_pipeline import main as libero_pipeline_main
+    from harness.reference.libero_probe import main as probe_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        libero_pipeline_main(["--demonstrator-radii", text, "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
+    assert exit_info.value.code == 2
+    (line,) = [t for t in capsys.readouterr().err.splitlines() if "error:" in t]
+    assert "--demonstrator-radii: " in line and "NAME one of centred, at_grasp, grasp_height" in line
+    with pytest.raises(SystemExit) as exit_info:
+        probe_main(["--expert", "--expert-radii", text, "--out", "/nonexistent/p.json"])
+    assert exit_info.value.code == 2 and "--expert-radii: " in capsys.readouterr().err
+
+
+def test_expert_radii_need_the_expert_and_are_part_of_the_probe_key(capsys):
+    from harness.reference.libero_probe import main as probe_main, probe_key
+
+    with pytest.raises(SystemExit) as exit_info:
+        probe_main(["--model", str(Path(__file__).parents[2] / "models" / "octo-reference-robosuite"),
+                    "--expert-radii", "grasp_height=0.004"])
+    assert exit_info.value.code == 2 and "give it with --expert" in capsys.readouterr().err
+    plain = probe_key(None, [0], ("libero_object/0",), 280)
+    assert plain["checkpoint"] == "expert"  # as before: older expert results stay reusable
+    assert probe_key(None, [0], ("libero_object/0",), 280, "grasp_height=0.004")["checkpoint"] == "expert grasp_height=0.004"
+    assert probe_key(None, [0], ("libero_object/0",), 280, "grasp_height=0.012") == plain  # the default, named
 
 
 def test_a_finished_stage_one_is_reused_only_with_the_same_configuration(tmp_path):
