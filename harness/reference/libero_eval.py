@@ -83,7 +83,7 @@ def closed_loop_markdown(random_run, top_run, note: str = "") -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_eval", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="action", required=True)  # not "command": closed-loop has a --command option
     sub.add_parser("swaps", help="print '<task>\\t<swapped instruction>' per LIBERO-Object task")
     sub.add_parser("nonsense", help="print the nonsense instruction")
     closed = sub.add_parser("closed-loop", help="write EVAL.md's closed-loop section from a mask-random and a "
@@ -94,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     closed.add_argument("--note", default="")
     closed.add_argument("--command", default=None, help="the command to name in the provenance line [this command]")
     args = parser.parse_args(argv)
-    if args.command == "closed-loop":
+    if args.action == "closed-loop":
         from harness.files import replace_markdown_section
 
         from harness.analysis.provenance import command_text, provenance_line, with_provenance
@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
                                                                load_run(args.top_run).manifest]))
         replace_markdown_section(args.eval_md, CLOSED_LOOP, text)
         print(text)
-    elif args.command == "swaps":
+    elif args.action == "swaps":
         for task, instruction in swaps().items():
             print(f"{task}\t{instruction}")
     else:

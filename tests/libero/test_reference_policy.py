@@ -734,3 +734,37 @@ def test_the_reference_states_the_second_recipes_cameras_and_was_trained_on_its_
     assert summary["config"]["image_sizes"] == [["image_primary", 128], ["image_wrist", 128]]
     assert (summary["config"]["steps"], summary["config"]["init_from"]) == (RECIPE_STEPS["second"], DEFAULT_INIT)
     assert sorted(p.name for p in MODEL.iterdir() if p.name.isdigit()) == [str(RECIPE_STEPS["second"])]
+
+
+def _legacy_run(folder: Path, intervention: str, outcomes: dict[tuple[str, int], bool]) -> Path:
+    folder.mkdir(parents=True)
+    tasks = sorted({t for t, _ in outcomes})
+    manifest = {"tasks": tasks, "episodes": 2, "seed": 0, "protocol": {"policy": {"intervention": intervention}}}
+    episodes = [{"task": t, "episode": k, "seed": k, "status": "ok", "success": ok, "steps": 5}
+                for (t, k), ok in sorted(outcomes.items())]
+    (folder / "results.json").write_text(json.dumps({"manifest": manifest, "episodes": episodes}))
+    return folder
+
+
+def test_the_closed_loop_section_is_written_when_the_script_names_its_command(tmp_path, capsys):
+    """Known answer: paired by (task, state), 3 of 4 pairs succeed with mask-random and 1 with mask-top, both
+    discordant pairs going one way (McNemar exact p = 0.5). The evaluation script passes --command, which once
+    collided with the sub-command's name, so the section was never written and the exit code still said 0."""
+    from harness.reference import libero_eval
+
+    a, b = "libero_object/1", "libero_object/2"
+    random_run = _legacy_run(tmp_path / "mask_random", "mask-random:8",
+                             {(a, 0): True, (a, 1): True, (b, 0): True, (b, 1): False})
+    top_run = _legacy_run(tmp_path / "mask_top", "mask-top:8:attention:3",
+                          {(a, 0): True, (a, 1): False, (b, 0): False, (b, 1): False})
+    eval_md = tmp_path / "EVAL.md"
+    eval_md.write_text("# model: evaluation\n\n## Language grounding\n\nkept\n")
+    assert libero_eval.main(["closed-loop", str(random_run), str(top_run), "--eval-md", str(eval_md),
+                             "--command", "bash scripts/evaluate_libero_reference.sh 20 2", "--note", "n"]) == 0
+    text = eval_md.read_text()
+    assert text.count(libero_eval.CLOSED_LOOP) == 1 and "## Language grounding\n\nkept" in text
+    assert "command `bash scripts/evaluate_libero_reference.sh 20 2`" in text
+    assert "| **all tasks** | 4 | 3/4 [0.30, 0.95] | 1/4 [0.05, 0.70] | 2 | 0 | 0.5 |" in text
+    assert f"| {a} | 2 | 2/2" in text and f"| {b} | 2 | 1/2" in text
+    capsys.readouterr()
+    assert libero_eval.main(["nonsense"]) == 0 and capsys.readouterr().out.strip() == libero_eval.NONSENSE
