@@ -41,7 +41,7 @@ def _actor(model_dir: str | None, task: str, max_steps: int, radii: str = ""):
     """(env, target, reset(info, state), act(obs) -> action): the checkpoint as evaluated, or the state-based expert
     (with `radii`, harness.reference.libero_expert.with_radii, in place of its own)."""
     from envs.libero_tasks import get_libero_task
-    from harness.reference.libero_expert import LiberoObjectLabeller, with_radii
+    from harness.reference.libero_expert import LiberoObjectLabeller
 
     target = get_libero_task(task).targets[0]
     if model_dir is None:
