@@ -43,6 +43,18 @@ class LiberoExpertConfig:
     close_below_top: float | None = None
 
 
+def name_values(text: str):
+    """"a=1, b=x,c" -> ("a=1", "a", "=", 1.0), ("b=x", "b", "=", nan), ("c", "c", "", nan): a command line's
+    comma-separated NAME=NUMBER items, the number nan where it is missing or not one (the caller says what is wrong)."""
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        name, sep, value = item.partition("=")
+        try:
+            number = float(value)
+        except ValueError:
+            number = float("nan")
+        yield item, name, sep, number
+
+
 RADII = ("centred", "at_grasp", "grasp_height")  # the state-based expert's radii a command line may set
 
 
@@ -50,12 +62,7 @@ def with_radii(text: str, config: LiberoExpertConfig = LiberoExpertConfig(), opt
     """`config` with the radii "centred=0.015,grasp_height=0.004" (metres, 1 mm to 10 cm) replaced; "" -> `config`.
     A foreign name, a repeated one or a value out of range is a ValueError naming `option`."""
     values: dict[str, float] = {}
-    for item in filter(None, (part.strip() for part in text.split(","))):
-        name, sep, value = item.partition("=")
-        try:
-            metres = float(value)
-        except ValueError:
-            metres = float("nan")
+    for item, name, sep, metres in name_values(text):
         if not sep or name not in RADII or not 0.001 <= metres <= 0.1 or name in values:
             raise ValueError(f"{option}: {item!r} is not NAME=METRES with NAME one of {', '.join(RADII)} (each once) "
                              "and 0.001 <= METRES <= 0.1, e.g. grasp_height=0.004")

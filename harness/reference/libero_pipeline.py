@@ -33,7 +33,7 @@ from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, Liber
                                             load_libero_demos, record_libero_demos)
 from harness.reference import libero_dagger
 from harness.reference.libero_dagger import LiberoDaggerConfig
-from harness.reference.libero_expert import LiberoExpertConfig, with_radii
+from harness.reference.libero_expert import LiberoExpertConfig, name_values, with_radii
 from harness.reference.pipeline import dagger_rounds
 from harness.reference.train import TrainConfig, train
 
@@ -78,12 +78,7 @@ def parse_task_weights(text: str, tasks: tuple[str, ...]) -> tuple[tuple[str, fl
     """"libero_object/0=3,libero_object/6=2" -> (("libero_object/0", 3.0), ("libero_object/6", 2.0)); every task named
     must be one the recipe trains on, every weight finite and > 0 (the others weigh 1)."""
     weights = []
-    for item in filter(None, (part.strip() for part in text.split(","))):
-        task, sep, value = item.partition("=")
-        try:
-            weight = float(value)
-        except ValueError:
-            weight = float("nan")
+    for item, task, sep, weight in name_values(text):
         if not sep or task not in tasks or not np.isfinite(weight) or weight <= 0:
             raise ValueError(f"--task-weights: {item!r} is not TASK=W with TASK one of {tasks[0]} .. {tasks[-1]} and "
                              "W > 0, e.g. libero_object/0=3")
