@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from harness.analysis.provenance import command_text, provenance_line, with_provenance
+from harness.bounded import read_json
 from harness.measures.stats import wilson_interval
 
 
@@ -117,10 +118,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--command", default=None, help="the command to name in the provenance line (a script that "
                         "calls this one) [this command]")
     args = parser.parse_args(argv)
-    try:
-        manifests = [json.loads((run / "manifest.json").read_text()) if (run / "manifest.json").is_file() else {}
+    try:  # run folders are untrusted: the project's bounded reader (size and nesting checked)
+        manifests = [read_json(run / "manifest.json", what="manifest.json") if (run / "manifest.json").is_file() else {}
                      for run in args.runs]
-    except (OSError, UnicodeDecodeError, ValueError) as e:
+    except (OSError, ValueError) as e:  # UnicodeDecodeError and BoundsError are ValueErrors
         parser.error(f"a run's manifest.json is unreadable ({e}); pass finished `octo-harness run` folders")
     mismatch = other_checkpoint(args.runs, manifests, args.out)
     if mismatch:
