@@ -189,6 +189,13 @@ def append_corrections(demos: dict[str, dict[str, np.ndarray]], out_dir: str | P
     file_name = file_name or f"{task}.npz"
     with np.load(Path(out_dir) / file_name) as data:
         extra = {k: data[k] for k in data.files}
+    return append_episodes(demos, task, extra, f"{out_dir}/{file_name}")
+
+
+def append_episodes(demos: dict[str, dict[str, np.ndarray]], task: str, extra: dict[str, np.ndarray],
+                    source: str) -> dict[str, dict[str, np.ndarray]]:
+    """`demos` with the episodes `extra` (the recording layout, episodes numbered from 0) appended to `task`'s;
+    `source` names where they came from when one of `task`'s arrays is missing."""
     base = demos[task]
     first = int(base["episode"].max()) + 1
     merged = {}
@@ -202,7 +209,7 @@ def append_corrections(demos: dict[str, dict[str, np.ndarray]], out_dir: str | P
         elif key in extra:
             merged[key] = np.concatenate([value, extra[key].astype(value.dtype)])
         else:
-            raise ValueError(f"{out_dir}/{file_name} lacks {key!r}; collect the corrections again")
+            raise ValueError(f"{source} lacks {key!r}; record it again")
     return {**demos, task: merged}
 
 

@@ -70,12 +70,13 @@ def record_episode(env, expert: ScriptedExpert, seed: int, sizes: dict[str, int]
 
 
 def noisy_episode(env, obs: dict, act, sizes: dict[str, int], noise: float, rng: np.random.Generator,
-                  max_steps: int, perturb=None) -> dict | None:
+                  max_steps: int, perturb=None, succeeded=None) -> dict | None:
     """From observation `obs`, step `env` with the labels `act(obs)` whose first three (position) entries carry
     Gaussian noise of std `noise` (clipped to [-1, 1]; the stored label stays clean) until success, truncation or
     `max_steps`; the frames resized to `sizes` ({key: side}), proprio and labels -> arrays, or None without success.
     `perturb(executed, label, rng) -> executed`, when given, further changes what is executed after the noise (the
-    recovery bursts of harness.reference.libero_demos.Bursts); the label stays the expert's."""
+    recovery bursts of harness.reference.libero_demos.Bursts); the label stays the expert's. `succeeded(info)`, when
+    given, replaces the env's own success predicate (a swapped instruction's object placed)."""
     from harness.policy import resize_frame
 
     frames = {k: [] for k in sizes}
@@ -92,7 +93,7 @@ def noisy_episode(env, obs: dict, act, sizes: dict[str, int], noise: float, rng:
         if perturb is not None:
             executed = perturb(executed, label, rng)
         obs, _, terminated, truncated, info = env.step(executed)
-        success = bool(info["success"])
+        success = bool(info["success"] if succeeded is None else succeeded(info))
         if success or truncated:
             break
     if not success:
@@ -270,7 +271,7 @@ def save_episodes(path: Path, episodes: list[dict], seeds: list[int], extra: dic
 
 # fields added to a recording configuration after recordings were made with it: left out of the fingerprint while
 # None (off), so those recordings stay reusable; a value other than None is part of it
-ADDED_WHEN_SET = frozenset({"close_below_top"})
+ADDED_WHEN_SET = frozenset({"close_below_top", "swaps"})
 
 
 def config_fingerprint(config) -> dict:

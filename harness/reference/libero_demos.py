@@ -31,6 +31,7 @@ from harness.reference.libero_expert import LiberoExpertConfig, LiberoObjectExpe
 DEMONSTRATORS = {"state": LiberoObjectLabeller, "timed": LiberoObjectExpert}  # both: act(env, obs)
 LIBERO_SEED_BASE = 1_000_000  # placement seeds of task i: 1_000_000 + 10_000 i + k (evaluation uses stored states)
 SEEDS_PER_JOB = 1_000
+SWAP_SEED_OFFSET = 5_000  # swapped-instruction demonstrations' seeds: after the own ones' 5 jobs x 1000 seeds
 LIBERO_OBJECT_TASKS = tuple(f"libero_object/{i}" for i in range(10))
 # the reference model's cameras: observation key -> (LIBERO camera, square size rendered)
 # (the wrist at 128 px = 8x8 patches, as the robosuite reference reads it; the first LIBERO policy read 64 px = 4x4)
@@ -99,13 +100,18 @@ class LiberoDemoConfig:
     # "state": LiberoObjectLabeller, whose phase is read off the state (it lifts once the fingers hold the object)
     demonstrator: str = "state"
     bursts: BurstConfig | None = field(default_factory=BurstConfig)  # None: Gaussian noise only (the first policy)
+    # True: swapped-instruction demonstrations: in each task's scene the expert picks *another* task's named object
+    # that the scene also holds (swap_candidates, one per seed in turn), and the episode is kept when that object,
+    # alone, ends in the basket; its instruction is that task's (append_swaps). Seeds from the task's block + 5000,
+    # never the own demonstrations'. None: the task's own object (left out of fingerprints while None)
+    swaps: bool | None = None
 
     def __post_init__(self) -> None:
         if self.demonstrator not in DEMONSTRATORS:
             raise ValueError(f"demonstrator {self.demonstrator!r}: use one of {', '.join(DEMONSTRATORS)}")
 
     def task_seed_base(self, task: str) -> int:
-        return LIBERO_SEED_BASE + 10_000 * int(task.split("/")[1])
+        return LIBERO_SEED_BASE + 10_000 * int(task.split("/")[1]) + (SWAP_SEED_OFFSET if self.swaps else 0)
 
 
 def task_file(task: str) -> str:
@@ -120,27 +126,60 @@ def make_env(task: str, config: LiberoDemoConfig):
                      fast_render=config.fast_render, action_space="libero", max_episode_steps=config.max_steps)
 
 
-def record_episode(env, target: str, seed: int, config: LiberoDemoConfig) -> dict | None:
+def swap_candidates(task: str, movable, tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS) -> list[str]:
+    """The other tasks whose named object scene `task` also holds (`movable`: its movable objects), in the order
+    i+1, i+2, ... (mod the number of tasks): the instructions a swap may give in that scene."""
+    from envs.libero_tasks import get_libero_task
+
+    i = tasks.index(task)
+    others = (tasks[(i + step) % len(tasks)] for step in range(1, len(tasks)))
+    return [t for t in others if get_libero_task(t).targets[0] in set(movable)]
+
+
+def placed_alone(env, target: str) -> bool:
+    """Whether `target`, and no other object, is in the task's goal (the basket), released (not held)."""
+    outcome = env.episode_outcome()
+    return outcome["placed"] == [target] and target not in outcome["held"]
+
+
+def record_episode(env, target: str, seed: int, config: LiberoDemoConfig, succeeded=None) -> dict | None:
     """One noisy expert episode from sampled placement `seed`; arrays as in harness.reference.demos, or None when
-    the expert failed."""
+    the expert failed (`succeeded(info)` says when it succeeded; default: the task's own predicate)."""
     rng = np.random.default_rng(seed)
     obs, info = env.reset(seed=seed, options={"initial_state": "sampled"})
     expert = DEMONSTRATORS[config.demonstrator](target, config=config.expert)
     sizes = {k: s for k, _, s in config.cameras}  # rendered at the model's sizes: stored as rendered
     perturb = Bursts(config.bursts) if config.bursts is not None else None
-    return noisy_episode(env, obs, lambda o: expert.act(env, o), sizes, config.noise, rng, config.max_steps, perturb)
+    return noisy_episode(env, obs, lambda o: expert.act(env, o), sizes, config.noise, rng, config.max_steps, perturb,
+                         succeeded)
 
 
 def _record_job(args: tuple) -> tuple[list[dict], list[int], int]:
-    """Spawned worker: `count` successful episodes of `task` from placement seeds `first_seed`, `first_seed + 1`..."""
+    """Spawned worker: `count` successful episodes of `task` from placement seeds `first_seed`, `first_seed + 1`...
+    (with `config.swaps`, each naming swap_candidates' object number seed mod their count, its task's index in
+    LIBERO_OBJECT_TASKS stored per frame as "named")."""
     task, first_seed, count, config = args
     from envs.libero_tasks import get_libero_task
 
-    target = get_libero_task(task).targets[0]
     env = make_env(task, config)
     try:
-        return successful_episodes(lambda seed: record_episode(env, target, seed, config), task, first_seed, count,
-                                   SEEDS_PER_JOB)
+        if not config.swaps:
+            target = get_libero_task(task).targets[0]
+            return successful_episodes(lambda seed: record_episode(env, target, seed, config), task, first_seed,
+                                       count, SEEDS_PER_JOB)
+        candidates = swap_candidates(task, env.description.get("movable", env.description["objects"]))
+        if not candidates:
+            raise RuntimeError(f"{task}: its scene holds no other task's named object; leave it out of swaps")
+
+        def swapped(seed: int) -> dict | None:
+            named = candidates[seed % len(candidates)]
+            target = get_libero_task(named).targets[0]
+            episode = record_episode(env, target, seed, config, lambda info: placed_alone(env, target))
+            if episode is not None:
+                episode["named"] = np.full(len(episode["action"]), LIBERO_OBJECT_TASKS.index(named), np.int32)
+            return episode
+
+        return successful_episodes(swapped, task, first_seed, count, SEEDS_PER_JOB)
     finally:
         env.close()
 
@@ -154,6 +193,30 @@ def record_libero_demos(config: LiberoDemoConfig, out_dir: str | Path, workers: 
 def existing_libero_demos(config: LiberoDemoConfig, out_dir: str | Path) -> dict | None:
     """The summary of a finished recording with exactly this configuration in `out_dir`, else None."""
     return finished_recording(out_dir, config_fingerprint(config), tuple(task_file(t)[:-4] for t in config.tasks))
+
+
+def append_swaps(demos: dict[str, dict[str, np.ndarray]], swap_dir: str | Path,
+                 tasks: tuple[str, ...]) -> dict[str, dict[str, np.ndarray]]:
+    """`demos` with the swapped-instruction demonstrations in `swap_dir` (one file a scene task, from
+    `record_libero_demos` with `swaps=True`) appended to the task each one *named*: its instruction is that task's.
+    A demonstration naming a task outside `demos` is a ValueError (record the swaps with the same tasks)."""
+    from harness.reference.dagger import append_episodes
+
+    for scene in tasks:
+        with np.load(Path(swap_dir) / task_file(scene)) as data:
+            arrays = {k: data[k] for k in data.files}
+        named_of_episode = arrays["named"][np.r_[0, np.cumsum(arrays["lengths"])[:-1]]]
+        for index in np.unique(named_of_episode):
+            keep = named_of_episode == index
+            frames = keep[arrays["episode"]]
+            extra = {k: v[frames] for k, v in arrays.items() if k not in ("named", "seeds", "lengths") and len(v) == len(frames)}
+            extra["episode"] = np.repeat(np.arange(int(keep.sum()), dtype=np.int32), arrays["lengths"][keep])
+            extra.update(seeds=arrays["seeds"][keep], lengths=arrays["lengths"][keep])
+            named = LIBERO_OBJECT_TASKS[int(index)]
+            if named not in demos:
+                raise ValueError(f"{swap_dir}/{task_file(scene)} names {named}, which has no demonstrations here")
+            demos = append_episodes(demos, named, extra, f"{swap_dir}/{task_file(scene)}")
+    return demos
 
 
 def load_libero_demos(out_dir: str | Path, tasks: tuple[str, ...]) -> dict[str, dict[str, np.ndarray]]:

@@ -32,16 +32,13 @@ def scene_objects(task: str) -> list[str]:
 def swaps(tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS) -> dict[str, str]:
     """{scene task: the instruction of the next task whose named object the scene also holds}."""
     from envs.libero_tasks import get_libero_task
+    from harness.reference.libero_demos import swap_candidates
 
-    specs = [get_libero_task(t) for t in tasks]
     out = {}
-    for i, spec in enumerate(specs):
-        objects = set(scene_objects(spec.name))
-        for step in range(1, len(specs)):
-            other = specs[(i + step) % len(specs)]
-            if other.targets[0] in objects:
-                out[spec.name] = other.instruction
-                break
+    for task in tasks:
+        candidates = swap_candidates(task, scene_objects(task), tasks)
+        if candidates:
+            out[task] = get_libero_task(candidates[0]).instruction
     return out
 
 

@@ -14,6 +14,9 @@ With `--dagger-episodes N`, (2) writes `<data>/stage1`, which then runs N episod
 placements while the state-based expert labels every state it visits (harness.reference.libero_dagger, into
 `<data>/dagger`), and (3) fine-tunes from it on demonstrations + corrections (states near the grasp drawn more
 often) into `--out`; `--dagger-rounds R` repeats (3) with each round's checkpoint acting (pipeline.dagger_rounds).
+With `--swaps N`, (1) also records N swapped-instruction demonstrations per task into `<data>/swaps` (in a task's
+scene the expert picks another task's named object that the scene holds; libero_demos.append_swaps files each under
+the task it named, so it trains with that instruction): a layout then no longer tells which object to pick.
 Everything is seeded, so the same command on the same machine gives the same data and weights; a finished
 recording with the same configuration is reused.
 """
@@ -29,8 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from harness.files import atomic_write_json
-from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, LiberoDemoConfig, existing_libero_demos,
-                                            load_libero_demos, record_libero_demos)
+from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, LiberoDemoConfig, append_swaps,
+                                            existing_libero_demos, load_libero_demos, record_libero_demos)
 from harness.reference import libero_dagger
 from harness.reference.libero_dagger import LiberoDaggerConfig
 from harness.reference.libero_expert import LiberoExpertConfig, name_values, with_radii
@@ -122,6 +125,9 @@ def _parser() -> argparse.ArgumentParser:
                         help="the state-based demonstrator's radii (centred, at_grasp, grasp_height; the DAgger labeller "
                              "keeps its own), e.g. grasp_height=0.004 to close only near the grasp height "
                              "[LiberoExpertConfig's]")
+    parser.add_argument("--swaps", type=int, default=0, metavar="N",
+                        help="also N swapped-instruction demonstrations per task (into <data>/swaps): in its scene the "
+                             "expert picks another task's named object, under that task's instruction [0]")
     parser.add_argument("--dagger-episodes", type=int, default=0,
                         help="episodes per task of the trained policy to label for a DAgger round (0 = no round)")
     parser.add_argument("--dagger-tasks", default="", metavar="TASK,...",
@@ -147,9 +153,10 @@ def _checked(parser: argparse.ArgumentParser, argv: list[str] | None):
     args.steps = RECIPE_STEPS[args.recipe] if args.steps is None else args.steps
     args.out = RECIPE_OUT[args.recipe] if args.out is None else args.out
     if (args.episodes is not None and args.episodes < 2) or args.steps < 1 or args.batch_size < 1 or not args.learning_rate > 0 \
-            or args.dagger_steps < 1 or not args.dagger_learning_rate > 0 or not 1 <= args.dagger_rounds <= 9:
+            or args.dagger_steps < 1 or not args.dagger_learning_rate > 0 or not 1 <= args.dagger_rounds <= 9 \
+            or not 0 <= args.swaps <= 1000:
         parser.error("--episodes must be >= 2, --steps, --dagger-steps and --batch-size >= 1, learning rates > 0, "
-                     "--dagger-rounds 1..9")
+                     "--dagger-rounds 1..9, --swaps 0..1000")
     try:
         task_weights = parse_task_weights(args.task_weights, RECIPES[args.recipe].tasks)
         for option, value in (("--close-below-top", args.close_below_top),
@@ -198,6 +205,14 @@ def main(argv: list[str] | None = None) -> int:
     else:
         log.info("reusing the demonstrations in %s (recorded in %.0f s)", args.data, summary["seconds"])
     demos = load_libero_demos(args.data, demo_config.tasks)
+    if args.swaps:
+        swap_config, swap_dir = replace(demo_config, episodes=args.swaps, swaps=True), Path(args.data, "swaps")
+        swapped = existing_libero_demos(swap_config, swap_dir)
+        if swapped is None:
+            log.info("recording %d swapped-instruction demonstrations per task into %s", args.swaps, swap_dir)
+            swapped = record_libero_demos(swap_config, swap_dir, workers=args.workers)
+        summary = {**summary, "swaps": swapped}
+        demos = append_swaps(demos, swap_dir, demo_config.tasks)
     train_config = replace(TrainConfig(), steps=args.steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
                            seed=args.seed, init_from=init, task_weights=task_weights,
                            image_sizes=tuple((k, s) for k, _, s in demo_config.cameras))

@@ -37,24 +37,38 @@ MAX_STEPS = 280  # LIBERO-Object's published step limit
 LIFTED = 0.03  # m: the named object's bottom this far above where it stood counts as lifted
 
 
-def _actor(model_dir: str | None, task: str, max_steps: int, radii: str = ""):
-    """(env, target, reset(info, state), act(obs) -> action): the checkpoint as evaluated, or the state-based expert
-    (with `radii`, harness.reference.libero_expert.with_radii, in place of its own)."""
+def _actor(model_dir: str | None, task: str, max_steps: int, radii: str = "", language: str = ""):
+    """(env, target, instruction or None, reset(info, state), act(obs) -> action): the checkpoint as evaluated, or
+    the state-based expert (with `radii`, harness.reference.libero_expert.with_radii, in place of its own). With
+    `language="swap"` the instruction and the target are those of the scene's swap (harness.reference.libero_eval:
+    the next task whose named object the scene holds); else the task's own (instruction None)."""
     from envs.libero_tasks import get_libero_task
+    from harness.reference.libero_demos import swap_candidates
     from harness.reference.libero_expert import LiberoObjectLabeller
 
-    target = get_libero_task(task).targets[0]
     if model_dir is None:
         import envs
 
         env = envs.make(task, cameras={}, fast_render=True, masks=False, action_space="libero",
                         max_episode_steps=max_steps)
-        labeller = LiberoObjectLabeller(target, config=with_radii(radii))
-        return env, target, lambda info, state: None, lambda obs: labeller.act(env, obs)
-    from harness.reference.dagger import policy_in_env
+    else:
+        from harness.reference.dagger import policy_in_env
 
-    env, policy = policy_in_env(model_dir, task, max_steps)
-    return env, target, lambda info, state: policy.reset(info.get("instruction", ""), seed=state), \
+        env, policy = policy_in_env(model_dir, task, max_steps)
+    named, instruction = get_libero_task(task), None
+    if language == "swap":
+        try:
+            named = get_libero_task(swap_candidates(task, env.description.get("movable", env.description["objects"]))[0])
+        except IndexError:
+            env.close()
+            raise ValueError(f"{task}: its scene holds no other task's named object, so it has no swap") from None
+        instruction = named.instruction
+    target = named.targets[0]
+    if model_dir is None:
+        labeller = LiberoObjectLabeller(target, config=with_radii(radii))
+        return env, target, instruction, lambda info, state: None, lambda obs: labeller.act(env, obs)
+    return env, target, instruction, \
+        lambda info, state: policy.reset(instruction or info.get("instruction", ""), seed=state), \
         lambda obs: policy.step(obs).action
 
 
@@ -62,8 +76,10 @@ def _probe_job(args: tuple) -> list[dict]:
     """Spawned worker: one task's episodes from stored states `states` -> a row each."""
     from harness.reference.libero_expert import LiberoExpertConfig, _geometry
 
-    model_dir, task, states, max_steps, radii = args
-    env, target, reset, act = _actor(model_dir, task, max_steps, radii)
+    from harness.reference.libero_demos import placed_alone
+
+    model_dir, task, states, max_steps, radii, language = args
+    env, target, instruction, reset, act = _actor(model_dir, task, max_steps, radii, language)
     rows = []
     movable = [n for n in env.description.get("movable", env.description["objects"]) if n != "basket_1"]
     try:
@@ -72,6 +88,8 @@ def _probe_job(args: tuple) -> list[dict]:
             reset(info, state)
             row = {"task": task, "state": state, "target": target, "first_close": None, "reach_xy_cm": None,
                    "reach_z_cm": None, "held_named": False, "lifted_named": False, "success": False, "steps": 0}
+            if instruction is not None:
+                row["instruction"] = instruction
             floor = env.object_poses()[target]["low"][2]
             for step in range(max_steps):
                 action = np.asarray(act(obs), np.float64)
@@ -86,7 +104,8 @@ def _probe_job(args: tuple) -> list[dict]:
                 row["held_named"] = row["held_named"] or bool(env.grasping(target))
                 row["lifted_named"] = row["lifted_named"] or bool(env.object_poses()[target]["low"][2] > floor + LIFTED)
                 row["steps"] = step + 1
-                row["success"] = bool(info["success"])
+                # a swap succeeds when the named object, alone, is in the basket (the scene's own predicate ends it)
+                row["success"] = bool(info["success"]) if instruction is None else placed_alone(env, target)
                 if row["success"] or terminated or truncated:
                     break
             row["picked"] = env.episode_outcome()["picked_object"]
@@ -108,6 +127,7 @@ def summarise(rows: list[dict]) -> dict:
     n = len(rows)
     reach = [r["reach_xy_cm"] for r in rows if r["reach_xy_cm"] is not None]
     nearest = [r for r in rows if r.get("nearest_at_close") is not None]
+    picked = [r for r in rows if r.get("picked") is not None]
     per_task: dict[str, int] = {}
     for r in rows:
         per_task[r["task"]] = per_task.get(r["task"], 0) + int(r["success"])
@@ -122,33 +142,36 @@ def summarise(rows: list[dict]) -> dict:
             # of the episodes that closed: the first close nearest the named object (None in results made before)
             "nearest_named_rate": (sum(r["nearest_at_close"] == r["target"] for r in nearest) / len(nearest)
                                    if nearest else None),
-            "successes_per_task": per_task}
+            # of the episodes that ended with an object in the basket or the hand: it was the named one
+            "picked_named_rate": sum(r["picked"] == r["target"] for r in picked) / len(picked) if picked else None,
+            "picked": len(picked), "successes_per_task": per_task}
 
 
 def probe(model_dir: str | None, states: list[int], tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS, workers: int = 2,
-          max_steps: int = MAX_STEPS, radii: str = "") -> dict:
+          max_steps: int = MAX_STEPS, radii: str = "", language: str = "") -> dict:
     from harness.reference.demos import run_jobs
 
     start = time.perf_counter()
-    jobs = [(model_dir, task, states, max_steps, radii) for task in tasks]
+    jobs = [(model_dir, task, states, max_steps, radii, language) for task in tasks]
     rows = [row for part in run_jobs(_probe_job, jobs, workers) for row in part]
-    return {"model": model_dir or "expert", "states": states, "max_steps": max_steps, "summary": summarise(rows),
-            "episodes": rows, "seconds": round(time.perf_counter() - start, 1)}
+    return {"model": model_dir or "expert", "states": states, "max_steps": max_steps, "language": language or "own",
+            "summary": summarise(rows), "episodes": rows, "seconds": round(time.perf_counter() - start, 1)}
 
 
 PROBE_VERSION = 2  # raise when what a probe measures changes: older result files are then probed again
 
 
-def probe_key(model_dir: str | None, states: list[int], tasks: tuple[str, ...], max_steps: int, radii: str = "") -> dict:
+def probe_key(model_dir: str | None, states: list[int], tasks: tuple[str, ...], max_steps: int, radii: str = "",
+              language: str = "") -> dict:
     """What a probe result depends on: the checkpoint's fingerprint (or the expert and the radii it was given),
-    states, tasks, step limit."""
+    states, tasks, step limit, and the instructions when not the tasks' own ("swap")."""
     from harness.reference.dagger import checkpoint_fingerprint
     from harness.reference.libero_expert import RADII, LiberoExpertConfig
 
     given, default = with_radii(radii), LiberoExpertConfig()
     expert = "expert" + "".join(f" {n}={getattr(given, n)}" for n in RADII if getattr(given, n) != getattr(default, n))
     return {"version": PROBE_VERSION, "checkpoint": expert if model_dir is None else checkpoint_fingerprint(model_dir),
-            "states": list(states), "tasks": list(tasks), "max_steps": max_steps}
+            "states": list(states), "tasks": list(tasks), "max_steps": max_steps, **({"language": language} if language else {})}
 
 
 def _finished(path: str, key: dict) -> dict | None:
@@ -164,11 +187,18 @@ def _finished(path: str, key: dict) -> dict | None:
 
 
 TABLE_COLUMNS = ("lever", "episodes", "success", "median reach at first close (cm)", "first close (step)",
-                 "closed nearest the named object", "grasp rate", "lift rate", "ended with another object")
+                 "closed nearest the named object", "grasp rate", "lift rate", "ended with another object",
+                 "picked the named object (of those picked)")
 
 
 def _rate(value) -> str:
     return "-" if value is None else f"{100 * value:.0f}%"
+
+
+def _picked(summary: dict) -> str:
+    if summary.get("picked_named_rate") is None:  # none picked, or a result made before the column
+        return "-" if "picked" not in summary else "0 picked"
+    return f"{_rate(summary['picked_named_rate'])} of {summary['picked']}"
 
 
 def lever_table(entries: list[tuple[str, dict]]) -> str:
@@ -180,7 +210,7 @@ def lever_table(entries: list[tuple[str, dict]]) -> str:
         first = "-" if s["median_first_close"] is None else f"{s['median_first_close']:.0f}"
         lines.append("| " + " | ".join([label, str(s["episodes"]), f"{s['successes']}/{s['episodes']}", reach, first,
                                         _rate(s.get("nearest_named_rate")), _rate(s["grasp_rate"]), _rate(s["lift_rate"]),
-                                        _rate(s["other_object_rate"])]) + " |")
+                                        _rate(s["other_object_rate"]), _picked(s)]) + " |")
     return "\n".join(lines)
 
 
@@ -212,6 +242,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--expert-radii", default="", metavar="NAME=METRES,...",
                         help="with --expert: its radii (centred, at_grasp, grasp_height), e.g. grasp_height=0.004 "
                              "[LiberoExpertConfig's]")
+    parser.add_argument("--language", choices=("own", "swap"), default="own",
+                        help="swap: each scene is told the next task's instruction whose named object it holds "
+                             "(harness.reference.libero_eval swaps); success is that object, alone, in the basket [own]")
     parser.add_argument("--states", default="0,1", help="stored initial states of every task [0,1]")
     parser.add_argument("--tasks", default=",".join(LIBERO_OBJECT_TASKS), help="LIBERO-Object tasks [all ten]")
     parser.add_argument("--max-steps", type=int, default=MAX_STEPS)
@@ -245,13 +278,15 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--out {args.out} is a folder; give a file name such as probe.json")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     tasks = tuple(args.tasks.split(","))
-    key = probe_key(args.model, states, tasks, args.max_steps, args.expert_radii)
+    language = "" if args.language == "own" else args.language
+    key = probe_key(args.model, states, tasks, args.max_steps, args.expert_radii, language)
     done = _finished(args.out, key) if args.out else None
     if done is not None:
         log.info("reusing %s: the same checkpoint, states, tasks and step limit were probed there", args.out)
         result = done
     else:
-        result = {"key": key, **probe(args.model, states, tasks, args.workers, args.max_steps, args.expert_radii)}
+        result = {"key": key, **probe(args.model, states, tasks, args.workers, args.max_steps, args.expert_radii,
+                                      language)}
     if args.out and done is None:
         atomic_write_json(args.out, result)
     print(json.dumps(json_safe(result["summary"])))

@@ -226,6 +226,38 @@ def test_the_labeller_reads_the_phase_off_the_state_known_answers():
     assert grip == OPEN and goal[2] > low[2]
 
 
+def test_swapped_instruction_demonstrations_go_to_the_task_they_name(tmp_path):
+    """append_swaps splits a scene's file by the task each episode named and appends those episodes to it,
+    numbered after its own; an episode naming a task without demonstrations is refused in one line."""
+    from harness.reference.libero_demos import append_swaps, swap_candidates
+
+    assert swap_candidates("libero_object/8", ["chocolate_pudding_1", "basket_1", "orange_juice_1", "ketchup_1"]) == [
+        "libero_object/9", "libero_object/4"]  # the order i+1, i+2, ... wraps round; the scene's own object is not one
+    assert swap_candidates("libero_object/0", ["alphabet_soup_1", "basket_1"]) == []
+
+    def frames(lengths, named=None, first=0.0):
+        n = sum(lengths)
+        out = {"action": first + np.arange(n, dtype=np.float32)[:, None] * np.ones((1, 7), np.float32),
+               "episode": np.repeat(np.arange(len(lengths)), lengths).astype(np.int32),
+               "step": np.concatenate([np.arange(k) for k in lengths]).astype(np.int32),
+               "seeds": np.arange(len(lengths)) + 100, "lengths": np.array(lengths, np.int32)}
+        if named is not None:
+            out["named"] = np.repeat(named, lengths).astype(np.int32)
+        return out
+
+    np.savez(tmp_path / "libero_object_0.npz", **frames([2, 3, 1], named=[1, 2, 1], first=10.0))
+    demos = {t: frames([1, 1]) for t in ("libero_object/0", "libero_object/1", "libero_object/2")}
+    merged = append_swaps(demos, tmp_path, ("libero_object/0",))
+    one, two = merged["libero_object/1"], merged["libero_object/2"]
+    assert one["action"][:, 0].tolist() == [0, 1, 10, 11, 15] and one["episode"].tolist() == [0, 1, 2, 2, 3]
+    assert one["seeds"].tolist() == [100, 101, 100, 102] and one["lengths"].tolist() == [1, 1, 2, 1]
+    assert two["action"][:, 0].tolist() == [0, 1, 12, 13, 14] and two["step"].tolist() == [0, 0, 0, 1, 2]
+    assert merged["libero_object/0"] is demos["libero_object/0"] and "named" not in one
+    np.savez(tmp_path / "libero_object_0.npz", **frames([2], named=[5]))
+    with pytest.raises(ValueError, match="names libero_object/5, which has no demonstrations"):
+        append_swaps(demos, tmp_path, ("libero_object/0",))
+
+
 def test_libero_dagger_seeds_are_their_own_block_and_bad_counts_are_refused():
     from harness.reference.libero_dagger import LIBERO_DAGGER_SEED_BASE, LiberoDaggerConfig
     from harness.reference.libero_demos import LIBERO_SEED_BASE, SEEDS_PER_JOB, LiberoDemoConfig
@@ -280,9 +312,12 @@ def test_the_grasp_probe_summary_known_answers_and_bad_arguments_are_one_line(tm
     assert (s["grasp_rate"], s["lift_rate"], s["other_object_rate"]) == (2 / 3, 1 / 3, 1 / 3)
     assert s["successes_per_task"] == {"t/0": 1, "t/1": 0} and s["nearest_named_rate"] == 0.5  # of the 2 that closed
     assert libero_probe.summarise(rows[2:])["nearest_named_rate"] is None  # none closed
+    assert (s["picked"], s["picked_named_rate"]) == (2, 0.5)  # of the 2 that ended with an object: "a" was named
+    assert libero_probe.summarise(rows[2:])["picked_named_rate"] is None
     (tmp_path / "file").write_text("a file where --out wants a folder")
     for argv, words in ((["--model", "/nonexistent"], "no checkpoint there"), (["--expert", "--states", "0,x"], "--states"),
                         (["--expert", "--states", "50"], "50 stored states"),
+                        (["--expert", "--language", "paraphrase"], "--language"),
                         (["--expert", "--out", str(tmp_path)], "is a folder"),
                         (["--expert", "--out", str(tmp_path / "file" / "probe.json")], "cannot write there")):
         with pytest.raises(SystemExit) as stop:
@@ -301,8 +336,8 @@ def test_the_lever_table_reads_probe_results_in_order_and_refuses_foreign_files(
     (tmp_path / "b.json").write_text(json.dumps({"summary": libero_probe.summarise(rows[1:])}))
     assert libero_probe.main(["--table", f"second={tmp_path / 'a.json'}", f"first={tmp_path / 'b.json'}"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[2] == "| second | 2 | 1/2 | 1.0 (1 closed) | 30 | - | 50% | 50% | 0% |"  # made before "nearest"
-    assert lines[3] == "| first | 1 | 0/1 | - | - | - | 0% | 0% | 0% |" and len(lines) == 4
+    assert lines[2] == "| second | 2 | 1/2 | 1.0 (1 closed) | 30 | - | 50% | 50% | 0% | 100% of 1 |"  # made before "nearest"
+    assert lines[3] == "| first | 1 | 0/1 | - | - | - | 0% | 0% | 0% | 0 picked |" and len(lines) == 4
     (tmp_path / "torn.json").write_text('{"summary": {"episodes": 3')
     (tmp_path / "other.json").write_text('{"summary": [1, 2]}')
     big = tmp_path / "big.json"
@@ -332,6 +367,7 @@ def test_a_probe_result_is_reused_only_for_the_same_checkpoint_states_tasks_and_
     for other in (libero_probe.probe_key(None, [0, 1], ("libero_object/0",), 280),
                   libero_probe.probe_key(None, [0], ("libero_object/1",), 280),
                   libero_probe.probe_key(None, [0], ("libero_object/0",), 100),
+                  libero_probe.probe_key(None, [0], ("libero_object/0",), 280, language="swap"),
                   libero_probe.probe_key(MODEL, [0], ("libero_object/0",), 280)):
         assert libero_probe._finished(str(out), other) is None
     out.write_text(out.read_text()[:50])  # torn
@@ -361,6 +397,13 @@ def test_the_grasp_probe_measures_the_expert_as_a_yardstick_and_runs_the_committ
     assert row["success"] and row["held_named"] and row["lifted_named"] and row["picked"] == row["target"]
     assert row["nearest_at_close"] == row["target"] and expert["summary"]["nearest_named_rate"] == 1.0
     assert row["reach_xy_cm"] < 1.0 and abs(row["reach_z_cm"]) < 1.5 and 10 < row["first_close"] < row["steps"]
+    # told the swap (scene /0 hears /1's instruction): the expert picks the cream cheese, which alone ends in the
+    # basket, so the swap succeeds though the scene's own predicate (the alphabet soup) never holds
+    swapped = libero_probe.probe(None, [0], ("libero_object/0",), workers=1, language="swap")
+    (row,) = swapped["episodes"]
+    assert row["instruction"] == libero_tasks.get_libero_task("libero_object/1").instruction
+    assert row["target"] == row["picked"] == "cream_cheese_1" and row["success"] and row["steps"] < 280
+    assert swapped["summary"]["picked_named_rate"] == 1.0 and swapped["language"] == "swap"
     # the reference, as evaluated (its conventions), on the second demo's episode (scripts/demo_libero.sh:
     # libero_object/2, state 0): it picks the salad dressing and places it in the basket
     policy = libero_probe.probe(str(MODEL), [0], ("libero_object/2",), workers=1, max_steps=150)
@@ -420,6 +463,33 @@ def test_a_demonstration_from_a_sampled_placement_is_recorded_as_the_policy_sees
     assert episode["proprio"].shape == (n, 8)
     assert set(np.unique(episode["action"][:, 6])) == {0.0, 1.0}  # the libero gripper: 1 open, 0 closed
     assert np.abs(episode["action"][:, :6]).max() <= 1.0
+
+
+@pytest.mark.slow
+def test_a_swapped_instruction_demonstration_picks_the_named_object_in_another_tasks_scene(tmp_path):
+    """Recorded through the pipeline's recorder with `swaps=True`: in scene /6 (the butter) the expert picks the
+    object of swap_candidates' entry `seed mod 5`, each frame stores that task's index, and the seed is in the
+    task's swap block (never the own demonstrations' seeds)."""
+    _needs_libero()
+    from harness.reference.libero_demos import (LIBERO_OBJECT_TASKS, SWAP_SEED_OFFSET, LiberoDemoConfig, append_swaps,
+                                                record_libero_demos, swap_candidates)
+    from harness.reference.libero_eval import scene_objects
+
+    config = LiberoDemoConfig(tasks=("libero_object/6",), episodes=1, jobs_per_task=1, swaps=True)
+    summary = record_libero_demos(config, tmp_path, workers=1)
+    assert summary["libero_object/6"]["episodes"] == 1
+    with np.load(tmp_path / "libero_object_6.npz") as data:
+        seed, named, n = int(data["seeds"][0]), data["named"], len(data["action"])
+    assert seed == config.task_seed_base("libero_object/6") == 1_060_000 + SWAP_SEED_OFFSET + 0  # the first try held
+    expected = swap_candidates("libero_object/6", scene_objects("libero_object/6"))[seed % 5]
+    assert expected != "libero_object/6" and set(named.tolist()) == {LIBERO_OBJECT_TASKS.index(expected)}
+    base = {t: {"action": np.zeros((2, 7), np.float32), "episode": np.array([0, 1], np.int32),
+                "step": np.zeros(2, np.int32), "seeds": np.array([7, 8]), "lengths": np.array([1, 1], np.int32),
+                "image_primary": np.zeros((2, 128, 128, 3), np.uint8), "image_wrist": np.zeros((2, 128, 128, 3), np.uint8),
+                "proprio": np.zeros((2, 8), np.float32)} for t in ("libero_object/6", expected)}
+    merged = append_swaps(base, tmp_path, ("libero_object/6",))
+    assert len(merged[expected]["action"]) == 2 + n and merged[expected]["episode"][2:].tolist() == [2] * n
+    assert len(merged["libero_object/6"]["action"]) == 2  # the scene's own task gains nothing
 
 
 @pytest.mark.slow

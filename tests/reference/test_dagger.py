@@ -232,6 +232,17 @@ def test_pipeline_refuses_a_close_below_top_out_of_range_in_one_line(option, val
     assert f"{option} must be at least 0 and under 0.05 (metres)" in line
 
 
+@pytest.mark.parametrize("value", ["-1", "1001", "x"])
+def test_pipeline_refuses_a_swap_count_out_of_range_in_one_line(value, capsys):
+    from harness.reference.libero_pipeline import main as libero_pipeline_main
+
+    with pytest.raises(SystemExit) as exit_info:
+        libero_pipeline_main([f"--swaps={value}", "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
+    assert exit_info.value.code == 2
+    (line,) = [text for text in capsys.readouterr().err.splitlines() if "error:" in text]
+    assert "--swaps" in line
+
+
 def test_the_dagger_labeller_closes_as_the_demonstrator_unless_told_otherwise():
     from harness.reference.libero_pipeline import _checked, _parser
 
