@@ -325,6 +325,16 @@ def test_the_grasp_probe_summary_known_answers_and_bad_arguments_are_one_line(tm
         assert stop.value.code == 2 and words in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("argv,env,words", [([], {}, "usage:"), (["a=b"], {"LANGUAGE": "paraphrase"}, "use own or swap")])
+def test_the_lever_script_refuses_a_bad_call_in_one_line_before_anything_loads(argv, env, words):
+    import os
+    import subprocess
+
+    done = subprocess.run(["bash", str(REPO / "scripts" / "libero_levers.sh"), *argv], capture_output=True, text=True,
+                          env={**os.environ, **env}, timeout=30)
+    assert done.returncode == 2 and words in done.stderr and len(done.stderr.splitlines()) == 1
+
+
 def test_the_lever_table_reads_probe_results_in_order_and_refuses_foreign_files(tmp_path, capsys):
     from harness.reference import libero_probe
 
