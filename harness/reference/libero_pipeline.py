@@ -232,7 +232,8 @@ def main(argv: list[str] | None = None) -> int:
     result["demonstrations"] = summary
     result["pipeline_seconds_this_run"] = time.perf_counter() - start
     atomic_write_json(Path(args.out, "training_summary.json"), result, exact=True)
-    log.info("done: %s (demonstrations %.0f s, training %.0f s)", args.out, summary["seconds"], result["total_seconds"])
+    log.info("done: %s (demonstrations %.0f s, swapped-instruction demonstrations %.0f s, training %.0f s)", args.out,
+             summary["seconds"], summary.get("swaps", {}).get("seconds", 0.0), result["total_seconds"])
     return 0
 
 

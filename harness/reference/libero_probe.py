@@ -227,7 +227,10 @@ def _load_table_entry(spec: str, parser: argparse.ArgumentParser) -> tuple[str, 
         for key in ("episodes", "successes", "median_reach_xy_cm", "closed", "median_first_close", "grasp_rate",
                     "lift_rate", "other_object_rate"):
             summary[key]
-    except (ValueError, KeyError, TypeError, UnicodeDecodeError):
+        if "picked" not in summary and isinstance(result.get("episodes"), list):
+            # a result made before a column was added: summarised again from its rows, so every column is filled
+            result = {**result, "summary": summarise(result["episodes"])}
+    except (ValueError, KeyError, TypeError, AttributeError, UnicodeDecodeError):
         parser.error(f"--table {spec!r}: {path} is not a probe result (write one with --out)")
     return label, result
 

@@ -348,6 +348,11 @@ def test_the_lever_table_reads_probe_results_in_order_and_refuses_foreign_files(
     lines = capsys.readouterr().out.splitlines()
     assert lines[2] == "| second | 2 | 1/2 | 1.0 (1 closed) | 30 | - | 50% | 50% | 0% | 100% of 1 |"  # made before "nearest"
     assert lines[3] == "| first | 1 | 0/1 | - | - | - | 0% | 0% | 0% | 0 picked |" and len(lines) == 4
+    old = {k: v for k, v in libero_probe.summarise(rows).items() if k not in ("picked", "picked_named_rate")}
+    (tmp_path / "old.json").write_text(json.dumps({"summary": old, "episodes": rows}))  # made before the last column
+    assert libero_probe.main(["--table", f"old={tmp_path / 'old.json'}"]) == 0
+    assert capsys.readouterr().out.splitlines()[2].endswith("| 0% | 100% of 1 |")  # summarised again from its rows
+    (tmp_path / "rows.json").write_text(json.dumps({"summary": old, "episodes": [1, 2]}))
     (tmp_path / "torn.json").write_text('{"summary": {"episodes": 3')
     (tmp_path / "other.json").write_text('{"summary": [1, 2]}')
     big = tmp_path / "big.json"
@@ -355,6 +360,7 @@ def test_the_lever_table_reads_probe_results_in_order_and_refuses_foreign_files(
         f.truncate(65 << 20)
     for spec, words in (("nolabel.json", "LABEL=FILE.json"), (f"x={tmp_path / 'torn.json'}", "not a probe result"),
                         (f"x={tmp_path / 'other.json'}", "not a probe result"), (f"x={big}", "under 64 MiB"),
+                        (f"x={tmp_path / 'rows.json'}", "not a probe result"),
                         (f"x={tmp_path}", "not a probe result")):
         with pytest.raises(SystemExit) as stop:
             libero_probe.main(["--table", spec])
