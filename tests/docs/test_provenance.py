@@ -50,6 +50,7 @@ DOCS_MEASURED = (
     ("docs/perturbations.md", "## Measured: the wrist camera, with reliance"),
     ("docs/perturbations.md", "## Measured: the scene cells, with reliance"),
     ("docs/libero-reference.md", "## Grasp probe: what each lever changes"),
+    ("docs/libero-reference.md", "## Swapped-instruction demonstrations: the grounding lever"),
     ("docs/libero-reference.md", "## The reference checkpoint"),
     ("docs/phases-and-position.md", "## Cost"),
     ("docs/phases-and-position.md", "## Reference policy: results"),
