@@ -212,7 +212,7 @@ def append_swaps(demos: dict[str, dict[str, np.ndarray]], swap_dir: str | Path,
             extra = {k: v[frames] for k, v in arrays.items() if k not in ("named", "seeds", "lengths") and len(v) == len(frames)}
             extra["episode"] = np.repeat(np.arange(int(keep.sum()), dtype=np.int32), arrays["lengths"][keep])
             extra.update(seeds=arrays["seeds"][keep], lengths=arrays["lengths"][keep])
-            named = LIBERO_OBJECT_TASKS[int(index)]
+            named = LIBERO_OBJECT_TASKS[int(index)] if 0 <= index < len(LIBERO_OBJECT_TASKS) else f"task number {index}"
             if named not in demos:
                 raise ValueError(f"{swap_dir}/{task_file(scene)} names {named}, which has no demonstrations here")
             demos = append_episodes(demos, named, extra, f"{swap_dir}/{task_file(scene)}")

@@ -74,9 +74,8 @@ def _actor(model_dir: str | None, task: str, max_steps: int, radii: str = "", la
 
 def _probe_job(args: tuple) -> list[dict]:
     """Spawned worker: one task's episodes from stored states `states` -> a row each."""
-    from harness.reference.libero_expert import LiberoExpertConfig, _geometry
-
     from harness.reference.libero_demos import placed_alone
+    from harness.reference.libero_expert import LiberoExpertConfig, _geometry
 
     model_dir, task, states, max_steps, radii, language = args
     env, target, instruction, reset, act = _actor(model_dir, task, max_steps, radii, language)
@@ -280,7 +279,10 @@ def main(argv: list[str] | None = None) -> int:
         if Path(args.out).is_dir():
             parser.error(f"--out {args.out} is a folder; give a file name such as probe.json")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    tasks = tuple(args.tasks.split(","))
+    tasks = tuple(t.strip() for t in args.tasks.split(","))
+    if not tasks or any(t not in LIBERO_OBJECT_TASKS for t in tasks):
+        parser.error(f"--tasks {args.tasks!r}: LIBERO-Object tasks, e.g. libero_object/0,libero_object/6 (the probe "
+                     "reads their basket and named objects)")
     language = "" if args.language == "own" else args.language
     key = probe_key(args.model, states, tasks, args.max_steps, args.expert_radii, language)
     done = _finished(args.out, key) if args.out else None

@@ -256,6 +256,9 @@ def test_swapped_instruction_demonstrations_go_to_the_task_they_name(tmp_path):
     np.savez(tmp_path / "libero_object_0.npz", **frames([2], named=[5]))
     with pytest.raises(ValueError, match="names libero_object/5, which has no demonstrations"):
         append_swaps(demos, tmp_path, ("libero_object/0",))
+    np.savez(tmp_path / "libero_object_0.npz", **frames([2], named=[99]))  # an edited file
+    with pytest.raises(ValueError, match="names task number 99, which has no demonstrations"):
+        append_swaps(demos, tmp_path, ("libero_object/0",))
 
 
 def test_libero_dagger_seeds_are_their_own_block_and_bad_counts_are_refused():
@@ -318,6 +321,8 @@ def test_the_grasp_probe_summary_known_answers_and_bad_arguments_are_one_line(tm
     for argv, words in ((["--model", "/nonexistent"], "no checkpoint there"), (["--expert", "--states", "0,x"], "--states"),
                         (["--expert", "--states", "50"], "50 stored states"),
                         (["--expert", "--language", "paraphrase"], "--language"),
+                        (["--expert", "--tasks", "libero_goal/0"], "LIBERO-Object tasks"),
+                        (["--expert", "--language", "swap", "--tasks", "libero_object/11"], "LIBERO-Object tasks"),
                         (["--expert", "--out", str(tmp_path)], "is a folder"),
                         (["--expert", "--out", str(tmp_path / "file" / "probe.json")], "cannot write there")):
         with pytest.raises(SystemExit) as stop:
