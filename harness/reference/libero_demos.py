@@ -136,6 +136,12 @@ def swap_candidates(task: str, movable, tasks: tuple[str, ...] = LIBERO_OBJECT_T
     return [t for t in others if get_libero_task(t).targets[0] in set(movable)]
 
 
+def evaluation_swap(task: str, movable, tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS) -> str | None:
+    """The task whose instruction the evaluation's swap tells scene `task`: swap_candidates' first, or None."""
+    candidates = swap_candidates(task, movable, tasks)
+    return candidates[0] if candidates else None
+
+
 def placed_alone(env, target: str) -> bool:
     """Whether `target`, and no other object, is in the task's goal (the basket), released (not held)."""
     outcome = env.episode_outcome()

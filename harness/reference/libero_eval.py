@@ -32,13 +32,13 @@ def scene_objects(task: str) -> list[str]:
 def swaps(tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS) -> dict[str, str]:
     """{scene task: the instruction of the next task whose named object the scene also holds}."""
     from envs.libero_tasks import get_libero_task
-    from harness.reference.libero_demos import swap_candidates
+    from harness.reference.libero_demos import evaluation_swap
 
     out = {}
     for task in tasks:
-        candidates = swap_candidates(task, scene_objects(task), tasks)
-        if candidates:
-            out[task] = get_libero_task(candidates[0]).instruction
+        other = evaluation_swap(task, scene_objects(task), tasks)
+        if other is not None:
+            out[task] = get_libero_task(other).instruction
     return out
 
 

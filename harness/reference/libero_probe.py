@@ -43,7 +43,7 @@ def _actor(model_dir: str | None, task: str, max_steps: int, radii: str = "", la
     `language="swap"` the instruction and the target are those of the scene's swap (harness.reference.libero_eval:
     the next task whose named object the scene holds); else the task's own (instruction None)."""
     from envs.libero_tasks import get_libero_task
-    from harness.reference.libero_demos import swap_candidates
+    from harness.reference.libero_demos import evaluation_swap
     from harness.reference.libero_expert import LiberoObjectLabeller
 
     if model_dir is None:
@@ -57,11 +57,11 @@ def _actor(model_dir: str | None, task: str, max_steps: int, radii: str = "", la
         env, policy = policy_in_env(model_dir, task, max_steps)
     named, instruction = get_libero_task(task), None
     if language == "swap":
-        try:
-            named = get_libero_task(swap_candidates(task, env.description.get("movable", env.description["objects"]))[0])
-        except IndexError:
+        other = evaluation_swap(task, env.description.get("movable", env.description["objects"]))
+        if other is None:
             env.close()
-            raise ValueError(f"{task}: its scene holds no other task's named object, so it has no swap") from None
+            raise ValueError(f"{task}: its scene holds no other task's named object, so it has no swap")
+        named = get_libero_task(other)
         instruction = named.instruction
     target = named.targets[0]
     if model_dir is None:
