@@ -70,6 +70,27 @@ def grasp_step(executed: np.ndarray) -> int:
     return int(closed[0]) if closed.size else -1
 
 
+STALL_QUIET = 0.3  # a translation command below this (of the OSC's [-1, 1]) on every axis: the hand barely moves
+STALL_STEPS = 100  # a stall this long (5 s at 20 Hz) is counted as the episode's failure mode ("stalled open")
+
+
+def longest_stall(executed: np.ndarray, quiet: float = STALL_QUIET) -> tuple[int, int]:
+    """(first step, length) of the longest run of steps, after the first close, whose executed gripper command is
+    open and whose translation commands are all below `quiet` in magnitude: the policy waiting open over the scene
+    instead of grasping again. (0, 0) when there is none or the gripper never closes."""
+    executed = np.asarray(executed, np.float64)
+    first = grasp_step(executed)
+    if first < 0 or executed.shape[1] < 4:
+        return 0, 0
+    waiting = (executed[first:, -1] >= CLOSED_BELOW) & (np.abs(executed[first:, :3]).max(axis=1) < quiet)
+    edges = np.diff(np.concatenate([[0], waiting.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    if not starts.size:
+        return 0, 0
+    k = int(np.argmax(ends - starts))
+    return first + int(starts[k]), int(ends[k] - starts[k])
+
+
 def _object_measures(z, camera: str) -> tuple[list[str], np.ndarray, np.ndarray]:
     """(object names, mass (steps, layers, objects), area (steps, objects)) of one camera from attention.npz."""
     prefix = f"measures/layer/mask_mass/{camera}/{MASK_PREFIX}"

@@ -11,9 +11,10 @@ masks): success; the first step whose gripper command closes; there, the hand's 
 from the named object's grasp point (the expert's, harness.reference.libero_expert); whether the fingers held the
 named object at any step (both pads touching), and lifted it (its bottom 3 cm above where it stood); the movable
 object horizontally nearest the hand at the first close (which one the grasp went for); the object picked at the end
-(`episode_outcome`). The summary gives
+(`episode_outcome`); the longest stall after the first close (gripper commanded open, hand barely commanded:
+harness.analysis.grounding.longest_stall) and where the hand was in its middle. The summary gives
 the success rate, the median reach error at the first close, the grasp rate (named object held at some step), the
-lift rate and the rate of ending with another object. Episodes run in spawned processes, one job a task, so the numbers do not
+lift rate, the rate of ending with another object and the rate of stalling open for 100 steps or more. Episodes run in spawned processes, one job a task, so the numbers do not
 depend on the workers.
 """
 
@@ -27,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.analysis.grounding import STALL_STEPS, longest_stall
 from harness.files import atomic_write_json, json_safe
 from harness.reference.libero_demos import LIBERO_OBJECT_TASKS
 from harness.reference.libero_expert import with_radii
@@ -90,8 +92,10 @@ def _probe_job(args: tuple) -> list[dict]:
             if instruction is not None:
                 row["instruction"] = instruction
             floor = env.object_poses()[target]["low"][2]
+            executed, where = [], []  # each step's action; the hand and the named object's box after it
             for step in range(max_steps):
                 action = np.asarray(act(obs), np.float64)
+                executed.append(action)
                 if row["first_close"] is None and action[-1] < 0.5:  # the "libero" gripper: 1 open, 0 closed
                     poses = env.object_poses()
                     grasp = _geometry(poses, target, "basket_1", LiberoExpertConfig())["grasp"]
@@ -100,18 +104,73 @@ def _probe_job(args: tuple) -> list[dict]:
                                reach_z_cm=round(float(hand[2] - grasp[2]) * 100, 2),
                                nearest_at_close=_nearest(poses, hand, movable))
                 obs, _, terminated, truncated, info = env.step(action)
+                box = env.object_poses()[target]
+                where.append((np.asarray(obs["proprio"][:3], np.float64), box["low"], box["high"]))
                 row["held_named"] = row["held_named"] or bool(env.grasping(target))
-                row["lifted_named"] = row["lifted_named"] or bool(env.object_poses()[target]["low"][2] > floor + LIFTED)
+                row["lifted_named"] = row["lifted_named"] or bool(box["low"][2] > floor + LIFTED)
                 row["steps"] = step + 1
                 # a swap succeeds when the named object, alone, is in the basket (the scene's own predicate ends it)
                 row["success"] = bool(info["success"]) if instruction is None else placed_alone(env, target)
                 if row["success"] or terminated or truncated:
                     break
             row["picked"] = env.episode_outcome()["picked_object"]
+            row.update(stall_measures(executed, where))
             rows.append(row)
     finally:
         env.close()
     return rows
+
+
+def stall_measures(executed: list, where: list) -> dict:
+    """The episode's longest stall (harness.analysis.grounding.longest_stall: gripper open, hand barely commanded,
+    after the first close) in steps, and where the hand was in its middle step: horizontally from the named object's
+    box centre and vertically above the box's top, in cm (None without a stall)."""
+    start, length = longest_stall(np.asarray(executed, np.float64).reshape(len(executed), -1))
+    out = {"stall_steps": length, "stall_xy_cm": None, "stall_above_top_cm": None}
+    if length:
+        hand, low, high = where[start + length // 2]
+        centre = (np.asarray(low, np.float64) + np.asarray(high, np.float64)) / 2
+        out.update(stall_xy_cm=round(float(np.linalg.norm(hand[:2] - centre[:2])) * 100, 2),
+                   stall_above_top_cm=round(float(hand[2] - high[2]) * 100, 2))
+    return out
+
+
+def run_stalls(run_dir) -> list[tuple[str, int, int, int]]:
+    """(task, finished episodes, failed, failed that stalled open STALL_STEPS+ steps) per task of a LIBERO run
+    folder, read through harness.analysis.runs (an untrusted folder: a file that does not match its row is one
+    line, exit 2). Refuses a run whose actions are not the "libero" action space (another gripper convention)."""
+    from harness.analysis.runs import MalformedRunError, load_run
+    from harness.bounded import open_npz
+
+    record = load_run(run_dir)
+    env = record.manifest.get("protocol", {}).get("env", {}) if isinstance(record.manifest.get("protocol"), dict) else {}
+    if not isinstance(env, dict) or env.get("action_space") != "libero":
+        raise MalformedRunError(f"{record.path}: not a run in the libero action space (its gripper: 1 open, 0 closed); "
+                                "--stalls reads LIBERO runs such as the reference's published evaluation")
+    rows = []
+    for task in record.tasks:
+        episodes = [e for e in record.task_episodes(task) if e.ok]
+        failed = [e for e in episodes if not e.success]
+        stalled = 0
+        for e in failed:
+            try:
+                with open_npz(e.directory / "actions.npz") as z:
+                    executed = np.asarray(z["executed"], np.float64)
+            except (OSError, ValueError, KeyError) as exc:
+                raise MalformedRunError(f"{e.directory / 'actions.npz'}: unreadable ({str(exc).splitlines()[0]})") from None
+            if executed.ndim != 2 or executed.shape[1] != 7:
+                raise MalformedRunError(f"{e.directory / 'actions.npz'}: 'executed' is {executed.shape}, not steps x 7")
+            stalled += longest_stall(executed)[1] >= STALL_STEPS
+        rows.append((task, len(episodes), len(failed), stalled))
+    return rows
+
+
+def stall_table(rows: list[tuple[str, int, int, int]]) -> str:
+    lines = ["| task | episodes | failed | failed, stalled open " + f"{STALL_STEPS}+ steps |", "|---|---|---|---|"]
+    lines += [f"| {task} | {n} | {failed} | {stalled} |" for task, n, failed, stalled in rows]
+    total = [sum(r[i] for r in rows) for i in (1, 2, 3)]
+    lines.append(f"| all | {total[0]} | {total[1]} | {total[2]} |")
+    return "\n".join(lines)
 
 
 def _nearest(poses: dict, hand: np.ndarray, movable: list[str]) -> str | None:
@@ -143,7 +202,18 @@ def summarise(rows: list[dict]) -> dict:
                                    if nearest else None),
             # of the episodes that ended with an object in the basket or the hand: it was the named one
             "picked_named_rate": sum(r["picked"] == r["target"] for r in picked) / len(picked) if picked else None,
-            "picked": len(picked), "successes_per_task": per_task}
+            "picked": len(picked), "successes_per_task": per_task, **_stalls(rows)}
+
+
+def _stalls(rows: list[dict]) -> dict:
+    """How many episodes stalled open for STALL_STEPS or more, and where the hand was then (medians, cm); None
+    for results made before the stall was measured."""
+    if not rows or any("stall_steps" not in r for r in rows):
+        return {"stalled": None, "stall_rate": None, "median_stall_xy_cm": None, "median_stall_above_top_cm": None}
+    stalled = [r for r in rows if r["stall_steps"] >= STALL_STEPS]
+    return {"stalled": len(stalled), "stall_rate": len(stalled) / len(rows),
+            "median_stall_xy_cm": float(np.median([r["stall_xy_cm"] for r in stalled])) if stalled else None,
+            "median_stall_above_top_cm": float(np.median([r["stall_above_top_cm"] for r in stalled])) if stalled else None}
 
 
 def probe(model_dir: str | None, states: list[int], tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS, workers: int = 2,
@@ -187,7 +257,7 @@ def _finished(path: str, key: dict) -> dict | None:
 
 TABLE_COLUMNS = ("lever", "episodes", "success", "median reach at first close (cm)", "first close (step)",
                  "closed nearest the named object", "grasp rate", "lift rate", "ended with another object",
-                 "picked the named object (of those picked)")
+                 "picked the named object (of those picked)", f"stalled open {STALL_STEPS}+ steps")
 
 
 def _rate(value) -> str:
@@ -200,6 +270,15 @@ def _picked(summary: dict) -> str:
     return f"{_rate(summary['picked_named_rate'])} of {summary['picked']}"
 
 
+def _stalled(summary: dict) -> str:
+    if summary.get("stall_rate") is None:  # a result made before the stall was measured
+        return "-"
+    if not summary["stalled"]:
+        return "0%"
+    return (f"{_rate(summary['stall_rate'])} (hand {summary['median_stall_xy_cm']:.1f} cm off the object, "
+            f"{summary['median_stall_above_top_cm']:.1f} cm above its top)")
+
+
 def lever_table(entries: list[tuple[str, dict]]) -> str:
     """Markdown table of probe results, one row per (label, probe result) in the given order."""
     lines = ["| " + " | ".join(TABLE_COLUMNS) + " |", "|" + "---|" * len(TABLE_COLUMNS)]
@@ -209,7 +288,7 @@ def lever_table(entries: list[tuple[str, dict]]) -> str:
         first = "-" if s["median_first_close"] is None else f"{s['median_first_close']:.0f}"
         lines.append("| " + " | ".join([label, str(s["episodes"]), f"{s['successes']}/{s['episodes']}", reach, first,
                                         _rate(s.get("nearest_named_rate")), _rate(s["grasp_rate"]), _rate(s["lift_rate"]),
-                                        _rate(s["other_object_rate"]), _picked(s)]) + " |")
+                                        _rate(s["other_object_rate"]), _picked(s), _stalled(s)]) + " |")
     return "\n".join(lines)
 
 
@@ -226,7 +305,7 @@ def _load_table_entry(spec: str, parser: argparse.ArgumentParser) -> tuple[str, 
         for key in ("episodes", "successes", "median_reach_xy_cm", "closed", "median_first_close", "grasp_rate",
                     "lift_rate", "other_object_rate"):
             summary[key]
-        if "picked" not in summary and isinstance(result.get("episodes"), list):
+        if ("picked" not in summary or "stall_rate" not in summary) and isinstance(result.get("episodes"), list):
             # a result made before a column was added: summarised again from its rows, so every column is filled
             result = {**result, "summary": summarise(result["episodes"])}
     except (ValueError, KeyError, TypeError, AttributeError, UnicodeDecodeError):
@@ -241,6 +320,9 @@ def main(argv: list[str] | None = None) -> int:
     who.add_argument("--expert", action="store_true", help="the state-based expert acts (the yardstick)")
     who.add_argument("--table", nargs="+", metavar="LABEL=FILE.json",
                      help="print the lever table (markdown) of probe results that --out wrote, in this order")
+    who.add_argument("--stalls", metavar="RUN_DIR",
+                     help="print, per task of a LIBERO run folder (the libero action space), how many failed episodes "
+                          f"stalled open {STALL_STEPS}+ steps, from their actions.npz (markdown)")
     parser.add_argument("--expert-radii", default="", metavar="NAME=METRES,...",
                         help="with --expert: its radii (centred, at_grasp, grasp_height), e.g. grasp_height=0.004 "
                              "[LiberoExpertConfig's]")
@@ -255,6 +337,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.table:
         print(lever_table([_load_table_entry(spec, parser) for spec in args.table]))
+        return 0
+    if args.stalls:
+        from harness.analysis.runs import MalformedRunError, NotARunError
+
+        try:
+            print(stall_table(run_stalls(args.stalls)))
+        except (NotARunError, MalformedRunError) as exc:
+            parser.error(f"--stalls {args.stalls}: {str(exc).splitlines()[0]}")
         return 0
     try:
         states = [int(s) for s in args.states.split(",")]

@@ -351,12 +351,13 @@ def test_the_lever_table_reads_probe_results_in_order_and_refuses_foreign_files(
     (tmp_path / "b.json").write_text(json.dumps({"summary": libero_probe.summarise(rows[1:])}))
     assert libero_probe.main(["--table", f"second={tmp_path / 'a.json'}", f"first={tmp_path / 'b.json'}"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[2] == "| second | 2 | 1/2 | 1.0 (1 closed) | 30 | - | 50% | 50% | 0% | 100% of 1 |"  # made before "nearest"
-    assert lines[3] == "| first | 1 | 0/1 | - | - | - | 0% | 0% | 0% | 0 picked |" and len(lines) == 4
+    # made before "nearest" and the stall: "-"
+    assert lines[2] == "| second | 2 | 1/2 | 1.0 (1 closed) | 30 | - | 50% | 50% | 0% | 100% of 1 | - |"
+    assert lines[3] == "| first | 1 | 0/1 | - | - | - | 0% | 0% | 0% | 0 picked | - |" and len(lines) == 4
     old = {k: v for k, v in libero_probe.summarise(rows).items() if k not in ("picked", "picked_named_rate")}
     (tmp_path / "old.json").write_text(json.dumps({"summary": old, "episodes": rows}))  # made before the last column
     assert libero_probe.main(["--table", f"old={tmp_path / 'old.json'}"]) == 0
-    assert capsys.readouterr().out.splitlines()[2].endswith("| 0% | 100% of 1 |")  # summarised again from its rows
+    assert capsys.readouterr().out.splitlines()[2].endswith("| 0% | 100% of 1 | - |")  # summarised again from its rows
     (tmp_path / "rows.json").write_text(json.dumps({"summary": old, "episodes": [1, 2]}))
     (tmp_path / "torn.json").write_text('{"summary": {"episodes": 3')
     (tmp_path / "other.json").write_text('{"summary": [1, 2]}')
@@ -370,6 +371,93 @@ def test_the_lever_table_reads_probe_results_in_order_and_refuses_foreign_files(
         with pytest.raises(SystemExit) as stop:
             libero_probe.main(["--table", spec])
         assert stop.value.code == 2 and words in capsys.readouterr().err
+
+
+def _stall_actions(stall: int, close_at: int = 10, steps: int = 280) -> np.ndarray:
+    """Libero actions: approach open, close at `close_at` for 5 steps, then `stall` steps open and barely moving,
+    then open and moving (|z| 0.9) to the end."""
+    a = np.zeros((steps, 7))
+    a[:, 2], a[:, 6] = -0.9, 1.0
+    a[close_at:close_at + 5, 6] = 0.0
+    a[close_at + 5:close_at + 5 + stall, :3] = [0.1, -0.29, 0.05]
+    return a
+
+
+def test_a_stall_is_the_longest_open_and_quiet_run_after_the_first_close_and_the_probe_tables_it(tmp_path, capsys):
+    from harness.reference import libero_probe
+
+    assert G.longest_stall(_stall_actions(120)) == (15, 120)
+    assert G.longest_stall(_stall_actions(0)) == (0, 0)
+    before = _stall_actions(0, close_at=60)
+    before[:55, :3] = 0.0  # quiet and open before the first close: approaching, not stalling
+    assert G.longest_stall(before) == (0, 0)
+    never = _stall_actions(0)
+    never[:, 6] = 1.0
+    never[:, :3] = 0.0
+    assert G.longest_stall(never) == (0, 0)  # never closed
+    closed = _stall_actions(120)
+    closed[60, 6] = 0.2  # one close in the middle splits it: the longest part counts
+    assert G.longest_stall(closed) == (61, 74)
+    loud = _stall_actions(120)
+    loud[40:, 1] = -0.3  # at the threshold: moving
+    assert G.longest_stall(loud) == (15, 25)
+    # where the hand was at the stall's middle step, from the named object's box (centre (0, 0), top 0.10 m)
+    actions = _stall_actions(100, steps=130)
+    where = [(np.array([0.03, 0.04, 0.10 + 0.001 * k]), np.array([-0.02, -0.02, 0.0]), np.array([0.02, 0.02, 0.10]))
+             for k in range(130)]
+    m = libero_probe.stall_measures(list(actions), where)
+    assert m == {"stall_steps": 100, "stall_xy_cm": 5.0, "stall_above_top_cm": pytest.approx(6.5)}  # step 15 + 50
+    assert libero_probe.stall_measures(list(_stall_actions(0)), where * 3)["stall_xy_cm"] is None
+    rows = [dict(task="t/0", target="a", first_close=10, reach_xy_cm=1.0, held_named=False, lifted_named=False,
+                 success=False, picked=None, stall_steps=s, stall_xy_cm=xy, stall_above_top_cm=z)
+            for s, xy, z in ((150, 2.0, 1.0), (100, 4.0, 3.0), (99, 9.0, 9.0), (0, None, None))]
+    s = libero_probe.summarise(rows)
+    assert (s["stalled"], s["stall_rate"], s["median_stall_xy_cm"], s["median_stall_above_top_cm"]) == (2, 0.5, 3.0, 2.0)
+    assert libero_probe.summarise(rows[2:])["stalled"] == 0
+    assert libero_probe.summarise([{**rows[0], "stall_steps": 0}, {k: v for k, v in rows[1].items() if k != "stall_steps"}])["stalled"] is None
+    (tmp_path / "p.json").write_text(json.dumps({"summary": s}))
+    assert libero_probe.main(["--table", f"p={tmp_path / 'p.json'}"]) == 0
+    assert capsys.readouterr().out.splitlines()[2].endswith("| 50% (hand 3.0 cm off the object, 2.0 cm above its top) |")
+
+
+def _libero_run(folder, episodes: dict, action_space: str = "libero"):
+    """A LIBERO run folder by hand (rows without digests: read unverified): {task: [(success, actions)]}."""
+    from tests.analysis.test_compare_outcomes import PROTOCOL, write_run
+
+    protocol = {**PROTOCOL, "env": {**PROTOCOL["env"], "action_space": action_space}}
+    write_run(folder, {t: [ok for ok, _ in eps] for t, eps in episodes.items()}, protocol=protocol)
+    rows = [json.loads(line) for line in (folder / "results.jsonl").read_text().splitlines()]
+    for row in rows:  # the steps each row records are its actions' (the store checks them)
+        row["steps"] = len(episodes[row["task"]][row["episode"]][1])
+    (folder / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    for task, eps in episodes.items():
+        for k, (_, actions) in enumerate(eps):
+            (folder / task / f"episode_{k}").mkdir(parents=True)
+            np.savez(folder / task / f"episode_{k}" / "actions.npz", executed=actions)
+            np.savez(folder / task / f"episode_{k}" / "attention.npz", steps=np.arange(len(actions)))
+    return folder
+
+
+def test_stalls_of_a_run_folder_count_its_failed_episodes_and_other_runs_are_one_line(tmp_path, capsys):
+    from harness.reference import libero_probe
+
+    run = _libero_run(tmp_path / "run", {
+        "libero_object/0": [(False, _stall_actions(130)), (False, _stall_actions(99)), (True, _stall_actions(200))],
+        "libero_object/8": [(False, _stall_actions(100))]})
+    assert libero_probe.run_stalls(run) == [("libero_object/0", 3, 2, 1), ("libero_object/8", 1, 1, 1)]
+    assert libero_probe.main(["--stalls", str(run)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[2] == "| libero_object/0 | 3 | 2 | 1 |" and out[-1] == "| all | 4 | 3 | 2 |"
+    other = _libero_run(tmp_path / "robosuite", {"Lift": [(False, _stall_actions(130))]}, action_space="octo-delta")
+    torn = _libero_run(tmp_path / "torn", {"libero_object/0": [(False, _stall_actions(130))]})
+    (torn / "libero_object/0/episode_0/actions.npz").write_bytes(b"PK\x03\x04 not a zip")
+    wide = _libero_run(tmp_path / "wide", {"libero_object/0": [(False, np.zeros((280, 9)))]})
+    for folder, words in ((other, "not a run in the libero action space"), (torn, "actions.npz"),
+                          (wide, "not steps x 7"), (tmp_path / "none", "does not exist"), (tmp_path, "pass one of them")):
+        with pytest.raises(SystemExit) as stop:
+            libero_probe.main(["--stalls", str(folder)])
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and words in err and "Traceback" not in err
 
 
 def test_a_probe_result_is_reused_only_for_the_same_checkpoint_states_tasks_and_limit(tmp_path, capsys):
@@ -418,6 +506,7 @@ def test_the_grasp_probe_measures_the_expert_as_a_yardstick_and_runs_the_committ
     assert row["success"] and row["held_named"] and row["lifted_named"] and row["picked"] == row["target"]
     assert row["nearest_at_close"] == row["target"] and expert["summary"]["nearest_named_rate"] == 1.0
     assert row["reach_xy_cm"] < 1.0 and abs(row["reach_z_cm"]) < 1.5 and 10 < row["first_close"] < row["steps"]
+    assert row["stall_steps"] < 20 and expert["summary"]["stalled"] == 0  # it closes, lifts and places: no waiting
     # told the swap (scene /0 hears /1's instruction): the expert picks the cream cheese, which alone ends in the
     # basket, so the swap succeeds though the scene's own predicate (the alphabet soup) never holds
     swapped = libero_probe.probe(None, [0], ("libero_object/0",), workers=1, language="swap")
