@@ -14,6 +14,8 @@ With `--dagger-episodes N`, (2) writes `<data>/stage1`, which then runs N episod
 placements while the state-based expert labels every state it visits (harness.reference.libero_dagger, into
 `<data>/dagger`), and (3) fine-tunes from it on demonstrations + corrections (states near the grasp drawn more
 often) into `--out`; `--dagger-rounds R` repeats (3) with each round's checkpoint acting (pipeline.dagger_rounds).
+With `--dagger-retrain`, (3) trains anew as (2) did (its steps, learning rate and warm start) on demonstrations +
+corrections instead of fine-tuning the acting checkpoint.
 With `--swaps N`, (1) also records N swapped-instruction demonstrations per task into `<data>/swaps` (in a task's
 scene the expert picks another task's named object that the scene holds; libero_demos.append_swaps files each under
 the task it named, so it trains with that instruction): a layout then no longer tells which object to pick.
@@ -55,6 +57,7 @@ RECIPE_STEPS = {"first": DEFAULT_STEPS, "second": 6000}  # as the robosuite refe
 # where each recipe's policy is committed: `--recipe first` without --out must not overwrite the reference
 RECIPE_OUT = {"first": "models/octo-reference-libero-object-first", "second": "models/octo-reference-libero-object"}
 DEFAULT_INIT = "models/octo-reference-robosuite"
+DAGGER_STEPS, DAGGER_LEARNING_RATE = 1500, 3e-4  # a DAgger round's fine-tuning (without --dagger-retrain)
 
 
 def conventions_toml(cameras=LIBERO_CAMERAS) -> str:
@@ -135,10 +138,14 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--dagger-close-below-top", type=float, default=None, metavar="METRES",
                         help="the DAgger labeller closes only with the hand this far below the object's top "
                              "[--close-below-top's: the demonstrator's]")
-    parser.add_argument("--dagger-steps", type=int, default=1500, help="fine-tuning steps of each DAgger round")
+    parser.add_argument("--dagger-steps", type=int, default=None, help="fine-tuning steps of each DAgger round [1500]")
     parser.add_argument("--dagger-rounds", type=int, default=1,
                         help="DAgger rounds, each acting with the previous round's checkpoint [1]")
-    parser.add_argument("--dagger-learning-rate", type=float, default=3e-4, help="peak learning rate of the DAgger round")
+    parser.add_argument("--dagger-learning-rate", type=float, default=None,
+                        help="peak learning rate of the DAgger round's fine-tuning [3e-4]")
+    parser.add_argument("--dagger-retrain", action="store_true",
+                        help="each DAgger round trains anew on demonstrations + corrections, as stage 1 did (--steps, "
+                             "--learning-rate, --init-from), instead of fine-tuning the acting checkpoint")
     parser.add_argument("--task-weights", default="", metavar="TASK=W,...",
                         help="batches draw these tasks W times as often as the others (e.g. libero_object/0=3) [none]")
     parser.add_argument("--init-from", default=DEFAULT_INIT, metavar="CHECKPOINT",
@@ -152,6 +159,13 @@ def _checked(parser: argparse.ArgumentParser, argv: list[str] | None):
     args = parser.parse_args(argv)
     args.steps = RECIPE_STEPS[args.recipe] if args.steps is None else args.steps
     args.out = RECIPE_OUT[args.recipe] if args.out is None else args.out
+    if args.dagger_retrain and (args.dagger_steps is not None or args.dagger_learning_rate is not None):
+        parser.error("--dagger-retrain trains each round with --steps and --learning-rate: leave out --dagger-steps "
+                     "and --dagger-learning-rate (they set a fine-tuning)")
+    if args.dagger_retrain and not args.dagger_episodes:
+        parser.error("--dagger-retrain sets how a DAgger round trains: give it with --dagger-episodes N")
+    args.dagger_steps = DAGGER_STEPS if args.dagger_steps is None else args.dagger_steps
+    args.dagger_learning_rate = DAGGER_LEARNING_RATE if args.dagger_learning_rate is None else args.dagger_learning_rate
     if (args.episodes is not None and args.episodes < 2) or args.steps < 1 or args.batch_size < 1 or not args.learning_rate > 0 \
             or args.dagger_steps < 1 or not args.dagger_learning_rate > 0 or not 1 <= args.dagger_rounds <= 9 \
             or not 0 <= args.swaps <= 1000:
@@ -227,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
             collect=lambda model, out, r: libero_dagger.collect(model, out, of_round(r), workers=args.workers),
             existing=lambda model, out, r: libero_dagger.existing(of_round(r), model, out),
             append=lambda d, out: libero_dagger.append_all(d, out, dagger_config.tasks),
-            steps=args.dagger_steps, learning_rate=args.dagger_learning_rate,
+            steps=args.dagger_steps, learning_rate=args.dagger_learning_rate, retrain=args.dagger_retrain,
             what=f"{dagger_config.episodes} episodes on each of {len(dagger_config.tasks)} tasks", train_kwargs=train_kwargs)
     result["demonstrations"] = summary
     result["pipeline_seconds_this_run"] = time.perf_counter() - start

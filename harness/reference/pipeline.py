@@ -112,14 +112,17 @@ def dagger_round(demos: dict, train_config: TrainConfig, data_dir: str | Path, o
 
 def dagger_rounds(demos: dict, train_config: TrainConfig, data_dir: str | Path, out: str | Path, *, rounds: int,
                   collect, existing, append, steps: int, learning_rate: float, what: str,
-                  train_kwargs: dict | None = None) -> dict:
+                  train_kwargs: dict | None = None, retrain: bool = False) -> dict:
     """Behaviour cloning into `<data_dir>/stage1`, then `rounds` DAgger rounds. Round r: the latest checkpoint
     (stage 1, then `<data_dir>/round<r-1>`) acts and the expert labels the states it visits (`collect(model, folder,
     r)` into `<data_dir>/dagger` for round 1 and `<data_dir>/dagger<r>` after; reused when `existing(model, folder,
     r)` finds a finished one), then fine-tuning from that checkpoint on the demonstrations + every round's
     corrections so far (`append(demos, folder)` each) for `steps` at peak `learning_rate`, with training seed + r and
     the demonstrations' normalisation, into `<data_dir>/round<r>` (the last round: into `out`). Every finished
-    stage is reused, so a stopped build resumes at the stage it was in. Returns the last fine-tuning's summary with
+    stage is reused, so a stopped build resumes at the stage it was in. `retrain`: each round trains anew instead,
+    with `train_config` as stage 1 did (its steps, learning rate and warm start; seed + r), on the demonstrations +
+    corrections, so the corrections are learnt together with everything else rather than by a fine-tuning that moves
+    the whole policy (`steps` and `learning_rate` unused). Returns the last fine-tuning's summary with
     "stage1" and "dagger" (the last round's collection) and "rounds" (per round: collection and final loss)."""
     train_kwargs = train_kwargs or {}
     stage1 = Path(data_dir) / "stage1"
@@ -138,8 +141,9 @@ def dagger_rounds(demos: dict, train_config: TrainConfig, data_dir: str | Path, 
         else:
             log.info("reusing the corrections in %s (collected in %.0f s)", corrections, collected["seconds"])
         data = append(data, corrections)
-        fine_tune = replace(train_config, steps=steps, learning_rate=learning_rate, seed=train_config.seed + r,
-                            init_from=str(model))
+        fine_tune = (replace(train_config, seed=train_config.seed + r) if retrain else
+                     replace(train_config, steps=steps, learning_rate=learning_rate, seed=train_config.seed + r,
+                             init_from=str(model)))
         target = Path(out) if r == rounds else Path(data_dir) / f"round{r}"
         result = finished_training(target, fine_tune, data) if r < rounds else None
         if result is None:

@@ -798,6 +798,13 @@ def test_a_dagger_round_trains_stage_1_collects_once_then_fine_tunes_on_demonstr
     # stage 1 reused from above; round 1's checkpoint acts in round 2
     assert acted == [(1, tmp_path / "data" / "stage1", "dagger"), (2, tmp_path / "data" / "round1", "dagger2")]
     assert (tmp_path / "data" / "round1" / "2" / "default" / "checkpoint").is_file()
+    # retrain: the round trains as stage 1 did (its steps, learning rate and warm start, seed + 1), not from stage 1
+    anew = dagger_rounds(demos, replace(config, steps=3), tmp_path / "data2", tmp_path / "out4", rounds=1,
+                         collect=collect_round, existing=lambda model, out, r: None, append=append, steps=2,
+                         learning_rate=1e-4, what="test", train_kwargs=kwargs, retrain=True)
+    assert anew["config"] == {**anew["stage1"]["config"], "seed": config.seed + 1} and anew["frames"] == 11
+    assert anew["config"]["steps"] == 3 and anew["config"]["init_from"] is None
+    assert (tmp_path / "out4" / "3" / "default" / "checkpoint").is_file()
     assert two["frames"] == 16 and two["config"]["seed"] == config.seed + 2
     assert two["config"]["init_from"] == str(tmp_path / "data" / "round1") and len(two["rounds"]) == 2
 

@@ -243,6 +243,33 @@ def test_pipeline_refuses_a_swap_count_out_of_range_in_one_line(value, capsys):
     assert "--swaps" in line
 
 
+@pytest.mark.parametrize("flags,words", [(["--dagger-retrain"], "give it with --dagger-episodes N"),
+                                         (["--dagger-episodes", "6", "--dagger-retrain", "--dagger-steps", "100"],
+                                          "leave out --dagger-steps"),
+                                         (["--dagger-episodes", "6", "--dagger-retrain", "--dagger-learning-rate", "1e-4"],
+                                          "leave out --dagger-steps")])
+def test_pipeline_refuses_a_fine_tuning_setting_beside_retrain_in_one_line(flags, words, capsys):
+    from harness.reference.libero_pipeline import _checked, _parser
+
+    with pytest.raises(SystemExit) as exit_info:
+        _checked(_parser(), [*flags, "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
+    assert exit_info.value.code == 2
+    (line,) = [text for text in capsys.readouterr().err.splitlines() if "error:" in text]
+    assert words in line
+
+
+def test_a_dagger_round_fine_tunes_1500_steps_at_3e_4_unless_told_otherwise():
+    from harness.reference.libero_pipeline import _checked, _parser
+
+    def round_of(*flags):
+        args = _checked(_parser(), ["--dagger-episodes", "6", "--out", "/nonexistent/x", *flags])[0]
+        return args.dagger_steps, args.dagger_learning_rate, args.dagger_retrain
+
+    assert round_of() == (1500, 3e-4, False)
+    assert round_of("--dagger-steps", "700", "--dagger-learning-rate", "1e-4") == (700, 1e-4, False)
+    assert round_of("--dagger-retrain") == (1500, 3e-4, True)  # unused: the round trains with --steps instead
+
+
 def test_the_dagger_labeller_closes_as_the_demonstrator_unless_told_otherwise():
     from harness.reference.libero_pipeline import _checked, _parser
 
