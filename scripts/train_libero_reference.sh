@@ -5,7 +5,7 @@
 # models/octo-reference-robosuite. Makes .venv and .venv-libero first when missing.
 # Extra arguments go to `python -m harness.reference.libero_pipeline` (--recipe, --episodes, --steps, --out, --data,
 # --workers, --init-from, --learning-rate, --seed, --task-weights, --close-below-top, --demonstrator-radii,
-# --swaps, --dagger-episodes, --dagger-tasks, --dagger-close-below-top, --dagger-steps, --dagger-rounds,
+# --missed-grasps, --swaps, --dagger-episodes, --dagger-tasks, --dagger-close-below-top, --dagger-steps, --dagger-rounds,
 # --dagger-retrain) and override its defaults.
 source "$(dirname "$0")/_bootstrap.sh"
 bash "$(dirname "$0")/setup_libero.sh"

@@ -271,7 +271,7 @@ def save_episodes(path: Path, episodes: list[dict], seeds: list[int], extra: dic
 
 # fields added to a recording configuration after recordings were made with it: left out of the fingerprint while
 # None (off), so those recordings stay reusable; a value other than None is part of it
-ADDED_WHEN_SET = frozenset({"close_below_top", "swaps"})
+ADDED_WHEN_SET = frozenset({"close_below_top", "swaps", "miss"})
 
 
 def config_fingerprint(config) -> dict:

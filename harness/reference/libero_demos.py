@@ -39,6 +39,64 @@ LIBERO_CAMERAS = (("image_primary", "agentview", 128), ("image_wrist", "robot0_e
 
 
 @dataclass(frozen=True)
+class MissConfig:
+    """Missed grasps: with probability `rate` an episode's hand is driven, until it has closed for `close_steps`
+    steps, by the state-based expert aiming at a grasp point `offset` (m) beside the named object's, in a random
+    horizontal direction: it descends beside the object and closes there (on nothing, or on the object's edge).
+    Then the real expert takes over from there (open, rise, re-centre, grasp again). These are the states where the
+    reference policy stalls (docs/libero-reference.md: open, about 3 cm off the object's centre, at its height).
+    As with the bursts, what is executed is perturbed and the label stays the real expert's, so the recording never
+    teaches the offset, only the way back."""
+    rate: float = 0.5
+    offset: float = 0.03
+    close_steps: tuple[int, int] = (6, 10)  # inclusive range
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.rate <= 1.0:
+            raise ValueError(f"a missed grasp's rate is a probability in [0, 1], not {self.rate}")
+
+
+class MissedGrasp:
+    """`perturb(executed, label, rng) -> executed` (see MissConfig), for one episode in `env`; `see(obs)` must be
+    given each step's observation before the perturbation (record_episode does)."""
+
+    def __init__(self, config: MissConfig, env, target: str, expert, rng: np.random.Generator):
+        from harness.reference.libero_expert import LiberoObjectLabeller
+
+        self.env, self.target, self.expert = env, target, expert
+        self.labeller = LiberoObjectLabeller(target, config=expert)
+        self.active = bool(rng.random() < config.rate)
+        angle = rng.uniform(0.0, 2 * np.pi)
+        self.offset = config.offset * np.array([np.cos(angle), np.sin(angle), 0.0])
+        self.close_steps = int(rng.integers(config.close_steps[0], config.close_steps[1] + 1))
+        self.closed = 0
+        self.obs: dict | None = None
+        self.closes: list[tuple[float, float]] = []  # per close step: the hand from the object's centre, above its top (m)
+
+    def see(self, obs: dict) -> dict:
+        self.obs = obs
+        return obs
+
+    def __call__(self, executed: np.ndarray, label: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        from harness.reference.libero_expert import CLOSED, _action
+
+        if not self.active or self.env.grasping(self.target):  # held after all: the miss is over
+            self.active = False
+            return executed
+        poses = dict(self.env.object_poses())
+        box = poses[self.target]
+        poses[self.target] = {**box, "low": box["low"] + self.offset, "high": box["high"] + self.offset}
+        proprio = np.asarray(self.obs["proprio"], np.float64)
+        goal, gripper = self.labeller.waypoint(proprio[:3], float(np.abs(proprio[6:8]).sum()), poses, held=False)
+        if gripper == CLOSED:
+            self.closed += 1
+            self.active = self.closed < self.close_steps
+            self.closes.append((float(np.linalg.norm(proprio[:2] - (box["low"][:2] + box["high"][:2]) / 2)),
+                                float(proprio[2] - box["high"][2])))
+        return _action(goal, proprio[:3], gripper, self.expert)
+
+
+@dataclass(frozen=True)
 class BurstConfig:
     """Recovery bursts (DART-style, beyond the Gaussian noise): stretches of steps whose *executed* input is not the
     expert's, so that the recording holds the states a learned policy drifts into and the expert's way back out.
@@ -51,6 +109,7 @@ class BurstConfig:
     push_size: float = 0.6
     gripper: float = 0.015
     gripper_steps: tuple[int, int] = (4, 10)
+    miss: MissConfig | None = None  # None: no missed grasps (left out of fingerprints while None)
 
 
 class Bursts:
@@ -156,8 +215,14 @@ def record_episode(env, target: str, seed: int, config: LiberoDemoConfig, succee
     expert = DEMONSTRATORS[config.demonstrator](target, config=config.expert)
     sizes = {k: s for k, _, s in config.cameras}  # rendered at the model's sizes: stored as rendered
     perturb = Bursts(config.bursts) if config.bursts is not None else None
-    return noisy_episode(env, obs, lambda o: expert.act(env, o), sizes, config.noise, rng, config.max_steps, perturb,
-                         succeeded)
+    act = lambda o: expert.act(env, o)  # noqa: E731
+    if config.bursts is not None and config.bursts.miss is not None:  # (draws nothing from rng while unset)
+        miss, bursts = MissedGrasp(config.bursts.miss, env, target, config.expert, rng), perturb
+        act = lambda o: expert.act(env, miss.see(o))  # noqa: E731
+
+        def perturb(executed, label, r):  # the miss while it runs, then the bursts
+            return miss(executed, label, r) if miss.active else bursts(executed, label, r)
+    return noisy_episode(env, obs, act, sizes, config.noise, rng, config.max_steps, perturb, succeeded)
 
 
 def _record_job(args: tuple) -> tuple[list[dict], list[int], int]:

@@ -16,7 +16,8 @@ placements while the state-based expert labels every state it visits (harness.re
 often) into `--out`; `--dagger-rounds R` repeats (3) with each round's checkpoint acting (pipeline.dagger_rounds).
 With `--dagger-retrain`, (3) trains anew as (2) did (its steps, learning rate and warm start) on demonstrations +
 corrections instead of fine-tuning the acting checkpoint.
-With `--swaps N`, (1) also records N swapped-instruction demonstrations per task into `<data>/swaps` (in a task's
+With `--missed-grasps P`, a demonstration's first close is, with probability P, a missed grasp the expert then
+recovers from (libero_demos.MissConfig: the states where the reference stalls). With `--swaps N`, (1) also records N swapped-instruction demonstrations per task into `<data>/swaps` (in a task's
 scene the expert picks another task's named object that the scene holds; libero_demos.append_swaps files each under
 the task it named, so it trains with that instruction): a layout then no longer tells which object to pick.
 Everything is seeded, so the same command on the same machine gives the same data and weights; a finished
@@ -34,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from harness.files import atomic_write_json
-from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, LiberoDemoConfig, append_swaps,
+from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, LiberoDemoConfig, MissConfig, append_swaps,
                                             existing_libero_demos, load_libero_demos, record_libero_demos)
 from harness.reference import libero_dagger
 from harness.reference.libero_dagger import LiberoDaggerConfig
@@ -128,6 +129,10 @@ def _parser() -> argparse.ArgumentParser:
                         help="the state-based demonstrator's radii (centred, at_grasp, grasp_height; the DAgger labeller "
                              "keeps its own), e.g. grasp_height=0.004 to close only near the grasp height "
                              "[LiberoExpertConfig's]")
+    parser.add_argument("--missed-grasps", type=float, default=None, metavar="P",
+                        help="with probability P a demonstration's first close is a missed grasp (the hand pushed "
+                             "sideways, closed beside the object) that the expert recovers from (libero_demos.MissConfig) "
+                             "[none]")
     parser.add_argument("--swaps", type=int, default=0, metavar="N",
                         help="also N swapped-instruction demonstrations per task (into <data>/swaps): in its scene the "
                              "expert picks another task's named object, under that task's instruction [0]")
@@ -180,6 +185,13 @@ def _checked(parser: argparse.ArgumentParser, argv: list[str] | None):
         for option, value in (("--close-below-top", args.close_below_top), ("--demonstrator-radii", args.demonstrator_radii)):
             if value not in (None, "") and (args.demonstrator or RECIPES[args.recipe].demonstrator) != "state":
                 raise ValueError(f"{option} is the state-based demonstrator's: use --demonstrator state")
+        args.bursts = RECIPES[args.recipe].bursts
+        if args.missed_grasps is not None:
+            if not 0 < args.missed_grasps <= 1:
+                raise ValueError(f"--missed-grasps {args.missed_grasps}: a probability in (0, 1], e.g. 0.5")
+            if args.bursts is None:
+                raise ValueError(f"--missed-grasps adds to the recovery bursts, which the {args.recipe} recipe has none of")
+            args.bursts = replace(args.bursts, miss=MissConfig(rate=args.missed_grasps))
         args.demonstrator_expert = with_radii(args.demonstrator_radii,
                                               replace(RECIPES[args.recipe].expert, close_below_top=args.close_below_top),
                                               "--demonstrator-radii")
@@ -211,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     demo_config = RECIPES[args.recipe]
     demo_config = replace(demo_config, episodes=args.episodes or demo_config.episodes,
                           demonstrator=args.demonstrator or demo_config.demonstrator,
-                          expert=args.demonstrator_expert)
+                          expert=args.demonstrator_expert, bursts=args.bursts)
     summary = existing_libero_demos(demo_config, args.data)
     if summary is None:
         log.info("recording %d demonstrations per task into %s", demo_config.episodes, args.data)

@@ -555,17 +555,23 @@ def test_the_outcome_names_the_object_in_the_basket_or_none(camera_free_env):
     assert outcome["picked_object"] == "cream_cheese_1" and outcome["placed"] == ["cream_cheese_1"]
 
 
-@pytest.mark.slow
-def test_a_demonstration_from_a_sampled_placement_is_recorded_as_the_policy_sees_it():
+@pytest.fixture(scope="module")
+def butter_demo_env():
+    """Scene /6 (the butter) made as the recorder makes it (the second recipe's cameras and action space)."""
     _needs_libero()
-    from harness.reference.libero_demos import LiberoDemoConfig, make_env, record_episode
+    from harness.reference.libero_demos import LiberoDemoConfig, make_env
+
+    env = make_env("libero_object/6", LiberoDemoConfig())
+    yield env
+    env.close()
+
+
+@pytest.mark.slow
+def test_a_demonstration_from_a_sampled_placement_is_recorded_as_the_policy_sees_it(butter_demo_env):
+    from harness.reference.libero_demos import LiberoDemoConfig, record_episode
 
     config = LiberoDemoConfig()
-    env = make_env("libero_object/6", config)
-    try:
-        episode = record_episode(env, "butter_1", config.task_seed_base("libero_object/6"), config)
-    finally:
-        env.close()
+    episode = record_episode(butter_demo_env, "butter_1", config.task_seed_base("libero_object/6"), config)
     assert episode is not None  # the expert succeeds under the recording noise
     n = len(episode["action"])
     assert 50 < n < config.max_steps
@@ -573,6 +579,37 @@ def test_a_demonstration_from_a_sampled_placement_is_recorded_as_the_policy_sees
     assert episode["proprio"].shape == (n, 8)
     assert set(np.unique(episode["action"][:, 6])) == {0.0, 1.0}  # the libero gripper: 1 open, 0 closed
     assert np.abs(episode["action"][:, :6]).max() <= 1.0
+
+
+@pytest.mark.slow
+def test_a_missed_grasp_closes_beside_the_object_where_the_policy_stalls_and_the_expert_recovers(butter_demo_env):
+    """MissConfig's perturbation in the real scene /6 (the butter): the hand closes 3 cm off the object's centre,
+    below its top (where the reference stalls: docs/libero-reference.md), and the expert, taking over, still places
+    the butter; the labels are the expert's own (they close, reopen and close again). Through record_episode with
+    `--missed-grasps 1` the recording succeeds too."""
+    from dataclasses import replace
+
+    from harness.reference.demos import noisy_episode
+    from harness.reference.libero_demos import LiberoDemoConfig, MissConfig, MissedGrasp, record_episode
+    from harness.reference.libero_expert import LiberoObjectLabeller
+
+    config = LiberoDemoConfig()
+    missing = replace(config, bursts=replace(config.bursts, miss=MissConfig(rate=1.0)))
+    seed = config.task_seed_base("libero_object/6")
+    env = butter_demo_env
+    rng = np.random.default_rng(seed)
+    obs, _ = env.reset(seed=seed, options={"initial_state": "sampled"})
+    expert = LiberoObjectLabeller("butter_1", config=config.expert)
+    miss = MissedGrasp(missing.bursts.miss, env, "butter_1", config.expert, rng)
+    assert miss.active and 6 <= miss.close_steps <= 10
+    episode = noisy_episode(env, obs, lambda o: expert.act(env, miss.see(o)), {"image_primary": 32}, config.noise,
+                            rng, config.max_steps, miss)
+    assert episode is not None and not miss.active and len(miss.closes) == miss.close_steps
+    off, above = np.array(miss.closes).T
+    assert np.all((off > 0.02) & (off < 0.04)) and np.all(above < 0.0)  # beside it, below its top
+    gripper = episode["action"][:, 6]
+    assert np.count_nonzero(np.diff((gripper == 0).astype(int)) == 1) >= 2  # the labels: close, reopen, close
+    assert record_episode(env, "butter_1", seed + 1, missing) is not None
 
 
 @pytest.mark.slow

@@ -9,6 +9,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -129,6 +131,33 @@ def test_bursts_change_what_is_executed_never_the_label():
     held = np.array([0, 0, 0, 0, 0, 0, CLOSED], np.float32)
     bursts = Bursts(BurstConfig(push=0.0, gripper=1.0))
     assert all(bursts(held.copy(), held, rng)[6] == CLOSED for _ in range(50))  # never opens a held grasp
+
+
+def test_missed_grasps_are_part_of_the_recording_fingerprint_only_when_set():
+    from harness.reference.demos import config_fingerprint
+    from harness.reference.libero_demos import LiberoDemoConfig, MissConfig
+
+    # unset: the fingerprint of the recordings made before missed grasps existed, so they stay reusable
+    assert "miss" not in config_fingerprint(LiberoDemoConfig())["bursts"]
+    set_ = LiberoDemoConfig(bursts=BurstConfig(miss=MissConfig(rate=0.5)))
+    assert config_fingerprint(set_)["bursts"]["miss"] == {"rate": 0.5, "offset": 0.03, "close_steps": [6, 10]}
+    for rate in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="probability"):
+            MissConfig(rate=rate)
+
+
+@pytest.mark.parametrize("flags,words", [(["--missed-grasps", "0"], "a probability in (0, 1]"),
+                                         (["--missed-grasps", "1.2"], "a probability in (0, 1]"),
+                                         (["--missed-grasps", "nan"], "a probability in (0, 1]"),
+                                         (["--missed-grasps", "0.5", "--recipe", "first"], "has none of")])
+def test_pipeline_refuses_a_bad_missed_grasp_rate_in_one_line(flags, words, capsys):
+    from harness.reference.libero_pipeline import _checked, _parser
+
+    with pytest.raises(SystemExit) as exit_info:
+        _checked(_parser(), [*flags, "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
+    assert exit_info.value.code == 2
+    (line,) = [text for text in capsys.readouterr().err.splitlines() if "error:" in text]
+    assert words in line
 
 
 def test_bursts_are_a_function_of_the_episode_seed():
