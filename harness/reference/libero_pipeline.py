@@ -17,9 +17,10 @@ often) into `--out`; `--dagger-rounds R` repeats (3) with each round's checkpoin
 With `--dagger-retrain`, (3) trains anew as (2) did (its steps, learning rate and warm start) on demonstrations +
 corrections instead of fine-tuning the acting checkpoint.
 With `--missed-grasps P`, a demonstration's first close is, with probability P, a missed grasp the expert then
-recovers from (libero_demos.MissConfig: the states where the reference stalls). With `--swaps N`, (1) also records N swapped-instruction demonstrations per task into `<data>/swaps` (in a task's
-scene the expert picks another task's named object that the scene holds; libero_demos.append_swaps files each under
-the task it named, so it trains with that instruction): a layout then no longer tells which object to pick.
+recovers from (libero_demos.MissConfig: the states where the reference stalls). With `--swaps N`, (1) also records
+N swapped-instruction demonstrations per task into `<data>/swaps` (in a task's scene the expert picks another
+task's named object that the scene holds; libero_demos.append_swaps files each under the task it named, so it trains
+with that instruction): a layout then no longer tells which object to pick.
 Everything is seeded, so the same command on the same machine gives the same data and weights; a finished
 recording with the same configuration is reused.
 """
@@ -130,9 +131,8 @@ def _parser() -> argparse.ArgumentParser:
                              "keeps its own), e.g. grasp_height=0.004 to close only near the grasp height "
                              "[LiberoExpertConfig's]")
     parser.add_argument("--missed-grasps", type=float, default=None, metavar="P",
-                        help="with probability P a demonstration's first close is a missed grasp (the hand pushed "
-                             "sideways, closed beside the object) that the expert recovers from (libero_demos.MissConfig) "
-                             "[none]")
+                        help="with probability P a demonstration's first grasp is missed (driven 3 cm beside the "
+                             "object, it closes there) and the expert recovers (libero_demos.MissConfig) [none]")
     parser.add_argument("--swaps", type=int, default=0, metavar="N",
                         help="also N swapped-instruction demonstrations per task (into <data>/swaps): in its scene the "
                              "expert picks another task's named object, under that task's instruction [0]")

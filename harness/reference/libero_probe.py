@@ -14,8 +14,8 @@ object horizontally nearest the hand at the first close (which one the grasp wen
 (`episode_outcome`); the longest stall after the first close (gripper commanded open, hand barely commanded:
 harness.analysis.grounding.longest_stall) and where the hand was in its middle. The summary gives
 the success rate, the median reach error at the first close, the grasp rate (named object held at some step), the
-lift rate, the rate of ending with another object and the rate of stalling open for 100 steps or more. Episodes run in spawned processes, one job a task, so the numbers do not
-depend on the workers.
+lift rate, the rate of ending with another object and the rate of stalling open for 100 steps or more. Episodes
+run in spawned processes, one job a task, so the numbers do not depend on the workers.
 """
 
 from __future__ import annotations
