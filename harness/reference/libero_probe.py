@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.analysis.grounding import STALL_STEPS, longest_stall
+from harness.analysis.grounding import CLOSED_BELOW, STALL_STEPS, longest_stall
 from harness.files import atomic_write_json, json_safe
 from harness.reference.libero_demos import LIBERO_OBJECT_TASKS
 from harness.reference.libero_expert import with_radii
@@ -83,6 +83,9 @@ def _probe_job(args: tuple) -> list[dict]:
     env, target, instruction, reset, act = _actor(model_dir, task, max_steps, radii, language)
     rows = []
     movable = [n for n in env.description.get("movable", env.description["objects"]) if n != "basket_1"]
+    from harness.reference.libero_expert import LiberoObjectLabeller
+
+    judge = LiberoObjectLabeller(target)  # what the demonstrator (its own radii) would do in each state reached
     try:
         for state in states:
             obs, info = env.reset(seed=state)
@@ -92,7 +95,7 @@ def _probe_job(args: tuple) -> list[dict]:
             if instruction is not None:
                 row["instruction"] = instruction
             floor = env.object_poses()[target]["low"][2]
-            executed, where = [], []  # each step's action; the hand and the named object's box after it
+            executed, where = [], []  # each step's action; after it, the hand, the named object's box, the expert's label
             for step in range(max_steps):
                 action = np.asarray(act(obs), np.float64)
                 executed.append(action)
@@ -105,7 +108,7 @@ def _probe_job(args: tuple) -> list[dict]:
                                nearest_at_close=_nearest(poses, hand, movable))
                 obs, _, terminated, truncated, info = env.step(action)
                 box = env.object_poses()[target]
-                where.append((np.asarray(obs["proprio"][:3], np.float64), box["low"], box["high"]))
+                where.append((np.asarray(obs["proprio"][:3], np.float64), box["low"], box["high"], judge.act(env, obs)))
                 row["held_named"] = row["held_named"] or bool(env.grasping(target))
                 row["lifted_named"] = row["lifted_named"] or bool(box["low"][2] > floor + LIFTED)
                 row["steps"] = step + 1
@@ -123,15 +126,17 @@ def _probe_job(args: tuple) -> list[dict]:
 
 def stall_measures(executed: list, where: list) -> dict:
     """The episode's longest stall (harness.analysis.grounding.longest_stall: gripper open, hand barely commanded,
-    after the first close) in steps, and where the hand was in its middle step: horizontally from the named object's
-    box centre and vertically above the box's top, in cm (None without a stall)."""
+    after the first close) in steps, and in its middle step: where the hand was, horizontally from the named object's
+    box centre and vertically above the box's top, in cm, and whether the demonstrator's label there closes the
+    gripper (None without a stall). `where`: per step, (hand, box low, box high, the demonstrator's action) after it."""
     start, length = longest_stall(np.asarray(executed, np.float64).reshape(len(executed), -1))
-    out = {"stall_steps": length, "stall_xy_cm": None, "stall_above_top_cm": None}
+    out = {"stall_steps": length, "stall_xy_cm": None, "stall_above_top_cm": None, "stall_expert_closes": None}
     if length:
-        hand, low, high = where[start + length // 2]
+        hand, low, high, label = where[start + length // 2]
         centre = (np.asarray(low, np.float64) + np.asarray(high, np.float64)) / 2
         out.update(stall_xy_cm=round(float(np.linalg.norm(hand[:2] - centre[:2])) * 100, 2),
-                   stall_above_top_cm=round(float(hand[2] - high[2]) * 100, 2))
+                   stall_above_top_cm=round(float(hand[2] - high[2]) * 100, 2),
+                   stall_expert_closes=bool(label[-1] < CLOSED_BELOW))
     return out
 
 
@@ -209,9 +214,13 @@ def _stalls(rows: list[dict]) -> dict:
     """How many episodes stalled open for STALL_STEPS or more, and where the hand was then (medians, cm); None
     for results made before the stall was measured."""
     if not rows or any("stall_steps" not in r for r in rows):
-        return {"stalled": None, "stall_rate": None, "median_stall_xy_cm": None, "median_stall_above_top_cm": None}
+        return {"stalled": None, "stall_rate": None, "stalled_expert_closes": None, "median_stall_xy_cm": None,
+                "median_stall_above_top_cm": None}
     stalled = [r for r in rows if r["stall_steps"] >= STALL_STEPS]
+    judged = [r for r in stalled if r.get("stall_expert_closes") is not None]
     return {"stalled": len(stalled), "stall_rate": len(stalled) / len(rows),
+            # of the stalled episodes: where the demonstrator, in the stall's middle, would close the gripper
+            "stalled_expert_closes": sum(r["stall_expert_closes"] for r in judged) if judged else None,
             "median_stall_xy_cm": float(np.median([r["stall_xy_cm"] for r in stalled])) if stalled else None,
             "median_stall_above_top_cm": float(np.median([r["stall_above_top_cm"] for r in stalled])) if stalled else None}
 
@@ -275,8 +284,10 @@ def _stalled(summary: dict) -> str:
         return "-"
     if not summary["stalled"]:
         return "0%"
+    closes = summary.get("stalled_expert_closes")
+    judged = "" if closes is None else f"; the demonstrator would close in {closes} of {summary['stalled']}"
     return (f"{_rate(summary['stall_rate'])} (hand {summary['median_stall_xy_cm']:.1f} cm off the object, "
-            f"{summary['median_stall_above_top_cm']:.1f} cm above its top)")
+            f"{summary['median_stall_above_top_cm']:.1f} cm above its top{judged})")
 
 
 def lever_table(entries: list[tuple[str, dict]]) -> str:

@@ -403,21 +403,26 @@ def test_a_stall_is_the_longest_open_and_quiet_run_after_the_first_close_and_the
     assert G.longest_stall(loud) == (15, 25)
     # where the hand was at the stall's middle step, from the named object's box (centre (0, 0), top 0.10 m)
     actions = _stall_actions(100, steps=130)
-    where = [(np.array([0.03, 0.04, 0.10 + 0.001 * k]), np.array([-0.02, -0.02, 0.0]), np.array([0.02, 0.02, 0.10]))
-             for k in range(130)]
+    # the demonstrator's label after each step: open, but closing at step 65 only (the stall's middle)
+    labels = [np.array([0, 0, 0, 0, 0, 0, 0.0 if k == 65 else 1.0]) for k in range(130)]
+    where = [(np.array([0.03, 0.04, 0.10 + 0.001 * k]), np.array([-0.02, -0.02, 0.0]), np.array([0.02, 0.02, 0.10]),
+              labels[k]) for k in range(130)]
     m = libero_probe.stall_measures(list(actions), where)
-    assert m == {"stall_steps": 100, "stall_xy_cm": 5.0, "stall_above_top_cm": pytest.approx(6.5)}  # step 15 + 50
+    assert m == {"stall_steps": 100, "stall_xy_cm": 5.0, "stall_above_top_cm": pytest.approx(6.5),  # step 15 + 50
+                 "stall_expert_closes": True}
     assert libero_probe.stall_measures(list(_stall_actions(0)), where * 3)["stall_xy_cm"] is None
     rows = [dict(task="t/0", target="a", first_close=10, reach_xy_cm=1.0, held_named=False, lifted_named=False,
-                 success=False, picked=None, stall_steps=s, stall_xy_cm=xy, stall_above_top_cm=z)
-            for s, xy, z in ((150, 2.0, 1.0), (100, 4.0, 3.0), (99, 9.0, 9.0), (0, None, None))]
+                 success=False, picked=None, stall_steps=s, stall_xy_cm=xy, stall_above_top_cm=z, stall_expert_closes=c)
+            for s, xy, z, c in ((150, 2.0, 1.0, True), (100, 4.0, 3.0, False), (99, 9.0, 9.0, True), (0, None, None, None))]
     s = libero_probe.summarise(rows)
     assert (s["stalled"], s["stall_rate"], s["median_stall_xy_cm"], s["median_stall_above_top_cm"]) == (2, 0.5, 3.0, 2.0)
+    assert s["stalled_expert_closes"] == 1  # of the two stalls of 100+ steps
     assert libero_probe.summarise(rows[2:])["stalled"] == 0
     assert libero_probe.summarise([{**rows[0], "stall_steps": 0}, {k: v for k, v in rows[1].items() if k != "stall_steps"}])["stalled"] is None
     (tmp_path / "p.json").write_text(json.dumps({"summary": s}))
     assert libero_probe.main(["--table", f"p={tmp_path / 'p.json'}"]) == 0
-    assert capsys.readouterr().out.splitlines()[2].endswith("| 50% (hand 3.0 cm off the object, 2.0 cm above its top) |")
+    assert capsys.readouterr().out.splitlines()[2].endswith(
+        "| 50% (hand 3.0 cm off the object, 2.0 cm above its top; the demonstrator would close in 1 of 2) |")
 
 
 def _libero_run(folder, episodes: dict, action_space: str = "libero"):
