@@ -191,6 +191,9 @@ def _checked(parser: argparse.ArgumentParser, argv: list[str] | None):
                 raise ValueError(f"--missed-grasps {args.missed_grasps}: a probability in (0, 1], e.g. 0.5")
             if args.bursts is None:
                 raise ValueError(f"--missed-grasps adds to the recovery bursts, which the {args.recipe} recipe has none of")
+            if (args.demonstrator or RECIPES[args.recipe].demonstrator) != "state":
+                raise ValueError("--missed-grasps needs the state-based demonstrator (--demonstrator state): the timed "
+                                 "one follows its own clock and cannot recover from a grasp it did not make")
             args.bursts = replace(args.bursts, miss=MissConfig(rate=args.missed_grasps))
         args.demonstrator_expert = with_radii(args.demonstrator_radii,
                                               replace(RECIPES[args.recipe].expert, close_below_top=args.close_below_top),
