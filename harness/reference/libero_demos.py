@@ -63,7 +63,7 @@ class MissedGrasp:
     def __init__(self, config: MissConfig, env, target: str, expert, rng: np.random.Generator):
         from harness.reference.libero_expert import LiberoObjectLabeller
 
-        self.env, self.target, self.expert = env, target, expert
+        self.env, self.target = env, target
         self.labeller = LiberoObjectLabeller(target, config=expert)
         self.active = bool(rng.random() < config.rate)
         angle = rng.uniform(0.0, 2 * np.pi)
@@ -78,7 +78,7 @@ class MissedGrasp:
         return obs
 
     def __call__(self, executed: np.ndarray, label: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        from harness.reference.libero_expert import CLOSED, _action
+        from harness.reference.libero_expert import CLOSED
 
         if not self.active or self.env.grasping(self.target):  # held after all: the miss is over
             self.active = False
@@ -86,14 +86,14 @@ class MissedGrasp:
         poses = dict(self.env.object_poses())
         box = poses[self.target]
         poses[self.target] = {**box, "low": box["low"] + self.offset, "high": box["high"] + self.offset}
-        proprio = np.asarray(self.obs["proprio"], np.float64)
-        goal, gripper = self.labeller.waypoint(proprio[:3], float(np.abs(proprio[6:8]).sum()), poses, held=False)
-        if gripper == CLOSED:
+        action = self.labeller.act_on(self.obs, poses, held=False)
+        if action[6] == CLOSED:
+            hand = np.asarray(self.obs["proprio"][:3], np.float64)
             self.closed += 1
             self.active = self.closed < self.close_steps
-            self.closes.append((float(np.linalg.norm(proprio[:2] - (box["low"][:2] + box["high"][:2]) / 2)),
-                                float(proprio[2] - box["high"][2])))
-        return _action(goal, proprio[:3], gripper, self.expert)
+            self.closes.append((float(np.linalg.norm(hand[:2] - (box["low"][:2] + box["high"][:2]) / 2)),
+                                float(hand[2] - box["high"][2])))
+        return action
 
 
 @dataclass(frozen=True)

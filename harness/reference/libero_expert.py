@@ -236,8 +236,11 @@ class LiberoObjectLabeller:
 
     def act(self, env, obs: dict) -> np.ndarray:
         """(7,) float32 "libero" action the expert gives in this state (same signature as LiberoObjectExpert.act)."""
+        return self.act_on(obs, env.object_poses(), env.grasping(self.target))
+
+    def act_on(self, obs: dict, poses: dict, held: bool) -> np.ndarray:
+        """`act` from poses and a grasp already read off the env (or changed: a missed grasp's shifted object)."""
         proprio = np.asarray(obs["proprio"], np.float64)
         hand = proprio[:3]
-        fingers = float(np.abs(proprio[6:8]).sum())
-        goal, gripper = self.waypoint(hand, fingers, env.object_poses(), env.grasping(self.target))
+        goal, gripper = self.waypoint(hand, float(np.abs(proprio[6:8]).sum()), poses, held)
         return _action(goal, hand, gripper, self.config)

@@ -107,9 +107,11 @@ def _probe_job(args: tuple) -> list[dict]:
                                reach_z_cm=round(float(hand[2] - grasp[2]) * 100, 2),
                                nearest_at_close=_nearest(poses, hand, movable))
                 obs, _, terminated, truncated, info = env.step(action)
-                box = env.object_poses()[target]
-                where.append((np.asarray(obs["proprio"][:3], np.float64), box["low"], box["high"], judge.act(env, obs)))
-                row["held_named"] = row["held_named"] or bool(env.grasping(target))
+                poses, held = env.object_poses(), bool(env.grasping(target))  # read once: the judge reuses them
+                box = poses[target]
+                where.append((np.asarray(obs["proprio"][:3], np.float64), box["low"], box["high"],
+                              judge.act_on(obs, poses, held)))
+                row["held_named"] = row["held_named"] or held
                 row["lifted_named"] = row["lifted_named"] or bool(box["low"][2] > floor + LIFTED)
                 row["steps"] = step + 1
                 # a swap succeeds when the named object, alone, is in the basket (the scene's own predicate ends it)

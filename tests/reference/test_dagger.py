@@ -247,8 +247,13 @@ def test_pipeline_refuses_a_swap_count_out_of_range_in_one_line(value, capsys):
                                          (["--dagger-episodes", "6", "--dagger-retrain", "--dagger-steps", "100"],
                                           "leave out --dagger-steps"),
                                          (["--dagger-episodes", "6", "--dagger-retrain", "--dagger-learning-rate", "1e-4"],
-                                          "leave out --dagger-steps")])
-def test_pipeline_refuses_a_fine_tuning_setting_beside_retrain_in_one_line(flags, words, capsys):
+                                          "leave out --dagger-steps"),
+                                         (["--missed-grasps", "0"], "a probability in (0, 1]"),
+                                         (["--missed-grasps", "1.2"], "a probability in (0, 1]"),
+                                         (["--missed-grasps", "nan"], "a probability in (0, 1]"),
+                                         (["--missed-grasps", "0.5", "--recipe", "first"], "has none of"),
+                                         (["--missed-grasps", "0.5", "--demonstrator", "timed"], "state-based")])
+def test_pipeline_refuses_retrain_beside_fine_tuning_and_a_bad_missed_grasp_rate_in_one_line(flags, words, capsys):
     from harness.reference.libero_pipeline import _checked, _parser
 
     with pytest.raises(SystemExit) as exit_info:

@@ -146,21 +146,6 @@ def test_missed_grasps_are_part_of_the_recording_fingerprint_only_when_set():
             MissConfig(rate=rate)
 
 
-@pytest.mark.parametrize("flags,words", [(["--missed-grasps", "0"], "a probability in (0, 1]"),
-                                         (["--missed-grasps", "1.2"], "a probability in (0, 1]"),
-                                         (["--missed-grasps", "nan"], "a probability in (0, 1]"),
-                                         (["--missed-grasps", "0.5", "--recipe", "first"], "has none of"),
-                                         (["--missed-grasps", "0.5", "--demonstrator", "timed"], "state-based")])
-def test_pipeline_refuses_a_bad_missed_grasp_rate_in_one_line(flags, words, capsys):
-    from harness.reference.libero_pipeline import _checked, _parser
-
-    with pytest.raises(SystemExit) as exit_info:
-        _checked(_parser(), [*flags, "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
-    assert exit_info.value.code == 2
-    (line,) = [text for text in capsys.readouterr().err.splitlines() if "error:" in text]
-    assert words in line
-
-
 def test_bursts_are_a_function_of_the_episode_seed():
     def trace(seed):
         rng = np.random.default_rng(seed)
