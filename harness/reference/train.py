@@ -42,7 +42,7 @@ from harness.octo.config import OctoConfig
 from harness.octo.network import LanguageTokenizer, init_params
 from harness.octo.t5 import T5Config
 from harness.reference import train_loop
-from harness.reference.train_step import make_train_step
+from harness.reference.train_step import make_optimizer, make_train_step
 from harness.reference.warm_start import initialise
 
 log = logging.getLogger(__name__)
@@ -357,10 +357,9 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     warmup = min(cfg.warmup_steps, cfg.steps - 1)  # optax needs a decay phase of at least one step
     schedule = optax.warmup_cosine_decay_schedule(0.0, cfg.learning_rate, warmup, cfg.steps,
                                                   cfg.learning_rate * 0.05)
-    optimizer = optax.chain(optax.clip_by_global_norm(cfg.grad_clip),
-                            optax.adamw(schedule, weight_decay=cfg.weight_decay))
+    optimizer = make_optimizer(cfg.grad_clip, cfg.weight_decay)
     opt_state = optimizer.init(trainable)
-    train_step = make_train_step(config, optimizer, encodings, tuple(sizes), cfg.shift_pixels)
+    train_step = make_train_step(config, optimizer, schedule, encodings, tuple(sizes), cfg.shift_pixels)
     rng = np.random.default_rng(cfg.seed)
     sample_batch = _batch_sampler(data, tasks, per_task, cfg, rng)
 

@@ -30,7 +30,7 @@ from flax import serialization
 log = logging.getLogger(__name__)
 
 STATE_FILE = "train_state.msgpack"
-FORMAT = "octo-harness-train-state/1"
+FORMAT = "octo-harness-train-state/2"  # 2: no schedule count in the optimiser state
 
 
 class Loop:
@@ -42,7 +42,8 @@ class Loop:
 
     def run(self, train_step, sample_batch, rng: np.random.Generator, key, trainable, opt_state, on_step=None):
         """Steps to `cfg.steps` (from the saved state's step where there is one); `sample_batch()` draws from
-        `rng`, whose state is saved and restored with the rest. Returns (trainable, curve rows, training seconds)."""
+        `rng`, whose state is saved and restored with the rest; `train_step` is train_step.make_train_step's, handed
+        the updates made before (0 at step 1). Returns (trainable, curve rows, training seconds)."""
         cfg, out_dir = self.cfg, self.out_dir
         rows, window, done, before = [], [], 0, 0.0
         resumed = load(out_dir, self.fp, trainable=trainable, opt_state=opt_state)
@@ -53,7 +54,7 @@ class Loop:
         t0 = time.perf_counter() - before
         for step in range(done + 1, cfg.steps + 1):
             key, step_key = jax.random.split(key)
-            trainable, opt_state, loss = train_step(trainable, opt_state, sample_batch(), step_key)
+            trainable, opt_state, loss = train_step(trainable, opt_state, sample_batch(), step_key, step - 1)
             window.append(loss)
             if step % cfg.log_every == 0 or step == cfg.steps:
                 mean = float(np.mean(jax.device_get(window)))

@@ -80,15 +80,27 @@ def diffusion_loss(params: dict, config: OctoConfig, batch: dict, encodings: jax
     return jnp.sum(jnp.square(eps - noise) * mask) / jnp.maximum(jnp.sum(mask), 1)
 
 
-def make_train_step(config: OctoConfig, optimizer, encodings: jax.Array, image_keys: tuple[str, ...], shift_pixels: int):
-    """The jitted step (trainable, optimiser state, batch, rng) -> (trainable, optimiser state, loss): each camera's
-    images randomly shifted, then the head's loss (L1 or diffusion), its gradient and the optimiser's update."""
+def make_optimizer(grad_clip: float, weight_decay: float):
+    """AdamW (optax's defaults) after global-norm clipping, without its learning rate: the training step scales
+    the update by the rate it is given, so that the schedule is an input of the compiled step, not a constant of it
+    (trainings that differ only in schedule, steps or T5 encodings share one XLA program and its persistent cache).
+    The same update as `optax.chain(clip_by_global_norm, adamw(schedule))` with the schedule read at the count."""
+    return optax.chain(optax.clip_by_global_norm(grad_clip), optax.scale_by_adam(),
+                       optax.add_decayed_weights(weight_decay))
+
+
+def make_train_step(config: OctoConfig, optimizer, schedule, encodings: jax.Array, image_keys: tuple[str, ...],
+                    shift_pixels: int):
+    """The step (trainable, optimiser state, batch, rng, count) -> (trainable, optimiser state, loss): each camera's
+    images randomly shifted, then the head's loss (L1 or diffusion), its gradient, `optimizer`'s (`make_optimizer`)
+    update and a descent of `schedule(count)` along it, `count` being the updates made before this one (from 0).
+    The schedule's value and the T5 `encodings` are arguments of the jitted function."""
     diffusion = isinstance(config.action_head, DiffusionHeadConfig)
     alpha_hats = make_schedule(config.action_head.diffusion_steps).alpha_hats if diffusion else None
     loss_fn = diffusion_loss if diffusion else l1_loss
 
     @jax.jit
-    def train_step(trainable, opt_state, batch, rng):
+    def update(trainable, opt_state, batch, rng, learning_rate, encodings):
         aug_key, loss_key = jax.random.split(rng)
         batch = dict(batch)
         for i, k in enumerate(image_keys):
@@ -96,6 +108,10 @@ def make_train_step(config: OctoConfig, optimizer, encodings: jax.Array, image_k
             batch[k] = shift_images(batch[k][:, 0], offsets, shift_pixels)[:, None]
         loss, grads = jax.value_and_grad(loss_fn)(trainable, config, batch, encodings, loss_key, alpha_hats)
         updates, opt_state = optimizer.update(grads, opt_state, trainable)
+        updates = jax.tree.map(lambda u: -learning_rate * u, updates)
         return optax.apply_updates(trainable, updates), opt_state, loss
+
+    def train_step(trainable, opt_state, batch, rng, count: int):
+        return update(trainable, opt_state, batch, rng, jnp.float32(schedule(count)), encodings)
 
     return train_step

@@ -809,8 +809,8 @@ def test_a_dagger_round_trains_stage_1_collects_once_then_fine_tunes_on_demonstr
         return {task: merged}
 
     # the rounds' bookkeeping, not the model, is under test: a one-layer, 32-wide network (5 trainings of the full
-    # reference network were 130 s of CI's time); stage 1's learning rate is the rounds' (1e-4), so that stage 1 and
-    # the fine-tunings are one XLA program (the schedule's constants are in it), compiled once (22 s each under load)
+    # reference network were 130 s of CI's time); every training here is one XLA program, compiled once (about 30 s
+    # under load): the schedule's rate and the T5 encodings are arguments of the step, not constants of it
     config = replace(TrainConfig(), steps=2, batch_size=4, log_every=1, checkpoint_every=2, warmup_steps=1,
                      learning_rate=1e-4,
                      task_weights=(), init_from=None, width=32, layers=1, heads=2, mlp_dim=64,
@@ -848,8 +848,7 @@ def test_a_dagger_round_trains_stage_1_collects_once_then_fine_tunes_on_demonstr
     assert acted == [(1, tmp_path / "data" / "stage1", "dagger"), (2, tmp_path / "data" / "round1", "dagger2")]
     assert (tmp_path / "data" / "round1" / "2" / "default" / "checkpoint").is_file()
     # retrain: the round trains as stage 1 did (its steps, learning rate and warm start, seed + 1), not from the
-    # checkpoint that acted (data2/stage1). Both warm-start from the first stage 1, whose T5 encodings (constants of
-    # the step's XLA program) they share: one compile for both
+    # checkpoint that acted (data2/stage1), warm-started from the first stage 1
     warm = str(tmp_path / "data" / "stage1")
     anew = dagger_rounds(demos, replace(config, steps=3, init_from=warm), tmp_path / "data2", tmp_path / "out4",
                          rounds=1, collect=collect_round, existing=lambda model, out, r: None, append=append, steps=2,

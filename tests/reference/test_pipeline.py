@@ -231,6 +231,32 @@ def test_a_stopped_training_resumes_at_its_checkpoint_and_ends_with_the_bytes_of
     assert resumed["train_seconds"] > 12 and resumed["total_seconds"] >= resumed["train_seconds"]
 
 
+def test_the_step_descends_what_adamw_with_the_schedule_would_at_each_count():
+    """make_optimizer plus the rate given to the step (the schedule read on the host at the update count) is
+    optax's clip + adamw(schedule), whose count lives in its state: the same parameters over warm-up and decay."""
+    import jax
+    import jax.numpy as jnp
+    import optax
+
+    from harness.reference.train_step import make_optimizer
+
+    schedule = optax.warmup_cosine_decay_schedule(0.0, 3e-3, 2, 6, 1.5e-4)
+    reference = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(schedule, weight_decay=0.1))
+    ours = make_optimizer(1.0, 0.1)
+    rng = np.random.default_rng(0)
+    params = {"w": jnp.asarray(rng.normal(size=(3, 4)), jnp.float32), "b": jnp.asarray(rng.normal(size=4), jnp.float32)}
+    a, b = params, params
+    a_state, b_state = reference.init(a), ours.init(b)
+    for count in range(6):
+        grads = jax.tree.map(lambda x: jnp.asarray(rng.normal(size=x.shape) * 3, jnp.float32), params)
+        updates, a_state = reference.update(grads, a_state, a)
+        a = optax.apply_updates(a, updates)
+        updates, b_state = ours.update(grads, b_state, b)
+        b = optax.apply_updates(b, jax.tree.map(lambda u: -jnp.float32(schedule(count)) * u, updates))
+        jax.tree.map(lambda x, y: np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-7), a, b)
+    assert not np.allclose(a["w"], params["w"])  # the rate was not 0 throughout
+
+
 def test_a_training_state_of_another_run_or_a_damaged_one_is_ignored(tmp_path, caplog):
     """The fingerprint changes with the configuration and the data; a torn or foreign state starts at step 1."""
     import jax.numpy as jnp
