@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.files import atomic_write_json, read_json_object
+from harness.files import atomic_write_json, read_json_object, write_atomic
 from harness.reference.experts import EXPERT_TASKS, ExpertConfig, ScriptedExpert
 
 log = logging.getLogger(__name__)
@@ -263,9 +263,7 @@ def save_episodes(path: Path, episodes: list[dict], seeds: list[int], extra: dic
     arrays["seeds"] = np.array(seeds, np.int64)
     arrays["lengths"] = lengths
     arrays.update(extra or {})
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **arrays)
-    tmp.replace(path)
+    write_atomic(path, lambda f: np.savez(f, **arrays))  # a temporary of this process's own: workers never share one
     return lengths
 
 

@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import io
 import json
 import logging
-import os
 import shutil
 import time
 from dataclasses import asdict
@@ -26,6 +26,8 @@ from pathlib import Path
 import jax
 import numpy as np
 from flax import serialization
+
+from harness.files import write_atomic
 
 log = logging.getLogger(__name__)
 
@@ -99,9 +101,7 @@ def save(out_dir: Path, fp: str, step: int, *, trainable, opt_state, key, rng: n
              "key": np.asarray(jax.device_get(key)),
              "window": np.asarray(jax.device_get(window), np.float32).reshape(-1),
              "rng": json.dumps(rng.bit_generator.state), "rows": json.dumps(rows)}
-    tmp = out_dir / f".{STATE_FILE}.tmp"
-    tmp.write_bytes(serialization.msgpack_serialize(state))
-    os.replace(tmp, out_dir / STATE_FILE)
+    write_atomic(out_dir / STATE_FILE, lambda f: f.write(serialization.msgpack_serialize(state)))
 
 
 def load(out_dir: Path, fp: str, *, trainable, opt_state) -> dict | None:
@@ -152,12 +152,14 @@ def write_params(folder: Path, step: int, params: dict, keep_previous: bool = Fa
 
 
 def write_curve(folder: Path, rows: list[dict]) -> None:
-    path = folder / "training_curve.csv"
-    with open(path.with_suffix(".tmp"), "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+    def write(f) -> None:
+        text = io.StringIO(newline="")
+        writer = csv.DictWriter(text, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    path.with_suffix(".tmp").replace(path)
+        f.write(text.getvalue().encode())
+
+    write_atomic(folder / "training_curve.csv", write)
 
 
 def plot_curve(folder: Path, rows: list[dict], head: str = "l1",
