@@ -10,6 +10,7 @@ swallowed Interrupted from printing "Exception ignored ... Traceback" above the 
 
 from __future__ import annotations
 
+import ctypes
 import signal
 
 received: int | None = None  # the first SIGINT / SIGTERM since `reset()`
@@ -56,3 +57,12 @@ def check() -> None:
 def reset() -> None:
     global received
     received = None
+
+
+def die_with_parent() -> None:
+    """Linux: the kernel sends this process SIGKILL when its parent dies, so a worker never outlives a killed driver
+    (PR_SET_PDEATHSIG; elsewhere a no-op). Call it first in a worker process, or as a pool's initializer."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass

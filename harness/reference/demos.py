@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from harness.files import atomic_write_json, read_json_object, write_atomic
+from harness.interrupts import die_with_parent
 from harness.reference.experts import EXPERT_TASKS, ExpertConfig, ScriptedExpert
 
 log = logging.getLogger(__name__)
@@ -220,7 +221,8 @@ def _indexed(args: tuple) -> tuple:
 def jobs_as_done(function, jobs: list, workers: int):
     """`function` over `jobs` as `run_jobs` runs them, but yields (index in `jobs`, result) as each job finishes."""
     if workers > 1 and len(jobs) > 1:
-        with multiprocessing.get_context("spawn").Pool(workers) as pool:
+        # each worker dies with this process: a stopped recording leaves none recording on (nor their LIBERO servers)
+        with multiprocessing.get_context("spawn").Pool(workers, initializer=die_with_parent) as pool:
             yield from pool.imap_unordered(_indexed, [(function, i, job) for i, job in enumerate(jobs)], chunksize=1)
         return
     for i, job in enumerate(jobs):

@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from harness.bounded import open_npz
+from harness.interrupts import die_with_parent
 from harness.analysis import aggregate as agg
 from harness.measures.episode import MEASURES, episode_measures, measures_from_arrays
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays, load_run
@@ -114,7 +115,8 @@ def _analyse_all(runs: list[RunData], options: ReportOptions) -> None:
     if todo and (workers == 1 or len(todo) == 1):
         results += [_analyse_episode(job) for job in todo]
     elif todo:  # older runs: the attention arrays are measured in parallel processes
-        with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=get_context("spawn")) as pool:
+        with ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=get_context("spawn"),
+                                 initializer=die_with_parent) as pool:
             results += list(pool.map(_analyse_episode, todo, chunksize=1))
     for run_index, task, episode, summary, error in results:
         if summary is not None:

@@ -42,7 +42,6 @@ when the driver's end of their pipe closes, and get SIGKILL from the kernel if t
 from __future__ import annotations
 
 import collections
-import ctypes
 import functools
 import logging
 import multiprocessing
@@ -57,6 +56,7 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
+from harness.interrupts import die_with_parent
 from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskSpec
 from harness.run.executor import EpisodeContext, make_env, record_failure, run_episode
 from harness.run.protocol import EpisodeJob
@@ -170,19 +170,10 @@ class PipeInference:
         raise _Stop("stopped by the driver")
 
 
-def _die_with_parent() -> None:
-    """Linux: the kernel sends SIGKILL to this process when its parent dies (no orphans if the driver is killed)."""
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-
-
 def worker_main(index: int, conn: Connection, spec: WorkerSpec) -> None:
     """Env worker process: take episode jobs, run each with a policy whose inference is the driver's server."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is handled by the driver, which tells us to stop
-    _die_with_parent()
+    die_with_parent()
     os.environ["OCTO_HARNESS_WORKER"] = str(index)
     infer = PipeInference(conn, spec.shape.dataset_key)
     policy = OctoPolicy(spec.shape, spec.policy, infer=infer)

@@ -210,3 +210,44 @@ def test_the_first_recipe_still_describes_the_committed_checkpoints_demonstratio
     assert first["bursts"] is None and first["demonstrator"] == "timed"
     assert {k: v for k, v in first["expert"].items() if k in recorded["expert"]} == recorded["expert"]
     assert RECIPES["second"].cameras[1][2] == 128 and RECIPES["second"].bursts is not None
+
+
+def test_a_killed_recording_leaves_no_worker_recording_on(tmp_path):
+    """The recording pool's workers die with the process that started them (SIGKILL, no clean-up): none goes on
+    recording into the demonstrations folder beside a restarted pipeline (found in session 21 after a restart)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from tests.helpers import REPO, alive, descendants
+
+    code = ("import time\nfrom harness.reference.demos import jobs_as_done\n"
+            "for _ in jobs_as_done(time.sleep, [300, 300], 2):\n    pass\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    workers: set[int] = set()
+    try:
+        deadline = time.monotonic() + 120
+        while len(workers) < 2:  # the pool's two workers (and multiprocessing's resource tracker) started
+            assert proc.poll() is None and time.monotonic() < deadline, "the pool did not start"
+            workers |= {pid for pid in descendants(proc.pid) if b"spawn_main" in _cmdline(pid)}
+            time.sleep(0.2)
+        time.sleep(1.0)  # past the workers' initializer
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        deadline = time.monotonic() + 20
+        while alive(workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not alive(workers), f"recording workers outlived their pipeline: {alive(workers)}"
+    finally:
+        for pid in alive(workers):
+            os.kill(pid, signal.SIGKILL)
+        if proc.poll() is None:
+            proc.kill()
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:  # gone meanwhile
+        return b""

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 import envs
+from tests.helpers import alive, descendants
 from harness.octo import load_pretrained
 from harness.policy import BatchInference, PolicyConfig, TaskSpec
 from harness.run import execute
@@ -327,34 +328,6 @@ def _cli(fixtures_dir, out: Path, name: str, *extra: str) -> list[str]:
             "--out", str(out), "--run-name", name, *extra]
 
 
-def _children(pid: int) -> set[int]:
-    """Every descendant process of `pid` (from /proc)."""
-    parents: dict[int, int] = {}
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                parents[int(entry.name)] = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                pass
-    found, frontier = set(), {pid}
-    while frontier:
-        frontier = {p for p, pp in parents.items() if pp in frontier} - found
-        found |= frontier
-    return found
-
-
-def _alive(pids: set[int]) -> set[int]:
-    alive = set()
-    for pid in pids:
-        try:
-            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-        except OSError:
-            continue
-        if state != "Z":
-            alive.add(pid)
-    return alive
-
-
 def _env() -> dict:
     return {**os.environ, "HF_HUB_OFFLINE": "1", "PYTHONPATH": str(REPO)}
 
@@ -375,8 +348,8 @@ def test_ctrl_c_stops_every_worker_and_leaves_no_process_or_temporary(fixtures_d
         workers: set[int] = set()
 
         def two_workers_running():
-            workers.update(_children(proc.pid))
-            return len(_alive(workers)) >= 2 and any((tmp_path / "int" / "Lift").glob("episode_*"))
+            workers.update(descendants(proc.pid))
+            return len(alive(workers)) >= 2 and any((tmp_path / "int" / "Lift").glob("episode_*"))
 
         _wait_for(two_workers_running)
         proc.send_signal(signal.SIGINT)
@@ -386,7 +359,7 @@ def test_ctrl_c_stops_every_worker_and_leaves_no_process_or_temporary(fixtures_d
             proc.kill()
     assert proc.returncode == 130
     time.sleep(0.5)
-    assert not _alive(workers), f"processes left behind: {_alive(workers)}"
+    assert not alive(workers), f"processes left behind: {alive(workers)}"
     assert _no_temporaries(tmp_path / "int")
     results = json.loads((tmp_path / "int" / "results.json").read_text())
     assert results["status"] == "interrupted"
@@ -400,7 +373,7 @@ def test_a_killed_parallel_run_resumes_to_exactly_n_episodes(fixtures_dir, tmp_p
     workers: set[int] = set()
     try:
         def one_episode_done():
-            workers.update(_children(proc.pid))
+            workers.update(descendants(proc.pid))
             return jsonl.exists() and jsonl.read_text().count("\n") >= 1
 
         _wait_for(one_episode_done)
@@ -410,7 +383,7 @@ def test_a_killed_parallel_run_resumes_to_exactly_n_episodes(fixtures_dir, tmp_p
         if proc.poll() is None:
             proc.kill()
     assert jsonl.read_text().count("\n") < 3
-    _wait_for(lambda: not _alive(workers), timeout=20)  # workers die with their driver (no orphans)
+    _wait_for(lambda: not alive(workers), timeout=20)  # workers die with their driver (no orphans)
     done = subprocess.run(command, env=_env(), cwd=REPO, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     lines = [json.loads(line) for line in jsonl.read_text().splitlines()]
