@@ -9,8 +9,6 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 

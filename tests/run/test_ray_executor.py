@@ -16,8 +16,9 @@ from pathlib import Path
 import pytest
 
 from harness.run import execute
-from tests.run.test_parallel import (STEPS, _assert_replay_is_exact, _assert_same_episodes, _children,
-                                     _protocol, _run_while, _the_one_failed_episode, sequential, tiny)  # noqa: F401
+from tests.helpers import descendants
+from tests.run.test_parallel import (STEPS, _assert_replay_is_exact, _assert_same_episodes, _protocol, _run_while,
+                                     _the_one_failed_episode, sequential, tiny)  # noqa: F401
 
 pytestmark = pytest.mark.slow
 
@@ -44,7 +45,7 @@ def _busy_ray_env_workers() -> list[int]:
     """Pids of this test's Ray env-worker actors inside `run` (Ray titles the process `ray::EnvWorker.run`
     meanwhile): descendants of this process only, since another test process may run a Ray cluster of its own."""
     pids = []
-    ours = _children(os.getpid())
+    ours = descendants(os.getpid())
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit() and int(entry.name) in ours:
             try:
