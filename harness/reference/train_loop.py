@@ -118,7 +118,11 @@ def load(out_dir: Path, fp: str, *, trainable, opt_state) -> dict | None:
         return None
     try:
         state = serialization.msgpack_restore(path.read_bytes())
-        if state.get("format") != FORMAT or state.get("fingerprint") != fp:
+        if state.get("format") != FORMAT:
+            log.warning("%s was saved by another version of the trainer (%s; this one writes %s): starting at step 1",
+                        path, state.get("format"), FORMAT)
+            return None
+        if state.get("fingerprint") != fp:
             log.warning("%s belongs to another training run (configuration or data differ): starting at step 1", path)
             return None
         restored = {"step": int(state["step"]), "seconds": float(state["seconds"]),

@@ -280,6 +280,13 @@ def test_a_training_state_of_another_run_or_a_damaged_one_is_ignored(tmp_path, c
     assert train_loop.load(tmp_path, fp, trainable=params, opt_state=opt)["step"] == 3
     with caplog.at_level("WARNING", logger="harness.reference.train_loop"):
         assert train_loop.load(tmp_path, "another", trainable=params, opt_state=opt) is None
+        from flax import serialization  # a state of format 1 (its optimiser state held the schedule's count)
+
+        state = tmp_path / train_loop.STATE_FILE
+        saved = serialization.msgpack_restore(state.read_bytes())
+        state.write_bytes(serialization.msgpack_serialize({**saved, "format": "octo-harness-train-state/1"}))
+        assert train_loop.load(tmp_path, fp, trainable=params, opt_state=opt) is None
+        assert "saved by another version of the trainer (octo-harness-train-state/1" in caplog.text
         state = tmp_path / train_loop.STATE_FILE
         state.write_bytes(state.read_bytes()[:40])  # torn
         assert train_loop.load(tmp_path, fp, trainable=params, opt_state=opt) is None
