@@ -220,17 +220,18 @@ def test_a_killed_recording_leaves_no_worker_recording_on(tmp_path):
 
     from tests.helpers import REPO, alive, descendants
 
-    code = ("import time\nfrom harness.reference.demos import jobs_as_done\n"
-            "for _ in jobs_as_done(time.sleep, [300, 300], 2):\n    pass\n")
+    started = [tmp_path / "0", tmp_path / "1"]  # each job marks its start, after the worker's initializer ran
+    code = ("from harness.reference.demos import jobs_as_done\nfrom tests.reference.test_recording import _mark_and_sleep\n"
+            f"for _ in jobs_as_done(_mark_and_sleep, {[str(p) for p in started]!r}, 2):\n    pass\n")
     proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
     workers: set[int] = set()
     try:
-        deadline = time.monotonic() + 120
-        while len(workers) < 2:  # the pool's two workers (and multiprocessing's resource tracker) started
-            assert proc.poll() is None and time.monotonic() < deadline, "the pool did not start"
-            workers |= {pid for pid in descendants(proc.pid) if b"spawn_main" in _cmdline(pid)}
+        deadline = time.monotonic() + 180
+        while not all(p.exists() for p in started):
+            assert proc.poll() is None and time.monotonic() < deadline, "the pool's jobs did not start"
             time.sleep(0.2)
-        time.sleep(1.0)  # past the workers' initializer
+        workers = {pid for pid in descendants(proc.pid) if b"spawn_main" in _cmdline(pid)}
+        assert len(workers) == 2, workers
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
         deadline = time.monotonic() + 20
@@ -242,6 +243,12 @@ def test_a_killed_recording_leaves_no_worker_recording_on(tmp_path):
             os.kill(pid, signal.SIGKILL)
         if proc.poll() is None:
             proc.kill()
+
+
+def _mark_and_sleep(path: str) -> None:
+    """A stand-in recording job (run in a spawned worker): says it started, then takes longer than the test."""
+    Path(path).touch()
+    time.sleep(300)
 
 
 def _cmdline(pid: int) -> bytes:

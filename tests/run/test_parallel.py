@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 
 import envs
-from tests.helpers import alive, descendants
 from harness.octo import load_pretrained
 from harness.policy import BatchInference, PolicyConfig, TaskSpec
 from harness.run import execute
@@ -25,6 +24,7 @@ from harness.run.protocol import Protocol
 from harness.run.execution import executor_factory
 from harness.run.workers import WorkersExecutor, max_workers, warmup_request, PolicyShape
 from harness.outputs.writers import OutputOptions
+from tests.helpers import alive, descendants
 
 STEPS = 8
 CAMERAS = (("image_primary", "agentview", 64), ("image_wrist", "robot0_eye_in_hand", 32))  # the tiny model's sizes
