@@ -287,7 +287,6 @@ def test_a_training_state_of_another_run_or_a_damaged_one_is_ignored(tmp_path, c
         state.write_bytes(serialization.msgpack_serialize({**saved, "format": "octo-harness-train-state/1"}))
         assert train_loop.load(tmp_path, fp, trainable=params, opt_state=opt) is None
         assert "saved by another version of the trainer (octo-harness-train-state/1" in caplog.text
-        state = tmp_path / train_loop.STATE_FILE
         state.write_bytes(state.read_bytes()[:40])  # torn
         assert train_loop.load(tmp_path, fp, trainable=params, opt_state=opt) is None
         with open(state, "r+b") as f:  # huge (sparse): refused from its size, never read
