@@ -8,6 +8,7 @@ share live in `common.py`; the options of runs and gates are fields of their con
 from __future__ import annotations
 
 import errno
+import gc
 import signal
 import sys
 import threading
@@ -85,6 +86,8 @@ def main(argv: list[str] | None = None) -> int:
               "run the same command to resume", file=sys.stderr)
         return 128 + signum
     finally:
+        if interrupts.received is not None:  # what the interrupt left half-built is finalised under the quiet hook
+            gc.collect()
         sys.unraisablehook = unraisable
         for s, handler in previous.items():
             signal.signal(s, handler if handler is not None else signal.SIG_DFL)
