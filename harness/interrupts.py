@@ -36,14 +36,14 @@ def handler(signum, frame) -> None:
 
 
 def quiet_unraisable(previous):
-    """A `sys.unraisablehook` that drops an Interrupted raised where Python can only ignore it (a gc callback, a
-    `__del__`): `handler` has recorded it, and `check()` ends the command with the one line. Once a signal is
-    recorded it also drops what a finaliser raises: an object the interrupt left half-built fails in its `__del__`
-    (robosuite's render context, stopped before its `con` was set: AttributeError), and the command is ending with
-    128 + signum anyway. Anything else goes to `previous`."""
+    """A `sys.unraisablehook` that, once a signal is recorded, drops what Python can only ignore: an Interrupted
+    raised in a gc callback or a `__del__` (every Interrupted is raised after `record`, and `check()` ends the command
+    with the one line), and the error of an object the interrupt left half-built failing in its `__del__`
+    (robosuite's render context, stopped before its `con` was set: AttributeError); the command is ending with
+    128 + signum anyway. Before a signal everything goes to `previous`."""
 
     def hook(unraisable) -> None:
-        if isinstance(unraisable.exc_value, Interrupted) or received is not None:
+        if received is not None:
             return
         previous(unraisable)
 

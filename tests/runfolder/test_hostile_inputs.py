@@ -185,8 +185,8 @@ def test_sigint_while_the_command_starts_or_the_model_loads_exits_130_every_time
     """Ctrl-C at several moments: while the command line is parsed (0.5-1.5 s after start: building the parser
     imports the simulators; Ctrl-C there was lost, exit 0, 1 of 10 tries before the handler went in first), and after
     the driver says "loading" (0 to 2 s; on a fast machine 1.5-2 s lands while robosuite builds its render context):
-    130 and the one line each time. The interpreter's own start-up (about the
-    first 0.1 s, before any harness code runs) is CPython's: docs/run-integrity.md."""
+    130 and the one line each time. The interpreter's own start-up (about the first 0.1 s, before any harness code
+    runs) is CPython's: docs/run-integrity.md."""
     codes = []
     for when, delay in (("start", 0.5), ("start", 1.0), ("start", 1.5), ("loading", 0.0), ("loading", 0.3),
                         ("loading", 0.8), ("loading", 1.5), ("loading", 2.0)):
@@ -267,6 +267,18 @@ def test_the_committed_baseline_still_verifies():
     assert run.status == "complete" and len(run.episodes) == 8
 
 
+INTERRUPTED_LINE = "interrupted (SIGINT); finished episodes are recorded, run the same command to resume"
+
+
+def _only_the_interrupted_line(script: str) -> None:
+    """Run `script` (it calls cli.main) in a subprocess (pytest replaces the hook that prints): exit 130 and the one
+    line, nothing else on stderr."""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO, env=ENV,
+                          timeout=TIMEOUT)
+    assert done.returncode == 130, done.stderr[-1500:]
+    assert done.stderr.strip().splitlines() == [INTERRUPTED_LINE], done.stderr[-1500:]
+
+
 def test_a_ctrl_c_that_leaves_an_object_half_built_is_the_one_line_and_130_without_its_finaliser_error():
     """Ctrl-C inside a constructor (robosuite's render context, stopped before its `con` was set; seen on an AMD EPYC
     VM): the half-built object's `__del__` fails when the object is collected, which a reference cycle puts after the
@@ -292,17 +304,13 @@ def command(args):
 tasks.main = command
 sys.exit(cli.main(["tasks"]))
 """
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO, env=ENV,
-                          timeout=TIMEOUT)
-    assert done.returncode == 130, done.stderr[-1500:]
-    assert done.stderr.strip().splitlines() == ["interrupted (SIGINT); finished episodes are recorded, run the same "
-                                                "command to resume"], done.stderr[-1500:]
+    _only_the_interrupted_line(script)
 
 
 def test_a_ctrl_c_swallowed_by_a_finaliser_is_the_one_line_and_130_without_exception_ignored():
     """Ctrl-C that lands in a finaliser (CI caught it in JAX's gc callback): Python can only ignore it, printing
     "Exception ignored ... Traceback"; the command still exits 130 with its one line, and nothing else is printed.
-    The hook is the caller's again afterwards. (In a subprocess: pytest replaces the hook that prints.)"""
+    The hook is the caller's again afterwards."""
     script = """
 import gc, sys
 from harness import cli, interrupts
@@ -323,8 +331,4 @@ code = cli.main(["tasks"])
 assert sys.unraisablehook is before
 sys.exit(code)
 """
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=REPO, env=ENV,
-                          timeout=TIMEOUT)
-    assert done.returncode == 130, done.stderr[-1500:]
-    assert done.stderr.strip().splitlines() == ["interrupted (SIGINT); finished episodes are recorded, run the same "
-                                                "command to resume"], done.stderr[-1500:]
+    _only_the_interrupted_line(script)
