@@ -1,12 +1,14 @@
 #!/usr/bin/env bash
 # Golden runs for refactors that must not change behaviour (issue 42): a Lift run of the committed reference policy
-# (PNG overlays, MP4, arrays, recorded inputs), a compare of that run against a second run of the same protocol, and
-# an HTML report. Writes them under OUT (default results/golden) and prints one line per file: its SHA-256 and path,
-# with fields that hold wall-clock times or host paths blanked first (scripts/golden_digest.py), so that
+# (PNG overlays, MP4, arrays, recorded inputs), a compare of that run against a second run of the same protocol, an
+# HTML report, and a perturbed run (every perturbation kind at level 2, two tasks, one short episode each, so that
+# the kinds' seeded draws are held too). Writes them under OUT (default results/golden) and prints one line per
+# file: its SHA-256 and path, with fields that hold wall-clock times or host paths blanked first
+# (scripts/golden_digest.py), so that
 #   bash scripts/golden_runs.sh /tmp/before > before.txt   # on the old commit
 #   bash scripts/golden_runs.sh /tmp/after > after.txt     # on the new one
 #   diff before.txt after.txt                              # empty: the same files, byte for byte
-# Same machine only (numerics differ across CPUs). About a minute on 2 cores. The model is read from a copy at one
+# Same machine only (numerics differ across CPUs). About 80 s on 2 cores. The model is read from a copy at one
 # fixed path (GOLDEN_MODEL), since its path is recorded and drawn.
 set -euo pipefail
 OUT="${1:-results/golden}"
@@ -27,4 +29,7 @@ run --run-name a
 run --run-name b
 "$PY" -m harness.cli compare "$OUT/a" "$OUT/b" --out "$OUT/compare" >/dev/null 2>&1 || true
 "$PY" -m harness.cli report "$OUT/a" --out "$OUT/report" >/dev/null 2>&1
+"$PY" -m harness.cli run --model "$MODEL" --task Lift,PickPlaceCan --episodes 1 --max-steps 6 --seed 0 --png-every 0 \
+  --record-inputs --fast-render --out "$OUT" --run-name perturbed \
+  --perturb camera:2,lighting:2,texture:2,distractors:2,init-state:2,noise:2,language:2 >/dev/null 2>&1
 "$PY" scripts/golden_digest.py "$OUT"
