@@ -29,7 +29,7 @@ def _table() -> dict:
 
 
 # Paraphrases of LIBERO-Object's instructions ("pick up the X and place it in the basket"): the same task in other
-# words, used by the reference policy's training (harness.reference.libero_demos) and `--perturb language`.
+# words, used by the reference policy's training (reference_policies.libero_demos) and `--perturb language`.
 _OBJECT_INSTRUCTION = re.compile(r"^pick up the (?P<object>.+) and place it in the basket$")
 _OBJECT_PARAPHRASES = ("put the {object} in the basket", "place the {object} into the basket",
                        "grab the {object} and drop it in the basket", "move the {object} to the basket")

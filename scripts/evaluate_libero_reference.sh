@@ -28,11 +28,11 @@ common=(--model "$MODEL" --seed 0 --fast-render --png-every 0 --no-video --out "
 "$PY" -m harness.cli run "${common[@]}" --workers 2 --task libero_object --episodes "$STATES" --run-name published
 
 # stage 2: (run name, task, instruction) lines, then two streams
-nonsense="$("$PY" -m harness.reference.libero_eval nonsense)"
+nonsense="$("$PY" -m reference_policies.libero_eval nonsense)"
 plan="$(mktemp)"
 trap 'rm -f "$plan"' EXIT
 if [[ " $LANGUAGE " == *" swap "* ]]; then
-    "$PY" -m harness.reference.libero_eval swaps | while IFS=$'\t' read -r task instruction; do
+    "$PY" -m reference_policies.libero_eval swaps | while IFS=$'\t' read -r task instruction; do
         printf 'swap_%s\t%s\t%s\n' "${task#libero_object/}" "$task" "$instruction"
     done >> "$plan"
 fi
@@ -67,7 +67,7 @@ if [ "$INTERVENTIONS" != 0 ]; then
 fi
 
 step="$(find "$MODEL" -mindepth 1 -maxdepth 1 -type d -regex '.*/[0-9]+' -printf '%f\n' | sort -n | tail -1)"
-"$PY" -m harness.reference.evaluate "$OUT/published" --out "$MODEL" \
+"$PY" -m reference_policies.evaluate "$OUT/published" --out "$MODEL" \
     --command "bash scripts/evaluate_libero_reference.sh $STATES $PROBE" --note \
     "Checkpoint step $step. Made by \`bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: \`octo-harness run --model $MODEL --task libero_object --episodes $STATES --seed 0 --fast-render --png-every 0 --no-video --workers 2\` (LIBERO-Object's published protocol: stored initial states 0..$((STATES - 1)) of each task, 10 settle steps, step limit 280; libero action space, rot180 images and cameras from harness.toml; masks on)."
 "$PY" -m harness.report.grounding "$OUT/published" "${language[@]}" --eval-md "$MODEL/EVAL.md" \
@@ -75,7 +75,7 @@ step="$(find "$MODEL" -mindepth 1 -maxdepth 1 -type d -regex '.*/[0-9]+' -printf
     "Made by \`LANGUAGE=\"$LANGUAGE\" bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: own instructions from the published run (states 0..$((STATES - 1))); the probes $LANGUAGE (nonsense: \`$nonsense\`) from states 0..$((PROBE - 1)), masks off (the picked object is read from the simulator at the episode's end: in the basket, else held)."
 if [ "$INTERVENTIONS" != 0 ]; then
     "$PY" -m harness.cli compare "$OUT/mask_random" "$OUT/mask_top" --no-frames --out "$OUT/compare_mask_top" || true
-    "$PY" -m harness.reference.libero_eval closed-loop "$OUT/mask_random" "$OUT/mask_top" \
+    "$PY" -m reference_policies.libero_eval closed-loop "$OUT/mask_random" "$OUT/mask_top" \
         --eval-md "$MODEL/EVAL.md" --command "bash scripts/evaluate_libero_reference.sh $STATES $PROBE" --note "Made by \`bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: \`--intervene mask-top:$TOPK:attention:$LAYER\` against \`--intervene mask-random:$TOPK\`, states 0..$((PROBE - 1)) of every task, masks off."
 fi
 "$PY" -m harness.cli report "$OUT/published" "${language[@]}" --out "$OUT/report"

@@ -1,4 +1,4 @@
-"""Measures the scripted LIBERO-Object expert (harness/reference/libero_expert.py): success over tasks x initial states.
+"""Measures the scripted LIBERO-Object expert (reference_policies/libero_expert.py): success over tasks x initial states.
 
     python scripts/libero_expert.py [--tasks 0-9] [--states 10] [--out results/libero_expert.json]
 
@@ -23,7 +23,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import envs  # noqa: E402
 from envs.libero_tasks import get_libero_task  # noqa: E402
-from harness.reference.libero_expert import run_expert_episode  # noqa: E402
+from reference_policies.libero_expert import run_expert_episode  # noqa: E402
 
 
 def _range(text: str) -> list[int]:

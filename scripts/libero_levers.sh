@@ -35,8 +35,8 @@ for spec in "$@"; do
         echo "libero_levers: $spec: give LABEL=CHECKPOINT_DIR or expert" >&2
         exit 2
     fi
-    .venv/bin/python -m harness.reference.libero_probe "${who[@]}" --states "$STATES" --workers "${WORKERS:-2}" \
+    .venv/bin/python -m reference_policies.libero_probe "${who[@]}" --states "$STATES" --workers "${WORKERS:-2}" \
         --language "$LANGUAGE" --out "$OUT/$label$suffix.json" > /dev/null
     table+=("$label$suffix=$OUT/$label$suffix.json")
 done
-.venv/bin/python -m harness.reference.libero_probe --table "${table[@]}"
+.venv/bin/python -m reference_policies.libero_probe --table "${table[@]}"

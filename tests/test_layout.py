@@ -1,24 +1,27 @@
 """Layout: an explicit stage order that no import runs back up, no two harness modules import each other (one place
-chooses the executor), no compatibility layer."""
+chooses the executor), no compatibility layer; the reference policies' package beside the harness, never inside it."""
 
 import ast
 from pathlib import Path
 
 HARNESS = Path(__file__).resolve().parents[1] / "harness"
 ENVS = HARNESS.parent / "envs"
+REFERENCE = HARNESS.parent / "reference_policies"  # an application of the harness: its own package and extra
 
 # The data path, lowest stage first. A module may import its own stage and the stages before it, never a later one.
 # `measures` (the per-step maths: attention slicing, attribution, deletion fills, the controls' frame transforms,
 # region reliance; and the success statistics the run store writes) sits below `policy`, which computes them at a
 # step; `runfolder` (a run folder's schema, integrity and platform record) sits below both `run` (which writes run
 # folders) and `analysis` (which reads them, offline, above the run store). The gate commands (regress, replay,
-# sanity, view, robustness grids) read analysis and run the run store, so they sit above both. `reference` trains
-# the reference policies with the closed loop and the statistics; nothing but the command line sits above `report`.
+# sanity, view, robustness grids) read analysis and run the run store, so they sit above both; nothing but the
+# command line sits above `report`. The reference policies (reference_policies/) are no stage: they sit beside the
+# harness and use its public API (test_the_reference_policies_sit_beside_the_harness).
 STAGES = (
     ("envs", ("envs",)),
     ("base", ("harness", "harness.files", "harness.console")),
     ("octo", ("harness.octo",)),
     ("measures", ("harness.measures",)),
+    ("probes", ("harness.probes",)),
     ("policy", ("harness.interventions", "harness.policy", "harness.conventions")),
     ("rollout", ("harness.records", "harness.rollout")),
     ("outputs", ("harness.outputs",)),
@@ -26,14 +29,23 @@ STAGES = (
     ("run", ("harness.run",)),
     ("analysis", ("harness.analysis",)),
     ("gate", ("harness.gate",)),
-    ("reference", ("harness.reference",)),
     ("report", ("harness.report",)),
     ("cli", ("harness.cli",)),
 )
 
 
+# A per-step probe is one folder, harness/probes/<probe>/: the probe itself at the `probes` stage (between the maths it
+# computes with and the policy that calls it), and the parts its registry entry names, each at the stage that uses
+# it: the sink and the viewer layer with the writers, the reader with the analysis, the report section with the report.
+PROBE_PARTS = {"sink": "outputs", "viewer": "outputs", "reader": "analysis", "report": "report"}
+
+
 def stage_of(module: str) -> int:
-    """Index in STAGES of the longest prefix naming `module` (a package holds its modules)."""
+    """Index in STAGES of the longest prefix naming `module` (a package holds its modules); a probe's part
+    (harness.probes.<probe>.<part>, PROBE_PARTS) is at its part's stage."""
+    parts = module.split(".")
+    if len(parts) >= 4 and parts[:2] == ["harness", "probes"] and parts[3] in PROBE_PARTS:
+        return [name for name, _ in STAGES].index(PROBE_PARTS[parts[3]])
     best = None
     for index, (_, prefixes) in enumerate(STAGES):
         for prefix in prefixes:
@@ -75,6 +87,9 @@ def test_the_stage_check_sees_an_upward_import():
     """The check above can fail: the run store reading analysis (which sits above it now), the policy reading
     analysis (what issue 42 moved into measures) or analysis reading a gate command is reported."""
     assert stage_of("harness.measures.attribution") < stage_of("harness.policy") < stage_of("harness.run.store")
+    assert stage_of("harness.measures.attribution") < stage_of("harness.probes.reliance") < stage_of("harness.policy")
+    assert stage_of("harness.probes.reliance.sink") == stage_of("harness.outputs.sinks")
+    assert stage_of("harness.probes.reliance.report") == stage_of("harness.report.build")
     assert stage_of("harness.runfolder.schema") < stage_of("harness.run.store") < stage_of("harness.analysis.runs")
     assert stage_of("harness.analysis.runs") < stage_of("harness.gate.regress") < stage_of("harness.report.build")
     assert [name for name, _ in STAGES].index("cli") == len(STAGES) - 1
@@ -143,13 +158,53 @@ def test_one_place_chooses_the_executor_and_no_compatibility_layer():
     assert "harness.runner" not in benchmarks and "RunConfig" not in benchmarks
 
 
+def imports_of(source: str) -> list[tuple[str, str | None]]:
+    """(module, name) of every import in `source`, top level or inside functions: `import a.b` is ("a.b", None),
+    `from a.b import c` is ("a.b", "c")."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found += [(a.name, None) for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            found += [(node.module, a.name) for a in node.names]
+    return found
+
+
+def private_imports(source: str, packages=("harness", "envs", "reference_policies")) -> list[str]:
+    """The imports in `source` that reach a private name (a module or a name starting with `_`) of `packages`."""
+    return sorted(f"{module}{'.' + name if name else ''}" for module, name in imports_of(source)
+                  if module.split(".")[0] in packages
+                  and any(part.startswith("_") for part in module.split(".") + [name or ""]))
+
+
+def test_the_reference_policies_sit_beside_the_harness():
+    """No module of harness/ or envs/ imports the reference policies or optax (the training's own dependency, in the
+    `train` extra); the reference policies use only public names of the harness (and of each other's modules); their
+    own modules form no circle. The private-name check can fail: a hand-made `from harness.x import _y` is caught."""
+    core = [p for root in (HARNESS, ENVS) for p in root.rglob("*.py")]
+    assert len(core) > 60
+    reaching = sorted(f"{p.relative_to(HARNESS.parent)} imports {module}" for p in core
+                      for module, _ in imports_of(p.read_text())
+                      if module.split(".")[0] in ("reference_policies", "optax"))
+    assert reaching == []
+    modules = sorted(REFERENCE.rglob("*.py"))
+    assert len(modules) > 10 and not (HARNESS / "reference").exists()
+    assert sorted(f"{p.name}: {name}" for p in modules for name in private_imports(p.read_text())) == []
+    assert private_imports("from harness.octo import _x\nimport harness._y\nfrom numpy import _z") == \
+        ["harness._y", "harness.octo._x"]
+    graph = import_graph((REFERENCE,))
+    assert "reference_policies.train" in graph["reference_policies.pipeline"]
+    assert import_circles(graph) == []
+
+
 def test_every_module_imports_and_states_its_job():
-    """The quick subset (`pytest -m "not slow"`) imports every module of harness/ and envs/ here, so none is left
-    out of it; each module's docstring states its job."""
+    """The quick subset (`pytest -m "not slow"`) imports every module of harness/, envs/ and reference_policies/
+    here, so none is left out of it; each module's docstring states its job."""
     import importlib
 
     root = HARNESS.parent
     names = sorted(".".join(p.relative_to(root).with_suffix("").parts).removesuffix(".__init__")
-                   for package in ("harness", "envs") for p in (root / package).rglob("*.py"))
+                   for package in ("harness", "envs", "reference_policies")
+                   for p in (root / package).rglob("*.py"))
     undocumented = [name for name in names if not (importlib.import_module(name).__doc__ or "").strip()]
     assert len(names) > 60 and undocumented == []

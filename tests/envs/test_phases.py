@@ -1,7 +1,7 @@
 """Task phases from the simulator's privileged state (envs/phases.py) and the gripper, arm and goal masks.
 
 Known answers:
-- driven by the scripted experts (harness/reference/experts.py), the phases appear in order and each boundary falls
+- driven by the scripted experts (reference_policies/experts.py), the phases appear in order and each boundary falls
   within BOUNDARY_STEPS steps of the expert's own phase switch (approach -> grasp: the expert's "close"; grasp ->
   lift/transport: its "lift"; transport -> place: its "lower"; place -> release: its "release"); a successful
   episode reaches the last phase;
@@ -22,7 +22,7 @@ import envs
 from envs.phases import LIFT, PICK_PLACE, PHASE_SPECS, PhaseState, phase_names, phase_of
 from envs.segmentation import GOAL, GRIPPER, ROBOT, TARGET, geom_categories, masks_from_segmentation, scene_lookup
 from harness.analysis import phases as P
-from harness.reference.experts import ScriptedExpert
+from reference_policies.experts import ScriptedExpert
 
 BOUNDARY_STEPS = 8  # measured: 1-7 steps (the fingers take ~7 steps to close; the expert's carry ends 5-7 steps
 # after the object is over its goal; the fingers let go ~6 steps into the expert's release)

@@ -469,7 +469,7 @@ def test_spatial_task_5_bowl_sits_on_the_ramekin_after_reset():
 def test_the_scripted_expert_places_the_named_object_in_the_basket(task, state):
     """CI subset of scripts/libero_expert.py (10 tasks x 10 states there): through the policy's env path."""
     _needs_libero()
-    from harness.reference.libero_expert import run_expert_episode
+    from reference_policies.libero_expert import run_expert_episode
 
     spec = envs.get_task(f"libero_object/{task}")
     env = envs.make(spec.name, cameras={}, action_space="libero")

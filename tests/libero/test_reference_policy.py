@@ -129,7 +129,7 @@ def test_grounding_reads_foreign_episode_files_as_notes_not_crashes(tmp_path):
 
 def test_libero_conventions_parse_and_name_the_libero_action_space(tmp_path):
     from harness.conventions import CheckpointConventions
-    from harness.reference.libero_pipeline import DATASET_KEY, conventions_toml
+    from reference_policies.libero_pipeline import DATASET_KEY, conventions_toml
 
     (tmp_path / "harness.toml").write_text(conventions_toml())
     conventions = CheckpointConventions.read(tmp_path)
@@ -149,7 +149,7 @@ def test_a_labeller_with_close_below_top_does_not_close_over_a_flat_object():
     1.2 cm band closes with the hand over the top; with close_below_top = 3 mm it descends there and closes lower."""
     from dataclasses import replace
 
-    from harness.reference.libero_expert import CLOSED, OPEN, LiberoExpertConfig, LiberoObjectLabeller
+    from reference_policies.libero_expert import CLOSED, OPEN, LiberoExpertConfig, LiberoObjectLabeller
 
     poses = {"butter_1": _box([0, -0.2, 0.009], [0.08, 0.04, 0.018]), "basket_1": _box([0, 0.25, 0.04], [0.2, 0.2, 0.08])}
     c = LiberoExpertConfig()
@@ -168,8 +168,8 @@ def test_recording_fingerprints_leave_out_close_below_top_while_it_is_off():
     stay reusable (the reference's summary equals the second recipe's fingerprint); set, it is part of them."""
     from dataclasses import replace
 
-    from harness.reference.demos import config_fingerprint
-    from harness.reference.libero_pipeline import RECIPES
+    from reference_policies.demos import config_fingerprint
+    from reference_policies.libero_pipeline import RECIPES
 
     second = RECIPES["second"]
     assert "close_below_top" not in config_fingerprint(second)["expert"]
@@ -183,7 +183,7 @@ def test_recording_fingerprints_leave_out_close_below_top_while_it_is_off():
 def test_the_labeller_reads_the_phase_off_the_state_known_answers():
     """LiberoObjectLabeller's waypoint for hand-made states: a 6 cm tall object at (0, -0.2) and a basket at (0, 0.25)
     whose rim is at 0.08 m."""
-    from harness.reference.libero_expert import CLOSED, OPEN, LiberoExpertConfig, LiberoObjectLabeller
+    from reference_policies.libero_expert import CLOSED, OPEN, LiberoExpertConfig, LiberoObjectLabeller
 
     c = LiberoExpertConfig()
     lab = LiberoObjectLabeller("soup_1")
@@ -229,7 +229,7 @@ def test_the_labeller_reads_the_phase_off_the_state_known_answers():
 def test_swapped_instruction_demonstrations_go_to_the_task_they_name(tmp_path):
     """append_swaps splits a scene's file by the task each episode named and appends those episodes to it,
     numbered after its own; an episode naming a task without demonstrations is refused in one line."""
-    from harness.reference.libero_demos import append_swaps, swap_candidates
+    from reference_policies.libero_demos import append_swaps, swap_candidates
 
     assert swap_candidates("libero_object/8", ["chocolate_pudding_1", "basket_1", "orange_juice_1", "ketchup_1"]) == [
         "libero_object/9", "libero_object/4"]  # the order i+1, i+2, ... wraps round; the scene's own object is not one
@@ -262,8 +262,8 @@ def test_swapped_instruction_demonstrations_go_to_the_task_they_name(tmp_path):
 
 
 def test_libero_dagger_seeds_are_their_own_block_and_bad_counts_are_refused():
-    from harness.reference.libero_dagger import LIBERO_DAGGER_SEED_BASE, LiberoDaggerConfig
-    from harness.reference.libero_demos import LIBERO_SEED_BASE, SEEDS_PER_JOB, LiberoDemoConfig
+    from reference_policies.libero_dagger import LIBERO_DAGGER_SEED_BASE, LiberoDaggerConfig
+    from reference_policies.libero_demos import LIBERO_SEED_BASE, SEEDS_PER_JOB, LiberoDemoConfig
 
     demo = LiberoDemoConfig()
     demo_seeds = {demo.task_seed_base(t) + j * SEEDS_PER_JOB + k for t in demo.tasks
@@ -277,9 +277,9 @@ def test_libero_dagger_seeds_are_their_own_block_and_bad_counts_are_refused():
 
 
 def test_the_demonstrator_is_part_of_the_recording_fingerprint_and_unknown_ones_are_one_line():
-    from harness.reference.demos import config_fingerprint
-    from harness.reference.libero_demos import LiberoDemoConfig
-    from harness.reference.libero_pipeline import main
+    from reference_policies.demos import config_fingerprint
+    from reference_policies.libero_demos import LiberoDemoConfig
+    from reference_policies.libero_pipeline import main
 
     state, timed = LiberoDemoConfig(), LiberoDemoConfig(demonstrator="timed")
     assert state.demonstrator == "state"  # the second recipe's (issue 46); "timed" made the first committed policy
@@ -302,7 +302,7 @@ def camera_free_env():
 
 
 def test_the_grasp_probe_summary_known_answers_and_bad_arguments_are_one_line(tmp_path, capsys):
-    from harness.reference import libero_probe
+    from reference_policies import libero_probe
 
     rows = [dict(task="t/0", target="a", first_close=30, reach_xy_cm=1.0, held_named=True, lifted_named=True,
                  success=True, picked="a", nearest_at_close="a"),
@@ -341,7 +341,7 @@ def test_the_lever_script_refuses_a_bad_call_in_one_line_before_anything_loads(a
 
 
 def test_the_lever_table_reads_probe_results_in_order_and_refuses_foreign_files(tmp_path, capsys):
-    from harness.reference import libero_probe
+    from reference_policies import libero_probe
 
     rows = [dict(task="t/0", target="a", first_close=30, reach_xy_cm=1.0, held_named=True, lifted_named=True,
                  success=True, picked="a"),
@@ -384,7 +384,7 @@ def _stall_actions(stall: int, close_at: int = 10, steps: int = 280) -> np.ndarr
 
 
 def test_a_stall_is_the_longest_open_and_quiet_run_after_the_first_close_and_the_probe_tables_it(tmp_path, capsys):
-    from harness.reference import libero_probe
+    from reference_policies import libero_probe
 
     assert G.longest_stall(_stall_actions(120)) == (15, 120)
     assert G.longest_stall(_stall_actions(0)) == (0, 0)
@@ -447,7 +447,7 @@ def _libero_run(folder, episodes: dict, action_space: str = "libero"):
 
 
 def test_stalls_of_a_run_folder_count_its_failed_episodes_and_other_runs_are_one_line(tmp_path, capsys):
-    from harness.reference import libero_probe
+    from reference_policies import libero_probe
 
     run = _libero_run(tmp_path / "run", {
         "libero_object/0": [(False, _stall_actions(130)), (False, _stall_actions(99)), (True, _stall_actions(200))],
@@ -470,7 +470,7 @@ def test_stalls_of_a_run_folder_count_its_failed_episodes_and_other_runs_are_one
 
 
 def test_a_probe_result_is_reused_only_for_the_same_checkpoint_states_tasks_and_limit(tmp_path, capsys):
-    from harness.reference import libero_probe
+    from reference_policies import libero_probe
 
     rows = [dict(task="libero_object/0", target="a", first_close=30, reach_xy_cm=1.0, held_named=True,
                  lifted_named=True, success=True, picked="a")]
@@ -507,7 +507,7 @@ def test_the_grasp_probe_measures_the_expert_as_a_yardstick_and_runs_the_committ
     """Known answer: the state-based expert closes centred on the named object, holds and lifts it, and succeeds;
     so does the committed reference on the second demo's episode."""
     _needs_libero()
-    from harness.reference import libero_probe
+    from reference_policies import libero_probe
 
     expert = libero_probe.probe(None, [0], ("libero_object/0",), workers=1)
     json.dumps(expert)  # what --out writes: plain JSON types only (numpy's bool_ once lost a 20-minute probe)
@@ -572,14 +572,14 @@ class TestTheRecorderInSceneSix:
     @pytest.fixture(scope="class")
     def butter_demo_env(self):
         _needs_libero()
-        from harness.reference.libero_demos import LiberoDemoConfig, make_env
+        from reference_policies.libero_demos import LiberoDemoConfig, make_env
 
         env = make_env("libero_object/6", LiberoDemoConfig())
         yield env
         env.close()
 
     def test_a_demonstration_from_a_sampled_placement_is_recorded_as_the_policy_sees_it(self, butter_demo_env):
-        from harness.reference.libero_demos import LiberoDemoConfig, record_episode
+        from reference_policies.libero_demos import LiberoDemoConfig, record_episode
 
         config = LiberoDemoConfig()
         episode = record_episode(butter_demo_env, "butter_1", config.task_seed_base("libero_object/6"), config)
@@ -599,9 +599,9 @@ class TestTheRecorderInSceneSix:
         `--missed-grasps 1` the recording succeeds too."""
         from dataclasses import replace
 
-        from harness.reference.demos import noisy_episode
-        from harness.reference.libero_demos import LiberoDemoConfig, MissConfig, MissedGrasp, record_episode
-        from harness.reference.libero_expert import LiberoObjectLabeller
+        from reference_policies.demos import noisy_episode
+        from reference_policies.libero_demos import LiberoDemoConfig, MissConfig, MissedGrasp, record_episode
+        from reference_policies.libero_expert import LiberoObjectLabeller
 
         config = LiberoDemoConfig()
         missing = replace(config, bursts=replace(config.bursts, miss=MissConfig(rate=1.0)))
@@ -628,9 +628,9 @@ def test_a_swapped_instruction_demonstration_picks_the_named_object_in_another_t
     object of swap_candidates' entry `seed mod 5`, each frame stores that task's index, and the seed is in the
     task's swap block (never the own demonstrations' seeds)."""
     _needs_libero()
-    from harness.reference.libero_demos import (LIBERO_OBJECT_TASKS, SWAP_SEED_OFFSET, LiberoDemoConfig, append_swaps,
+    from reference_policies.libero_demos import (LIBERO_OBJECT_TASKS, SWAP_SEED_OFFSET, LiberoDemoConfig, append_swaps,
                                                 record_libero_demos, swap_candidates)
-    from harness.reference.libero_eval import scene_objects
+    from reference_policies.libero_eval import scene_objects
 
     config = LiberoDemoConfig(tasks=("libero_object/6",), episodes=1, jobs_per_task=1, swaps=True)
     summary = record_libero_demos(config, tmp_path, workers=1)
@@ -655,8 +655,8 @@ def test_the_labeller_recovers_from_a_grasp_closed_beside_the_object():
     closed on nothing. From there the state-based labeller (acting alone) opens, backs up, re-grasps and puts the
     object in the basket: LIBERO's own success predicate."""
     _needs_libero()
-    from harness.reference.libero_demos import LiberoDemoConfig, make_env
-    from harness.reference.libero_expert import OPEN, LiberoObjectLabeller
+    from reference_policies.libero_demos import LiberoDemoConfig, make_env
+    from reference_policies.libero_expert import OPEN, LiberoObjectLabeller
 
     env = make_env("libero_object/0", LiberoDemoConfig(cameras=()))
     try:
@@ -691,7 +691,7 @@ def test_libero_dagger_labels_the_policys_own_states_and_appends_them(tmp_path, 
     block, labels in the libero action space; reused only for the same configuration and checkpoint; appended as
     further episodes of each task."""
     _needs_libero()
-    from harness.reference import libero_dagger
+    from reference_policies import libero_dagger
 
     config = libero_dagger.LiberoDaggerConfig(tasks=("libero_object/3",), episodes=2, max_steps=6)
     summary = libero_dagger.collect(MODEL, tmp_path / "c", config, workers=1)
@@ -709,13 +709,13 @@ def test_libero_dagger_labels_the_policys_own_states_and_appends_them(tmp_path, 
     (tmp_path / "c" / "jobs" / "libero_object_3_2030001.npz").unlink()
     (tmp_path / "c" / "jobs" / "libero_object_3_2030000.npz").write_bytes(b"torn")
     (tmp_path / "c" / "summary.json").unlink()
-    with caplog.at_level(logging.INFO, logger="harness.reference.libero_dagger"):
+    with caplog.at_level(logging.INFO, logger="reference_policies.libero_dagger"):
         libero_dagger.collect(MODEL, tmp_path / "c", config, workers=1)
     assert "seeds 2030000..: 1 episodes" in caplog.text and "seeds 2030001..: 1 episodes" in caplog.text
     caplog.clear()
     (tmp_path / "c" / "libero_object_3.npz").unlink()
     (tmp_path / "c" / "jobs" / "libero_object_3_2030001.npz").unlink()
-    with caplog.at_level(logging.INFO):  # the reuse is logged by harness.reference.demos
+    with caplog.at_level(logging.INFO):  # the reuse is logged by reference_policies.demos
         libero_dagger.collect(MODEL, tmp_path / "c", config, workers=1)
     assert "reusing 1 of 2" in caplog.text and "seeds 2030000..:" not in caplog.text
     with np.load(tmp_path / "c" / "libero_object_3.npz") as data:
@@ -743,8 +743,8 @@ def test_the_pipeline_trains_libero_tasks_warm_started_from_the_robosuite_refere
     from dataclasses import replace
 
     from harness.octo import load_pretrained
-    from harness.reference.libero_pipeline import DATASET_KEY, conventions_toml, instructions
-    from harness.reference.train import TrainConfig, train
+    from reference_policies.libero_pipeline import DATASET_KEY, conventions_toml, instructions
+    from reference_policies.train import TrainConfig, train
 
     rng = np.random.default_rng(0)
     tasks = ("libero_object/0", "libero_object/7")
@@ -778,9 +778,9 @@ def test_a_dagger_round_trains_stage_1_collects_once_then_fine_tunes_on_demonstr
     frames too, starts from stage 1 with seed + 1, and a second call reuses stage 1 and the corrections."""
     from dataclasses import replace
 
-    from harness.reference.libero_pipeline import DATASET_KEY, conventions_toml, instructions
-    from harness.reference.pipeline import dagger_round
-    from harness.reference.train import TrainConfig
+    from reference_policies.libero_pipeline import DATASET_KEY, conventions_toml, instructions
+    from reference_policies.pipeline import dagger_round
+    from reference_policies.train import TrainConfig
 
     rng = np.random.default_rng(1)
     task = "libero_object/2"
@@ -828,7 +828,7 @@ def test_a_dagger_round_trains_stage_1_collects_once_then_fine_tunes_on_demonstr
     assert len(collected) == 1 and again["frames"] == 11  # stage 1 and the corrections reused
 
     # two rounds: round 2's collector acts with round 1's checkpoint; its corrections weigh more near the grasp
-    from harness.reference.pipeline import dagger_rounds
+    from reference_policies.pipeline import dagger_rounds
 
     acted = []
 
@@ -945,7 +945,7 @@ def test_the_committed_policy_is_small_and_states_its_libero_conventions(model):
     total = sum(p.stat().st_size for p in model.rglob("*") if p.is_file())
     assert total <= 25 * 2**20  # the issue's limit for a committed model folder
     from harness.conventions import CheckpointConventions
-    from harness.reference.libero_pipeline import DATASET_KEY
+    from reference_policies.libero_pipeline import DATASET_KEY
 
     conventions = CheckpointConventions.read(model)
     assert conventions.env_options().action_space == "libero" and conventions.policy_config().dataset_key == DATASET_KEY
@@ -959,8 +959,8 @@ def test_the_reference_states_the_second_recipes_cameras_and_was_trained_on_its_
     """The reference reads both cameras at 128 px, as its demonstrations were recorded (the pipeline's harness.toml
     for the second recipe, byte for byte), its summary names the second recipe's demonstrator and count, and it was
     trained with the one command's defaults (steps, warm start), so `--out` alone rebuilds it."""
-    from harness.reference.libero_demos import LIBERO_CAMERAS
-    from harness.reference.libero_pipeline import DEFAULT_INIT, RECIPE_STEPS, RECIPES, conventions_toml
+    from reference_policies.libero_demos import LIBERO_CAMERAS
+    from reference_policies.libero_pipeline import DEFAULT_INIT, RECIPE_STEPS, RECIPES, conventions_toml
 
     assert (MODEL / "harness.toml").read_text() == conventions_toml(LIBERO_CAMERAS)
     assert dict((k, s) for k, _, s in LIBERO_CAMERAS) == {"image_primary": 128, "image_wrist": 128}
@@ -988,7 +988,7 @@ def test_the_closed_loop_section_is_written_when_the_script_names_its_command(tm
     """Known answer: paired by (task, state), 3 of 4 pairs succeed with mask-random and 1 with mask-top, both
     discordant pairs going one way (McNemar exact p = 0.5). The evaluation script passes --command, which once
     collided with the sub-command's name, so the section was never written and the exit code still said 0."""
-    from harness.reference import libero_eval
+    from reference_policies import libero_eval
 
     a, b = "libero_object/1", "libero_object/2"
     random_run = _legacy_run(tmp_path / "mask_random", "mask-random:8",

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 import envs
-from harness.reference import dagger
-from harness.reference.demos import TRAIN_SEED_BASE, EVAL_SEEDS
-from harness.reference.experts import CLOSED, OPEN, CanLabeller, ExpertConfig
-from harness.reference.pipeline import main as pipeline_main
-from harness.reference.train import DATASET_KEY, build_dataset
+from reference_policies import dagger
+from reference_policies.demos import TRAIN_SEED_BASE, EVAL_SEEDS
+from reference_policies.experts import CLOSED, OPEN, CanLabeller, ExpertConfig
+from reference_policies.pipeline import main as pipeline_main
+from reference_policies.train import DATASET_KEY, build_dataset
 
 ROOT = Path(__file__).resolve().parents[2]
 MODEL = ROOT / "models" / "octo-reference-robosuite"
@@ -125,7 +125,7 @@ def test_collection_labels_the_policys_own_states(tmp_path, caplog):
     for name in ("PickPlaceCan.npz", "summary.json", f"jobs/PickPlaceCan_{dagger.DAGGER_SEED_BASE + 3}.npz"):
         (tmp_path / "c" / name).unlink()
     (tmp_path / "c" / "jobs" / f"PickPlaceCan_{dagger.DAGGER_SEED_BASE + 2}.npz").write_bytes(b"torn")
-    with caplog.at_level(logging.INFO, logger="harness.reference.demos"):
+    with caplog.at_level(logging.INFO, logger="reference_policies.demos"):
         dagger.collect(MODEL, tmp_path / "c", config, workers=1)
     assert "reusing 2 of 4 jobs" in caplog.text
     with np.load(tmp_path / "c" / "PickPlaceCan.npz") as data:
@@ -186,7 +186,7 @@ def test_pipeline_rejects_a_dagger_round_too_small_to_split(capsys):
 @pytest.mark.parametrize("weights", ["libero_object/0", "libero_object/0=0", "libero_object/0=-1", "Lift=2",
                                      "libero_object/0=inf", "libero_object/0=x", "libero_object/0=2,libero_object/0=3"])
 def test_pipeline_refuses_task_weights_it_cannot_use_in_one_line_before_loading_anything(weights, capsys):
-    from harness.reference.libero_pipeline import main as libero_pipeline_main
+    from reference_policies.libero_pipeline import main as libero_pipeline_main
 
     with pytest.raises(SystemExit) as exit_info:
         libero_pipeline_main(["--task-weights", weights, "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
@@ -197,7 +197,7 @@ def test_pipeline_refuses_task_weights_it_cannot_use_in_one_line_before_loading_
 
 
 def test_task_weights_name_libero_tasks_and_leave_the_others_at_one():
-    from harness.reference.libero_pipeline import RECIPES, parse_task_weights
+    from reference_policies.libero_pipeline import RECIPES, parse_task_weights
 
     tasks = RECIPES["second"].tasks
     assert parse_task_weights("", tasks) == ()
@@ -206,7 +206,7 @@ def test_task_weights_name_libero_tasks_and_leave_the_others_at_one():
 
 
 def test_dagger_tasks_keep_the_recipes_order_and_unknown_ones_are_refused_in_one_line(capsys):
-    from harness.reference.libero_pipeline import RECIPES, main as libero_pipeline_main, parse_tasks
+    from reference_policies.libero_pipeline import RECIPES, main as libero_pipeline_main, parse_tasks
 
     tasks = RECIPES["second"].tasks
     assert parse_tasks("", tasks) == tasks
@@ -222,7 +222,7 @@ def test_dagger_tasks_keep_the_recipes_order_and_unknown_ones_are_refused_in_one
 @pytest.mark.parametrize("option", ["--close-below-top", "--dagger-close-below-top"])
 @pytest.mark.parametrize("value", ["-0.001", "0.05", "nan", "inf"])
 def test_pipeline_refuses_a_close_below_top_out_of_range_in_one_line(option, value, capsys):
-    from harness.reference.libero_pipeline import main as libero_pipeline_main
+    from reference_policies.libero_pipeline import main as libero_pipeline_main
 
     with pytest.raises(SystemExit) as exit_info:
         libero_pipeline_main(["--dagger-episodes", "6", f"{option}={value}", "--out", "/nonexistent/x",
@@ -234,7 +234,7 @@ def test_pipeline_refuses_a_close_below_top_out_of_range_in_one_line(option, val
 
 @pytest.mark.parametrize("value", ["-1", "1001", "x"])
 def test_pipeline_refuses_a_swap_count_out_of_range_in_one_line(value, capsys):
-    from harness.reference.libero_pipeline import main as libero_pipeline_main
+    from reference_policies.libero_pipeline import main as libero_pipeline_main
 
     with pytest.raises(SystemExit) as exit_info:
         libero_pipeline_main([f"--swaps={value}", "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
@@ -254,7 +254,7 @@ def test_pipeline_refuses_a_swap_count_out_of_range_in_one_line(value, capsys):
                                          (["--missed-grasps", "0.5", "--recipe", "first"], "has none of"),
                                          (["--missed-grasps", "0.5", "--demonstrator", "timed"], "state-based")])
 def test_pipeline_refuses_retrain_beside_fine_tuning_and_a_bad_missed_grasp_rate_in_one_line(flags, words, capsys):
-    from harness.reference.libero_pipeline import _checked, _parser
+    from reference_policies.libero_pipeline import _checked, _parser
 
     with pytest.raises(SystemExit) as exit_info:
         _checked(_parser(), [*flags, "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
@@ -264,7 +264,7 @@ def test_pipeline_refuses_retrain_beside_fine_tuning_and_a_bad_missed_grasp_rate
 
 
 def test_a_dagger_round_fine_tunes_1500_steps_at_3e_4_unless_told_otherwise():
-    from harness.reference.libero_pipeline import _checked, _parser
+    from reference_policies.libero_pipeline import _checked, _parser
 
     def round_of(*flags):
         args = _checked(_parser(), ["--dagger-episodes", "6", "--out", "/nonexistent/x", *flags])[0]
@@ -276,7 +276,7 @@ def test_a_dagger_round_fine_tunes_1500_steps_at_3e_4_unless_told_otherwise():
 
 
 def test_the_dagger_labeller_closes_as_the_demonstrator_unless_told_otherwise():
-    from harness.reference.libero_pipeline import _checked, _parser
+    from reference_policies.libero_pipeline import _checked, _parser
 
     def labeller_limit(*flags):
         _, _, dagger, _ = _checked(_parser(), ["--dagger-episodes", "6", "--out", "/nonexistent/x", *flags])
@@ -290,7 +290,7 @@ def test_the_dagger_labeller_closes_as_the_demonstrator_unless_told_otherwise():
 
 def test_each_recipe_writes_its_own_committed_folder_unless_told_otherwise():
     """`--recipe first` without --out rebuilds the first policy's folder, never the reference's."""
-    from harness.reference.libero_pipeline import _checked, _parser
+    from reference_policies.libero_pipeline import _checked, _parser
 
     def out(*flags):
         return _checked(_parser(), list(flags))[0].out
@@ -304,7 +304,7 @@ def test_each_recipe_writes_its_own_committed_folder_unless_told_otherwise():
 
 @pytest.mark.parametrize("option,value", [("--close-below-top", "0.004"), ("--demonstrator-radii", "grasp_height=0.004")])
 def test_the_state_demonstrators_options_with_the_timed_demonstrator_are_refused_in_one_line(option, value, capsys):
-    from harness.reference.libero_pipeline import main as libero_pipeline_main
+    from reference_policies.libero_pipeline import main as libero_pipeline_main
 
     with pytest.raises(SystemExit) as exit_info:
         libero_pipeline_main(["--recipe", "first", option, value, "--out", "/nonexistent/x"])
@@ -315,9 +315,9 @@ def test_the_state_demonstrators_options_with_the_timed_demonstrator_are_refused
 def test_the_demonstrators_radii_reach_its_configuration_and_not_the_dagger_labellers():
     """`--demonstrator-radii` sets the recording's expert (so its fingerprint: a new recording), beside
     --close-below-top; the DAgger labeller keeps its own radii, which must accept the policy's imprecise states."""
-    from harness.reference.demos import config_fingerprint
-    from harness.reference.libero_expert import LiberoExpertConfig
-    from harness.reference.libero_pipeline import RECIPES, _checked, _parser
+    from reference_policies.demos import config_fingerprint
+    from reference_policies.libero_expert import LiberoExpertConfig
+    from reference_policies.libero_pipeline import RECIPES, _checked, _parser
 
     args, _, dagger, _ = _checked(_parser(), ["--demonstrator-radii", "grasp_height=0.004, at_grasp=0.01",
                                               "--close-below-top", "0.003", "--dagger-episodes", "6", "--out", "/x"])
@@ -335,8 +335,8 @@ def test_the_demonstrators_radii_reach_its_configuration_and_not_the_dagger_labe
 @pytest.mark.parametrize("text", ["grasp_height", "grasp_height=0", "grasp_height=0.2", "gain=3", "centred=nan",
                                   "at_grasp=0.01,at_grasp=0.02", "close_below_top=0.004"])
 def test_bad_radii_are_refused_in_one_line_before_anything_loads(text, capsys):
-    from harness.reference.libero_pipeline import main as libero_pipeline_main
-    from harness.reference.libero_probe import main as probe_main
+    from reference_policies.libero_pipeline import main as libero_pipeline_main
+    from reference_policies.libero_probe import main as probe_main
 
     with pytest.raises(SystemExit) as exit_info:
         libero_pipeline_main(["--demonstrator-radii", text, "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
@@ -349,7 +349,7 @@ def test_bad_radii_are_refused_in_one_line_before_anything_loads(text, capsys):
 
 
 def test_expert_radii_need_the_expert_and_are_part_of_the_probe_key(capsys):
-    from harness.reference.libero_probe import main as probe_main, probe_key
+    from reference_policies.libero_probe import main as probe_main, probe_key
 
     with pytest.raises(SystemExit) as exit_info:
         probe_main(["--model", str(Path(__file__).parents[2] / "models" / "octo-reference-robosuite"),
@@ -364,8 +364,8 @@ def test_expert_radii_need_the_expert_and_are_part_of_the_probe_key(capsys):
 def test_a_finished_stage_one_is_reused_only_with_the_same_configuration(tmp_path):
     from dataclasses import asdict, replace
 
-    from harness.reference.pipeline import finished_training
-    from harness.reference.train import TrainConfig
+    from reference_policies.pipeline import finished_training
+    from reference_policies.train import TrainConfig
 
     cfg = TrainConfig(steps=5, init_from="parent")
     demos = {"PickPlaceCan": _toy(2, 3, 0.0)}
@@ -386,7 +386,7 @@ def test_a_finished_stage_one_is_reused_only_with_the_same_configuration(tmp_pat
 
 def test_a_recording_summary_keeps_every_float_digit_so_it_is_found_again(tmp_path):
     from harness.files import atomic_write_json
-    from harness.reference.demos import finished_recording
+    from reference_policies.demos import finished_recording
 
     fingerprint = {"radius": 1 / 3, "scale": 2.0000001, "tiny": 1.234567891e-9, "names": ["Lift"]}
     (tmp_path / "Lift.npz").write_bytes(b"x")

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import envs
-from harness.reference import demos as demos_mod
-from harness.reference.experts import EXPERT_TASKS, ExpertConfig, ScriptedExpert
-from harness.reference.train import DATASET_KEY, TrainConfig, build_dataset, build_tokenizer, train
+from reference_policies import demos as demos_mod
+from reference_policies.experts import EXPERT_TASKS, ExpertConfig, ScriptedExpert
+from reference_policies.train import DATASET_KEY, TrainConfig, build_dataset, build_tokenizer, train
 
 
 def _expert_succeeds(task: str, seed: int) -> bool:
@@ -202,7 +202,7 @@ def test_a_stopped_training_resumes_at_its_checkpoint_and_ends_with_the_bytes_of
                                                                                                     caplog):
     """Stopped after step 37 (checkpoint and state at 30), trained again with the same arguments: the same
     checkpoint bytes, curve and batches as the diffusion fixture's unstopped 60 steps; no state left at the end."""
-    from harness.reference.train_loop import STATE_FILE
+    from reference_policies.train_loop import STATE_FILE
 
     source, summary, demo = diffusion
     cfg = TrainConfig(**summary["config"] | {"stem_features": tuple(summary["config"]["stem_features"]),
@@ -219,7 +219,7 @@ def test_a_stopped_training_resumes_at_its_checkpoint_and_ends_with_the_bytes_of
     with pytest.raises(_Stop):
         train({"Lift": demo}, out, cfg, on_step=stop)
     assert (out / STATE_FILE).is_file() and sorted(p.name for p in out.iterdir() if p.name.isdigit()) == ["30"]
-    with caplog.at_level("INFO", logger="harness.reference.train_loop"):
+    with caplog.at_level("INFO", logger="reference_policies.train_loop"):
         resumed = train({"Lift": demo}, out, cfg)
     assert "resuming the training in" in caplog.text and "at step 30" in caplog.text
     assert not (out / STATE_FILE).exists()
@@ -238,7 +238,7 @@ def test_the_step_descends_what_adamw_with_the_schedule_would_at_each_count():
     import jax.numpy as jnp
     import optax
 
-    from harness.reference.train_step import make_optimizer
+    from reference_policies.train_step import make_optimizer
 
     schedule = optax.warmup_cosine_decay_schedule(0.0, 3e-3, 2, 6, 1.5e-4)
     reference = optax.chain(optax.clip_by_global_norm(1.0), optax.adamw(schedule, weight_decay=0.1))
@@ -261,7 +261,7 @@ def test_a_training_state_of_another_run_or_a_damaged_one_is_ignored(tmp_path, c
     """The fingerprint changes with the configuration and the data; a torn or foreign state starts at step 1."""
     import jax.numpy as jnp
 
-    from harness.reference import train_loop
+    from reference_policies import train_loop
 
     demo = _toy_demos(lengths=(4, 3))
     data = build_dataset({"Lift": demo}, horizon=2)
@@ -278,7 +278,7 @@ def test_a_training_state_of_another_run_or_a_damaged_one_is_ignored(tmp_path, c
     train_loop.save(tmp_path, fp, 3, trainable=params, opt_state=opt, key=jnp.zeros(2, jnp.uint32), rng=rng, rows=[],
                     window=[], seconds=1.0)
     assert train_loop.load(tmp_path, fp, trainable=params, opt_state=opt)["step"] == 3
-    with caplog.at_level("WARNING", logger="harness.reference.train_loop"):
+    with caplog.at_level("WARNING", logger="reference_policies.train_loop"):
         assert train_loop.load(tmp_path, "another", trainable=params, opt_state=opt) is None
         from flax import serialization  # a state of format 1 (its optimiser state held the schedule's count)
 
@@ -304,7 +304,7 @@ def _read_curve(path):
 
 
 def test_grid_embedding_resize_known_answer():
-    from harness.reference.warm_start import resize_grid_embedding
+    from reference_policies.warm_start import resize_grid_embedding
 
     # a 2x2 grid (row-major tokens) whose value is the row index: 4x4 bilinear (half-pixel centres, edges held)
     old = np.array([0.0, 0.0, 1.0, 1.0], np.float32).reshape(1, 4, 1)
@@ -323,7 +323,7 @@ def test_warm_start_copies_an_earlier_checkpoint_and_resamples_the_patch_grid(di
     from flax import traverse_util
 
     from harness.octo.checkpoint import read_params
-    from harness.reference.warm_start import resize_grid_embedding
+    from reference_policies.warm_start import resize_grid_embedding
 
     source, _, demo = diffusion
     small = dict(batch_size=4, log_every=1, checkpoint_every=10, warmup_steps=1, **SMALL)

@@ -1,5 +1,5 @@
-"""Demonstration recording: resumable job by job, and the LIBERO recovery bursts (harness.reference.demos,
-harness.reference.libero_demos). Hand-made jobs in this process, no simulator: the recorders' own episodes are
+"""Demonstration recording: resumable job by job, and the LIBERO recovery bursts (reference_policies.demos,
+reference_policies.libero_demos). Hand-made jobs in this process, no simulator: the recorders' own episodes are
 checked in tests/libero/test_reference_policy.py."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from harness.reference.demos import record_tasks
-from harness.reference.libero_demos import BurstConfig, Bursts
-from harness.reference.libero_expert import CLOSED, OPEN
+from reference_policies.demos import record_tasks
+from reference_policies.libero_demos import BurstConfig, Bursts
+from reference_policies.libero_expert import CLOSED, OPEN
 
 CALLS: list[tuple[str, int]] = []
 
@@ -132,8 +132,8 @@ def test_bursts_change_what_is_executed_never_the_label():
 
 
 def test_missed_grasps_are_part_of_the_recording_fingerprint_only_when_set():
-    from harness.reference.demos import config_fingerprint
-    from harness.reference.libero_demos import LiberoDemoConfig, MissConfig
+    from reference_policies.demos import config_fingerprint
+    from reference_policies.libero_demos import LiberoDemoConfig, MissConfig
 
     # unset: the fingerprint of the recordings made before missed grasps existed, so they stay reusable
     assert "miss" not in config_fingerprint(LiberoDemoConfig())["bursts"]
@@ -156,7 +156,7 @@ def test_bursts_are_a_function_of_the_episode_seed():
 
 
 def test_weighted_frames_are_drawn_in_proportion_within_their_task_and_uniform_draws_are_unchanged():
-    from harness.reference.train import frame_drawer
+    from reference_policies.train import frame_drawer
 
     by_task = [np.arange(0, 4), np.arange(4, 6)]
     weight = np.array([1.0, 1.0, 1.0, 3.0, 1.0, 1.0])
@@ -171,8 +171,8 @@ def test_weighted_frames_are_drawn_in_proportion_within_their_task_and_uniform_d
 
 
 def test_corrections_with_weights_append_to_demonstrations_that_have_none(tmp_path):
-    from harness.reference.dagger import append_corrections
-    from harness.reference.train import build_dataset
+    from reference_policies.dagger import append_corrections
+    from reference_policies.train import build_dataset
 
     def frames(n, seed):
         r = np.random.default_rng(seed)
@@ -195,8 +195,8 @@ def test_the_first_recipe_still_describes_the_committed_checkpoints_demonstratio
     """`--recipe first` must rebuild the first committed LIBERO checkpoint (models/octo-reference-libero-object-first): its recorded demonstration summary names the
     configuration it was made with, which must equal the first recipe's apart from fields added since (whose
     defaults leave the first recipe's data unchanged: bursts None, the labeller's radii unused by the timed expert)."""
-    from harness.reference.demos import config_fingerprint
-    from harness.reference.libero_pipeline import RECIPES
+    from reference_policies.demos import config_fingerprint
+    from reference_policies.libero_pipeline import RECIPES
     from tests.helpers import REPO
 
     summary = json.loads((REPO / "models" / "octo-reference-libero-object-first" / "training_summary.json").read_text())
@@ -221,7 +221,7 @@ def test_a_killed_recording_leaves_no_worker_recording_on(tmp_path):
     from tests.helpers import REPO, alive, descendants
 
     started = [tmp_path / "0", tmp_path / "1"]  # each job marks its start, after the worker's initializer ran
-    code = ("from harness.reference.demos import jobs_as_done\nfrom tests.reference.test_recording import _mark_and_sleep\n"
+    code = ("from reference_policies.demos import jobs_as_done\nfrom tests.reference.test_recording import _mark_and_sleep\n"
             f"for _ in jobs_as_done(_mark_and_sleep, {[str(p) for p in started]!r}, 2):\n    pass\n")
     proc = subprocess.Popen([sys.executable, "-c", code], cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
     workers: set[int] = set()

@@ -46,7 +46,7 @@ def _run(folder: Path, task: str, outcomes) -> Path:
 
 
 def test_the_evaluation_table_written_twice_keeps_one_provenance_line(tmp_path):
-    from harness.reference.evaluate import main
+    from reference_policies.evaluate import main
 
     runs = [str(_run(tmp_path / "Lift", "Lift", [True, True, False])), str(_run(tmp_path / "Stack", "Stack", [False]))]
     out = tmp_path / "model"
@@ -70,7 +70,7 @@ def test_an_evaluation_is_written_only_into_the_checkpoint_its_runs_were_made_wi
 
     import pytest
 
-    from harness.reference.evaluate import main
+    from reference_policies.evaluate import main
     from harness.run.protocol import model_fingerprint
 
     run = _run(tmp_path / "run", "Lift", [True, False])

@@ -1,8 +1,8 @@
 """Helpers of scripts/evaluate_libero_reference.sh: the instruction swaps of LIBERO-Object and a nonsense instruction.
 
-    python -m harness.reference.libero_eval swaps      # "<task>\t<swapped instruction>" per task
-    python -m harness.reference.libero_eval nonsense   # the nonsense instruction
-    python -m harness.reference.libero_eval closed-loop RANDOM_RUN TOP_RUN --eval-md EVAL.md   # paired table
+    python -m reference_policies.libero_eval swaps      # "<task>\t<swapped instruction>" per task
+    python -m reference_policies.libero_eval nonsense   # the nonsense instruction
+    python -m reference_policies.libero_eval closed-loop RANDOM_RUN TOP_RUN --eval-md EVAL.md   # paired table
 
 A swap tells scene task i the instruction of task j, where j is the next task (i+1, i+2, ... mod 10) whose named
 object is also in scene i, so the swapped instruction names an object the policy can pick. The scenes' objects are
@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from harness.reference.libero_demos import LIBERO_OBJECT_TASKS
+from reference_policies.libero_demos import LIBERO_OBJECT_TASKS
 
 NONSENSE = "blorp the zizzle and fleem it quantum"  # no word of the model's vocabulary: a language-blind probe
 
@@ -32,7 +32,7 @@ def scene_objects(task: str) -> list[str]:
 def swaps(tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS) -> dict[str, str]:
     """{scene task: the instruction of the next task whose named object the scene also holds}."""
     from envs.libero_tasks import get_libero_task
-    from harness.reference.libero_demos import evaluation_swap
+    from reference_policies.libero_demos import evaluation_swap
 
     out = {}
     for task in tasks:
@@ -79,7 +79,7 @@ def closed_loop_markdown(random_run, top_run, note: str = "") -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_eval", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m reference_policies.libero_eval", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="action", required=True)  # not "command": closed-loop has a --command option
     sub.add_parser("swaps", help="print '<task>\\t<swapped instruction>' per LIBERO-Object task")
     sub.add_parser("nonsense", help="print the nonsense instruction")
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         from harness.analysis.runs import load_run
 
         text = closed_loop_markdown(args.random_run, args.top_run, args.note)
-        command = args.command or command_text("python -m harness.reference.libero_eval closed-loop",
+        command = args.command or command_text("python -m reference_policies.libero_eval closed-loop",
                                                [args.random_run, args.top_run], ["--eval-md", args.eval_md])
         text = with_provenance(text, provenance_line(command, [load_run(args.random_run).manifest,
                                                                load_run(args.top_run).manifest]))

@@ -1,6 +1,6 @@
 """DAgger corrections: run a reference checkpoint in closed loop and label every state it visits with the expert.
 
-    python -m harness.reference.dagger --model CHECKPOINT --out data/reference_dagger [--episodes 64]
+    python -m reference_policies.dagger --model CHECKPOINT --out data/reference_dagger [--episodes 64]
 
 Behaviour cloning learns the expert's states only; a policy that drifts (a can carried past its bin, to the
 arm's reach limit) meets states no demonstration shows and keeps drifting. Here the checkpoint acts exactly
@@ -12,7 +12,7 @@ Seeds: episode k uses DAGGER_SEED_BASE + k, apart from the demonstration seeds (
 evaluation seeds 0..49. Episodes run in spawned processes (never fork after rendering), in a fixed split
 of jobs, so the data do not depend on the number of workers. An episode stops at success or `max_steps`.
 
-Output: `<out>/<task>.npz` with the arrays of `harness.reference.demos` (the policy's resized inputs,
+Output: `<out>/<task>.npz` with the arrays of `reference_policies.demos` (the policy's resized inputs,
 proprio, the expert's label as `action`, episode, step, seeds, lengths) plus `success` (episodes,) bool,
 and `<out>/summary.json` (counts, policy success, seconds, configuration and checkpoint fingerprint).
 Resumable: each finished job is saved at once into `<out>/jobs/`, and a later call with the same configuration and
@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from harness.files import atomic_write_json
-from harness.reference.demos import (config_fingerprint, finished_recording, load_part, run_saved_jobs, save_episodes,
+from reference_policies.demos import (config_fingerprint, finished_recording, load_part, run_saved_jobs, save_episodes,
                                      save_part)
-from harness.reference.experts import CanLabeller, ExpertConfig
+from reference_policies.experts import CanLabeller, ExpertConfig
 
 log = logging.getLogger(__name__)
 
@@ -214,7 +214,7 @@ def append_episodes(demos: dict[str, dict[str, np.ndarray]], task: str, extra: d
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m harness.reference.dagger", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m reference_policies.dagger", description=__doc__.splitlines()[0])
     parser.add_argument("--model", required=True, help="checkpoint folder that acts")
     parser.add_argument("--out", required=True, help="folder for the labelled states (not committed)")
     parser.add_argument("--task", default=DaggerConfig.task, choices=LABELLERS)

@@ -1,6 +1,6 @@
 """Train the reference policy: a small Octo-architecture model, from scratch, on the scripted demonstrations.
 
-The forward pass (harness.reference.train_step) is the runtime's own Flax modules (`OctoTransformer`,
+The forward pass (reference_policies.train_step) is the runtime's own Flax modules (`OctoTransformer`,
 `pool_readouts`, `ScoreNetwork`), so parameter names are Octo's and `harness.octo.load_pretrained(folder)` reads the
 result. Heads and losses are Octo's, over the valid (not past the episode's end) entries of each action chunk:
   "l1" (default, L1ActionHead as in Octo's finetuning example): mean |prediction - normalised action|;
@@ -41,9 +41,9 @@ from harness.files import atomic_write_json
 from harness.octo.config import OctoConfig
 from harness.octo.network import LanguageTokenizer, init_params
 from harness.octo.t5 import T5Config
-from harness.reference import train_loop
-from harness.reference.train_step import make_optimizer, make_train_step
-from harness.reference.warm_start import initialise
+from reference_policies import train_loop
+from reference_policies.train_step import make_optimizer, make_train_step
+from reference_policies.warm_start import initialise
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +83,7 @@ class TrainConfig:
     t5_width: int = 64
     # batches sample tasks in these proportions (then frames uniformly within a task)
     task_weights: tuple[tuple[str, float], ...] = (("Lift", 1.0), ("Stack", 1.5), ("PickPlaceCan", 2.0))
-    # warm start: copy an earlier checkpoint's parameters (harness.reference.warm_start); None = from scratch
+    # warm start: copy an earlier checkpoint's parameters (reference_policies.warm_start); None = from scratch
     init_from: str | None = None
 
 
@@ -185,7 +185,7 @@ def t5_config_dict(vocab_size: int, width: int) -> dict:
 def task_instructions() -> dict[str, tuple[str, ...]]:
     """{task: (default instruction, paraphrases...)} from the env's task registry."""
     from envs.resolver import get_task
-    from harness.reference.experts import EXPERT_TASKS
+    from reference_policies.experts import EXPERT_TASKS
 
     return {t: (get_task(t).instruction, *get_task(t).paraphrases) for t in EXPERT_TASKS}
 
@@ -320,7 +320,7 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     tasks' from the registry); `dataset_key`: the statistics key; `conventions`: harness.toml's text (default:
     the robosuite reference's, `conventions_toml(cfg)`). `on_step(step)` is called after every step.
     A run stopped at any moment resumes at its latest checkpoint when called again with the same arguments
-    (harness.reference.train_loop), and ends with the same bytes as an unstopped run.
+    (reference_policies.train_loop), and ends with the same bytes as an unstopped run.
     """
     out_dir = Path(out_dir)
     start = time.perf_counter()

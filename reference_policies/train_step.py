@@ -1,9 +1,9 @@
-"""One training step of the reference policy (harness.reference.train): random-shift augmentation, the readout
+"""One training step of the reference policy (reference_policies.train): random-shift augmentation, the readout
 embedding the action head reads, Octo's two head losses over the valid entries of each action chunk, the update.
 
 The forward pass is the runtime's own Flax modules (`OctoTransformer`, `pool_readouts`, `ContinuousHead`,
 `ScoreNetwork`), so the parameter names are Octo's; the losses are Octo's L1ActionHead and DiffusionActionHead
-losses (see harness.reference.train's docstring for why L1 is the default).
+losses (see reference_policies.train's docstring for why L1 is the default).
 """
 
 from __future__ import annotations

@@ -39,7 +39,7 @@ class LiberoExpertConfig:
     # metres: the labeller closes only with the hand at least this far below the object's top. The 1.2 cm band above
     # reaches over the top of a flat object (butter: 0.6 cm above its grasp point; chocolate pudding 1.5 cm), where
     # the learned policy's closes land (issue 46). None: no such limit, as every recording before it; a field added
-    # later, so it is left out of recording fingerprints while None (harness.reference.demos.config_fingerprint)
+    # later, so it is left out of recording fingerprints while None (reference_policies.demos.config_fingerprint)
     close_below_top: float | None = None
 
 
@@ -91,7 +91,7 @@ PHASES = (
 )
 
 
-def _geometry(poses: dict, target: str, basket: str, c: LiberoExpertConfig) -> dict:
+def grasp_geometry(poses: dict, target: str, basket: str, c: LiberoExpertConfig) -> dict:
     """The waypoints' ingredients, shared by the timed expert and the state-based labeller: the object's centre,
     top and bottom, its grasp point, the basket's rim height and horizontal centre."""
     obj, box = poses[target], poses[basket]
@@ -125,7 +125,7 @@ class LiberoObjectExpert:
 
     def _waypoint(self, name: str, hand: np.ndarray, poses: dict) -> np.ndarray:
         c = self.config
-        g = _geometry(poses, self.target, self.basket, c)
+        g = grasp_geometry(poses, self.target, self.basket, c)
         centre, top, bottom, rim, basket_xy = g["centre"], g["top"], g["bottom"], g["rim"], g["basket_xy"]
         grasp_z = g["grasp"][2]
         below_hand = hand[2] - bottom  # the object's bottom sits this far below the hand while held
@@ -200,7 +200,7 @@ class LiberoObjectLabeller:
         from envs.libero_env import horizontally_within
 
         c = self.config
-        g = _geometry(poses, self.target, self.basket, c)
+        g = grasp_geometry(poses, self.target, self.basket, c)
         top, bottom, rim, basket_xy, grasp = g["top"], g["bottom"], g["rim"], g["basket_xy"], g["grasp"]
         if held:
             below_hand = hand[2] - bottom
@@ -231,7 +231,7 @@ class LiberoObjectLabeller:
         """Whether the hand is within `radius` (m) of the grasp point while the object is not yet held: the states
         where a learned policy's grasps succeed or fail."""
         hand = np.asarray(obs["proprio"][:3], np.float64)
-        g = _geometry(env.object_poses(), self.target, self.basket, self.config)
+        g = grasp_geometry(env.object_poses(), self.target, self.basket, self.config)
         return bool(np.linalg.norm(hand - g["grasp"]) <= radius and not env.grasping(self.target))
 
     def act(self, env, obs: dict) -> np.ndarray:

@@ -24,7 +24,7 @@ from harness.octo.checkpoint import read_params, select_step
 
 log = logging.getLogger(__name__)
 
-FROZEN_ENCODER = "octo_transformer/task_tokenizers_language/"  # the frozen T5 (harness.reference.train.split_t5)
+FROZEN_ENCODER = "octo_transformer/task_tokenizers_language/"  # the frozen T5 (reference_policies.train.split_t5)
 
 
 def resize_grid_embedding(embedding: np.ndarray, tokens: int) -> np.ndarray:

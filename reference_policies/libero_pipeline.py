@@ -1,17 +1,17 @@
 """One command that builds the LIBERO-Object reference policy: record demonstrations, then train.
 
-    python -m harness.reference.libero_pipeline --out models/octo-reference-libero-object \
+    python -m reference_policies.libero_pipeline --out models/octo-reference-libero-object \
         --data data/libero_object_demos [--recipe second] [--episodes N] [--steps N] [--init-from models/octo-reference-robosuite]
         [--dagger-episodes N --dagger-steps 1500]
 
 (1) The scripted LIBERO-Object expert's demonstrations from sampled placements, never the suite's stored
-evaluation states (harness.reference.libero_demos), into `--data`; (2) behaviour cloning with the robosuite
-reference's trainer (harness.reference.train: the same Octo architecture, both cameras 128 px = 8x8 patches in the
+evaluation states (reference_policies.libero_demos), into `--data`; (2) behaviour cloning with the robosuite
+reference's trainer (reference_policies.train: the same Octo architecture, both cameras 128 px = 8x8 patches in the
 second recipe (the first: wrist 64 px = 4x4), L1 head, frozen tiny T5 over a word vocabulary of the ten instructions and their
 paraphrases), warm-started from `--init-from` (every parameter whose shape is unchanged), into `--out`, with a
 harness.toml stating the LIBERO conventions (the "libero" action space, rot180 images, the cameras above).
 With `--dagger-episodes N`, (2) writes `<data>/stage1`, which then runs N episodes per task from further sampled
-placements while the state-based expert labels every state it visits (harness.reference.libero_dagger, into
+placements while the state-based expert labels every state it visits (reference_policies.libero_dagger, into
 `<data>/dagger`), and (3) fine-tunes from it on demonstrations + corrections (states near the grasp drawn more
 often) into `--out`; `--dagger-rounds R` repeats (3) with each round's checkpoint acting (pipeline.dagger_rounds).
 With `--dagger-retrain`, (3) trains anew as (2) did (its steps, learning rate and warm start) on demonstrations +
@@ -36,13 +36,13 @@ from pathlib import Path
 import numpy as np
 
 from harness.files import atomic_write_json
-from harness.reference.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, LiberoDemoConfig, MissConfig, append_swaps,
+from reference_policies.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, LiberoDemoConfig, MissConfig, append_swaps,
                                             existing_libero_demos, load_libero_demos, record_libero_demos)
-from harness.reference import libero_dagger
-from harness.reference.libero_dagger import LiberoDaggerConfig
-from harness.reference.libero_expert import LiberoExpertConfig, name_values, with_radii
-from harness.reference.pipeline import dagger_rounds
-from harness.reference.train import TrainConfig, train
+from reference_policies import libero_dagger
+from reference_policies.libero_dagger import LiberoDaggerConfig
+from reference_policies.libero_expert import LiberoExpertConfig, name_values, with_radii
+from reference_policies.pipeline import dagger_rounds
+from reference_policies.train import TrainConfig, train
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +106,7 @@ def parse_tasks(text: str, tasks: tuple[str, ...]) -> tuple[str, ...]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_pipeline",
+    parser = argparse.ArgumentParser(prog="python -m reference_policies.libero_pipeline",
                                      description=__doc__.splitlines()[0])
     parser.add_argument("--out", default=None, help="checkpoint folder to write [the recipe's committed folder]")
     parser.add_argument("--data", default="data/libero_object_demos", help="folder for the demonstrations (not committed)")

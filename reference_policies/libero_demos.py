@@ -8,11 +8,11 @@ committed policy, trained on it, stays closed at the grasp) or, with `demonstrat
 (`LiberoObjectLabeller`: its phase is read off the state, so it lifts as soon as the fingers hold the object and
 every frame shows what comes next). The env is the one the policy will be evaluated in: cameras at the model's sizes (agentview 128 px, eye-in-hand 64 px, so no resize), the "rot180"
 image convention of OpenVLA's LIBERO datasets, fast render, the "libero" action space (6 OSC values in [-1, 1],
-gripper 1 open / 0 closed), LIBERO's 8-D proprio. As for the robosuite reference (harness.reference.demos), Gaussian
+gripper 1 open / 0 closed), LIBERO's 8-D proprio. As for the robosuite reference (reference_policies.demos), Gaussian
 noise perturbs the *executed* arm input while the label stays the expert's clean action (DART), so the data cover
 the states a learned policy drifts into; an episode the expert fails under noise is dropped and the next seed used.
 
-Output per task: `<suite>_<index>.npz` in the layout of harness.reference.demos (image_primary, image_wrist,
+Output per task: `<suite>_<index>.npz` in the layout of reference_policies.demos (image_primary, image_wrist,
 proprio, action, episode, step, seeds, lengths), plus summary.json.
 """
 
@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.reference.demos import (config_fingerprint, finished_recording, noisy_episode, record_tasks,
+from reference_policies.demos import (config_fingerprint, finished_recording, noisy_episode, record_tasks,
                                      successful_episodes)
-from harness.reference.libero_expert import LiberoExpertConfig, LiberoObjectExpert, LiberoObjectLabeller
+from reference_policies.libero_expert import LiberoExpertConfig, LiberoObjectExpert, LiberoObjectLabeller
 
 
 DEMONSTRATORS = {"state": LiberoObjectLabeller, "timed": LiberoObjectExpert}  # both: act(env, obs)
@@ -61,7 +61,7 @@ class MissedGrasp:
     given each step's observation before the perturbation (record_episode does)."""
 
     def __init__(self, config: MissConfig, env, target: str, expert, rng: np.random.Generator):
-        from harness.reference.libero_expert import LiberoObjectLabeller
+        from reference_policies.libero_expert import LiberoObjectLabeller
 
         self.env, self.target = env, target
         self.labeller = LiberoObjectLabeller(target, config=expert)
@@ -78,7 +78,7 @@ class MissedGrasp:
         return obs
 
     def __call__(self, executed: np.ndarray, label: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        from harness.reference.libero_expert import CLOSED
+        from reference_policies.libero_expert import CLOSED
 
         if not self.active or self.env.grasping(self.target):  # held after all: the miss is over
             self.active = False
@@ -113,7 +113,7 @@ class BurstConfig:
 
 
 class Bursts:
-    """`perturb(executed, label, rng) -> executed` for harness.reference.demos.noisy_episode (see BurstConfig)."""
+    """`perturb(executed, label, rng) -> executed` for reference_policies.demos.noisy_episode (see BurstConfig)."""
 
     def __init__(self, config: BurstConfig):
         self.config = config
@@ -122,7 +122,7 @@ class Bursts:
         self.direction = np.zeros(2)
 
     def __call__(self, executed: np.ndarray, label: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        from harness.reference.libero_expert import CLOSED, OPEN
+        from reference_policies.libero_expert import CLOSED, OPEN
 
         c = self.config
         if self.left == 0:
@@ -208,7 +208,7 @@ def placed_alone(env, target: str) -> bool:
 
 
 def record_episode(env, target: str, seed: int, config: LiberoDemoConfig, succeeded=None) -> dict | None:
-    """One noisy expert episode from sampled placement `seed`; arrays as in harness.reference.demos, or None when
+    """One noisy expert episode from sampled placement `seed`; arrays as in reference_policies.demos, or None when
     the expert failed (`succeeded(info)` says when it succeeded; default: the task's own predicate)."""
     rng = np.random.default_rng(seed)
     obs, info = env.reset(seed=seed, options={"initial_state": "sampled"})
@@ -271,7 +271,7 @@ def append_swaps(demos: dict[str, dict[str, np.ndarray]], swap_dir: str | Path,
     """`demos` with the swapped-instruction demonstrations in `swap_dir` (one file a scene task, from
     `record_libero_demos` with `swaps=True`) appended to the task each one *named*: its instruction is that task's.
     A demonstration naming a task outside `demos` is a ValueError (record the swaps with the same tasks)."""
-    from harness.reference.dagger import append_episodes
+    from reference_policies.dagger import append_episodes
 
     for scene in tasks:
         with np.load(Path(swap_dir) / task_file(scene)) as data:

@@ -1,6 +1,6 @@
 """Evaluation table of the reference policy from finished `octo-harness run` folders.
 
-    python -m harness.reference.evaluate RUN_DIR [RUN_DIR ...] --out models/octo-reference-robosuite
+    python -m reference_policies.evaluate RUN_DIR [RUN_DIR ...] --out models/octo-reference-robosuite
 
 Reads each run's results.jsonl (success per episode) and every episode's metrics.jsonl, and writes
 EVAL.md and eval.json: per task n, successes, rate, Wilson 95% interval (harness.measures.stats) and the
@@ -111,7 +111,7 @@ def other_checkpoint(runs: list[Path], manifests: list[dict], out: Path) -> str 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m harness.reference.evaluate", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m reference_policies.evaluate", description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path, help="octo-harness run folders")
     parser.add_argument("--out", type=Path, default=Path("models/octo-reference-robosuite"))
     parser.add_argument("--note", default="", help="text placed above the table (command, checkpoint step, ...)")
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     if eval_md.is_file() and "\n## " in eval_md.read_text():
         kept = "\n## " + eval_md.read_text().split("\n## ", 1)[1]
     title = args.out.resolve().name
-    command = args.command or command_text("python -m harness.reference.evaluate", args.runs, ["--out", str(args.out)])
+    command = args.command or command_text("python -m reference_policies.evaluate", args.runs, ["--out", str(args.out)])
     text = with_provenance(markdown(rows, args.note, title), provenance_line(command, manifests))
     eval_md.write_text(text + kept)
     print(text)

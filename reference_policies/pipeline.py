@@ -1,11 +1,11 @@
 """One command that builds the reference policy: record demonstrations, train, then optionally a DAgger round.
 
-    python -m harness.reference.pipeline --out models/octo-reference-robosuite --data data/reference_demos \
+    python -m reference_policies.pipeline --out models/octo-reference-robosuite --data data/reference_demos \
         [--dagger-episodes 64]
 
 Stages: (1) scripted-expert demonstrations into `--data`; (2) behaviour cloning for `--steps`; with
 `--dagger-episodes N`, (2) writes `<data>/stage1` and two more stages follow: (3) that checkpoint runs N
-PickPlaceCan episodes and the state-based expert labels every state it visits (`harness.reference.dagger`,
+PickPlaceCan episodes and the state-based expert labels every state it visits (`reference_policies.dagger`,
 into `<data>/dagger`); (4) fine-tuning from (2) on demonstrations + corrections for `--dagger-steps` at
 `--dagger-learning-rate`, normalised with the demonstrations' statistics, into `--out`.
 
@@ -26,15 +26,15 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 from harness.files import atomic_write_json, read_json_object
-from harness.reference import dagger
-from harness.reference.demos import DemoConfig, existing_demos, load_demos, record_demos
-from harness.reference.train import TrainConfig, train
+from reference_policies import dagger
+from reference_policies.demos import DemoConfig, existing_demos, load_demos, record_demos
+from reference_policies.train import TrainConfig, train
 
 log = logging.getLogger(__name__)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m harness.reference.pipeline", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m reference_policies.pipeline", description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="models/octo-reference-robosuite", help="checkpoint folder to write")
     parser.add_argument("--data", default="data/reference_demos", help="folder for the recorded demonstrations (not committed)")
     parser.add_argument("--episodes", type=int, default=None,

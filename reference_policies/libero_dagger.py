@@ -1,6 +1,6 @@
 """DAgger corrections for the LIBERO-Object reference policy: the checkpoint acts, the state-based expert labels.
 
-The LIBERO counterpart of harness.reference.dagger. The checkpoint runs each LIBERO-Object task as the evaluation
+The LIBERO counterpart of reference_policies.dagger. The checkpoint runs each LIBERO-Object task as the evaluation
 runs it (its harness.toml conventions, fast render) from placements LIBERO's sampler draws with seeds
 LIBERO_DAGGER_SEED_BASE + 10_000 * task + k (apart from the demonstrations' 1_000_000 block and never the suite's
 stored evaluation states), and `LiberoObjectLabeller` says at every visited state what the expert would do there:
@@ -10,7 +10,7 @@ Episodes run in spawned processes in a fixed split of jobs per task, so the data
 Resumable: each job is saved into `<out>/jobs/` as it finishes, with the configuration's and checkpoint's
 fingerprint, and a later call runs only the jobs not saved there.
 
-Output: `<out>/<suite>_<index>.npz` per task (the layout of harness.reference.demos plus `success`, and `weight`:
+Output: `<out>/<suite>_<index>.npz` per task (the layout of reference_policies.demos plus `success`, and `weight`:
 `near_weight` for states near the grasp, else 1, the fine-tuning's sampling weight) and
 `<out>/summary.json` (per task: episodes, steps, policy successes; seconds; configuration and checkpoint).
 """
@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from harness.files import atomic_write_json
-from harness.reference.dagger import (append_corrections, checkpoint_fingerprint, labelled_episode, policy_in_env,
+from reference_policies.dagger import (append_corrections, checkpoint_fingerprint, labelled_episode, policy_in_env,
                                       load_labelled_parts, save_collection, save_labelled_part)
-from harness.reference.demos import config_fingerprint, finished_recording, run_saved_jobs
-from harness.reference.libero_demos import LIBERO_OBJECT_TASKS, task_file
-from harness.reference.libero_expert import LiberoExpertConfig, LiberoObjectLabeller
+from reference_policies.demos import config_fingerprint, finished_recording, run_saved_jobs
+from reference_policies.libero_demos import LIBERO_OBJECT_TASKS, task_file
+from reference_policies.libero_expert import LiberoExpertConfig, LiberoObjectLabeller
 
 log = logging.getLogger(__name__)
 

@@ -1,14 +1,14 @@
 """Grasp probe of a LIBERO-Object checkpoint (issue 46's table of levers): success, reach error and grasp rate on
 the suite's stored initial states, the checkpoint run as the evaluation runs it.
 
-    python -m harness.reference.libero_probe --model DIR [--states 0,1] [--workers 2] [--out FILE.json]
+    python -m reference_policies.libero_probe --model DIR [--states 0,1] [--workers 2] [--out FILE.json]
         (an --out file probed with the same checkpoint, states, tasks and step limit is reused, not probed again)
-    python -m harness.reference.libero_probe --expert ...      (the state-based expert acts instead: the yardstick)
-    python -m harness.reference.libero_probe --table LABEL=FILE.json ...   (the lever table, markdown, from --out files)
+    python -m reference_policies.libero_probe --expert ...      (the state-based expert acts instead: the yardstick)
+    python -m reference_policies.libero_probe --table LABEL=FILE.json ...   (the lever table, markdown, from --out files)
 
 Per episode (stored state s of each task, the published loop: 10 settle steps, step limit 280, fast render, no
 masks): success; the first step whose gripper command closes; there, the hand's horizontal and vertical distance
-from the named object's grasp point (the expert's, harness.reference.libero_expert); whether the fingers held the
+from the named object's grasp point (the expert's, reference_policies.libero_expert); whether the fingers held the
 named object at any step (both pads touching), and lifted it (its bottom 3 cm above where it stood); the movable
 object horizontally nearest the hand at the first close (which one the grasp went for); the object picked at the end
 (`episode_outcome`); the longest stall after the first close (gripper commanded open, hand barely commanded:
@@ -30,8 +30,8 @@ import numpy as np
 
 from harness.analysis.grounding import CLOSED_BELOW, STALL_STEPS, longest_stall
 from harness.files import atomic_write_json, json_safe
-from harness.reference.libero_demos import LIBERO_OBJECT_TASKS
-from harness.reference.libero_expert import with_radii
+from reference_policies.libero_demos import LIBERO_OBJECT_TASKS
+from reference_policies.libero_expert import with_radii
 
 log = logging.getLogger(__name__)
 
@@ -41,12 +41,12 @@ LIFTED = 0.03  # m: the named object's bottom this far above where it stood coun
 
 def _actor(model_dir: str | None, task: str, max_steps: int, radii: str = "", language: str = ""):
     """(env, target, instruction or None, reset(info, state), act(obs) -> action): the checkpoint as evaluated, or
-    the state-based expert (with `radii`, harness.reference.libero_expert.with_radii, in place of its own). With
-    `language="swap"` the instruction and the target are those of the scene's swap (harness.reference.libero_eval:
+    the state-based expert (with `radii`, reference_policies.libero_expert.with_radii, in place of its own). With
+    `language="swap"` the instruction and the target are those of the scene's swap (reference_policies.libero_eval:
     the next task whose named object the scene holds); else the task's own (instruction None)."""
     from envs.libero_tasks import get_libero_task
-    from harness.reference.libero_demos import evaluation_swap
-    from harness.reference.libero_expert import LiberoObjectLabeller
+    from reference_policies.libero_demos import evaluation_swap
+    from reference_policies.libero_expert import LiberoObjectLabeller
 
     if model_dir is None:
         import envs
@@ -54,7 +54,7 @@ def _actor(model_dir: str | None, task: str, max_steps: int, radii: str = "", la
         env = envs.make(task, cameras={}, fast_render=True, masks=False, action_space="libero",
                         max_episode_steps=max_steps)
     else:
-        from harness.reference.dagger import policy_in_env
+        from reference_policies.dagger import policy_in_env
 
         env, policy = policy_in_env(model_dir, task, max_steps)
     named, instruction = get_libero_task(task), None
@@ -76,14 +76,14 @@ def _actor(model_dir: str | None, task: str, max_steps: int, radii: str = "", la
 
 def _probe_job(args: tuple) -> list[dict]:
     """Spawned worker: one task's episodes from stored states `states` -> a row each."""
-    from harness.reference.libero_demos import placed_alone
-    from harness.reference.libero_expert import LiberoExpertConfig, _geometry
+    from reference_policies.libero_demos import placed_alone
+    from reference_policies.libero_expert import LiberoExpertConfig, grasp_geometry
 
     model_dir, task, states, max_steps, radii, language = args
     env, target, instruction, reset, act = _actor(model_dir, task, max_steps, radii, language)
     rows = []
     movable = [n for n in env.description.get("movable", env.description["objects"]) if n != "basket_1"]
-    from harness.reference.libero_expert import LiberoObjectLabeller
+    from reference_policies.libero_expert import LiberoObjectLabeller
 
     judge = LiberoObjectLabeller(target)  # what the demonstrator (its own radii) would do in each state reached
     try:
@@ -101,7 +101,7 @@ def _probe_job(args: tuple) -> list[dict]:
                 executed.append(action)
                 if row["first_close"] is None and action[-1] < 0.5:  # the "libero" gripper: 1 open, 0 closed
                     poses = env.object_poses()
-                    grasp = _geometry(poses, target, "basket_1", LiberoExpertConfig())["grasp"]
+                    grasp = grasp_geometry(poses, target, "basket_1", LiberoExpertConfig())["grasp"]
                     hand = np.asarray(obs["proprio"][:3], np.float64)
                     row.update(first_close=step, reach_xy_cm=round(float(np.linalg.norm(hand[:2] - grasp[:2])) * 100, 2),
                                reach_z_cm=round(float(hand[2] - grasp[2]) * 100, 2),
@@ -229,7 +229,7 @@ def _stalls(rows: list[dict]) -> dict:
 
 def probe(model_dir: str | None, states: list[int], tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS, workers: int = 2,
           max_steps: int = MAX_STEPS, radii: str = "", language: str = "") -> dict:
-    from harness.reference.demos import run_jobs
+    from reference_policies.demos import run_jobs
 
     start = time.perf_counter()
     jobs = [(model_dir, task, states, max_steps, radii, language) for task in tasks]
@@ -245,8 +245,8 @@ def probe_key(model_dir: str | None, states: list[int], tasks: tuple[str, ...], 
               language: str = "") -> dict:
     """What a probe result depends on: the checkpoint's fingerprint (or the expert and the radii it was given),
     states, tasks, step limit, and the instructions when not the tasks' own ("swap")."""
-    from harness.reference.dagger import checkpoint_fingerprint
-    from harness.reference.libero_expert import RADII, LiberoExpertConfig
+    from reference_policies.dagger import checkpoint_fingerprint
+    from reference_policies.libero_expert import RADII, LiberoExpertConfig
 
     given, default = with_radii(radii), LiberoExpertConfig()
     expert = "expert" + "".join(f" {n}={getattr(given, n)}" for n in RADII if getattr(given, n) != getattr(default, n))
@@ -327,7 +327,7 @@ def _load_table_entry(spec: str, parser: argparse.ArgumentParser) -> tuple[str, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m harness.reference.libero_probe", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m reference_policies.libero_probe", description=__doc__.splitlines()[0])
     who = parser.add_mutually_exclusive_group(required=True)
     who.add_argument("--model", help="checkpoint folder (with its harness.toml)")
     who.add_argument("--expert", action="store_true", help="the state-based expert acts (the yardstick)")
@@ -341,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
                              "[LiberoExpertConfig's]")
     parser.add_argument("--language", choices=("own", "swap"), default="own",
                         help="swap: each scene is told the next task's instruction whose named object it holds "
-                             "(harness.reference.libero_eval swaps); success is that object, alone, in the basket [own]")
+                             "(reference_policies.libero_eval swaps); success is that object, alone, in the basket [own]")
     parser.add_argument("--states", default="0,1", help="stored initial states of every task [0,1]")
     parser.add_argument("--tasks", default=",".join(LIBERO_OBJECT_TASKS), help="LIBERO-Object tasks [all ten]")
     parser.add_argument("--max-steps", type=int, default=MAX_STEPS)

@@ -1,4 +1,4 @@
-"""The reference policy's training loop (harness.reference.train): the steps, the loss curve, the periodic
+"""The reference policy's training loop (reference_policies.train): the steps, the loss curve, the periodic
 checkpoints, and the run's resumable state saved with each checkpoint, so that a run killed at any moment resumes
 at its latest checkpoint and ends with the same bytes as a run that was never stopped (on one machine).
 

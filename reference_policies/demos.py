@@ -32,7 +32,7 @@ import numpy as np
 
 from harness.files import atomic_write_json, read_json_object, write_atomic
 from harness.interrupts import die_with_parent
-from harness.reference.experts import EXPERT_TASKS, ExpertConfig, ScriptedExpert
+from reference_policies.experts import EXPERT_TASKS, ExpertConfig, ScriptedExpert
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ def noisy_episode(env, obs: dict, act, sizes: dict[str, int], noise: float, rng:
     Gaussian noise of std `noise` (clipped to [-1, 1]; the stored label stays clean) until success, truncation or
     `max_steps`; the frames resized to `sizes` ({key: side}), proprio and labels -> arrays, or None without success.
     `perturb(executed, label, rng) -> executed`, when given, further changes what is executed after the noise (the
-    recovery bursts of harness.reference.libero_demos.Bursts); the label stays the expert's. `succeeded(info)`, when
+    recovery bursts of reference_policies.libero_demos.Bursts); the label stays the expert's. `succeeded(info)`, when
     given, replaces the env's own success predicate (a swapped instruction's object placed)."""
     from harness.policy import resize_frame
 
@@ -149,7 +149,7 @@ def record_demos(config: DemoConfig, out_dir: str | Path, workers: int = 2) -> d
 def record_tasks(job, config, episodes: dict[str, int], out_dir: str | Path, file_of, workers: int = 2,
                  seeds_per_job: int = SEEDS_PER_JOB) -> dict:
     """Split each task's `episodes` over `config.jobs_per_task` jobs `(task, first seed, count, config)` (seed blocks
-    from `config.task_seed_base(task)`), run `job` over them in `workers` spawned processes (harness.reference
+    from `config.task_seed_base(task)`), run `job` over them in `workers` spawned processes (reference_policies
     recorders: each returns (episodes, seeds, dropped)), save each task into `out_dir/file_of(task)` and
     summary.json; returns the summary per task.
 
