@@ -31,7 +31,8 @@ Kinds and what one level means (MAGNITUDES holds the numbers; docs/perturbations
                drawn suffix (" now", " please", ", thanks"); 5 level 4 in capitals.
 
 Draws: every random choice of an episode comes from `numpy.random.SeedSequence((reset seed, kind, level, key))`,
-where the reset seed is the episode's seed (protocol seed + episode index), never from the simulator's own
+where the kind is its number in `KIND_SEEDS` (or, for a kind not listed there, drawn from its name), never its
+position in the table, and the reset seed is the episode's seed (protocol seed + episode index), never from the simulator's own
 random stream: the scene's nominal randomness (object placement, robosuite's joint noise) is the nominal
 episode's, so a perturbed episode pairs with the nominal episode of the same seed, and the same protocol gives
 the same scene and frames whatever ran before, in whichever process. Scene modding happens at reset only
@@ -154,10 +155,20 @@ def check_task(task, perturbations: tuple[Perturbation, ...], camera_keys: tuple
 
 # ---------------------------------------------------------------------------------------------- draws
 
+# The number each kind puts in its draws' seeds. These are the kinds' positions in KIND_TABLE when the seed was
+# still the position; frozen here, so that their draws stay the same whatever is later inserted into the table.
+KIND_SEEDS = {"camera": 0, "lighting": 1, "texture": 2, "distractors": 3, "init-state": 4, "noise": 5, "language": 6}
+
+
+def kind_seed(kind: str) -> int:
+    """The kind's number in its draws' seeds: its frozen one, or for a newer kind a number drawn from its name."""
+    return KIND_SEEDS[kind] if kind in KIND_SEEDS else zlib.crc32(f"perturbation kind {kind}".encode())
+
+
 def rng(seed: int, p: Perturbation, *extra: int) -> np.random.Generator:
     """The generator of one draw: SeedSequence((seed, kind, level, key, *extra)); independent of every other stream."""
     key = zlib.crc32((p.camera or "").encode())
-    return np.random.default_rng(np.random.SeedSequence([int(seed), KINDS.index(p.kind), int(p.level), key, *extra]))
+    return np.random.default_rng(np.random.SeedSequence([int(seed), kind_seed(p.kind), int(p.level), key, *extra]))
 
 
 def camera_draw(seed: int, p: Perturbation) -> dict:
@@ -209,7 +220,7 @@ def noise_frame(frame: np.ndarray, seed: int, p: Perturbation, step: int, key: s
     out = np.asarray(frame)
     sigma = m["blur_sigma_px"] * p.level
     out = cv2.GaussianBlur(out, (0, 0), sigmaX=sigma, sigmaY=sigma)
-    g = np.random.default_rng(np.random.SeedSequence([int(seed), KINDS.index("noise"), p.level, zlib.crc32(key.encode()),
+    g = np.random.default_rng(np.random.SeedSequence([int(seed), kind_seed("noise"), p.level, zlib.crc32(key.encode()),
                                                       int(step)]))
     noisy = out.astype(np.float32) + g.normal(0.0, m["gaussian_sigma"] * p.level, size=out.shape).astype(np.float32)
     out = np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
@@ -493,7 +504,7 @@ class LanguageKind(Kind):
             raise PerturbationError(f"--perturb {p.label}: task {task.name} has no paraphrase list; drop language")
 
 
-# The kinds, in their canonical order (parsing sorts by it; each draw's seed holds the kind's index in it).
+# The kinds, in their canonical order (parsing sorts by it, and kinds act in it; seeds come from KIND_SEEDS).
 KIND_TABLE: dict[str, Kind] = {kind.name: kind for kind in (
     CameraKind(), LightingKind(), TextureKind(), DistractorsKind(), InitStateKind(), NoiseKind(), LanguageKind())}
 KINDS = tuple(KIND_TABLE)

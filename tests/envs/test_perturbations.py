@@ -86,6 +86,21 @@ def test_noise_is_drawn_per_seed_step_and_camera():
     assert not np.array_equal(a, frame) and abs(float(a.mean()) - 120) < 3
 
 
+def test_a_kind_s_draws_follow_its_name_not_its_place_in_the_table(monkeypatch):
+    # the seven kinds keep the numbers their table positions gave them (the golden perturbed run holds the draws)
+    assert P.KIND_SEEDS == {"camera": 0, "lighting": 1, "texture": 2, "distractors": 3, "init-state": 4, "noise": 5,
+                            "language": 6}
+    (camera,) = P.parse_perturb("camera:3")
+    (noise,) = P.parse_perturb("noise:2")
+    frame = np.full((32, 32, 3), 120, np.uint8)
+    before = (P.camera_draw(5, camera), P.noise_frame(frame, 5, noise, 1, "image_primary"))
+    monkeypatch.setattr(P, "KINDS", ("a-new-kind",) + tuple(reversed(P.KINDS)))  # a kind inserted, the rest reordered
+    after = (P.camera_draw(5, camera), P.noise_frame(frame, 5, noise, 1, "image_primary"))
+    assert all(np.array_equal(before[0][k], after[0][k]) for k in before[0]) and np.array_equal(before[1], after[1])
+    new = P.kind_seed("a-new-kind")
+    assert new == P.kind_seed("a-new-kind") and new not in P.KIND_SEEDS.values() and new != P.kind_seed("another-kind")
+
+
 def test_distractor_placement_keeps_its_clearances():
     g = np.random.default_rng(0)
     avoid = np.array([[0.0, 0.0], [0.1, 0.05]])
