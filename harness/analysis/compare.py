@@ -2,7 +2,8 @@
 
 `compare_runs(baseline_dir, candidate_dir, config)` reads both run folders (harness.analysis.runs), refuses
 protocols that differ in what changes outcomes (`IncompatibleRuns`, one line naming the fields), pairs
-finished episodes by (task, seed) and returns one JSON-ready dict (what compare.json holds):
+finished episodes by (task, seed) and returns one `CompareResult` (harness.analysis.compare_result: what
+compare.json holds, read by attribute; `to_json()` writes it):
 
 - outcomes: per task and pooled, both success rates with Wilson intervals, the paired difference
   (candidate - baseline) with Newcombe's interval, the exact McNemar p-value, Holm's adjustment over the
@@ -31,15 +32,39 @@ steps both arms stored.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
 
 from harness.bounded import read_json
+from harness.analysis.compare_result import (
+    FORMAT,
+    Arm,
+    CompareConfig,
+    CompareResult,
+    DerivedMeasures,
+    DifferingField,
+    Differs,
+    Drift,
+    DriftBlock,
+    GridInfo,
+    IdenticalCheck,
+    Incompleteness,
+    MissingPairs,
+    OutcomeBlock,
+    Outcomes,
+    PairDetail,
+    Provenance,
+    Rate,
+    Step0Drift,
+    StepDrift,
+    WholeEpisodeDrift,
+)
 from harness.analysis.paired import (
     ErroredPairs,
     PairedCounts,
+    Verdict,
     difference_interval,
     errored_most,
     holm_adjust,
@@ -58,12 +83,11 @@ from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
 from harness.measures.stats import wilson_interval
 from harness.runfolder.schema import flatten
 
-FORMAT = "octo-harness-compare/1"
 BASELINE_MARKER = "BASELINE.json"  # written by scripts/make_baseline.py into a committed baseline
 # --fail-on: the mildest verdict that fails the gate (exit 1); each level also fails on everything worse
 FAIL_ON = ("regressed", "suspect", "underpowered", "changed")
 EXIT_OK, EXIT_FAIL, EXIT_INVALID, EXIT_ERRORED, EXIT_INCOMPLETE = 0, 1, 2, 3, 4
-INCOMPLETE = "INCOMPLETE"  # the candidate lacks finished episodes the baseline has; outranked by ERRORED, REGRESSED
+INCOMPLETE = Verdict.INCOMPLETE  # the candidate lacks finished episodes the baseline has; outranked by ERRORED, REGRESSED
 # protocol fields that may differ between the arms (the model is what a comparison changes); any other
 # difference changes outcomes (env options, max steps, execution, action space, cameras, instruction, goals...)
 MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "outputs", "harness_version",
@@ -85,22 +109,6 @@ POOLED = "\0pooled"  # key of the pooled table while verdicts are computed (cann
 
 class IncompatibleRuns(ValueError):
     """The two runs cannot be paired (one line naming the fields or the problem)."""
-
-
-@dataclass(frozen=True)
-class CompareConfig:
-    max_drop: float = 0.1  # HELD needs the interval to rule out a drop larger than this
-    alpha: float = 0.05  # family-wise level of the McNemar tests; intervals at 1 - alpha
-    first_steps: int = 10  # per-step divergence over steps 0..first_steps-1
-    atol: float = 0.0  # IDENTICAL: every paired array equal within this (0: bit-level)
-
-    def __post_init__(self):
-        if not 0 < self.alpha < 1:
-            raise ValueError(f"--alpha must be in (0, 1), got {self.alpha}")
-        if not 0 <= self.max_drop < 1:
-            raise ValueError(f"--max-drop must be in [0, 1), got {self.max_drop}")
-        if self.first_steps < 1:
-            raise ValueError(f"--first-steps must be at least 1, got {self.first_steps}")
 
 
 # ------------------------------------------------------------------------------------------- pure maths
@@ -362,9 +370,9 @@ def _notes(label: str, block: dict, alpha: float, pooled: bool = False) -> list[
 
 
 def outcome_verdicts(tables: dict[str, PairedCounts], config: CompareConfig,
-                     errored: dict[str, ErroredPairs] | None = None, project: bool = True) -> dict:
-    """{task: counts} -> {"tasks": {task: block}, "overall": block, "holm_family", "notes"}, each block with its
-    Holm-adjusted p and verdict.
+                     errored: dict[str, ErroredPairs] | None = None, project: bool = True) -> Outcomes:
+    """{task: counts} -> Outcomes (tasks: {task: OutcomeBlock}, overall: the pooled block, holm_family, notes), each
+    block with its Holm-adjusted p and verdict.
 
     errored: {task: pairs left out because an arm errored} (none when absent). The Holm family is every task
     plus the pooled table (the pooled table alone when there is one task); the difference intervals are
@@ -404,22 +412,30 @@ def outcome_verdicts(tables: dict[str, PairedCounts], config: CompareConfig,
                           _notes("pooled" if name == POOLED else name, block, config.alpha, pooled=name == POOLED))
         notes += block["notes"]
     pooled = blocks.pop(POOLED)
-    return {"tasks": blocks, "overall": pooled, "holm_family": factor, "notes": notes}
+    return Outcomes(tasks={name: _typed_block(block) for name, block in blocks.items()}, overall=_typed_block(pooled),
+                    holm_family=factor, notes=tuple(notes))
 
 
-def overall_verdict(outcomes: dict, identical: bool = False) -> str:
+def _typed_block(block: dict) -> OutcomeBlock:
+    """An outcome table's dict (as `_outcome_block` and `outcome_verdicts` fill it) as an OutcomeBlock."""
+    return OutcomeBlock(**{**block, "table": PairedCounts(**block["table"]), "baseline": Rate(**block["baseline"]),
+                           "candidate": Rate(**block["candidate"]), "difference_ci": tuple(block["difference_ci"]),
+                           "notes": tuple(block["notes"])})
+
+
+def overall_verdict(outcomes: Outcomes, identical: bool = False) -> Verdict:
     """IDENTICAL when every pair is identical, else the worst verdict of the tasks and the pooled table."""
     if identical:
-        return "IDENTICAL"
-    return worst([b["verdict"] for b in outcomes["tasks"].values()] + [outcomes["overall"]["verdict"]])
+        return Verdict.IDENTICAL
+    return worst([b.verdict for b in outcomes.tasks.values()] + [outcomes.overall.verdict])
 
 
 def _mean(values: list[np.ndarray]):
     return np.mean(np.stack(values), axis=0) if values else None
 
 
-def _drift(pairs: list[dict], config: CompareConfig) -> dict:
-    def step0(group: list[dict]) -> dict:
+def _drift(pairs: list[dict], config: CompareConfig) -> Drift:
+    def step0(group: list[dict]) -> DriftBlock:
         js = [p["js"][0] for p in group if "js" in p]
         actions = [p["action_l2"][0] for p in group if "action_l2" in p]
         lift: dict[str, list] = {}
@@ -427,15 +443,15 @@ def _drift(pairs: list[dict], config: CompareConfig) -> dict:
             for obs, change in p.get("lift_change_step0", {}).items():
                 lift.setdefault(obs, []).append(change)
         js_mean = _mean(js)  # (layers, heads)
-        return {
-            "pairs": len(group),
-            "action_l2": float(np.mean(actions)) if actions else None,
-            "action_max_abs": max((p["action_max_abs_step0"] for p in group if "action_max_abs_step0" in p), default=None),
-            "js_layer_head": js_mean,
-            "js_layer": None if js_mean is None else js_mean.mean(axis=-1),
-            "js_mean": None if js_mean is None else float(js_mean.mean()),
-            "target_lift_change": {obs: np.nanmean(np.stack(v), axis=0) for obs, v in lift.items()},
-        }
+        return DriftBlock(
+            pairs=len(group),
+            action_l2=float(np.mean(actions)) if actions else None,
+            action_max_abs=max((p["action_max_abs_step0"] for p in group if "action_max_abs_step0" in p), default=None),
+            js_layer_head=js_mean,
+            js_layer=None if js_mean is None else js_mean.mean(axis=-1),
+            js_mean=None if js_mean is None else float(js_mean.mean()),
+            target_lift_change={obs: np.nanmean(np.stack(v), axis=0) for obs, v in lift.items()},
+        )
 
     tasks = {}
     for p in pairs:
@@ -446,31 +462,31 @@ def _drift(pairs: list[dict], config: CompareConfig) -> dict:
         actions = [p["action_l2"][t] for p in pairs if "action_l2" in p and p["action_l2"].shape[0] > t]
         if not js and not actions:
             break
-        first.append({"step": t, "pairs": max(len(js), len(actions)),
-                      "action_l2": float(np.mean(actions)) if actions else None,
-                      "js_mean": float(np.mean(js)) if js else None})
+        first.append(StepDrift(step=t, pairs=max(len(js), len(actions)),
+                               action_l2=float(np.mean(actions)) if actions else None,
+                               js_mean=float(np.mean(js)) if js else None))
     whole_js = [float(p["js"].mean()) for p in pairs if "js" in p]
     whole_actions = [float(p["action_l2"].mean()) for p in pairs if "action_l2" in p]
-    return {
-        "step0": {"tasks": {task: step0(group) for task, group in tasks.items()}, "overall": step0(pairs)},
-        "first_steps": first,
-        "whole_episode": {
-            "confounded": True,
-            "note": "after step 0 the arms see different observations once their actions differ; "
-                    "only step 0 isolates the model",
-            "action_l2": float(np.mean(whole_actions)) if whole_actions else None,
-            "js_mean": float(np.mean(whole_js)) if whole_js else None,
-            "pairs": len(whole_js),
-        },
-    }
+    return Drift(
+        step0=Step0Drift(tasks={task: step0(group) for task, group in tasks.items()}, overall=step0(pairs)),
+        first_steps=tuple(first),
+        whole_episode=WholeEpisodeDrift(
+            confounded=True,
+            note="after step 0 the arms see different observations once their actions differ; "
+                 "only step 0 isolates the model",
+            action_l2=float(np.mean(whole_actions)) if whole_actions else None,
+            js_mean=float(np.mean(whole_js)) if whole_js else None,
+            pairs=len(whole_js),
+        ),
+    )
 
 
-def _arm(run: RunRecord) -> dict:
-    return {"run": run.name, "path": str(run.path), "model": run.model.source, "random_weights": run.model.is_random,
-            "status": run.status, "episodes": len(run.episodes), "missing_jobs": run.missing,
-            "errors": sum(not e.ok for e in run.episodes), "git_commit": run.git_commit,
-            "unverified": run.unverified,  # finished episodes whose rows record no file digests (older runs)
-            "arrays": "first steps only (committed baseline)" if _truncated(run) else "all steps"}
+def _arm(run: RunRecord) -> Arm:
+    return Arm(run=run.name, path=str(run.path), model=run.model.source, random_weights=run.model.is_random,
+               status=run.status, episodes=len(run.episodes), missing_jobs=run.missing,
+               errors=sum(not e.ok for e in run.episodes), git_commit=run.git_commit,
+               unverified=run.unverified,  # finished episodes whose rows record no file digests (older runs)
+               arrays="first steps only (committed baseline)" if _truncated(run) else "all steps")
 
 
 def outcome_tables(details: list[dict]) -> tuple[dict[str, PairedCounts], dict[str, ErroredPairs]]:
@@ -489,19 +505,20 @@ def outcome_tables(details: list[dict]) -> tuple[dict[str, PairedCounts], dict[s
     return tables, errored
 
 
-def incompleteness(lacking: list, baseline_path, candidate_path) -> dict | None:
-    """[[task, seed]] the baseline finished and the candidate did not -> {"pairs", "tasks": {task: count},
-    "note"}, or None when it lacks none."""
+def incompleteness(lacking: list, baseline_path, candidate_path) -> Incompleteness | None:
+    """[[task, seed]] the baseline finished and the candidate did not -> Incompleteness (pairs, tasks: {task: count},
+    note), or None when it lacks none."""
     if not lacking:
         return None
     tasks: dict[str, int] = {}
     for task, _ in lacking:
         tasks[task] = tasks.get(task, 0) + 1
     listed = ", ".join(f"{task} {count}" for task, count in tasks.items())
-    return {"pairs": len(lacking), "tasks": tasks,
-            "note": f"INCOMPLETE: the candidate {candidate_path} lacks {len(lacking)} finished episode(s) the baseline "
-                    f"{baseline_path} has ({listed}); it cannot pass the gate until it runs them (the baseline's tasks "
-                    "and seeds: `octo-harness run --resume` on the candidate, or `octo-harness regress`)."}
+    return Incompleteness(
+        pairs=len(lacking), tasks=tasks,
+        note=f"INCOMPLETE: the candidate {candidate_path} lacks {len(lacking)} finished episode(s) the baseline "
+             f"{baseline_path} has ({listed}); it cannot pass the gate until it runs them (the baseline's tasks "
+             "and seeds: `octo-harness run --resume` on the candidate, or `octo-harness regress`).")
 
 
 def measures_versions(baseline: RunRecord, candidate: RunRecord) -> tuple:
@@ -509,7 +526,7 @@ def measures_versions(baseline: RunRecord, candidate: RunRecord) -> tuple:
     return tuple(run.manifest.get("measures_version") for run in (baseline, candidate))
 
 
-def _derived_block(baseline: RunRecord, candidate: RunRecord, details: list[dict]) -> dict | None:
+def _derived_block(baseline: RunRecord, candidate: RunRecord, details: list[dict]) -> DerivedMeasures | None:
     """Identical trajectories whose derived measures differ because their definition changed, or None."""
     differing = [d for d in details if d["identical"] and d.get("derived_difference")]
     if not differing:
@@ -517,14 +534,14 @@ def _derived_block(baseline: RunRecord, candidate: RunRecord, details: list[dict
     versions = measures_versions(baseline, candidate)
     shown = ["unrecorded" if v is None else str(v) for v in versions]
     first = f"{differing[0]['task']} seed {differing[0]['seed']}: {differing[0]['derived_difference']}"
-    return {"baseline_version": versions[0], "candidate_version": versions[1], "pairs": len(differing),
-            "first_difference": first,
-            "note": f"the policy's trajectories are identical (actions, attention); only derived measures differ, "
-                    f"because their definition changed (measures version {shown[0]} -> {shown[1]}); first: {first}"}
+    return DerivedMeasures(
+        baseline_version=versions[0], candidate_version=versions[1], pairs=len(differing), first_difference=first,
+        note=f"the policy's trajectories are identical (actions, attention); only derived measures differ, "
+             f"because their definition changed (measures version {shown[0]} -> {shown[1]}); first: {first}")
 
 
 def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig(),
-                 require_complete: bool = True) -> dict:
+                 require_complete: bool = True) -> CompareResult:
     """Compare two run folders (see the module docstring). Raises IncompatibleRuns / NotARunError (exit 2).
 
     require_complete=False: a candidate lacking the baseline's episodes is compared on the pairs it has (regress,
@@ -546,60 +563,65 @@ def compare_runs(baseline_dir: str | Path, candidate_dir: str | Path, config: Co
 
 
 def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], missing: dict, truncated: tuple,
-            config: CompareConfig, differs: dict, require_complete: bool = True) -> dict:
-    """The comparison dict of paired episode details (`task` names the Holm family's cells); `differs`: what
-    differs between the protocols (`what_differs`); require_complete: as in `compare_runs`."""
+            config: CompareConfig, differs: dict, require_complete: bool = True) -> CompareResult:
+    """The comparison of paired episode details (`task` names the Holm family's cells); `differs`: what differs
+    between the protocols (`what_differs`); require_complete: as in `compare_runs`."""
     tables, errored = outcome_tables(details)
     outcomes = outcome_verdicts(tables, config, errored)
     identical = all(d["identical"] for d in details) and not missing["baseline"] and not missing["candidate"]
     first_diff = next((f"{d['task']} seed {d['seed']}: {d['difference']}" for d in details if not d["identical"]),
                       "pairs are missing from one run" if not identical else None)
     missing_tasks = {t for t, _ in missing["baseline"] + missing["candidate"]}
-    for task, block in outcomes["tasks"].items():  # a task whose every pair is identical says so in its row
-        block["paired_verdict"] = block["verdict"]
-        if task not in missing_tasks and all(d["identical"] for d in details if d["task"] == task):
-            block["verdict"] = "IDENTICAL"
-    outcomes["overall"]["paired_verdict"] = outcomes["overall"]["verdict"]
-    if identical:
-        outcomes["overall"]["verdict"] = "IDENTICAL"
-    outcomes["notes"] = [note for block in [*outcomes["tasks"].values(), outcomes["overall"]]
-                         if block["verdict"] != "IDENTICAL" for note in block["notes"]]  # nothing to explain there
+    tasks = {}
+    for task, block in outcomes.tasks.items():  # a task whose every pair is identical says so in its row
+        same = task not in missing_tasks and all(d["identical"] for d in details if d["task"] == task)
+        tasks[task] = replace(block, paired_verdict=block.verdict, verdict=Verdict.IDENTICAL if same else block.verdict)
+    overall = replace(outcomes.overall, paired_verdict=outcomes.overall.verdict,
+                      verdict=Verdict.IDENTICAL if identical else outcomes.overall.verdict)
+    notes = [note for block in [*tasks.values(), overall]
+             if block.verdict != Verdict.IDENTICAL for note in block.notes]  # nothing to explain there
+    outcomes = replace(outcomes, tasks=tasks, overall=overall)
     verdict = overall_verdict(outcomes, identical)
     incomplete = incompleteness(missing["candidate"], baseline.path, candidate.path)
     if require_complete and incomplete is not None:
-        outcomes["notes"].insert(0, incomplete["note"])
-        if verdict not in ("ERRORED", "REGRESSED"):
+        notes.insert(0, incomplete.note)
+        if verdict not in (Verdict.ERRORED, Verdict.REGRESSED):
             verdict = INCOMPLETE
-    return {
-        "format": FORMAT,
-        "verdict": verdict,
-        "config": asdict(config),
-        "baseline": _arm(baseline),
-        "candidate": _arm(candidate),
-        "env": _protocol(baseline).get("env") if isinstance(_protocol(baseline).get("env"), dict) else None,
-        "perturb": _protocol(baseline).get("perturb") if isinstance(_protocol(baseline).get("perturb"), str) else None,
-        "pairs": len(details),
-        "missing_pairs": missing,
-        "incomplete": incomplete,
-        "identical": {
-            "identical": identical,
-            "pairs_identical": sum(d["identical"] for d in details),
-            "first_difference": first_diff if not identical else None,
-            "atol": config.atol,
-            "steps_compared": "first stored steps of the committed baseline" if any(truncated) else "all steps",
-            "derived_measures": _derived_block(baseline, candidate, details),
-        },
-        "outcomes": outcomes,
-        "drift": _drift(details, config),
-        "differs": differs,
-        "provenance": provenance(baseline.manifest, candidate.manifest, details, differs=differs),
-        "pair_details": [
-            {k: v for k, v in d.items() if k not in ("js", "action_l2", "lift_change_step0")}
-            | {"step0_action_l2": float(d["action_l2"][0]) if "action_l2" in d else None,
-               "step0_js_mean": float(d["js"][0].mean()) if "js" in d else None}
-            for d in details
-        ],
-    }
+    protocol = _protocol(baseline)
+    return CompareResult(
+        format=FORMAT,
+        verdict=verdict,
+        config=config,
+        baseline=_arm(baseline),
+        candidate=_arm(candidate),
+        env=protocol.get("env") if isinstance(protocol.get("env"), dict) else None,
+        perturb=protocol.get("perturb") if isinstance(protocol.get("perturb"), str) else None,
+        pairs=len(details),
+        missing_pairs=MissingPairs(candidate=tuple(map(tuple, missing["candidate"])),
+                                   baseline=tuple(map(tuple, missing["baseline"]))),
+        incomplete=incomplete,
+        identical=IdenticalCheck(
+            identical=identical,
+            pairs_identical=sum(d["identical"] for d in details),
+            first_difference=first_diff if not identical else None,
+            atol=config.atol,
+            steps_compared="first stored steps of the committed baseline" if any(truncated) else "all steps",
+            derived_measures=_derived_block(baseline, candidate, details),
+        ),
+        outcomes=replace(outcomes, notes=tuple(notes)),
+        drift=_drift(details, config),
+        differs=Differs(model=differs["model"], other=tuple(DifferingField(**o) for o in differs["other"]),
+                        cause=differs["cause"], drift_label=differs["drift_label"]),
+        provenance=Provenance(**provenance(baseline.manifest, candidate.manifest, details, differs=differs)),
+        pair_details=tuple(_pair_detail(d) for d in details),
+    )
+
+
+def _pair_detail(d: dict) -> PairDetail:
+    """A pair's details without its arrays (their step-0 values kept)."""
+    return PairDetail(**{k: v for k, v in d.items() if k not in ("js", "action_l2", "lift_change_step0")},
+                      step0_action_l2=float(d["action_l2"][0]) if "action_l2" in d else None,
+                      step0_js_mean=float(d["js"][0].mean()) if "js" in d else None)
 
 
 GRID_FILE = "robustness.json"  # harness.gate.robustness writes it into a grid folder
@@ -625,7 +647,7 @@ def read_grid(path: str | Path) -> dict:
 
 
 def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig(),
-                  require_complete: bool = True) -> dict:
+                  require_complete: bool = True) -> CompareResult:
     """Two robustness grids, condition by condition: every (task, condition) is one cell of the Holm family (plus
     the pooled table), so a candidate that holds its nominal success but loses one condition by more than max_drop
     is REGRESSED / SUSPECT there, at the same family-wise alpha as a task of `compare_runs`. Every condition of the
@@ -659,31 +681,31 @@ def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: C
         raise IncompatibleRuns(f"no (task, seed) pair is finished in both grids {baseline_dir} and {candidate_dir}")
     result = _result(arms[0], arms[1], details, missing, truncated, config,
                      what_differs(_protocol(arms[0]), _protocol(arms[1])), require_complete)
-    result["grid"] = {"baseline": str(Path(baseline_dir).resolve()), "candidate": str(Path(candidate_dir).resolve()),
-                      "conditions": list(base_grid["runs"]), "cells": len(result["outcomes"]["tasks"]),
-                      "perturb": dict(base_grid["runs"])}
-    return result
+    return replace(result, grid=GridInfo(baseline=str(Path(baseline_dir).resolve()),
+                                         candidate=str(Path(candidate_dir).resolve()),
+                                         conditions=tuple(base_grid["runs"]), cells=len(result.outcomes.tasks),
+                                         perturb=dict(base_grid["runs"])))
 
 
-def gate_exit_code(verdict: str, fail_on: str = "suspect") -> int:
+def gate_exit_code(verdict: Verdict, fail_on: str = "suspect") -> int:
     """Exit code of an overall verdict: 3 ERRORED; 4 INCOMPLETE; 1 REGRESSED, SUSPECT (unless fail_on="regressed"),
     UNDERPOWERED (fail_on="underpowered" or "changed"), HELD/IMPROVED (fail_on="changed"); else 0."""
     if fail_on not in FAIL_ON:
         raise ValueError(f"unknown --fail-on {fail_on!r}; use one of {FAIL_ON}")
-    if verdict == "ERRORED":
+    if verdict == Verdict.ERRORED:
         return EXIT_ERRORED
     if verdict == INCOMPLETE:
         return EXIT_INCOMPLETE
-    if verdict == "IDENTICAL":
+    if verdict == Verdict.IDENTICAL:
         return EXIT_OK
-    failing = {"regressed": ("REGRESSED",), "suspect": ("REGRESSED", "SUSPECT"),
-               "underpowered": ("REGRESSED", "SUSPECT", "UNDERPOWERED")}.get(fail_on)
+    failing = {"regressed": (Verdict.REGRESSED,), "suspect": (Verdict.REGRESSED, Verdict.SUSPECT),
+               "underpowered": (Verdict.REGRESSED, Verdict.SUSPECT, Verdict.UNDERPOWERED)}.get(fail_on)
     if failing is None or verdict in failing:  # "changed": anything but IDENTICAL fails
         return EXIT_FAIL
     return EXIT_OK
 
 
-def exit_code(result: dict, fail_on: str = "suspect") -> int:
+def exit_code(result: CompareResult, fail_on: str = "suspect") -> int:
     """0 pass, 1 regression (REGRESSED, SUSPECT, or what --fail-on adds), 3 ERRORED, 4 INCOMPLETE (see
     `gate_exit_code`)."""
-    return gate_exit_code(result["verdict"], fail_on)
+    return gate_exit_code(result.verdict, fail_on)

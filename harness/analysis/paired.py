@@ -45,20 +45,36 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 from scipy.stats import beta, binom, binomtest, norm
 
 from harness.measures.stats import wilson_interval
 
+
+class Verdict(StrEnum):
+    """A gate verdict (compare, regress): its value is the word the JSON files and the console show."""
+
+    ERRORED = "ERRORED"
+    REGRESSED = "REGRESSED"
+    SUSPECT = "SUSPECT"
+    UNDERPOWERED = "UNDERPOWERED"
+    HELD = "HELD"
+    IMPROVED = "IMPROVED"
+    IDENTICAL = "IDENTICAL"
+    INCOMPLETE = "INCOMPLETE"  # the candidate lacks finished episodes the baseline has (compare, regress)
+
+
 # worst first: an overall verdict is the worst of its tasks' (and the pooled table's) verdicts
-VERDICTS = ("ERRORED", "REGRESSED", "SUSPECT", "UNDERPOWERED", "HELD", "IMPROVED", "IDENTICAL")
+VERDICTS = (Verdict.ERRORED, Verdict.REGRESSED, Verdict.SUSPECT, Verdict.UNDERPOWERED, Verdict.HELD, Verdict.IMPROVED,
+            Verdict.IDENTICAL)
 
 
-def worst(verdicts) -> str:
+def worst(verdicts) -> Verdict:
     """The worst verdict in the gate's order (VERDICTS, worst first); IDENTICAL for none."""
     ranked = [VERDICTS.index(v) for v in verdicts]
-    return VERDICTS[min(ranked)] if ranked else "IDENTICAL"
+    return VERDICTS[min(ranked)] if ranked else Verdict.IDENTICAL
 
 
 def errored_most(errored: int, paired_episodes: int) -> bool:
@@ -229,7 +245,7 @@ def holm_adjust(pvalues: list[float]) -> list[float]:
 
 
 def paired_verdict(counts: PairedCounts, p_adjusted: float, interval: tuple[float, float],
-                   max_drop: float, alpha: float, errored: "ErroredPairs | None" = None) -> str:
+                   max_drop: float, alpha: float, errored: "ErroredPairs | None" = None) -> Verdict:
     """Verdict of one table by the rules in the module docstring.
 
     errored: the pairs left out of `counts` because an arm errored; paired episodes = counts.n + errored.pairs.
@@ -238,16 +254,16 @@ def paired_verdict(counts: PairedCounts, p_adjusted: float, interval: tuple[floa
     errored_pairs = errored.pairs
     paired_episodes = counts.n + errored_pairs
     if errored_most(errored.baseline, paired_episodes) or errored_most(errored.candidate, paired_episodes):
-        return "ERRORED"
+        return Verdict.ERRORED
     if counts.n == 0:
-        return "UNDERPOWERED"
+        return Verdict.UNDERPOWERED
     if p_adjusted <= alpha and counts.candidate_only != counts.baseline_only:
-        return "REGRESSED" if counts.candidate_only < counts.baseline_only else "IMPROVED"
+        return Verdict.REGRESSED if counts.candidate_only < counts.baseline_only else Verdict.IMPROVED
     if interval[1] < 0:
-        return "SUSPECT"
+        return Verdict.SUSPECT
     if not errored_pairs and equivalent(counts, interval, max_drop, alpha):
-        return "HELD"
-    return "UNDERPOWERED"
+        return Verdict.HELD
+    return Verdict.UNDERPOWERED
 
 
 def equivalent(counts: PairedCounts, interval: tuple[float, float], max_drop: float, alpha: float) -> bool:

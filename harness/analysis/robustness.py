@@ -41,7 +41,8 @@ cells, a cell breaks only with 10 or more lost pairs and none gained (a drop of 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass, fields
+from enum import StrEnum
 
 import numpy as np
 
@@ -56,7 +57,17 @@ MIN_CLASS = 5
 MAPS = ("raw", "content")  # the attention map a figure uses: raw, or content-only (blank-frame part removed)
 MARGIN = 0.15  # HOLDS rules out a drop in success rate larger than this
 ALPHA = 0.05
-VERDICTS = ("BREAKS", "HOLDS", "UNDETERMINED")
+
+
+class CellVerdict(StrEnum):
+    """The verdict of one perturbed cell against the nominal seeds (see the module docstring)."""
+
+    BREAKS = "BREAKS"
+    HOLDS = "HOLDS"
+    UNDETERMINED = "UNDETERMINED"
+
+
+VERDICTS = tuple(CellVerdict)
 
 
 @dataclass(frozen=True)
@@ -267,21 +278,49 @@ def association_rows(rows: list[EpisodeRow], maps: tuple[str, ...] | None = None
     return out
 
 
-PAIRED_COLUMNS = ("task", "condition", "level", "run", "pairs", "nominal_successes", "perturbed_successes",
-                  "nominal_only", "perturbed_only", "difference", "p_mcnemar", "p_holm", "breaks", "verdict",
-                  "drop_upper", "margin", "detectable_drop", "cells")
+@dataclass(frozen=True)
+class PairedCell:
+    """One task x perturbed cell paired with the nominal episodes of the same seeds: a row of robustness_paired.csv
+    (its columns are these fields, in this order)."""
+
+    task: str
+    condition: str
+    level: int
+    run: str
+    pairs: int
+    nominal_successes: int
+    perturbed_successes: int
+    nominal_only: int  # pairs the nominal run won and the perturbed lost
+    perturbed_only: int
+    difference: float  # perturbed - nominal success rate
+    p_mcnemar: float
+    p_holm: float  # Holm over the task's perturbed cells
+    breaks: bool
+    verdict: CellVerdict
+    drop_upper: float  # upper confidence bound of the drop
+    margin: float
+    detectable_drop: float  # the smallest drop the test could declare (nan when none can be)
+    cells: int
+
+    def row(self) -> tuple:
+        """The CSV row (PAIRED_COLUMNS)."""
+        return astuple(self)
 
 
-def cell_verdict(counts: PairedCounts, p_holm: float, cells: int, alpha: float = ALPHA, margin: float = MARGIN) -> str:
+PAIRED_COLUMNS = tuple(f.name for f in fields(PairedCell))
+
+
+def cell_verdict(counts: PairedCounts, p_holm: float, cells: int, alpha: float = ALPHA,
+                 margin: float = MARGIN) -> CellVerdict:
     """BREAKS / HOLDS / UNDETERMINED of one perturbed cell (see the module docstring)."""
     if counts.n and p_holm <= alpha and counts.difference < 0:
-        return "BREAKS"
+        return CellVerdict.BREAKS
     if equivalent(counts, difference_interval(counts, 1.0 - alpha / max(cells, 1)), margin, alpha):
-        return "HOLDS"
-    return "UNDETERMINED"
+        return CellVerdict.HOLDS
+    return CellVerdict.UNDETERMINED
 
 
-def paired_rows(rows: list[EpisodeRow], alpha: float = ALPHA, margin: float = MARGIN) -> list[tuple]:
+def paired_rows(rows: list[EpisodeRow], alpha: float = ALPHA, margin: float = MARGIN) -> list[PairedCell]:
     """Per task x perturbed cell: the paired 2x2 against the nominal episodes of the same seeds, the exact McNemar p,
     its Holm adjustment over the task's perturbed cells, whether the cell breaks the task, its verdict (BREAKS,
     HOLDS, UNDETERMINED), the upper confidence bound of the drop, the margin, and the smallest drop the test could
@@ -302,23 +341,24 @@ def paired_rows(rows: list[EpisodeRow], alpha: float = ALPHA, margin: float = MA
             verdict = cell_verdict(c, p_holm, cells, alpha, margin)
             low = difference_interval(c, 1.0 - alpha / max(cells, 1))[0] if c.n else -1.0
             loss = detectable_loss(c.n, alpha, cells)
-            out.append((task, condition, level, run, c.n, c.baseline_successes, c.candidate_successes, c.baseline_only,
-                        c.candidate_only, c.difference, p, p_holm, verdict == "BREAKS", verdict, -low, margin,
-                        loss / c.n if loss is not None else math.nan, cells))
+            out.append(PairedCell(task, condition, level, run, c.n, c.baseline_successes, c.candidate_successes,
+                                  c.baseline_only, c.candidate_only, c.difference, p, p_holm,
+                                  verdict == CellVerdict.BREAKS, verdict, -low, margin,
+                                  loss / c.n if loss is not None else math.nan, cells))
     return out
 
 
-def breaking(task: str, paired: list[tuple]) -> str:
+def breaking(task: str, paired: list[PairedCell]) -> str:
     """The part of a task's sentence that names the cells that break it (or says none does)."""
-    cells = [p for p in paired if p[0] == task]
+    cells = [p for p in paired if p.task == task]
     if not cells:
         return ""
-    broken = sorted((p for p in cells if p[12]), key=lambda p: (p[1], p[2]))
-    holds = [p for p in cells if p[13] == "HOLDS"]
+    broken = sorted((p for p in cells if p.breaks), key=lambda p: (p.condition, p.level))
+    holds = [p for p in cells if p.verdict == CellVerdict.HOLDS]
     test = f"paired with the nominal seeds, exact McNemar, Holm over {len(cells)} cells"
-    pairs = min(p[4] for p in cells)
+    pairs = min(p.pairs for p in cells)
     power = detectable_phrase(pairs, ALPHA, len(cells)) if pairs else "no pairs to test"
-    margin = cells[0][15]
+    margin = cells[0].margin
     others = len(cells) - len(broken)
     drop = f"a drop over {round(100 * margin)} points"
     if others == 1:
@@ -328,7 +368,8 @@ def breaking(task: str, paired: list[tuple]) -> str:
                 + (" and the rest are UNDETERMINED" if len(holds) < others else ""))
     if not broken:
         return (f"no condition breaks it at any level ({test}, adjusted p <= 0.05): {power}; {rest}")
-    named = ", ".join(f"{p[1]} {p[2]} ({p[6]}/{p[4]} vs {p[5]}/{p[4]}, p = {p[11]:.3g})" for p in broken)
+    named = ", ".join(f"{p.condition} {p.level} ({p.perturbed_successes}/{p.pairs} vs {p.nominal_successes}/{p.pairs}, "
+                      f"p = {p.p_holm:.3g})" for p in broken)
     if not others:  # every cell breaks: nothing else to say of power or margins
         return f"it breaks under every cell: {named} ({test})"
     return f"it breaks under {named} ({test}); elsewhere {power}; {rest}"
@@ -366,7 +407,7 @@ def _association_parts(a: tuple, prefix: str, measure: str = "nuisance mass",
     return parts
 
 
-def sentence(task: str, success: list[tuple], association: list[tuple], paired: list[tuple] = ()) -> str:
+def sentence(task: str, success: list[tuple], association: list[tuple], paired: list[PairedCell] = ()) -> str:
     """One plain sentence per task: the condition and level that cost the most, which cells break the task (when
     `paired` is given), and what nuisance mass says."""
     cells = [s for s in success if s[0] == task and math.isfinite(s[7])]

@@ -38,10 +38,10 @@ def main(args) -> int:
     grid = is_grid(args.baseline)
     result = (compare_grids if grid else compare_runs)(args.baseline, args.candidate, config)
     code = exit_code(result, gate.fail_on)
-    frames = {} if args.no_frames or result["env"] is None else step0_frames(result, result["env"])
+    frames = {} if args.no_frames or result.env is None else step0_frames(result, result.env)
     out = args.out or (args.candidate / f"compare_{args.baseline.resolve().name}" if grid else
-                       Path(result["candidate"]["path"]) / f"compare_{result['baseline']['run']}")
-    paths = writing(f"compare's outputs in {out}", result["verdict"], lambda: write_comparison(result, out, frames, code))
+                       Path(result.candidate.path) / f"compare_{result.baseline.run}")
+    paths = writing(f"compare's outputs in {out}", result.verdict, lambda: write_comparison(result, out, frames, code))
     print(paths["markdown"].read_text(), end="")
     print(f"compare: {paths['html']}")
     return code

@@ -48,7 +48,7 @@ def main(args) -> int:
         return code
     result = regress(args.baseline, args.model, gate, out=args.out, run_name=args.run_name, executor=factory)
     code = exit_code(result, gate.fail_on)
-    paths = writing(f"regress's outputs in {result['candidate_run']}/regress", result["verdict"],
+    paths = writing(f"regress's outputs in {result.candidate_run}/regress", result.verdict,
                     lambda: write_regress(result, code, write_comparison))
     print(paths["summary"])
     print(f"regress: {paths['json']}")

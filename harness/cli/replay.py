@@ -30,7 +30,7 @@ def main(args) -> int:
     gate.tolerances()  # bad tolerances: one line, before the run is read
     result = replay_run(args.run, args.model, gate)
     out = args.out or args.run / "replay"
-    writing(f"{out / 'replay.json'}", result["verdict"], lambda: atomic_write_json(out / "replay.json", result))
+    writing(f"{out / 'replay.json'}", result.verdict, lambda: atomic_write_json(out / "replay.json", result.to_json()))
     print(summary_text(result))
     print(f"replay: {out / 'replay.json'}")
     return exit_code(result)

@@ -14,12 +14,13 @@ new episodes. A baseline that errored on more than half of a task's episodes is 
 Afterwards the pairs run are compared with the fixed-size statistics (harness.analysis.compare), and the verdict
 is the worse of the sequential verdict and that comparison's (`gate_verdict`): regress never exits 0 where
 `compare` on the same pairs exits non-zero. A test that ends undecided while the candidate lacks baseline pairs of
-its jobs is INCOMPLETE (exit 4), as in compare. `gate_on_outcomes` is the same decision on outcome dicts.
+its jobs is INCOMPLETE (exit 4), as in compare. `gate_on_outcomes` is the same decision on outcome dicts. The
+results are typed (harness.gate.results: `RegressResult`, `RegressGridResult`; `to_json()` writes regress.json).
 """
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -33,8 +34,19 @@ from harness.analysis.compare import (
     outcome_verdicts,
     overall_verdict,
 )
+from harness.analysis.compare_result import Outcomes
 from harness.gate.config import GateConfig
-from harness.analysis.paired import PairedCounts, errored_most, mcnemar_exact_sample_size, worst
+from harness.analysis.paired import PairedCounts, Verdict, errored_most, mcnemar_exact_sample_size, worst
+from harness.gate.results import (
+    GRID_FORMAT,
+    REGRESS_FORMAT,
+    ConditionRegress,
+    RegressGridResult,
+    RegressResult,
+    ReplayResult,
+    SequentialSummary,
+)
+from harness.results import ABSENT
 from harness.analysis.runs import load_run
 from harness.analysis.sequential import SequentialConfig, TaskwiseTest
 from harness.run.executor import EpisodeContext, SequentialExecutor
@@ -42,7 +54,6 @@ from harness.run.protocol import EpisodeJob, Protocol
 from harness.run.store import EpisodeRow, RunStore
 
 log = logging.getLogger(__name__)
-GRID_FORMAT = "octo-harness-regress-grid/1"  # regress_grid's result (regress's own: octo-harness-regress/2)
 
 
 def candidate_protocol(baseline_manifest: dict, model: str, max_episodes: int | None = None,
@@ -115,14 +126,27 @@ def errored_tasks(baseline: dict, candidate: dict, jobs: Sequence[EpisodeJob]) -
     return [t for t in planned if errored_most(errored[t], planned[t])]
 
 
-def gate_verdict(sequential: str, compared: str) -> str:
+def gate_verdict(sequential: Verdict, compared: Verdict) -> Verdict:
     """regress's verdict: the worse of the sequential verdict and compare's verdict on the pairs run, so regress
     never passes what `compare` on the same pairs fails (IDENTICAL pairs: IDENTICAL, nothing changed)."""
-    return "IDENTICAL" if compared == "IDENTICAL" else worst([sequential, compared])
+    return Verdict.IDENTICAL if compared == Verdict.IDENTICAL else worst([sequential, compared])
+
+
+@dataclass(frozen=True)
+class GateDecision:
+    """regress's decision on outcome dicts (`gate_on_outcomes`): no files, the test itself kept."""
+
+    verdict: Verdict
+    sequential_verdict: Verdict
+    compare_verdict: Verdict
+    rounds: int
+    pairs: int
+    test: TaskwiseTest
+    outcomes: Outcomes
 
 
 def gate_on_outcomes(baseline: dict, candidate: dict, jobs: Sequence[EpisodeJob], tasks: Sequence[str],
-                     alpha: float = 0.05, max_drop: float = 0.1) -> dict:
+                     alpha: float = 0.05, max_drop: float = 0.1) -> GateDecision:
     """The whole decision of `regress` on outcome dicts (no episodes run, no files): the per-task sequential
     test over the complete rounds, compare's outcome verdict on the same pairs, and the gate verdict.
 
@@ -139,10 +163,9 @@ def gate_on_outcomes(baseline: dict, candidate: dict, jobs: Sequence[EpisodeJob]
     tables, errored = outcome_tables(details)
     outcomes = outcome_verdicts(tables, CompareConfig(max_drop=max_drop, alpha=alpha), errored, project=False)
     compared = overall_verdict(outcomes)
-    sequential = test.summary()["verdict"]
-    return {"verdict": gate_verdict(sequential, compared), "sequential_verdict": sequential,
-            "compare_verdict": compared, "rounds": test.rounds, "pairs": len(details), "test": test,
-            "outcomes": outcomes}
+    sequential = Verdict(test.verdict or Verdict.UNDERPOWERED)
+    return GateDecision(verdict=gate_verdict(sequential, compared), sequential_verdict=sequential,
+                        compare_verdict=compared, rounds=test.rounds, pairs=len(details), test=test, outcomes=outcomes)
 
 
 class _StoppingExecutor:
@@ -188,8 +211,8 @@ def _check_baseline(baseline: dict, jobs: Sequence[EpisodeJob], path) -> None:
 
 
 def regress(baseline_dir: str | Path, model: str, gate: GateConfig | None = None, *, out: str | Path = "results/runs",
-            run_name: str | None = None, loaded_model=None, executor=None, progress: bool = True) -> dict:
-    """Run the sequential regression (see the module docstring); returns the result dict (regress.json).
+            run_name: str | None = None, loaded_model=None, executor=None, progress: bool = True) -> RegressResult:
+    """Run the sequential regression (see the module docstring); returns regress.json's content (and the comparison).
 
     gate: alpha, max_drop, max_episodes, the candidate's text_tokenizer and the replay tolerances (default GateConfig()).
     executor: factory(context, model) -> Executor for the candidate's episodes (default SequentialExecutor).
@@ -219,53 +242,55 @@ def regress(baseline_dir: str | Path, model: str, gate: GateConfig | None = None
     candidate = load_run(summary.run_dir)
     cand = _outcomes(candidate)
     decision = gate_on_outcomes(base_outcomes, cand, jobs, protocol.tasks, alpha, gate.max_drop)
-    test: TaskwiseTest = decision["test"]
+    test = decision.test
     used = [(j.task, j.seed) for paired in _rounds(base_outcomes, jobs, protocol.tasks)[: test.rounds] for j in paired]
     outcome_pairs = [k for k in used if base_outcomes[k] is not None and cand[k] is not None]
     counts = PairedCounts.from_outcomes([base_outcomes[k] for k in outcome_pairs], [cand[k] for k in outcome_pairs])
     comparison = compare_runs(baseline.path, candidate.path, compare_config, require_complete=False)
     replay = replay_baseline(baseline, model, replace(gate, text_tokenizer=protocol.text_tokenizer), loaded_model)
-    sequential = test.summary()
+    tested = test.summary()
     stopped_errored = errored_tasks(base_outcomes, cand, jobs)
     if stopped_errored:
-        sequential["errored_tasks"] = stopped_errored
-    verdict = gate_verdict(sequential["verdict"], comparison["verdict"])
+        tested["errored_tasks"] = stopped_errored
+    sequential = SequentialSummary.from_json(tested)
+    verdict = gate_verdict(sequential.verdict, comparison.verdict)
     # the test stopped undecided although the candidate lacks baseline pairs of its jobs: it did not run them all
     lacking = [[j.task, j.seed] for j in jobs if (j.task, j.seed) in base_outcomes and (j.task, j.seed) not in cand]
-    incomplete = incompleteness(lacking, baseline.path, candidate.path) if not sequential["decided"] else None
+    incomplete = incompleteness(lacking, baseline.path, candidate.path) if not sequential.decided else None
     if incomplete is not None:
-        comparison["outcomes"]["notes"].insert(0, incomplete["note"])
-        if verdict not in ("ERRORED", "REGRESSED"):
+        notes = (incomplete.note, *comparison.outcomes.notes)
+        comparison = replace(comparison, outcomes=replace(comparison.outcomes, notes=notes))
+        if verdict not in (Verdict.ERRORED, Verdict.REGRESSED):
             verdict = INCOMPLETE
-    return {
-        "format": "octo-harness-regress/2",
-        "verdict": verdict,
-        "incomplete": incomplete,
-        "sequential_verdict": sequential["verdict"],
-        "compare_verdict": comparison["verdict"],
-        "sequential": sequential,
-        "pairs_used": counts.n,
-        "errored_pairs": len(used) - len(outcome_pairs),
-        "rounds_used": test.rounds,
-        "baseline_pairs": sum((j.task, j.seed) in base_outcomes for j in jobs),
-        "fixed_size_pairs_80_power": _fixed_size(counts, alpha),
-        "fixed_size_pairs_80_power_tasks": {
+    return RegressResult(
+        format=REGRESS_FORMAT,
+        verdict=verdict,
+        incomplete=incomplete,
+        sequential_verdict=sequential.verdict,
+        compare_verdict=comparison.verdict,
+        sequential=sequential,
+        pairs_used=counts.n,
+        errored_pairs=len(used) - len(outcome_pairs),
+        rounds_used=test.rounds,
+        baseline_pairs=sum((j.task, j.seed) in base_outcomes for j in jobs),
+        fixed_size_pairs_80_power=_fixed_size(counts, alpha),
+        fixed_size_pairs_80_power_tasks={
             task: _fixed_size(PairedCounts.from_outcomes([base_outcomes[k] for k in outcome_pairs if k[0] == task],
                                                          [cand[k] for k in outcome_pairs if k[0] == task]), alpha)
             for task in protocol.tasks},
-        "fixed_size_note": "pairs a fixed-size exact two-sided McNemar test at the same alpha needs for 80% power at "
-                           "the observed discordance rates (exact unconditional power); null when no difference was "
-                           "observed",
-        "table": asdict(counts),
-        "baseline_run": str(baseline.path),
-        "candidate_run": str(candidate.path),
-        "candidate_status": candidate.status,
-        "compare": comparison,
-        "replay": replay,
-    }
+        fixed_size_note="pairs a fixed-size exact two-sided McNemar test at the same alpha needs for 80% power at "
+                        "the observed discordance rates (exact unconditional power); null when no difference was "
+                        "observed",
+        table=counts,
+        baseline_run=str(baseline.path),
+        candidate_run=str(candidate.path),
+        candidate_status=candidate.status,
+        replay=replay,
+        compare=comparison,
+    )
 
 
-def replay_baseline(baseline, model: str, gate: GateConfig, loaded_model=None) -> dict | None:
+def replay_baseline(baseline, model: str, gate: GateConfig, loaded_model=None) -> ReplayResult | None:
     """The candidate on the baseline's recorded inputs (harness/gate/replay.py): its model numerics, isolated from
     the simulator and the platform, within the gate's tolerances; None when the baseline recorded no inputs."""
     from harness.gate.replay import INPUTS, replay_run
@@ -273,7 +298,7 @@ def replay_baseline(baseline, model: str, gate: GateConfig, loaded_model=None) -
     if not all((e.directory / INPUTS).is_file() for e in baseline.episodes if e.ok):
         return None
     result = replay_run(baseline.path, model, gate, loaded_model=loaded_model)
-    return {k: v for k, v in result.items() if k != "episode_details"}
+    return replace(result, episode_details=ABSENT)
 
 
 def _fixed_size(counts: PairedCounts, alpha: float) -> int | None:
@@ -282,52 +307,54 @@ def _fixed_size(counts: PairedCounts, alpha: float) -> int | None:
     return mcnemar_exact_sample_size(counts.baseline_only / counts.n, counts.candidate_only / counts.n, alpha, 0.8)
 
 
-def exit_code(result: dict, fail_on: str = "suspect") -> int:
+def exit_code(result: RegressResult | RegressGridResult, fail_on: str = "suspect") -> int:
     """The gate verdict's exit code, as for compare: 0 pass, 1 REGRESSED/SUSPECT (or what --fail-on adds),
     3 ERRORED, 4 INCOMPLETE. fail_on="changed" (the model must not change) also fails unless the outcomes are IDENTICAL or the
     candidate's numbers on the baseline's recorded inputs are EQUIVALENT (replay): on another platform an unchanged
     model passes, a changed one fails whatever its outcomes."""
+    from harness.gate.results import ReplayVerdict
+
     if fail_on != "changed":
-        return gate_exit_code(result["verdict"], fail_on)
-    code = gate_exit_code(result["verdict"], "suspect")
-    if code or result["verdict"] == "IDENTICAL":
+        return gate_exit_code(result.verdict, fail_on)
+    code = gate_exit_code(result.verdict, "suspect")
+    if code or result.verdict == Verdict.IDENTICAL:
         return code
-    replay = result.get("replay")
-    return 0 if replay is not None and replay["verdict"] == "EQUIVALENT" else 1
+    replay = getattr(result, "replay", None)  # a grid's result has none
+    return 0 if replay is not None and replay.verdict == ReplayVerdict.EQUIVALENT else 1
 
 
-def summary_text(result: dict, code: int) -> str:
+def summary_text(result: RegressResult, code: int) -> str:
     """A few lines for the terminal / CI log."""
-    seq = result["sequential"]
+    seq = result.sequential
     lines = [
-        f"regress: {result['verdict']} after {result['pairs_used']} pairs ({result['rounds_used']} rounds"
-        + (f", {result['errored_pairs']} errored pairs left out" if result.get("errored_pairs") else "")
-        + f") of {result['baseline_pairs']} in the baseline",
-        f"  sequential test per task (alpha {seq['alpha']:g} / {len(seq['tasks'])} task(s) = "
-        f"{seq['task_alpha']:.3g} each, "
-        f"max drop {seq['max_drop']:g}, reject at e-value {seq['threshold']:g}): {result['sequential_verdict']}",
+        f"regress: {result.verdict} after {result.pairs_used} pairs ({result.rounds_used} rounds"
+        + (f", {result.errored_pairs} errored pairs left out" if result.errored_pairs else "")
+        + f") of {result.baseline_pairs} in the baseline",
+        f"  sequential test per task (alpha {seq.alpha:g} / {len(seq.tasks)} task(s) = "
+        f"{seq.task_alpha:.3g} each, "
+        f"max drop {seq.max_drop:g}, reject at e-value {seq.threshold:g}): {result.sequential_verdict}",
     ]
-    for task, t in seq["tasks"].items():
-        e = t["e_values"]
-        lines.append(f"    {task}: {t['verdict']} after {t['units']} pairs ({t['errored_pairs']} errored); e-values "
-                     f"regression {e['regression']:.3g}, improvement {e['improvement']:.3g}, held {e['held']:.3g}")
-    for task in seq.get("errored_tasks", []):
+    for task, t in seq.tasks.items():
+        e = t.e_values
+        lines.append(f"    {task}: {t.verdict} after {t.units} pairs ({t.errored_pairs} errored); e-values "
+                     f"regression {e.regression:.3g}, improvement {e.improvement:.3g}, held {e.held:.3g}")
+    for task in seq.errored_tasks or ():
         lines.append(f"    {task}: the candidate errored on more than half of its pairs: ERRORED")
     lines += [
-        f"  fixed-size comparison of the pairs run: {result['compare_verdict']}"
-        + "".join(f"\n    {note}" for note in result["compare"]["outcomes"].get("notes", [])),
+        f"  fixed-size comparison of the pairs run: {result.compare_verdict}"
+        + "".join(f"\n    {note}" for note in result.compare.outcomes.notes),
         "  an exact fixed-size McNemar test would need " + (
-            f"{result['fixed_size_pairs_80_power']} pairs for 80% power at the observed discordance"
-            if result["fixed_size_pairs_80_power"] else "n/a pairs (no difference observed, or more than 20000)"),
-        f"  verdict = worse of sequential and fixed-size: {result['verdict']}",
-        "  " + _numerics_line(result.get("replay")),
-        "  " + result["compare"]["provenance"]["summary"],
+            f"{result.fixed_size_pairs_80_power} pairs for 80% power at the observed discordance"
+            if result.fixed_size_pairs_80_power else "n/a pairs (no difference observed, or more than 20000)"),
+        f"  verdict = worse of sequential and fixed-size: {result.verdict}",
+        "  " + _numerics_line(result.replay),
+        "  " + result.compare.provenance.summary,
         f"exit code {code}",
     ]
     return "\n".join(lines)
 
 
-def _numerics_line(replay: dict | None) -> str:
+def _numerics_line(replay: ReplayResult | None) -> str:
     if replay is None:
         return "model numerics: not replayed (the baseline recorded no inputs; make it with --record-inputs)"
     from harness.gate.replay import summary_text as replay_summary
@@ -336,23 +363,23 @@ def _numerics_line(replay: dict | None) -> str:
     return "model numerics: " + lines[0].removeprefix("replay: ") + "".join(f"\n  {line}" for line in lines[1:])
 
 
-def write_regress(result: dict, code: int, write_comparison) -> dict:
+def write_regress(result: RegressResult | RegressGridResult, code: int, write_comparison) -> dict:
     """regress.json and the comparison outputs into <candidate run>/regress/ (a grid's: <candidate grid>/regress/),
     all or none; returns paths and the summary text (a `regress` or a `regress_grid` result)."""
     from harness.files import all_or_none, atomic_write_json
 
-    out = Path(result["candidate_run"]) / "regress"
+    out = Path(result.candidate_run) / "regress"
     with all_or_none(out / "regress.json", out / "compare.json", out / "compare.md", out / "compare.html"):
-        paths = write_comparison(result["compare"], out, None, None)
-        atomic_write_json(out / "regress.json", {**{k: v for k, v in result.items() if k != "compare"},
-                                                 "exit_code": code, "compare_json": str(paths["json"])})
-    summary = grid_summary_text if result["format"] == GRID_FORMAT else summary_text
+        paths = write_comparison(result.compare, out, None, None)
+        written = replace(result, compare=ABSENT, exit_code=code, compare_json=str(paths["json"]))
+        atomic_write_json(out / "regress.json", written.to_json())
+    summary = grid_summary_text if isinstance(result, RegressGridResult) else summary_text
     return {"json": out / "regress.json", "html": paths["html"], "summary": summary(result, code)}
 
 
 def regress_grid(baseline_grid: str | Path, model: str, gate: GateConfig | None = None, *,
                  out: str | Path = "results/runs", run_name: str | None = None, executor=None,
-                 progress: bool = True) -> dict:
+                 progress: bool = True) -> RegressGridResult:
     """`regress` condition by condition over a robustness grid (octo-harness robustness): each condition's
     sequential test runs at alpha / conditions (and, inside it, alpha / conditions / tasks per task), so the family
     of every (task, condition) cell holds alpha; then the pairs run are compared as a grid (compare_grids: Holm over
@@ -378,27 +405,27 @@ def regress_grid(baseline_grid: str | Path, model: str, gate: GateConfig | None 
                                       run_name=name, loaded_model=loaded, executor=executor, progress=progress)
     comparison = compare_grids(baseline_grid, folder, gate.compare(),
                                require_complete=False)  # the sequential test may stop a condition early
-    verdicts = [r["verdict"] for r in per_condition.values()] + [comparison["verdict"]]
-    return {
-        "format": GRID_FORMAT,
-        "verdict": worst(verdicts),
-        "conditions": {name: {"verdict": r["verdict"], "sequential_verdict": r["sequential_verdict"],
-                              "compare_verdict": r["compare_verdict"], "pairs_used": r["pairs_used"],
-                              "candidate_run": r["candidate_run"], "alpha": alpha / len(names)}
-                       for name, r in per_condition.items()},
-        "compare_verdict": comparison["verdict"],
-        "baseline_grid": str(baseline_grid.resolve()),
-        "candidate_run": str(folder.resolve()),
-        "compare": comparison,
-    }
+    verdicts = [r.verdict for r in per_condition.values()] + [comparison.verdict]
+    return RegressGridResult(
+        format=GRID_FORMAT,
+        verdict=worst(verdicts),
+        conditions={name: ConditionRegress(verdict=r.verdict, sequential_verdict=r.sequential_verdict,
+                                           compare_verdict=r.compare_verdict, pairs_used=r.pairs_used,
+                                           candidate_run=r.candidate_run, alpha=alpha / len(names))
+                    for name, r in per_condition.items()},
+        compare_verdict=comparison.verdict,
+        baseline_grid=str(baseline_grid.resolve()),
+        candidate_run=str(folder.resolve()),
+        compare=comparison,
+    )
 
 
-def grid_summary_text(result: dict, code: int) -> str:
-    lines = [f"regress (grid): {result['verdict']} over {len(result['conditions'])} condition(s)"]
-    for name, c in result["conditions"].items():
-        lines.append(f"  {name}: {c['verdict']} (sequential {c['sequential_verdict']} at alpha {c['alpha']:.3g}, "
-                     f"fixed-size {c['compare_verdict']}, {c['pairs_used']} pairs)")
-    lines.append(f"  grid comparison (Holm over every task x condition): {result['compare_verdict']}")
-    lines += [f"    {note}" for note in result["compare"]["outcomes"].get("notes", [])]
+def grid_summary_text(result: RegressGridResult, code: int) -> str:
+    lines = [f"regress (grid): {result.verdict} over {len(result.conditions)} condition(s)"]
+    for name, c in result.conditions.items():
+        lines.append(f"  {name}: {c.verdict} (sequential {c.sequential_verdict} at alpha {c.alpha:.3g}, "
+                     f"fixed-size {c.compare_verdict}, {c.pairs_used} pairs)")
+    lines.append(f"  grid comparison (Holm over every task x condition): {result.compare_verdict}")
+    lines += [f"    {note}" for note in result.compare.outcomes.notes]
     lines.append(f"exit code {code}")
     return "\n".join(lines)

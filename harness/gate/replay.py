@@ -10,26 +10,28 @@ attention with actions.npz / attention.npz (harness.analysis.equivalence). Infer
 receding-horizon step that reused a chunk has nothing to replay).
 
 Verdict: EQUIVALENT (every step within the tolerances) or CHANGED (the first step beyond them, and how
-far); exit 0 / 1; 2 for invalid input (a run without recorded inputs, a model whose inputs differ).
+far); exit 0 / 1; 2 for invalid input (a run without recorded inputs, a model whose inputs differ). The result is a
+`ReplayResult` (harness.gate.results: replay.json, read by attribute; `to_json()` writes it).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 
 from harness.gate.config import GateConfig
+from harness.gate.results import REPLAY_FORMAT, ChangeAt, EpisodeReplay, FirstChange, ReplayResult, ReplayVerdict
 from harness.analysis.equivalence import Tolerances, action_change, action_scale, attention_change, first_change
 from harness.analysis.runs import EpisodeRecord, load_run, read_npz
+from harness.results import ABSENT
 from harness.run.protocol import protocol_from_manifest
 
 log = logging.getLogger(__name__)
 
-FORMAT = "octo-harness-replay/1"
+FORMAT = REPLAY_FORMAT
 INPUTS = "inputs.npz"
 
 
@@ -58,7 +60,7 @@ def _recorded_outputs(episode: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
     return actions["predicted"], attention["readout_attention"]
 
 
-def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolerances: Tolerances) -> dict:
+def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolerances: Tolerances) -> EpisodeReplay:
     """One episode: replay its inferred steps; returns per-step changes and the episode's verdict."""
     from harness.policy import InferenceRequest, TaskSpec, window_from_entries
 
@@ -91,12 +93,13 @@ def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolera
         readout.append(result.readout_attention)
     out = {"task": episode.task, "episode": episode.episode, "seed": seed, "steps": steps, "compared_steps": len(inferred)}
     if not inferred:
-        return {**out, "verdict": "EQUIVALENT", "first_changed_step": None, "action_change_max": 0.0, "attention_js_max": 0.0}
+        return EpisodeReplay(**out, verdict=ReplayVerdict.EQUIVALENT, first_changed_step=None, action_change_max=0.0,
+                             attention_js_max=0.0)
     recorded_chunks = predicted[inferred]
     if recorded_chunks.shape[1:] != np.shape(chunks[0]):
-        return {**out, "verdict": "CHANGED", "first_changed_step": inferred[0], "action_change_max": None,
-                "attention_js_max": None, "note": f"action chunks differ in shape: {recorded_chunks.shape[1:]} recorded, "
-                                                  f"{np.shape(chunks[0])} replayed"}
+        return EpisodeReplay(**out, verdict=ReplayVerdict.CHANGED, first_changed_step=inferred[0], action_change_max=None,
+                             attention_js_max=None, note=f"action chunks differ in shape: {recorded_chunks.shape[1:]} "
+                                                         f"recorded, {np.shape(chunks[0])} replayed")
     scale = action_scale(inference.statistics, inference.config.action_normalization, recorded_chunks.shape[-1])
     actions = action_change(recorded_chunks, np.stack(chunks), scale)  # (compared,)
     recorded_attention = attention[inferred]
@@ -107,21 +110,22 @@ def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolera
         js = np.full((len(inferred), 1, 1), np.inf)
         note = f"attention shapes differ: {recorded_attention.shape[1:]} recorded, {np.shape(readout[0])} replayed"
     first = first_change(actions, js, tolerances)
-    result = {**out, "verdict": "EQUIVALENT" if first is None else "CHANGED",
-              "first_changed_step": None if first is None else inferred[first],
-              "action_change_max": float(actions.max()), "attention_js_max": float(js.max()),
-              "action_change_step0": float(actions[0]), "attention_js_step0": float(js[0].max()),
-              "action_change_per_step": actions.tolist(), "attention_js_per_step": js.reshape(len(inferred), -1).max(axis=1).tolist()}
-    if first is not None:
-        result["change_at_first"] = {"action": float(actions[first]), "attention_js": float(js[first].max())}
-    if note:
-        result["note"] = note
-    return result
+    return EpisodeReplay(
+        **out, verdict=ReplayVerdict.EQUIVALENT if first is None else ReplayVerdict.CHANGED,
+        first_changed_step=None if first is None else inferred[first],
+        action_change_max=float(actions.max()), attention_js_max=float(js.max()),
+        action_change_step0=float(actions[0]), attention_js_step0=float(js[0].max()),
+        action_change_per_step=tuple(actions.tolist()),
+        attention_js_per_step=tuple(js.reshape(len(inferred), -1).max(axis=1).tolist()),
+        change_at_first=(ABSENT if first is None else
+                         ChangeAt(action=float(actions[first]), attention_js=float(js[first].max()))),
+        note=note or ABSENT)
 
 
 def replay_run(run_dir: str | Path, model_source: str | None = None, gate: GateConfig | None = None,
-               loaded_model=None) -> dict:
-    """Replay every finished episode of a run with recorded inputs (see the module docstring); returns replay.json.
+               loaded_model=None) -> ReplayResult:
+    """Replay every finished episode of a run with recorded inputs (see the module docstring); returns replay.json's
+    content.
 
     gate: the tolerances and the replayed model's text_tokenizer, auto|fallback|PATH (None: the run's own choice)."""
     from harness.octo import load_pretrained
@@ -160,44 +164,45 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, gate: GateC
         images = checks.decode_goal_images(protocol.goal_images)
         goals = {k: resize_frame(v, model.goal_image_sizes[k]) for k, v in images.items() if k in model.goal_image_sizes}
     results = [replay_episode(inference, e, int(model.window_size), goals, tolerances) for e in episodes]
-    changed = [r for r in results if r["verdict"] != "EQUIVALENT"]
-    first = min(changed, key=lambda r: (r["first_changed_step"] if r["first_changed_step"] is not None else 0)) if changed else None
+    changed = [r for r in results if r.verdict != ReplayVerdict.EQUIVALENT]
+    first = min(changed, key=lambda r: r.first_changed_step if r.first_changed_step is not None else 0) if changed else None
     finite = lambda xs: [x for x in xs if x is not None]  # noqa: E731
-    return {
-        "format": FORMAT,
-        "verdict": "CHANGED" if changed else "EQUIVALENT",
-        "run": str(run.path),
-        "recorded_model": run.model.source,
-        "recorded_model_fingerprint": protocol.model_fingerprint,
-        "model": source,
-        "tolerances": asdict(tolerances),
-        "units": {"action": "max |change| over the chunk, normalised action units",
-                  "attention": "max Jensen-Shannon divergence (bits) over layers and heads, float16"},
-        "platform_recorded": run.manifest.get("platform_fingerprint"),
-        "episodes": len(results),
-        "episodes_changed": len(changed),
-        "steps_compared": sum(r["compared_steps"] for r in results),
-        "action_change_max": max(finite([r["action_change_max"] for r in results]), default=None),
-        "attention_js_max": max(finite([r["attention_js_max"] for r in results]), default=None),
-        "first_change": None if first is None else {k: first.get(k) for k in ("task", "episode", "first_changed_step",
-                                                                              "change_at_first", "note")},
-        "episode_details": results,
-    }
+    return ReplayResult(
+        format=FORMAT,
+        verdict=ReplayVerdict.CHANGED if changed else ReplayVerdict.EQUIVALENT,
+        run=str(run.path),
+        recorded_model=run.model.source,
+        recorded_model_fingerprint=protocol.model_fingerprint,
+        model=source,
+        tolerances=tolerances,
+        units={"action": "max |change| over the chunk, normalised action units",
+               "attention": "max Jensen-Shannon divergence (bits) over layers and heads, float16"},
+        platform_recorded=run.manifest.get("platform_fingerprint"),
+        episodes=len(results),
+        episodes_changed=len(changed),
+        steps_compared=sum(r.compared_steps for r in results),
+        action_change_max=max(finite([r.action_change_max for r in results]), default=None),
+        attention_js_max=max(finite([r.attention_js_max for r in results]), default=None),
+        first_change=None if first is None else FirstChange(
+            task=first.task, episode=first.episode, first_changed_step=first.first_changed_step,
+            change_at_first=first.change_at_first or None, note=first.note or None),
+        episode_details=tuple(results),
+    )
 
 
-def summary_text(result: dict) -> str:
+def summary_text(result: ReplayResult) -> str:
     """A few lines for the terminal / CI log."""
-    tol = result["tolerances"]
-    lines = [f"replay: {result['verdict']}: {result['model']} on the inputs of {result['episodes']} episodes "
-             f"({result['steps_compared']} inferred steps) recorded by {result['recorded_model']}",
-             f"  largest change: action {_fmt(result['action_change_max'])} (tolerance {tol['action']:g} normalised units), "
-             f"attention JS {_fmt(result['attention_js_max'])} (tolerance {tol['attention_js']:g} bits)"]
-    first = result["first_change"]
+    tol = result.tolerances
+    lines = [f"replay: {result.verdict}: {result.model} on the inputs of {result.episodes} episodes "
+             f"({result.steps_compared} inferred steps) recorded by {result.recorded_model}",
+             f"  largest change: action {_fmt(result.action_change_max)} (tolerance {tol.action:g} normalised units), "
+             f"attention JS {_fmt(result.attention_js_max)} (tolerance {tol.attention_js:g} bits)"]
+    first = result.first_change
     if first is not None:
-        at = first.get("change_at_first") or {}
-        lines.append(f"  first change: {first['task']} episode {first['episode']} step {first['first_changed_step']}: "
-                     f"action {_fmt(at.get('action'))}, attention JS {_fmt(at.get('attention_js'))}"
-                     + (f" ({first['note']})" if first.get("note") else ""))
+        at = first.change_at_first
+        lines.append(f"  first change: {first.task} episode {first.episode} step {first.first_changed_step}: "
+                     f"action {_fmt(at.action if at else None)}, attention JS {_fmt(at.attention_js if at else None)}"
+                     + (f" ({first.note})" if first.note else ""))
     return "\n".join(lines)
 
 
@@ -205,5 +210,5 @@ def _fmt(x) -> str:
     return "n/a" if x is None else f"{x:.3g}"
 
 
-def exit_code(result: dict) -> int:
-    return 0 if result["verdict"] == "EQUIVALENT" else 1
+def exit_code(result: ReplayResult) -> int:
+    return 0 if result.verdict == ReplayVerdict.EQUIVALENT else 1

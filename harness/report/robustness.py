@@ -52,7 +52,7 @@ def tables(records, analysis=None) -> dict[str, list]:
     return {"robustness.csv": (R.SUCCESS_COLUMNS, success), "robustness_episodes.csv": (EPISODE_COLUMNS, episodes),
             "robustness_shift.csv": (R.SHIFT_COLUMNS, shifts),
             "robustness_association.csv": (R.ASSOCIATION_COLUMNS, association),
-            "robustness_paired.csv": (R.PAIRED_COLUMNS, paired),
+            "robustness_paired.csv": (R.PAIRED_COLUMNS, [p.row() for p in paired]),
             **({"robustness_predictors.csv": (P.PREDICTOR_COLUMNS, predictors)} if predictors else {})}
 
 
@@ -91,11 +91,12 @@ def level_plot(task: str, success: list[tuple]) -> bytes:
 
 def _paired_cells(drops: dict, s: tuple) -> tuple[str, str, str]:
     """(lost / gained pairs, Holm p, verdict with the drop's upper bound) of the success row `s`'s cell, from `drops`
-    ({(task, run): paired row}); dashes for the nominal row (level 0)."""
+    ({(task, run): PairedCell}); dashes for the nominal row (level 0)."""
     p = drops.get((s[0], s[3])) if s[2] else None
     if p is None:
         return ("-", "-", "-")
-    return (f"{p[7]} / {p[8]}", f"{p[11]:.3g}", f"{p[13]} (drop <= {round(100 * p[14])})")
+    return (f"{p.nominal_only} / {p.perturbed_only}", f"{p.p_holm:.3g}",
+            f"{p.verdict} (drop <= {round(100 * p.drop_upper)})")
 
 
 def section(records, plots, analysis=None) -> str:
@@ -103,7 +104,7 @@ def section(records, plots, analysis=None) -> str:
     if analysis is None:
         return ""
     rows, shifts, notes, success, association, paired, predictors = analysis
-    drops = {(p[0], p[3]): p for p in paired}
+    drops = {(p.task, p.run): p for p in paired}
     body = [H.note("Success against perturbation level per condition (level 0 = the nominal run), with Wilson 95% "
                    "bands; target lift and nuisance mass (attention on the background and distractors: neither robot, "
                    "target nor another task object) of the primary camera at the last layer, mean over each "
@@ -209,7 +210,7 @@ def markdown(records, note: str = "", margin: float = R.MARGIN, section: str = S
     if analysis is None:
         raise ValueError("no run here was perturbed: give the runs of a robustness grid")
     rows, _, notes, success, association, paired, predictors = analysis
-    drops = {(p[0], p[3]): p for p in paired}
+    drops = {(p.task, p.run): p for p in paired}
     lines = [section, "", note, ""] if note else [section, ""]
     lines += [VERDICT_NOTE.format(margin=round(100 * margin)), "", map_note(records), ""]
     lines += [f"- {n}" for n in notes]

@@ -6,7 +6,8 @@ import pytest
 
 from harness import cli
 from harness.analysis.compare import compare_runs, exit_code, incompatible_fields
-from harness.analysis.paired import holm_adjust, mcnemar_exact
+from harness.analysis.compare_result import MissingPairs
+from harness.analysis.paired import PairedCounts, Verdict, holm_adjust, mcnemar_exact
 from harness.runfolder.schema import protocol_hash
 
 PROTOCOL = {"model": "m", "model_fingerprint": "x", "tasks": ["Lift", "Stack"], "episodes": 10, "seed": 0,
@@ -40,15 +41,15 @@ def test_a_significant_drop_is_regressed_with_holm_across_tasks_and_exits_1(tmp_
     base = write_run(tmp_path / "base", {"Lift": [True] * 10, "Stack": [True, False] * 5})
     cand = write_run(tmp_path / "cand", {"Lift": [False] * 10, "Stack": [True, False] * 5}, model="m2")
     result = compare_runs(base, cand)
-    lift, stack, pooled = result["outcomes"]["tasks"]["Lift"], result["outcomes"]["tasks"]["Stack"], result["outcomes"]["overall"]
-    assert lift["table"] == {"both": 0, "baseline_only": 10, "candidate_only": 0, "neither": 0}
-    assert lift["mcnemar_p"] == pytest.approx(2 / 1024)
+    lift, stack, pooled = result.outcomes.tasks["Lift"], result.outcomes.tasks["Stack"], result.outcomes.overall
+    assert lift.table == PairedCounts(both=0, baseline_only=10, candidate_only=0, neither=0)
+    assert lift.mcnemar_p == pytest.approx(2 / 1024)
     # family = Lift, Stack, pooled: Holm multiplies the smallest p by 3
     expected = holm_adjust([2 / 1024, 1.0, mcnemar_exact(10, 0)])
-    assert [lift["mcnemar_p_holm"], stack["mcnemar_p_holm"], pooled["mcnemar_p_holm"]] == pytest.approx(expected)
-    assert lift["verdict"] == "REGRESSED" and stack["verdict"] == "UNDERPOWERED" and pooled["verdict"] == "REGRESSED"
-    assert stack["more_pairs_needed"] > 0
-    assert result["verdict"] == "REGRESSED" and exit_code(result) == 1
+    assert [lift.mcnemar_p_holm, stack.mcnemar_p_holm, pooled.mcnemar_p_holm] == pytest.approx(expected)
+    assert lift.verdict == Verdict.REGRESSED and stack.verdict == Verdict.UNDERPOWERED and pooled.verdict == Verdict.REGRESSED
+    assert stack.more_pairs_needed > 0
+    assert result.verdict == Verdict.REGRESSED and exit_code(result) == 1
     assert cli.main(["compare", str(base), str(cand), "--no-frames"]) == 1
     out = capsys.readouterr().out
     assert "compare: REGRESSED" in out and "| Lift | 10 |" in out
@@ -60,11 +61,11 @@ def test_missing_pairs_are_reported_and_make_the_candidate_incomplete(tmp_path):
     base = write_run(tmp_path / "base", {"Lift": [True, False, True, True]})
     cand = write_run(tmp_path / "cand", {"Lift": [True, False]}, model="m2")  # still running: 2 of 4 episodes
     result = compare_runs(base, cand)
-    assert result["pairs"] == 2 and result["missing_pairs"] == {"candidate": [["Lift", 2], ["Lift", 3]], "baseline": []}
-    assert result["verdict"] == "INCOMPLETE" and result["outcomes"]["overall"]["verdict"] == "UNDERPOWERED"
+    assert result.pairs == 2 and result.missing_pairs == MissingPairs(candidate=(("Lift", 2), ("Lift", 3)), baseline=())
+    assert result.verdict == Verdict.INCOMPLETE and result.outcomes.overall.verdict == Verdict.UNDERPOWERED
     assert {exit_code(result, fail_on) for fail_on in ("regressed", "suspect", "underpowered", "changed")} == {4}
     lenient = compare_runs(base, cand, require_complete=False)  # regress's view: the pairs that ran
-    assert lenient["verdict"] == "UNDERPOWERED" and exit_code(lenient) == 0 and exit_code(lenient, "underpowered") == 1
+    assert lenient.verdict == Verdict.UNDERPOWERED and exit_code(lenient) == 0 and exit_code(lenient, "underpowered") == 1
 
 
 def test_only_outcome_changing_protocol_fields_are_incompatible():

@@ -9,7 +9,8 @@ import pytest
 
 from harness.analysis.paired import (PairedCounts, decide, detectable_loss, detectable_phrase, equivalent,
                                      difference_interval, mcnemar_exact)
-from harness.analysis.robustness import EpisodeRow, association_rows, cell_verdict, paired_rows, sentence, success_rows
+from harness.analysis.robustness import (CellVerdict, EpisodeRow, association_rows, cell_verdict, paired_rows, sentence,
+                                         success_rows)
 
 
 @pytest.mark.parametrize("pairs, alpha, cells, expected", [
@@ -58,10 +59,10 @@ def _cell(run, condition, level, outcomes):
 def test_each_cell_has_a_verdict_and_the_sentence_states_its_power():
     rows = (_cell("nominal", "nominal", 0, [True] * 20) + _cell("texture-5", "texture", 5, [False] * 20)
             + _cell("camera-1", "camera@image_wrist", 1, [True] * 20))
-    paired = {p[3]: p for p in paired_rows(rows)}
-    assert paired["texture-5"][13] == "BREAKS" and paired["camera-1"][13] == "UNDETERMINED"
-    assert paired["camera-1"][15] == 0.15 and paired["camera-1"][16] == pytest.approx(7 / 20)  # 2 cells: 7 lost
-    assert paired["camera-1"][14] == pytest.approx(-difference_interval(_same(20), 1 - 0.05 / 2)[0])
+    paired = {p.run: p for p in paired_rows(rows)}
+    assert paired["texture-5"].verdict == CellVerdict.BREAKS and paired["camera-1"].verdict == CellVerdict.UNDETERMINED
+    assert paired["camera-1"].margin == 0.15 and paired["camera-1"].detectable_drop == pytest.approx(7 / 20)  # 7 lost
+    assert paired["camera-1"].drop_upper == pytest.approx(-difference_interval(_same(20), 1 - 0.05 / 2)[0])
     text = sentence("Lift", success_rows(rows), association_rows(rows), list(paired.values()))
     assert "it breaks under texture 5" in text and "no drop of 35 points or more at 20 pairs (Holm over 2 cells)" in text
     assert "the other cell is UNDETERMINED (a drop over 15 points not ruled out)" in text and "1 cells" not in text
@@ -74,4 +75,4 @@ def test_each_cell_has_a_verdict_and_the_sentence_states_its_power():
     assert "it breaks under every cell: texture 5 (0/20 vs 20/20" in text  # not "0 of the other 0 cells HOLD"
     assert "of the other" not in text and "elsewhere" not in text
     assert math.isnan(paired_rows(_cell("nominal", "nominal", 0, [True] * 5)
-                                  + _cell("c-1", "camera@image_wrist", 1, [True] * 5))[0][16])  # 5 pairs: nothing
+                                  + _cell("c-1", "camera@image_wrist", 1, [True] * 5))[0].detectable_drop)  # 5 pairs: nothing

@@ -357,17 +357,18 @@ def test_a_cell_breaks_a_task_only_when_its_paired_drop_survives_holm():
     lighting = cell("lighting-5", "lighting", 5, [True] * 16 + [False] * 4)  # 4 lost: p = 0.125, not a break
     camera = cell("camera-3", "camera@image_primary", 3, [False] * 6 + [True] * 14, status={0: "failed", 1: "failed"})
     rows = nominal + texture + lighting + camera
-    paired = {p[3]: p for p in paired_rows(rows)}
+    paired = {p.run: p for p in paired_rows(rows)}
     t, lt, c = paired["texture-5"], paired["lighting-5"], paired["camera-3"]
-    assert (t[4], t[7], t[8], t[12]) == (20, 20, 0, True) and t[10] == pytest.approx(2 * 0.5 ** 20)
-    assert t[11] == pytest.approx(3 * t[10])  # the smallest of three p-values, times three
-    assert (lt[7], lt[12]) == (4, False) and lt[10] == pytest.approx(0.125)
-    assert (c[4], c[7]) == (18, 4) and not c[12]  # errored episodes are not pairs: 4 lost of 18, not 6 of 20
+    assert (t.pairs, t.nominal_only, t.perturbed_only, t.breaks) == (20, 20, 0, True)
+    assert t.p_mcnemar == pytest.approx(2 * 0.5 ** 20)
+    assert t.p_holm == pytest.approx(3 * t.p_mcnemar)  # the smallest of three p-values, times three
+    assert (lt.nominal_only, lt.breaks) == (4, False) and lt.p_mcnemar == pytest.approx(0.125)
+    assert (c.pairs, c.nominal_only) == (18, 4) and not c.breaks  # errored episodes are not pairs: 4 lost of 18, not 6 of 20
     text = sentence("Lift", success_rows(rows), association_rows(rows), paired_rows(rows))
     assert "it breaks under texture 5 (0/20 vs 20/20" in text and "lighting" not in text.split("breaks under")[1]
     gained = cell("noise-1", "noise", 1, [True] * 20)
     worse_nominal = cell("nominal", "nominal", 0, [False] * 20)
-    assert not paired_rows(worse_nominal + gained)[0][12]  # gaining successes never "breaks"
+    assert not paired_rows(worse_nominal + gained)[0].breaks  # gaining successes never "breaks"
     assert "no condition breaks it" in sentence("Lift", [], [], paired_rows(worse_nominal + gained))
 
 

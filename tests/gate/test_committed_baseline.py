@@ -30,6 +30,8 @@ import pytest
 
 from harness.measures.attention import MEASURES_VERSION
 from harness.analysis.compare import compare_runs, exit_code
+from harness.analysis.compare_result import CompareResult
+from harness.gate.results import RegressResult
 from harness.run import execute
 from harness.runfolder.platform import platform_fingerprint, platform_info
 from harness.gate.regress import candidate_protocol
@@ -75,18 +77,18 @@ def test_rerunning_a_committed_baseline_passes_the_gate_on_this_machine(name, fi
         "else octo-harness run + scripts/make_baseline.py) and commit it")
 
     result = compare_runs(folder, summary.run_dir)
-    assert exit_code(result) == 0, (result["verdict"], result["outcomes"]["notes"])
-    assert result["pairs"] == len(manifest["jobs"]) and not any(result["missing_pairs"].values())
-    prov = result["provenance"]
+    assert exit_code(result) == 0, (result.verdict, result.outcomes.notes)
+    assert result.pairs == len(manifest["jobs"]) and not (result.missing_pairs.candidate or result.missing_pairs.baseline)
+    prov = result.provenance
     same_platform = manifest.get("platform_fingerprint") == platform_fingerprint(platform_info())
-    assert prov["platform"]["same"] == same_platform
+    assert prov.platform["same"] == same_platform
     if same_platform:  # bit-identical trajectories are the claim here, and are checked bit for bit
-        assert result["verdict"] == "IDENTICAL", result["identical"]["first_difference"]
+        assert result.verdict == "IDENTICAL", result.identical.first_difference
     else:  # another CPU, XLA or renderer: the outcomes may move, the model's step-0 numbers may not
-        assert prov["platform"]["differs_in"]
-        assert prov["step0_numerics"]["verdict"] in ("IDENTICAL", "EQUIVALENT", "UNKNOWN"), prov["summary"]
-    if prov["inputs"]["step0_same"]:
-        assert prov["step0_numerics"]["verdict"] in ("IDENTICAL", "EQUIVALENT"), prov["summary"]
+        assert prov.platform["differs_in"]
+        assert prov.step0_numerics["verdict"] in ("IDENTICAL", "EQUIVALENT", "UNKNOWN"), prov.summary
+    if prov.inputs["step0_same"]:
+        assert prov.step0_numerics["verdict"] in ("IDENTICAL", "EQUIVALENT"), prov.summary
 
 
 def _make_baseline_module():
@@ -114,9 +116,9 @@ def test_a_baseline_made_on_this_machine_is_identical_on_rerun(made_here):
     """The same-platform branch, on every machine: bit-identical trajectories and measures, whatever CPU CI gets."""
     baseline, candidate = made_here
     result = compare_runs(baseline, candidate)
-    assert result["provenance"]["platform"]["same"]
-    assert result["verdict"] == "IDENTICAL", result["identical"]["first_difference"]
-    assert result["identical"]["derived_measures"] is None and exit_code(result) == 0
+    assert result.provenance.platform["same"]
+    assert result.verdict == "IDENTICAL", result.identical.first_difference
+    assert result.identical.derived_measures is None and exit_code(result) == 0
 
 
 def _edit_measure(run: Path, version) -> None:
@@ -144,18 +146,18 @@ def test_a_changed_measure_definition_is_named_apart_from_a_real_difference(made
     shutil.copytree(candidate, redefined)
     _edit_measure(redefined, version + 1)
     result = compare_runs(baseline, redefined)
-    derived = result["identical"]["derived_measures"]
-    assert result["verdict"] == "IDENTICAL" and exit_code(result) == 0
-    assert derived["baseline_version"] == version and derived["candidate_version"] == version + 1
-    assert derived["pairs"] == 2 and "mask_fraction/image_primary/" in derived["first_difference"]
-    assert f"measures version {version} -> {version + 1}" in derived["note"]
+    derived = result.identical.derived_measures
+    assert result.verdict == "IDENTICAL" and exit_code(result) == 0
+    assert derived.baseline_version == version and derived.candidate_version == version + 1
+    assert derived.pairs == 2 and "mask_fraction/image_primary/" in derived.first_difference
+    assert f"measures version {version} -> {version + 1}" in derived.note
 
     moved = tmp_path / "moved"
     shutil.copytree(candidate, moved)
     _edit_measure(moved, version)
     result = compare_runs(baseline, moved)
-    assert result["verdict"] != "IDENTICAL" and result["identical"]["derived_measures"] is None
-    assert "mask_fraction/image_primary/" in result["identical"]["first_difference"]
+    assert result.verdict != "IDENTICAL" and result.identical.derived_measures is None
+    assert "mask_fraction/image_primary/" in result.identical.first_difference
 
 
 def _gate(argv: list[str], tmp_path: Path, env_extra: dict | None = None) -> subprocess.CompletedProcess:
@@ -173,13 +175,13 @@ def test_the_gate_passes_the_unchanged_model_under_another_machines_numerics(tmp
                  {"XLA_FLAGS": "--xla_cpu_max_isa=SSE4_2"})
     assert proc.returncode == 0, proc.stdout + proc.stderr
     (regress_json,) = tmp_path.glob("*/regress/regress.json")
-    result = json.loads(regress_json.read_text())
-    assert result["replay"]["verdict"] == "EQUIVALENT"
+    result = RegressResult.from_json(json.loads(regress_json.read_text()))
+    assert result.replay.verdict == "EQUIVALENT"
     # other bits, within tolerance (this was also tests/gate/test_replay.py's own `replay` under SSE4.2: one
     # compilation of the model under these flags now serves both)
-    assert 0 < result["replay"]["action_change_max"] <= result["replay"]["tolerances"]["action"]
-    compare = json.loads((regress_json.parent / "compare.json").read_text())
-    assert "xla_flags" in compare["provenance"]["platform"]["differs_in"]
+    assert 0 < result.replay.action_change_max <= result.replay.tolerances.action
+    compare = CompareResult.from_json(json.loads((regress_json.parent / "compare.json").read_text()))
+    assert "xla_flags" in compare.provenance.platform["differs_in"]
     assert "model numerics: EQUIVALENT" in proc.stdout and "platform: different" in proc.stdout
 
 

@@ -15,6 +15,9 @@ import pytest
 from envs.options import EnvOptions
 from harness import cli
 from harness.analysis.compare import compare_runs, exit_code
+from harness.analysis.compare_result import CompareResult
+from harness.files import json_safe
+from harness.gate.results import RegressResult
 from harness.octo import load_pretrained
 from harness.run import Protocol, execute
 from harness.outputs.writers import OutputOptions
@@ -22,6 +25,15 @@ from harness.outputs.writers import OutputOptions
 pytestmark = pytest.mark.slow
 
 STEPS = 2
+
+
+def read_back(path: Path, kind):
+    """A JSON file a command wrote, read back as its typed result; the result writes the file's JSON again, key for
+    key (the schema round trip)."""
+    data = json.loads(path.read_text())
+    result = kind.from_json(data)
+    assert json_safe(result.to_json()) == data
+    return result
 
 
 def _perturbed_copy(source: Path, dest: Path) -> Path:
@@ -60,9 +72,9 @@ def test_a_run_compared_with_itself_is_identical_and_exits_0(runs, capsys):
     code = cli.main(["compare", str(runs / "base"), str(runs / "same"), "--no-frames", "--out", str(runs / "cmp_same")])
     out = capsys.readouterr().out
     assert code == 0 and "compare: IDENTICAL" in out
-    result = json.loads((runs / "cmp_same" / "compare.json").read_text())
-    assert result["verdict"] == "IDENTICAL" and result["identical"]["pairs_identical"] == 2 and result["exit_code"] == 0
-    assert result["drift"]["step0"]["overall"]["js_mean"] == 0 and result["drift"]["step0"]["overall"]["action_l2"] == 0
+    result = read_back(runs / "cmp_same" / "compare.json", CompareResult)
+    assert result.verdict == "IDENTICAL" and result.identical.pairs_identical == 2 and result.exit_code == 0
+    assert result.drift.step0.overall.js_mean == 0 and result.drift.step0.overall.action_l2 == 0
     html = (runs / "cmp_same" / "compare.html").read_text()
     for title in ("Outcomes", "Step-0 drift", "Step-0 overlays"):
         assert title in html
@@ -83,15 +95,16 @@ def test_regress_with_another_model_drifts_resumes_and_fails_on_underpowered(run
     assert cli.main(args) == 0  # two failing pairs: the sequential test cannot decide, no regression shown
     out = capsys.readouterr().out
     assert "regress: UNDERPOWERED after 2 pairs" in out
-    result = json.loads((runs / "cand" / "regress" / "regress.json").read_text())
-    assert result["pairs_used"] == 2 and result["baseline_pairs"] == 2 and not result["sequential"]["decided"]
+    result = read_back(runs / "cand" / "regress" / "regress.json", RegressResult)
+    read_back(runs / "cand" / "regress" / "compare.json", CompareResult)
+    assert result.pairs_used == 2 and result.baseline_pairs == 2 and not result.sequential.decided
 
     compared = compare_runs(runs / "base", runs / "cand")
-    assert compared["verdict"] != "IDENTICAL" and exit_code(compared) == 0
-    step0 = compared["drift"]["step0"]["overall"]
-    assert step0["action_l2"] > 0 and step0["js_mean"] > 0
-    assert step0["js_layer"][0] == pytest.approx(0, abs=1e-6)  # layer 0 was not changed: identical step-0 attention
-    assert [p["seed"] for p in compared["pair_details"]] == [0, 1]
+    assert compared.verdict != "IDENTICAL" and exit_code(compared) == 0
+    step0 = compared.drift.step0.overall
+    assert step0.action_l2 > 0 and step0.js_mean > 0
+    assert step0.js_layer[0] == pytest.approx(0, abs=1e-6)  # layer 0 was not changed: identical step-0 attention
+    assert [p.seed for p in compared.pair_details] == [0, 1]
 
     jsonl = (runs / "cand" / "results.jsonl").read_text()
     assert cli.main([*args, "--fail-on", "underpowered"]) == 1  # resumed: same decision, no new episode

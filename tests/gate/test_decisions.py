@@ -66,21 +66,21 @@ def test_audit_lift_breaks_while_stack_improves_fails_regress_and_compare(tmp_pa
     assert verdict == "HELD"
     # the fix: Lift's own test (alpha / 2) regresses after a few of its pairs; the gate stops there and fails
     gate = gate_on_outcomes(baseline, candidate, _jobs(tasks, seeds), tasks, ALPHA, MAX_DROP)
-    lift = gate["test"].tests["Lift"]
+    lift = gate.test.tests["Lift"]
     config = SequentialConfig(ALPHA / 2, MAX_DROP)
     expected = int(first_decisions(np.full(seeds, -1.0), config)[1])
-    assert lift.verdict == "REGRESSED" and lift.units == expected == gate["rounds"] < 15
-    assert gate["sequential_verdict"] == "REGRESSED" and gate["verdict"] == "REGRESSED"
-    assert gate_exit_code(gate["verdict"]) == 1
+    assert lift.verdict == "REGRESSED" and lift.units == expected == gate.rounds < 15
+    assert gate.sequential_verdict == "REGRESSED" and gate.verdict == "REGRESSED"
+    assert gate_exit_code(gate.verdict) == 1
     # compare on all 60 pairs of each task: Lift REGRESSED (p = 2^-59, Holm x3), Stack IMPROVED -> REGRESSED, exit 1
     base = write_run(tmp_path / "base", {"Lift": [True] * seeds, "Stack": [False] * seeds})
     cand = write_run(tmp_path / "cand", {"Lift": [False] * seeds, "Stack": [True] * seeds}, model="m2")
     result = compare_runs(base, cand)
-    blocks = result["outcomes"]["tasks"]
-    assert blocks["Lift"]["verdict"] == "REGRESSED" and blocks["Stack"]["verdict"] == "IMPROVED"
-    pooled = result["outcomes"]["overall"]["paired_verdict"]
+    blocks = result.outcomes.tasks
+    assert blocks["Lift"].verdict == "REGRESSED" and blocks["Stack"].verdict == "IMPROVED"
+    pooled = result.outcomes.overall.paired_verdict
     assert pooled == "UNDERPOWERED" and gate_exit_code(pooled) == 0  # the pooled table alone would hide it
-    assert result["verdict"] == "REGRESSED" and exit_code(result) == 1
+    assert result.verdict == "REGRESSED" and exit_code(result) == 1
 
 
 def test_regress_verdict_is_the_worse_of_sequential_and_fixed_size():
@@ -149,9 +149,9 @@ def test_a_candidate_whose_every_episode_errored_is_errored_exit_3(tmp_path, cap
     base = write_run(tmp_path / "base", {"Lift": [True, True]})
     cand = write_run(tmp_path / "cand", {"Lift": [None, None]}, model="m2")
     result = compare_runs(base, cand)
-    lift = result["outcomes"]["tasks"]["Lift"]
-    assert lift["pairs"] == 0 and lift["errored_pairs"] == 2 and lift["candidate"]["errored"] == 2
-    assert lift["difference"] is None and result["verdict"] == "ERRORED" and exit_code(result) == 3
+    lift = result.outcomes.tasks["Lift"]
+    assert lift.pairs == 0 and lift.errored_pairs == 2 and lift.candidate.errored == 2
+    assert lift.difference is None and result.verdict == "ERRORED" and exit_code(result) == 3
     assert exit_code(result, "regressed") == 3  # no --fail-on lets it pass
     assert cli.main(["compare", str(base), str(cand), "--no-frames"]) == 3
     out = capsys.readouterr().out
@@ -162,8 +162,8 @@ def test_both_arms_errored_is_errored_and_says_the_baseline_cannot_pass(tmp_path
     base = write_run(tmp_path / "base", {"Lift": [None] * 40})
     cand = write_run(tmp_path / "cand", {"Lift": [None] * 40}, model="m2")
     result = compare_runs(base, cand)
-    assert result["verdict"] == "ERRORED" and exit_code(result) == 3
-    notes = " ".join(result["outcomes"]["notes"])
+    assert result.verdict == "ERRORED" and exit_code(result) == 3
+    notes = " ".join(result.outcomes.notes)
     assert "the baseline errored on 40 of 40" in notes and "the baseline cannot serve as the reference" in notes
 
 
@@ -172,11 +172,11 @@ def test_errored_pairs_are_left_out_of_n_and_never_give_held_or_identical(tmp_pa
     base = write_run(tmp_path / "base", {"Lift": [True] * 82})
     cand = write_run(tmp_path / "cand", {"Lift": [True] * 80 + [None, None]}, model="m2")
     result = compare_runs(base, cand)
-    lift = result["outcomes"]["tasks"]["Lift"]
-    assert lift["pairs"] == 80 and lift["errored_pairs"] == 2 and lift["table"]["both"] == 80
-    assert lift["baseline"]["n"] == lift["candidate"]["n"] == 80 and lift["candidate"]["errored"] == 2
+    lift = result.outcomes.tasks["Lift"]
+    assert lift.pairs == 80 and lift.errored_pairs == 2 and lift.table.both == 80
+    assert lift.baseline.n == lift.candidate.n == 80 and lift.candidate.errored == 2
     assert decide(PairedCounts(both=80), MAX_DROP, ALPHA) == "HELD"
-    assert lift["verdict"] == "UNDERPOWERED" and result["verdict"] == "UNDERPOWERED" and exit_code(result) == 0
+    assert lift.verdict == "UNDERPOWERED" and result.verdict == "UNDERPOWERED" and exit_code(result) == 0
     assert decide(PairedCounts(both=80), MAX_DROP, ALPHA, errored=ErroredPairs(0, 2, 2)) == "UNDERPOWERED"
     cli.main(["compare", str(base), str(cand), "--no-frames"])
     out = capsys.readouterr().out
@@ -194,7 +194,7 @@ def test_n_counts_pairs_with_an_outcome_like_the_run_store():
     errored = ErroredPairs.from_statuses([True] * 10, [r.status == "ok" for r in rows])
     table = PairedCounts.from_outcomes([True] * 8, [bool(r.success) for r in rows if r.status == "ok"])
     block = outcome_verdicts({"Lift": table}, CompareConfig(), {"Lift": errored})["tasks"]["Lift"]
-    assert store["n"] == block["candidate"]["n"] == 8 and store["failed"] == block["candidate"]["errored"] == 2
+    assert store["n"] == block.candidate.n == 8 and store["failed"] == block.candidate.errored == 2
 
 
 # ------------------------------------------------------------------------------ 3. the interval and the verdict
@@ -210,10 +210,10 @@ def test_audit_stack_drop_shown_by_the_interval_is_suspect_not_held(tmp_path, ca
     assert (round(low, 2), round(high, 2)) == (-0.96, -0.19) and mcnemar_exact(4, 0) == pytest.approx(0.125)
     assert decide(stack_alone, MAX_DROP, ALPHA) == "SUSPECT"
     result = compare_runs(base, cand)
-    stack = result["outcomes"]["tasks"]["Stack"]
-    assert stack["difference_ci"][1] < 0 and stack["mcnemar_p_holm"] > ALPHA
-    assert stack["verdict"] == "SUSPECT" and result["outcomes"]["tasks"]["Lift"]["verdict"] == "HELD"
-    assert result["verdict"] == "SUSPECT" and exit_code(result) == 1 and exit_code(result, "regressed") == 0
+    stack = result.outcomes.tasks["Stack"]
+    assert stack.difference_ci[1] < 0 and stack.mcnemar_p_holm > ALPHA
+    assert stack.verdict == "SUSPECT" and result.outcomes.tasks["Lift"].verdict == "HELD"
+    assert result.verdict == "SUSPECT" and exit_code(result) == 1 and exit_code(result, "regressed") == 0
     assert cli.main(["compare", str(base), str(cand), "--no-frames"]) == 1
     assert "**SUSPECT**" in capsys.readouterr().out
 
@@ -222,13 +222,13 @@ def test_regressed_unreachable_with_few_pairs_is_said(tmp_path):
     base = write_run(tmp_path / "base", {"Lift": [True] * 5, "Stack": [True] * 5})
     cand = write_run(tmp_path / "cand", {"Lift": [True] * 5, "Stack": [False] * 5}, model="m2")
     result = compare_runs(base, cand)
-    stack = result["outcomes"]["tasks"]["Stack"]
+    stack = result.outcomes.tasks["Stack"]
     # smallest exact p with 5 pairs: 2 / 2^5 = 0.0625; Holm factor 3 (Lift, Stack, pooled): 7 pairs needed
-    assert stack["holm_factor"] == 3 and not stack["regressed_reachable"] and stack["pairs_for_regressed"] == 7
+    assert stack.holm_factor == 3 and not stack.regressed_reachable and stack.pairs_for_regressed == 7
     assert pairs_for_regressed(0.05) == 6 and pairs_for_regressed(0.05, 3) == 7
-    assert stack["verdict"] == "SUSPECT" and exit_code(result) == 1
+    assert stack.verdict == "SUSPECT" and exit_code(result) == 1
     assert ("REGRESSED is unreachable with 5 pairs in Stack: the smallest exact McNemar p is 0.0625 (x Holm factor 3 "
-            "= 0.188) > alpha 0.05; at least 7 pairs are needed.") in result["outcomes"]["notes"]
+            "= 0.188) > alpha 0.05; at least 7 pairs are needed.") in result.outcomes.notes
 
 
 def test_exit_codes_of_every_verdict_and_fail_on_level():
@@ -246,15 +246,15 @@ def test_an_identical_task_row_says_identical(tmp_path, monkeypatch):
 
     base = write_run(tmp_path / "base", {"Lift": [True, False]})
     result = compare_runs(base, base)
-    assert result["outcomes"]["tasks"]["Lift"]["verdict"] == "UNDERPOWERED"  # hand-made runs have no arrays
+    assert result.outcomes.tasks["Lift"].verdict == "UNDERPOWERED"  # hand-made runs have no arrays
     original = compare_module._compare_pair  # every array equal, as the real check finds for a run with itself
     monkeypatch.setattr(compare_module, "_compare_pair",
                         lambda *a, **k: {**original(*a, **k), "identical": True, "difference": None})
     result = compare_runs(base, base)
-    lift = result["outcomes"]["tasks"]["Lift"]
-    assert result["verdict"] == "IDENTICAL" and lift["verdict"] == "IDENTICAL"
-    assert lift["paired_verdict"] == "UNDERPOWERED"
-    assert lift["notes"] and result["outcomes"]["notes"] == []  # "REGRESSED is unreachable" is moot when identical
+    lift = result.outcomes.tasks["Lift"]
+    assert result.verdict == "IDENTICAL" and lift.verdict == "IDENTICAL"
+    assert lift.paired_verdict == "UNDERPOWERED"
+    assert lift.notes and result.outcomes.notes == ()  # "REGRESSED is unreachable" is moot when identical
     text = markdown_summary(result, 0)
     assert "**IDENTICAL**" in text and "UNDERPOWERED" not in text
     assert "difference = candidate - baseline" in text
@@ -367,9 +367,9 @@ def test_regress_on_an_all_errored_candidate_is_errored_and_stops_once_more_than
     baseline = {(t, k): True for t in tasks for k in range(seeds)}
     candidate = {**{("Lift", k): True for k in range(seeds)}, **{("Stack", k): None for k in range(seeds)}}
     gate = gate_on_outcomes(baseline, candidate, jobs, tasks, ALPHA, MAX_DROP)
-    assert gate["test"].errored == {"Lift": 0, "Stack": 10} and gate["test"].tests["Stack"].units == 0
-    assert gate["compare_verdict"] == "ERRORED" and gate["verdict"] == "ERRORED"
-    assert gate_exit_code(gate["verdict"]) == 3 and gate_exit_code(gate["verdict"], "regressed") == 3
+    assert gate.test.errored == {"Lift": 0, "Stack": 10} and gate.test.tests["Stack"].units == 0
+    assert gate.compare_verdict == "ERRORED" and gate.verdict == "ERRORED"
+    assert gate_exit_code(gate.verdict) == 3 and gate_exit_code(gate.verdict, "regressed") == 3
     # the executor stops once the candidate errored on more than half of a task's pairs (5 of 10 is not more)
     partial = {("Stack", k): None for k in range(5)}
     assert errored_tasks(baseline, partial, jobs) == []
@@ -392,5 +392,5 @@ def test_regress_never_exits_0_where_compare_on_the_same_pairs_does_not():
                      for i, t in enumerate(tasks) for k in range(seeds)}
         gate = gate_on_outcomes(baseline, candidate, _jobs(tasks, seeds), tasks, ALPHA, MAX_DROP)
         for fail_on in ("regressed", "suspect", "underpowered"):
-            if gate_exit_code(gate["compare_verdict"], fail_on) != 0:
-                assert gate_exit_code(gate["verdict"], fail_on) != 0, (gate["verdict"], gate["compare_verdict"])
+            if gate_exit_code(gate.compare_verdict, fail_on) != 0:
+                assert gate_exit_code(gate.verdict, fail_on) != 0, (gate.verdict, gate.compare_verdict)

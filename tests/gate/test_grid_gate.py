@@ -30,13 +30,13 @@ def test_a_candidate_that_loses_one_condition_fails(tmp_path, capsys):
     cand = write_grid(tmp_path / "cand", {"nominal": {"Lift": [True] * 12}, "camera-3": {"Lift": [False] * 12}},
                       model="m2")
     result = compare_grids(base, cand)
-    cells = result["outcomes"]["tasks"]
-    assert set(cells) == {"Lift / nominal", "Lift / camera-3"} and result["outcomes"]["holm_family"] == 3
+    cells = result.outcomes.tasks
+    assert set(cells) == {"Lift / nominal", "Lift / camera-3"} and result.outcomes.holm_family == 3
     expected = holm_adjust([1.0, mcnemar_exact(12, 0), mcnemar_exact(12, 0)])
-    assert cells["Lift / camera-3"]["mcnemar_p_holm"] == pytest.approx(expected[1])
-    assert cells["Lift / camera-3"]["verdict"] == "REGRESSED"
-    assert cells["Lift / nominal"]["verdict"] in ("IDENTICAL", "HELD", "UNDERPOWERED")
-    assert result["verdict"] == "REGRESSED" and exit_code(result) == 1
+    assert cells["Lift / camera-3"].mcnemar_p_holm == pytest.approx(expected[1])
+    assert cells["Lift / camera-3"].verdict == "REGRESSED"
+    assert cells["Lift / nominal"].verdict in ("IDENTICAL", "HELD", "UNDERPOWERED")
+    assert result.verdict == "REGRESSED" and exit_code(result) == 1
     assert cli.main(["compare", str(base), str(cand), "--no-frames"]) == 1
     assert "Lift / camera-3" in capsys.readouterr().out
     assert (cand / "compare_base" / "compare.json").is_file()
@@ -48,10 +48,10 @@ def test_the_family_grows_with_tasks_and_conditions(tmp_path):
     drop = {"nominal": {"Lift": [True] * 6, "Stack": [True] * 6}, "camera-3": {"Lift": [False] * 6, "Stack": [True] * 6}}
     cand = write_grid(tmp_path / "cand", drop, model="m2")
     result = compare_grids(base, cand)
-    assert result["outcomes"]["holm_family"] == 5  # 2 tasks x 2 conditions + pooled
+    assert result.outcomes.holm_family == 5  # 2 tasks x 2 conditions + pooled
     # 6 of 6 lost: p = 2/64 alone would pass alpha 0.05, times the family of 5 it cannot: not REGRESSED
-    assert result["outcomes"]["tasks"]["Lift / camera-3"]["mcnemar_p"] == pytest.approx(2 / 64)
-    assert result["outcomes"]["tasks"]["Lift / camera-3"]["verdict"] != "REGRESSED"
+    assert result.outcomes.tasks["Lift / camera-3"].mcnemar_p == pytest.approx(2 / 64)
+    assert result.outcomes.tasks["Lift / camera-3"].verdict != "REGRESSED"
     assert exit_code(result) == 1  # the interval still shows the drop: SUSPECT fails the default gate
 
 
@@ -60,7 +60,7 @@ def test_holding_every_condition_passes(tmp_path):
     base = write_grid(tmp_path / "base", outcomes)
     cand = write_grid(tmp_path / "cand", outcomes, model="m2")
     result = compare_grids(base, cand)
-    assert result["verdict"] in ("IDENTICAL", "HELD", "UNDERPOWERED") and exit_code(result) == 0
+    assert result.verdict in ("IDENTICAL", "HELD", "UNDERPOWERED") and exit_code(result) == 0
 
 
 @pytest.mark.parametrize("damage", ["missing_condition", "grid_vs_run", "bad_grid_file", "perturb_mismatch"])

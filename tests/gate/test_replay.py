@@ -17,6 +17,8 @@ import pytest
 
 from harness.analysis.equivalence import Tolerances, action_change, action_scale, attention_change, first_change
 from harness.cli import main
+from harness.files import json_safe
+from harness.gate.results import ReplayResult
 from harness.policy import input_digest
 from tests.runfolder.edits import drop_output, make_legacy, rehash
 
@@ -39,11 +41,16 @@ def perturbed_model(dest: Path, std: float = 1e-3) -> Path:
     return dest
 
 
-def _replay(argv, capsys) -> tuple[int, dict, str]:
+def _replay(argv, capsys) -> tuple[int, ReplayResult, str]:
+    """The command's exit code, its replay.json read back as a ReplayResult (which writes the file's JSON again, key
+    for key), and its output."""
     code = main(["replay", *argv])
     out = capsys.readouterr().out
     path = Path(out.strip().splitlines()[-1].split("replay: ", 1)[1])
-    return code, json.loads(path.read_text()), out
+    data = json.loads(path.read_text())
+    result = ReplayResult.from_json(data)
+    assert json_safe(result.to_json()) == data
+    return code, result, out
 
 
 # ------------------------------------------------------------------------------------------- pure maths
@@ -97,25 +104,25 @@ def test_the_baseline_records_what_the_policy_saw_and_its_digest():
 
 def test_replaying_the_baseline_with_its_own_model_is_equivalent(capsys, tmp_path):
     code, result, out = _replay([str(BASELINE), "--model", str(MODEL), "--out", str(tmp_path)], capsys)
-    assert code == 0 and result["verdict"] == "EQUIVALENT", out
-    assert result["episodes"] == 8 and result["steps_compared"] >= 8 * 19
-    tol = result["tolerances"]
-    assert result["action_change_max"] <= tol["action"] and result["attention_js_max"] <= tol["attention_js"]
+    assert code == 0 and result.verdict == "EQUIVALENT", out
+    assert result.episodes == 8 and result.steps_compared >= 8 * 19
+    tol = result.tolerances
+    assert result.action_change_max <= tol.action and result.attention_js_max <= tol.attention_js
     from harness.runfolder.platform import platform_fingerprint, platform_info
 
-    if platform_fingerprint(platform_info()) == result["platform_recorded"]:
-        assert result["action_change_max"] == 0.0 and result["attention_js_max"] == 0.0  # the recording platform: bits
+    if platform_fingerprint(platform_info()) == result.platform_recorded:
+        assert result.action_change_max == 0.0 and result.attention_js_max == 0.0  # the recording platform: bits
 
 
 @pytest.mark.slow
 def test_a_candidate_with_one_weight_tensor_perturbed_is_changed_from_step_0(capsys, tmp_path):
     candidate = perturbed_model(tmp_path / "perturbed")
     code, result, out = _replay([str(BASELINE), "--model", str(candidate), "--out", str(tmp_path / "r")], capsys)
-    assert code == 1 and result["verdict"] == "CHANGED"
-    first = result["first_change"]
-    assert first["first_changed_step"] == 0 and first["change_at_first"]["action"] > result["tolerances"]["action"]
+    assert code == 1 and result.verdict == "CHANGED"
+    first = result.first_change
+    assert first.first_changed_step == 0 and first.change_at_first.action > result.tolerances.action
     assert "first change: Lift episode" in out and "step 0" in out
-    assert result["episodes_changed"] == result["episodes"] == 8
+    assert result.episodes_changed == result.episodes == 8
 
 
 def test_a_run_without_recorded_inputs_is_one_line_and_exit_2(tmp_path, capsys):
@@ -150,8 +157,8 @@ def test_intervention_runs_replay_exactly_on_the_inputs_the_policy_saw(intervent
     assert main(common) == 0
     capsys.readouterr()
     code, result, out = _replay([str(tmp_path / "iv"), "--out", str(tmp_path / "r")], capsys)
-    assert code == 0 and result["verdict"] == "EQUIVALENT" and result["steps_compared"] == 5, out
-    assert result["action_change_max"] == 0.0 and result["attention_js_max"] == 0.0
+    assert code == 0 and result.verdict == "EQUIVALENT" and result.steps_compared == 5, out
+    assert result.action_change_max == 0.0 and result.attention_js_max == 0.0
 
 
 @pytest.mark.slow
@@ -163,7 +170,7 @@ def test_replay_tokenizes_the_instruction_as_the_run_did(tmp_path, capsys):
                  "--text-tokenizer", "fallback"]) == 0
     capsys.readouterr()
     code, result, out = _replay([str(tmp_path / "fb"), "--out", str(tmp_path / "r")], capsys)
-    assert code == 0 and result["action_change_max"] == 0.0, out
+    assert code == 0 and result.action_change_max == 0.0, out
 
 
 @pytest.mark.slow
@@ -171,7 +178,7 @@ def test_a_candidate_that_outputs_nan_is_changed_not_equivalent(capsys, tmp_path
     """NaN compares false with any tolerance; replay must count it as a change."""
     candidate = perturbed_model(tmp_path / "nan", std=float("nan"))
     code, result, out = _replay([str(BASELINE), "--model", str(candidate), "--out", str(tmp_path / "r")], capsys)
-    assert code == 1 and result["verdict"] == "CHANGED" and result["first_change"]["first_changed_step"] == 0, out
+    assert code == 1 and result.verdict == "CHANGED" and result.first_change.first_changed_step == 0, out
 
 
 @pytest.mark.parametrize("legacy, found", [(False, "is damaged (200 bytes, its row records"),

@@ -49,4 +49,4 @@ def test_a_tiny_camera_grid_has_a_cell_per_camera_and_keeps_an_old_grids_names(f
     rows, _, _ = collect([load_run(out / name) for name in summaries])
     assert sorted({r.condition for r in rows}) == ["camera@image_primary", "camera@image_wrist"]
     paired = paired_rows(rows)  # no nominal run in this grid: a cell per camera, no pairs
-    assert [(p[1], p[4]) for p in paired] == [("camera@image_primary", 0), ("camera@image_wrist", 0)]
+    assert [(p.condition, p.pairs) for p in paired] == [("camera@image_primary", 0), ("camera@image_wrist", 0)]

@@ -528,7 +528,7 @@ def test_tiny_fixture_runs_a_libero_task_and_two_workers_equal_sequential_bit_fo
     from harness.gate.replay import replay_run
 
     result = replay_run(sequential.run_dir, loaded_model=tiny)
-    assert result["verdict"] == "EQUIVALENT" and result["action_change_max"] == 0.0
+    assert result.verdict == "EQUIVALENT" and result.action_change_max == 0.0
     from harness import cli
 
     assert cli.main(["report", str(sequential.run_dir), "--out", str(tmp_path / "report")]) == 0

@@ -107,8 +107,8 @@ def _assert_replay_is_exact(summary, model) -> None:
     from harness.gate.replay import replay_run
 
     result = replay_run(summary.run_dir, loaded_model=model)
-    assert result["verdict"] == "EQUIVALENT" and result["steps_compared"] == sum(r.steps for r in summary.rows)
-    assert result["action_change_max"] == 0.0 and result["attention_js_max"] == 0.0
+    assert result.verdict == "EQUIVALENT" and result.steps_compared == sum(r.steps for r in summary.rows)
+    assert result.action_change_max == 0.0 and result.attention_js_max == 0.0
 
 
 def _run_while(tiny, tmp_path, name, factory, killer, episodes: int = 3):

@@ -360,7 +360,7 @@ def test_regress_whose_candidate_never_ran_a_task_is_incomplete(made, fixtures_d
     baseline = _two_task_copy(made, tmp_path / "lift_stack")
     result = regress(baseline, str(fixtures_dir / "tiny"), out=tmp_path / "out", run_name="cand", executor=LosesStack,
                      progress=False)
-    assert result["verdict"] == "INCOMPLETE" and result["incomplete"]["tasks"] == {"Stack": 2}
+    assert result.verdict == "INCOMPLETE" and result.incomplete.tasks == {"Stack": 2}
     assert exit_code(result) == exit_code(result, "regressed") == 4
 
 
