@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -49,8 +50,9 @@ class PolicyConfig:
                             choices=("temporal_ensemble", "receding_horizon"),
                             doc="`temporal_ensemble` (infer every step, average overlapping chunk predictions) or "
                                 "`receding_horizon` (execute `--receding-steps` actions of each chunk) [temporal_ensemble]")
-    # actions executed per inference when execution == "receding_horizon" (a run's default there: 4)
-    receding_steps: int = option(1, "--receding-steps", "actions executed per inference (receding horizon) [4]",
+    # actions executed per inference when execution == "receding_horizon"; the temporal ensemble executes one
+    # action per inference, so it records 1
+    receding_steps: int = option(4, "--receding-steps", "actions executed per inference (receding horizon) [4]",
                                  type=int, file=(int,))
     # temporal ensemble: weight exp(-w * age_rank), 0 = plain average (Octo's default)
     ensemble_weight: float = option(0.0, "--ensemble-weight", "temporal ensemble weight exp(-w*i); 0 = mean [0]",
@@ -111,8 +113,8 @@ class PolicyConfig:
         None, "--attention-controls", "position-against-content controls: ask the model each control step again with "
         "every camera's frames blanked to their mean colour and/or mirrored left-right; attention in controls.npz "
         "(docs/phases-and-position.md)", file=(str, list), metavar="blank,mirror", convert=joined, sparse=True)
-    controls_every: int = option(
-        0, "--controls-every", "run the attention controls at every N-th inference step [1 with --attention-controls]",
+    controls_every: int | None = option(  # None: 1 with --attention-controls, unset without
+        None, "--controls-every", "run the attention controls at every N-th inference step [1 with --attention-controls]",
         type=int, file=(int,), metavar="N", sparse=True)
     # region reliance (harness/measures/reliance.py): each labelled region of every camera replaced by the fill, open
     # loop with the step's rng, the action chunk's change recorded in reliance.jsonl; needs the env's masks
@@ -128,8 +130,12 @@ class PolicyConfig:
     def __post_init__(self) -> None:
         if self.execution not in ("temporal_ensemble", "receding_horizon"):
             raise ValueError(f"unknown execution {self.execution!r}; use 'temporal_ensemble' or 'receding_horizon'")
-        if self.receding_steps < 1:
-            raise ValueError("receding_steps must be >= 1")
+        if isinstance(self.receding_steps, bool) or not isinstance(self.receding_steps, int) or self.receding_steps < 1:
+            raise ValueError(f"--receding-steps must be an integer >= 1, got {self.receding_steps!r}")
+        if self.execution == "temporal_ensemble":
+            object.__setattr__(self, "receding_steps", 1)
+        if not math.isfinite(float(self.ensemble_weight)):
+            raise ValueError(f"--ensemble-weight must be a finite number, got {self.ensemble_weight}")
         if self.action_normalization not in ("normal", "bounds"):
             raise ValueError(f"unknown action normalization {self.action_normalization!r}; use 'normal' or 'bounds'")
         if self.proprio_normalization not in NORMALIZATIONS:
@@ -156,15 +162,17 @@ class PolicyConfig:
             from harness.measures.attribution import parse_methods
 
             parse_methods(self.attribution, 1 << 16)  # names checked here; layers against the model at start
-        if isinstance(self.controls_every, bool) or not isinstance(self.controls_every, int) or self.controls_every < 0:
-            raise ValueError(f"--controls-every must be an integer >= 1, got {self.controls_every!r}")
+        if self.controls_every is not None and (isinstance(self.controls_every, bool) or
+                                                not isinstance(self.controls_every, int) or self.controls_every < 1):
+            raise ValueError(f"--controls-every must be an integer >= 1 (1: every inference step), got "
+                             f"{self.controls_every!r}")
         if self.attention_controls is not None:
             from harness.measures.controls import parse_controls
 
             object.__setattr__(self, "attention_controls", ",".join(parse_controls(self.attention_controls)))
-            if self.controls_every == 0:
+            if self.controls_every is None:
                 object.__setattr__(self, "controls_every", 1)
-        elif self.controls_every:
+        elif self.controls_every is not None:
             raise ValueError("--controls-every needs --attention-controls (e.g. --attention-controls blank,mirror)")
         if isinstance(self.reliance_every, bool) or not isinstance(self.reliance_every, int) or self.reliance_every < 0:
             raise ValueError(f"--reliance-every must be an integer >= 0 (0 = never), got {self.reliance_every!r}")

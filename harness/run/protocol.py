@@ -129,9 +129,6 @@ class Protocol:
         if self.policy.reliance_every and not self.env.masks:
             raise ValueError("--reliance-every replaces the labelled regions of the env's masks; drop --no-masks")
         object.__setattr__(self, "perturb", perturb_text(parse_perturb(self.perturb)))  # level 0 -> None: nominal
-        weight = float(self.policy.ensemble_weight)
-        if weight != weight or weight in (float("inf"), float("-inf")):
-            raise ValueError(f"--ensemble-weight must be a finite number, got {self.policy.ensemble_weight}")
 
     def env_for(self, task: str) -> EnvOptions:
         """The env options of `task`: `env`, with its family's own defaults on top in a run that mixes families."""

@@ -42,7 +42,6 @@ from harness.outputs.writers import OutputOptions
 
 DEFAULT_MODEL = "hf://rail-berkeley/octo-small-1.5"
 DEFAULT_OUT = "results/runs"
-DEFAULT_RECEDING_STEPS = 4
 
 
 @dataclass(frozen=True)
@@ -135,10 +134,8 @@ def _model_folder(model: str) -> Path | None:
 
 
 def _conventions(model: str):
-    try:
-        from harness.conventions import CheckpointConventions
-    except ImportError:  # older checkout without checkpoint conventions
-        return None
+    from harness.conventions import CheckpointConventions
+
     return CheckpointConventions.read(_model_folder(model))
 
 
@@ -166,9 +163,6 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
 
     video_attention = s.get("video_attention", -1)
     policy_given: dict[str, Any] = given(PolicyConfig, s)
-    if policy_given.get("execution") == "receding_horizon" and "receding_steps" not in policy_given \
-            and not (conventions is not None and "receding_steps" in conventions.policy):
-        policy_given["receding_steps"] = DEFAULT_RECEDING_STEPS
     policy_given["full_attention"] = video_attention == "rollout"
     if video_attention in ATTRIBUTION_VIDEO and "attribution" not in s:  # the MP4 shows an attribution map: computed
         methods = DEFAULT_METHODS if s.get("faithfulness_every") else None
@@ -176,10 +170,7 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
             policy_given["attribution"] = video_attention
         elif video_attention not in methods.split(","):
             policy_given["attribution"] = f"{methods},{video_attention}"
-    if "controls_every" in s and s["controls_every"] is not None and not (
-            isinstance(s["controls_every"], int) and not isinstance(s["controls_every"], bool) and s["controls_every"] >= 1):
-        raise ValueError(f"--controls-every must be an integer >= 1 (1: every inference step), got {short(s['controls_every'])}")
-    policy = conventions.policy_config(policy_given) if conventions is not None else PolicyConfig(**policy_given)
+    policy = conventions.policy_config(policy_given)
 
     outputs = OutputOptions(**given(OutputOptions, s))
     return Protocol(
@@ -188,7 +179,7 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
         env=env,
         policy=policy,
         outputs=outputs,
-        text_tokenizer=text_tokenizer_choice(s.get("text_tokenizer", conventions.text_tokenizer if conventions else None)),
+        text_tokenizer=text_tokenizer_choice(s.get("text_tokenizer", conventions.text_tokenizer)),
         **given(Protocol, s, skip=("model", "tasks", "text_tokenizer")),
         family_env=family_env,
         convention_sources=sources,
@@ -198,8 +189,6 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
 def _family_env(conventions, given: dict[str, Any], tasks) -> tuple[EnvOptions, dict | None, dict | None]:
     """(env options of the first task's family, {other family: the options where its defaults differ} or None,
     {family: {key: source}}): flags over the checkpoint's harness.toml over each family's defaults."""
-    if conventions is None:  # an older checkout without checkpoint conventions
-        return EnvOptions.from_dict(given), None, None
     from harness.conventions import resolve_env, task_family
 
     options, sources = resolve_env(conventions, given, [task_family(t) for t in tasks])

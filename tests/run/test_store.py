@@ -38,8 +38,8 @@ def test_protocol_round_trips_through_its_dict_and_lists_jobs():
 
 def test_diff_names_nested_fields_with_dots():
     a = _protocol()
-    b = _protocol(episodes=4, policy=PolicyConfig(receding_steps=3), env=EnvOptions(masks=True, fast_render=True))
-    assert diff(a.to_dict(), b.to_dict()) == ["env.fast_render", "episodes", "policy.receding_steps"]
+    b = _protocol(episodes=4, policy=PolicyConfig(ensemble_weight=0.5), env=EnvOptions(masks=True, fast_render=True))
+    assert diff(a.to_dict(), b.to_dict()) == ["env.fast_render", "episodes", "policy.ensemble_weight"]
     assert diff(a.to_dict(), a.to_dict()) == []
     assert a.hash() != b.hash()
 
@@ -53,13 +53,26 @@ def test_protocol_from_dict_rejects_unknown_fields():
 @pytest.mark.parametrize("kw,needle", [
     (dict(episodes=0), "--episodes"), (dict(max_steps=-5), "--max-steps"), (dict(max_steps=0), "--max-steps"),
     (dict(tasks=()), "--task"), (dict(seed=-1), "--seed"),
-    (dict(policy=PolicyConfig(ensemble_weight=float("nan"))), "--ensemble-weight"),
-    (dict(policy=PolicyConfig(ensemble_weight=float("inf"))), "--ensemble-weight"),
 ])
 def test_protocol_numbers_are_checked_with_one_line(kw, needle):
     with pytest.raises(ValueError) as err:
         _protocol(**kw)
     assert needle in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("kw,needle", [
+    (dict(ensemble_weight=float("nan")), "--ensemble-weight"), (dict(ensemble_weight=float("inf")), "--ensemble-weight"),
+    (dict(receding_steps=0), "--receding-steps"), (dict(attention_controls="blank", controls_every=0), "--controls-every"),
+])
+def test_policy_numbers_are_checked_once_where_they_are_declared(kw, needle):
+    with pytest.raises(ValueError) as err:  # PolicyConfig's own check; the settings layer and Protocol only convert
+        PolicyConfig(**kw)
+    assert needle in str(err.value) and "\n" not in str(err.value)
+
+
+def test_receding_steps_default_is_the_field_s_and_the_ensemble_records_one():
+    assert PolicyConfig(execution="receding_horizon").receding_steps == 4  # the help's [4] is the field's default
+    assert PolicyConfig().receding_steps == 1 and PolicyConfig().to_dict()["receding_steps"] == 1  # hashes unchanged
 
 
 def test_tasks_match_case_insensitively_without_duplicates():
