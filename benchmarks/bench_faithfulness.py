@@ -30,7 +30,7 @@ import numpy as np  # noqa: E402
 
 from bench_octo import median_seconds  # noqa: E402  (one timing rule for the benchmarks)
 from harness.octo import load_pretrained  # noqa: E402
-from harness.policy import BatchInference, InferenceRequest, PolicyConfig, TaskSpec  # noqa: E402
+from harness.policy import BatchInference, InferenceRequest, PolicyConfig, TaskPrompt  # noqa: E402
 
 
 def request(model) -> InferenceRequest:
@@ -42,7 +42,7 @@ def request(model) -> InferenceRequest:
     keys = [*model.image_sizes, *model.lowdim_sizes]
     obs["timestep_pad_mask"] = np.ones((window,), bool)
     obs["pad_mask_dict"] = {k: np.ones((window,), bool) for k in keys}
-    return InferenceRequest(obs, TaskSpec.of("pick up the red cube"), 0, 0)
+    return InferenceRequest(obs, TaskPrompt.of("pick up the red cube"), 0, 0)
 
 
 def main() -> None:

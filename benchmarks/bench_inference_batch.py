@@ -23,7 +23,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 from harness.octo import load_pretrained  # noqa: E402
-from harness.policy import BatchInference, InferenceRequest, PolicyConfig, TaskSpec  # noqa: E402
+from harness.policy import BatchInference, InferenceRequest, PolicyConfig, TaskPrompt  # noqa: E402
 
 
 def request(model, seed: int) -> InferenceRequest:
@@ -35,7 +35,7 @@ def request(model, seed: int) -> InferenceRequest:
     obs.update({k: rng.normal(size=(window, n)).astype(np.float32) for k, n in lowdim.items()})
     obs["timestep_pad_mask"] = np.ones((window,), bool)
     obs["pad_mask_dict"] = {k: np.ones((window,), bool) for k in [*model.image_sizes, *lowdim]}
-    return InferenceRequest(observation=obs, task=TaskSpec.of("pick up the red cube"), seed=seed, step=0)
+    return InferenceRequest(observation=obs, task=TaskPrompt.of("pick up the red cube"), seed=seed, step=0)
 
 
 def bench(source: str, batches: list[int], reps: int) -> list[tuple[str, int, float]]:

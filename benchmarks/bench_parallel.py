@@ -62,13 +62,13 @@ def batch_core_seconds(model, protocol, sizes=(1, 2), calls: int = 6) -> dict[in
     """Core-seconds per example of one batched inference call at each batch size (after compiling them)."""
     import numpy as np
 
-    from harness.policy import BatchInference, TaskSpec
+    from harness.policy import BatchInference, TaskPrompt
     from harness.run.workers import PolicyShape, warmup_request
 
     out = {}
     for b in sizes:  # one BatchInference per shape: a run compiles exactly its protocol's inference_batch
         inference = BatchInference(model, dataclasses.replace(protocol.policy, inference_batch=b))
-        request = warmup_request(PolicyShape.of(model, inference.dataset_key), TaskSpec.of("pick up the red cube"))
+        request = warmup_request(PolicyShape.of(model, inference.dataset_key), TaskPrompt.of("pick up the red cube"))
         rng = np.random.default_rng(0)
         for value in request.observation.values():
             if isinstance(value, np.ndarray) and value.dtype == np.uint8:

@@ -238,15 +238,16 @@ def ensemble(chunks: list[np.ndarray], weight: float) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
-class TaskSpec:
-    """What an episode is asked to do: its instruction and/or the run's goal images; `key` identifies it for caching."""
+class TaskPrompt:
+    """What the model is asked at an episode (Octo's task): its instruction and/or the run's goal images; `key`
+    identifies it for caching. A registered task (simulator, targets, limits) is `envs.taskspec.TaskSpec`."""
 
     instruction: str
     goals: dict[str, np.ndarray] | None = None  # {obs key: (height, width, 3) uint8} at the model's goal sizes
     key: tuple = ()
 
     @classmethod
-    def of(cls, instruction: str | None, goals: dict[str, np.ndarray] | None = None) -> "TaskSpec":
+    def of(cls, instruction: str | None, goals: dict[str, np.ndarray] | None = None) -> "TaskPrompt":
         digest = None
         if goals is not None:
             h = hashlib.sha1()
@@ -262,7 +263,7 @@ class InferenceRequest:
 
     observation: dict  # image_* (window, H, W, 3) uint8, low-dim keys (window, dims) float32 as the env gives them
     # (normalised by the inference side), timestep_pad_mask (window,) bool, pad_mask_dict {k: (window,)}
-    task: TaskSpec
+    task: TaskPrompt
     seed: int  # the episode's rng stream: key = fold_in(PRNGKey(seed), step)
     step: int
     # the env's masks of the current frame {obs key: {name: (h, w) bool}} (env convention), only at reliance steps
@@ -284,7 +285,7 @@ class InferenceResult:
     reliance: dict | None = None  # {"rows", "seconds"} at reliance steps (harness.measures.reliance.RelianceProbe)
 
 
-def make_task(model, spec: TaskSpec) -> dict:
+def make_task(model, spec: TaskPrompt) -> dict:
     """Octo task dict with batch 1 (language encoded here, once per distinct task)."""
     texts = [spec.instruction] if model.config.language is not None else None  # a model taking both gets both
     goals = {k: v[None] for k, v in spec.goals.items()} if spec.goals is not None else None
@@ -303,7 +304,7 @@ class BatchInference:
     copies are discarded; more requests are split into several calls), so one shape is compiled, at
     `warm_up()`, and an example's actions and attention are bit-identical whatever shares its call: XLA's
     numbers depend on the batch shape, not on the other examples. Each example also has its own rng key
-    (`step_key`). Tasks are built once per distinct TaskSpec and kept.
+    (`step_key`). Tasks are built once per distinct TaskPrompt and kept.
     """
 
     def __init__(self, model, config: PolicyConfig):
@@ -316,7 +317,7 @@ class BatchInference:
         # the dimension of the actions handed to the env: the statistics' (Octo keeps those), else the head's
         dims = [len(self.statistics[k]) for k in ("mask", "mean", "p01") if self.statistics and k in self.statistics]
         self.action_dim = dims[0] if dims else int(model.action_dim)
-        self._tasks: dict[tuple, dict] = {}  # TaskSpec.key -> batch-1 task (one per distinct instruction/goals)
+        self._tasks: dict[tuple, dict] = {}  # TaskPrompt.key -> batch-1 task (one per distinct instruction/goals)
         self.intervener = None  # closed-loop intervention (harness/interventions.py), checked against the model here
         self._model = model
         if config.intervention is not None:
@@ -341,7 +342,7 @@ class BatchInference:
             self.reliance = RelianceProbe(self._model, config.reliance_every, config.reliance_fill,
                                           getattr(self.probe, "functions", None))
 
-    def task(self, spec: TaskSpec) -> dict:
+    def task(self, spec: TaskPrompt) -> dict:
         if spec.key not in self._tasks:
             self._tasks[spec.key] = make_task(self.model, spec)
         return self._tasks[spec.key]
@@ -467,7 +468,7 @@ class EpisodeState:
     """
 
     def __init__(self, image_sizes: dict[str, tuple[int, int]], window: int, action_horizon: int, config: PolicyConfig,
-                 task: TaskSpec, seed: int, lowdim_sizes: dict[str, int] | None = None):
+                 task: TaskPrompt, seed: int, lowdim_sizes: dict[str, int] | None = None):
         self.image_sizes = dict(image_sizes)
         self.lowdim_sizes = dict(lowdim_sizes or {})  # low-dim obs key -> dims
         self.window = int(window)
@@ -550,7 +551,7 @@ class OctoPolicy:
     def reset(self, instruction: str | None = None, seed: int = 0, goals: dict[str, np.ndarray] | None = None) -> None:
         """Start an episode: its task (language encoded once, by the inference side) and its rng stream."""
         self._state = EpisodeState(self.image_sizes, self.window, self.action_horizon, self.config,
-                                   TaskSpec.of(instruction, goals), seed, self.lowdim_sizes)
+                                   TaskPrompt.of(instruction, goals), seed, self.lowdim_sizes)
 
     def check_env(self, env) -> None:
         """One-line EnvMismatchError when `env` lacks an input of the model or takes another action dimension."""

@@ -62,7 +62,7 @@ def _recorded_outputs(episode: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
 
 def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolerances: Tolerances) -> EpisodeReplay:
     """One episode: replay its inferred steps; returns per-step changes and the episode's verdict."""
-    from harness.policy import InferenceRequest, TaskSpec, window_from_entries
+    from harness.policy import InferenceRequest, TaskPrompt, window_from_entries
 
     inputs = recorded_inputs(episode)
     keys = [k[len("input/"):] for k in inputs if k.startswith("input/")]
@@ -81,7 +81,7 @@ def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolera
     predicted, attention = _recorded_outputs(episode)
     steps = int(inputs["step"].shape[0])
     stored = min(steps, predicted.shape[0], attention.shape[0])  # a committed baseline may keep fewer steps
-    task = TaskSpec.of(str(inputs["instruction"]), goals)
+    task = TaskPrompt.of(str(inputs["instruction"]), goals)
     seed = int(inputs["seed"])
     entries = [{k: inputs[f"input/{k}"][t] for k in wanted} for t in range(steps)]
     inferred = [t for t in range(stored) if bool(inputs["inferred"][t])]

@@ -160,7 +160,7 @@ class _Found:
 def _compare_steps(loaded: list, model, inference, functions, methods, variants: list, options: SanityOptions) -> _Found:
     """Every `every`-th inferred step of every episode (at most `max_steps` in all): the trained maps against each
     randomised variant's, the occlusion agreement and profiles, and (with `additivity`) the patch effects."""
-    from harness.policy import InferenceRequest, TaskSpec, window_from_entries
+    from harness.policy import InferenceRequest, TaskPrompt, window_from_entries
 
     window = int(model.window_size)
     wanted = [*model.image_sizes, *getattr(model, "lowdim_sizes", {})]
@@ -170,7 +170,7 @@ def _compare_steps(loaded: list, model, inference, functions, methods, variants:
         for episode in episodes:
             inputs = recorded_inputs(episode)
             _check_recorded_sizes(model, inputs, run)
-            task = TaskSpec.of(str(inputs["instruction"]))
+            task = TaskPrompt.of(str(inputs["instruction"]))
             seed = int(inputs["seed"])
             entries = [{k: inputs[f"input/{k}"][t] for k in wanted} for t in range(int(inputs["step"].shape[0]))]
             for t in range(len(entries)):

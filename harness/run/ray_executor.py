@@ -43,7 +43,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskSpec
+from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskPrompt
 from harness.run.executor import EpisodeContext
 from harness.run.workers import PolicyError, WorkerSpec, warmup_request, warmup_task, worker_spec
 
@@ -252,7 +252,7 @@ class RayExecutor:
                                    f"replica(s) need {self.workers + self.replicas}: lower --workers or add nodes")
         return 1.0 if gpus >= self.replicas else 0.0
 
-    def _start(self, warmup: TaskSpec | None) -> None:
+    def _start(self, warmup: TaskPrompt | None) -> None:
         """Start Ray, the policy replicas and the env-worker actors; check the shared folder and warm up."""
         ray = self._init()
         gpus = self._check_resources(ray)

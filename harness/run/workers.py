@@ -57,7 +57,7 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 import numpy as np
 
 from harness.interrupts import die_with_parent
-from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskSpec
+from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskPrompt
 from harness.run.executor import EpisodeContext, make_env, record_failure, run_episode
 from harness.run.protocol import EpisodeJob
 from harness.run.store import EpisodeRow
@@ -128,7 +128,7 @@ def death_cause(exitcode: int | None) -> str:
     return f"worker process exited unexpectedly with code {exitcode}"
 
 
-def warmup_request(shape: PolicyShape, task: TaskSpec) -> InferenceRequest:
+def warmup_request(shape: PolicyShape, task: TaskPrompt) -> InferenceRequest:
     """A zero observation window of the model's sizes (compilation depends on shapes only)."""
     window = shape.window_size
     obs: dict = {k: np.zeros((window, h, w, 3), np.uint8) for k, (h, w) in shape.image_sizes.items()}
@@ -289,14 +289,14 @@ class WorkerPool:
             w.conn.close()
         self._pool.clear()
 
-    def warm_up(self, task: TaskSpec) -> None:
+    def warm_up(self, task: TaskPrompt) -> None:
         """Compile the one inference shape (and build the first task)."""
         self.inference.warm_up(warmup_request(self.spec.shape, task))
         self._warm = True
 
     # -------------------------------------------------------------- the loop
 
-    def run(self, jobs: Iterable[Any], *, warmup_task: TaskSpec | None = None) -> Iterator[Any]:
+    def run(self, jobs: Iterable[Any], *, warmup_task: TaskPrompt | None = None) -> Iterator[Any]:
         """Yield one row per job as each finishes. The workers stay for the next `run` until `shutdown()`;
         Ctrl-C (or closing the generator early) stops them at once, leaving no process behind."""
         queue = collections.deque(jobs)
@@ -449,9 +449,9 @@ def worker_spec(context: EpisodeContext, model) -> WorkerSpec:
     )
 
 
-def warmup_task(context: EpisodeContext, jobs: Sequence[EpisodeJob]) -> TaskSpec | None:
+def warmup_task(context: EpisodeContext, jobs: Sequence[EpisodeJob]) -> TaskPrompt | None:
     """The first job's task (compiling with it also builds it: the first episodes find it cached)."""
-    return TaskSpec.of(context.meta(jobs[0]).instruction, context.goals) if jobs else None
+    return TaskPrompt.of(context.meta(jobs[0]).instruction, context.goals) if jobs else None
 
 
 class WorkersExecutor:

@@ -21,7 +21,7 @@ from harness.analysis import position as Q
 from harness.measures import controls as C
 from harness.measures.attention import camera_maps
 from harness.octo import load_pretrained
-from harness.policy import BatchInference, InferenceRequest, PolicyConfig, TaskSpec, window_from_entries
+from harness.policy import BatchInference, InferenceRequest, PolicyConfig, TaskPrompt, window_from_entries
 
 MODEL = Path(__file__).resolve().parents[2] / "models" / "octo-reference-robosuite"
 KEYS = ["image_primary", "image_wrist", "proprio"]
@@ -163,7 +163,7 @@ def content_model(model):
 
 def _request(frame_primary, frame_wrist, window: int, step: int = 0) -> InferenceRequest:
     entry = {"image_primary": frame_primary, "image_wrist": frame_wrist, "proprio": np.zeros(8, np.float32)}
-    return InferenceRequest(window_from_entries([entry], window, KEYS), TaskSpec.of("pick up the red cube"), 7, step)
+    return InferenceRequest(window_from_entries([entry], window, KEYS), TaskPrompt.of("pick up the red cube"), 7, step)
 
 
 def _infer(model, request, controls="blank,mirror"):

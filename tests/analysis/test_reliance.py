@@ -12,7 +12,7 @@ import pytest
 
 from harness.analysis import reliance as N
 from harness.measures import reliance as R
-from harness.policy import EnvMismatchError, EpisodeState, InferenceRequest, PolicyConfig, TaskSpec
+from harness.policy import EnvMismatchError, EpisodeState, InferenceRequest, PolicyConfig, TaskPrompt
 
 SIZE = 16
 HORIZON, DIM = 4, 7
@@ -180,7 +180,7 @@ def test_the_policy_hook_is_off_by_default_and_sends_masks_only_at_its_steps():
     masks = {"image_primary": toy_masks()}
 
     def requests(config, n=3, masks=masks):
-        state = EpisodeState({"image_primary": (SIZE, SIZE)}, 2, HORIZON, config, TaskSpec.of("lift"), 0)
+        state = EpisodeState({"image_primary": (SIZE, SIZE)}, 2, HORIZON, config, TaskPrompt.of("lift"), 0)
         out = []
         for _ in range(n):
             request = state.observe(obs, masks)

@@ -170,9 +170,9 @@ def test_lowdim_share_and_several_readouts_in_token_map():
 
 
 def test_episode_state_windows_and_pads_lowdim_like_images():
-    from harness.policy import EnvMismatchError, EpisodeState, PolicyConfig, TaskSpec
+    from harness.policy import EnvMismatchError, EpisodeState, PolicyConfig, TaskPrompt
 
-    state = EpisodeState({"image_primary": (4, 4)}, 2, 1, PolicyConfig(), TaskSpec.of("x"), 0, {"proprio": 3})
+    state = EpisodeState({"image_primary": (4, 4)}, 2, 1, PolicyConfig(), TaskPrompt.of("x"), 0, {"proprio": 3})
     first = {"image_primary": np.zeros((4, 4, 3), np.uint8), "proprio": np.array([1.0, 2.0, 3.0])}
     request = state.observe(first)
     obs = request.observation

@@ -21,7 +21,7 @@ from harness.conventions import CheckpointConventions
 from harness.octo import load_pretrained
 from harness.octo.diffusion import make_schedule, sample
 from harness.octo.normalization import normalize
-from harness.policy import BatchInference, EnvMismatchError, InferenceRequest, OctoPolicy, PolicyConfig, TaskSpec, step_key
+from harness.policy import BatchInference, EnvMismatchError, InferenceRequest, OctoPolicy, PolicyConfig, TaskPrompt, step_key
 from harness.rollout import rollout
 from harness.run import Protocol, execute
 from harness.outputs.writers import OutputOptions
@@ -156,17 +156,17 @@ def test_proprio_is_fed_normalised_with_the_checkpoint_statistics(finetuned, env
     inference = BatchInference(finetuned, config)
     window = {"image_primary": obs["image_primary"][None], "proprio": obs["proprio"][None],
               "timestep_pad_mask": np.ones(1, bool), "pad_mask_dict": {"image_primary": np.ones(1, bool), "proprio": np.ones(1, bool)}}
-    (result,) = inference([InferenceRequest(window, TaskSpec.of(info["instruction"]), seed=3, step=0)])
+    (result,) = inference([InferenceRequest(window, TaskPrompt.of(info["instruction"]), seed=3, step=0)])
     by_hand = (obs["proprio"] - np.array(PROPRIO_STATS["mean"])) / (np.array(PROPRIO_STATS["std"]) + 1e-8)
     by_hand[7] = obs["proprio"][7]  # masked dimension stays raw
     batch = jax.tree.map(lambda v: v[None], window)  # the same structure as the policy's (no second compile)
     batch["proprio"] = by_hand[None, None].astype(np.float32)
     np.testing.assert_allclose(normalize(obs["proprio"], PROPRIO_STATS), by_hand, rtol=1e-5, atol=1e-6)
-    actions, _ = finetuned.sample_actions(batch, inference.task(TaskSpec.of(info["instruction"])), step_key(3, 0)[None],
+    actions, _ = finetuned.sample_actions(batch, inference.task(TaskPrompt.of(info["instruction"])), step_key(3, 0)[None],
                                           inference.statistics)
     np.testing.assert_allclose(result.chunk, np.asarray(actions[0]), atol=1e-5)
     raw = dict(batch, proprio=obs["proprio"][None, None])  # unnormalised proprio gives other actions
-    unnormalised, _ = finetuned.sample_actions(raw, inference.task(TaskSpec.of(info["instruction"])), step_key(3, 0)[None],
+    unnormalised, _ = finetuned.sample_actions(raw, inference.task(TaskPrompt.of(info["instruction"])), step_key(3, 0)[None],
                                                inference.statistics)
     assert np.abs(np.asarray(unnormalised[0]) - result.chunk).max() > 1e-3
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from harness.interventions import Intervention, parse_intervention
-from harness.policy import BatchInference, EpisodeState, InferenceRequest, PolicyConfig, TaskSpec
+from harness.policy import BatchInference, EpisodeState, InferenceRequest, PolicyConfig, TaskPrompt
 
 REFERENCE = Path(__file__).resolve().parents[2] / "models" / "octo-reference-robosuite"
 CONFIG = PolicyConfig(dataset_key="robosuite_reference")
@@ -53,7 +53,7 @@ def reference():
     obs["proprio"] = rng.standard_normal((1, 8)).astype(np.float32)
     obs["timestep_pad_mask"] = np.ones((1,), bool)
     obs["pad_mask_dict"] = {k: np.ones((1,), bool) for k in [*model.image_sizes, "proprio"]}
-    return model, InferenceRequest(obs, TaskSpec.of("lift the red cube"), 0, 0)
+    return model, InferenceRequest(obs, TaskPrompt.of("lift the red cube"), 0, 0)
 
 
 def _patch_grids(episode) -> dict[str, tuple[int, int]]:
@@ -109,7 +109,7 @@ def test_mask_top_masks_the_k_patches_the_method_ranks_highest(reference):
 def test_the_masked_frame_is_what_enters_the_history(reference):
     model, request = reference
     config = PolicyConfig(dataset_key="robosuite_reference", intervention="mask-all@image_primary")
-    state = EpisodeState(model.image_sizes, 1, model.action_horizon, config, TaskSpec.of("lift the red cube"), 0,
+    state = EpisodeState(model.image_sizes, 1, model.action_horizon, config, TaskPrompt.of("lift the red cube"), 0,
                          model.lowdim_sizes)
     obs = {k: v[0] for k, v in request.observation.items() if k.startswith("image_")}
     obs["proprio"] = request.observation["proprio"][0]

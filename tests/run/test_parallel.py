@@ -18,7 +18,7 @@ import pytest
 
 import envs
 from harness.octo import load_pretrained
-from harness.policy import BatchInference, PolicyConfig, TaskSpec
+from harness.policy import BatchInference, PolicyConfig, TaskPrompt
 from harness.run import execute
 from harness.run.protocol import Protocol
 from harness.run.execution import executor_factory
@@ -178,7 +178,7 @@ def test_an_episode_gets_the_same_bits_whatever_shares_its_inference_call(tiny):
     rng = np.random.default_rng(0)
     requests = []
     for i, text in enumerate(["lift the red cube", "open the door", "lift the red cube"]):
-        base = warmup_request(shape, TaskSpec.of(text))
+        base = warmup_request(shape, TaskPrompt.of(text))
         obs = {k: (rng.integers(0, 256, v.shape, dtype=np.uint8) if k.startswith("image_") else v)
                for k, v in base.observation.items()}
         requests.append(type(base)(obs, base.task, seed=10 + i, step=i))
