@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 46's table of levers (docs/libero-reference.md "Grasp probe"): probe each LIBERO-Object checkpoint on stored
+# Issue 46's table of levers (docs/history/libero-reference.md "Grasp probe"): probe each LIBERO-Object checkpoint on stored
 # states 0-1 of every task (20 episodes, the published loop, as the evaluation runs it), then print one markdown
 # table in the order given. LABEL=expert probes the state-based expert (the yardstick).
 #   bash scripts/libero_levers.sh expert first=models/octo-reference-libero-object-first second=models/octo-reference-libero-object
