@@ -134,7 +134,7 @@ class EnvOptions:
         flag="--no-masks", help="do not render target/robot masks", file=(bool,), action="store_true",
         convert=lambda v: not v, absent=True)})
     fast_render: bool = field(default=False, metadata={"option": dict(
-        flag="--fast-render", help={"run": "render without reflections, shadows and anti-aliasing (~3.6x faster frames)",
+        flag="--fast-render", help={"run": "render without reflections, shadows and anti-aliasing (an env step about 3x faster: docs/benchmarks.md)",
                                     "robustness": "as for `run --fast-render`"},
         file=(bool,), action="store_true", convert=bool, absent=False)})
     # None: the task's default cameras; () renders nothing
