@@ -31,9 +31,11 @@ from pathlib import Path
 import numpy as np
 
 from harness.files import atomic_write_json
+from harness.options import option
 from reference_policies.demos import (config_fingerprint, finished_recording, load_part, run_saved_jobs, save_episodes,
                                      save_part)
 from reference_policies.experts import CanLabeller, ExpertConfig
+from reference_policies.options import Workers, add_options, parse, values
 
 log = logging.getLogger(__name__)
 
@@ -43,9 +45,11 @@ LABELLERS = {CanLabeller.task: CanLabeller}  # task -> its state-based expert
 
 @dataclass(frozen=True)
 class DaggerConfig:
-    task: str = "PickPlaceCan"
-    episodes: int = 64
-    max_steps: int = 300  # the demonstrations' limit for PickPlaceCan
+    task: str = option("PickPlaceCan", "--task", "the task whose state-based expert labels the states",
+                       choices=tuple(LABELLERS))
+    episodes: int = option(64, "--episodes", "episodes of the checkpoint, each state labelled", type=int)
+    # the demonstrations' limit for PickPlaceCan
+    max_steps: int = option(300, "--max-steps", "step limit of an episode", type=int)
     jobs: int = 4  # fixed split (not the worker count), so the data do not depend on the workers
     expert: ExpertConfig = ExpertConfig()  # the labeller's waypoints (the demonstrations' expert's); fingerprinted
 
@@ -213,23 +217,34 @@ def append_episodes(demos: dict[str, dict[str, np.ndarray]], task: str, extra: d
     return {**demos, task: merged}
 
 
-def main(argv: list[str] | None = None) -> int:
+@dataclass(frozen=True)
+class DaggerOptions:
+    """The command's own options; what it collects is `DaggerConfig`'s fields, the processes `Workers`'."""
+    model: str = option(flag="--model", help="checkpoint folder that acts")
+    out: str = option(flag="--out", help="folder for the labelled states (not committed)")
+
+    def __post_init__(self) -> None:
+        if not (Path(self.model) / "config.json").is_file():
+            raise ValueError(f"{self.model} is not a checkpoint folder (no config.json); pass --model a saved "
+                             "reference policy")
+
+
+def command_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m reference_policies.dagger", description=__doc__.splitlines()[0])
-    parser.add_argument("--model", required=True, help="checkpoint folder that acts")
-    parser.add_argument("--out", required=True, help="folder for the labelled states (not committed)")
-    parser.add_argument("--task", default=DaggerConfig.task, choices=LABELLERS)
-    parser.add_argument("--episodes", type=int, default=DaggerConfig.episodes)
-    parser.add_argument("--max-steps", type=int, default=DaggerConfig.max_steps)
-    parser.add_argument("--workers", type=int, default=2, help="processes (spawned)")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    add_options(parser, (DaggerOptions, DaggerConfig, Workers))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = command_parser()
+    args, options = parse(parser, DaggerOptions, argv)
     try:
-        config = DaggerConfig(task=args.task, episodes=args.episodes, max_steps=args.max_steps)
+        config = DaggerConfig(**values(DaggerConfig, args))
+        workers = Workers(**values(Workers, args)).workers
     except ValueError as e:
         parser.error(str(e))
-    if not (Path(args.model) / "config.json").is_file():
-        parser.error(f"{args.model} is not a checkpoint folder (no config.json); pass --model a saved reference policy")
-    collect(args.model, args.out, config, workers=args.workers)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    collect(options.model, options.out, config, workers=workers)
     return 0
 
 

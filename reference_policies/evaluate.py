@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,8 @@ import numpy as np
 from harness.analysis.provenance import command_text, provenance_line, with_provenance
 from harness.bounded import read_json
 from harness.measures.stats import wilson_interval
+from harness.options import option
+from reference_policies.options import Provenance, add_options, parse, values
 
 
 def target_lift(metrics_path: Path) -> dict[str, np.ndarray]:
@@ -110,14 +113,24 @@ def other_checkpoint(runs: list[Path], manifests: list[dict], out: Path) -> str 
     return None
 
 
-def main(argv: list[str] | None = None) -> int:
+@dataclass(frozen=True)
+class EvaluateOptions:
+    out: Path = option(Path("models/octo-reference-robosuite"), "--out", "the checkpoint folder the runs evaluated "
+                       "(EVAL.md and eval.json are written there)", type=Path)
+
+
+def command_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m reference_policies.evaluate", description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path, help="octo-harness run folders")
-    parser.add_argument("--out", type=Path, default=Path("models/octo-reference-robosuite"))
-    parser.add_argument("--note", default="", help="text placed above the table (command, checkpoint step, ...)")
-    parser.add_argument("--command", default=None, help="the command to name in the provenance line (a script that "
-                        "calls this one) [this command]")
-    args = parser.parse_args(argv)
+    add_options(parser, (EvaluateOptions, Provenance))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = command_parser()
+    given, options = parse(parser, EvaluateOptions, argv)
+    made = Provenance(**values(Provenance, given))
+    args = argparse.Namespace(runs=given.runs, out=options.out, note=made.note, command=made.command)
     try:  # run folders are untrusted: the project's bounded reader (size and nesting checked)
         manifests = [read_json(run / "manifest.json", what="manifest.json") if (run / "manifest.json").is_file() else {}
                      for run in args.runs]

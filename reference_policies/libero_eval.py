@@ -13,8 +13,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 
+from harness.options import option
 from reference_policies.libero_demos import LIBERO_OBJECT_TASKS
+from reference_policies.options import Provenance, add_options, values
 
 NONSENSE = "blorp the zizzle and fleem it quantum"  # no word of the model's vocabulary: a language-blind probe
 
@@ -78,6 +81,11 @@ def closed_loop_markdown(random_run, top_run, note: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
+@dataclass(frozen=True)
+class ClosedLoopOptions:
+    eval_md: str = option(flag="--eval-md", help="the EVAL.md whose closed-loop section is written")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m reference_policies.libero_eval", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="action", required=True)  # not "command": closed-loop has a --command option
@@ -87,9 +95,7 @@ def main(argv: list[str] | None = None) -> int:
                                                 "mask-top run")
     closed.add_argument("random_run")
     closed.add_argument("top_run")
-    closed.add_argument("--eval-md", required=True)
-    closed.add_argument("--note", default="")
-    closed.add_argument("--command", default=None, help="the command to name in the provenance line [this command]")
+    add_options(closed, (ClosedLoopOptions, Provenance))
     args = parser.parse_args(argv)
     if args.action == "closed-loop":
         from harness.files import replace_markdown_section
@@ -97,8 +103,9 @@ def main(argv: list[str] | None = None) -> int:
         from harness.analysis.provenance import command_text, provenance_line, with_provenance
         from harness.analysis.runs import load_run
 
-        text = closed_loop_markdown(args.random_run, args.top_run, args.note)
-        command = args.command or command_text("python -m reference_policies.libero_eval closed-loop",
+        made = Provenance(**values(Provenance, args))
+        text = closed_loop_markdown(args.random_run, args.top_run, made.note)
+        command = made.command or command_text("python -m reference_policies.libero_eval closed-loop",
                                                [args.random_run, args.top_run], ["--eval-md", args.eval_md])
         text = with_provenance(text, provenance_line(command, [load_run(args.random_run).manifest,
                                                                load_run(args.top_run).manifest]))

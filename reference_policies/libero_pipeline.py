@@ -30,17 +30,19 @@ from __future__ import annotations
 import argparse
 import logging
 import time
-from dataclasses import replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from harness.files import atomic_write_json
+from harness.options import option
 from reference_policies.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, LiberoDemoConfig, MissConfig, append_swaps,
                                             existing_libero_demos, load_libero_demos, record_libero_demos)
 from reference_policies import libero_dagger
 from reference_policies.libero_dagger import LiberoDaggerConfig
 from reference_policies.libero_expert import LiberoExpertConfig, name_values, with_radii
+from reference_policies.options import Workers, add_options, parse, values
 from reference_policies.pipeline import dagger_rounds
 from reference_policies.train import TrainConfig, train
 
@@ -105,90 +107,111 @@ def parse_tasks(text: str, tasks: tuple[str, ...]) -> tuple[str, ...]:
     return tuple(t for t in tasks if t in named) if named else tuple(tasks)
 
 
-def _parser() -> argparse.ArgumentParser:
+def _recipes(values: dict) -> str:
+    return ", ".join(f"{recipe} {value}" for recipe, value in values.items())
+
+
+@dataclass(frozen=True)
+class LiberoPipelineOptions:
+    """The LIBERO pipeline's own options (each field's check in `__post_init__`; those that need the recipe in
+    `_checked`); training's batch size, learning rate and seed are `TrainConfig`'s fields, the processes `Workers`'."""
+    out: str | None = option(None, "--out", "checkpoint folder to write [the recipe's committed folder: " +
+                             _recipes(RECIPE_OUT) + "]")
+    data: str = option("data/libero_object_demos", "--data", "folder for the demonstrations (not committed)")
+    recipe: str = option("second", "--recipe", "first: the committed checkpoint's demonstrations (timed expert, wrist "
+                         "64 px, 20 a task, Gaussian noise only); second: issue 46's (state expert, wrist 128 px, 50 a "
+                         "task, recovery bursts)", choices=tuple(sorted(RECIPES)))
+    episodes: int | None = option(None, "--episodes", "demonstrations per task [the recipe's]", type=int)
+    steps: int | None = option(None, "--steps", "training steps [the recipe's: " + _recipes(RECIPE_STEPS) + "]",
+                               type=int)
+    demonstrator: str | None = option(None, "--demonstrator", "timed: the phase expert (12-step close); state: the "
+                                      "state-based expert, which lifts once the fingers hold the object [the recipe's]",
+                                      choices=tuple(sorted(DEMONSTRATORS)))
+    close_below_top: float | None = option(None, "--close-below-top", "the state-based demonstrator closes only with "
+                                           "the hand this far below the object's top (a flat object's grasp) [no "
+                                           "limit]", type=float, metavar="METRES")
+    demonstrator_radii: str = option("", "--demonstrator-radii", "the state-based demonstrator's radii (centred, "
+                                     "at_grasp, grasp_height; the DAgger labeller keeps its own), e.g. "
+                                     "grasp_height=0.004 to close only near the grasp height [LiberoExpertConfig's]",
+                                     metavar="NAME=METRES,...")
+    missed_grasps: float | None = option(None, "--missed-grasps", "with probability P a demonstration's first grasp is "
+                                         "missed (driven 3 cm beside the object, it closes there) and the expert "
+                                         "recovers (libero_demos.MissConfig) [none]", type=float, metavar="P")
+    swaps: int = option(0, "--swaps", "also N swapped-instruction demonstrations per task (into <data>/swaps): in its "
+                        "scene the expert picks another task's named object, under that task's instruction", type=int,
+                        metavar="N")
+    dagger_episodes: int = option(0, "--dagger-episodes", "episodes per task of the trained policy to label for a "
+                                  "DAgger round (0 = no round)", type=int)
+    dagger_tasks: str = option("", "--dagger-tasks", "the tasks a DAgger round collects on (e.g. "
+                               "libero_object/0,libero_object/6) [every task]", metavar="TASK,...")
+    dagger_close_below_top: float | None = option(None, "--dagger-close-below-top", "the DAgger labeller closes only "
+                                                  "with the hand this far below the object's top [--close-below-top's: "
+                                                  "the demonstrator's]", type=float, metavar="METRES")
+    dagger_steps: int | None = option(None, "--dagger-steps", f"fine-tuning steps of each DAgger round "
+                                      f"[{DAGGER_STEPS}]", type=int)
+    dagger_rounds: int = option(1, "--dagger-rounds", "DAgger rounds, each acting with the previous round's "
+                                "checkpoint", type=int)
+    dagger_learning_rate: float | None = option(None, "--dagger-learning-rate", "peak learning rate of the DAgger "
+                                                f"round's fine-tuning [{DAGGER_LEARNING_RATE:g}]", type=float)
+    dagger_retrain: bool = option(False, "--dagger-retrain", "each DAgger round trains anew on demonstrations + "
+                                  "corrections, as stage 1 did (--steps, --learning-rate, --init-from), instead of "
+                                  "fine-tuning the acting checkpoint", action="store_true")
+    task_weights: str = option("", "--task-weights", "batches draw these tasks W times as often as the others (e.g. "
+                               "libero_object/0=3) [none]", metavar="TASK=W,...")
+    init_from: str = option(DEFAULT_INIT, "--init-from", "warm start from this checkpoint folder ('none': random "
+                            "initialisation)", metavar="CHECKPOINT")
+
+    def __post_init__(self) -> None:
+        if self.dagger_retrain and (self.dagger_steps is not None or self.dagger_learning_rate is not None):
+            raise ValueError("--dagger-retrain trains each round with --steps and --learning-rate: leave out "
+                             "--dagger-steps and --dagger-learning-rate (they set a fine-tuning)")
+        if self.dagger_retrain and not self.dagger_episodes:
+            raise ValueError("--dagger-retrain sets how a DAgger round trains: give it with --dagger-episodes N")
+        if (self.episodes is not None and self.episodes < 2) or (self.steps is not None and self.steps < 1) \
+                or (self.dagger_steps is not None and self.dagger_steps < 1) \
+                or (self.dagger_learning_rate is not None and not self.dagger_learning_rate > 0) \
+                or not 1 <= self.dagger_rounds <= 9 or not 0 <= self.swaps <= 1000:
+            raise ValueError("--episodes must be >= 2, --steps and --dagger-steps >= 1, learning rates > 0, "
+                             "--dagger-rounds 1..9, --swaps 0..1000")
+        for flag, value in (("--close-below-top", self.close_below_top),
+                            ("--dagger-close-below-top", self.dagger_close_below_top)):
+            if value is not None and not 0 <= value < 0.05:
+                raise ValueError(f"{flag} must be at least 0 and under 0.05 (metres)")
+        if self.missed_grasps is not None and not 0 < self.missed_grasps <= 1:
+            raise ValueError(f"--missed-grasps {self.missed_grasps}: a probability in (0, 1], e.g. 0.5")
+
+
+def command_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m reference_policies.libero_pipeline",
                                      description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default=None, help="checkpoint folder to write [the recipe's committed folder]")
-    parser.add_argument("--data", default="data/libero_object_demos", help="folder for the demonstrations (not committed)")
-    parser.add_argument("--recipe", choices=sorted(RECIPES), default="second",
-                        help="first: the committed checkpoint's demonstrations (timed expert, wrist 64 px, 20 a task, "
-                             "Gaussian noise only); second: issue 46's (state expert, wrist 128 px, 50 a task, recovery "
-                             "bursts) [second]")
-    parser.add_argument("--episodes", type=int, default=None, help="demonstrations per task [the recipe's]")
-    parser.add_argument("--steps", type=int, default=None, help="training steps [first 2500, second 6000]")
-    parser.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
-    parser.add_argument("--learning-rate", type=float, default=TrainConfig.learning_rate)
-    parser.add_argument("--workers", type=int, default=2, help="recording processes (spawned)")
-    parser.add_argument("--seed", type=int, default=TrainConfig.seed, help="training seed")
-    parser.add_argument("--demonstrator", choices=sorted(DEMONSTRATORS), default=None,
-                        help="timed: the phase expert (12-step close); state: the state-based expert, which lifts once "
-                             "the fingers hold the object [the recipe's]")
-    parser.add_argument("--close-below-top", type=float, default=None, metavar="METRES",
-                        help="the state-based demonstrator closes only with the hand this far below the object's top "
-                             "(a flat object's grasp) [no limit]")
-    parser.add_argument("--demonstrator-radii", default="", metavar="NAME=METRES,...",
-                        help="the state-based demonstrator's radii (centred, at_grasp, grasp_height; the DAgger labeller "
-                             "keeps its own), e.g. grasp_height=0.004 to close only near the grasp height "
-                             "[LiberoExpertConfig's]")
-    parser.add_argument("--missed-grasps", type=float, default=None, metavar="P",
-                        help="with probability P a demonstration's first grasp is missed (driven 3 cm beside the "
-                             "object, it closes there) and the expert recovers (libero_demos.MissConfig) [none]")
-    parser.add_argument("--swaps", type=int, default=0, metavar="N",
-                        help="also N swapped-instruction demonstrations per task (into <data>/swaps): in its scene the "
-                             "expert picks another task's named object, under that task's instruction [0]")
-    parser.add_argument("--dagger-episodes", type=int, default=0,
-                        help="episodes per task of the trained policy to label for a DAgger round (0 = no round)")
-    parser.add_argument("--dagger-tasks", default="", metavar="TASK,...",
-                        help="the tasks a DAgger round collects on (e.g. libero_object/0,libero_object/6) [every task]")
-    parser.add_argument("--dagger-close-below-top", type=float, default=None, metavar="METRES",
-                        help="the DAgger labeller closes only with the hand this far below the object's top "
-                             "[--close-below-top's: the demonstrator's]")
-    parser.add_argument("--dagger-steps", type=int, default=None, help="fine-tuning steps of each DAgger round [1500]")
-    parser.add_argument("--dagger-rounds", type=int, default=1,
-                        help="DAgger rounds, each acting with the previous round's checkpoint [1]")
-    parser.add_argument("--dagger-learning-rate", type=float, default=None,
-                        help="peak learning rate of the DAgger round's fine-tuning [3e-4]")
-    parser.add_argument("--dagger-retrain", action="store_true",
-                        help="each DAgger round trains anew on demonstrations + corrections, as stage 1 did (--steps, "
-                             "--learning-rate, --init-from), instead of fine-tuning the acting checkpoint")
-    parser.add_argument("--task-weights", default="", metavar="TASK=W,...",
-                        help="batches draw these tasks W times as often as the others (e.g. libero_object/0=3) [none]")
-    parser.add_argument("--init-from", default=DEFAULT_INIT, metavar="CHECKPOINT",
-                        help="warm start from this checkpoint folder ('none': random initialisation)")
+    add_options(parser, (LiberoPipelineOptions,))
+    add_options(parser, (TrainConfig,), only=("batch_size", "learning_rate", "seed"))
+    add_options(parser, (Workers,))
     return parser
 
 
 def _checked(parser: argparse.ArgumentParser, argv: list[str] | None):
     """(args, task weights, DAgger configuration or None, warm-start folder or None); a bad value is the parser's
-    one-line error (exit 2) before anything loads."""
-    args = parser.parse_args(argv)
+    one-line error (exit 2) before anything loads. `args` holds every option's value, defaults filled in."""
+    given, options = parse(parser, LiberoPipelineOptions, argv)
+    try:
+        training = TrainConfig(**values(TrainConfig, given, skip=("steps", "init_from")))
+        workers = Workers(**values(Workers, given))
+    except ValueError as e:
+        parser.error(str(e))
+    args = argparse.Namespace(**asdict(options), **asdict(workers), batch_size=training.batch_size,
+                              learning_rate=training.learning_rate, seed=training.seed)
     args.steps = RECIPE_STEPS[args.recipe] if args.steps is None else args.steps
     args.out = RECIPE_OUT[args.recipe] if args.out is None else args.out
-    if args.dagger_retrain and (args.dagger_steps is not None or args.dagger_learning_rate is not None):
-        parser.error("--dagger-retrain trains each round with --steps and --learning-rate: leave out --dagger-steps "
-                     "and --dagger-learning-rate (they set a fine-tuning)")
-    if args.dagger_retrain and not args.dagger_episodes:
-        parser.error("--dagger-retrain sets how a DAgger round trains: give it with --dagger-episodes N")
     args.dagger_steps = DAGGER_STEPS if args.dagger_steps is None else args.dagger_steps
     args.dagger_learning_rate = DAGGER_LEARNING_RATE if args.dagger_learning_rate is None else args.dagger_learning_rate
-    if (args.episodes is not None and args.episodes < 2) or args.steps < 1 or args.batch_size < 1 or not args.learning_rate > 0 \
-            or args.dagger_steps < 1 or not args.dagger_learning_rate > 0 or not 1 <= args.dagger_rounds <= 9 \
-            or not 0 <= args.swaps <= 1000:
-        parser.error("--episodes must be >= 2, --steps, --dagger-steps and --batch-size >= 1, learning rates > 0, "
-                     "--dagger-rounds 1..9, --swaps 0..1000")
     try:
         task_weights = parse_task_weights(args.task_weights, RECIPES[args.recipe].tasks)
-        for option, value in (("--close-below-top", args.close_below_top),
-                              ("--dagger-close-below-top", args.dagger_close_below_top)):
-            if value is not None and not 0 <= value < 0.05:
-                raise ValueError(f"{option} must be at least 0 and under 0.05 (metres)")
         for option, value in (("--close-below-top", args.close_below_top), ("--demonstrator-radii", args.demonstrator_radii)):
             if value not in (None, "") and (args.demonstrator or RECIPES[args.recipe].demonstrator) != "state":
                 raise ValueError(f"{option} is the state-based demonstrator's: use --demonstrator state")
         args.bursts = RECIPES[args.recipe].bursts
         if args.missed_grasps is not None:
-            if not 0 < args.missed_grasps <= 1:
-                raise ValueError(f"--missed-grasps {args.missed_grasps}: a probability in (0, 1], e.g. 0.5")
             if args.bursts is None:
                 raise ValueError(f"--missed-grasps adds to the recovery bursts, which the {args.recipe} recipe has none of")
             if (args.demonstrator or RECIPES[args.recipe].demonstrator) != "state":
@@ -218,7 +241,7 @@ def _checked(parser: argparse.ArgumentParser, argv: list[str] | None):
 
 
 def main(argv: list[str] | None = None) -> int:
-    args, task_weights, dagger_config, init = _checked(_parser(), argv)
+    args, task_weights, dagger_config, init = _checked(command_parser(), argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     for noisy in ("jax._src.xla_bridge", "robosuite_logs"):
         logging.getLogger(noisy).setLevel(logging.WARNING)

@@ -24,14 +24,17 @@ import argparse
 import json
 import logging
 import time
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
 from harness.analysis.grounding import CLOSED_BELOW, STALL_STEPS, longest_stall
 from harness.files import atomic_write_json, json_safe
+from harness.options import option
 from reference_policies.libero_demos import LIBERO_OBJECT_TASKS
 from reference_policies.libero_expert import with_radii
+from reference_policies.options import Workers, add_options, parse, values
 
 log = logging.getLogger(__name__)
 
@@ -326,28 +329,49 @@ def _load_table_entry(spec: str, parser: argparse.ArgumentParser) -> tuple[str, 
     return label, result
 
 
-def main(argv: list[str] | None = None) -> int:
+@dataclass(frozen=True)
+class ProbeOptions:
+    """The probe's options: who acts (one of the first four), then where and how long; the processes are `Workers`'."""
+    model: str | None = option(None, "--model", "checkpoint folder (with its harness.toml)")
+    expert: bool = option(False, "--expert", "the state-based expert acts (the yardstick)", action="store_true")
+    table: list | None = option(None, "--table", "print the lever table (markdown) of probe results that --out wrote, "
+                                "in this order", metavar="LABEL=FILE.json")
+    stalls: str | None = option(None, "--stalls", "print, per task of a LIBERO run folder (the libero action space), "
+                                f"how many failed episodes stalled open {STALL_STEPS}+ steps, from their actions.npz "
+                                "(markdown)", metavar="RUN_DIR")
+    expert_radii: str = option("", "--expert-radii", "with --expert: its radii (centred, at_grasp, grasp_height), e.g. "
+                               "grasp_height=0.004 [LiberoExpertConfig's]", metavar="NAME=METRES,...")
+    language: str = option("own", "--language", "swap: each scene is told the next task's instruction whose named "
+                           "object it holds (reference_policies.libero_eval swaps); success is that object, alone, in "
+                           "the basket", choices=("own", "swap"))
+    states: str = option("0,1", "--states", "stored initial states of every task")
+    tasks: str = option("", "--tasks", "LIBERO-Object tasks [all ten]")
+    max_steps: int = option(MAX_STEPS, "--max-steps", "step limit of an episode (LIBERO-Object's published one)",
+                            type=int)
+    out: str | None = option(None, "--out", "write the rows and the summary here (JSON) [printed only]")
+
+
+WHO = ("model", "expert", "table", "stalls")  # exactly one of them is given
+
+
+def command_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m reference_policies.libero_probe", description=__doc__.splitlines()[0])
-    who = parser.add_mutually_exclusive_group(required=True)
-    who.add_argument("--model", help="checkpoint folder (with its harness.toml)")
-    who.add_argument("--expert", action="store_true", help="the state-based expert acts (the yardstick)")
-    who.add_argument("--table", nargs="+", metavar="LABEL=FILE.json",
-                     help="print the lever table (markdown) of probe results that --out wrote, in this order")
-    who.add_argument("--stalls", metavar="RUN_DIR",
-                     help="print, per task of a LIBERO run folder (the libero action space), how many failed episodes "
-                          f"stalled open {STALL_STEPS}+ steps, from their actions.npz (markdown)")
-    parser.add_argument("--expert-radii", default="", metavar="NAME=METRES,...",
-                        help="with --expert: its radii (centred, at_grasp, grasp_height), e.g. grasp_height=0.004 "
-                             "[LiberoExpertConfig's]")
-    parser.add_argument("--language", choices=("own", "swap"), default="own",
-                        help="swap: each scene is told the next task's instruction whose named object it holds "
-                             "(reference_policies.libero_eval swaps); success is that object, alone, in the basket [own]")
-    parser.add_argument("--states", default="0,1", help="stored initial states of every task [0,1]")
-    parser.add_argument("--tasks", default=",".join(LIBERO_OBJECT_TASKS), help="LIBERO-Object tasks [all ten]")
-    parser.add_argument("--max-steps", type=int, default=MAX_STEPS)
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--out", help="write the rows and the summary here (JSON)")
-    args = parser.parse_args(argv)
+    add_options(parser.add_mutually_exclusive_group(required=True), (ProbeOptions,), only=WHO,
+                overrides={"table": {"nargs": "+"}})
+    add_options(parser, (ProbeOptions,), only=[f.name for f in fields(ProbeOptions) if f.name not in WHO])
+    add_options(parser, (Workers,))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = command_parser()
+    given, options = parse(parser, ProbeOptions, argv)
+    try:
+        workers = Workers(**values(Workers, given))
+    except ValueError as e:
+        parser.error(str(e))
+    args = argparse.Namespace(**asdict(options), **asdict(workers))
+    args.tasks = args.tasks or ",".join(LIBERO_OBJECT_TASKS)
     if args.table:
         print(lever_table([_load_table_entry(spec, parser) for spec in args.table]))
         return 0

@@ -22,79 +22,87 @@ import argparse
 import json
 import logging
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from harness.files import atomic_write_json, read_json_object
+from harness.options import option
 from reference_policies import dagger
 from reference_policies.demos import DemoConfig, existing_demos, load_demos, record_demos
+from reference_policies.options import Workers, add_options, parse, values
 from reference_policies.train import TrainConfig, train
 
 log = logging.getLogger(__name__)
 
 
-def main(argv: list[str] | None = None) -> int:
+@dataclass(frozen=True)
+class PipelineOptions:
+    """The pipeline's own options; training's are `TrainConfig`'s fields, the recording processes `Workers`'."""
+    out: str = option("models/octo-reference-robosuite", "--out", "checkpoint folder to write")
+    data: str = option("data/reference_demos", "--data", "folder for the recorded demonstrations (not committed)")
+    episodes: int | None = option(None, "--episodes", "demonstrations per task, the same for every task [" +
+                                  ", ".join(f"{task} {n}" for task, n in DemoConfig.episodes) + "]", type=int)
+    dagger_episodes: int = option(0, "--dagger-episodes", "PickPlaceCan episodes of the trained policy to label for a "
+                                                          "DAgger round (0 = no round)", type=int)
+    dagger_steps: int = option(3000, "--dagger-steps", "fine-tuning steps of the DAgger round", type=int)
+    dagger_learning_rate: float = option(3e-4, "--dagger-learning-rate", "peak learning rate of the DAgger round",
+                                         type=float)
+
+    def __post_init__(self) -> None:
+        jobs = DemoConfig.jobs_per_task
+        if (self.episodes is not None and self.episodes < jobs) or self.dagger_steps < 1 \
+                or not self.dagger_learning_rate > 0:
+            raise ValueError(f"--episodes must be >= {jobs} (one per recording job), --dagger-steps >= 1, "
+                             "--dagger-learning-rate > 0")
+        if self.dagger_episodes and self.dagger_episodes < dagger.DaggerConfig.jobs:
+            raise ValueError(f"--dagger-episodes must be 0 (no DAgger round) or >= {dagger.DaggerConfig.jobs} "
+                             "(one per collection job)")
+
+
+def command_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m reference_policies.pipeline", description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="models/octo-reference-robosuite", help="checkpoint folder to write")
-    parser.add_argument("--data", default="data/reference_demos", help="folder for the recorded demonstrations (not committed)")
-    parser.add_argument("--episodes", type=int, default=None,
-                        help="demonstrations per task, the same for every task [Lift 96, Stack 128, PickPlaceCan 192]")
-    parser.add_argument("--steps", type=int, default=TrainConfig.steps, help="training steps")
-    parser.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
-    parser.add_argument("--learning-rate", type=float, default=TrainConfig.learning_rate,
-                        help="peak learning rate of the warm-up + cosine schedule")
-    parser.add_argument("--workers", type=int, default=2, help="recording processes (spawned)")
-    parser.add_argument("--seed", type=int, default=TrainConfig.seed, help="training seed")
-    parser.add_argument("--dagger-episodes", type=int, default=0,
-                        help="PickPlaceCan episodes of the trained policy to label for a DAgger round (0 = no round)")
-    parser.add_argument("--dagger-steps", type=int, default=3000, help="fine-tuning steps of the DAgger round")
-    parser.add_argument("--dagger-learning-rate", type=float, default=3e-4,
-                        help="peak learning rate of the DAgger round")
-    parser.add_argument("--init-from", default=None, metavar="CHECKPOINT",
-                        help="warm start from this checkpoint folder (same architecture; patch-grid position embeddings "
-                             "are resampled to the new image sizes) instead of random initialisation")
-    args = parser.parse_args(argv)
+    add_options(parser, (PipelineOptions, TrainConfig, Workers))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = command_parser()
+    args, options = parse(parser, PipelineOptions, argv)
+    try:
+        train_config = TrainConfig(**values(TrainConfig, args))
+        workers = Workers(**values(Workers, args)).workers
+    except ValueError as e:
+        parser.error(str(e))
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     for noisy in ("jax._src.xla_bridge", "robosuite_logs"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
-    if (args.episodes is not None and args.episodes < 4) or args.steps < 1 or args.batch_size < 1 \
-            or not args.learning_rate > 0 or args.dagger_steps < 1 or not args.dagger_learning_rate > 0:
-        parser.error("--episodes must be >= 4 (one per recording job), --steps, --dagger-steps and --batch-size "
-                     ">= 1, learning rates > 0")
-    dagger_config = None
-    if args.dagger_episodes:
-        if args.dagger_episodes < dagger.DaggerConfig.jobs:
-            parser.error(f"--dagger-episodes must be 0 (no DAgger round) or >= {dagger.DaggerConfig.jobs} "
-                         "(one per collection job)")
-        dagger_config = dagger.DaggerConfig(episodes=args.dagger_episodes)
+    dagger_config = dagger.DaggerConfig(episodes=options.dagger_episodes) if options.dagger_episodes else None
 
     start = time.perf_counter()
-    train_config = TrainConfig(steps=args.steps, batch_size=args.batch_size, learning_rate=args.learning_rate,
-                               seed=args.seed, init_from=args.init_from)
     demo_config = DemoConfig(image_sizes=train_config.image_sizes)
-    if args.episodes is not None:
-        demo_config = replace(demo_config, episodes=tuple((t, args.episodes) for t in demo_config.tasks))
-    summary = existing_demos(demo_config, args.data)
+    if options.episodes is not None:
+        demo_config = replace(demo_config, episodes=tuple((t, options.episodes) for t in demo_config.tasks))
+    summary = existing_demos(demo_config, options.data)
     if summary is None:
-        log.info("recording %s demonstrations into %s", dict(demo_config.episodes), args.data)
-        summary = record_demos(demo_config, args.data, workers=args.workers)
+        log.info("recording %s demonstrations into %s", dict(demo_config.episodes), options.data)
+        summary = record_demos(demo_config, options.data, workers=workers)
     else:
-        log.info("reusing the demonstrations in %s (recorded in %.0f s)", args.data, summary["seconds"])
-    demos = load_demos(args.data, demo_config.tasks)
+        log.info("reusing the demonstrations in %s (recorded in %.0f s)", options.data, summary["seconds"])
+    demos = load_demos(options.data, demo_config.tasks)
     if dagger_config is None:
-        result = train(demos, args.out, train_config)
+        result = train(demos, options.out, train_config)
     else:
         result = dagger_round(
-            demos, train_config, args.data, args.out,
-            collect=lambda model, out: dagger.collect(model, out, dagger_config, workers=args.workers),
+            demos, train_config, options.data, options.out,
+            collect=lambda model, out: dagger.collect(model, out, dagger_config, workers=workers),
             existing=lambda model, out: dagger.existing(dagger_config, model, out),
             append=lambda d, out: dagger.append_corrections(d, out, dagger_config.task),
-            steps=args.dagger_steps, learning_rate=args.dagger_learning_rate,
+            steps=options.dagger_steps, learning_rate=options.dagger_learning_rate,
             what=f"{dagger_config.episodes} {dagger_config.task} episodes")
     result["demonstrations"] = summary
     result["pipeline_seconds_this_run"] = time.perf_counter() - start
-    atomic_write_json(Path(args.out, "training_summary.json"), result, exact=True)
-    log.info("done: %s (demonstrations %.0f s, training %.0f s)", args.out, summary["seconds"], result["total_seconds"])
+    atomic_write_json(Path(options.out, "training_summary.json"), result, exact=True)
+    log.info("done: %s (demonstrations %.0f s, training %.0f s)", options.out, summary["seconds"], result["total_seconds"])
     return 0
 
 

@@ -41,6 +41,7 @@ from harness.files import atomic_write_json
 from harness.octo.config import OctoConfig
 from harness.octo.network import LanguageTokenizer, init_params
 from harness.octo.t5 import T5Config
+from harness.options import option
 from reference_policies import train_loop
 from reference_policies.train_step import make_optimizer, make_train_step
 from reference_policies.warm_start import initialise
@@ -58,13 +59,15 @@ SPECIALS = ("<pad>", "</s>", "<unk>")  # T5's ids 0, 1, 2
 
 @dataclass(frozen=True)
 class TrainConfig:
-    steps: int = 6000  # warm-started (scripts/train_reference.sh); the 64-px parent trained 14000 from scratch
-    batch_size: int = 32
-    learning_rate: float = 6e-4
+    # warm-started (scripts/train_reference.sh); the 64-px parent trained 14000 from scratch
+    steps: int = option(6000, "--steps", "training steps", type=int)
+    batch_size: int = option(32, "--batch-size", "frames per training batch", type=int)
+    learning_rate: float = option(6e-4, "--learning-rate", "peak learning rate of the warm-up + cosine schedule",
+                                  type=float)
     warmup_steps: int = 200
     weight_decay: float = 1e-4
     grad_clip: float = 1.0
-    seed: int = 0
+    seed: int = option(0, "--seed", "training seed (batch sampling, initialisation, augmentation)", type=int)
     log_every: int = 50
     checkpoint_every: int = 250
     shift_pixels: int = 4  # random-shift augmentation (pad + random crop) of every camera image
@@ -84,7 +87,14 @@ class TrainConfig:
     # batches sample tasks in these proportions (then frames uniformly within a task)
     task_weights: tuple[tuple[str, float], ...] = (("Lift", 1.0), ("Stack", 1.5), ("PickPlaceCan", 2.0))
     # warm start: copy an earlier checkpoint's parameters (reference_policies.warm_start); None = from scratch
-    init_from: str | None = None
+    init_from: str | None = option(None, "--init-from", "warm start from this checkpoint folder (same architecture; "
+                                   "patch-grid position embeddings are resampled to the new image sizes) [none: "
+                                   "random initialisation]", metavar="CHECKPOINT")
+
+    def __post_init__(self) -> None:
+        if self.steps < 1 or self.batch_size < 1 or not self.learning_rate > 0:
+            raise ValueError(f"--steps {self.steps}, --batch-size {self.batch_size}, --learning-rate "
+                             f"{self.learning_rate}: steps and batch size must be >= 1, the learning rate > 0")
 
 
 # ----------------------------------------------------------------------------- config and text

@@ -1,5 +1,6 @@
-"""Readable sizes (issue 42, item 6): no function in harness/ or envs/ over 80 lines, and no module over 500 lines but
-the ones named in ALLOWED_LARGE (at most two, each with its reason, as docs/layout.md's "Sizes" paragraph says).
+"""Readable sizes (issue 42, item 6): no function in harness/, envs/ or reference_policies/ over 80 lines, and no
+module over 500 lines but the ones named in ALLOWED_LARGE (at most two, each with its reason, as docs/layout.md's
+"Sizes" paragraph says).
 
 A function's lines run from its `def` line to its last line (decorators left out); methods and nested functions
 count on their own. A module's lines are its text's lines."""
@@ -8,7 +9,7 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("harness", "envs")
+PACKAGES = ("harness", "envs", "reference_policies")  # the reference policies moved out of harness/ (issue 64)
 MAX_FUNCTION = 80
 MAX_MODULE = 500
 # module -> why it may stay over MAX_MODULE lines for now

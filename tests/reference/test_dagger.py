@@ -254,20 +254,20 @@ def test_pipeline_refuses_a_swap_count_out_of_range_in_one_line(value, capsys):
                                          (["--missed-grasps", "0.5", "--recipe", "first"], "has none of"),
                                          (["--missed-grasps", "0.5", "--demonstrator", "timed"], "state-based")])
 def test_pipeline_refuses_retrain_beside_fine_tuning_and_a_bad_missed_grasp_rate_in_one_line(flags, words, capsys):
-    from reference_policies.libero_pipeline import _checked, _parser
+    from reference_policies.libero_pipeline import _checked, command_parser
 
     with pytest.raises(SystemExit) as exit_info:
-        _checked(_parser(), [*flags, "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
+        _checked(command_parser(), [*flags, "--out", "/nonexistent/x", "--data", "/nonexistent/d"])
     assert exit_info.value.code == 2
     (line,) = [text for text in capsys.readouterr().err.splitlines() if "error:" in text]
     assert words in line
 
 
 def test_a_dagger_round_fine_tunes_1500_steps_at_3e_4_unless_told_otherwise():
-    from reference_policies.libero_pipeline import _checked, _parser
+    from reference_policies.libero_pipeline import _checked, command_parser
 
     def round_of(*flags):
-        args = _checked(_parser(), ["--dagger-episodes", "6", "--out", "/nonexistent/x", *flags])[0]
+        args = _checked(command_parser(), ["--dagger-episodes", "6", "--out", "/nonexistent/x", *flags])[0]
         return args.dagger_steps, args.dagger_learning_rate, args.dagger_retrain
 
     assert round_of() == (1500, 3e-4, False)
@@ -276,10 +276,10 @@ def test_a_dagger_round_fine_tunes_1500_steps_at_3e_4_unless_told_otherwise():
 
 
 def test_the_dagger_labeller_closes_as_the_demonstrator_unless_told_otherwise():
-    from reference_policies.libero_pipeline import _checked, _parser
+    from reference_policies.libero_pipeline import _checked, command_parser
 
     def labeller_limit(*flags):
-        _, _, dagger, _ = _checked(_parser(), ["--dagger-episodes", "6", "--out", "/nonexistent/x", *flags])
+        _, _, dagger, _ = _checked(command_parser(), ["--dagger-episodes", "6", "--out", "/nonexistent/x", *flags])
         return dagger.expert.close_below_top
 
     assert labeller_limit() is None
@@ -290,10 +290,10 @@ def test_the_dagger_labeller_closes_as_the_demonstrator_unless_told_otherwise():
 
 def test_each_recipe_writes_its_own_committed_folder_unless_told_otherwise():
     """`--recipe first` without --out rebuilds the first policy's folder, never the reference's."""
-    from reference_policies.libero_pipeline import _checked, _parser
+    from reference_policies.libero_pipeline import _checked, command_parser
 
     def out(*flags):
-        return _checked(_parser(), list(flags))[0].out
+        return _checked(command_parser(), list(flags))[0].out
 
     assert out() == "models/octo-reference-libero-object"
     assert out("--recipe", "first") == "models/octo-reference-libero-object-first"
@@ -317,15 +317,15 @@ def test_the_demonstrators_radii_reach_its_configuration_and_not_the_dagger_labe
     --close-below-top; the DAgger labeller keeps its own radii, which must accept the policy's imprecise states."""
     from reference_policies.demos import config_fingerprint
     from reference_policies.libero_expert import LiberoExpertConfig
-    from reference_policies.libero_pipeline import RECIPES, _checked, _parser
+    from reference_policies.libero_pipeline import RECIPES, _checked, command_parser
 
-    args, _, dagger, _ = _checked(_parser(), ["--demonstrator-radii", "grasp_height=0.004, at_grasp=0.01",
+    args, _, dagger, _ = _checked(command_parser(), ["--demonstrator-radii", "grasp_height=0.004, at_grasp=0.01",
                                               "--close-below-top", "0.003", "--dagger-episodes", "6", "--out", "/x"])
     expert = args.demonstrator_expert
     assert (expert.grasp_height, expert.at_grasp, expert.close_below_top) == (0.004, 0.01, 0.003)
     assert expert.centred == LiberoExpertConfig().centred
     assert (dagger.expert.grasp_height, dagger.expert.at_grasp) == (LiberoExpertConfig().grasp_height, LiberoExpertConfig().at_grasp)
-    plain = _checked(_parser(), ["--out", "/x"])[0].demonstrator_expert
+    plain = _checked(command_parser(), ["--out", "/x"])[0].demonstrator_expert
     assert plain == RECIPES["second"].expert  # no option: the committed recording's fingerprint, reused
     from dataclasses import replace
 
