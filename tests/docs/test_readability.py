@@ -1,0 +1,109 @@
+"""README.md and the guides in docs/ read in short sentences (issue 67 item 7): at most 10% of a page's sentences
+over 40 words, and none over 70.
+
+A sentence is counted in prose only: fenced code, tables, headings and HTML comments are left out, each list item
+ends a sentence, links count as their text and a code span counts its words. Sentences end at ., ! or ? before a
+capital, a code span or a bracket; "e.g." and "i.e." do not end one. Pages exempt: docs/history/ (work logs) and
+the generated findings pages (models/*/EVAL.md, not under docs/).
+
+Pages written before the rule are listed in NOT_YET with the counts they had. Such a page may not get worse, and
+the test fails once it meets the limits, so that it leaves the list: the list only shrinks.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from tests.docs.test_docs import prose_lines
+
+REPO = Path(__file__).resolve().parents[2]
+LONG, TOO_LONG, SHARE = 40, 70, 0.10
+
+# page: (sentences over 40 words, sentences over 70 words) when the rule came in; these may only go down
+NOT_YET = {
+    "docs/README.md": (1, 0),
+    "docs/faithfulness-sanity.md": (13, 1),
+    "docs/faithfulness.md": (16, 4),
+    "docs/layout.md": (8, 0),
+    "docs/libero-reference.md": (14, 2),
+    "docs/libero.md": (13, 1),
+    "docs/octo-runtime.md": (5, 0),
+    "docs/parallel.md": (14, 1),
+    "docs/perturbations.md": (27, 5),
+    "docs/phases-and-position.md": (28, 3),
+    "docs/python-api.md": (5, 1),
+    "docs/regression.md": (21, 2),
+    "docs/report.md": (7, 2),
+    "docs/run-integrity.md": (13, 0),
+    "docs/running.md": (8, 2),
+    "docs/viewer.md": (12, 1),
+}
+
+ABBREVIATIONS = re.compile(r"\b(e\.g|i\.e|etc|vs|cf)\.", re.I)
+
+
+def sentences(text: str) -> list[str]:
+    """The prose sentences of a Markdown page."""
+    units, current = [], []
+    for line in prose_lines(text) + [""]:
+        s = line.strip()
+        item = re.match(r"^([-*+]|\d+\.)\s+", s)
+        if not s or s.startswith(("#", "|", "<!--", "![")) or item:
+            if current:
+                units.append(" ".join(current))
+                current = []
+            if item:
+                current.append(s[item.end():])
+            continue
+        current.append(s)
+    out = []
+    for unit in units:
+        unit = re.sub(r"!?\[([^\]]*)\]\([^)]*\)", r"\1", unit)  # a link counts as its text
+        unit = ABBREVIATIONS.sub(lambda m: m.group(1), unit)
+        out += [s for s in re.split(r"(?<=[.!?])\s+(?=[A-Z`*(\[])", unit) if s.strip()]
+    return out
+
+
+def lengths(page: Path) -> list[int]:
+    return [len(s.split()) for s in sentences(page.read_text())]
+
+
+def guides() -> list[Path]:
+    return [REPO / "README.md", *sorted(p for p in (REPO / "docs").glob("*.md"))]
+
+
+def name(page: Path) -> str:
+    return str(page.relative_to(REPO))
+
+
+@pytest.mark.parametrize("page", guides(), ids=name)
+def test_sentences_are_short(page):
+    counts = lengths(page)
+    long, too_long = sum(n > LONG for n in counts), sum(n > TOO_LONG for n in counts)
+    meets = long <= SHARE * len(counts) and too_long == 0
+    if name(page) in NOT_YET:
+        before = NOT_YET[name(page)]
+        assert not meets, f"{name(page)} now meets the limits: take it out of NOT_YET"
+        assert (long, too_long) <= before and long <= before[0] and too_long <= before[1], (
+            f"{name(page)}: {long} sentences over {LONG} words and {too_long} over {TOO_LONG}, more than the "
+            f"{before} it had; shorten the new ones")
+        return
+    worst = sorted((s for s in sentences(page.read_text()) if len(s.split()) > LONG), key=lambda s: -len(s.split()))
+    assert meets, (f"{name(page)}: {long} of {len(counts)} sentences over {LONG} words (at most {SHARE:.0%}) and "
+                   f"{too_long} over {TOO_LONG} (none); the longest: " + " || ".join(worst[:3]))
+
+
+def test_not_yet_names_existing_guides():
+    assert set(NOT_YET) <= {name(p) for p in guides()}
+
+
+def test_sentences_are_counted_in_prose_only():
+    text = ("# A heading that is long but not a sentence at all\n\nOne short sentence. Another, e.g. with `code` in it!"
+            "\n\n```bash\nnot counted. At all.\n```\n\n| a table | row. Not counted. |\n\n- an item without a stop\n"
+            "- [a link](x.md) counts its text. Then `a span` starts one.\n<!-- a comment. Not counted. -->\n")
+    assert sentences(text) == ["One short sentence.", "Another, e.g with `code` in it!", "an item without a stop",
+                               "a link counts its text.", "`a span` starts one."]
+    assert [len(s.split()) for s in sentences("word " * 41 + ".\n")] == [42]
