@@ -103,7 +103,7 @@ def test_not_yet_names_existing_guides():
 def test_sentences_are_counted_in_prose_only():
     text = ("# A heading that is long but not a sentence at all\n\nOne short sentence. Another, e.g. with `code` in it!"
             "\n\n```bash\nnot counted. At all.\n```\n\n| a table | row. Not counted. |\n\n- an item without a stop\n"
-            "- [a link](x.md) counts its text. Then `a span` starts one.\n<!-- a comment. Not counted. -->\n")
+            "- [a link](x.md) counts its text. `a span` starts one.\n<!-- a comment. Not counted. -->\n")
     assert sentences(text) == ["One short sentence.", "Another, e.g with `code` in it!", "an item without a stop",
                                "a link counts its text.", "`a span` starts one."]
     assert [len(s.split()) for s in sentences("word " * 41 + ".\n")] == [42]
