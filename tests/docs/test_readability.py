@@ -24,17 +24,14 @@ LONG, TOO_LONG, SHARE = 40, 70, 0.10
 
 # page: (sentences over 40 words, sentences over 70 words) when the rule came in; these may only go down
 NOT_YET = {
-    "docs/README.md": (1, 0),
     "docs/faithfulness-sanity.md": (13, 1),
     "docs/faithfulness.md": (16, 4),
     "docs/layout.md": (8, 0),
     "docs/libero-reference.md": (14, 2),
     "docs/libero.md": (13, 1),
-    "docs/octo-runtime.md": (5, 0),
     "docs/parallel.md": (14, 1),
     "docs/perturbations.md": (27, 5),
     "docs/phases-and-position.md": (28, 3),
-    "docs/python-api.md": (5, 1),
     "docs/regression.md": (21, 2),
     "docs/report.md": (7, 2),
     "docs/run-integrity.md": (13, 0),
