@@ -131,28 +131,28 @@ class EnvOptions:
     # The command line's options (metadata "option": harness.options.Option's fields as a plain dict, as envs/ sits
     # below harness/; a run resolves them: flags over the checkpoint's harness.toml over the task family's defaults)
     masks: bool = field(default=False, metadata={"option": dict(
-        flag="--no-masks", help="do not render target/robot masks", file=(bool,), action="store_true",
-        convert=lambda v: not v, absent=True)})
+        flag="--no-masks", help="do not render target/robot masks", file=(bool,), action="store_true", negated=True,
+        absent=True)})  # a run's masks are on; the env's own default (envs.make) is off
     fast_render: bool = field(default=False, metadata={"option": dict(
         flag="--fast-render", help={"run": "render without reflections, shadows and anti-aliasing (an env step about 3x faster: docs/benchmarks.md)",
                                     "robustness": "as for `run --fast-render`"},
-        file=(bool,), action="store_true", convert=bool, absent=False)})
+        file=(bool,), action="store_true", convert=bool)})
     # None: the task's default cameras; () renders nothing
     cameras: tuple[tuple[str, str, int], ...] | None = field(default=None, metadata={"option": dict(
         flag="--camera", help="observation key fed by a robosuite camera at a square size, e.g. "
         "image_primary=agentview:84 (repeat; default: the task's cameras or the checkpoint's harness.toml)",
-        file=(str, list, dict), action="append", metavar="KEY=camera:size",
+        file=(str, list, dict), action="append", metavar="KEY=camera:size", field="cameras",
         convert=lambda v: tuple(parse_camera(c) for c in v) or None,
         doc="observation key fed by a robosuite camera at a square size (repeat); default: the checkpoint's "
             "`harness.toml`, else the task family's (robosuite: the task's cameras; LIBERO: the published protocol); "
             "the manifest's `conventions` says which")})
     image_convention: str = field(default="upright", metadata={"option": dict(  # "upright" | "opengl" | "rot180"
         flag="--image-convention", help="orientation of the frames the model was trained on (rot180: OpenVLA's LIBERO "
-        "datasets) [upright]", file=(str,), choices=IMAGE_CONVENTIONS,
+        "datasets)", file=(str,), choices=IMAGE_CONVENTIONS,
         doc="orientation of the frames the model was trained on (rot180: OpenVLA's LIBERO datasets) [the checkpoint's "
             "`harness.toml`, else the task family's: robosuite upright, LIBERO rot180]")})
     action_space: str = field(default="octo-delta", metadata={"option": dict(  # "octo-delta" | "robosuite" | "libero"
-        flag="--action-space", help="what the model's actions mean [octo-delta, or the checkpoint's harness.toml]",
+        flag="--action-space", help="what the model's actions mean", default_text="{}, or the checkpoint's harness.toml",
         file=(str,), choices=ACTION_SPACES,
         doc="what the model's actions mean [the checkpoint's `harness.toml`, else the task family's: robosuite "
             "octo-delta, LIBERO libero]")})

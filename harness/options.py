@@ -2,7 +2,12 @@
 dataclass that owns it, and the field's metadata (an `Option`) holds its flag, help text, protocol-file types, how a
 given value becomes the field's value, and whether (and when) it enters the protocol and its hash:
 
-    png_every: int = option(1, "--png-every", "write overlays every n-th step (0 = none) [1]", type=int, file=(int,))
+    png_every: int = option(1, "--png-every", "write overlays every n-th step (0 = none)", type=int, file=(int,))
+
+The help's "[default]" is the field's default (`Option.shown`), so the two cannot disagree; where the value alone does
+not say it (None: the task's limit), `default_text` words it. The flag names its field: `--png-every` sets
+`png_every`; where it does not, the option says so once (`negated`: `--no-video` turns `video` off; `field`:
+`--intervene` sets `intervention`), and tests/docs/test_option_tables.py checks both over every command.
 
 The owners: `harness.run.protocol.Protocol` (model, tasks, seeds, ...), `envs.options.EnvOptions` (which, below
 `harness`, writes the same metadata as a plain dict), `harness.policy.PolicyConfig`, `harness.outputs.writers.
@@ -16,6 +21,7 @@ is adding one field.
 from __future__ import annotations
 
 import dataclasses
+import re
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Mapping
 
@@ -26,7 +32,8 @@ UNSET = type("Unset", (), {"__repr__": lambda self: "UNSET"})()  # `absent` not 
 @dataclass(frozen=True)
 class Option:
     flag: str  # "--png-every"; the settings / protocol-file key is its name with underscores ("png_every")
-    help: str | Mapping[str, str] | None = None  # the --help text, or {command: text} where commands word it apart
+    # the --help text, or {command: text} where commands word it apart; without its default, which `help_for` adds
+    help: str | Mapping[str, str] | None = None
     file: tuple[type, ...] = ()  # the types a protocol file may hold under the key; () = not a protocol-file key
     hashed: bool = True  # recorded in the protocol (and its hash); False: recorded elsewhere in the manifest
     sparse: bool = False  # recorded only when not at its default, so protocols made before the option keep their hash
@@ -37,17 +44,43 @@ class Option:
     convert: Callable[[Any], Any] | None = None  # a given value (flag or protocol file) -> the field's value
     absent: Any = UNSET  # the field's value when the option is not given, where a run's differs
     doc: str | None = None  # the docs table's text where it says more than the help [the help]
+    negated: bool = False  # a switch that turns its field off: --no-video sets `video` False (the key stays no_video)
+    field: str | None = None  # the field's name where the flag names it otherwise (--intervene sets `intervention`)
+    # the help's [default] where the field's value alone does not say it ("{}" stands for the value), or
+    # {command: text}; "" for none
+    default_text: str | Mapping[str, str] | None = None
+    value: Any = UNSET  # the field's default (filled in from the field)
 
     @property
     def key(self) -> str:
         return self.flag[2:].replace("-", "_")
 
-    def help_for(self, command: str) -> str | None:
+    def shown(self, command: str = "run", default: Any = UNSET) -> str | None:
+        """The help's [default]: `default` (a command's own, e.g. robustness' 20 episodes) or the field's, as text;
+        None for a switch (off unless given) and for a default the help does not state."""
+        text = self.default_text.get(command, self.default_text.get("run")) \
+            if isinstance(self.default_text, Mapping) else self.default_text
+        value = shown(self.value if default is UNSET or default is None else default)
+        if text is not None:
+            return text.replace("{}", value or "") or None
+        return None if self.action == "store_true" else value
+
+    def text_for(self, command: str) -> str | None:
+        """The help as written for `command`, without its default."""
         return self.help.get(command, self.help.get("run")) if isinstance(self.help, Mapping) else self.help
 
-    def add_to(self, parser, command: str = "run", **overrides) -> None:
-        """The flag on `parser`; `overrides` (default, required, metavar, help) where `command` differs from run."""
-        kwargs: dict[str, Any] = {"default": None, "help": self.help_for(command)}
+    def help_for(self, command: str, default: Any = UNSET) -> str | None:
+        """The --help text with its [default] (`shown`)."""
+        text = self.text_for(command)
+        value = self.shown(command, default)
+        if text is None or value is None:
+            return text
+        return f"{text} [{value}]" if text else f"[{value}]"
+
+    def add_to(self, parser, command: str = "run", **overrides):
+        """The flag on `parser` (its argparse action); `overrides` (default, required, metavar, help) where `command`
+        differs from run."""
+        kwargs: dict[str, Any] = {"default": None, "help": self.help_for(command, overrides.get("default", UNSET))}
         if self.action is not None:
             kwargs["action"] = self.action
         for name in ("type", "metavar"):
@@ -58,19 +91,32 @@ class Option:
         kwargs.update(overrides)
         if kwargs.get("help") is None:
             del kwargs["help"]
-        parser.add_argument(self.flag, **kwargs)
+        action = parser.add_argument(self.flag, **kwargs)
+        action.declared = self  # the option behind the flag (the tests check each help's default against it)
+        return action
+
+
+def shown(value: Any) -> str | None:
+    """A default as the help shows it (0.0 -> 0, 3.5e-07 -> 3.5e-7, (0, 5) -> 0,5); None where there is none."""
+    if value is UNSET or value is dataclasses.MISSING or value is None or value == "" or isinstance(value, bool):
+        return None
+    if isinstance(value, float):
+        return re.sub(r"e([+-])0*(\d)", lambda m: "e" + m.group(1).replace("+", "") + m.group(2), f"{value:.6g}")
+    if isinstance(value, (tuple, list)):
+        return ",".join(str(v) for v in value)
+    return str(value)
 
 
 def option(default: Any = dataclasses.MISSING, flag: str = "", help: str | Mapping[str, str] | None = None, *,
            default_factory: Any = dataclasses.MISSING, **details) -> Any:
     """A dataclass field declared with its option (see `Option`)."""
     return dataclasses.field(default=default, default_factory=default_factory,
-                             metadata={KEY: Option(flag, help, **details)})
+                             metadata={KEY: Option(flag, help, value=default, **details)})
 
 
 def option_of(field: dataclasses.Field) -> Option | None:
     found = field.metadata.get(KEY)
-    return Option(**found) if isinstance(found, Mapping) else found
+    return Option(**found, value=field.default) if isinstance(found, Mapping) else found
 
 
 def options(*classes) -> list[tuple[dataclasses.Field, Option]]:
@@ -106,6 +152,8 @@ def given(cls, settings: Mapping[str, Any], skip: Iterable[str] = ()) -> dict[st
         if field.name in skip:
             continue
         value = settings.get(o.key)
+        if value is not None and o.negated:
+            value = not value
         if value is not None and o.convert is not None:
             value = o.convert(value)
         if value is not None:
@@ -141,7 +189,7 @@ def table(groups: Iterable[tuple[Any, str]], command: str = "run") -> str:
     lines = ["| option | meaning [default] | recorded as |", "|---|---|---|"]
     for cls, path in groups:
         for field, o in options(cls):
-            text = (o.doc or o.help_for(command) or "").replace("|", "\\|").replace("%%", "%")
+            text = (o.doc or o.help_for(command) or "").replace("|", "\\|").replace("%%", "%")  # a doc words its own
             lines.append(f"| {_flag_text(o)} | {text} | {_where(path, field, o)} |")
     return "\n".join(lines) + "\n"
 

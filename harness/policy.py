@@ -46,16 +46,16 @@ class EnvMismatchError(ValueError):
 
 @dataclass(frozen=True)
 class PolicyConfig:
-    execution: str = option("temporal_ensemble", "--execution", "[temporal_ensemble]", file=(str,),
+    execution: str = option("temporal_ensemble", "--execution", "", file=(str,),
                             choices=("temporal_ensemble", "receding_horizon"),
                             doc="`temporal_ensemble` (infer every step, average overlapping chunk predictions) or "
                                 "`receding_horizon` (execute `--receding-steps` actions of each chunk) [temporal_ensemble]")
     # actions executed per inference when execution == "receding_horizon"; the temporal ensemble executes one
     # action per inference, so it records 1
-    receding_steps: int = option(4, "--receding-steps", "actions executed per inference (receding horizon) [4]",
+    receding_steps: int = option(4, "--receding-steps", "actions executed per inference (receding horizon)",
                                  type=int, file=(int,))
     # temporal ensemble: weight exp(-w * age_rank), 0 = plain average (Octo's default)
-    ensemble_weight: float = option(0.0, "--ensemble-weight", "temporal ensemble weight exp(-w*i); 0 = mean [0]",
+    ensemble_weight: float = option(0.0, "--ensemble-weight", "temporal ensemble weight exp(-w*i); 0 = mean",
                                     type=float, file=(int, float),
                                     doc="temporal ensemble: of the overlapping predictions for this step, the i-th "
                                         "oldest (i = 0 the oldest) weighs exp(-w·i); 0 is the plain mean, Octo's "
@@ -68,29 +68,29 @@ class PolicyConfig:
     full_attention: bool = False  # also return (layers, heads, queries, keys) matrices (needed by attention rollout)
     action_normalization: str = option(  # how the head's actions are unnormalised: mean/std | p01/p99 bounds
         "normal", "--action-normalization",
-        "how actions are unnormalised: mean/std or p01/p99 bounds [checkpoint's harness.toml, else normal]",
+        "how actions are unnormalised: mean/std or p01/p99 bounds", default_text="checkpoint's harness.toml, else {}",
         file=(str,), choices=("normal", "bounds"),
         doc="how the head's actions are unnormalised: mean/std or p01/p99 bounds (see [finetuned checkpoints]"
             "(octo-runtime.md#finetuned-checkpoints-cameras-proprio-action-space-image-convention)) [the checkpoint's "
             "`harness.toml`, else normal]")
     proprio_normalization: str = option(  # low-dim inputs: "normal" | "bounds" | "none" (harness.octo.normalization)
-        "normal", "--proprio-normalization", "how proprio inputs are normalised [checkpoint's harness.toml, else normal]",
-        file=(str,), choices=("normal", "bounds", "none"))
+        "normal", "--proprio-normalization", "how proprio inputs are normalised",
+        default_text="checkpoint's harness.toml, else {}", file=(str,), choices=("normal", "bounds", "none"))
     sampler: str = option(  # diffusion heads: "latest" (the latest original code, any checkpoint) | "v0.1.0"
-        "latest", "--sampler", "diffusion sampling as the latest original Octo code does, or as v0.1.0 did [latest]",
+        "latest", "--sampler", "diffusion sampling as the latest original Octo code does, or as v0.1.0 did",
         file=(str,), choices=("latest", "v0.1.0"))
     # examples per compiled inference call: every call (sequential, --workers, Ray) is padded to exactly this size, so
     # an example's numbers never depend on what shares its call, the worker count or the load (XLA's results depend
     # on the batch shape; 1 is fastest on a CPU, where one inference already uses every core)
     inference_batch: int = option(
         1, "--inference-batch", "examples per compiled inference call; every call is padded to it, so actions are "
-        "bit-identical whatever --workers or the load (part of the protocol; >1 pays on a GPU) [1]", type=int, file=(int,))
+        "bit-identical whatever --workers or the load (part of the protocol; >1 pays on a GPU)", type=int, file=(int,))
     # closed-loop intervention (harness/interventions.py), e.g. "mask-top:4:attention:2"; None = none
     intervention: str | None = option(
         None, "--intervene", "closed-loop intervention at every step (part of the protocol): mask-top:K:METHOD[:LAYER]"
         "[@CAMERA], mask-bottom:K:METHOD[:LAYER][@CAMERA], mask-random:K[@CAMERA], mask-all[@CAMERA], "
         "ablate-heads:L:H[,L:H...] (METHOD: attention, rollout, grad-attention, saliency)",
-        file=(str,), metavar="SPEC", sparse=True)
+        file=(str,), metavar="SPEC", sparse=True, field="intervention")
     # attribution maps at every inference step (harness/measures/attribution.py: "attention,rollout,grad-attention,
     # saliency"; random is always added) and open-loop faithfulness every k-th step (0 = never), deleted patches
     # filled with "mean", "blur" or "impute" (ROAD's noisy linear imputation). They do not change actions
@@ -100,12 +100,12 @@ class PolicyConfig:
         file=(str, list), metavar="METHODS", convert=joined, sparse=True)
     faithfulness_every: int = option(
         0, "--faithfulness-every", "open-loop faithfulness (deletion/insertion curves, top/random/bottom-k) of every "
-        "attribution method every K-th step, in faithfulness.jsonl [0 = never; methods default to all]",
+        "attribution method every K-th step, in faithfulness.jsonl", default_text="{} = never; methods default to all",
         type=int, file=(int,), metavar="K", sparse=True)
     faithfulness_fill: str = option(
         "mean", "--faithfulness-fill", "what a deleted patch becomes in the faithfulness curves: the frame's mean "
         "colour, a blur of the frame, or noisy linear imputation from the surrounding pixels (ROAD; in distribution, "
-        "no shape leak) [mean]", file=(str,), choices=("mean", "blur", "impute"), sparse=True)
+        "no shape leak)", file=(str,), choices=("mean", "blur", "impute"), sparse=True)
     # position-against-content controls (harness/measures/controls.py): every `controls_every`-th inference step is
     # asked again, open loop, with every camera's frames blanked to their mean colour / mirrored left-right; the
     # control attention goes to controls.npz. They do not change actions
@@ -114,17 +114,17 @@ class PolicyConfig:
         "every camera's frames blanked to their mean colour and/or mirrored left-right; attention in controls.npz "
         "(docs/phases-and-position.md)", file=(str, list), metavar="blank,mirror", convert=joined, sparse=True)
     controls_every: int | None = option(  # None: 1 with --attention-controls, unset without
-        None, "--controls-every", "run the attention controls at every N-th inference step [1 with --attention-controls]",
-        type=int, file=(int,), metavar="N", sparse=True)
+        None, "--controls-every", "run the attention controls at every N-th inference step",
+        default_text="1 with --attention-controls", type=int, file=(int,), metavar="N", sparse=True)
     # region reliance (harness/measures/reliance.py): each labelled region of every camera replaced by the fill, open
     # loop with the step's rng, the action chunk's change recorded in reliance.jsonl; needs the env's masks
     reliance_every: int = option(
         0, "--reliance-every", "region reliance every N-th step: each labelled region (target, gripper, goal, "
         "distractors, background...) of every camera replaced by --reliance-fill, and how much the predicted action "
-        "chunk changes, in reliance.jsonl [0 = never]", type=int, file=(int,), metavar="N", sparse=True)
+        "chunk changes, in reliance.jsonl", default_text="{} = never", type=int, file=(int,), metavar="N", sparse=True)
     reliance_fill: str = option(
         "impute", "--reliance-fill", "what a replaced region becomes for --reliance-every: the frame's mean colour, a "
-        "blur of the frame, or noisy linear imputation from the surrounding pixels [impute]", file=(str,),
+        "blur of the frame, or noisy linear imputation from the surrounding pixels", file=(str,),
         choices=("mean", "blur", "impute"), sparse=True)
 
     def __post_init__(self) -> None:

@@ -18,7 +18,7 @@ MEASURES = ("attention_controls", "controls_every", "reliance_every", "reliance_
 DIFFERS = {"model": {"required": True}, "task": {"required": True},
            "perturb": {"required": True, "metavar": "KINDS"},  # kinds only: the grid sets the levels
            "episodes": {"default": 20},
-           "png_every": {"default": 0, "help": "overlay PNGs every n-th step (0 = none) [0]"}}
+           "png_every": {"default": 0}}
 
 
 def add_parser(sub) -> None:

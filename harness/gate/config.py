@@ -22,28 +22,29 @@ FAIL_ON = ("regressed", "suspect", "underpowered", "changed")
 
 @dataclass(frozen=True)
 class GateConfig:
-    max_drop: float = option(0.1, "--max-drop", "HELD rules out a larger drop in success rate [0.1]", type=float)
+    max_drop: float = option(0.1, "--max-drop", "HELD rules out a larger drop in success rate", type=float)
     alpha: float = option(0.05, "--alpha", {
-        "compare": "family-wise level; intervals at 1 - alpha [0.05]",
-        "regress": "family-wise level; each task's sequential test runs at alpha / tasks [0.05]"}, type=float)
-    first_steps: int = option(10, "--first-steps", "per-step divergence over the first k steps [10]", type=int)
+        "compare": "family-wise level; intervals at 1 - alpha",
+        "regress": "family-wise level; each task's sequential test runs at alpha / tasks"}, type=float)
+    first_steps: int = option(10, "--first-steps", "per-step divergence over the first k steps", type=int)
     fail_on: str = option("suspect", "--fail-on", {
         "compare": "mildest verdict that exits 1: REGRESSED only; also SUSPECT (a drop the interval shows, the exact "
-                   "test does not confirm); also UNDERPOWERED; anything but IDENTICAL [suspect]",
+                   "test does not confirm); also UNDERPOWERED; anything but IDENTICAL",
         "regress": "mildest verdict that exits 1, as for compare; 'changed' also fails a candidate whose numbers on the "
                    "baseline's recorded inputs are not EQUIVALENT (replay): the gate for an unchanged model, on any "
-                   "machine [suspect]"}, choices=FAIL_ON)
-    max_episodes: int | None = option(None, "--max-episodes", "at most N episodes per task [the baseline's]", type=int)
+                   "machine"}, choices=FAIL_ON)
+    max_episodes: int | None = option(None, "--max-episodes", "at most N episodes per task", type=int,
+                                     default_text="the baseline's")
     # the candidate's text tokenizer (regress, replay): auto|fallback|PATH; None: the baseline's (the run's) choice
     text_tokenizer: str | None = option(
-        None, "--text-tokenizer", "the candidate's text tokenizer (as for `run --text-tokenizer`) [the baseline's choice]",
-        metavar="auto|fallback|PATH")
+        None, "--text-tokenizer", "the candidate's text tokenizer (as for `run --text-tokenizer`)",
+        metavar="auto|fallback|PATH", default_text="the baseline's choice")
     action_tolerance: float = option(
         Tolerances.action, "--action-tolerance",
-        "largest change of an action chunk, in normalised action units [3e-4]", type=float)
+        "largest change of an action chunk, in normalised action units", type=float)
     attention_tolerance: float = option(
         Tolerances.attention_js, "--attention-tolerance",
-        "largest Jensen-Shannon divergence (bits) of a layer's and head's readout attention [3.5e-7]", type=float)
+        "largest Jensen-Shannon divergence (bits) of a layer's and head's readout attention", type=float)
 
     @classmethod
     def from_args(cls, args) -> "GateConfig":

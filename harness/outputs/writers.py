@@ -91,6 +91,16 @@ def parse_video_attention(text: str):
                                          f"{', '.join(ATTRIBUTION_VIDEO)}, got {text!r}") from None
 
 
+def saves_recording(value) -> bool:
+    """--rerun MODES (or a protocol file's true / false) -> the `rerun` field: whether each episode's episode.rrd is
+    saved, i.e. 'save' among the modes (spawn and serve are live viewers, chosen on the command line only)."""
+    if isinstance(value, bool):
+        return value
+    from harness.outputs.rerun_sink import parse_modes
+
+    return "save" in parse_modes(value)
+
+
 class WriterError(RuntimeError):
     """The background writer failed; the cause is chained."""
 
@@ -98,17 +108,17 @@ class WriterError(RuntimeError):
 @dataclass(frozen=True)
 class OutputOptions:
     # PNG panels every n-th step; 0 = none
-    png_every: int = option(1, "--png-every", "write overlays every n-th step (0 = none) [1]", type=int, file=(int,))
+    png_every: int = option(1, "--png-every", "write overlays every n-th step (0 = none)", type=int, file=(int,))
     # layers to render as PNG (negative counts from the end); None = all
-    layers: tuple[int, ...] | None = option(None, "--layers", "overlay layers, e.g. 0,5,11 [all]", file=(str, list),
-                                            convert=layer_list)
+    layers: tuple[int, ...] | None = option(None, "--layers", "overlay layers, e.g. 0,5,11", file=(str, list),
+                                            convert=layer_list, default_text="all")
     video: bool = option(True, "--no-video", {"robustness": "no rollout.mp4 per episode"}, file=(bool,),
-                         action="store_true", convert=lambda v: not v,
+                         action="store_true", negated=True,
                          doc="no rollout.mp4")  # write rollout.mp4
     # overlay in the video: a layer index, "rollout" (needs full attention) or an attribution method of ATTRIBUTION_VIDEO
     # (its maps come with the records: the run computes them, --attribution)
     video_attention: str | int = option(
-        -1, "--video-attention", "attention shown in the MP4: a layer index (default -1 = last), 'rollout', or an "
+        -1, "--video-attention", "attention shown in the MP4: a layer index (-1 = the last), 'rollout', or an "
         "attribution map: grad-attention, saliency, occlusion (computed at every step, as --attribution)",
         type=parse_video_attention, file=(int, str),
         doc="attention shown in the MP4: a layer index (default `-1`, last), `rollout` (attention rollout; captures "
@@ -118,16 +128,17 @@ class OutputOptions:
     # the model's order (a single key, as older protocols hold it, is one row)
     video_camera: str | tuple[str, ...] | None = option(
         None, "--video-cameras", "cameras shown in the MP4, one row each (frame | overlay), e.g. image_primary or "
-        "image_primary,image_wrist [all: every camera the model reads]", file=(str, list), metavar="KEYS",
+        "image_primary,image_wrist", file=(str, list), metavar="KEYS", default_text="all: every camera the model reads",
+        field="video_camera",
         convert=camera_list)
     gif: bool = option(False, "--gif", "also write rollout.gif", file=(bool,), action="store_true",
                        convert=bool)  # every gif_every-th frame, half size
     gif_every: int = 2
     normalisation: str = option(  # PNG colour range: "frame" (this step) or "episode" (rendered at finish)
-        "frame", "--normalisation", "[frame]", file=(str,), choices=("frame", "episode"),
+        "frame", "--normalisation", "", file=(str,), choices=("frame", "episode"),
         doc="heatmap colour range per frame or per episode [frame]")
-    bbox: bool = option(True, "--bbox", "draw the target object's bounding box on overlays", file=(bool,),
-                        action="store_true", convert=bool, absent=False)  # draw the target mask's bounding box
+    bbox: bool = option(False, "--bbox", "draw the target object's bounding box on overlays", file=(bool,),
+                        action="store_true", convert=bool)  # draw the target mask's bounding box
     fps: float = 10.0
     head_fusion: str = "mean"  # the fused-head column / video map: "mean", "max" or "min"
     cmap: str = "jet"
@@ -141,15 +152,16 @@ class OutputOptions:
         action="store_true", convert=bool)
     overlay_interpolation: str = option(  # how patch maps are enlarged in PNGs, MP4 and recording: nearest | bilinear
         "nearest", "--overlay-interpolation", "how patch-grid maps are enlarged in PNGs, MP4 and recording: nearest "
-        "(the honest patch grid) or bilinear (smooth, as the original attention-visualisation scripts) [nearest]",
+        "(the honest patch grid) or bilinear (smooth, as the original attention-visualisation scripts)",
         file=(str,), choices=("nearest", "bilinear"), sparse=True)
-    # write episode.rrd, a Rerun recording of the episode (--rerun save; needs the viewer extra); the live modes
-    # (spawn, serve) are chosen on the command line only (harness/cli/run.py)
+    # write episode.rrd, a Rerun recording of the episode (--rerun save; needs the viewer extra): the flag takes modes,
+    # the field holds whether 'save' is among them (saves_recording); the live modes (spawn, serve) are chosen on the
+    # command line only (harness/cli/run.py)
     rerun: bool = option(
         False, "--rerun", "Rerun recording of every episode (pip install 'octo-harness[viewer]'): save writes "
         "episode.rrd beside its files (part of the protocol); spawn streams live to a viewer on this machine; serve "
         "hosts the web viewer for a headless server and prints its URL once (save,spawn / save,serve: both); see "
-        "docs/viewer.md", file=(bool,), metavar="save|spawn|serve", convert=bool, sparse=True)
+        "docs/viewer.md", file=(bool,), metavar="save|spawn|serve", convert=saves_recording, sparse=True)
 
     def to_dict(self) -> dict:
         """The fields as plain data; the options added since protocols were first hashed only when not at their

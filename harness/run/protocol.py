@@ -46,26 +46,29 @@ def harness_version() -> str:
         return "0+unknown"
 
 
+DEFAULT_MODEL = "hf://rail-berkeley/octo-small-1.5"  # a run's model when none is given (the field has no default)
+
+
 @dataclass(frozen=True)
 class Protocol:
     model: str = option(  # hf://owner/name, a checkpoint folder (absolute path), or random:<preset>
         flag="--model", file=(str,), help={
-            "run": "hf://owner/name, a local checkpoint folder, or random:octo-small-1.5 / random:octo-base-1.5 "
-                   "[hf://rail-berkeley/octo-small-1.5]",
-            "robustness": "model (as for `run --model`)"})
+            "run": "hf://owner/name, a local checkpoint folder, or random:octo-small-1.5 / random:octo-base-1.5",
+            "robustness": "model (as for `run --model`)"}, default_text={"run": DEFAULT_MODEL, "robustness": ""})
     tasks: tuple[str, ...] = option(  # registry names, in run order, no duplicates
-        flag="--task", file=(str, list), action="append", help={
+        flag="--task", file=(str, list), action="append", field="tasks", help={
             "run": "task name (repeat or comma-separate for several; 'all' for every registered task)",
             "robustness": "task name(s), repeat or comma-separate"})
-    episodes: int = option(1, "--episodes", {"run": "episodes per task [1]",  # per task
-                                             "robustness": "episodes per task and condition [20]"}, type=int, file=(int,))
-    seed: int = option(0, "--seed", {"run": "episode k uses seed + k [0]",  # episode k of every task: seed + k
-                                     "robustness": "episode k uses seed + k in every condition [0]"},
+    episodes: int = option(1, "--episodes", {"run": "episodes per task",  # per task
+                                             "robustness": "episodes per task and condition"}, type=int, file=(int,))
+    seed: int = option(0, "--seed", {"run": "episode k uses seed + k",  # episode k of every task: seed + k
+                                     "robustness": "episode k uses seed + k in every condition"},
                        type=int, file=(int,),
                        doc="episode k of each task is reset with seed `S + k` (same seed → same actions, attention, "
                            "images) [0]")
     max_steps: int | None = option(  # None = each task's own limit
-        None, "--max-steps", "stop each episode after N control steps [task's limit]", type=int, file=(int,))
+        None, "--max-steps", "stop each episode after N control steps", type=int, file=(int,),
+        default_text="task's limit")
     instruction: str | None = option(  # override of every task's instruction
         None, "--instruction", "override the task's language instruction", file=(str,))
     goal_images: str | None = option(  # absolute folder holding <obs key>.png goal images
@@ -81,8 +84,8 @@ class Protocol:
     harness_version: str = field(default_factory=harness_version)
     text_tokenizer: str | None = option(  # None: the checkpoint's own (auto); "fallback"; or an absolute path
         None, "--text-tokenizer", "text tokenizer: the checkpoint's own (t5-base from the Hugging Face cache), the "
-        "deterministic fallback (not T5), or a tokenizer.json / folder; part of the model fingerprint [auto]",
-        file=(str,), metavar="auto|fallback|PATH", sparse=True,
+        "deterministic fallback (not T5), or a tokenizer.json / folder; part of the model fingerprint",
+        file=(str,), metavar="auto|fallback|PATH", sparse=True, default_text="auto",
         doc="the text tokenizer: `auto` the one the checkpoint's config names (t5-base from the Hugging Face cache, or a "
             "tokenizer folder inside the checkpoint), `fallback` the deterministic hash tokenizer (not T5: for running "
             "offline when t5-base is not cached), or a `tokenizer.json` / a folder holding one; also `[text] "
@@ -92,10 +95,10 @@ class Protocol:
         None, "--perturb", {
             "run": "controlled perturbation of the scene (part of the protocol; docs/perturbations.md): camera, "
                    "lighting, texture, distractors, init-state, noise, language at level 0 (nominal) to 5; "
-                   "camera@KEY / noise@KEY pick a camera, e.g. camera:3,lighting:1 [none]",
+                   "camera@KEY / noise@KEY pick a camera, e.g. camera:3,lighting:1",
             "robustness": "comma-separated kinds (camera, lighting, texture, distractors, init-state, noise, language; "
                           "camera@KEY / noise@KEY for one camera)"},
-        file=(str, list), metavar="KIND[@KEY]:LEVEL[,...]", sparse=True,
+        file=(str, list), metavar="KIND[@KEY]:LEVEL[,...]", sparse=True, default_text={"run": "none", "robustness": ""},
         convert=lambda v: perturb_text(parse_perturb(v)))
     # a run mixing task families (robosuite, LIBERO): {family: {env option: value}} where a family's own default
     # convention differs from `env` (harness.conventions.family_defaults); None when every task takes `env`
@@ -208,7 +211,7 @@ class RunStatistics:
     --resume` included, writes them as the run began."""
 
     ci_method: str = option(
-        "wilson", "--ci-method", "confidence interval of success rates (95%%) [wilson]", file=(str,), choices=CI_METHODS,
+        "wilson", "--ci-method", "confidence interval of success rates (95%%)", file=(str,), choices=CI_METHODS,
         hashed=False, doc="95% interval of success rates: Wilson score or the exact Clopper-Pearson; a resume (also "
         "`--resume`) writes the derived files with the recorded one; another method for a run that records one is "
         "refused (one line, exit 2) [wilson]")

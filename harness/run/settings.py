@@ -34,13 +34,13 @@ from dataclasses import dataclass
 from envs.options import EnvOptions
 from harness.bounded import read_toml, short
 from harness.options import file_keys, given, option
+from harness.run.protocol import DEFAULT_MODEL
 from harness.policy import PolicyConfig
 from harness.measures.attribution import DEFAULT_METHODS
 from harness.outputs.writers import ATTRIBUTION_VIDEO
 from harness.run.protocol import Protocol, RunStatistics
 from harness.outputs.writers import OutputOptions
 
-DEFAULT_MODEL = "hf://rail-berkeley/octo-small-1.5"
 DEFAULT_OUT = "results/runs"
 
 
@@ -48,10 +48,10 @@ DEFAULT_OUT = "results/runs"
 class Destination:
     """Where a run's folder goes: `<out>/<run_name>` (its path, not part of the protocol)."""
 
-    out: str = option(DEFAULT_OUT, "--out", "output root [results/runs]", type=Path, file=(str,), hashed=False)
+    out: str = option(DEFAULT_OUT, "--out", "output root", type=Path, file=(str,), hashed=False)
     run_name: str | None = option(
-        None, "--run-name", "folder name of this run [<model>_<protocol hash>: the same command resumes the same run]",
-        file=(str,), hashed=False,
+        None, "--run-name", "folder name of this run", file=(str,), hashed=False,
+        default_text="<model>_<protocol hash>: the same command resumes the same run",
         doc="the run folder is `DIR/NAME` [`results/runs/<model>_<protocol hash>`, so the same command resumes the "
             "same run]; NAME is a plain folder name")
 

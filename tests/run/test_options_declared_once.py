@@ -86,8 +86,8 @@ def test_adding_an_option_is_one_field():
 
     @dataclass(frozen=True)
     class Options:
-        png_every: int = option(1, "--png-every", "write overlays every n-th step [1]", type=int, file=(int,))
-        margin: float = option(0.15, "--margin", "the largest drop that still HOLDS [0.15]", type=float,
+        png_every: int = option(1, "--png-every", "write overlays every n-th step", type=int, file=(int,))
+        margin: float = option(0.15, "--margin", "the largest drop that still HOLDS", type=float,
                                file=(int, float), sparse=True)
 
     parser = argparse.ArgumentParser()
