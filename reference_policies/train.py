@@ -13,7 +13,8 @@ The T5 encoder is tiny, randomly initialised and frozen (Octo's `finetune_encode
 of the instructions are computed once.
 
 Output: Octo's save_pretrained layout,
-  config.json (ModuleSpecs), example_batch.msgpack, dataset_statistics.json {DATASET_KEY: {action,
+  config.json (ModuleSpecs), example_batch.msgpack (the first training batch's first element, as Octo's:
+  reference_policies.example_batch), dataset_statistics.json {DATASET_KEY: {action,
   proprio, num_transitions, num_trajectories}}, <step>/default/checkpoint (msgpack param dict),
   t5-tiny/config.json (HF T5 config, LanguageTokenizer encoder="t5-tiny"), tokenizer/tokenizer.json
   (word-level, T5's special ids; text_processor tokenizer_name="tokenizer"), harness.toml (evaluation
@@ -43,6 +44,7 @@ from harness.octo.network import LanguageTokenizer, init_params
 from harness.octo.t5 import T5Config
 from harness.options import option
 from reference_policies import train_loop
+from reference_policies.example_batch import example_batch_from
 from reference_policies.train_step import make_optimizer, make_train_step
 from reference_policies.warm_start import initialise
 
@@ -359,7 +361,11 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     log.info("reference model: %d parameters (%.1f MB float32), %d frames, vocab %d", n_params, n_params * 4 / 2**20,
              len(data.actions), vocab)
 
-    encodings = _write_model_files(out_dir, cfg, config_dict, tokenizer, t5, t5_dict, t5_params, data.statistics, texts)
+    # the example batch: the first batch the training's sampler draws, from a sampler of its own (the training's
+    # random state is left as it was)
+    first = _batch_sampler(data, tasks, per_task, cfg, np.random.default_rng(cfg.seed))()
+    encodings = _write_model_files(out_dir, config_dict, tokenizer, t5, t5_dict, t5_params, data.statistics, texts,
+                                   first)
     (out_dir / "harness.toml").write_text(conventions if conventions is not None else conventions_toml(cfg))
     for name, content in (extra_files or {}).items():
         (out_dir / name).write_text(content)
@@ -386,11 +392,12 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
     return summary
 
 
-def _write_model_files(out_dir: Path, cfg: TrainConfig, config_dict: dict, tokenizer, t5: T5Config, t5_dict: dict,
-                       t5_params: dict, statistics: dict, texts: list[str]) -> jax.Array:
-    """The checkpoint's files but its parameters (config.json, dataset statistics, tokenizer, T5 config, example
-    batch); returns the frozen T5's encodings of `texts` (k, tokens, d_t5), tokenised by the runtime's own tokenizer
-    read back from the folder (its padding and truncation)."""
+def _write_model_files(out_dir: Path, config_dict: dict, tokenizer, t5: T5Config, t5_dict: dict, t5_params: dict,
+                       statistics: dict, texts: list[str], first_batch: dict) -> jax.Array:
+    """The checkpoint's files but its parameters (config.json, dataset statistics, tokenizer, T5 config, and the
+    example batch: `first_batch`'s first element, reference_policies.example_batch); returns the frozen T5's
+    encodings of `texts` (k, tokens, d_t5), tokenised by the runtime's own tokenizer read back from the folder (its
+    padding and truncation)."""
     from harness.octo.text import load_text_tokenizer
 
     write_static_files(out_dir, config_dict, tokenizer, t5_dict, statistics, {})
@@ -398,21 +405,7 @@ def _write_model_files(out_dir: Path, cfg: TrainConfig, config_dict: dict, token
     encoded = text.encode(texts)
     encodings = LanguageTokenizer(t5).apply({"params": t5_params}, jnp.asarray(encoded["input_ids"]),
                                             jnp.asarray(encoded["attention_mask"]))  # (k, tokens, d_t5)
-    sizes = dict(cfg.image_sizes)
-    example_batch = {
-        "observation": {
-            **{k: np.zeros((1, 1, s, s, 3), np.uint8) for k, s in sizes.items()},
-            "proprio": np.zeros((1, 1, PROPRIO_DIM), np.float32),
-            "timestep_pad_mask": np.ones((1, 1), bool),
-            "pad_mask_dict": {**{k: np.ones((1, 1), bool) for k in sizes}, "proprio": np.ones((1, 1), bool)},
-        },
-        "task": {
-            "language_instruction": {k: np.asarray(v[:1]) for k, v in encoded.items()},
-            "pad_mask_dict": {"language_instruction": np.ones((1,), bool)},
-        },
-        "action": np.zeros((1, 1, cfg.action_horizon, ACTION_DIM), np.float32),
-    }
-    write_static_files(out_dir, config_dict, tokenizer, t5_dict, statistics, example_batch)
+    write_static_files(out_dir, config_dict, tokenizer, t5_dict, statistics, example_batch_from(first_batch, encoded))
     return encodings
 
 

@@ -50,14 +50,20 @@ def test_training_seeds_are_disjoint_from_evaluation_seeds():
     assert all(a_high <= b_low for (_, a_high), (b_low, _) in zip(blocks, blocks[1:]))
 
 
-@pytest.mark.slow
-def test_recorded_episode_is_what_the_policy_sees():
+@pytest.fixture(scope="module")
+def lift_episode():
+    """One scripted Lift demonstration recorded as the policy sees it (64 px both cameras), or None."""
     env = envs.make("Lift", fast_render=True, action_space="robosuite", max_episode_steps=120)
     try:
-        episode = demos_mod.record_episode(env, ScriptedExpert("Lift"), 100_000, {"image_primary": 64, "image_wrist": 64},
-                                           noise=0.2, max_steps=120)
+        return demos_mod.record_episode(env, ScriptedExpert("Lift"), 100_000, {"image_primary": 64, "image_wrist": 64},
+                                        noise=0.2, max_steps=120)
     finally:
         env.close()
+
+
+@pytest.mark.slow
+def test_recorded_episode_is_what_the_policy_sees(lift_episode):
+    episode = lift_episode
     assert episode is not None
     n = len(episode["action"])
     assert 10 < n < 120
@@ -68,6 +74,37 @@ def test_recorded_episode_is_what_the_policy_sees():
     assert np.all(np.abs(episode["action"]) <= 1.0)
     assert set(np.unique(episode["action"][:, 6])) == {-1.0, 1.0}  # opens, then closes
     assert episode["image_primary"].std() > 5  # a rendered scene, not a blank frame
+
+
+@pytest.mark.slow
+def test_the_example_batch_is_the_first_element_of_a_real_training_batch(lift_episode):
+    """A training batch drawn from a real demonstration, as the trainer draws it: its first element becomes the
+    example batch (example_batch.msgpack), a rendered frame per camera at the training size and orientation (the
+    recorded one), with that frame's proprio, its action chunk and its instruction's tokens."""
+    from reference_policies.example_batch import example_batch_from
+    from reference_policies.train import _batch_sampler
+
+    n = len(lift_episode["action"])
+    demos = {"Lift": {**lift_episode, "episode": np.zeros(n, np.int32), "lengths": np.array([n], np.int32)}}
+    cfg = TrainConfig(batch_size=4, image_sizes=(("image_primary", 64), ("image_wrist", 64)))
+    data = build_dataset(demos, cfg.action_horizon)
+    batch = _batch_sampler(data, ["Lift"], 2, replace(cfg, paraphrase_probability=1.0), np.random.default_rng(0))()
+    language = {"input_ids": np.array([[5, 6, 1, 0], [7, 8, 9, 1]], np.int32), "attention_mask": np.ones((2, 4), bool)}
+    example = example_batch_from(batch, language)
+
+    obs = example["observation"]
+    (i,) = [i for i in range(n) if np.array_equal(lift_episode["image_primary"][i], obs["image_primary"][0, 0])]
+    assert obs["image_primary"].shape == obs["image_wrist"].shape == (1, 1, 64, 64, 3)
+    assert obs["image_primary"].dtype == np.uint8 and obs["image_primary"].std() > 5  # a rendered scene, not zeros
+    np.testing.assert_array_equal(obs["image_wrist"][0, 0], lift_episode["image_wrist"][i])
+    np.testing.assert_array_equal(obs["proprio"][0, 0], data.proprio[i])  # normalised, as trained
+    assert example["action"].shape == (1, 1, cfg.action_horizon, 7) and example["action"].dtype == np.float32
+    np.testing.assert_array_equal(example["action"][0, 0], data.actions[i])
+    assert np.abs(example["action"]).sum() > 0
+    np.testing.assert_array_equal(example["task"]["language_instruction"]["input_ids"], [[7, 8, 9, 1]])  # paraphrase
+    assert set(obs["pad_mask_dict"]) == {"image_primary", "image_wrist", "proprio"}
+    with pytest.raises(ValueError, match="image_"):
+        example_batch_from({"proprio": batch["proprio"]}, language)
 
 
 @pytest.mark.slow
@@ -191,6 +228,23 @@ def test_tiny_diffusion_training_reduces_loss_and_saves_a_loadable_octo_checkpoi
     stats = model.unnormalization_statistics(DATASET_KEY)
     assert stats["mask"].tolist() == [True] * 6 + [False]
     assert summary["parameters"] == sum(int(np.prod(x.shape)) for x in __import__("jax").tree.leaves(model.params))
+
+
+@pytest.mark.slow
+def test_a_trained_checkpoint_carries_a_training_frame_as_its_example_batch(diffusion):
+    """The trainer writes its first training batch's first element (reference_policies.example_batch), not zeros:
+    the loaded model's example frames are demonstration frames at the training sizes, its action a real chunk."""
+    from harness.octo.checkpoint import read_example_batch
+
+    out, _, demo = diffusion
+    batch = read_example_batch(out)
+    obs = batch["observation"]
+    assert np.shape(obs["image_primary"]) == (1, 1, 32, 32, 3) and np.shape(obs["image_wrist"]) == (1, 1, 16, 16, 3)
+    (i,) = [i for i in range(len(demo["action"])) if np.array_equal(demo["image_primary"][i], obs["image_primary"][0, 0])]
+    np.testing.assert_array_equal(obs["image_wrist"][0, 0], demo["image_wrist"][i])
+    chunks = build_dataset({"Lift": demo}, horizon=2).actions
+    np.testing.assert_allclose(batch["action"][0, 0], chunks[i], rtol=1e-6)
+    assert np.abs(batch["action"]).sum() > 0 and np.asarray(batch["task"]["language_instruction"]["input_ids"]).any()
 
 
 class _Stop(Exception):
