@@ -1,0 +1,58 @@
+"""docs/glossary.md defines each term of issue 67's list once, and every page that uses one of them links to it.
+
+A definition is a `###` heading of the glossary or the first cell of a row of one of its tables. Pages: README.md
+and the guides in docs/ (docs/history/ is a work log and exempt).
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from tests.docs.test_docs import link_targets, prose_lines
+
+REPO = Path(__file__).resolve().parents[2]
+GLOSSARY = REPO / "docs" / "glossary.md"
+
+# the term as the glossary names it, and how a page is found to use it
+TERMS = {
+    "target lift": r"target lift", "nuisance mass": r"nuisance mass", "reliance": r"\breliance\b",
+    "HELD": r"\bHELD\b", "REGRESSED": r"\bREGRESSED\b", "SUSPECT": r"\bSUSPECT\b", "UNDERPOWERED": r"\bUNDERPOWERED\b",
+    "INCOMPLETE": r"\bINCOMPLETE\b", "BREAKS": r"\bBREAKS\b", "HOLDS": r"\bHOLDS\b", "UNDETERMINED": r"\bUNDETERMINED\b",
+    "Holm": r"\bHolm\b", "Wilson": r"\bWilson\b", "Newcombe": r"\bNewcombe\b", "McNemar": r"\bMcNemar\b",
+    "anytime-valid": r"\banytime[- ]valid", "MoRF and LeRF": r"\b(MoRF|LeRF)\b", "impute fill": r"\bimpute\b",
+    "position-bound": r"position-bound",
+}
+
+
+def definitions(text: str) -> list[str]:
+    """The glossary's defined names: its ### headings and the first cell of each table row."""
+    lines = prose_lines(text)
+    names = [m.group(1).strip() for m in (re.match(r"^###\s+(.*)$", l) for l in lines) if m]
+    rows = [l.split("|")[1].strip() for l in lines if l.startswith("|") and not re.match(r"^\|\s*(-|verdict|page)", l)]
+    return names + rows
+
+
+def test_each_term_is_defined_once():
+    defined = definitions(GLOSSARY.read_text())
+    assert [t for t in TERMS if defined.count(t) != 1] == []
+
+
+def pages() -> list[Path]:
+    return [REPO / "README.md", *sorted(p for p in (REPO / "docs").glob("*.md") if p != GLOSSARY)]
+
+
+@pytest.mark.parametrize("page", pages(), ids=lambda p: str(p.relative_to(REPO)))
+def test_a_page_that_uses_a_term_links_to_the_glossary(page):
+    text = page.read_text()
+    prose = "\n".join(prose_lines(text))
+    used = [t for t, pattern in TERMS.items() if re.search(pattern, prose)]
+    linked = any(t.partition("#")[0].endswith("glossary.md") for t in link_targets(text))
+    assert linked or not used, f"{page.name} uses {used[:4]} but does not link docs/glossary.md"
+
+
+def test_the_check_sees_a_missing_link(tmp_path):
+    assert definitions("### target lift\n\n| verdict | meaning |\n|---|---|\n| HELD | x |\n") == ["target lift", "HELD"]
+    assert re.search(TERMS["anytime-valid"], "an anytime-valid test") and not re.search(TERMS["HELD"], "HELDOUT")
