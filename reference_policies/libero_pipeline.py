@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from harness.files import atomic_write_json
-from harness.options import option
+from harness.options import option, shown
 from reference_policies.libero_demos import (DEMONSTRATORS, LIBERO_CAMERAS, LiberoDemoConfig, MissConfig, append_swaps,
                                             existing_libero_demos, load_libero_demos, record_libero_demos)
 from reference_policies import libero_dagger
@@ -115,49 +115,53 @@ def _recipes(values: dict) -> str:
 class LiberoPipelineOptions:
     """The LIBERO pipeline's own options (each field's check in `__post_init__`; those that need the recipe in
     `_checked`); training's batch size, learning rate and seed are `TrainConfig`'s fields, the processes `Workers`'."""
-    out: str | None = option(None, "--out", "checkpoint folder to write [the recipe's committed folder: " +
-                             _recipes(RECIPE_OUT) + "]")
+    out: str | None = option(None, "--out", "checkpoint folder to write",
+                             default_text="the recipe's committed folder: " + _recipes(RECIPE_OUT))
     data: str = option("data/libero_object_demos", "--data", "folder for the demonstrations (not committed)")
     recipe: str = option("second", "--recipe", "first: the committed checkpoint's demonstrations (timed expert, wrist "
                          "64 px, 20 a task, Gaussian noise only); second: issue 46's (state expert, wrist 128 px, 50 a "
                          "task, recovery bursts)", choices=tuple(sorted(RECIPES)))
-    episodes: int | None = option(None, "--episodes", "demonstrations per task [the recipe's]", type=int)
-    steps: int | None = option(None, "--steps", "training steps [the recipe's: " + _recipes(RECIPE_STEPS) + "]",
-                               type=int)
+    episodes: int | None = option(None, "--episodes", "demonstrations per task", type=int, default_text="the recipe's")
+    steps: int | None = option(None, "--steps", "training steps", type=int,
+                               default_text="the recipe's: " + _recipes(RECIPE_STEPS))
     demonstrator: str | None = option(None, "--demonstrator", "timed: the phase expert (12-step close); state: the "
-                                      "state-based expert, which lifts once the fingers hold the object [the recipe's]",
-                                      choices=tuple(sorted(DEMONSTRATORS)))
+                                      "state-based expert, which lifts once the fingers hold the object",
+                                      choices=tuple(sorted(DEMONSTRATORS)), default_text="the recipe's")
     close_below_top: float | None = option(None, "--close-below-top", "the state-based demonstrator closes only with "
-                                           "the hand this far below the object's top (a flat object's grasp) [no "
-                                           "limit]", type=float, metavar="METRES")
+                                           "the hand this far below the object's top (a flat object's grasp)",
+                                           type=float, metavar="METRES", default_text="no limit")
     demonstrator_radii: str = option("", "--demonstrator-radii", "the state-based demonstrator's radii (centred, "
                                      "at_grasp, grasp_height; the DAgger labeller keeps its own), e.g. "
-                                     "grasp_height=0.004 to close only near the grasp height [LiberoExpertConfig's]",
-                                     metavar="NAME=METRES,...")
+                                     "grasp_height=0.004 to close only near the grasp height",
+                                     metavar="NAME=METRES,...", default_text="LiberoExpertConfig's")
     missed_grasps: float | None = option(None, "--missed-grasps", "with probability P a demonstration's first grasp is "
                                          "missed (driven 3 cm beside the object, it closes there) and the expert "
-                                         "recovers (libero_demos.MissConfig) [none]", type=float, metavar="P")
+                                         "recovers (libero_demos.MissConfig)", type=float, metavar="P",
+                                         default_text="none")
     swaps: int = option(0, "--swaps", "also N swapped-instruction demonstrations per task (into <data>/swaps): in its "
                         "scene the expert picks another task's named object, under that task's instruction", type=int,
                         metavar="N")
     dagger_episodes: int = option(0, "--dagger-episodes", "episodes per task of the trained policy to label for a "
                                   "DAgger round (0 = no round)", type=int)
     dagger_tasks: str = option("", "--dagger-tasks", "the tasks a DAgger round collects on (e.g. "
-                               "libero_object/0,libero_object/6) [every task]", metavar="TASK,...")
+                               "libero_object/0,libero_object/6)", metavar="TASK,...", default_text="every task")
     dagger_close_below_top: float | None = option(None, "--dagger-close-below-top", "the DAgger labeller closes only "
-                                                  "with the hand this far below the object's top [--close-below-top's: "
-                                                  "the demonstrator's]", type=float, metavar="METRES")
-    dagger_steps: int | None = option(None, "--dagger-steps", f"fine-tuning steps of each DAgger round "
-                                      f"[{DAGGER_STEPS}]", type=int)
+                                                  "with the hand this far below the object's top", type=float,
+                                                  metavar="METRES",
+                                                  default_text="--close-below-top's: the demonstrator's")
+    # None until given, so --dagger-retrain can refuse it; the default is the table's (DAGGER_STEPS)
+    dagger_steps: int | None = option(None, "--dagger-steps", "fine-tuning steps of each DAgger round", type=int,
+                                      default_text=shown(DAGGER_STEPS))
     dagger_rounds: int = option(1, "--dagger-rounds", "DAgger rounds, each acting with the previous round's "
                                 "checkpoint", type=int)
     dagger_learning_rate: float | None = option(None, "--dagger-learning-rate", "peak learning rate of the DAgger "
-                                                f"round's fine-tuning [{DAGGER_LEARNING_RATE:g}]", type=float)
+                                                "round's fine-tuning", type=float,
+                                                default_text=shown(DAGGER_LEARNING_RATE))
     dagger_retrain: bool = option(False, "--dagger-retrain", "each DAgger round trains anew on demonstrations + "
                                   "corrections, as stage 1 did (--steps, --learning-rate, --init-from), instead of "
                                   "fine-tuning the acting checkpoint", action="store_true")
     task_weights: str = option("", "--task-weights", "batches draw these tasks W times as often as the others (e.g. "
-                               "libero_object/0=3) [none]", metavar="TASK=W,...")
+                               "libero_object/0=3)", metavar="TASK=W,...", default_text="none")
     init_from: str = option(DEFAULT_INIT, "--init-from", "warm start from this checkpoint folder ('none': random "
                             "initialisation)", metavar="CHECKPOINT")
 

@@ -340,15 +340,15 @@ class ProbeOptions:
                                 f"how many failed episodes stalled open {STALL_STEPS}+ steps, from their actions.npz "
                                 "(markdown)", metavar="RUN_DIR")
     expert_radii: str = option("", "--expert-radii", "with --expert: its radii (centred, at_grasp, grasp_height), e.g. "
-                               "grasp_height=0.004 [LiberoExpertConfig's]", metavar="NAME=METRES,...")
+                               "grasp_height=0.004", metavar="NAME=METRES,...", default_text="LiberoExpertConfig's")
     language: str = option("own", "--language", "swap: each scene is told the next task's instruction whose named "
                            "object it holds (reference_policies.libero_eval swaps); success is that object, alone, in "
                            "the basket", choices=("own", "swap"))
     states: str = option("0,1", "--states", "stored initial states of every task")
-    tasks: str = option("", "--tasks", "LIBERO-Object tasks [all ten]")
+    tasks: str = option("", "--tasks", "LIBERO-Object tasks", default_text="all ten")
     max_steps: int = option(MAX_STEPS, "--max-steps", "step limit of an episode (LIBERO-Object's published one)",
                             type=int)
-    out: str | None = option(None, "--out", "write the rows and the summary here (JSON) [printed only]")
+    out: str | None = option(None, "--out", "write the rows and the summary here (JSON)", default_text="printed only")
 
 
 WHO = ("model", "expert", "table", "stalls")  # exactly one of them is given

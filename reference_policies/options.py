@@ -4,9 +4,9 @@ Each option is one field declared with `harness.options.option(default, flag, he
 it: `TrainConfig` (steps, batch size, learning rate, seed, warm start), `DaggerConfig` (task, episodes, step limit),
 `Workers` and `Provenance` below, and each command's own options dataclass (`PipelineOptions`, `LiberoPipelineOptions`,
 `ProbeOptions`, `DaggerOptions`, `EvaluateOptions`, `ClosedLoopOptions`). The parser's flags come from those fields,
-and a help text's `[default]` from the field's default, so no command copies a default. A field without a default
-is a required option. A default of None or "" means "not given": its help says in brackets what that means (the
-recipe's value, every task), and `parse` leaves the field at None or "".
+and each help's `[default]` from the field's default (`harness.options.Option.help_for`), so no command copies a
+default. A field without a default is a required option. A default of None or "" means "not given": its
+`default_text` says what that means (the recipe's value, every task), and `values` leaves the field at None or "".
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ class Workers:
 @dataclass(frozen=True)
 class Provenance:
     """What an evaluation table says of how it was made (reference_policies.evaluate, libero_eval closed-loop)."""
-    note: str = option("", "--note", "text placed above the table (command, checkpoint step, ...) [none]")
+    note: str = option("", "--note", "text placed above the table (command, checkpoint step, ...)", default_text="none")
     command: str | None = option(None, "--command", "the command to name in the provenance line (a script that calls "
-                                                    "this one) [this command]")
+                                                    "this one)", default_text="this command")
 
 
 def default_of(field: dataclasses.Field) -> Any:
@@ -44,21 +44,6 @@ def default_of(field: dataclasses.Field) -> Any:
     if field.default_factory is not dataclasses.MISSING:
         return field.default_factory()
     return dataclasses.MISSING
-
-
-def shown(value: Any) -> str:
-    """A default as its help text shows it: 0.0006 as 6e-4's `g` form, text as it is."""
-    return format(value, "g") if isinstance(value, float) else str(value)
-
-
-def help_text(field: dataclasses.Field, command: str = "run") -> str | None:
-    """The field's help with its default in brackets; a switch, a required option and a None or "" default (whose
-    help states what not giving it means) take the help as written."""
-    o = option_of(field)
-    text, default = o.help_for(command), default_of(field)
-    if o.action == "store_true" or default is dataclasses.MISSING or default is None or default == "":
-        return text
-    return f"{text} [{shown(default)}]" if text else f"[{shown(default)}]"
 
 
 def add_options(parser, classes: Iterable, command: str = "run", only: Iterable[str] | None = None,
@@ -71,9 +56,7 @@ def add_options(parser, classes: Iterable, command: str = "run", only: Iterable[
         extra = dict((overrides or {}).get(name, {}))
         if default_of(field) is dataclasses.MISSING:
             extra.setdefault("required", True)
-        if option_of(field).action == "store_true":
-            extra.setdefault("default", False)
-        option_of(field).add_to(parser, command, help=help_text(field, command), **extra)
+        option_of(field).add_to(parser, command, **extra)
 
 
 def values(cls, args: argparse.Namespace, skip: Iterable[str] = ()) -> dict[str, Any]:

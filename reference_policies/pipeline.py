@@ -40,8 +40,8 @@ class PipelineOptions:
     """The pipeline's own options; training's are `TrainConfig`'s fields, the recording processes `Workers`'."""
     out: str = option("models/octo-reference-robosuite", "--out", "checkpoint folder to write")
     data: str = option("data/reference_demos", "--data", "folder for the recorded demonstrations (not committed)")
-    episodes: int | None = option(None, "--episodes", "demonstrations per task, the same for every task [" +
-                                  ", ".join(f"{task} {n}" for task, n in DemoConfig.episodes) + "]", type=int)
+    episodes: int | None = option(None, "--episodes", "demonstrations per task, the same for every task", type=int,
+                                  default_text=", ".join(f"{task} {n}" for task, n in DemoConfig.episodes))
     dagger_episodes: int = option(0, "--dagger-episodes", "PickPlaceCan episodes of the trained policy to label for a "
                                                           "DAgger round (0 = no round)", type=int)
     dagger_steps: int = option(3000, "--dagger-steps", "fine-tuning steps of the DAgger round", type=int)

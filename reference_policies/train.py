@@ -90,8 +90,8 @@ class TrainConfig:
     task_weights: tuple[tuple[str, float], ...] = (("Lift", 1.0), ("Stack", 1.5), ("PickPlaceCan", 2.0))
     # warm start: copy an earlier checkpoint's parameters (reference_policies.warm_start); None = from scratch
     init_from: str | None = option(None, "--init-from", "warm start from this checkpoint folder (same architecture; "
-                                   "patch-grid position embeddings are resampled to the new image sizes) [none: "
-                                   "random initialisation]", metavar="CHECKPOINT")
+                                   "patch-grid position embeddings are resampled to the new image sizes)",
+                                   metavar="CHECKPOINT", default_text="none: random initialisation")
 
     def __post_init__(self) -> None:
         if self.steps < 1 or self.batch_size < 1 or not self.learning_rate > 0:
