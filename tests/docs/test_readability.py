@@ -103,3 +103,22 @@ def test_sentences_are_counted_in_prose_only():
     assert sentences(text) == ["One short sentence.", "Another, e.g with `code` in it!", "an item without a stop",
                                "a link counts its text.", "`a span` starts one."]
     assert [len(s.split()) for s in sentences("word " * 41 + ".\n")] == [42]
+
+
+def opening(text: str) -> tuple[list[str], bool]:
+    """A page's first prose paragraph after its title and breadcrumb, and whether a fenced block comes before its
+    first ## heading."""
+    before = text.split("\n## ", 1)[0]
+    body = [line for line in before.splitlines()[1:] if not line.startswith("[octo-harness](")]
+    paragraphs = re.split(r"\n\s*\n", "\n".join(body).strip())
+    return paragraphs[0].splitlines(), "```" in before
+
+
+GUIDES_WITHOUT_EXAMPLE = {"docs/README.md", "docs/glossary.md"}  # the index; the glossary opens with its example inline
+
+
+@pytest.mark.parametrize("page", [p for p in guides()[1:] if name(p) not in GUIDES_WITHOUT_EXAMPLE], ids=name)
+def test_a_guide_opens_with_a_short_summary_and_an_example(page):
+    first, example = opening(page.read_text())
+    assert not first[0].startswith("```") and len(first) <= 3, f"{name(page)}: open with a summary of 3 lines at most"
+    assert example, f"{name(page)}: give a runnable example before the first ## heading"
