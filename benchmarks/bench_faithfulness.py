@@ -72,8 +72,8 @@ def main() -> None:
         probed = BatchInference(model, PolicyConfig(dataset_key=key, attribution=methods, faithfulness_every=args.every))
         infer = median_seconds(lambda: plain([req]), args.reps)
         observations, tasks, keys = probed._inputs([req])
-        maps = median_seconds(lambda: probed.probe(observations, tasks, keys[0], 0, 1), args.reps)  # step 1: maps only
-        faith = median_seconds(lambda: probed.probe(observations, tasks, keys[0], 0, 0), max(1, args.reps // 3 if large else args.reps))
+        maps = median_seconds(lambda: probed.probe("attribution").maps(observations, tasks, keys[0], 0, 1), args.reps)  # step 1: maps only
+        faith = median_seconds(lambda: probed.probe("attribution").maps(observations, tasks, keys[0], 0, 0), max(1, args.reps // 3 if large else args.reps))
         added = maps + (faith - maps) / args.every
         print(f"{source:<36} {methods:<44} {infer:8.3f} {maps:8.3f} {faith:8.2f} {added:12.3f} "
               f"{added / infer:8.2f} {added / (infer + args.sim):7.2f}")

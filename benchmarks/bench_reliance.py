@@ -1,4 +1,4 @@
-"""What region reliance costs per control step (harness/measures/reliance.py, issue 45): a policy with a reliance
+"""What region reliance costs per control step (harness/probes/reliance/measure.py, issue 45): a policy with a reliance
 interval (default 4) against the same policy with none, on the same recorded closed-loop inputs, in one process.
 
 A Lift episode of the model is recorded first (its observations and the env's masks, `--steps` steps, with its
@@ -98,7 +98,7 @@ def main() -> None:
     med = {label: statistics.median(t) for label, t in times.items()}
     sampled = sum(1 for t in range(len(inputs)) if t % args.every == 0)
     on.reset(instruction, seed=0)
-    rows = on.step(*inputs[0]).reliance["rows"]
+    rows = on.step(*inputs[0]).probes["reliance"]["rows"]
     passes = 1 + len({r["camera"] for r in rows}) + sum(1 for r in rows if r["area_fraction"] > 0)
     print(f"model {args.model}, task {args.task}, {len(inputs)} steps ({sampled} sampled, every {args.every}), "
           f"fill {args.fill}, {passes} forward passes per sampled step (step 0), {args.reps} reps")

@@ -35,6 +35,7 @@ from harness.octo.diffusion import SAMPLERS
 from harness.octo.normalization import NORMALIZATIONS, normalize
 from harness.octo.tokens import TokenMap
 from harness.options import joined, option, record
+from harness.probes import ProbeContext, ProbeItem, active as active_probes
 
 
 MAX_INFERENCE_BATCH = 256  # a larger compiled batch only costs memory: no machine here gains from it
@@ -116,7 +117,7 @@ class PolicyConfig:
     controls_every: int | None = option(  # None: 1 with --attention-controls, unset without
         None, "--controls-every", "run the attention controls at every N-th inference step",
         default_text="1 with --attention-controls", type=int, file=(int,), metavar="N", sparse=True)
-    # region reliance (harness/measures/reliance.py): each labelled region of every camera replaced by the fill, open
+    # region reliance (harness/probes/reliance/measure.py): each labelled region of every camera replaced by the fill, open
     # loop with the step's rng, the action chunk's change recorded in reliance.jsonl; needs the env's masks
     reliance_every: int = option(
         0, "--reliance-every", "region reliance every N-th step: each labelled region (target, gripper, goal, "
@@ -201,9 +202,8 @@ class PolicyStep:
     # what the policy was fed at this step: the newest history entry, image_* (height, width, 3) uint8 resized,
     # low-dim keys (dims,) float32 raw, exactly as they enter the observation window (harness.replay rebuilds it)
     inputs: dict | None = None
-    attribution: dict | None = None  # attribution maps / faithfulness rows of this step's inference (or None)
-    controls: dict | None = None  # {control: (layers, heads, readouts, keys)} of this step's inference (or None)
-    reliance: dict | None = None  # region reliance of this step's inference (harness.measures.reliance.RelianceProbe)
+    # the per-step probes' payloads of this step's inference, keyed by probe name (harness.probes); {} when none ran
+    probes: dict = dataclasses.field(default_factory=dict)
 
 
 def default_dataset_key(model) -> str | None:
@@ -266,7 +266,8 @@ class InferenceRequest:
     task: TaskPrompt
     seed: int  # the episode's rng stream: key = fold_in(PRNGKey(seed), step)
     step: int
-    # the env's masks of the current frame {obs key: {name: (h, w) bool}} (env convention), only at reliance steps
+    # the env's masks of the current frame {obs key: {name: (h, w) bool}} (env convention), only at the steps of a
+    # probe that needs them (harness.probes.Probe.needs_masks)
     masks: dict | None = None
 
 
@@ -280,9 +281,7 @@ class InferenceResult:
     seconds: float  # wall time of the batched call that produced it
     tokens: TokenMap | None = None  # what each attention key is
     observed: dict | None = None  # {obs key: (H, W, 3) uint8} current frames an intervention changed (masked)
-    attribution: dict | None = None  # attribution maps / faithfulness rows (harness.measures.attribution.Probe)
-    controls: dict | None = None  # {control: (layers, heads, readouts, keys) float32} at control steps (--attention-controls)
-    reliance: dict | None = None  # {"rows", "seconds"} at reliance steps (harness.measures.reliance.RelianceProbe)
+    probes: dict = dataclasses.field(default_factory=dict)  # {probe name: payload} of the probes due at this step
 
 
 def make_task(model, spec: TaskPrompt) -> dict:
@@ -325,22 +324,16 @@ class BatchInference:
 
             self.intervener = Intervener(model, parse_intervention(config.intervention))
             self._model = self.intervener.model_for_inference()
-        self.probe = None  # attribution maps and faithfulness at inference steps (what the policy saw, same rng)
-        if config.attribution is not None:
-            from harness.measures.attribution import Probe
+        # the per-step probes the config turns on (harness.probes), in the registry's order, on the model inferred with
+        self.context = ProbeContext(self._model, config, self._inputs, self._sample, self.batch_size, {})
+        self.probes = [cls(self.context) for cls in active_probes(config)]
 
-            self.probe = Probe(self._model, config.attribution, config.faithfulness_every, config.faithfulness_fill)
-        self.controls: dict = {}  # control name -> frame transform (harness.measures.controls.CONTROLS)
-        if config.attention_controls is not None:
-            from harness.measures.controls import CONTROLS, parse_controls
-
-            self.controls = {name: CONTROLS[name] for name in parse_controls(config.attention_controls)}
-        self.reliance = None  # region reliance every k-th step (shares the attribution probe's compiled functions)
-        if config.reliance_every:
-            from harness.measures.reliance import RelianceProbe
-
-            self.reliance = RelianceProbe(self._model, config.reliance_every, config.reliance_fill,
-                                          getattr(self.probe, "functions", None))
+    def probe(self, name: str):
+        """The running probe of that name (harness.probes), made for this model; KeyError when it is off."""
+        for probe in self.probes:
+            if probe.name == name:
+                return probe
+        raise KeyError(f"probe {name!r} is not on in this PolicyConfig")
 
     def task(self, spec: TaskPrompt) -> dict:
         if spec.key not in self._tasks:
@@ -387,54 +380,28 @@ class BatchInference:
         padded = requests + [requests[0]] * (self.batch_size - n)
         observations, tasks, keys = self._inputs(padded)
         start = time.perf_counter()
-        actions, attention = self._model.sample_actions(observations, tasks, keys, self.statistics,
-                                                       full_attention=self.config.full_attention,
-                                                       normalization_type=self.config.action_normalization,
-                                                       sampler=self.config.sampler)
+        actions, attention = self._sample(observations, tasks, keys)
         chunks = np.asarray(actions, dtype=np.float32)  # (batch, horizon, action_dim)
         readout = np.asarray(attention.readout, dtype=np.float32)  # (batch, layers, heads, readouts, keys)
         full = None if attention.full is None else np.asarray(attention.full, dtype=np.float32)
         elapsed = time.perf_counter() - start
-        probes = [None] * n
-        if self.probe is not None:
-            for i, request in enumerate(requests):
-                observations, tasks, keys = self._inputs([request])
-                probes[i] = self.probe(observations, tasks, keys[0], request.seed, request.step)
-        controls = [None] * n
-        if self.controls:
-            due = [i for i, r in enumerate(requests) if r.step % self.config.controls_every == 0]
+        payloads: list[dict] = [{} for _ in range(n)]
+        for probe in self.probes:  # open loop on what the policy saw, after the call: actions never change
+            due = [i for i, r in enumerate(requests) if r.step % probe.period == 0]
             if due:
-                by_control = self.control_attention([requests[i] for i in due], self.controls)
-                for j, i in enumerate(due):
-                    controls[i] = {name: values[j] for name, values in by_control.items()}
-        reliance = [None] * n
-        if self.reliance is not None:
-            for i, request in enumerate(requests):
-                if self.reliance.due(request.step) and request.masks is not None:  # a warm-up request has none
-                    observations, tasks, keys = self._inputs([request])
-                    reliance[i] = self.reliance(observations, tasks, keys[0], request.seed, request.step, request.masks)
+                batch = [ProbeItem(requests[i], chunks[i], readout[i]) for i in due]
+                for i, payload in zip(due, probe.run(batch, self.context)):
+                    if payload is not None:
+                        payloads[i][probe.name] = payload
         return [InferenceResult(chunks[i], readout[i], None if full is None else full[i], elapsed, attention.tokens,
-                                changed[i][1], probes[i], controls[i], reliance[i]) for i in range(n)]
+                                changed[i][1], payloads[i]) for i in range(n)]
 
-    def control_attention(self, requests: list[InferenceRequest], transforms: dict) -> dict[str, np.ndarray]:
-        """{name: (len(requests), layers, heads, readouts, keys) float32}: the requests' readout attention with every
-        camera's window frames under `transforms[name]` ((..., H, W, 3) -> same), each as its own forward pass of the
-        compiled batch shape with the request's own rng key (actions discarded): open loop on the step's own inputs."""
-        out = {}
-        for name, transform in transforms.items():
-            changed = [dataclasses.replace(r, observation={k: (transform(v) if k.startswith("image_") else v)
-                                                           for k, v in r.observation.items()}) for r in requests]
-            rows = []
-            for i in range(0, len(changed), self.batch_size):
-                part = changed[i:i + self.batch_size]
-                observations, tasks, keys = self._inputs(part + [part[0]] * (self.batch_size - len(part)))
-                _, attention = self._model.sample_actions(observations, tasks, keys, self.statistics,
-                                                          full_attention=self.config.full_attention,
-                                                          normalization_type=self.config.action_normalization,
-                                                          sampler=self.config.sampler)
-                rows.append(np.asarray(attention.readout, dtype=np.float32)[:len(part)])
-            out[name] = np.concatenate(rows)
-        return out
+    def _sample(self, observations: dict, tasks: dict, keys: np.ndarray):
+        """(actions, attention) of one compiled call on inputs of the batch shape (`_inputs`)."""
+        return self._model.sample_actions(observations, tasks, keys, self.statistics,
+                                          full_attention=self.config.full_attention,
+                                          normalization_type=self.config.action_normalization,
+                                          sampler=self.config.sampler)
 
 
 def window_from_entries(entries: list[dict], window: int, keys: list[str]) -> dict:
@@ -497,11 +464,11 @@ class EpisodeState:
             last = self._last
             return PolicyStep(self._pending.pop(0), last.chunk, last.readout_attention, last.full_attention, False, 0.0,
                               last.tokens, entry)
-        every = self.config.reliance_every
-        if every and self.t % every == 0 and masks is None:
-            raise EnvMismatchError("--reliance-every needs the env's masks at every reliance step; drop --no-masks")
+        masked = [probe for probe in active_probes(self.config) if probe.needs_masks and probe.due(self.config, self.t)]
+        if masked and masks is None:
+            raise EnvMismatchError(masked[0].masks_error)
         return InferenceRequest(self._observation_window(), self.task, self.seed, self.t,
-                                masks if every and self.t % every == 0 else None)  # sent to the server only when used
+                                masks if masked else None)  # sent to the server only when used
 
     def complete(self, result: InferenceResult, seconds: float | None = None) -> PolicyStep:
         """The action to execute now from this step's inference; `seconds` overrides the recorded inference time."""
@@ -518,13 +485,7 @@ class EpisodeState:
             action = ensemble(list(self._chunks), self.config.ensemble_weight)
         elapsed = result.seconds if seconds is None else seconds
         self._last = PolicyStep(action, chunk, result.readout_attention, result.full_attention, True, elapsed, result.tokens,
-                                self._entry)
-        if result.attribution is not None:
-            self._last = dataclasses.replace(self._last, attribution=result.attribution)
-        if result.controls is not None:
-            self._last = dataclasses.replace(self._last, controls=result.controls)
-        if result.reliance is not None:
-            self._last = dataclasses.replace(self._last, reliance=result.reliance)
+                                self._entry, dict(result.probes))
         return self._last
 
 
@@ -559,7 +520,7 @@ class OctoPolicy:
 
     def step(self, observation: dict[str, np.ndarray], masks: dict | None = None) -> PolicyStep:
         """observation: env dict with image_* (H, W, 3) uint8 -> the action to execute now (+ attention when inferred);
-        masks: the env's masks of this observation (info["masks"]), used only at reliance steps."""
+        masks: the env's masks of this observation (info["masks"]), used only at the steps of a probe that needs them."""
         decision = self._state.observe(observation, masks)
         if isinstance(decision, PolicyStep):
             return decision

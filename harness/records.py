@@ -29,16 +29,10 @@ class StepRecord:
     tokens: TokenMap | None = None  # what each key of the attention is: the map of the very inference that produced it
     policy_inputs: dict[str, np.ndarray] | None = None  # what the policy was fed at this step (PolicyStep.inputs), in the
     # env's image convention: image_* (height, width, 3) uint8 resized, low-dim (dims,) float32
-    # --attribution / --faithfulness-every: {"maps": {method: {obs key: (rows, cols)}}, "faithfulness": [rows],
-    # "seconds"} of this step's inference (harness.measures.attribution.Probe), maps upright; None otherwise
-    attribution: dict | None = None
     phase: str | None = None  # the task phase of the state the model saw (envs.phases; None: the task has no phases)
-    # --attention-controls: {"blank": (layers, heads, readouts, keys) float32, "mirror": ...} readout attention of
-    # the same inference with every camera's frames replaced by their mean colour / mirrored left-right (upright);
-    # None at steps without controls
-    controls: dict | None = None
-    # --reliance-every: {"rows": [one per camera x region, harness.measures.reliance], "seconds"} at reliance steps
-    reliance: dict | None = None
+    # the per-step probes' payloads of this step's inference, keyed by probe name (harness.probes: each probe's module
+    # says what its payload holds), turned upright as the frames are; {} at steps where no probe ran
+    probes: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ import numpy as np
 
 from envs.options import to_convention
 from harness.policy import OctoPolicy
+from harness.probes import get as get_probe
 from harness.records import StepRecord
 
 
@@ -70,7 +71,7 @@ def rollout(
     seen_phases = [info.get("phase")]
     while t < limit:
         start = time.perf_counter()
-        decision = policy.step(observation, info.get("masks"))  # masks: used only at reliance steps
+        decision = policy.step(observation, info.get("masks"))  # masks: sent only at the steps of a probe that needs them
         _check_finite(t, decision.action)
         after_policy = time.perf_counter()
         next_observation, reward, terminated, truncated, next_info = env.step(decision.action)
@@ -115,7 +116,7 @@ def _check_finite(t: int, action) -> None:
 def _step_record(t: int, observation: dict, info: dict, decision, reward: float, success: bool, simulation: float,
                  image_keys, convention: str, upright_tokens: _UprightTokens) -> StepRecord:
     """The record of step `t`: the frames the model saw (`observation`, upright) and their masks, what it decided,
-    what the env returned; the token maps and attributions turned upright as the frames are."""
+    what the env returned; the token maps and the probes' maps turned upright as the frames are."""
     return StepRecord(
         step=t,
         frames={key: to_convention(observation[key], convention) for key in image_keys},
@@ -129,12 +130,9 @@ def _step_record(t: int, observation: dict, info: dict, decision, reward: float,
         timings={"inference": decision.inference_seconds, "simulation": simulation},
         inferred=decision.inferred,
         tokens=upright_tokens(decision.tokens),
-        attribution=_upright_attribution(getattr(decision, "attribution", None), upright_tokens.flipped_keys,
-                                         convention),
         policy_inputs=decision.inputs,
         phase=info.get("phase"),
-        controls=getattr(decision, "controls", None),  # over keys, as readout_attention: the token map is flipped
-        reliance=getattr(decision, "reliance", None),  # scalars per camera and region: no orientation
+        probes=_upright_probes(decision.probes, upright_tokens.flipped_keys, convention),
     )
 
 
@@ -156,14 +154,14 @@ def _phase_summary(names: tuple[str, ...], recorded: list, every: list) -> dict 
             "furthest": names[max(reached)] if reached else None}
 
 
-def _upright_attribution(attribution: dict | None, flipped_keys: tuple[str, ...], convention: str = "opengl") -> dict | None:
-    """Attribution maps of upside-down cameras (image convention "opengl": patch rows reversed) or mirrored ones
-    ("rot180": patch columns reversed), upright."""
-    if attribution is None or not flipped_keys:
-        return attribution
-    flip = (lambda v: v[:, ::-1]) if convention == "rot180" else (lambda v: v[::-1])  # noqa: E731
-    maps = {m: {k: (flip(v) if k in flipped_keys else v) for k, v in by.items()} for m, by in attribution["maps"].items()}
-    return {**attribution, "maps": maps}
+def _upright_probes(payloads: dict, flipped_keys: tuple[str, ...], convention: str = "opengl") -> dict:
+    """{probe name: payload} with each probe's maps of upside-down cameras (image convention "opengl": patch rows
+    reversed) or mirrored ones ("rot180": patch columns reversed) upright (`Probe.upright`)."""
+    if not payloads or not flipped_keys:
+        return payloads
+    turn = (lambda v: v[:, ::-1]) if convention == "rot180" else (lambda v: v[::-1])  # noqa: E731
+    flip = lambda key, value: turn(value) if key in flipped_keys else value  # noqa: E731
+    return {name: get_probe(name).upright(payload, flip) for name, payload in payloads.items()}
 
 
 def _upright_masks(masks: dict | None, convention: str) -> dict | None:

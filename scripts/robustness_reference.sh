@@ -52,7 +52,7 @@ for d in "$OUT"/*/; do [ -f "$d/manifest.json" ] && runs+=("$d"); done
     --note "Made by \`$SCRIPT\`: \`octo-harness robustness --model $MODEL --task $TASKS --perturb $KINDS --levels $LEVELS --episodes $EPISODES --seed 0 --fast-render --png-every 0 --no-video$RELIANCE_FLAG\` (held-out seeds 0..$((EPISODES - 1)), each task at its own step limit, masks on; kinds and levels: docs/perturbations.md). Target lift and nuisance mass: primary camera, last layer, mean over each episode's steps.$RELIANCE_NOTE $NOTE"
 # with reliance: EVAL.md's "## Reliance" section from the nominal run (attention share beside reliance share)
 if [ -n "$RELIANCE" ] && [ -f "$OUT/nominal/manifest.json" ]; then
-  "$PY" -m harness.report.reliance "$OUT/nominal" --eval-md "$MODEL/EVAL.md" --command "$SCRIPT" --note \
+  "$PY" -m harness.probes.reliance.report "$OUT/nominal" --eval-md "$MODEL/EVAL.md" --command "$SCRIPT" --note \
       "Made by \`$SCRIPT\` from its nominal run ($OUT/nominal: held-out seeds 0..$((EPISODES - 1)), --reliance-every $RELIANCE, --reliance-fill impute). $NOTE"
 fi
 # the figures docs/perturbations.md shows (only for the default grid folder, whose numbers the docs quote)

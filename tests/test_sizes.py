@@ -16,8 +16,8 @@ MAX_MODULE = 500
 ALLOWED_LARGE = {
     "harness/analysis/compare.py": "the comparison of two runs: one verdict over every file kind a run holds, whose "
                                    "checks share the pairing of episodes; no split reads better yet",
-    "harness/policy.py": "the closed-loop policy: history window, resizing, batched inference and the per-step probes "
-                         "(attribution, faithfulness, controls, reliance) that share its one compiled call",
+    "harness/policy.py": "the closed-loop policy: its options, history window, resizing, batched inference and "
+                         "action-chunk execution, and the check of a model against an env",
 }
 
 

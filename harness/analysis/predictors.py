@@ -1,6 +1,6 @@
 """Which measure predicts failure over a robustness grid: nuisance attention (where the policy looks: the raw map,
 and the content-only map where runs have blank controls) or nuisance reliance (what its action depends on:
-`--reliance-every`, harness.analysis.reliance).
+`--reliance-every`, harness.probes.reliance.reader).
 
 Each measure is taken within conditions: an episode's value minus the mean of its run (one condition and level), so
 that a perturbation which moves both the measure and success cannot make the association by itself. Its association

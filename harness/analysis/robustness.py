@@ -90,7 +90,7 @@ class EpisodeRow:
     nuisance_start_content: float = math.nan
     nuisance_reliance: float = math.nan  # reliance.jsonl (--reliance-every): the reliance share of background +
     background_reliance: float = math.nan  # distractors, and of each, mean over the sampled steps; nan without it
-    # (filled by harness.analysis.reliance.add_reliance: this module cannot import it)
+    # (filled by harness.probes.reliance.reader.add_reliance: this module cannot import it)
     distractor_reliance: float = math.nan
     nuisance_reliance_start: float = math.nan
 

@@ -2,8 +2,8 @@
 
 A run made with `--rerun save` holds `episode.rrd` already: it is opened (or copied with `--save`). Otherwise the
 recording is rebuilt through the run folder readers (harness.analysis.runs): attention, token map and measures from
-attention.npz, actions, rewards, success and new-chunk steps from actions.npz, attribution maps from attribution.npz,
-region reliance from reliance.jsonl (the map layer needs the re-simulated masks),
+attention.npz, actions, rewards, success and new-chunk steps from actions.npz, and each per-step probe's payloads
+from its files by its reader (harness.probes: attribution maps, the region probe's rows; its map layer needs the masks),
 each step fed to the same sink a live run uses (harness.outputs.rerun_sink), so the values equal those of a
 `--rerun save` recording of the same protocol.
 
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.analysis.reliance import rows_by_step
+from harness import probes
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
 from harness.files import write_atomic
 from harness.octo.tokens import TokenMap
@@ -107,22 +107,6 @@ def _resimulate(run: RunRecord, episode: EpisodeRecord, steps: int, model=None) 
     return records, hz
 
 
-def _attribution_by_step(episode: EpisodeRecord) -> dict[int, dict]:
-    path = episode.directory / "attribution.npz"
-    if not path.is_file():
-        return {}
-    arrays = read_npz(path)
-    out: dict[int, dict] = {}
-    for i, step in enumerate(np.asarray(arrays.get("step", []), int)):
-        maps: dict[str, dict[str, np.ndarray]] = {}
-        for name, value in arrays.items():
-            if name.startswith("map/"):
-                _, method, key = name.split("/", 2)
-                maps.setdefault(method, {})[key] = value[i]
-        out[int(step)] = {"maps": maps}
-    return out
-
-
 def _compare(recorded: np.ndarray, records: list[StepRecord], run: RunRecord) -> tuple[bool, str]:
     """Do the re-simulated executed actions equal the recorded ones bit for bit? (and the line that says so)"""
     recorded = np.asarray(recorded, np.float32)
@@ -165,8 +149,9 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
     tokens = TokenMap.from_arrays(attention)
     steps = attention["readout_attention"].shape[0]  # (steps, layers, heads, readouts, keys) float16
     metric_names = [k[len("metrics/"):] for k in attention if k.startswith("metrics/")]
-    attribution = _attribution_by_step(ep)
-    reliance = rows_by_step(ep.directory)  # reliance.jsonl: the scalars, and the map layer over re-simulated frames
+    # each probe's payloads as its files hold them, read back by the probe's reader (a map layer over a frame draws
+    # on the re-simulated frames and masks)
+    payloads = {cls.name: reader.by_step(ep.directory) for cls, reader in probes.parts("reader")}
     meta = episode_meta(run, ep)
     outputs = (run.manifest.get("protocol") or {}).get("outputs") or {}
 
@@ -190,8 +175,7 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
                      control_hz=hz)
     try:
         for i in range(steps):
-            record = _recorded_step(i, attention, actions, records[i] if i < len(records) else None, attribution,
-                                    reliance)
+            record = _recorded_step(i, attention, actions, records[i] if i < len(records) else None, payloads)
             metrics = {name: attention[f"metrics/{name}"][i] for name in metric_names}
             sink.log_step(record, tokens, {k: v for k, v in metrics.items() if np.all(np.isfinite(v))})
         path = sink.finish(_outcome(ep, actions, steps))
@@ -217,9 +201,8 @@ def _recording_damage(existing: Path, recorded: dict | None) -> str | None:
     return None
 
 
-def _recorded_step(i: int, attention: dict, actions: dict, again: StepRecord | None, attribution: dict,
-                   reliance: dict) -> StepRecord:
-    """Step `i` as the run's files hold it (attention, actions, the task phase, attribution maps, region reliance),
+def _recorded_step(i: int, attention: dict, actions: dict, again: StepRecord | None, payloads: dict) -> StepRecord:
+    """Step `i` as the run's files hold it (attention, actions, the task phase, the probes' payloads by step),
     with the frames, masks and policy inputs of the re-simulated step `again` where there is one."""
     step = int(attention["step"][i]) if "step" in attention else i
     predicted = actions.get("predicted")
@@ -233,9 +216,9 @@ def _recorded_step(i: int, attention: dict, actions: dict, again: StepRecord | N
         actions_predicted=predicted[i] if predicted is not None and len(predicted) > i else np.zeros((0, 0)),
         action_executed=actions["executed"][i], reward=float(actions["reward"][i]),
         success=bool(actions["success"][i]), masks=again.masks if again is not None else None,
-        inferred=bool(inferred[i]) if inferred is not None else True, attribution=attribution.get(step),
+        inferred=bool(inferred[i]) if inferred is not None else True,
         policy_inputs=again.policy_inputs if again is not None else None, phase=phase,
-        reliance=reliance.get(step))
+        probes={name: by[step] for name, by in payloads.items() if step in by})
 
 
 def _outcome(ep: EpisodeRecord, actions: dict, steps: int) -> dict:

@@ -6,9 +6,9 @@ One sink per file (shapes in harness.outputs.writers' docstring), each written a
   ActionArrays      actions.npz      predicted and executed actions, reward, success, inferred, input digests
   InputArrays       inputs.npz       the policy's inputs per step (OutputOptions.record_inputs), for replay
   MetricLines       metrics.jsonl    one row per step: ids, reward, success, phase, metrics, timings
-  AttributionFiles  attribution.npz  maps at the steps that carry them; faithfulness.jsonl when measured
-  ControlArrays     controls.npz     attention of the control inferences (--attention-controls), at their steps
-  RelianceLines     reliance.jsonl   region reliance (--reliance-every): one row per step x camera x region
+
+The per-step probes' files are written by the sinks their probes declare (harness.probes: attribution.npz,
+faithfulness.jsonl, controls.npz and the rest), with `write_lines` and `json_safe` as here.
 """
 
 from __future__ import annotations
@@ -188,95 +188,3 @@ class MetricLines(Sink):
             lines.append(json.dumps(json_safe(entry)))
         write_lines(self.dir / "metrics.jsonl", lines)
         return {"metrics": "metrics.jsonl"}
-
-
-class AttributionFiles(Sink):
-    """attribution.npz: step (n,), seconds (n,), map/<method>/<obs key> (n, rows, cols) float32 at the steps that
-    carry maps; faithfulness.jsonl: one row per step x camera x method (harness.measures.faithfulness), when
-    measured. Neither is written when no step carries an attribution."""
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.probes: list[tuple[int, dict]] = []  # (step, Probe result) at steps that carry one
-
-    def add(self, step: FinishedStep) -> None:
-        if step.record.attribution is not None:
-            self.probes.append((step.record.step, step.record.attribution))
-
-    def close(self, end: EpisodeEnd) -> dict[str, Any]:
-        if not self.probes:
-            return {}
-        files = {}
-        probes, meta = self.probes, self.meta
-        names = list(dict.fromkeys((m, k) for _, a in probes for m, by in a["maps"].items() for k in by))
-        arrays = {"step": np.asarray([s for s, _ in probes], np.int32),
-                  "seconds": np.asarray([a.get("seconds", np.nan) for _, a in probes])}
-        for method, key in names:
-            arrays[f"map/{method}/{key}"] = np.stack([a["maps"][method][key] for _, a in probes]).astype(np.float32)
-        write_atomic(self.dir / "attribution.npz", lambda f: np.savez(f, **arrays))
-        files["attribution"] = "attribution.npz"
-        lines = [json.dumps(json_safe({"run": meta.run, "task": meta.task, "episode": meta.episode, "seed": meta.seed,
-                                       "step": step, **row}))
-                 for step, a in probes for row in a.get("faithfulness", [])]
-        if lines:
-            write_lines(self.dir / "faithfulness.jsonl", lines)
-            files["faithfulness"] = "faithfulness.jsonl"
-        return files
-
-
-class ControlArrays(Sink):
-    """controls.npz (--attention-controls): step (n,), <control> (n, layers, heads, readouts, keys) float16 at the
-    control steps; a control's attention must have the step's shape and be present at every control step."""
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.controls: list[tuple[int, dict]] = []  # (step, {control: (layers, heads, readouts, keys)})
-
-    def add(self, step: FinishedStep) -> None:
-        record = step.record
-        if not record.controls:
-            return
-        for name, value in record.controls.items():
-            if np.shape(value) != step.attention.shape:
-                raise ValueError(f"step {record.step}: control {name!r} attention has shape {np.shape(value)}, "
-                                 f"the step's attention {step.attention.shape}")
-        self.controls.append((record.step, {k: np.asarray(v, np.float32).astype(np.float16)
-                                            for k, v in record.controls.items()}))
-
-    def close(self, end: EpisodeEnd) -> dict[str, Any]:
-        if not self.controls:
-            return {}
-        controls = {"step": np.asarray([s for s, _ in self.controls], np.int32)}
-        for name in dict.fromkeys(k for _, c in self.controls for k in c):
-            if any(name not in c for _, c in self.controls):
-                raise ValueError(f"control {name!r} is missing at some control steps")
-            controls[name] = np.stack([c[name] for _, c in self.controls])
-        write_atomic(self.dir / "controls.npz", lambda f: np.savez(f, **controls))
-        return {"controls": "controls.npz"}
-
-
-class RelianceLines(Sink):
-    """reliance.jsonl (--reliance-every): one row per reliance step x camera x region, in harness.measures.reliance's
-    schema, with the run, task, episode and seed in front; not written when no step measured reliance."""
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.rows: list[dict] = []
-        self.seconds = 0.0
-
-    def add(self, step: FinishedStep) -> None:
-        reliance = step.record.reliance
-        if reliance is None:
-            return
-        ids = {"run": self.meta.run, "task": self.meta.task, "episode": self.meta.episode, "seed": self.meta.seed}
-        self.rows.extend({**ids, **row} for row in reliance.get("rows", ()))
-        self.seconds += float(reliance.get("seconds", 0.0))
-
-    def close(self, end: EpisodeEnd) -> dict[str, Any]:
-        if not self.rows:
-            return {}
-        write_lines(self.dir / "reliance.jsonl", [json.dumps(json_safe(row)) for row in self.rows])
-        return {"reliance": "reliance.jsonl"}
-
-    def timings(self) -> dict[str, Any]:
-        return {"reliance": round(self.seconds, 6)} if self.rows else {}

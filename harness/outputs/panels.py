@@ -80,7 +80,7 @@ class PngPanels(Sink):
             else:
                 selected = {c: m[list(layout.png_layers)] for c, m in step.maps.items()}
                 self.deferred.append((step.step, step.frames, selected, step.boxes))
-            by_method = (step.record.attribution or {}).get("maps")
+            by_method = step.record.probes.get("attribution", {}).get("maps")
             if by_method:
                 self.save_attribution_panel(step.step, step.frames, by_method, step.boxes)
         if opts.normalisation == "episode":

@@ -5,14 +5,15 @@ harness.outputs.rerun_sink.RerunSink):
 
   camera/<obs key>                     the frame the model saw (JPEG), upright
   camera/<obs key>/target              the target object's mask (class 1) over it, logged when it changes
-  camera/<obs key>/reliance            the reliance map over it (--reliance-every; harness.outputs.rerun_reliance):
-                                       each region's reliance per pixel, logged at reliance steps only, so a step
-                                       shows the map of the last reliance step at or before it
+  camera/<obs key>/<probe>             a probe's layer over it (harness.probes; logged at the probe's steps only,
+                                       so a step shows the layer of the last one at or before it)
   attention/<obs key>/layer_<ll>       that layer's head-mean readout attention drawn over the frame (JPEG; the frame
                                        shrunk by an integer factor to at most 128 px high, `overlay_base`)
   attention/<obs key>/heads            (layer, head, row, col) float32 tensor: every head's map, readouts averaged,
                                        from the attention rounded to float16 as attention.npz stores it (equal values)
-  attribution/<method>/<obs key>       attribution map over the frame, at steps that carry maps (--attribution)
+  <probe>/...                          what each per-step probe's viewer layer logs at the steps that carry it
+                                       (harness.probes: attribution/<method>/<obs key> maps over the frame; a
+                                       share per camera and region on the timeline)
   intervention/<obs key>               what the policy was fed when an intervention masks its inputs (--intervene)
   actions/executed, actions/predicted  the action sent to the env; the first action of this step's chunk
   actions/chunk                        (horizon, action dim) tensor: the predicted chunk
@@ -20,8 +21,6 @@ harness.outputs.rerun_sink.RerunSink):
   scalars/new_chunk                    a marker (1) at every step where a new action chunk was inferred
   measures/share/<group>, measures/timestep_share/<part>, measures/entropy, measures/mask_mass/<obs>/<mask>,
   measures/mask_lift/<obs>/<mask>      per layer, one series each (attention.step_metrics; lift = mass / area)
-  reliance/<obs key>/<region>          the region's reliance share at --reliance-every steps (harness.measures.reliance;
-                                       not logged where the camera was not used)
   episode/instruction, episode/outcome text documents (static)
 """
 
@@ -34,6 +33,7 @@ import numpy as np
 from PIL import Image
 
 TARGET_COLOUR = (0, 255, 0, 110)  # RGBA of target pixels; the rest is transparent
+LAYER_DRAW_ORDER = 0.0  # a probe's transparent layer over a frame: above it (images default to -10), below the target (5)
 OVERLAY_HEIGHT = 128  # overlays are drawn on the frame shrunk by an integer factor to at most this height (size, time)
 
 
@@ -58,12 +58,13 @@ def mask_png(mask: np.ndarray) -> bytes:
     return out.getvalue()
 
 
-def blueprint(cameras: list[str], layers: int, methods: list[str] = (), intervention: bool = False,
-              reliance: bool = False):
-    """The default layout: per camera its frame (with masks; with `reliance`, the reliance map) beside the layer tabs
-    of attention overlays (last layer shown); the per-head tensor with sliders over layer and head; the measures (and,
-    with `reliance`, the reliance share per region and camera), actions and rewards on the timeline; the instruction
-    and outcome."""
+def blueprint(cameras: list[str], layers: int, intervention: bool = False, shown: list = ()):
+    """The default layout: per camera its frame (with masks, and the probes' layers over it) beside the layer tabs
+    of attention overlays (last layer shown); the per-head tensor with sliders over layer and head; the probes' views
+    of the camera (attribution maps) in tabs; the measures (and the probes' plots, e.g. a share per region and
+    camera), actions and rewards on the timeline; the instruction and outcome. `shown`: (viewer layer, payload)
+    of the probes at the first step (harness.probes: `camera_views(cam, payload)`, `camera_note(payload)`,
+    `plots(payload)`)."""
     import rerun.blueprint as rrb
     from rerun.blueprint.datatypes import TensorDimensionIndexSlider
     from rerun.datatypes import TensorDimensionIndexSelection, TensorDimensionSelection
@@ -74,9 +75,7 @@ def blueprint(cameras: list[str], layers: int, methods: list[str] = (), interven
         layer_tabs = rrb.Tabs(*[rrb.Spatial2DView(origin=entity("attention", cam, f"layer_{layer:02d}"), name=name)
                                 for layer, name in enumerate(names)],
                               active_tab=names[-1] if names else None, name=f"{cam} attention by layer")
-        extra = []
-        for method in methods:
-            extra.append(rrb.Spatial2DView(origin=entity("attribution", method, cam), name=f"{cam} {method}"))
+        extra = [view for layer, payload in shown for view in layer.camera_views(cam, payload)]
         if intervention:
             extra.append(rrb.Spatial2DView(origin=entity("intervention", cam), name=f"{cam} as the policy saw it"))
         heads = rrb.TensorView(
@@ -87,7 +86,8 @@ def blueprint(cameras: list[str], layers: int, methods: list[str] = (), interven
                 slider=[TensorDimensionIndexSlider(0), TensorDimensionIndexSlider(1)]),
             scalar_mapping=rrb.TensorScalarMapping(colormap="turbo", mag_filter="nearest"),
         )
-        views = [rrb.Spatial2DView(origin=entity("camera", cam), name=f"{cam}, reliance map over it" if reliance else cam),
+        notes = [note for layer, payload in shown for note in [layer.camera_note(payload)] if note]
+        views = [rrb.Spatial2DView(origin=entity("camera", cam), name=", ".join([cam, *notes])),
                  layer_tabs, heads]
         if extra:
             views.append(rrb.Tabs(*extra, name=f"{cam} attribution"))
@@ -100,7 +100,7 @@ def blueprint(cameras: list[str], layers: int, methods: list[str] = (), interven
         rrb.TimeSeriesView(origin="measures/timestep_share", name="timestep shares per layer"),
         rrb.TimeSeriesView(origin="measures/entropy", name="entropy per layer"),
         rrb.TimeSeriesView(origin="measures/mask_mass", name="mask mass per layer"),
-        *([rrb.TimeSeriesView(origin="reliance", name="reliance share per region")] if reliance else []),
+        *[view for layer, payload in shown for view in layer.plots(payload)],
         active_tab="target lift per layer (1 = chance)", name="attention measures")
     plots = rrb.Vertical(
         measures,

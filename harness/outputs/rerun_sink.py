@@ -6,7 +6,7 @@ only recordings of its own minor version, so the version is pinned and checked.
 
 `RerunSink(meta, options, save=PATH, connect=URL)` receives `StepRecord`s with their token map and metrics and logs
 them with Rerun's own APIs: compressed images (JPEG, with the encoder `rr.Image(...).compress()` uses; the target mask
-and the reliance map as transparent PNGs), tensors, scalars (`rr.Scalars`, sent as columns with `rr.send_columns` at
+and the probes' layers as transparent PNGs), tensors, scalars (`rr.Scalars`, sent as columns with `rr.send_columns` at
 the end of a saved episode), text documents, and a default blueprint (`rerun.blueprint`) that lays out the first view. `save`: the
 recording goes to `<name>.tmp.<pid>.rrd` and is moved onto `PATH` by `finish()` (never half-written under its final
 name; `abort()` deletes it). `connect`: streamed to a live viewer's gRPC address (harness.outputs.rerun_viewer: a
@@ -35,8 +35,8 @@ from harness.measures.attention import camera_maps, fuse_heads
 from harness.files import temp_path
 from harness.octo.tokens import TokenMap
 from harness.outputs.overlays import heatmap_overlays, resize_nearest
-from harness.outputs.rerun_layout import blueprint, entity, mask_png, overlay_base
-from harness.outputs.rerun_reliance import LAYER_DRAW_ORDER, reliance_layers, stored_rows
+from harness import probes
+from harness.outputs.rerun_layout import LAYER_DRAW_ORDER, blueprint, entity, mask_png, overlay_base
 from harness.outputs.steps import EpisodeEnd, FinishedStep, Sink
 from harness.records import EpisodeMeta, StepRecord
 
@@ -48,7 +48,7 @@ MODES = ("save", "spawn", "serve")
 JPEG_QUALITY = 90
 TENSOR_DIMS = ["layer", "head", "row", "col"]
 TARGET_DRAW_ORDER = 5.0  # the target mask is drawn above the frame (images default to -10)
-DRAW_ORDER = {"png": TARGET_DRAW_ORDER, "layer": LAYER_DRAW_ORDER}  # PNG layers over a frame: target mask, reliance map
+DRAW_ORDER = {"png": TARGET_DRAW_ORDER, "layer": LAYER_DRAW_ORDER}  # PNG layers over a frame: target mask, a probe's layer
 
 
 class ViewerUnavailableError(ValueError):
@@ -157,7 +157,7 @@ class RerunSink:
 
     def _emit(self, path: str, kind: str, value) -> None:
         """One entity's value at the current step: logged live at once, buffered as a column for the file.
-        kind: "jpeg", "png" (the target mask) / "layer" (the reliance map): encoded bytes; "tensor" ((array, dim
+        kind: "jpeg", "png" (the target mask) / "layer" (a probe's layer): encoded bytes; "tensor" ((array, dim
         names)), "scalars" ((n,) float64)."""
         if self.live is not None:
             rr = self.rr
@@ -178,6 +178,23 @@ class RerunSink:
             self._buffer.setdefault(path, (kind, [], []))
             self._buffer[path][1].append(self._steps[-1])
             self._buffer[path][2].append(value)
+
+    @staticmethod
+    def _layers(record: StepRecord) -> list[tuple[Any, Any]]:
+        """(viewer layer, payload) of every registered probe with a layer whose payload this step carries."""
+        return [(layer, record.probes[cls.name]) for cls, layer in probes.parts("layer") if cls.name in record.probes]
+
+    def image(self, path: str, image: np.ndarray) -> None:
+        """Log an (H, W, 3) uint8 image at `path` for this step (JPEG; a probe's layer draws with it)."""
+        self._image(path, image)
+
+    def layer(self, path: str, png: bytes) -> None:
+        """Log a transparent RGBA PNG over a frame at `path` for this step (drawn above it, below the target mask)."""
+        self._emit(path, "layer", png)
+
+    def scalars(self, path: str, values, names: list[str] | None = None) -> None:
+        """Log one or more scalars at `path` for this step (a series on the timeline)."""
+        self._scalars(path, values, names)
 
     def _image(self, path: str, image: np.ndarray) -> None:
         """JPEG of an (H, W, 3) uint8 image: Pillow's encoder at the quality rr.Image.compress uses it with."""
@@ -224,9 +241,8 @@ class RerunSink:
     def _start(self, record: StepRecord, layers: int, cameras: list[str]) -> None:
         rr = self.rr
         self._styled = set()
-        methods = sorted(((record.attribution or {}).get("maps") or {}).keys())
-        reliance = bool(getattr(record, "reliance", None))  # step 0 is a reliance step of every --reliance-every
-        bp = blueprint(cameras, layers, methods, self.intervention, reliance)
+        shown = self._layers(record)  # the probes' layers of step 0 (a step of every probe's period) set the views
+        bp = blueprint(cameras, layers, self.intervention, shown)
         for stream in self.streams:
             stream.send_blueprint(bp, make_active=True, make_default=True)
         meta = self.meta
@@ -236,9 +252,8 @@ class RerunSink:
         if self.intervention:
             header.append(f"- intervention: {meta.extra.get('intervention')}")
         header.append("- green over the frames: the target object's mask")
-        if reliance:
-            header.append("- coloured over the frames: the reliance map of the last --reliance-every step at or before "
-                          "the shown one (each region's reliance per pixel; transparent: not relied on)")
+        for layer, payload in shown:
+            header.extend(layer.header(payload))
         if meta.extra.get("frames_note"):
             header.append(f"- frames: {meta.extra['frames_note']}")
         self._static("episode/instruction", rr.TextDocument("\n".join(header), media_type="text/markdown"))
@@ -285,13 +300,6 @@ class RerunSink:
             overlays = heatmap_overlays(shown, fused, alpha=opts.alpha, cmap=opts.cmap, interpolation=opts.interpolation)
             for layer in range(layers):
                 self._image(entity("attention", cam, f"layer_{layer:02d}"), overlays[layer])
-            for method, by_camera in ((record.attribution or {}).get("maps") or {}).items():
-                if cam in by_camera:
-                    grid = np.asarray(by_camera[cam], np.float32)
-                    if np.isfinite(grid).any():
-                        drawn = heatmap_overlays(shown, grid[None], float(np.nanmin(grid)), float(np.nanmax(grid)),
-                                                 opts.alpha, opts.cmap, opts.interpolation)[0]
-                        self._image(entity("attribution", method, cam), drawn)
             seen = (record.policy_inputs or {}).get(cam)
             if self.intervention and seen is not None and np.ndim(seen) == 3:
                 self._image(entity("intervention", cam), np.asarray(seen, np.uint8))
@@ -311,13 +319,8 @@ class RerunSink:
         if record.phase in phases:  # the task phase on the timeline, as its index (envs.phases)
             self._scalars("scalars/phase", float(phases.index(record.phase)),
                           ["phase: " + ", ".join(f"{i} {name}" for i, name in enumerate(phases))])
-        reliance = stored_rows(getattr(record, "reliance", None))  # --reliance-every steps only, as reliance.jsonl holds them
-        for cam, layer in reliance_layers(reliance, record.frames, record.masks, opts.cmap).items():
-            self._emit(entity("camera", cam, "reliance"), "layer", layer)  # latest-at keeps it until the next one
-        for row in reliance:
-            if row.get("reliance_share") is not None:  # null: the camera was not used at this step
-                self._scalars(entity("reliance", row["camera"], row["region"]), float(row["reliance_share"]),
-                              [f"{row['region']} reliance share"])
+        for layer, payload in self._layers(record):  # the per-step probes' layers, at the steps that carry them
+            layer.log(self, record, payload)
         for name, values in (metrics or {}).items():
             self._measure(name, np.asarray(values, np.float32), metrics)
         self._buffered_steps += 1

@@ -70,7 +70,7 @@ class RolloutVideo(Sink):
                 shown = camera_maps(step.rollout.mean(axis=0), step.tokens, cam)
                 what = "attention rollout"
             else:  # an attribution method (OutputOptions checked the name)
-                by_camera = ((record.attribution or {}).get("maps") or {}).get(opts.video_attention)
+                by_camera = (record.probes.get("attribution", {}).get("maps") or {}).get(opts.video_attention)
                 if by_camera is None or cam not in by_camera:
                     raise ValueError(f"video_attention={opts.video_attention!r} needs its maps in the records: run with "
                                      f"--attribution {opts.video_attention}")

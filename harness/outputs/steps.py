@@ -2,7 +2,7 @@
 
 The episode writer's background thread turns each `StepRecord` of the control loop into a `FinishedStep` with
 `StepFinisher` (checks, attention metrics, per-camera maps, target boxes, the rollout row) and hands it to every sink
-of `harness.outputs.sinks.SINKS` in order. A sink (`Sink`) keeps what its files need from each step and writes them
+of `harness.outputs.sinks.sink_table()` in order. A sink (`Sink`) keeps what its files need from each step and writes them
 when the episode closes. Arrays in a `FinishedStep`:
 
   attention        (layers, heads, readouts, keys) float32: the step's readout attention

@@ -2,7 +2,7 @@
 
 `EpisodeWriter` receives `StepRecord`s from the control loop (`add_step` only enqueues) and, in its
 own thread, finishes each into a `FinishedStep` (attention metrics, per-camera maps, target boxes:
-harness.outputs.steps) and hands it to every sink of the table `harness.outputs.sinks.SINKS`: one
+harness.outputs.steps) and hands it to every sink of the table `harness.outputs.sinks.sink_table()`: one
 sink per output, which renders PNG panels or appends a video frame as steps come and writes its
 files when the episode closes. `finish()` closes the sinks and writes episode.json. Files in `episode_dir`:
 
@@ -226,7 +226,7 @@ class EpisodeWriter:
         self._aborting = threading.Event()
         self._done = False
         self._finisher = StepFinisher(tokens, self.options)  # StepRecord -> FinishedStep (background thread only)
-        self._sinks = open_sinks(self.dir, meta, self.options, viewer)  # harness.outputs.sinks.SINKS, in order
+        self._sinks = open_sinks(self.dir, meta, self.options, viewer)  # harness.outputs.sinks.sink_table(), in order
         # per step, for episode.json (background thread only, read after join): the record's timings and "write"
         self._timings: list[dict[str, float]] = []
         self._rewards: list[float] = []

@@ -47,7 +47,7 @@ from harness.measures.stats import success_summary
 from harness.report import faithfulness, figures, page
 from harness.report.rundata import RunData, episode_headline, representative
 from harness.report.rundata import csv_bytes as _csv
-from harness.report.sections import SECTIONS
+from harness.report.sections import sections
 
 VIDEO_DISPLAY = 256  # harness.outputs.overlays.video_frame's `display`: the camera frame fills the video's top-left display x w
 
@@ -303,7 +303,7 @@ def _tables(runs: list[RunData], summaries: dict | None = None) -> dict[str, byt
         "success.csv": _csv(success_cols, success_rows),
         "episodes.csv": _csv(episode_cols, episode_rows),
         # each section's files (harness/report/sections.py): faithfulness, phase_*, position_*, robustness*, grounding_*
-        **{name: data for s in SECTIONS for name, data in s.tables(runs, (summaries or {}).get(s.anchor)).items()},
+        **{name: data for s in sections() for name, data in s.tables(runs, (summaries or {}).get(s.anchor)).items()},
     }
 
 
@@ -365,7 +365,7 @@ def build_report(run_dirs: list[str | Path], out: str | Path | None = None, opti
     for run in runs:
         _aggregate(run, options)
     tasks = list(dict.fromkeys(t for run in runs for t in run.record.tasks))
-    summaries = {s.anchor: s.summarise(runs, options) for s in SECTIONS}  # each read once, for tables and page
+    summaries = {s.anchor: s.summarise(runs, options) for s in sections()}  # each read once, for tables and page
 
     with ThreadPoolExecutor(max_workers=3) as pool:  # overlay grids decode videos in ffmpeg processes meanwhile
         overlays = {}

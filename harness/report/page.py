@@ -15,7 +15,7 @@ import numpy as np
 from harness.report import figures
 from harness.report import html as H
 from harness.report.rundata import RunData, episode_headline, representative, share_categories
-from harness.report.sections import SECTIONS
+from harness.report.sections import sections
 
 SHARE_COLOURS = {"primary": "#4c72b0", "wrist": "#55a868", "language": "#c44e52", "readout": "#8172b2",
                  "lowdim": "#ccb974", "proprio": "#ccb974", "other": "#999999", "earlier timesteps": "#64b5cd"}
@@ -35,7 +35,7 @@ def render(runs: list[RunData], tasks: list[str], out: Path, overlays: dict[tupl
     for task in tasks:
         body.append(_task_section(runs, task, out, plots, overlays))
     present = []
-    for section in SECTIONS:  # each "" unless the runs hold what it reads
+    for section in sections():  # each "" unless the runs hold what it reads
         html_ = section.section(runs, plots, summaries.get(section.anchor))
         body.append(html_)
         if html_:

@@ -15,9 +15,9 @@ import math
 
 import numpy as np
 
+from harness import probes
 from harness.analysis import predictors as P
 from harness.analysis import robustness as R
-from harness.analysis.reliance import add_reliance
 from harness.report import html as H
 
 EPISODE_COLUMNS = ("run", "task", "condition", "level", "seed", "episode", "status", "success", "nuisance_mass",
@@ -33,8 +33,10 @@ def analyse(records, margin: float = R.MARGIN):
     if not R.is_perturbed(records):
         return None
     rows, shifts, notes = R.collect(records)
-    rows, reliance_notes = add_reliance(rows, records)  # nuisance reliance beside nuisance mass (--reliance-every)
-    notes = notes + reliance_notes
+    for _, reader in probes.parts("reader"):  # a probe's per-episode measures beside the attention's (nuisance reliance)
+        if hasattr(reader, "add_episode_measures"):
+            rows, more = reader.add_episode_measures(rows, records)
+            notes = notes + more
     return (rows, shifts, notes, R.success_rows(rows), R.association_rows(rows), R.paired_rows(rows, margin=margin),
             P.predictor_rows(rows))
 

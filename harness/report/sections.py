@@ -2,11 +2,13 @@
 CSV files (`tables`) and its HTML with its figures (`section`, drawing into the page's figure collector).
 
 A section is present only when the runs hold what it reads (`section` returns "" otherwise) and then has an entry in
-the page's contents. `SECTIONS` is the order on the page; `harness.report.build` and `harness.report.page` loop over
-it, so a new section is one class here (and its module: tables, figures, HTML).
+the page's contents. `sections()` is the order on the page: the per-step probes' sections first, in the registry's
+order (harness.probes: each probe names its section, found here through the registry), then `SECTIONS`;
+`harness.report.build` and `harness.report.page` loop over it, so a new section is one class here (and its module:
+tables, figures, HTML), or the section its probe declares.
 
-  Faithfulness  tables/faithfulness*.csv, interventions.csv   harness/report/faithfulness.py
-  Reliance      tables/reliance.csv (--reliance-every runs)   harness/report/reliance.py
+  Faithfulness  tables/faithfulness*.csv, interventions.csv   harness/report/faithfulness.py (the attribution probe's)
+  (probes)      each registered probe's section, found through the registry (harness.probes)
   Phases        tables/phase_*.csv                             harness/report/phases.py
   Position      tables/position_*.csv                          harness/report/position.py
   Robustness    tables/robustness*.csv (perturbed runs)        harness/report/robustness.py
@@ -17,7 +19,8 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
-from harness.report import faithfulness, grounding, phases, position, reliance, robustness
+from harness import probes
+from harness.report import faithfulness, grounding, phases, position, robustness
 from harness.report.rundata import RunData
 from harness.report.rundata import csv_bytes as _csv
 
@@ -55,19 +58,6 @@ class Faithfulness:
 
     def section(self, runs, figures, summary):
         return faithfulness.section(runs, figures)
-
-
-class Reliance:
-    name, anchor = "Reliance", "reliance"  # runs with reliance.jsonl (--reliance-every)
-
-    def summarise(self, runs, options):
-        return reliance.summarise(runs, options.resamples, options.seed)
-
-    def tables(self, runs, summary):
-        return reliance.tables(summary)
-
-    def section(self, runs, figures, summary):
-        return reliance.section(summary, figures)
 
 
 class Phases:
@@ -122,4 +112,11 @@ class Grounding:
         return grounding.section(_records(runs))
 
 
-SECTIONS: tuple[ReportSection, ...] = (Faithfulness(), Reliance(), Phases(), Position(), Robustness(), Grounding())
+SECTIONS: tuple[ReportSection, ...] = (Phases(), Position(), Robustness(), Grounding())  # after the probes' sections
+
+
+def sections() -> tuple[ReportSection, ...]:
+    """The page's sections in order: each registered probe's section (harness.probes, registry order; a class is
+    made here), then SECTIONS."""
+    found = [section() if isinstance(section, type) else section for _, section in probes.parts("section")]
+    return (*found, *SECTIONS)

@@ -21,6 +21,7 @@ from typing import Any, Mapping
 
 from envs.options import EnvOptions
 from envs.perturbations import parse_perturb, perturb_text
+from harness import probes
 from harness.files import json_safe
 from harness.options import option, options
 from harness.policy import PolicyConfig
@@ -129,8 +130,9 @@ class Protocol:
         if self.max_steps is not None and self.max_steps > MAX_STEPS:
             raise ValueError(f"--max-steps {self.max_steps} is more than an episode may run ({MAX_STEPS} control steps: "
                              "its arrays are held in memory until it ends); choose a smaller --max-steps")
-        if self.policy.reliance_every and not self.env.masks:
-            raise ValueError("--reliance-every replaces the labelled regions of the env's masks; drop --no-masks")
+        masked = [probe for probe in probes.active(self.policy) if probe.needs_masks]
+        if masked and not self.env.masks:
+            raise ValueError(masked[0].masks_error)
         object.__setattr__(self, "perturb", perturb_text(parse_perturb(self.perturb)))  # level 0 -> None: nominal
 
     def env_for(self, task: str) -> EnvOptions:

@@ -176,7 +176,7 @@ def _infer(model, request, controls="blank,mirror"):
 def _flags(result, layer: int = 0):
     """(heads + 1, rows, cols) flags and PatchMeans of the primary camera at `layer` from one control step."""
     maps = [camera_maps(x, result.tokens, "image_primary").mean(axis=2)[None]
-            for x in (result.readout_attention, result.controls["blank"], result.controls["mirror"])]
+            for x in (result.readout_attention, result.probes["controls"]["blank"], result.probes["controls"]["mirror"])]
     means = Q.patch_means(*maps)
     return Q.flag_position_bound(means.real, means.blank, means.mirrored)[layer], means
 
@@ -226,11 +226,12 @@ def test_attention_that_follows_a_bright_square_moves_under_the_mirror_and_nothi
 def test_mirroring_twice_gives_the_recorded_attention_back_bit_for_bit(model):
     request = _request(_noise(3, 128), _noise(4, 64), model.window_size)
     inference, result = _infer(model, request)
-    twice = inference.control_attention([request], {"twice": lambda x: C.mirror_frames(C.mirror_frames(x))})["twice"]
+    controls = inference.probe("controls")
+    twice = controls.attention([request], inference.context, {"twice": lambda x: C.mirror_frames(C.mirror_frames(x))})["twice"]
     assert np.array_equal(twice[0], result.readout_attention)
-    once = inference.control_attention([request], {"mirror": C.mirror_frames})["mirror"]
-    assert np.array_equal(once[0], result.controls["mirror"])  # the stored control is that pass
-    assert not np.array_equal(result.controls["mirror"], result.readout_attention)
+    once = controls.attention([request], inference.context, {"mirror": C.mirror_frames})["mirror"]
+    assert np.array_equal(once[0], result.probes["controls"]["mirror"])  # the stored control is that pass
+    assert not np.array_equal(result.probes["controls"]["mirror"], result.readout_attention)
     # float16, as controls.npz and attention.npz store them: still bit for bit
     assert np.array_equal(twice[0].astype(np.float16), result.readout_attention.astype(np.float16))
 
@@ -243,5 +244,5 @@ def test_controls_do_not_change_the_actions_and_run_only_on_their_steps(model):
     (odd,) = inference([_request(_noise(5, 128), _noise(6, 64), model.window_size, step=3)])
     (even,) = inference([_request(_noise(5, 128), _noise(6, 64), model.window_size, step=4)])
     assert np.array_equal(plain.chunk, odd.chunk) and np.array_equal(plain.readout_attention, odd.readout_attention)
-    assert odd.controls is None and set(even.controls) == {"blank", "mirror"}
-    assert even.controls["blank"].shape == even.readout_attention.shape
+    assert "controls" not in odd.probes and set(even.probes["controls"]) == {"blank", "mirror"}
+    assert even.probes["controls"]["blank"].shape == even.readout_attention.shape

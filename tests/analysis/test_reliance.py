@@ -1,4 +1,4 @@
-"""Region reliance (harness/measures/reliance.py; nuisance reliance: harness/analysis/reliance.py): stand-in
+"""Region reliance (harness/probes/reliance/measure.py; nuisance reliance: harness/probes/reliance/reader.py): stand-in
 policies whose answer is known, the region table, nuisance reliance, the per-step hook of the policy, and one real
 step of the tiny model on Lift."""
 
@@ -10,8 +10,8 @@ import warnings
 import numpy as np
 import pytest
 
-from harness.analysis import reliance as N
-from harness.measures import reliance as R
+from harness.probes.reliance import reader as N
+from harness.probes.reliance import measure as R
 from harness.policy import EnvMismatchError, EpisodeState, InferenceRequest, PolicyConfig, TaskPrompt
 
 SIZE = 16
@@ -218,8 +218,8 @@ def test_one_real_lift_step_of_the_tiny_model(fixtures_dir):
         obs, info = env.reset(seed=0)
     finally:
         env.close()
-    rows = runs[0][0].reliance["rows"]
-    assert rows == runs[1][0].reliance["rows"]  # deterministic: the same step twice gives the same record
+    rows = runs[0][0].probes["reliance"]["rows"]
+    assert rows == runs[1][0].probes["reliance"]["rows"]  # deterministic: the same step twice gives the same record
     for key, (height, width) in model.image_sizes.items():
         expected = R.region_masks(info["masks"][key], (height, width))
         camera = by_region(rows, key)
@@ -239,4 +239,4 @@ def test_one_real_lift_step_of_the_tiny_model(fixtures_dir):
     request = policy._state.observe(obs, info["masks"])
     inference = policy._infer
     observations, tasks, keys = inference._inputs([request])
-    assert inference.reliance(observations, tasks, keys[0], 0, 0, request.masks)["rows"] == rows
+    assert inference.probe("reliance").regions(observations, tasks, keys[0], 0, 0, request.masks)["rows"] == rows

@@ -13,7 +13,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from harness.analysis import reliance
+from harness.probes.reliance import reader as reliance
 from harness.analysis import robustness as R
 from harness.report import robustness as report
 from harness.report.rundata import csv_bytes

@@ -8,7 +8,7 @@ import json
 import pytest
 
 from harness.outputs import sinks
-from harness.outputs.data_files import RelianceLines
+from harness.probes.reliance.sink import RelianceLines
 from tests.outputs.test_sinks import STEPS, drive, files_in, with_extras
 from tests.outputs.test_writers import records
 
@@ -34,7 +34,7 @@ def test_reliance_lines_alone_write_one_row_per_step_camera_and_region_with_the_
 def test_no_reliance_step_writes_no_file_and_the_sink_is_in_the_table(tmp_path):
     _, files = drive(RelianceLines, tmp_path, records(STEPS))
     assert files == {} and files_in(tmp_path) == []
-    assert RelianceLines in sinks.SINKS
+    assert RelianceLines in sinks.sink_table()
 
 
 def test_reliance_without_masks_is_one_line_before_anything_loads(fixtures_dir, tmp_path, capsys):

@@ -17,9 +17,9 @@ import pytest
 import rerun as rr
 from PIL import Image
 
-from harness.analysis.reliance import rows_by_step
+from harness.probes.reliance.reader import rows_by_step
 from harness.outputs.overlays import colormap_lut
-from harness.outputs.rerun_reliance import LAYER_ALPHA, layer_png, reliance_map
+from harness.probes.reliance.viewer import LAYER_ALPHA, layer_png, reliance_map
 from harness.outputs.rerun_sink import RRD_NAME, RerunRecording
 from harness.outputs.writers import OutputOptions
 from tests.outputs.test_sinks import STEPS, drive, with_extras

@@ -10,14 +10,16 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from harness import probes
 from harness.outputs import sinks
-from harness.outputs.data_files import (ActionArrays, AttentionArrays, AttributionFiles, ControlArrays, InputArrays,
-                                        MetricLines)
+from harness.outputs.data_files import ActionArrays, AttentionArrays, InputArrays, MetricLines
 from harness.outputs.panels import PngPanels
 from harness.outputs.rerun_sink import RRD_NAME, RerunRecording
 from harness.outputs.rollout_video import RolloutVideo
 from harness.outputs.steps import EpisodeEnd, FinishedStep, Sink, StepFinisher
 from harness.outputs.writers import EpisodeWriter, OutputOptions, WriterError
+from harness.probes.attribution.sink import AttributionFiles
+from harness.probes.controls.sink import ControlArrays
 from tests.outputs.test_writers import HEADS, KEYS, LAYERS, meta, records, tiny_tokens
 
 pytestmark = [  # imageio's ffmpeg reader leaves its pipes to the garbage collector
@@ -29,8 +31,13 @@ STEPS = 3
 
 
 def with_extras(recs, **fields_by_step):
-    """The records with some fields replaced at some steps: name={step: value}."""
-    return [dataclasses.replace(r, **{name: by[r.step] for name, by in fields_by_step.items() if r.step in by})
+    """The records with some fields replaced at some steps: name={step: value}; a probe's name (harness.probes) sets
+    its payload in the record's `probes` mapping."""
+    names = {cls.name for cls in probes.probes()}
+    return [dataclasses.replace(r, **{name: by[r.step] for name, by in fields_by_step.items()
+                                      if r.step in by and name not in names},
+                                probes={**r.probes, **{name: by[r.step] for name, by in fields_by_step.items()
+                                                       if r.step in by and name in names}})
             for r in recs]
 
 
@@ -188,7 +195,8 @@ def test_rerun_recording_alone(tmp_path):
 
 
 def test_the_table_holds_one_sink_per_output_and_the_writer_opens_those_asked_for(tmp_path):
-    assert all(issubclass(cls, Sink) for cls in sinks.SINKS) and len(set(sinks.SINKS)) == len(sinks.SINKS)
+    table = sinks.sink_table()
+    assert all(issubclass(cls, Sink) for cls in table) and len(set(table)) == len(table)
     names = [type(s).__name__ for s in sinks.open_sinks(tmp_path, meta(), OutputOptions())]
     assert names == ["AttentionArrays", "ActionArrays", "MetricLines", "AttributionFiles", "ControlArrays",
                      "RelianceLines", "PngPanels", "RolloutVideo"]
@@ -220,7 +228,8 @@ class Failing(Sink):
 def test_a_sink_that_raises_fails_the_episode_as_a_writer_error(tmp_path, monkeypatch):
     """As any background-writer error: the next add_step or finish raises WriterError naming the step and the
     cause; abort removes temporaries, aborts every sink and writes no episode.json."""
-    monkeypatch.setattr(sinks, "SINKS", (*sinks.SINKS, Failing))
+    table = sinks.sink_table()
+    monkeypatch.setattr(sinks, "sink_table", lambda: (*table, Failing))
     writer = EpisodeWriter(tmp_path, tiny_tokens(), meta(), OutputOptions(png_every=0))
     recs = records(STEPS)
     writer.add_step(recs[0])
@@ -243,7 +252,8 @@ def test_a_sink_that_raises_is_a_failed_episode_row(fixtures_dir, tmp_path, monk
     from harness.octo import load_pretrained
     from harness.run import Protocol, execute
 
-    monkeypatch.setattr(sinks, "SINKS", (*sinks.SINKS, Failing))
+    table = sinks.sink_table()
+    monkeypatch.setattr(sinks, "sink_table", lambda: (*table, Failing))
     model = load_pretrained(str(fixtures_dir / "tiny"))
     protocol = Protocol(model=model.source, tasks=("Lift",), max_steps=STEPS,
                         outputs=OutputOptions(png_every=0, video=False))

@@ -17,7 +17,7 @@ import pytest
 from scipy.stats import spearmanr
 
 from harness.analysis.runs import load_run
-from harness.report import reliance as R
+from harness.probes.reliance import report as R
 from tests.helpers import browser as _browser
 from tests.runfolder.edits import redigest
 

@@ -2,7 +2,7 @@
 camera is replaced, beside where the attention goes (issue 45). Pure numpy functions around one evaluation
 callable, as in harness.measures.faithfulness, whose fills and distance are used here, not copied. What the closed
 loop computes at a sampled step is here; reading reliance.jsonl back and the nuisance reliance of an episode are
-harness.analysis.reliance.
+harness.probes.reliance.reader.
 
 At a sampled step, for every camera the model reads that has label masks, and for every region of `REGION_TABLE`
 the env labels there: the region's pixels of the camera's current (last) window frame are replaced by the fill
@@ -25,7 +25,7 @@ partition of each camera by one table (`REGION_TABLE`, first row wins a pixel):
   distractors   every distractor object (robosuite "distractor_<i>" together; LIBERO "distractors")
   background    robosuite "background"; LIBERO has no such mask: there it is the pixels no other region holds
 
-The record (`region_reliance` returns a list of rows; the future reliance.jsonl holds one JSON line per row, with
+The record (`region_reliance` returns a list of rows; reliance.jsonl holds one JSON line per row, with
 run, task, episode and seed added by the writer as for faithfulness.jsonl): one row per step x camera x region,
   step                int, the control step
   camera              str, the observation key (image_primary, image_wrist)

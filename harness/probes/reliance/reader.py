@@ -1,4 +1,4 @@
-"""Region reliance of a finished run: the reliance.jsonl rows that the closed loop wrote (harness.measures.reliance,
+"""Region reliance of a finished run: the reliance.jsonl rows that the closed loop wrote (harness.probes.reliance.measure,
 `--reliance-every N`) read back and summarised beside where the attention went (issue 45).
 
 Nuisance reliance (`step_nuisance`, `nuisance_reliance`): the share of a camera's reliance on background and
@@ -7,7 +7,7 @@ nuisance_start): nuisance_reliance, background_reliance, distractor_reliance per
 means over the sampled steps plus nuisance_reliance_start (steps before robustness_measures.START_STEPS), on the
 attention's camera (robustness_measures.CAMERA) by default. NUISANCE (background, distractors) is what the attention's
 nuisance mass sums (harness.analysis.robustness). `attention_regions` sums the attention's mask mass into the
-same regions (measures.reliance.REGION_TABLE); `read_rows`, `episode_reliance`, `add_reliance` and
+same regions (measure.REGION_TABLE); `read_rows`, `episode_reliance`, `add_reliance` and
 `rows_by_step` (`view`'s rebuild of the map layer) read an episode's reliance.jsonl with the bounded readers.
 """
 
@@ -21,7 +21,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from harness.analysis.robustness_measures import CAMERA, START_STEPS
-from harness.measures.reliance import REGION_TABLE, TASK_OBJECTS
+from harness.probes.reliance.measure import REGION_TABLE, TASK_OBJECTS
 
 NUISANCE = ("background", "distractors")
 
@@ -108,6 +108,11 @@ def read_rows(path) -> list[dict]:
     return rows
 
 
+def by_step(directory: str | Path) -> dict[int, dict]:
+    """The probe's reader (harness.probes.Probe.reader): an episode folder's payloads by step (`rows_by_step`)."""
+    return rows_by_step(directory)
+
+
 def rows_by_step(directory: str | Path) -> dict[int, dict]:
     """An episode folder's reliance.jsonl -> {step: {"rows": [its rows]}} ({} without the file), as a step record's
     `reliance` holds them, for `view`'s rebuild. A row of the wrong types is a ValueError naming the file and row."""
@@ -144,6 +149,12 @@ def episode_reliance(path, camera: str = CAMERA) -> dict:
     no sampled step."""
     means = nuisance_reliance(read_rows(path), camera)
     return {k: means[k] for k in EPISODE_FIELDS}
+
+
+def add_episode_measures(rows: Sequence, records) -> tuple[list, list[str]]:
+    """The probe's per-episode measures for a robustness grid (harness.report.robustness reads them through the
+    registry): `add_reliance`."""
+    return add_reliance(rows, records)
 
 
 def add_reliance(rows: Sequence, records) -> tuple[list, list[str]]:

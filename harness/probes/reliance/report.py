@@ -1,6 +1,6 @@
 """The report's Reliance section: where the policy looks beside what it relies on, region by region (issue 45).
 
-Runs made with `--reliance-every N` write each episode's `reliance.jsonl` (harness.measures.reliance: per sampled
+Runs made with `--reliance-every N` write each episode's `reliance.jsonl` (harness.probes.reliance.measure: per sampled
 step, camera and labelled region, the change of the predicted chunk when the region is replaced, its reliance per
 pixel and its reliance share). Beside each step's reliance shares this section puts the attention shares of the same
 regions at the same steps: the readout attention mass (head mean, the camera's map at the current timestep) of the
@@ -32,8 +32,8 @@ from collections import defaultdict
 import numpy as np
 
 from harness.analysis.bootstrap import bootstrap_mean_ci
-from harness.analysis.reliance import FILE, attention_regions, read_rows
-from harness.measures.reliance import REGION_TABLE, TASK_OBJECTS
+from harness.probes.reliance.reader import FILE, attention_regions, read_rows
+from harness.probes.reliance.measure import REGION_TABLE, TASK_OBJECTS
 from harness.analysis.robustness import run_condition
 from harness.analysis.sanity import spearman
 from harness.bounded import open_npz
@@ -270,9 +270,25 @@ def markdown(records, note: str = "") -> str:
 def main(argv=None) -> int:
     from harness.report.rundata import eval_md_section_main
 
-    return eval_md_section_main(argv, "python -m harness.report.reliance", "Write the Reliance section of an EVAL.md "
+    return eval_md_section_main(argv, "python -m harness.probes.reliance.report", "Write the Reliance section of an EVAL.md "
                                 "from runs made with --reliance-every.", SECTION, markdown)
 
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+class Section:
+    """The reliance probe's report section (harness.report.sections finds it through the registry): runs with
+    reliance.jsonl (--reliance-every)."""
+
+    name, anchor = "Reliance", "reliance"
+
+    def summarise(self, runs, options):
+        return summarise(runs, options.resamples, options.seed)
+
+    def tables(self, runs, summary):
+        return tables(summary)
+
+    def section(self, runs, figures, summary):
+        return section(summary, figures)

@@ -1,10 +1,10 @@
-"""The reliance map layer of a Rerun recording (issue 45): where the policy relies, over each camera, beside where it
+"""The reliance probe's viewer layer: the reliance map of a Rerun recording (issue 45): where the policy relies, over each camera, beside where it
 looks (the attention overlays).
 
-At a `--reliance-every` step the step record carries region reliance rows (harness.measures.reliance: one per camera x
+At a `--reliance-every` step the step record carries region reliance rows (harness.probes.reliance.measure: one per camera x
 labelled region) and the env's masks of the frame the model saw. The map of a camera (`reliance_map`): every pixel
 of the frame gets the `reliance_per_pixel` of the region it belongs to (the region's share of the chunk's change per
-unit of area), regions drawn from the step's masks by measures.reliance.region_masks, resized to the frame (the partition the
+unit of area), regions drawn from the step's masks by measure.region_masks, resized to the frame (the partition the
 rows were measured on, at the frame's resolution); 0 for a region without a row (the remainder that has pixels only
 at the frame's resolution). A camera the policy did not use at that step (its shares null: the chunk hardly changed
 whichever region was replaced) gets a map of zeros.
@@ -16,7 +16,7 @@ the target mask. It is logged at reliance steps only: between them Rerun's lates
 reliance step at or before the shown step (0, N, 2N, ... with --reliance-every N), drawn on that step's masks.
 
 Row values are taken as reliance.jsonl stores them (`stored_rows`: harness.files.json_safe, 6 significant digits),
-so a live recording and `octo-harness view`'s rebuild from the file (harness.analysis.reliance.rows_by_step) hold
+so a live recording and `octo-harness view`'s rebuild from the file (harness.probes.reliance.reader.rows_by_step) hold
 the same scalars and maps.
 """
 
@@ -29,11 +29,11 @@ import numpy as np
 from PIL import Image
 
 from harness.files import json_safe
-from harness.measures.reliance import region_masks
+from harness.probes.reliance.measure import region_masks
 from harness.outputs.overlays import colorize
+from harness.outputs.rerun_layout import entity
 
 LAYER_ALPHA = 0.6  # opacity of the map's maximum; 0 is transparent
-LAYER_DRAW_ORDER = 0.0  # above the frame (images default to -10), below the target mask (5)
 
 
 def stored_rows(reliance: Mapping | None) -> list[dict]:
@@ -81,3 +81,38 @@ def reliance_layers(rows: Sequence[Mapping], frames: Mapping[str, np.ndarray], m
         if cam in frames and named:
             out[cam] = layer_png(reliance_map(named, cam_rows, np.shape(frames[cam])[:2]), cmap)
     return out
+
+
+class RelianceLayer:
+    """The reliance probe in the recording: camera/<obs key>/reliance (the map, latest-at keeps it until the next
+    reliance step) and reliance/<obs key>/<region> (each region's share; not logged where the camera was not used),
+    a note on the camera views, the share per region on the timeline and a line of the episode's header."""
+
+    @staticmethod
+    def camera_views(cam: str, payload) -> list:
+        return []
+
+    @staticmethod
+    def camera_note(payload) -> str:
+        return "reliance map over it"
+
+    @staticmethod
+    def plots(payload) -> list:
+        import rerun.blueprint as rrb
+
+        return [rrb.TimeSeriesView(origin="reliance", name="reliance share per region")]
+
+    @staticmethod
+    def header(payload) -> list[str]:
+        return ["- coloured over the frames: the reliance map of the last --reliance-every step at or before the "
+                "shown one (each region's reliance per pixel; transparent: not relied on)"]
+
+    @staticmethod
+    def log(recording, record, payload) -> None:
+        rows = stored_rows(payload)  # as reliance.jsonl holds them
+        for cam, layer in reliance_layers(rows, record.frames, record.masks, recording.options.cmap).items():
+            recording.layer(entity("camera", cam, "reliance"), layer)
+        for row in rows:
+            if row.get("reliance_share") is not None:  # null: the camera was not used at this step
+                recording.scalars(entity("reliance", row["camera"], row["region"]), float(row["reliance_share"]),
+                                  [f"{row['region']} reliance share"])

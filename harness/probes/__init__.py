@@ -1,0 +1,169 @@
+"""The per-step probes: measures a closed-loop run takes at inferred steps, beside the actions, never changing them.
+
+A probe is one `Probe` subclass in one module (or folder) and one `register` call. It declares:
+  name      the key of its results in the one mapping `probes` of InferenceResult, PolicyStep and StepRecord
+  option    the PolicyConfig field that turns it on (None: on whenever it is registered)
+  every     `every(config)`: it runs at every N-th step the policy infers at (step % N == 0), 0 = never
+  run       `run(batch, context) -> payloads`: one payload (or None) per `ProbeItem` of the batch: the requests due at
+            this call with what the call inferred for them
+  upright   the payload of a camera shown upright (rollout turns frames upright for the records; default: as is)
+  sink      the `harness.outputs.steps.Sink` that writes its files (a class, or "module:Name")
+  reader    how its payloads are read back from an episode folder (an object or module with `by_step(directory)` ->
+            {step: payload}; "module" or "module:Name")
+  section   its report section (an object with the report's `summarise`, `tables`, `section`, or "module:Name")
+  layer     its viewer layer (an object with `views`, `header` and `log` for the Rerun recording, or "module:Name")
+The higher-stage parts (sink, reader, section, layer) are named, not imported, here: the stage that uses a part looks it
+up by probe through `part(probe, what)`, so the policy can call probes and the report and viewer can show them while
+no import runs back up the stages. A part named "module:Name" without a module means the probe's own package
+(`cls.__module__`), e.g. ".sink:RelianceLines".
+
+The registry keeps insertion order: the order probes run in at a step, their files are written in and their report
+sections and viewer layers appear in. Built-in probes: attribution (and faithfulness), controls, reliance.
+"""
+
+from __future__ import annotations
+
+import importlib
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar, Iterator
+
+PARTS = ("sink", "reader", "section", "layer")
+
+
+@dataclass(frozen=True, eq=False)
+class ProbeItem:
+    """One example of a batched inference call as a probe sees it: the request (harness.policy.InferenceRequest: the
+    observation window as the policy saw it, task, seed, step, the env's masks when a probe needs them) and what the
+    call inferred for it: `chunk` (action_horizon, action_dim) float32, `readout_attention` (layers, heads, readouts,
+    keys) float32."""
+
+    request: Any
+    chunk: Any
+    readout_attention: Any
+
+
+@dataclass(frozen=True)
+class ProbeContext:
+    """What the policy's batched inference lends a probe: the model it infers with (the intervened one under
+    --intervene), its PolicyConfig, `inputs(requests)` -> (observations, tasks, keys) with the batch axis first,
+    `sample(observations, tasks, keys)` -> (actions, attention) of the compiled call, its batch size, and `shared`:
+    a dict probes of one inference use to share compiled functions (built once per model)."""
+
+    model: Any
+    config: Any
+    inputs: Callable
+    sample: Callable
+    batch_size: int
+    shared: dict
+
+
+class Probe:
+    """One per-step probe (see the module docstring). Subclasses set the class attributes and implement `run`;
+    an instance is made per batched inference with the ProbeContext (`__init__(context)`)."""
+
+    name: ClassVar[str] = ""
+    option: ClassVar[str | None] = None
+    needs_masks: ClassVar[bool] = False  # the env's masks of the current frame travel with a due request
+    masks_error: ClassVar[str] = ""  # one line naming the fix when a due step has no masks
+    sink: ClassVar[Any] = None
+    reader: ClassVar[Any] = None
+    section: ClassVar[Any] = None
+    layer: ClassVar[Any] = None
+
+    def __init__(self, context: ProbeContext):
+        self.context = context
+        self.period = self.every(context.config)
+
+    @classmethod
+    def every(cls, config) -> int:
+        """Run at every N-th step the policy infers at (step % N == 0); 0 = off. Default: on at every inferred step
+        when the option field is set (or when there is none)."""
+        return 1 if cls.option is None or getattr(config, cls.option) else 0
+
+    @classmethod
+    def due(cls, config, step: int) -> bool:
+        every = cls.every(config)
+        return bool(every) and step % every == 0
+
+    def run(self, batch: list[ProbeItem], context: ProbeContext) -> list:
+        """The payloads of the items in `batch` (all due at this call), in order; None: nothing at that step."""
+        raise NotImplementedError
+
+    @staticmethod
+    def upright(payload: Any, flip: Callable[[Any], Any] | None) -> Any:
+        """The payload for records shown upright: `flip` reverses a camera's (rows, cols) map as the frames are
+        turned (None: the camera is upright already)."""
+        return payload
+
+
+_REGISTRY: dict[str, type[Probe]] = {}
+
+
+def register(cls: type[Probe]) -> type[Probe]:
+    """Add a probe class (usable as a decorator); a second probe of the same name is a ValueError."""
+    if not cls.name or cls.name in _REGISTRY and _REGISTRY[cls.name] is not cls:
+        raise ValueError(f"a probe needs a name of its own; {cls.name!r} is taken or empty")
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def unregister(name: str) -> None:
+    _REGISTRY.pop(name, None)
+
+
+@contextmanager
+def registered(cls: type[Probe]) -> Iterator[type[Probe]]:
+    """The probe registered for the duration of the block (a probe defined outside harness/, e.g. in a test)."""
+    register(cls)
+    try:
+        yield cls
+    finally:
+        unregister(cls.name)
+
+
+def probes() -> tuple[type[Probe], ...]:
+    """Every registered probe, in registration order."""
+    return tuple(_REGISTRY.values())
+
+
+def get(name: str) -> type[Probe]:
+    if name not in _REGISTRY:
+        raise KeyError(f"no probe named {name!r}; registered: {', '.join(_REGISTRY)}")
+    return _REGISTRY[name]
+
+
+def active(config) -> tuple[type[Probe], ...]:
+    """The registered probes `config` (a PolicyConfig) turns on."""
+    return tuple(cls for cls in _REGISTRY.values() if cls.every(config))
+
+
+def part(probe: type[Probe] | str, what: str) -> Any:
+    """A probe's sink, reader, section or layer (None when it declares none); "module:Name" (or "module": the module
+    itself) is imported here, a module starting with "." relative to the probe's package."""
+    cls = get(probe) if isinstance(probe, str) else probe
+    if what not in PARTS:
+        raise ValueError(f"a probe part is one of {', '.join(PARTS)}, got {what!r}")
+    value = getattr(cls, what)
+    if isinstance(value, str):
+        module, _, attr = value.partition(":")
+        value = importlib.import_module(module, package=cls.__module__)
+        value = getattr(value, attr) if attr else value
+    return value
+
+
+def parts(what: str) -> list[tuple[type[Probe], Any]]:
+    """(probe, its part) of every registered probe that declares `what`, in registration order."""
+    return [(cls, part(cls, what)) for cls in _REGISTRY.values() if getattr(cls, what) is not None]
+
+
+def _register_builtins() -> None:
+    from harness.probes.attribution import AttributionProbe
+    from harness.probes.controls import ControlsProbe
+    from harness.probes.reliance import RelianceProbe
+
+    for cls in (AttributionProbe, ControlsProbe, RelianceProbe):
+        register(cls)
+
+
+_register_builtins()
