@@ -3,7 +3,8 @@ over 40 words, and none over 70.
 
 A sentence is counted in prose only: fenced code, tables, headings and HTML comments are left out, each list item
 ends a sentence, links count as their text and a code span counts its words. Sentences end at ., ! or ? before a
-capital, a code span or a bracket; "e.g." and "i.e." do not end one. Pages exempt: docs/history/ (work logs) and
+capital, a code span or a bracket; "e.g." and "i.e." do not end one. A provenance line ("Provenance: command ...;
+commit ...; machine: ...") is a record, not prose, and is left out. Pages exempt: docs/history/ (work logs) and
 the generated findings pages (models/*/EVAL.md, not under docs/).
 
 Pages written before the rule are listed in NOT_YET with the counts they had. Such a page may not get worse, and
@@ -25,12 +26,11 @@ LONG, TOO_LONG, SHARE = 40, 70, 0.10
 # page: (sentences over 40 words, sentences over 70 words) when the rule came in; these may only go down
 NOT_YET = {
     "docs/faithfulness-sanity.md": (13, 1),
-    "docs/faithfulness.md": (16, 4),
+    "docs/faithfulness.md": (15, 4),
     "docs/layout.md": (8, 0),
-    "docs/libero-reference.md": (14, 2),
     "docs/libero.md": (13, 1),
     "docs/parallel.md": (14, 1),
-    "docs/perturbations.md": (27, 5),
+    "docs/perturbations.md": (25, 4),
     "docs/phases-and-position.md": (28, 3),
     "docs/run-integrity.md": (13, 0),
     "docs/running.md": (8, 2),
@@ -56,6 +56,8 @@ def sentences(text: str) -> list[str]:
         current.append(s)
     out = []
     for unit in units:
+        if unit.startswith("Provenance:"):  # a provenance record (command; commit; machine), not prose
+            continue
         unit = re.sub(r"!?\[([^\]]*)\]\([^)]*\)", r"\1", unit)  # a link counts as its text
         unit = ABBREVIATIONS.sub(lambda m: m.group(1), unit)
         out += [s for s in re.split(r"(?<=[.!?])\s+(?=[A-Z`*(\[])", unit) if s.strip()]
