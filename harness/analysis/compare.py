@@ -57,6 +57,7 @@ from harness.analysis.compare_result import (
     PairDetail,
     Provenance,
     Rate,
+    RobustnessGrid,
     Step0Drift,
     StepDrift,
     WholeEpisodeDrift,
@@ -357,11 +358,11 @@ def _notes(label: str, block: dict, alpha: float, pooled: bool = False) -> list[
                     "the baseline cannot serve as the reference, so the gate cannot pass; re-run the baseline")
             notes.append(f"ERRORED: the {arm} errored on {errored} of {paired} paired episodes in {label} "
                          f"(more than half): {tail}.")
-    if block["errored_pairs"] and block["verdict"] != "ERRORED" and not pooled:
+    if block["errored_pairs"] and block["verdict"] != Verdict.ERRORED and not pooled:
         notes.append(f"{block['errored_pairs']} errored pair(s) in {label} left out of n = {n} (baseline errored "
                      f"{block['baseline']['errored']}, candidate {block['candidate']['errored']}): at best "
                      "UNDERPOWERED.")
-    if not block["regressed_reachable"] and block["verdict"] != "ERRORED":
+    if not block["regressed_reachable"] and block["verdict"] != Verdict.ERRORED:
         factor = block["holm_factor"]
         notes.append(f"REGRESSED is unreachable with {n} pairs in {label}: the smallest exact McNemar p is "
                      f"{min_mcnemar_p(n):.3g} (x Holm factor {factor} = {min(1.0, factor * min_mcnemar_p(n)):.3g}) "
@@ -401,7 +402,7 @@ def outcome_verdicts(tables: dict[str, PairedCounts], config: CompareConfig,
         block["verdict"] = paired_verdict(counts, block["mcnemar_p_holm"], tuple(block["difference_ci"]),
                                           config.max_drop, config.alpha, named_errored[name])
         needed = None
-        if project and block["verdict"] in ("UNDERPOWERED", "SUSPECT"):
+        if project and block["verdict"] in (Verdict.UNDERPOWERED, Verdict.SUSPECT):
             needed = pairs_to_decide(counts, config.max_drop, config.alpha, multiplier=factor)
         block["pairs_to_decide"] = needed
         block["more_pairs_needed"] = None if needed is None else needed - counts.n
@@ -632,8 +633,8 @@ def is_grid(path: str | Path) -> bool:
     return (Path(path) / GRID_FILE).is_file()
 
 
-def read_grid(path: str | Path) -> dict:
-    """robustness.json of a grid folder ({"runs": {run name: perturb or None}, ...}); one line if unreadable."""
+def read_grid(path: str | Path) -> RobustnessGrid:
+    """robustness.json of a grid folder (runs: {run name: perturb or None}, ...); one line if unreadable."""
     path = Path(path) / GRID_FILE
     try:
         grid = read_json(path)
@@ -643,7 +644,10 @@ def read_grid(path: str | Path) -> dict:
     if not isinstance(runs, dict) or not runs or not all(isinstance(k, str) and "/" not in k and k not in ("", ".", "..")
                                                        for k in runs):
         raise IncompatibleRuns(f"{path}: 'runs' must map run folder names to perturbations; re-create the grid")
-    return grid
+    try:
+        return RobustnessGrid.from_json(grid)
+    except (TypeError, ValueError) as exc:
+        raise IncompatibleRuns(f"{path}: not a robustness grid ({exc}); re-create it with octo-harness robustness")
 
 
 def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig(),
@@ -653,12 +657,12 @@ def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: C
     is REGRESSED / SUSPECT there, at the same family-wise alpha as a task of `compare_runs`. Every condition of the
     baseline grid must be in the candidate's (one line otherwise)."""
     base_grid, cand_grid = read_grid(baseline_dir), read_grid(candidate_dir)
-    absent = [name for name in base_grid["runs"] if name not in cand_grid["runs"]]
+    absent = [name for name in base_grid.runs if name not in cand_grid.runs]
     if absent:
         raise IncompatibleRuns(f"the candidate grid {candidate_dir} lacks condition(s) {', '.join(absent)} of the "
                                "baseline grid; run octo-harness robustness with the baseline's --perturb and --levels")
     details, missing, arms, truncated = [], {"baseline": [], "candidate": []}, None, (False, False)
-    for name, perturb in base_grid["runs"].items():
+    for name, perturb in base_grid.runs.items():
         baseline, candidate = load_run(Path(baseline_dir) / name, legacy=False), load_run(Path(candidate_dir) / name, legacy=False)
         fields = incompatible_fields(_protocol(baseline), _protocol(candidate))
         if fields:
@@ -683,8 +687,8 @@ def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: C
                      what_differs(_protocol(arms[0]), _protocol(arms[1])), require_complete)
     return replace(result, grid=GridInfo(baseline=str(Path(baseline_dir).resolve()),
                                          candidate=str(Path(candidate_dir).resolve()),
-                                         conditions=tuple(base_grid["runs"]), cells=len(result.outcomes.tasks),
-                                         perturb=dict(base_grid["runs"])))
+                                         conditions=tuple(base_grid.runs), cells=len(result.outcomes.tasks),
+                                         perturb=dict(base_grid.runs)))
 
 
 def gate_exit_code(verdict: Verdict, fail_on: str = "suspect") -> int:

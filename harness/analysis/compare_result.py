@@ -3,7 +3,8 @@
 `CompareResult` is a frozen dataclass whose fields are compare.json's keys, with nested dataclasses for its blocks:
 the arms (`Arm`), the IDENTICAL check (`IdenticalCheck`), the outcome tables (`Outcomes` of `OutcomeBlock`s, each arm's
 `Rate`), the drift (`Drift`), what the protocols differ in (`Differs`), the provenance line (`Provenance`) and the
-pairs (`PairDetail`). `to_json()` writes today's schema and `CompareResult.from_json(data)` reads a stored
+pairs (`PairDetail`); a grid comparison's folders (`GridInfo`) and a grid's own file (`RobustnessGrid`). `to_json()`
+writes today's schema and `CompareResult.from_json(data)` reads a stored
 compare.json back (harness.results). Verdicts are `harness.analysis.paired.Verdict`.
 """
 from __future__ import annotations
@@ -226,6 +227,19 @@ class PairDetail(Result):
     js_step0_max: float = ABSENT
     attention_note: str = ABSENT
     condition: str = ABSENT  # a grid comparison's condition
+
+
+@dataclass(frozen=True)
+class RobustnessGrid(Result):
+    """A robustness grid's robustness.json (harness.gate.robustness writes it; compare and regress read it): {run
+    folder name: --perturb or None (nominal)}, and what made it (absent from older or hand-made grid files)."""
+
+    runs: dict[str, str | None]
+    format: str = ABSENT
+    conditions: tuple[str, ...] = ABSENT
+    levels: tuple[int, ...] = ABSENT
+    tasks: tuple[str, ...] = ABSENT
+    regress_of: str = ABSENT  # a candidate grid made by regress: the baseline grid
 
 
 @dataclass(frozen=True)

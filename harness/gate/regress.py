@@ -392,11 +392,11 @@ def regress_grid(baseline_grid: str | Path, model: str, gate: GateConfig | None 
     alpha = gate.alpha
     baseline_grid = Path(baseline_grid)
     grid = read_grid(baseline_grid)
-    names = list(grid["runs"])
+    names = list(grid.runs)
     short = model.rstrip("/").replace("hf://", "").replace("random:", "random-").split("/")[-1].replace(":", "-")
     folder = Path(out) / (run_name or f"{short}_{baseline_grid.resolve().name}")
     folder.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(folder / GRID_FILE, {**grid, "regress_of": str(baseline_grid.resolve())})
+    atomic_write_json(folder / GRID_FILE, replace(grid, regress_of=str(baseline_grid.resolve())).to_json())
     loaded = load_pretrained(model, text_tokenizer=gate.text_tokenizer)
     per_condition = {}
     for name in names:

@@ -19,15 +19,18 @@ and skips finished ones; the model is loaded once for the whole grid.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 from envs.perturbations import KEYED_KINDS, KINDS, LEVELS, PerturbationError, parse_perturb
 from harness.analysis.compare import GRID_FILE  # the grid's robustness.json, read by compare and regress
+from harness.analysis.compare_result import RobustnessGrid
 from harness.files import atomic_write_json
 from harness.run.protocol import Protocol
 
 log = logging.getLogger(__name__)
 NOMINAL = "nominal"
+GRID_FORMAT = "octo-harness-robustness/1"
 
 
 def parse_kinds(text: str | list) -> tuple[str, ...]:
@@ -105,8 +108,12 @@ def run_grid(base: Protocol, conditions: tuple[str, ...], levels: tuple[int, ...
             raise
         except (OSError, ValueError):
             old = None
-        if not isinstance(old, dict) or old.get("format") != "octo-harness-robustness/1":
+        if not isinstance(old, dict) or old.get("format") != GRID_FORMAT:
             raise ValueError(f"{existing} is not a robustness grid file; choose another --out")
+        try:
+            old = RobustnessGrid.from_json({"runs": {}, **old})
+        except (TypeError, ValueError):
+            raise ValueError(f"{existing} is not a robustness grid file; choose another --out") from None
     if model is None:
         from harness.octo import load_pretrained
 
@@ -114,19 +121,19 @@ def run_grid(base: Protocol, conditions: tuple[str, ...], levels: tuple[int, ...
     conditions = expand_conditions(conditions, model_camera_keys(model))
     runs = grid(conditions, levels)
     if old is not None:  # a perturbation the grid already holds keeps its run's name
-        known = {perturb: name for name, perturb in (old.get("runs") or {}).items()}
+        known = {perturb: name for name, perturb in (old.runs or {}).items()}
         runs = {known.get(perturb, name): perturb for name, perturb in runs.items()}
     protocols = {name: base.replace(perturb=perturb) for name, perturb in runs.items()}
     for protocol in protocols.values():  # every task x camera checked before anything runs
         checks.check_perturbations(protocol)
     out.mkdir(parents=True, exist_ok=True)
-    record = {"format": "octo-harness-robustness/1", "conditions": list(conditions), "levels": list(levels),
-              "tasks": list(base.tasks), "runs": runs}
-    if old is not None:
-        record["runs"] = {**old.get("runs", {}), **runs}  # a grid may grow by kinds or levels
-        record["conditions"] = list(dict.fromkeys([*old.get("conditions", []), *conditions]))
-        record["levels"] = sorted(set(old.get("levels", [])) | set(levels))
-    atomic_write_json(existing, record)
+    record = RobustnessGrid(format=GRID_FORMAT, conditions=tuple(conditions), levels=tuple(levels),
+                            tasks=tuple(base.tasks), runs=runs)
+    if old is not None:  # a grid may grow by kinds or levels
+        record = replace(record, runs={**(old.runs or {}), **runs},
+                         conditions=tuple(dict.fromkeys([*(old.conditions or ()), *conditions])),
+                         levels=tuple(sorted(set(old.levels or ()) | set(levels))))
+    atomic_write_json(existing, record.to_json())
     summaries = {}
     for name, protocol in protocols.items():
         log.info("robustness: run %s (%s)", name, protocol.perturb or "nominal")
