@@ -1,4 +1,4 @@
-"""The documentation stays true: README.md is a front page (at most 250 lines), every relative link and #anchor in
+"""The documentation stays true: README.md is a front page (at most 160 lines), every relative link and #anchor in
 README.md and docs/*.md resolves, every option of every command's --help is documented, every docs page is in the
 index, and the Python API page's examples run.
 
@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-README_MAX_LINES = 250
+README_MAX_LINES = 160  # a front page (issue 67): pitch, set-up, quick start, recipes, findings, docs
 
 
 def doc_files(root: Path = REPO) -> list[Path]:
