@@ -32,7 +32,6 @@ NOT_YET = {
     "docs/parallel.md": (14, 1),
     "docs/perturbations.md": (25, 4),
     "docs/phases-and-position.md": (28, 3),
-    "docs/run-integrity.md": (13, 0),
     "docs/running.md": (8, 2),
     "docs/viewer.md": (12, 1),
 }
