@@ -33,7 +33,6 @@ NOT_YET = {
     "docs/perturbations.md": (25, 4),
     "docs/phases-and-position.md": (28, 3),
     "docs/running.md": (8, 2),
-    "docs/viewer.md": (12, 1),
 }
 
 ABBREVIATIONS = re.compile(r"\b(e\.g|i\.e|etc|vs|cf)\.", re.I)
