@@ -16,7 +16,7 @@ class RelianceProbe(Probe):
     name = "reliance"
     option = "reliance_every"
     needs_masks = True
-    masks_error = "--reliance-every replaces the labelled regions of the env's masks; drop --no-masks"
+    masks_error = "--reliance-every needs the env's masks at every reliance step; drop --no-masks"
     sink = ".sink:RelianceLines"
     reader = ".reader"
     section = ".report:Section"
