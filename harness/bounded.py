@@ -3,6 +3,8 @@ grid files), so a hostile or damaged file is one line and exit 2 in bounded time
 
 - Size: `stat` before `read`; a file over its kind's limit is refused unread (a 20 GB sparse manifest.json costs
   one stat).
+- Kind: only a regular file is read. A FIFO, a device or a socket in a file's place is refused from its `stat`,
+  never opened for reading (a FIFO would block the command, a device would read forever or read as empty).
 - Nesting: JSON and TOML documents are scanned for their bracket depth before they are parsed (numpy over the
   bytes with the strings blanked, no recursion), so `[[[[...` 10^5 deep is refused before the recursive parsers
   see it; a RecursionError the scan missed is caught here too.
@@ -17,9 +19,11 @@ the limit. The limits are stated in docs/run-integrity.md.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import re
+import stat
 import zipfile
 from typing import Any, Iterable, Mapping
 
@@ -55,9 +59,34 @@ def _mib(n: int) -> str:
     return f"{n / MiB:.0f} MiB" if n >= MiB else f"{n} bytes"
 
 
+_KINDS = ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+def file_kind(mode: int) -> str | None:
+    """None for a regular file, else what the `stat` mode says it is ("a FIFO", "a character device", ...)."""
+    if stat.S_ISREG(mode):
+        return None
+    return next((name for test, name in _KINDS if test(mode)), "not a plain file")
+
+
+def check_regular(path: str | os.PathLike, st: os.stat_result | None = None, what: str = "file") -> os.stat_result:
+    """`path`'s stat (links followed), or BoundsError when it is not a regular file (FileNotFoundError passes; a
+    folder is IsADirectoryError, as `open` says)."""
+    st = os.stat(path) if st is None else st
+    if stat.S_ISDIR(st.st_mode):
+        raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR), str(path))
+    kind = file_kind(st.st_mode)
+    if kind is not None:
+        raise BoundsError(f"{path} is not a regular file (it is {kind}); a {what} is read only from a plain file: "
+                          "put the file itself there (docs/run-integrity.md#bounded-reading)")
+    return st
+
+
 def check_size(path: str | os.PathLike, limit: int, what: str = "file") -> int:
-    """The file's size from `stat`, or BoundsError when it exceeds `limit` (FileNotFoundError passes through)."""
-    size = os.stat(path).st_size
+    """The file's size from `stat`, or BoundsError when it exceeds `limit` or is not a regular file
+    (FileNotFoundError passes through)."""
+    size = check_regular(path, what=what).st_size
     if size > limit:
         raise BoundsError(f"{path} is {size} bytes, over the {_mib(limit)} a {what} may hold; it is damaged or not "
                           "what it claims to be (docs/run-integrity.md#bounded-reading)")
@@ -66,9 +95,12 @@ def check_size(path: str | os.PathLike, limit: int, what: str = "file") -> int:
 
 def read_bytes(path: str | os.PathLike, limit: int = MAX_TEXT_BYTES, what: str = "file") -> bytes:
     """The file's bytes, at most `limit` (checked by stat first; a file that grows while read is cut at the limit
-    and refused)."""
+    and refused). Only a regular file is opened; one swapped for a FIFO after the stat is opened without blocking
+    and refused unread."""
     check_size(path, limit, what)
-    with open(path, "rb") as f:
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    with open(fd, "rb") as f:
+        check_regular(path, os.fstat(fd), what)
         data = f.read(limit + 1)
     if len(data) > limit:
         raise BoundsError(f"{path} grew over the {_mib(limit)} a {what} may hold while it was read")
@@ -149,6 +181,7 @@ def npz_headers(path: str | os.PathLike) -> dict[str, tuple[tuple[int, ...], np.
 
     out: dict[str, tuple[tuple[int, ...], np.dtype]] = {}
     total = 0
+    check_regular(path, what="array file")  # a FIFO is never opened (zipfile and np.load would block on it)
     with zipfile.ZipFile(path) as archive:
         infos = archive.infolist()
         if len(infos) > MAX_NPZ_MEMBERS:

@@ -17,11 +17,12 @@ from __future__ import annotations
 
 import hashlib
 import os
+import stat
 from pathlib import Path
 
 import zipfile
 
-from harness.bounded import BoundsError, check_npz
+from harness.bounded import BoundsError, check_npz, file_kind
 from harness.runfolder.schema import FIX, MalformedRunError
 
 DATA_SUFFIXES = (".npz", ".jsonl", ".rrd")  # .rrd: a --rerun save recording, shown by `view` as the episode's own
@@ -76,11 +77,19 @@ def inside(run_dir: Path, path: Path, named_by: str | None = None) -> Path:
 
 def check_run_files(run_dir: Path, names) -> None:
     """The run's own files (manifest.json, results.jsonl, ...): each that exists, even as a broken link, resolves
-    inside the run folder."""
+    inside the run folder and is a regular file (a FIFO, a device, a socket or a folder in its place is named here,
+    from its `stat`, never opened: it is neither read as "no file" nor left to block a reader)."""
     for name in names:
         path = Path(run_dir) / name
         if os.path.lexists(path):
             inside(run_dir, path)
+            try:
+                mode = os.stat(path).st_mode
+            except FileNotFoundError:  # a broken link: the file is absent
+                continue
+            kind = "a folder" if stat.S_ISDIR(mode) else file_kind(mode)
+            if kind is not None:
+                raise MalformedRunError(f"{path} is not a regular file (it is {kind}); {FIX}")
 
 
 def array_axes(manifest: dict | None) -> dict[str, dict[int, int]]:

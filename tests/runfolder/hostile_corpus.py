@@ -12,8 +12,9 @@ config.json, a protocol file), sparse giants (manifest.json, results.jsonl), arr
 row's steps, one that expands to hundreds of MB, one whose layers differ from the manifest's, one holding pickled
 objects, one whose header disagrees with its zip entry), edited manifests (protocol.seed, a job's seed, max_steps
 with the stored hash kept, protocol + hash + jobs edited together, manifest.json deleted, arrays deleted under rows
-without digests), the viewer (ports out of range, a port in use, spawn without a display, a foreign episode.rrd),
-small ones (an empty --perturb, --controls-every 0, a huge bad value, a checkpoint claiming 10000 layers).
+without digests), not regular files (a FIFO or a device as results.jsonl, a FIFO as manifest.json or as a protocol
+file; a device needs a user who may make one), the viewer (ports out of range, a port in use, spawn without a
+display, a foreign episode.rrd), small ones (an empty --perturb, --controls-every 0, a huge bad value, a checkpoint claiming 10000 layers).
 Full disks, SIGINT while loading and resume over a plain file need a mount, a process or a long run: they are
 tests of their own in test_hostile_inputs.py.
 """
@@ -23,6 +24,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import stat
 import sys
 import zipfile
 from dataclasses import dataclass, field
@@ -96,6 +98,20 @@ def _deep(path: Path, wrap: str = "{{\"deep\": {}}}") -> None:
 def _sparse(path: Path) -> None:
     with open(path, "r+b" if path.exists() else "wb") as f:
         f.truncate(GIANT)
+
+
+def _special(path: Path, device: bool = False) -> bool:
+    """Put a FIFO (or a character device: a copy of /dev/null) in `path`'s place; False when this user may not make
+    a device."""
+    path.unlink(missing_ok=True)
+    if not device:
+        os.mkfifo(path)
+        return True
+    try:
+        os.mknod(path, 0o600 | stat.S_IFCHR, os.makedev(1, 3))
+    except PermissionError:
+        return False
+    return True
 
 
 def _npz_replace(path: Path, name: str, array_header: dict | None = None, array: np.ndarray | None = None,
@@ -251,6 +267,25 @@ def make_cases(run: Path, out: Path, model: str, rrd: Path | None = None) -> lis
     for name in ("actions.npz", "attention.npz", "inputs.npz"):
         (bad / ep / name).unlink()
     compare("legacy_no_arrays", "edited manifest", 2, "is missing")
+
+    # ---- not regular files (a FIFO is never opened: a command reading it would block) ---------------------------
+    bad = _copy(run, out, "fifo_rows")
+    _special(bad / "results.jsonl")
+    cases.append(Case("fifo_rows", "not a regular file", ["report", str(bad), "--out", str(out / "fifo_rows.report")],
+                      2, "results.jsonl is not a regular file (it is a FIFO)"))
+    bad = _copy(run, out, "device_rows")
+    if _special(bad / "results.jsonl", device=True):
+        cases.append(Case("device_rows", "not a regular file", ["report", str(bad), "--out",
+                                                                 str(out / "device_rows.report")], 2,
+                          "results.jsonl is not a regular file (it is a character device)"))
+    bad = _copy(run, out, "fifo_manifest")
+    _special(bad / "manifest.json")
+    compare("fifo_manifest", "not a regular file", 2, "manifest.json is not a regular file (it is a FIFO)")
+    fifo = out / "fifo_protocol.toml"
+    _special(fifo)
+    cases.append(Case("fifo_protocol", "not a regular file", ["run", "--protocol", str(fifo), "--out",
+                                                              str(out / "fifo_protocol.out")], 2,
+                      "is not a regular file (it is a FIFO)"))
 
     # ---- the viewer --------------------------------------------------------------------------------------------
     cases.append(Case("viewer_port_range", "viewer", ["run", "--model", model, "--task", "Lift", "--rerun", "spawn",

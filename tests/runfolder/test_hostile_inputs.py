@@ -113,7 +113,8 @@ def test_every_hostile_input_gives_its_code_and_one_line_in_bounded_time(made, f
     print("seconds per case:", json.dumps({k: round(v, 1) for k, v in timings.items()}))
     assert not failures, "\n".join(failures)
     assert max(timings.values()) < TIMEOUT
-    assert {c.cls for c in cases} >= {"deep nesting", "sparse giant", "zip bomb", "edited manifest", "viewer", "small"}
+    assert {c.cls for c in cases} >= {"deep nesting", "sparse giant", "zip bomb", "edited manifest", "not a regular file",
+                                      "viewer", "small"}
 
 
 @pytest.mark.slow
@@ -173,6 +174,26 @@ def test_a_full_disk_is_one_line_exit_2_and_leaves_no_temporary_file(made, fixtu
             assert left == [], (name, left)  # nothing half-written, no temporary file
     finally:
         subprocess.run(["umount", str(full)], check=False)
+
+
+@pytest.mark.slow
+def test_report_under_cpu_load_exits_0_every_time(made, tmp_path, capsys):
+    """`report` indexes arrays in its overlay thread while the main thread draws; numpy's header parse in two threads
+    at once exited 5 in 1 of 10 tries under two busy loops (CPython gh-106905; harness/threadsafe.py, issue 66)."""
+    from harness import cli
+
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    try:
+        codes = []
+        for _ in range(20):
+            codes.append(cli.main(["report", str(made), "--out", str(tmp_path / "report"), "--resamples", "50"]))
+            if codes[-1] != 0:
+                break
+    finally:
+        for process in busy:
+            process.kill()
+            process.wait()
+    assert codes == [0] * 20, capsys.readouterr().err[-2000:]
 
 
 def _default_sigint() -> None:
