@@ -70,12 +70,40 @@ def margins(model_dir: Path, tasks: list[str], seed: int = 0) -> list[dict]:
     return rows
 
 
+def table(rows: list[dict]) -> str:
+    """The model card's table: per camera and measure, over the tasks where the right orientation scores at least
+    MIN_SCORE with the check's measure (it decides there; the others are counted apart: another scene)."""
+    from harness.measures.orientation import MEASURE
+    from harness.run.preflight import MIN_SCORE
+
+    decides = {(r["task"], r["camera"]) for r in rows if r["measure"] == MEASURE and r["score"] >= MIN_SCORE}
+
+    lines = ["| camera | measure | tasks decided (other scene) | score | vertical margin | mirror margin |",
+             "|---|---|---|---|---|---|"]
+    for camera in sorted({r["camera"] for r in rows}):
+        for measure in sorted({r["measure"] for r in rows}):
+            sel = [r for r in rows if r["camera"] == camera and r["measure"] == measure]
+            decided = [r for r in sel if (r["task"], r["camera"]) in decides]
+            mirrors = [r["mirror_margin"] for r in decided if r["mirror_margin"] is not None]
+            span = lambda v: f"{min(v):.2f} to {max(v):.2f}" if v else "-"  # noqa: E731
+            lines.append(f"| {camera} | {measure} | {len(decided)} ({len(sel) - len(decided)}) | "
+                         f"{span([r['score'] for r in decided])} | {span([r['vertical_margin'] for r in decided])} | "
+                         f"{span(mirrors)} |")
+    return "\n".join(lines)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("checkpoint", type=Path)
-    parser.add_argument("--tasks", required=True, help="comma-separated task names or a LIBERO suite")
+    parser.add_argument("checkpoint", type=Path, nargs="?")
+    parser.add_argument("--tasks", help="comma-separated task names or a LIBERO suite")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--table", type=Path, help="print the table of this script's earlier output instead")
     args = parser.parse_args()
+    if args.table is not None:
+        print(table([json.loads(line) for line in args.table.read_text().splitlines() if line.startswith("{")]))
+        return 0
+    if args.checkpoint is None or not args.tasks:
+        parser.error("give a checkpoint and --tasks (or --table FILE)")
     commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True).stdout.strip()
     rows = margins(args.checkpoint, args.tasks.split(","), args.seed)
@@ -83,15 +111,7 @@ def main() -> int:
         print(json.dumps(row))
     print(f"# provenance: python scripts/preflight_margins.py {args.checkpoint} --tasks {args.tasks} --seed {args.seed}"
           f" at {commit} on {_cpu()} ({os.cpu_count()} CPUs)")
-    print(f"{'camera':<14} {'measure':<6} {'tasks':>5} {'min score':>9} {'min vertical':>12} {'min mirror':>10} "
-          f"{'max mirror':>10}")
-    for camera in sorted({r["camera"] for r in rows}):
-        for measure in sorted({r["measure"] for r in rows}):
-            sel = [r for r in rows if r["camera"] == camera and r["measure"] == measure]
-            mirrors = [r["mirror_margin"] for r in sel if r["mirror_margin"] is not None]
-            print(f"{camera:<14} {measure:<6} {len(sel):>5} {min(r['score'] for r in sel):>9.3f} "
-                  f"{min(r['vertical_margin'] for r in sel):>12.3f} "
-                  f"{(min(mirrors) if mirrors else float('nan')):>10.3f} {(max(mirrors) if mirrors else float('nan')):>10.3f}")
+    print(table(rows))
     return 0
 
 

@@ -122,6 +122,8 @@ def _episode_rows(run: RunData, task: str, out: Path) -> tuple[str, str]:
 
 
 def _manifest_section(run: RunData) -> str:
+    from harness.run.preflight import summary as preflight_summary
+
     r = run.record
     parts = []
     if r.model.is_random:
@@ -143,6 +145,7 @@ def _manifest_section(run: RunData) -> str:
         ("max steps", protocol.get("max_steps") if protocol.get("max_steps") is not None else "task default"),
         ("created", r.created or "—"),
         ("git commit", r.git_commit or "—"),
+        ("pre-flight check", preflight_summary(r.manifest.get("preflight"))),
         ("versions", ", ".join(f"{k} {v}" for k, v in sorted(r.versions.items())) or "—"),
     ]
     if "protocol_hash" in r.manifest:
