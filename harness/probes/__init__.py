@@ -11,14 +11,17 @@ A probe is one `Probe` subclass in one module (or folder) and one `register` cal
   reader    how its payloads are read back from an episode folder (an object or module with `by_step(directory)` ->
             {step: payload}; "module" or "module:Name")
   section   its report section (an object with the report's `summarise`, `tables`, `section`, or "module:Name")
-  layer     its viewer layer (an object with `views`, `header` and `log` for the Rerun recording, or "module:Name")
+  layer     its viewer layer in the Rerun recording (an object with `camera_views(cam, payload)`, `camera_note(payload)`,
+            `plots(payload)`, `header(payload)` and `log(recording, record, payload)`, or "module:Name")
 The higher-stage parts (sink, reader, section, layer) are named, not imported, here: the stage that uses a part looks it
 up by probe through `part(probe, what)`, so the policy can call probes and the report and viewer can show them while
-no import runs back up the stages. A part named "module:Name" without a module means the probe's own package
+no import runs back up the stages. A module name starting with "." is relative to the probe's own package
 (`cls.__module__`), e.g. ".sink:RelianceLines".
 
 The registry keeps insertion order: the order probes run in at a step, their files are written in and their report
-sections and viewer layers appear in. Built-in probes: attribution (and faithfulness), controls, reliance.
+sections and viewer layers appear in. Built-in probes: attribution (and faithfulness), controls, reliance. A probe
+registered at run time (`registered`) is known to this process only: processes that import the harness afresh
+(spawned --workers, Ray) know the built-in probes.
 """
 
 from __future__ import annotations
