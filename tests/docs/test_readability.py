@@ -28,7 +28,6 @@ NOT_YET = {
     "docs/faithfulness.md": (15, 4),
     "docs/layout.md": (8, 0),
     "docs/parallel.md": (14, 1),
-    "docs/phases-and-position.md": (28, 3),
     "docs/running.md": (8, 2),
 }
 
