@@ -70,6 +70,10 @@ class LiberoServerError(RuntimeError):
         self.detail = detail
 
 
+class LiberoServerLost(LiberoServerError):
+    """The LIBERO server died or stopped answering (not an error it reported): the run may retry the episode."""
+
+
 def libero_python() -> Path:
     """The Python of LIBERO's environment ($OCTO_HARNESS_LIBERO_VENV, default <repo>/.venv-libero); raises
     LiberoEnvironmentMissing naming the set-up command when it is absent."""
@@ -133,7 +137,7 @@ class LiberoServer:
         except TimeoutError as exc:  # alive but silent (hung): end it, so the episode fails and the run goes on
             self.process.kill()
             self.process.wait()
-            raise LiberoServerError(f"the LIBERO server did not answer {op!r} within {CALL_TIMEOUT:.0f} s; it was "
+            raise LiberoServerLost(f"the LIBERO server did not answer {op!r} within {CALL_TIMEOUT:.0f} s; it was "
                                     "ended (a hung simulator or renderer)", self.stderr_tail()) from exc
         except (EOFError, BrokenPipeError, OSError, ValueError) as exc:
             try:
@@ -149,7 +153,7 @@ class LiberoServer:
             else:
                 cause = f"exit code {code}"
             last = [line for line in self.stderr_tail().splitlines() if "Error" in line or "error" in line][-1:]
-            raise LiberoServerError(f"the LIBERO server died during {op!r} ({cause})" + (f": {last[0]}" if last else ""),
+            raise LiberoServerLost(f"the LIBERO server died during {op!r} ({cause})" + (f": {last[0]}" if last else ""),
                                     self.stderr_tail()) from exc
         if not reply.get("ok"):
             raise LiberoServerError(f"LIBERO {op}: {reply.get('error')}", reply.get("traceback", ""))

@@ -10,7 +10,14 @@ import sys
 from pathlib import Path
 
 from harness.cli.common import add_execution_args, add_render_arg, add_verbose, add_viewer_ports, execution, keep_serving
-from harness.options import add_arguments, options
+from harness.options import add_arguments, find, options
+
+
+def _retries(value) -> int:
+    """--retries from the flag or the protocol file, checked (one line, exit 2)."""
+    from harness.run.protocol import Recovery
+
+    return find([Recovery], "retries").convert(value)
 
 
 def _classes():
@@ -60,14 +67,18 @@ def _live_viewer(args, modes: tuple[str, ...]):
 
 
 def _protocol(args, given: dict):
-    """(protocol, out, run name, ci method) from the manifest of --resume RUN_DIR, or from --protocol and the flags."""
+    """(protocol, out, run name, ci method, retries) from the manifest of --resume RUN_DIR, or from --protocol and the
+    flags (--retries is taken with --resume too: it is not part of the protocol)."""
     from harness.run import RunStore
     from harness.run.protocol import protocol_from_manifest
     from harness.run.settings import build_protocol, out_dir, read_protocol_file
 
+    retries = given.pop("retries", None)
     if args.resume is None:
         settings = {**(read_protocol_file(args.protocol) if args.protocol else {}), **given}
-        return build_protocol(settings), out_dir(settings), settings.get("run_name"), settings.get("ci_method")
+        retries = retries if retries is not None else settings.get("retries")
+        return (build_protocol(settings), out_dir(settings), settings.get("run_name"), settings.get("ci_method"),
+                _retries(retries) if retries is not None else None)
     if given or args.protocol is not None:
         raise ValueError(f"--resume takes the protocol from {args.resume}/manifest.json; drop "
                          + ", ".join("--" + k.replace("_", "-") for k in (given or {"protocol": 1})))
@@ -76,7 +87,7 @@ def _protocol(args, given: dict):
         raise FileNotFoundError(f"{args.resume} holds no manifest.json; pass the folder of an octo-harness run")
     protocol = protocol_from_manifest(manifest, args.resume / "manifest.json", model_fingerprint=None,
                                       goal_fingerprint=None)
-    return protocol, args.resume.parent, args.resume.name, None  # None: the manifest's statistics.ci_method
+    return protocol, args.resume.parent, args.resume.name, None, retries  # None: the manifest's statistics.ci_method
 
 
 def main(args) -> int:
@@ -89,11 +100,11 @@ def main(args) -> int:
              if o.key != "rerun" and getattr(args, o.key) is not None}
     if "save" in modes:
         given["rerun"] = True  # an output option of the protocol (spawn and serve are not)
-    protocol, out, name, method = _protocol(args, given)
+    protocol, out, name, method, retries = _protocol(args, given)
     viewer = _live_viewer(args, modes)
     try:
         summary = execute(protocol, out, name, overwrite=args.overwrite, retry_failed=args.retry_failed, ci_method=method,
-                          executor=factory, viewer=viewer.url if viewer is not None else None)
+                          executor=factory, viewer=viewer.url if viewer is not None else None, retries=retries)
     except ResultsWriteError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

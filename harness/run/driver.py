@@ -29,12 +29,10 @@ from harness import interrupts
 from harness.run import checks
 from harness.run.protocol import protocol_from_manifest
 from harness.runfolder.platform import libero_platform, platform_differences, platform_fingerprint, platform_info
-from harness.run.executor import CheckedEnv, EpisodeContext, Executor, SequentialExecutor, StepCallback
+from harness.run.executor import CheckedEnv, EpisodeContext, Executor, Retrying, SequentialExecutor, StepCallback
 from harness.run.progress import Progress
-from harness.run.protocol import FORMAT, EpisodeJob, Protocol, diff, goal_fingerprint, model_fingerprint
-from harness.run.store import MANIFEST, EpisodeRow, RunStore, now_utc, statistics
-from harness.runfolder.integrity import LEGACY_RESUME, episode_problem
-from harness.runfolder.schema import MalformedRunError
+from harness.run.protocol import FORMAT, EpisodeJob, Protocol, Recovery, diff, goal_fingerprint, model_fingerprint
+from harness.run.store import MANIFEST, EpisodeRow, RunStore, now_utc, recovery, recovery_lines, statistics
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +80,7 @@ class RunSummary:
         method = self.statistics["overall"]["method"]
         lines.append(f"success interval: {method} {self.statistics['overall']['confidence']:.0%}; "
                      "failed episodes (errors) are not counted in n")
-        return "\n".join(lines)
+        return "\n".join(lines + recovery_lines(recovery(self.rows)))
 
 
 def _mean(values) -> float:
@@ -199,6 +197,7 @@ def execute(
     progress: bool = True,
     ci_method: str | None = None,
     viewer: str | None = None,
+    retries: int | None = None,
 ) -> RunSummary:
     """Run (or resume) the protocol's episodes into `<out>/<run_name>` and return the summary.
 
@@ -208,6 +207,7 @@ def execute(
     ci_method: the success intervals of the derived files (wilson, clopper-pearson); recorded in the manifest
     ("statistics", outside the protocol and its hash), so a resume writes them as the run began; None: the recorded
     one, else wilson. A different one for a run that records its own is refused (one line).
+    retries: times a lost job runs again (executor.Retrying); None: the run's recorded number, else Recovery's default.
     """
     protocol, out, name, goal_images, fingerprint_details = _checked_inputs(protocol, out, run_name, ci_method, viewer)
     store = RunStore(out / name)
@@ -227,14 +227,15 @@ def execute(
                          len(jobs))
             context = EpisodeContext(protocol=protocol, run_dir=str(store.dir.resolve()), run=name,
                                      model=opened.manifest["model"], goals=opened.goals, viewer=viewer)
-            status = _run_pending(store, protocol, jobs, opened, context, executor, on_step, progress)
+            retries = (opened.manifest.get("recovery") or {}).get("retries", Recovery.retries) if retries is None else retries
+            status = _run_pending(store, protocol, jobs, opened, context, executor, on_step, progress, retries)
         finally:
             if opened.checked is not None:
                 opened.checked.close()  # unless an executor took it
         rows = opened.rows
         ordered = tuple(rows[j.key] for j in jobs if j.key in rows)
-        return RunSummary(store.dir, ordered, opened.manifest, status,
-                          statistics(ordered, protocol.tasks, method=opened.ci_method),
+        return RunSummary(run_dir=store.dir, rows=ordered, manifest=opened.manifest, status=status,
+                          statistics=statistics(ordered, protocol.tasks, method=opened.ci_method),
                           skipped=len(jobs) - len(opened.pending))
 
 
@@ -294,7 +295,7 @@ def _open_run(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], name:
     if manifest is not None and manifest.get("run") != name:  # a copied or renamed run folder
         rows = _rename_run(store, manifest, rows, name)
         manifest = store.read_manifest()
-    done = _verified(store, rows, retry_failed, manifest)
+    done = store.standing_jobs(rows, retry_failed, manifest)
     pending = [j for j in jobs if j.key not in done]
     goals = None
     if model is None and (pending or manifest is None):  # a finished run needs no model
@@ -376,7 +377,7 @@ def _new_manifest(protocol: Protocol, protocol_dict: dict, jobs: list[EpisodeJob
 
 def _run_pending(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], opened: _OpenedRun,
                  context: EpisodeContext, executor: ExecutorFactory | None, on_step: StepCallback | None,
-                 progress: bool) -> str:
+                 progress: bool, retries: int = Recovery.retries) -> str:
     """The executor loop: each finished row is appended and the derived files rewritten, inside the signal guard's
     critical sections; returns "complete" or "interrupted" (then leftovers are removed). `opened.rows` and
     `opened.done` grow with the rows."""
@@ -400,17 +401,22 @@ def _run_pending(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], op
                 runner = (executor or SequentialExecutor)(context, opened.model) if opened.pending else None
                 if opened.checked is not None and hasattr(runner, "adopt"):
                     runner.adopt(opened.checked)
+                if runner is not None:
+                    runner = Retrying(runner, retries, context.run_dir)
+                store.record_recovery(manifest, rows, retries, Recovery.retries)
             for row in (runner.run(opened.pending, on_step=step) if runner is not None else ()):
                 row = dataclasses.replace(row, platform=opened.platform_fp)  # where this episode's numbers came from
                 with guard.critical():
                     store.append(row)
                     rows[row.key] = row
-                    done.add(row.key)
+                    if not row.lost_infrastructure:  # a job lost after its retries stays to do (resume)
+                        done.add(row.key)
+                    store.record_recovery(manifest, rows, retries, Recovery.retries)
                     _derive(store, manifest, jobs, rows, "running", method)
                 if bar is not None:
                     bar.episode(row)
                 interrupts.check()
-            status = "complete" if all(j.key in done for j in jobs) else "interrupted"
+            status = "complete" if all(j.key in rows for j in jobs) else "interrupted"
         finally:
             if bar is not None:
                 bar.close()
@@ -423,30 +429,6 @@ def _run_pending(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], op
                     store.remove_incomplete(protocol.tasks, keep=done)
                 _derive(store, manifest, jobs, rows, status, method)
     return status
-
-
-def _verified(store: RunStore, rows: dict, retry_failed: bool, manifest: dict | None = None) -> set[tuple[str, int]]:
-    """Jobs whose rows stand: failed ones (unless retried) and finished ones whose folder holds the files its row
-    records, unchanged (harness/runfolder/integrity.py). A finished episode whose files are missing or damaged, or
-    whose folder is a symlink or leads out of the run, is said on stderr and run again (its folder is removed as
-    an incomplete one: a symlink as a link, never followed)."""
-    done = set()
-    for key, row in rows.items():
-        if row.status != "ok":
-            if not retry_failed:
-                done.add(key)
-            continue
-        directory = f"{row.task}/episode_{row.episode}"
-        try:
-            problem = episode_problem(store.dir, directory, row.to_dict(), f"{store.dir / 'results.jsonl'}",
-                                      legacy=LEGACY_RESUME, manifest=manifest)
-        except MalformedRunError as exc:  # leads out of the run folder or loops: the run's own folder is rewritten
-            problem = str(exc).split("; ")[0]
-        if problem is None:
-            done.add(key)
-        else:
-            log.warning("%s; running episode %s again", problem, directory)
-    return done
 
 
 def _rename_run(store: RunStore, manifest: dict, rows: dict, name: str) -> dict:

@@ -8,7 +8,9 @@ The interface (all an executor has to provide):
 
 - `run` receives the jobs still to do (in run order) and yields exactly one `EpisodeRow` per job as each
   finishes, in any order. A job that fails (an exception in the env, the policy or the writer) yields a row
-  with status "failed" and its error; the executor goes on with the other jobs.
+  with status "failed", its error and its kind (`failure_of`): "episode", or "infrastructure" where what ran it
+  was lost (a worker, a node, a policy replica, a LIBERO server, a render context); the executor goes on with the
+  other jobs. The driver wraps every executor in `Retrying`, which runs infrastructure failures again.
 - Episode files are written by `EpisodeWriter` into `<run_dir>/<job.directory>` only (`run_episode` does all
   of it, and records the size and sha256 of the data files in the row, harness/runfolder/integrity.py); an executor never touches results.jsonl, results.json, summary.csv or the manifest: the driver
   appends each yielded row and rewrites the derived files, so every executor leaves the same run folder.
@@ -31,6 +33,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import shutil
+import sys
 import traceback
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -161,23 +165,50 @@ def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolic
     step = result.timings["step"] / n
     sim = result.timings["simulation"] / n
     inf = result.timings["inference"] / n
-    return EpisodeRow(context.run, job.task, job.episode, job.seed, "ok", bool(result.success), result.steps,
-                      float(result.total_reward), step, sim, inf, (step - sim - inf) / step if step > 0 else 0.0,
-                      job.directory, files=files, furthest_phase=(result.phases or {}).get("furthest"))
+    return EpisodeRow(run=context.run, task=job.task, episode=job.episode, seed=job.seed, status="ok",
+                      success=bool(result.success), steps=result.steps, total_return=float(result.total_reward),
+                      seconds_per_step=step, simulation_per_step=sim, inference_per_step=inf,
+                      overhead_fraction=(step - sim - inf) / step if step > 0 else 0.0, directory=job.directory,
+                      files=files, furthest_phase=(result.phases or {}).get("furthest"))
+
+
+class InfrastructureError(RuntimeError):
+    """What ran the episode was lost, not the episode itself (`lost`: "worker", "node", "policy replica", ...): its job
+    is retried elsewhere (`Retrying`)."""
+
+    def __init__(self, message: str, lost: str = "worker"):
+        super().__init__(message)
+        self.lost = lost
+
+
+def failure_of(exc: BaseException) -> tuple[str, str | None]:
+    """An episode's exception -> (failure kind, the lost part or None): "infrastructure" for a lost worker, node or
+    policy replica (InfrastructureError), a LIBERO server that died or stopped answering, or a render context that
+    OpenGL lost; "episode" for anything else (the policy, the env, the physics, a non-finite action)."""
+    if isinstance(exc, InfrastructureError):
+        return "infrastructure", exc.lost
+    libero = sys.modules.get("envs.libero_env")  # loaded wherever a LIBERO env ran
+    if libero is not None and isinstance(exc, libero.LiberoServerLost):
+        return "infrastructure", "LIBERO server"
+    if type(exc).__module__.split(".")[0] == "OpenGL":  # OpenGL.error.GLError: the GL context is gone
+        return "infrastructure", "render context"
+    return "episode", None
 
 
 def record_failure(context: EpisodeContext, job: EpisodeJob, exc: BaseException, trace: str = "",
                    steps: int = 0) -> EpisodeRow:
-    """Write the failed episode's episode.json where possible and return its "failed" row (`steps` that ran)."""
+    """Write the failed episode's episode.json where possible and return its "failed" row (`steps` that ran), with
+    the failure's kind (`failure_of`)."""
     error = f"{type(exc).__name__}: {exc}".splitlines()[0]
-    log.error("episode %s failed: %s", job.directory, error)
+    failure, lost = failure_of(exc)
+    log.error("episode %s failed (%s): %s", job.directory, failure, error)
     try:
         atomic_write_json(context.episode_dir(job) / "episode.json",
                           {**asdict(context.meta(job)), "status": "failed", "success": False, "steps": steps,
-                           "error": error, "traceback": trace})
+                           "error": error, "failure": failure, "traceback": trace})
     except OSError as write_error:  # the folder itself may be what failed; results.jsonl still records it
         log.error("could not write %s: %s", context.episode_dir(job) / "episode.json", write_error)
-    return EpisodeRow.failed(context.run, job, error, steps=steps)
+    return EpisodeRow.failed(context.run, job, error, steps=steps, failure=failure, lost=lost)
 
 
 class SequentialExecutor:
@@ -213,9 +244,64 @@ class SequentialExecutor:
             except Exception as exc:  # e.g. a camera the task lacks: this job fails, the next one tries again
                 yield record_failure(self.context, job, exc, traceback.format_exc())
                 continue
-            yield run_episode(self.context, job, env, self.policy, self.tokens, on_step)
+            row = run_episode(self.context, job, env, self.policy, self.tokens, on_step)
+            if row.failure == "infrastructure":  # its env (a LIBERO server, a GL context) is gone: the next job makes one
+                self._drop_env()
+            yield row
+
+    def _drop_env(self) -> None:
+        try:
+            self.close()
+        except Exception:  # closing what was lost must not hide the episode's row
+            log.debug("closing a lost env failed: %s", traceback.format_exc())
+        self._env, self._env_task = None, None
 
     def close(self) -> None:
         env, self._env, self._env_task = self._env, None, None
         if env is not None:
             env.close()
+
+
+class Retrying:
+    """Any executor with its infrastructure failures retried (`--retries N`, the driver wraps every executor in it).
+
+    A job whose row is an infrastructure failure (`failure_of`) goes back to the executor, its folder emptied, up to
+    `retries` times; the executor's replacement (or any other) worker runs it, and since an episode depends on
+    (task, seed) only, it writes the files an uninterrupted run writes. Episode failures are never retried. A loss
+    that recurs at the same step (after at least one) is the episode's own doing (a simulator crash or hang its
+    actions cause): it becomes an episode failure. After `retries` retries the job stays an infrastructure failure.
+    The row finally yielded lists the lost attempts in `retries`. Retries run once the jobs given have finished.
+    """
+
+    def __init__(self, executor: Executor, retries: int, run_dir: str | Path):
+        self.executor = executor
+        self.retries = retries
+        self.run_dir = Path(run_dir)
+
+    def run(self, jobs: Sequence[EpisodeJob], on_step: StepCallback | None = None) -> Iterator[EpisodeRow]:
+        by_key = {job.key: job for job in jobs}
+        lost: dict[tuple[str, int], list[dict]] = {}
+        pending = list(jobs)
+        while pending:
+            again = []
+            for row in self.executor.run(pending, on_step=on_step):
+                attempts = lost.setdefault(row.key, [])
+                if row.failure == "infrastructure":
+                    if attempts and row.steps > 0 and attempts[-1]["step"] == row.steps:
+                        row = dataclasses.replace(row, failure="episode", lost=None,
+                                                  error=f"{row.error} (again at step {row.steps} on a retry: the "
+                                                        "episode's own failure)")
+                    elif len(attempts) < self.retries:
+                        attempts.append({"lost": row.lost or "worker", "cause": row.error, "step": row.steps})
+                        log.warning("episode %s lost its %s at step %d; retrying it (%d of %d)", row.directory,
+                                    row.lost or "worker", row.steps, len(attempts), self.retries)
+                        shutil.rmtree(self.run_dir / row.directory, ignore_errors=True)
+                        again.append(by_key[row.key])
+                        continue
+                if attempts:
+                    row = dataclasses.replace(row, retries=tuple(attempts))
+                yield row
+            pending = sorted(again)
+
+    def close(self) -> None:
+        self.executor.close()

@@ -144,7 +144,7 @@ class Protocol:
 
     def jobs(self) -> list[EpisodeJob]:
         """Episode jobs in run order: task by task, episode 0..episodes-1, seed + episode."""
-        return [EpisodeJob(task, k, self.seed + k) for task in self.tasks for k in range(self.episodes)]
+        return [EpisodeJob(task=task, episode=k, seed=self.seed + k) for task in self.tasks for k in range(self.episodes)]
 
     def replace(self, **changes) -> "Protocol":
         return dataclasses.replace(self, **changes)
@@ -218,6 +218,26 @@ class RunStatistics:
         "`--resume`) writes the derived files with the recorded one; another method for a run that records one is "
         "refused (one line, exit 2) [wilson]")
     confidence: float = 0.95
+
+
+def _retries(value) -> int:
+    if not _is_int(value) or value < 0:
+        raise ValueError(f"--retries must be an integer >= 0 (0: never retry), got {value!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class Recovery:
+    """What a run does when it loses part of what runs it (a worker, a node, a policy replica, a LIBERO server):
+    outside the protocol and its hash (the episodes are the same); what was retried is recorded in the manifest
+    ("recovery") and in each retried episode's row (harness.run.executor.Retrying)."""
+
+    retries: int = option(
+        2, "--retries", "times a job that lost its worker, node, policy replica or LIBERO server runs again",
+        type=int, file=(int,), hashed=False, sparse=True, convert=_retries, metavar="N",
+        doc="times a job whose worker, node, policy replica or LIBERO server was lost runs again on another worker "
+            "(episode failures never); a job still lost after N is an infrastructure failure, outside the "
+            "statistics, that a resume runs again ([preemptible nodes](parallel.md#running-on-preemptible-nodes)) [2]")
 
 
 def _is_int(x) -> bool:

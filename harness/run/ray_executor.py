@@ -21,8 +21,11 @@ Without an address a local Ray instance is started for this run (no dashboard) a
 end. Its logical CPUs are max(os.cpu_count(), workers + replicas): each actor asks for one CPU, so
 2 workers + 1 replica on a 2-core machine oversubscribe the cores exactly as the local executor does.
 
-Faults: an env-worker actor that dies (SIGKILL, segfault, OOM) fails its episode with the cause and is
-replaced; a policy error fails the episodes of its batch (their workers raise it inside the episode);
+Faults: an env-worker actor that dies (SIGKILL, segfault, OOM, its node lost) fails its episode as an infrastructure
+failure at the step its replica last served (executor.Retrying runs it again) and is started again; jobs go only
+to started workers, so a replacement with no room (its node gone) holds nothing up. A lost replica fails its
+episodes the same way, and is started again for its workers. A policy error fails its batch's episodes (episode
+failures). Replicas ask for the custom resource `octo_policy` where the cluster offers it (a head that survives).
 Ctrl-C kills every actor and, for a local instance, stops Ray (no processes left behind). At the end of a run
 the driver disconnects from a cluster too, so that the next run in the same process (a robustness grid's next
 cell) connects again.
@@ -36,6 +39,7 @@ import logging
 import os
 import re
 import socket
+import time
 import traceback
 import uuid
 import warnings
@@ -44,13 +48,17 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskPrompt
-from harness.run.executor import EpisodeContext
+from harness.run.executor import EpisodeContext, InfrastructureError
 from harness.run.workers import PolicyError, WorkerSpec, warmup_request, warmup_task, worker_spec
 
 log = logging.getLogger(__name__)
 
 FORWARDED_ENV = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "HF_HUB_OFFLINE", "HF_HOME", "JAX_PLATFORMS")
 MARKER_PREFIX = ".octo-harness-shared-check-"
+POLICY_RESOURCE = "octo_policy"  # a custom resource that, where the cluster offers it, holds the policy replicas
+START_TIMEOUT_S = 300.0  # how long jobs may wait with no env worker started before the run stops (one line)
+START_TRIES = 3  # times one worker slot is started again in a row before it is given up
+NODE_DEATH_WAIT_S = 10.0  # how long a worker lost without an exit report waits for Ray to say whether its node died
 
 
 class RayExecutorError(ValueError):
@@ -80,6 +88,7 @@ class PolicyReplica:
         self._running = False
         self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inference")
         self.batches: list[int] = []
+        self.progress: dict = {}  # job key -> the step of its last request (the step a lost worker is recorded at)
 
     def warm_up(self, request: InferenceRequest) -> int:
         """Compile the one inference shape; returns the number of compiled sampler variants."""
@@ -89,7 +98,12 @@ class PolicyReplica:
     def stats(self) -> dict:
         return {"batches": list(self.batches), "sample_cache_size": self.model.sample_cache_size}
 
-    async def infer(self, request: InferenceRequest) -> InferenceResult:
+    def step_of(self, key) -> int:
+        return self.progress.get(key, 0)
+
+    async def infer(self, request: InferenceRequest, key=None) -> InferenceResult:
+        if key is not None:
+            self.progress[key] = request.step
         future = asyncio.get_running_loop().create_future()
         self._pending.append((request, future))
         if not self._running:
@@ -122,18 +136,19 @@ class RayInference:
     def __init__(self, replica, dataset_key: str | None):
         self.replica = replica
         self.dataset_key = dataset_key
+        self.key = None  # the job under way (the replica records its steps)
 
     def __call__(self, requests: list[InferenceRequest]) -> list[InferenceResult]:
         import ray
 
         (request,) = requests
         try:
-            return [ray.get(self.replica.infer.remote(request))]
+            return [ray.get(self.replica.infer.remote(request, self.key))]
         except ray.exceptions.RayTaskError as exc:  # the replica's PolicyError (this batch failed)
             cause = getattr(exc, "cause", None)
             raise PolicyError(str(cause) if cause is not None else _last_line(exc)) from None
-        except ray.exceptions.RayActorError as exc:
-            raise PolicyError(f"policy replica died: {str(exc).splitlines()[0]}") from None
+        except ray.exceptions.RayActorError as exc:  # the replica (or its node) was lost: not the episode's doing
+            raise InfrastructureError(f"policy replica lost: {str(exc).splitlines()[0]}", "policy replica") from None
 
 
 class EnvWorker:
@@ -149,13 +164,31 @@ class EnvWorker:
             raise RayExecutorError(f"--out is not visible from node {socket.gethostname()} ({path} is missing there or not this run's); "
                                    "put --out on a filesystem every Ray node mounts at the same path (NFS, shared volume)")
         self.spec = spec
-        self.policy = OctoPolicy(spec.shape, spec.policy, infer=RayInference(replica, spec.shape.dataset_key))
+        self.infer = RayInference(replica, spec.shape.dataset_key)
+        self.policy = OctoPolicy(spec.shape, spec.policy, infer=self.infer)
         self.env, self.env_task = None, None
 
-    def ready(self) -> tuple[str, int]:
-        return socket.gethostname(), os.getpid()
+    def ready(self) -> tuple[str, int, str]:
+        import ray
+
+        return socket.gethostname(), os.getpid(), ray.get_runtime_context().get_node_id()
+
+    def use_replica(self, replica) -> None:
+        """Serve the next episodes from `replica` (the restarted one)."""
+        self.infer.replica = replica
 
     def run(self, job) -> Any:
+        self.infer.key = job.key
+        row = self._run(job)
+        if getattr(row, "failure", None) == "infrastructure" and self.env is not None:  # its env was lost
+            try:
+                self.env.close()
+            except Exception:  # closing what was lost must not hide the episode's row
+                log.debug("closing a lost env failed: %s", traceback.format_exc())
+            self.env, self.env_task = None, None
+        return row
+
+    def _run(self, job) -> Any:
         if self.env_task != job.task:
             if self.env is not None:
                 self.env.close()
@@ -184,7 +217,27 @@ def actor_death_cause(exc: BaseException) -> str:
     pid, ip = re.search(r"\bpid: (\d+)", text), re.search(r"\bip: (\S+)", text)
     detail = re.search(r"Worker exit detail: (.*)", text)
     where = f" (pid {pid.group(1)}{' on ' + ip.group(1) if ip else ''})" if pid else ""
+    if detail is None and "its node has died" in text:
+        return f"worker process died{where}: its node died"
     return f"worker process died{where}: {(detail.group(1) if detail else text)[:300]}"
+
+
+def lost_part(exc: BaseException, node_alive=None) -> str:
+    """What a Ray actor error says was lost: "node" when the actor's node died, else "worker". Where Ray's error
+    says neither (no raylet reported the worker's exit: its node went with it), `node_alive()` (None: unknown, else
+    whether the actor's node still lives) is asked until it answers, for NODE_DEATH_WAIT_S at most."""
+    text = " ".join(str(exc).split())
+    if re.search(r"node (has )?died|node .*(marked|is) dead|raylet .*died|node_death", text.lower()):
+        return "node"
+    if node_alive is None or "Worker exit detail" in text:
+        return "worker"
+    deadline = time.monotonic() + NODE_DEATH_WAIT_S
+    while time.monotonic() < deadline:
+        alive = node_alive()
+        if alive is not None and not alive:
+            return "node"
+        time.sleep(0.25)
+    return "worker"
 
 
 class RayExecutor:
@@ -213,6 +266,17 @@ class RayExecutor:
         self._connected = False  # this executor called ray.init (a local instance, or a connection to `address`)
         self._actors: dict = {}
         self._replicas: list = []
+        self._replica_cls = None
+        self._replica_resources: dict = {}
+        self._warmup: TaskPrompt | None = None
+        self._served_by: dict = {}  # worker index -> the replica handle it was given
+        self._idle: collections.deque = collections.deque()  # started workers without a job
+        self._starting: dict = {}  # ready() ref -> worker index, for workers (re)starting
+        self._start_failures: dict = {}
+        self._node_of: dict = {}  # worker index -> the Ray node id it started on
+        self.started_on: dict = {}  # worker index -> (host, pid, node id) of its actor (statistics, tests)
+        self.running: dict = {}  # worker index -> the job it runs (read-only outside: statistics, tests)
+        self.replica_restarts = 0
         self._marker: Path | None = None
         self._token = ""
         self._worker_cls = None
@@ -250,6 +314,8 @@ class RayExecutor:
         if cpus < self.workers + self.replicas:
             raise RayExecutorError(f"the Ray cluster has {cpus:g} CPUs; {self.workers} env workers + {self.replicas} policy "
                                    f"replica(s) need {self.workers + self.replicas}: lower --workers or add nodes")
+        held = resources.get(POLICY_RESOURCE, 0)  # the nodes that hold the replicas (a head that survives)
+        self._replica_resources = {POLICY_RESOURCE: held / self.replicas} if held else {}
         return 1.0 if gpus >= self.replicas else 0.0
 
     def _start(self, warmup: TaskPrompt | None) -> None:
@@ -260,22 +326,98 @@ class RayExecutor:
         self._marker = self.run_dir / f"{MARKER_PREFIX}{uuid.uuid4().hex}"
         self._token = uuid.uuid4().hex
         self._marker.write_text(self._token)
-        replica_cls = ray.remote(num_cpus=1, num_gpus=gpus)(PolicyReplica)
+        self._replica_cls = ray.remote(num_cpus=1, num_gpus=gpus, resources=self._replica_resources)(PolicyReplica)
         self._worker_cls = ray.remote(num_cpus=1, max_restarts=0)(EnvWorker)
-        self._replicas = [replica_cls.remote(self.model_source, self.spec.policy, self.context.protocol.text_tokenizer)
-                          for _ in range(self.replicas)]
+        self._warmup = warmup
+        self._replicas = [self._new_replica() for _ in range(self.replicas)]
         warming = [r.warm_up.remote(warmup_request(self.spec.shape, warmup)) for r in self._replicas] if warmup else []
         for i in range(self.workers):
             self._start_worker(i)
         try:  # env workers check the shared folder while the replicas load the model and compile
-            ray.get([a.ready.remote() for a in self._actors.values()])
+            started = dict(zip(self._starting.values(), ray.get(list(self._starting))))
             ray.get(warming)
         except (ray.exceptions.RayActorError, ray.exceptions.RayTaskError) as exc:
             raise RayExecutorError(_last_line(exc)) from None
+        self.started_on.update(started)
+        self._node_of.update({i: ready[2] for i, ready in started.items()})
+        self._idle.extend(sorted(started))
+        self._starting.clear()
+
+    def _new_replica(self):
+        return self._replica_cls.remote(self.model_source, self.spec.policy, self.context.protocol.text_tokenizer)
 
     def _start_worker(self, i: int):
-        self._actors[i] = self._worker_cls.remote(self.spec, self._replicas[i % self.replicas], (str(self._marker), self._token))
+        """Start env worker `i` (again); it takes jobs once its `ready` answers (`_started`)."""
+        replica = self._replicas[i % self.replicas]
+        self._actors[i] = self._worker_cls.remote(self.spec, replica, (str(self._marker), self._token))
+        self._served_by[i] = replica
+        self._starting[self._actors[i].ready.remote()] = i
         return self._actors[i]
+
+    def _started(self, ref) -> None:
+        """A worker's `ready` answered: it takes jobs; one that died starting is started again (START_TRIES in a
+        row, then its slot is given up: the other workers take its jobs)."""
+        ray = self._ray
+        i = self._starting.pop(ref)
+        try:
+            self.started_on[i] = ray.get(ref)
+            self._node_of[i] = self.started_on[i][2]
+        except (ray.exceptions.RayActorError, ray.exceptions.RayTaskError) as exc:
+            self._start_failures[i] = self._start_failures.get(i, 0) + 1
+            log.error("env worker %d could not start (%d of %d): %s", i, self._start_failures[i], START_TRIES,
+                      _last_line(exc))
+            if self._start_failures[i] < START_TRIES:
+                self._start_worker(i)
+            return
+        self._start_failures.pop(i, None)
+        self._idle.append(i)
+
+    def _lost_worker(self, i: int, job, exc) -> Any:
+        """Env worker `i` died running `job`: its (infrastructure) row, at the step its replica last served it; the
+        worker is started again (it takes jobs once it has started, wherever the cluster has room)."""
+        ray = self._ray
+        node = self._node_of.get(i)
+
+        def node_alive():
+            try:
+                return any(n["NodeID"] == node and n["Alive"] for n in ray.nodes())
+            except Exception:  # the GCS does not answer now
+                return None
+
+        cause, lost = actor_death_cause(exc), lost_part(exc, node_alive if node else None)
+        log.error("env worker %d died running %s (%s lost): %s", i, job, lost, cause)
+        try:
+            steps = int(ray.get(self._served_by[i].step_of.remote(job.key), timeout=30))
+        except Exception:  # the replica is gone too, or does not answer: the step is not known
+            steps = 0
+        row = self.spec.died_row(job, cause, steps, lost)
+        try:
+            ray.kill(self._actors[i], no_restart=True)
+        except Exception:  # already gone with its node
+            pass
+        self.replacements += 1
+        self._start_worker(i)
+        return row
+
+    def _lost_replica(self, i: int) -> None:
+        """Worker `i`'s episode lost its policy replica: start the replica again (once, whichever of its workers says
+        so first) and switch its workers to it (after the episode each runs now: actor calls run in order)."""
+        ray = self._ray
+        r = i % self.replicas
+        if self._served_by.get(i) is self._replicas[r]:
+            log.error("policy replica %d was lost; starting it again", r)
+            try:
+                ray.kill(self._replicas[r], no_restart=True)
+            except Exception:  # already gone
+                pass
+            self._replicas[r] = self._new_replica()
+            self.replica_restarts += 1
+            if self._warmup is not None:
+                ray.get(self._replicas[r].warm_up.remote(warmup_request(self.spec.shape, self._warmup)))
+        for j, actor in self._actors.items():
+            if j % self.replicas == r and self._served_by.get(j) is not self._replicas[r]:
+                actor.use_replica.remote(self._replicas[r])
+                self._served_by[j] = self._replicas[r]
 
     def run(self, jobs: Iterable[Any], on_step=None) -> Iterator[Any]:
         """Yield one row per job as each finishes (on_step is not forwarded: steps happen on other processes).
@@ -291,27 +433,44 @@ class RayExecutor:
                 self._start(warmup_task(self.context, jobs))
             ray = self._ray
             in_flight: dict = {}
-            for i in range(min(self.workers, len(queue))):
-                job = queue.popleft()
-                in_flight[self._actors[i].run.remote(job)] = (i, job)
-            while in_flight:
-                (ref,), _ = ray.wait(list(in_flight), num_returns=1)
+            waiting_since = None
+            while queue or in_flight:
+                while queue and self._idle:
+                    i = self._idle.popleft()
+                    job = queue.popleft()
+                    in_flight[self._actors[i].run.remote(job)] = (i, job)
+                    self.running[i] = job
+                if not in_flight and not self._starting:
+                    raise RayExecutorError("no env worker can start on the Ray cluster (its nodes were lost); add "
+                                           "nodes, then `run --resume` the run folder")
+                if not in_flight:  # jobs wait for a worker to start
+                    waiting_since = waiting_since or time.monotonic()
+                    if time.monotonic() - waiting_since > START_TIMEOUT_S:
+                        raise RayExecutorError(f"no env worker started on the Ray cluster within {START_TIMEOUT_S:.0f} s "
+                                               "(its nodes were lost: no room for one); add nodes, then `run --resume` "
+                                               "the run folder")
+                else:
+                    waiting_since = None
+                ready, _ = ray.wait([*in_flight, *self._starting], num_returns=1, timeout=5.0)
+                if not ready:
+                    continue
+                (ref,) = ready
+                if ref in self._starting:
+                    self._started(ref)
+                    continue
                 i, job = in_flight.pop(ref)
+                self.running.pop(i, None)
                 try:
                     row = ray.get(ref)
                 except ray.exceptions.RayActorError as exc:
-                    cause = actor_death_cause(exc)
-                    log.error("env worker %d died running %s: %s", i, job, cause)
-                    row = self.spec.died_row(job, cause)
-                    ray.kill(self._actors[i], no_restart=True)
-                    self.replacements += 1
-                    self._start_worker(i)
+                    yield self._lost_worker(i, job, exc)
+                    continue
                 except ray.exceptions.RayTaskError as exc:  # a bug in the episode function itself
                     row = self.spec.failed_row(job, RuntimeError(_last_line(exc)), str(exc))
+                if getattr(row, "lost", None) == "policy replica":
+                    self._lost_replica(i)
+                self._idle.append(i)
                 yield row
-                if queue:
-                    job = queue.popleft()
-                    in_flight[self._actors[i].run.remote(job)] = (i, job)
             self.replica_stats = ray.get([r.stats.remote() for r in self._replicas])
             completed = True
         finally:
@@ -329,6 +488,9 @@ class RayExecutor:
             except Exception:  # already dead
                 pass
         self._actors, self._replicas = {}, []
+        self._idle.clear()
+        self._starting.clear()
+        self._served_by.clear()
         if self._marker is not None:
             self._marker.unlink(missing_ok=True)
         if self._connected:  # stops a local instance; from a cluster, only disconnects (the next run connects again)

@@ -21,6 +21,7 @@ import errno
 import fcntl
 import io
 import json
+import logging
 import os
 import re
 import shutil
@@ -33,8 +34,10 @@ from harness.measures.stats import success_summary
 from harness.bounded import MAX_JSONL_BYTES, BoundsError, read_bytes, read_json
 from harness.files import atomic_write_json, json_safe, write_atomic
 from harness.run.jobs import FORMAT, EpisodeJob
-from harness.runfolder.integrity import check_run_files
-from harness.runfolder.schema import check_manifest, check_row, parse_row
+from harness.runfolder.integrity import LEGACY_RESUME, check_run_files, episode_problem
+from harness.runfolder.schema import MalformedRunError, check_manifest, check_row, parse_row
+
+log = logging.getLogger(__name__)
 
 LOCK = ".lock"
 MANIFEST = "manifest.json"
@@ -74,6 +77,12 @@ class EpisodeRow:
     platform: str | None = None  # platform_fingerprint of the driver that recorded it (harness/runfolder/platform.py)
     files: dict | None = None  # {name: {"size", "sha256"}} of the episode's data files (harness/runfolder/integrity.py)
     furthest_phase: str | None = None  # the furthest task phase the episode reached (envs.phases); left out when None
+    # a failed row's kind (schema.FAILURE_KINDS): "episode" (the policy, the env, the physics: kept in the statistics' failed
+    # count) or "infrastructure" (what ran it was lost: run again by a resume); left out when None (ok rows, older runs)
+    failure: str | None = None
+    lost: str | None = None  # an infrastructure failure's lost part ("worker", "node", "LIBERO server", ...)
+    # the attempts lost before this one, oldest first: [{"lost", "cause" (one line), "step"}]; left out when none
+    retries: tuple = ()
 
     @property
     def key(self) -> tuple[str, int]:
@@ -82,8 +91,11 @@ class EpisodeRow:
     def to_dict(self) -> dict:
         d = {f.name: getattr(self, f.name) for f in fields(self)}
         d["return"] = d.pop("total_return")
-        if d["furthest_phase"] is None:  # rows of tasks without phases (and of older runs) keep their keys
-            del d["furthest_phase"]
+        for name in SPARSE_FIELDS:  # rows without them (and those of older runs) keep their keys
+            if not d[name]:
+                del d[name]
+        if "retries" in d:
+            d["retries"] = [dict(r) for r in d["retries"]]
         return json_safe(d)
 
     @classmethod
@@ -91,12 +103,25 @@ class EpisodeRow:
         d = dict(data)
         d["total_return"] = d.pop("return", None)
         names = {f.name for f in fields(cls)}
+        if d.get("retries") is not None:
+            d["retries"] = tuple(d["retries"])
         return cls(**{k: v for k, v in d.items() if k in names})
 
     @classmethod
-    def failed(cls, run: str, job: EpisodeJob, error: str, steps: int = 0) -> "EpisodeRow":
-        return cls(run, job.task, job.episode, job.seed, "failed", False, steps, None, None, None, None, None,
-                   job.directory, error)
+    def failed(cls, run: str, job: EpisodeJob, error: str, steps: int = 0, failure: str = "episode",
+               lost: str | None = None) -> "EpisodeRow":
+        return cls(run=run, task=job.task, episode=job.episode, seed=job.seed, status="failed", success=False,
+                   steps=steps, total_return=None, seconds_per_step=None, simulation_per_step=None,
+                   inference_per_step=None, overhead_fraction=None, directory=job.directory, error=error,
+                   failure=failure, lost=lost)
+
+    @property
+    def lost_infrastructure(self) -> bool:
+        """Failed because what ran it was lost (after its retries): outside the statistics, run again on resume."""
+        return self.status == "failed" and self.failure == "infrastructure"
+
+
+SPARSE_FIELDS = ("furthest_phase", "failure", "lost", "retries")  # results.jsonl holds them only when set
 
 
 CSV_COLUMNS = ["run", "task", "episode", "seed", "status", "success", "steps", "return", "seconds_per_step",
@@ -106,16 +131,45 @@ STAT_COLUMNS = ["n", "successes", "failed", "success_rate", "ci_low", "ci_high",
 
 def statistics(rows: Iterable[EpisodeRow], tasks: Iterable[str], method: str = "wilson", confidence: float = 0.95) -> dict:
     """{"tasks": {task: summary}, "overall": summary}: success statistics over the episodes that ran ("ok");
-    episodes that failed with an error are counted in "failed", not in n."""
+    episodes that failed with an error are counted in "failed", not in n; jobs lost to the infrastructure after their
+    retries are in neither (`recovery` names them)."""
     rows = list(rows)
 
     def summary(subset: list[EpisodeRow]) -> dict:
         ok = [r for r in subset if r.status == "ok"]
         out = success_summary(sum(bool(r.success) for r in ok), len(ok), method=method, confidence=confidence)
-        out["failed"] = len(subset) - len(ok)
+        out["failed"] = sum(r.status != "ok" and not r.lost_infrastructure for r in subset)
         return out
 
     return {"tasks": {t: summary([r for r in rows if r.task == t]) for t in tasks}, "overall": summary(rows)}
+
+
+def recovery(rows: Iterable[EpisodeRow]) -> dict | None:
+    """What a run lost to its infrastructure and won back (None when nothing was lost): {"episodes_retried",
+    "attempts_lost" (summed over them), "retried_after": {lost part: episodes}, "lost": [job folders failed as
+    infrastructure after their retries]}. An episode counts under the part lost at its last lost attempt."""
+    rows = list(rows)
+    retried = [r for r in rows if r.retries]
+    lost = [r.directory for r in rows if r.lost_infrastructure]
+    if not retried and not lost:
+        return None
+    after: dict[str, int] = {}
+    for r in retried:
+        after[r.retries[-1]["lost"]] = after.get(r.retries[-1]["lost"], 0) + 1
+    return {"episodes_retried": len(retried), "attempts_lost": sum(len(r.retries) for r in retried),
+            "retried_after": after, "lost": lost}
+
+
+def recovery_lines(summary: dict | None) -> list[str]:
+    """The console's lines for `recovery(rows)`: "2 episodes retried after a lost worker", the jobs still lost."""
+    if not summary:
+        return []
+    lines = [f"{n} episode{'s' if n != 1 else ''} retried after a lost {part}"
+             for part, n in summary["retried_after"].items()]
+    if summary["lost"]:
+        lines.append(f"{len(summary['lost'])} lost to the infrastructure after their retries, not in the statistics "
+                     f"(`run --resume` runs them again): {', '.join(summary['lost'])}")
+    return lines
 
 
 class RunStore:
@@ -244,6 +298,42 @@ class RunStore:
             raise ResultsWriteError(f"cannot append to {path}: {e.strerror or e} (errno {e.errno}); "
                                     "free space or fix permissions, then run the same command again to resume") from None
 
+    def standing_jobs(self, rows: dict, retry_failed: bool, manifest: dict | None = None) -> set[tuple[str, int]]:
+        """Jobs whose rows stand (a resume skips them): failed ones (unless retried; an infrastructure failure never
+        stands) and finished ones whose folder holds the files its row records, unchanged
+        (harness/runfolder/integrity.py). A finished episode whose files are missing or damaged, or whose folder is
+        a symlink or leads out of the run, is said on stderr and run again (its folder is removed as an incomplete
+        one: a symlink as a link, never followed)."""
+        done = set()
+        for key, row in rows.items():
+            if row.status != "ok":
+                if not retry_failed and not row.lost_infrastructure:
+                    done.add(key)
+                continue
+            directory = f"{row.task}/episode_{row.episode}"
+            try:
+                problem = episode_problem(self.dir, directory, row.to_dict(), f"{self.dir / RESULTS_JSONL}",
+                                          legacy=LEGACY_RESUME, manifest=manifest)
+            except MalformedRunError as exc:  # leads out of the run folder or loops: the run's own folder is rewritten
+                problem = str(exc).split("; ")[0]
+            if problem is None:
+                done.add(key)
+            else:
+                log.warning("%s; running episode %s again", problem, directory)
+        return done
+
+    def record_recovery(self, manifest: dict, rows: dict, retries: int, default: int) -> None:
+        """The manifest's "recovery" (outside the protocol and its hash): the retries allowed and what was lost and
+        won back (`recovery`), rewritten when that changes; absent while nothing was lost and `retries` is the
+        `default`."""
+        lost = recovery(rows.values())
+        if lost is None and retries == default:
+            return
+        record = {"retries": retries, **(lost or {})}
+        if manifest.get("recovery") != record:
+            manifest["recovery"] = record
+            self.write_manifest(manifest)
+
     def rewrite_rows(self, rows: Iterable[EpisodeRow]) -> None:
         """Replace results.jsonl by `rows` in one atomic rename (a renamed run's rows take its new name)."""
         data = "".join(json.dumps(row.to_dict(), sort_keys=True) + "\n" for row in rows).encode()
@@ -255,9 +345,11 @@ class RunStore:
         ordered = [rows[j.key] for j in jobs if j.key in rows]
         tasks = list(dict.fromkeys(j.task for j in jobs))
         stats = statistics(ordered, tasks, method=method)
+        recovered = recovery(ordered)
         atomic_write_json(self.dir / RESULTS_JSON, {
             "manifest": manifest, "status": status, "episodes": [r.to_dict() for r in ordered],
             "missing": len(jobs) - len(ordered), "statistics": stats,
+            **({"recovery": recovered} if recovered else {}),  # left out when nothing was lost
         })
         by_task = stats["tasks"]
         buffer = io.StringIO()

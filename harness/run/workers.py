@@ -30,9 +30,11 @@ only enqueues a step (it waits only if its writer falls `queue_size` steps behin
 never runs in the driver, so it never stalls inference.
 
 Faults: a worker that dies (SIGKILL, a segfault, an OOM kill) has its current episode recorded as
-failed with the cause ("worker process died: signal 9 (SIGKILL)") and is replaced; an exception in
-inference fails the episodes of that batch only (their workers raise it inside the episode, which
-records the failure and goes on). Ctrl-C / SIGTERM in the driver: workers (which ignore SIGINT, so a
+failed with the cause ("worker process died: signal 9 (SIGKILL)"), an infrastructure failure at the step of
+its last inference request (harness.run.executor.Retrying runs it again), and is replaced; a worker whose
+episode lost its env (a LIBERO server that died) makes a new one for its next job; an exception in
+inference fails the episodes of that batch only, as episode failures (their workers raise it inside the
+episode, which records the failure and goes on). Ctrl-C / SIGTERM in the driver: workers (which ignore SIGINT, so a
 terminal's Ctrl-C reaches them only through the driver) are told to stop, abort their episode
 writers (no temporary files left) and exit; stragglers are terminated, then killed. Workers also exit
 when the driver's end of their pipe closes, and get SIGKILL from the kernel if the driver dies
@@ -58,7 +60,7 @@ import numpy as np
 
 from harness.interrupts import die_with_parent
 from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskPrompt
-from harness.run.executor import EpisodeContext, make_env, record_failure, run_episode
+from harness.run.executor import EpisodeContext, InfrastructureError, make_env, record_failure, run_episode
 from harness.run.protocol import EpisodeJob
 from harness.run.store import EpisodeRow
 
@@ -80,8 +82,9 @@ class PolicyShape:
 
     @classmethod
     def of(cls, model, dataset_key: str | None) -> "PolicyShape":
-        return cls(dict(model.image_sizes), int(model.window_size), int(model.action_horizon), dataset_key,
-                   dict(getattr(model, "lowdim_sizes", None) or {}))
+        return cls(image_sizes=dict(model.image_sizes), window_size=int(model.window_size),
+                   action_horizon=int(model.action_horizon), dataset_key=dataset_key,
+                   lowdim_sizes=dict(getattr(model, "lowdim_sizes", None) or {}))
 
 
 @dataclass(frozen=True)
@@ -90,13 +93,13 @@ class WorkerSpec:
 
     make_env(task) -> env; run_episode(env, policy, job) -> row (records its own failures as failed rows);
     failed_row(job, exc, trace) -> row of an episode whose env could not be made (called in the worker);
-    died_row(job, cause) -> row of an episode whose worker died (called in the driver).
+    died_row(job, cause, steps) -> row of an episode whose worker died after `steps` (called in the driver).
     """
 
     make_env: Callable[[str], Any]
     run_episode: Callable[[Any, OctoPolicy, Any], Any]
     failed_row: Callable[[Any, BaseException, str], Any]
-    died_row: Callable[[Any, str], Any]
+    died_row: Callable[[Any, str, int], Any]
     policy: PolicyConfig
     shape: PolicyShape
 
@@ -135,7 +138,7 @@ def warmup_request(shape: PolicyShape, task: TaskPrompt) -> InferenceRequest:
     obs.update({k: np.zeros((window, n), np.float32) for k, n in shape.lowdim_sizes.items()})
     obs["timestep_pad_mask"] = np.ones((window,), bool)
     obs["pad_mask_dict"] = {k: np.ones((window,), bool) for k in [*shape.image_sizes, *shape.lowdim_sizes]}
-    return InferenceRequest(obs, task, 0, 0)
+    return InferenceRequest(observation=obs, task=task, seed=0, step=0)
 
 
 # ---------------------------------------------------------------------------------------------- env worker side
@@ -198,15 +201,22 @@ def worker_main(index: int, conn: Connection, spec: WorkerSpec) -> None:
                 row = spec.failed_row(job, exc, traceback.format_exc())
             else:
                 row = spec.run_episode(env, policy, job)
+                if getattr(row, "failure", None) == "infrastructure" and env is not None:  # its env was lost
+                    _close_quietly(env, index)
+                    env, env_task = None, None
             conn.send(("done", row))
     except (_Stop, EOFError, BrokenPipeError):
         return
     finally:
         if env is not None:
-            try:
-                env.close()
-            except Exception:  # closing a broken env must not hide why the worker stops
-                log.debug("env.close failed in worker %d: %s", index, traceback.format_exc())
+            _close_quietly(env, index)
+
+
+def _close_quietly(env, index: int) -> None:
+    try:
+        env.close()
+    except Exception:  # closing a broken env must not hide why the worker stops
+        log.debug("env.close failed in worker %d: %s", index, traceback.format_exc())
 
 
 # ---------------------------------------------------------------------------------------------- driver side
@@ -219,6 +229,7 @@ class _Worker:
     conn: Connection
     job: Any = None  # the episode job it is running, None when idle
     ready: bool = False
+    step: int = 0  # the step of its job's last inference request (the step a death is recorded at)
 
 
 class WorkerPool:
@@ -228,7 +239,7 @@ class WorkerPool:
         for row in pool.run(jobs): ...   # one row per job, in finishing order, in the driver
 
     The driver appends each row to the run store. Rows of episodes whose worker died come from
-    spec.died_row(job, cause), called in the driver.
+    spec.died_row(job, cause, steps), called in the driver.
     """
 
     def __init__(self, spec: WorkerSpec, model, workers: int, *, context: str = "spawn"):
@@ -257,7 +268,7 @@ class WorkerPool:
                                    daemon=True)
         process.start()
         child.close()
-        worker = _Worker(index, process, parent)
+        worker = _Worker(index=index, process=process, conn=parent)
         self._pool[index] = worker
         return worker
 
@@ -365,6 +376,7 @@ class WorkerPool:
                 raise
             return  # the sentinel reports the death
         if kind == "infer":
+            w.step = payload.step
             waiting.append((w, payload))
             return
         if kind == "ready":
@@ -378,7 +390,7 @@ class WorkerPool:
     @staticmethod
     def _assign(w: _Worker, queue) -> None:
         if queue:
-            w.job = queue.popleft()
+            w.job, w.step = queue.popleft(), 0
             try:
                 w.conn.send(("job", w.job))
             except (OSError, ValueError):
@@ -393,7 +405,7 @@ class WorkerPool:
         waiting[:] = [(x, r) for x, r in waiting if x is not w]
         if w.job is not None:
             log.error("env worker %d died running %s: %s", w.index, w.job, cause)
-            on_row(self.spec.died_row(w.job, cause))
+            on_row(self.spec.died_row(w.job, cause, w.step))
         else:
             log.error("env worker %d died: %s", w.index, cause)
         if queue:
@@ -419,8 +431,8 @@ class WorkerPool:
 # ---------------------------------------------------------------------------------------------- the run store's executor
 
 
-class WorkerDied(RuntimeError):
-    """The env-worker process running an episode died (signal, OOM kill, segfault)."""
+class WorkerDied(InfrastructureError):
+    """The env-worker process running an episode died (signal, OOM kill, segfault, its node lost)."""
 
 
 def _run_job(context: EpisodeContext, tokens, env, policy: OctoPolicy, job: EpisodeJob) -> EpisodeRow:
@@ -431,10 +443,11 @@ def _failed_row(context: EpisodeContext, job: EpisodeJob, exc: BaseException, tr
     return record_failure(context, job, exc, trace)
 
 
-def _died_row(context: EpisodeContext, job: EpisodeJob, cause: str) -> EpisodeRow:
-    """The dead process could not clean up: drop its partial episode folder, then record the failure there."""
+def _died_row(context: EpisodeContext, job: EpisodeJob, cause: str, steps: int = 0, lost: str = "worker") -> EpisodeRow:
+    """The dead process could not clean up: drop its partial episode folder, then record the (infrastructure)
+    failure there, at `steps`."""
     shutil.rmtree(context.episode_dir(job), ignore_errors=True)
-    return record_failure(context, job, WorkerDied(cause))
+    return record_failure(context, job, WorkerDied(cause, lost), steps=steps)
 
 
 def worker_spec(context: EpisodeContext, model) -> WorkerSpec:

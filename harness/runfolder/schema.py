@@ -21,6 +21,7 @@ from harness.bounded import MAX_JSON_BYTES, BoundsError, loads_json, read_json, 
 
 FIX = "repair the file or re-create the run (octo-harness run ... --overwrite)"
 ROW_STATUSES = ("ok", "failed")
+FAILURE_KINDS = ("episode", "infrastructure")  # a failed row's kind (harness.run.executor.failure_of)
 FILE_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]*$")
 # a task name: plain names joined by "/" (LIBERO tasks are "<suite>/<index>", their folders nest); no segment starts
 # with "." so no ".." can climb out of the run
@@ -222,4 +223,12 @@ def check_row(row: Any, path: Path | str, line: int,
                            f"folder, got {_short(directory)}")
     if row.get("files") is not None:
         check_files_field(row["files"], where)
+    if row.get("failure") is not None and row["failure"] not in FAILURE_KINDS:
+        raise _fail(where, f"failure must be one of {FAILURE_KINDS}, got {_short(row['failure'])}")
+    _expect(where, "lost", row.get("lost"), (str,), "a string", optional=True)
+    retries = row.get("retries")
+    if retries is not None and not (isinstance(retries, list) and all(
+            isinstance(a, dict) and isinstance(a.get("lost"), str) and isinstance(a.get("cause"), str)
+            and _is_int(a.get("step")) for a in retries)):
+        raise _fail(where, f"retries must be a list of {{lost, cause, step}}, got {_short(retries)}")
     return row

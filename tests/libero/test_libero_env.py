@@ -500,12 +500,33 @@ def libero_run(fixtures_dir, tmp_path_factory):
 
 @pytest.mark.slow
 def test_tiny_fixture_runs_a_libero_task_and_two_workers_equal_sequential_bit_for_bit(libero_run, tmp_path):
+    """`--workers 2` equals the sequential run bit for bit, even with a LIBERO server killed (SIGKILL) while its
+    worker's episode is under way: that episode is an infrastructure failure ("the LIBERO server died"), and its job
+    runs again with a fresh server to the same files (issue 66)."""
+    import threading
+
     from harness.run import execute
     from harness.run.workers import WorkersExecutor
+    from tests.run.test_parallel import _assert_same_files
 
     tiny, protocol, sequential = libero_run
-    parallel = execute(protocol, tmp_path, "w2", model=tiny, progress=False,
-                       executor=lambda context, model: WorkersExecutor(context, model, workers=2))
+    executors, killed = [], []
+
+    def factory(context, model):
+        executors.append(WorkersExecutor(context, model, workers=2))
+        return executors[-1]
+
+    killer = threading.Thread(target=_kill_a_busy_libero_server, args=(executors, killed), daemon=True)
+    killer.start()
+    parallel = execute(protocol, tmp_path, "w2", model=tiny, progress=False, executor=factory)
+    killer.join()
+    assert killed, "no LIBERO server was killed"
+    (retried,) = [r for r in parallel.rows if r.retries]
+    (attempt,) = retried.retries
+    assert retried.key == killed[0].key and attempt["lost"] == "LIBERO server"
+    assert "the LIBERO server died" in attempt["cause"]
+    assert parallel.manifest["recovery"]["retried_after"] == {"LIBERO server": 1}
+    _assert_same_files(sequential, parallel)  # byte for byte (metrics.jsonl: but its run name and timings)
     manifest = json.loads((sequential.run_dir / "manifest.json").read_text())
     assert manifest["platform"]["libero"]["robosuite"] == "1.4.0" and manifest["platform"]["libero"]["mujoco"] == "3.3.2"
     assert manifest["jobs"] == [["libero_object/0", 0, 4], ["libero_object/0", 1, 5]]
@@ -571,3 +592,34 @@ def test_ray_env_workers_run_libero_tasks_with_the_sequential_bits(libero_run, t
             np.testing.assert_array_equal(za["readout_attention"], zb["readout_attention"])
             np.testing.assert_array_equal(za["metrics/mask_mass/image_primary/target"],
                                           zb["metrics/mask_mass/image_primary/target"])
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:  # gone meanwhile
+        return b""
+
+
+def _kill_a_busy_libero_server(executors: list, killed: list, timeout: float = 300) -> None:
+    """SIGKILL the LIBERO server of a worker whose episode asked for the actions of step 1 or 2 of 4 (so the server is
+    called again after them); the job goes into `killed`."""
+    import signal
+    import time
+
+    from tests.helpers import descendants
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        pool = executors[0].pool if executors else None
+        try:
+            busy = [w for w in list(pool._pool.values()) if w.job is not None and w.step in (1, 2)] if pool else []
+        except RuntimeError:  # the pool changed while we looked
+            continue
+        for w in busy:
+            servers = [pid for pid in descendants(w.process.pid) if b"libero_server.py" in _cmdline(pid)]
+            if servers:
+                os.kill(servers[0], signal.SIGKILL)
+                killed.append(w.job)
+                return
+        time.sleep(0.002)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -120,17 +121,43 @@ def _run_while(tiny, tmp_path, name, factory, killer, episodes: int = 3):
     return summary
 
 
-def _the_one_failed_episode(summary, episodes: int = 3):
-    """A run of `episodes` that lost one worker: complete, one failed row (its folder holds only episode.json), the
-    other episodes whole, no temporaries. Returns the failed row."""
+def _assert_same_files(reference, summary) -> None:
+    """Each episode both runs ran has the same data files: byte for byte (the sizes and sha256 their rows record), but
+    metrics.jsonl, whose lines also hold the run's name and wall-clock timings: equal without those."""
+    ours = {r.key: r for r in summary.rows}
+    for a in reference.rows:
+        b = ours[a.key]
+        assert (b.seed, set(b.files)) == (a.seed, set(a.files))
+        for name in a.files:
+            if name != "metrics.jsonl":
+                assert b.files[name] == a.files[name], (a.directory, name)
+        lines = [[_untimed(json.loads(line)) for line in (run.episode_dir(row) / "metrics.jsonl").read_text().splitlines()]
+                 for run, row in ((reference, a), (summary, b))]
+        assert lines[0] == lines[1], a.directory
+
+
+def _untimed(value):
+    if isinstance(value, dict):
+        return {k: _untimed(v) for k, v in value.items() if k != "run" and not re.search(r"time|timing|seconds", k)}
+    return [_untimed(v) for v in value] if isinstance(value, list) else value
+
+
+def _the_one_retried_episode(summary, reference, episodes: int = 3):
+    """A run of `episodes` that lost one worker: complete, every episode ok, exactly one retried (after a lost
+    worker, counted in the manifest and the summary); each episode that `reference` (a sequential run) also ran has
+    its data files byte for byte; no temporaries. Returns the retried row."""
     assert summary.status == "complete" and len(summary.rows) == episodes
-    failed = [r for r in summary.rows if r.status == "failed"]
-    assert len(failed) == 1
-    assert all(r.status == "ok" and r.steps == STEPS for r in summary.rows if r is not failed[0])
-    meta = json.loads((summary.episode_dir(failed[0]) / "episode.json").read_text())
-    assert meta["status"] == "failed" and sorted(p.name for p in summary.episode_dir(failed[0]).iterdir()) == ["episode.json"]
+    assert all(r.status == "ok" and r.steps == STEPS and r.failure is None for r in summary.rows)
+    retried = [r for r in summary.rows if r.retries]
+    assert len(retried) == 1
+    assert summary.manifest["recovery"]["episodes_retried"] == 1 and summary.manifest["recovery"]["lost"] == []
+    results = json.loads((summary.run_dir / "results.json").read_text())
+    assert results["recovery"]["retried_after"] == {retried[0].retries[-1]["lost"]: 1}
+    assert f"1 episode retried after a lost {retried[0].retries[-1]['lost']}" in summary.table()
+    _assert_same_files(reference, summary)
+    assert retried[0].episode in {a.episode for a in reference.rows}
     assert _no_temporaries(summary.run_dir)
-    return failed[0]
+    return retried[0]
 
 
 @pytest.mark.slow
@@ -221,6 +248,9 @@ def test_a_policy_error_fails_only_the_episodes_of_its_batch(tiny, tmp_path):
     failed = [r for r in summary.rows if r.status == "failed"]
     assert summary.status == "complete" and len(summary.rows) == 3
     assert len(failed) == calls[2] and all("injected policy failure" in r.error for r in failed)
+    # the policy's own failure: an episode failure, in the statistics' failed count, never retried
+    assert all(r.failure == "episode" and not r.retries for r in failed)
+    assert summary.statistics["overall"]["failed"] == len(failed) and "recovery" not in summary.manifest
     assert all(r.steps == STEPS for r in summary.rows if r.status == "ok")
     for row in failed:
         meta = json.loads((summary.episode_dir(row) / "episode.json").read_text())
@@ -229,7 +259,8 @@ def test_a_policy_error_fails_only_the_episodes_of_its_batch(tiny, tmp_path):
 
 
 @pytest.mark.slow
-def test_a_worker_killed_mid_episode_fails_that_episode_is_replaced_and_the_run_completes(tiny, tmp_path):
+def test_a_worker_killed_mid_episode_is_replaced_and_its_episode_retried_to_the_sequential_files(tiny, sequential,
+                                                                                                  tmp_path):
     executors = []
 
     def factory(context, model):
@@ -269,9 +300,10 @@ def test_a_worker_killed_mid_episode_fails_that_episode_is_replaced_and_the_run_
 
     summary = _run_while(tiny, tmp_path, "kill", factory, kill_a_busy_worker, episodes=4)
     assert killed, "no worker was killed"
-    failed = _the_one_failed_episode(summary, episodes=4)
-    assert (failed.task, failed.episode) == (killed[0].task, killed[0].episode)
-    assert "worker process died: signal 9" in failed.error
+    retried = _the_one_retried_episode(summary, sequential, episodes=4)
+    assert (retried.task, retried.episode) == (killed[0].task, killed[0].episode)
+    (attempt,) = retried.retries
+    assert attempt["lost"] == "worker" and "worker process died: signal 9" in attempt["cause"] and attempt["step"] >= 0
     assert executors[0].pool.replacements == 1
 
 

@@ -1,6 +1,7 @@
 """The Ray executor end to end (real robosuite, real JAX model, a real local Ray cluster): `--executor ray --workers 2`
-gives the sequential run's episodes step for step, and an env actor killed mid-job fails that episode only, is
-replaced, and the run completes. Its own file: a local Ray cluster is several times slower while the other test
+gives the sequential run's episodes step for step; an env actor killed mid-job is replaced and its episode retried;
+a node lost mid-run (a real second node of a two-node cluster on this machine) has its episodes retried on the head,
+to the sequential run's files. Its own file: a local Ray cluster is several times slower while the other test
 process loads both cores (measured: 120 s against 35 s alone), and its place in the order is its measured time
 (tests/durations.json)."""
 
@@ -10,15 +11,17 @@ import os
 import shutil
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
 from harness.run import execute
-from tests.helpers import descendants
-from tests.run.test_parallel import (STEPS, _assert_replay_is_exact, _assert_same_episodes, _protocol, _run_while,
-                                     _the_one_failed_episode, sequential, tiny)  # noqa: F401
+from tests.helpers import alive, descendants
+from tests.run.test_parallel import (STEPS, _assert_replay_is_exact, _assert_same_episodes, _assert_same_files,
+                                     _protocol, _run_while,
+                                     _the_one_retried_episode, sequential, tiny)  # noqa: F401
 
 pytestmark = pytest.mark.slow
 
@@ -56,7 +59,7 @@ def _busy_ray_env_workers() -> list[int]:
     return pids
 
 
-def test_a_ray_env_worker_killed_during_a_job_fails_that_episode_is_replaced_and_the_run_completes(tiny, tmp_path):
+def test_a_ray_env_worker_killed_during_a_job_is_replaced_and_its_episode_retried(tiny, sequential, tmp_path):
     from harness.run.ray_executor import RayExecutor
 
     executors, killed = [], []
@@ -77,35 +80,54 @@ def test_a_ray_env_worker_killed_during_a_job_fails_that_episode_is_replaced_and
 
     summary = _run_while(tiny, tmp_path, "raykill", factory, kill_a_busy_actor, episodes=2)
     assert killed, "no Ray env worker was killed"
-    failed = _the_one_failed_episode(summary, episodes=2)
-    assert failed.episode == 0  # the first job, on the first actor; the second ran on its replacement
-    assert f"worker process died (pid {killed[0]}" in failed.error
+    retried = _the_one_retried_episode(summary, sequential, episodes=2)
+    assert retried.episode == 0  # the first job, on the first actor; the second and the retry ran on its replacement
+    (attempt,) = retried.retries
+    assert attempt["lost"] == "worker" and f"worker process died (pid {killed[0]}" in attempt["cause"]
     assert executors[0].replacements == 1
     assert not _busy_ray_env_workers()  # every actor is gone with the run
 
 
 
-def _ray_head(log_dir: Path, tries: int = 3):
+def _free_ports(n: int) -> list[int]:
+    import socket
+
+    probes = [socket.socket() for _ in range(n)]
+    try:
+        for probe in probes:
+            probe.bind(("127.0.0.1", 0))
+        return [probe.getsockname()[1] for probe in probes]
+    finally:
+        for probe in probes:
+            probe.close()
+
+
+def _ray_head(log_dir: Path, tries: int = 3, *, extra: tuple[str, ...] = (), env: dict | None = None,
+              head_address: str | None = None, name: str = "head"):
     """`ray start --head --block` (the cluster a user starts) -> (process, port, temp dir): in a process of its own
     that stops every Ray process it started on SIGINT; token authentication off, as the test's own process has it.
     Its files go to a temp dir of its own, not /tmp/ray, where another test process's Ray would find it. On a loaded
     machine `ray start` can give up by itself ("The current node timed out during startup": Ray waits 30 s for its
-    raylet, a fixed wait); then it is stopped and started again, on a fresh port and temp dir, up to `tries` times."""
-    import socket
+    raylet, a fixed wait); then it is stopped and started again, on fresh ports and temp dir, up to `tries` times.
+    With `head_address`: a node that joins that head instead (`ray start --address`), on ports of its own (its files
+    go to the head's temp dir, as Ray has it; the returned temp dir is the one its command line names)."""
     import subprocess
     import tempfile
 
     logs = []
     for attempt in range(tries):
-        with socket.socket() as probe:
-            probe.bind(("127.0.0.1", 0))
-            port = probe.getsockname()[1]
-        temp_dir = tempfile.mkdtemp(prefix="ray-head-", dir="/tmp")  # short: Ray's socket paths live under it
-        log = log_dir / f"head{attempt}.log"
-        command = [str(Path(sys.executable).with_name("ray")), "start", "--head", "--block", f"--port={port}",
-                   "--num-cpus=2", "--include-dashboard=false", "--disable-usage-stats", f"--temp-dir={temp_dir}"]
+        port, *own = _free_ports(7)  # the head's GCS, then this node's own servers (two nodes share one machine)
+        ports = [f"--{flag}={p}" for flag, p in zip(("node-manager-port", "object-manager-port", "runtime-env-agent-port",
+                                                     "dashboard-agent-listen-port", "dashboard-agent-grpc-port",
+                                                     "metrics-export-port"), own)]
+        temp_dir = tempfile.mkdtemp(prefix=f"ray-{name}-", dir="/tmp")  # short: Ray's socket paths live under it
+        log = log_dir / f"{name}{attempt}.log"
+        where = [f"--address={head_address}"] if head_address else ["--head", f"--port={port}", "--include-dashboard=false",
+                                                                    f"--temp-dir={temp_dir}"]
+        command = [str(Path(sys.executable).with_name("ray")), "start", *where, "--block", "--num-cpus=2",
+                   "--disable-usage-stats", *ports, *extra]
         head = subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT, start_new_session=True,
-                                env={**os.environ, "RAY_AUTH_MODE": "disabled"})
+                                env={**os.environ, "RAY_AUTH_MODE": "disabled", **(env or {})})
         deadline = time.monotonic() + 150
         while "Ray runtime started" not in log.read_text() and head.poll() is None and time.monotonic() < deadline:
             time.sleep(0.2)
@@ -114,7 +136,7 @@ def _ray_head(log_dir: Path, tries: int = 3):
         _stop_head(head, temp_dir)
         shutil.rmtree(temp_dir, ignore_errors=True)
         logs.append(log.read_text()[-1500:])
-    raise AssertionError(f"ray start --head failed {tries} times:\n" + "\n---\n".join(logs))
+    raise AssertionError(f"ray start ({name}) failed {tries} times:\n" + "\n---\n".join(logs))
 
 
 def _stop_head(head, temp_dir: str) -> None:
@@ -170,3 +192,109 @@ def test_runs_one_after_another_in_one_process_each_connect_to_the_cluster_at_th
     finally:
         _stop_head(head, temp_dir)
         shutil.rmtree(temp_dir, ignore_errors=True)
+
+
+# a lost node is declared dead within about 2 s (GCS defaults: a 3 s period, 5 misses): set on the head's GCS
+FAST_HEALTH_CHECK = {"RAY_health_check_period_ms": "500", "RAY_health_check_timeout_ms": "1000",
+                     "RAY_health_check_failure_threshold": "3", "RAY_health_check_initial_delay_ms": "1000"}
+NODE_TEST_LIMIT_S = 170  # past it the cluster is stopped, so a run that hangs fails instead of waiting
+
+
+def _sequential_episodes(model, summary, rows, run_dir: Path):
+    """The jobs of `rows` run again by the sequential executor into `run_dir` (a stand-in for a sequential run's
+    summary: `rows`, `episode_dir`), with the run's protocol and model."""
+    from types import SimpleNamespace
+
+    from harness.run.executor import EpisodeContext, SequentialExecutor
+    from harness.run.jobs import EpisodeJob
+
+    context = EpisodeContext(protocol=_protocol(model, episodes=len(summary.rows)), run_dir=str(run_dir), run="seq",
+                             model=summary.manifest["model"], goals=None)
+    executor = SequentialExecutor(context, model)
+    try:
+        done = list(executor.run([EpisodeJob(r.task, r.episode, r.seed) for r in rows]))
+    finally:
+        executor.close()
+    return SimpleNamespace(rows=done, episode_dir=lambda row: run_dir / row.directory)
+
+
+def _freeze_and_kill(pids: set[int]) -> None:
+    """SIGSTOP every process (none starts another meanwhile), then SIGKILL each: a node lost at once."""
+    for sig in (signal.SIGSTOP, signal.SIGKILL):
+        for pid in pids:
+            try:
+                os.kill(pid, sig)
+            except ProcessLookupError:
+                pass
+
+
+def test_a_node_lost_mid_run_has_its_episodes_retried_on_the_surviving_node_to_the_sequential_files(tiny, tmp_path,
+                                                                                                    monkeypatch):
+    """Two Ray nodes on this machine: a head of 2 CPUs holding the policy replica (its `octo_policy` resource pins it)
+    and a second node of 2 CPUs joined with `ray start --address`, on ports of its own. A run of 4 episodes with 2 env
+    workers (one at least on the second node: the head has room for one) loses the second node (its raylet and
+    every process of it, SIGKILL) while an env worker there runs an episode. The run completes: every episode ok, the
+    lost ones retried on the head and counted, the data files byte for byte those of a sequential run, and no process
+    of the lost node left."""
+    from harness.run.ray_executor import RayExecutor
+
+    started = time.monotonic()
+    head, port, head_dir = _ray_head(tmp_path, extra=("--resources", '{"octo_policy": 1}'), env=FAST_HEALTH_CHECK)
+    node, node_dir, watchdog = None, None, None
+    try:
+        node, _, node_dir = _ray_head(tmp_path, head_address=f"127.0.0.1:{port}", name="node", env=FAST_HEALTH_CHECK)
+        cluster = time.monotonic()
+        watchdog = threading.Timer(max(NODE_TEST_LIMIT_S - (time.monotonic() - started), 30),
+                                   lambda: [_stop_head(head, head_dir), _stop_head(node, node_dir)])
+        watchdog.start()
+        executors, lost = [], set()
+
+        def factory(context, model):
+            executors.append(RayExecutor(context, model, workers=2, address=f"127.0.0.1:{port}"))
+            return executors[-1]
+
+        def kill_the_node():
+            """Once an env worker of the second node is past the first step of its episode (its replica has served
+            it), the node goes: its raylet, its workers and `ray start` itself."""
+            import ray
+
+            deadline = time.monotonic() + NODE_TEST_LIMIT_S
+            while time.monotonic() < deadline:
+                ex = executors[0] if executors else None
+                ours = descendants(node.pid)
+                try:
+                    there = [(i, job) for i, job in list(ex.running.items()) if ex.started_on.get(i, (0, 0))[1] in ours] \
+                        if ex is not None else []
+                    if any(ray.get(ex._served_by[i].step_of.remote(job.key), timeout=10) >= 1 for i, job in there):
+                        lost.update(descendants(node.pid) | {node.pid})
+                        _freeze_and_kill(lost)
+                        return
+                except (RuntimeError, KeyError, ray.exceptions.RayError):  # the executor changed while we looked
+                    pass
+                time.sleep(0.05)
+
+        monkeypatch.setenv("RAY_AUTH_MODE", "disabled")  # the driver's side of the cluster's setting
+        summary = _run_while(tiny, tmp_path, "node2", factory, kill_the_node, episodes=4)
+        assert lost, "no env worker ran on the second node"
+        time.sleep(1.0)
+        assert not alive(lost), f"processes of the lost node left behind: {alive(lost)}"
+        retried = [r for r in summary.rows if r.retries]
+        assert summary.status == "complete" and len(summary.rows) == 4
+        assert all(r.status == "ok" and r.steps == STEPS for r in summary.rows)
+        assert retried and all([a["lost"] for a in r.retries] == ["node"] for r in retried)
+        assert any(a["step"] >= 1 and "its node died" in a["cause"] for r in retried for a in r.retries)
+        assert summary.manifest["recovery"]["episodes_retried"] == len(retried)
+        assert f"retried after a lost {retried[0].retries[-1]['lost']}" in summary.table()
+        ran = time.monotonic()
+        _assert_same_files(_sequential_episodes(tiny, summary, retried, tmp_path / "seq"), summary)
+        assert executors[0].replacements >= 1
+        print(f"node test: cluster up {cluster - started:.1f} s, run {ran - cluster:.1f} s, all "
+              f"{time.monotonic() - started:.1f} s; retried {[(r.episode, r.retries) for r in retried]}")
+    finally:
+        if watchdog is not None:
+            watchdog.cancel()
+        if node is not None:
+            _stop_head(node, node_dir)
+            shutil.rmtree(node_dir, ignore_errors=True)
+        _stop_head(head, head_dir)
+        shutil.rmtree(head_dir, ignore_errors=True)
