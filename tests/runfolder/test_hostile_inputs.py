@@ -1,7 +1,8 @@
 """Hostile inputs (issue 44): every reader and command over each class of the corpus (hostile_corpus.py) in a
 subprocess with a timeout and a memory cap, answering its documented exit code with one line, in bounded time and
 memory; plus what needs more than a file: a full disk (a small tmpfs), SIGINT while the model loads, resume over a
-plain file in an episode's place, and an exception injected into compare (the internal-error code, never 0 or 1).
+plain file in an episode's place, an exception injected into compare (the internal-error code, never 0 or 1), and
+report 20 times under CPU load (exit 0 each time: arrays read from several threads, issue 66).
 
 One tiny-model Lift run (1 episode, 2 steps) is made per session and copied per case; nothing else simulates,
 except the resume test (slow) which runs its episode again. The corpus's commands are children of a forkserver that
