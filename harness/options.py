@@ -11,8 +11,8 @@ not say it (None: the task's limit), `default_text` words it. The flag names its
 
 The owners: `harness.run.protocol.Protocol` (model, tasks, seeds, ...), `envs.options.EnvOptions` (which, below
 `harness`, writes the same metadata as a plain dict), `harness.policy.PolicyConfig`, `harness.outputs.writers.
-OutputOptions`, `harness.run.protocol.RunStatistics` and `harness.run.settings.Destination` (recorded in the
-manifest outside the protocol), `harness.gate.config.GateConfig` (compare, regress, replay). From those fields come
+OutputOptions`, `harness.run.protocol.RunStatistics`, `harness.run.protocol.Recovery` and `harness.run.settings.
+Destination` (recorded in the manifest outside the protocol), `harness.gate.config.GateConfig` (compare, regress, replay). From those fields come
 the command-line parsers (`add_arguments`), the protocol file's keys (`file_keys`), a settings dict's values for a
 dataclass (`given`), what the protocol records (`record`) and the docs' option tables (`table`), so adding an option
 is adding one field.

@@ -3,7 +3,8 @@
 Layout (the interface every reader builds on; see README "The run folder"):
 
   <out>/<run>/.lock           fcntl lock held by the writing process; holds its pid
-  <out>/<run>/manifest.json   written once, at the start: format, run, created, protocol, protocol_hash, jobs, model, ...
+  <out>/<run>/manifest.json   written at the start: format, run, created, protocol, protocol_hash, jobs, model, ...;
+                              rewritten only to add what was lost and retried ("recovery", outside the protocol)
   <out>/<run>/results.jsonl   SOURCE OF TRUTH: one line per finished episode, appended and fsynced (last line of a job wins)
   <out>/<run>/results.json    derived, rewritten atomically after each episode: manifest, status, episodes, missing, statistics
   <out>/<run>/summary.csv     derived: one row per episode (+ its task's success statistics)
