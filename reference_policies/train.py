@@ -94,9 +94,9 @@ class TrainConfig:
                                    metavar="CHECKPOINT", default_text="none: random initialisation")
 
     def __post_init__(self) -> None:
-        if self.steps < 1 or self.batch_size < 1 or not self.learning_rate > 0:
+        if self.steps < 1 or self.batch_size < 1 or not self.learning_rate >= 0:  # rate 0: the initial weights kept
             raise ValueError(f"--steps {self.steps}, --batch-size {self.batch_size}, --learning-rate "
-                             f"{self.learning_rate}: steps and batch size must be >= 1, the learning rate > 0")
+                             f"{self.learning_rate}: steps and batch size must be >= 1, the learning rate >= 0")
 
 
 # ----------------------------------------------------------------------------- config and text

@@ -109,7 +109,7 @@ def test_no_option_given_is_every_fields_default():
 
 
 @pytest.mark.parametrize("flags,words", [(["--steps", "0"], "steps and batch size must be >= 1"),
-                                         (["--learning-rate", "-1"], "the learning rate > 0"),
+                                         (["--learning-rate", "-1"], "the learning rate >= 0"),
                                          (["--workers", "0"], "--workers 0: give 1 or more processes"),
                                          (["--episodes", "3"], "--episodes must be >= 4")])
 def test_a_value_its_field_refuses_is_one_line_and_exit_2(flags, words, capsys):
