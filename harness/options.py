@@ -42,7 +42,9 @@ class Option:
     metavar: str | None = None
     action: str | None = None  # "store_true" (a switch) or "append" (repeatable)
     convert: Callable[[Any], Any] | None = None  # a given value (flag or protocol file) -> the field's value
-    absent: Any = UNSET  # the field's value when the option is not given, where a run's differs
+    # the field's value when the option is not given, where a run's differs from the dataclass's: only --no-masks (a
+    # run renders masks; envs.make, which shares EnvOptions, does not unless asked); any other default is the field's
+    absent: Any = UNSET
     doc: str | None = None  # the docs table's text where it says more than the help [the help]
     negated: bool = False  # a switch that turns its field off: --no-video sets `video` False (the key stays no_video)
     field: str | None = None  # the field's name where the flag names it otherwise (--intervene sets `intervention`)
