@@ -13,7 +13,7 @@ import pytest
 
 from harness.cli import build_parser
 from harness.cli.docs import BEGIN, END, ROOT, rendered, tables
-from harness.options import option, options, shown, table
+from harness.options import UNSET, option, options, shown, table
 
 BRACKET = re.compile(r"\[([^\]]*)\]$")  # a help's trailing [default]
 
@@ -65,9 +65,11 @@ def test_a_flag_names_its_field_or_says_which():
     from harness.gate.config import GateConfig
     from harness.run.settings import RUN_OPTIONS
 
-    seen = set()
+    seen, own_run_default = set(), []
     for cls in [cls for cls, _ in RUN_OPTIONS] + [GateConfig]:
         for field, o in options(cls):
+            if o.absent is not UNSET:
+                own_run_default.append(o.flag)
             if o.negated:
                 assert o.action == "store_true" and o.key == "no_" + field.name, o.flag
             else:
@@ -75,6 +77,8 @@ def test_a_flag_names_its_field_or_says_which():
                 assert o.field is None or o.field != o.key, o.flag  # declared only where the names differ
             seen.add(o.flag)
     assert {"--no-video", "--no-masks", "--intervene", "--task"} <= seen
+    # a run's default is the field's (receding steps 4, --bbox off); only masks, which envs.make shares, keep their own
+    assert own_run_default == ["--no-masks"]
 
 
 def test_the_docs_option_tables_are_the_fields():
