@@ -26,7 +26,6 @@ LONG, TOO_LONG, SHARE = 40, 70, 0.10
 # page: (sentences over 40 words, sentences over 70 words) when the rule came in; these may only go down
 NOT_YET = {
     "docs/layout.md": (8, 0),
-    "docs/parallel.md": (14, 1),
 }
 
 ABBREVIATIONS = re.compile(r"\b(e\.g|i\.e|etc|vs|cf)\.", re.I)
