@@ -1,7 +1,8 @@
 """A FIFO, a device or a socket where a command reads a file (issue 66): named as "not a regular file" from its
 `stat`, never opened (a FIFO would block the command), by the bounded reader every command reads through
-(harness/bounded.py) and by the run folder's own check (harness/runfolder/integrity.py). The commands' answers (exit
-2, one line) are cases of the hostile-file corpus (tests/runfolder/hostile_corpus.py)."""
+(harness/bounded.py) and by the run folder's own check (harness/runfolder/integrity.py); and rows the user may not
+read, named too. The commands' answers (exit 2, one line) are cases of the hostile-file corpus
+(tests/runfolder/hostile_corpus.py)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import os
 import shutil
 import socket
 import stat
+import tempfile
 import threading
 from pathlib import Path
 
@@ -75,3 +77,41 @@ def test_a_run_file_that_is_a_fifo_is_named_not_read_as_missing(tmp_path, name):
     raised = answer(load_run, run)
     assert isinstance(raised, MalformedRunError), raised
     assert f"{run / name} is not a regular file (it is a FIFO)" in str(raised)
+
+
+def test_rows_this_user_may_not_read_are_named(tmp_path):
+    """An unreadable results.jsonl is a PermissionError naming it (the command line: exit 2, one line). Root reads
+    any file, so as root the read runs in a child that became `nobody`."""
+    folder = Path(tempfile.mkdtemp(prefix="unreadable-"))  # outside pytest's 0700 tree: `nobody` must reach it
+    try:
+        os.chmod(folder, 0o755)
+        run = folder / "run"
+        shutil.copytree(BASELINE, run)
+        os.chmod(run / "results.jsonl", 0)
+        read, write = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # the child: load the run as a user who may not read the rows, say what was raised
+            try:
+                if os.geteuid() == 0:
+                    os.setgroups([])
+                    os.setgid(65534)
+                    os.setuid(65534)
+            except OSError as exc:
+                said = f"skip: cannot become nobody ({exc})"
+            else:
+                try:
+                    load_run(run)
+                    said = "read"
+                except BaseException as exc:  # noqa: BLE001 - reported to the parent
+                    said = f"{type(exc).__name__}: {exc}"
+            os.write(write, said.encode()[:4000])
+            os._exit(0)
+        os.close(write)
+        with os.fdopen(read, "rb") as pipe:
+            said = pipe.read().decode()
+        os.waitpid(pid, 0)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    if said.startswith("skip: "):
+        pytest.skip(said[6:])
+    assert said.startswith("PermissionError") and str(run / "results.jsonl") in said, said
