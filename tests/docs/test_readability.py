@@ -7,8 +7,8 @@ capital, a code span or a bracket; "e.g." and "i.e." do not end one. A provenanc
 commit ...; machine: ...") is a record, not prose, and is left out. Pages exempt: docs/history/ (work logs) and
 the generated findings pages (models/*/EVAL.md, not under docs/).
 
-Pages written before the rule are listed in NOT_YET with the counts they had. Such a page may not get worse, and
-the test fails once it meets the limits, so that it leaves the list: the list only shrinks.
+A page that cannot meet the limits yet may be listed in NOT_YET with the counts it has. Such a page may not get
+worse, and the test fails once it meets the limits, so that it leaves the list: the list only shrinks. It is empty.
 """
 
 from __future__ import annotations
@@ -24,9 +24,7 @@ REPO = Path(__file__).resolve().parents[2]
 LONG, TOO_LONG, SHARE = 40, 70, 0.10
 
 # page: (sentences over 40 words, sentences over 70 words) when the rule came in; these may only go down
-NOT_YET = {
-    "docs/layout.md": (8, 0),
-}
+NOT_YET: dict[str, tuple[int, int]] = {}  # every guide meets the limits now
 
 ABBREVIATIONS = re.compile(r"\b(e\.g|i\.e|etc|vs|cf)\.", re.I)
 
