@@ -67,18 +67,19 @@ def _live_viewer(args, modes: tuple[str, ...]):
 
 
 def _protocol(args, given: dict):
-    """(protocol, out, run name, ci method, retries) from the manifest of --resume RUN_DIR, or from --protocol and the
-    flags (--retries is taken with --resume too: it is not part of the protocol)."""
+    """(protocol, out, run name, ci method, retries, preflight mode) from the manifest of --resume RUN_DIR, or from --protocol and the
+    flags (--retries and --preflight are taken with --resume too: they are not part of the protocol)."""
     from harness.run import RunStore
     from harness.run.protocol import protocol_from_manifest
     from harness.run.settings import build_protocol, out_dir, read_protocol_file
 
     retries = given.pop("retries", None)
+    preflight = given.pop("preflight", None)
     if args.resume is None:
         settings = {**(read_protocol_file(args.protocol) if args.protocol else {}), **given}
         retries = retries if retries is not None else settings.get("retries")
         return (build_protocol(settings), out_dir(settings), settings.get("run_name"), settings.get("ci_method"),
-                _retries(retries) if retries is not None else None)
+                _retries(retries) if retries is not None else None, preflight or settings.get("preflight") or "warn")
     if given or args.protocol is not None:
         raise ValueError(f"--resume takes the protocol from {args.resume}/manifest.json; drop "
                          + ", ".join("--" + k.replace("_", "-") for k in (given or {"protocol": 1})))
@@ -87,7 +88,8 @@ def _protocol(args, given: dict):
         raise FileNotFoundError(f"{args.resume} holds no manifest.json; pass the folder of an octo-harness run")
     protocol = protocol_from_manifest(manifest, args.resume / "manifest.json", model_fingerprint=None,
                                       goal_fingerprint=None)
-    return protocol, args.resume.parent, args.resume.name, None, retries  # None: the manifest's statistics.ci_method
+    preflight = preflight or (manifest.get("preflight") or {}).get("mode") or "warn"
+    return protocol, args.resume.parent, args.resume.name, None, retries, preflight  # None: the recorded ci_method
 
 
 def main(args) -> int:
@@ -100,11 +102,12 @@ def main(args) -> int:
              if o.key != "rerun" and getattr(args, o.key) is not None}
     if "save" in modes:
         given["rerun"] = True  # an output option of the protocol (spawn and serve are not)
-    protocol, out, name, method, retries = _protocol(args, given)
+    protocol, out, name, method, retries, preflight = _protocol(args, given)
     viewer = _live_viewer(args, modes)
     try:
         summary = execute(protocol, out, name, overwrite=args.overwrite, retry_failed=args.retry_failed, ci_method=method,
-                          executor=factory, viewer=viewer.url if viewer is not None else None, retries=retries)
+                          executor=factory, viewer=viewer.url if viewer is not None else None, retries=retries,
+                          preflight=preflight)
     except ResultsWriteError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

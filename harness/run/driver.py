@@ -30,6 +30,7 @@ from harness.run import checks
 from harness.run.protocol import protocol_from_manifest
 from harness.runfolder.platform import libero_platform, platform_differences, platform_fingerprint, platform_info
 from harness.run.executor import CheckedEnv, EpisodeContext, Executor, Retrying, SequentialExecutor, StepCallback
+from harness.run.preflight import check_run
 from harness.run.progress import Progress
 from harness.run.protocol import FORMAT, EpisodeJob, Protocol, Recovery, diff, goal_fingerprint, model_fingerprint
 from harness.run.store import MANIFEST, EpisodeRow, RunStore, now_utc, recovery, recovery_lines, statistics
@@ -198,6 +199,7 @@ def execute(
     ci_method: str | None = None,
     viewer: str | None = None,
     retries: int | None = None,
+    preflight: str = "warn",
 ) -> RunSummary:
     """Run (or resume) the protocol's episodes into `<out>/<run_name>` and return the summary.
 
@@ -208,6 +210,7 @@ def execute(
     ("statistics", outside the protocol and its hash), so a resume writes them as the run began; None: the recorded
     one, else wilson. A different one for a run that records its own is refused (one line).
     retries: times a lost job runs again (executor.Retrying); None: the run's recorded number, else Recovery's default.
+    preflight: warn | strict | off, the checks of frames and action space before the first episode (run/preflight.py).
     """
     protocol, out, name, goal_images, fingerprint_details = _checked_inputs(protocol, out, run_name, ci_method, viewer)
     store = RunStore(out / name)
@@ -216,7 +219,7 @@ def execute(
     with store:
         try:
             opened = _open_run(store, protocol, jobs, name, goal_images, fingerprint_details, overwrite=overwrite,
-                               retry_failed=retry_failed, model=model, ci_method=ci_method)
+                               retry_failed=retry_failed, model=model, ci_method=ci_method, preflight=preflight)
         except BaseException:
             if created and not (store.dir / MANIFEST).exists():  # a check failed: leave no empty run folder behind
                 shutil.rmtree(store.dir, ignore_errors=True)
@@ -279,8 +282,8 @@ class _OpenedRun:
 
 
 def _open_run(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], name: str, goal_images: dict | None,
-              fingerprint_details: dict, *, overwrite: bool, retry_failed: bool, model, ci_method: str | None
-              ) -> _OpenedRun:
+              fingerprint_details: dict, *, overwrite: bool, retry_failed: bool, model, ci_method: str | None,
+              preflight: str = "warn") -> _OpenedRun:
     """Inside the store's lock: compare with what the folder holds, load the model if any job is left (or the run is
     new), check it against the protocol and the first env, write a new run's manifest and clear leftovers."""
     protocol_dict = protocol.to_dict()
@@ -308,12 +311,13 @@ def _open_run(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], name:
         task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)
     checked = CheckedEnv(protocol, model, pending[0].task) if model is not None and pending else None
     try:
+        found = check_run(preflight, protocol, model, checked.env, pending[0].seed, dataset_key) if checked else None
         if overwrite:
             store.clear()  # only now: every check has passed
         if manifest is None:
             manifest = _new_manifest(protocol, protocol_dict, jobs, name,
                                      _model_info(model, dataset_key, fingerprint_details), task_inputs, platform_now,
-                                     platform_fp, ci_method)
+                                     platform_fp, ci_method) | ({"preflight": found} if found else {})
             store.write_manifest(manifest)
         for line in _default_lines(protocol):
             log.info("%s", line)

@@ -114,6 +114,11 @@ class CheckedEnv:
             self.close()
             raise
 
+    @property
+    def env(self):
+        """The env, still this object's to close (the pre-flight check resets it once)."""
+        return self._env
+
     def take(self):
         """The env, now the caller's to close (None once taken or closed)."""
         env, self._env = self._env, None

@@ -39,6 +39,7 @@ from harness.policy import PolicyConfig
 from harness.measures.attribution import DEFAULT_METHODS
 from harness.outputs.writers import ATTRIBUTION_VIDEO
 from harness.run.protocol import Protocol, Recovery, RunStatistics
+from harness.run.preflight import PreflightOptions
 from harness.outputs.writers import OutputOptions
 
 DEFAULT_OUT = "results/runs"
@@ -59,7 +60,7 @@ class Destination:
 # The options of `run`, each declared once on the field that holds it, and where the manifest records each class
 RUN_OPTIONS = ((Protocol, "protocol"), (EnvOptions, "protocol.env"), (PolicyConfig, "protocol.policy"),
                (OutputOptions, "protocol.outputs"), (RunStatistics, "statistics"), (Recovery, "recovery"),
-               (Destination, ""))
+               (PreflightOptions, "preflight"), (Destination, ""))
 # key -> expected TOML type(s); the same names as the `run` flags (rerun: true writes each episode's episode.rrd;
 # live viewers are chosen on the command line)
 FILE_KEYS: dict[str, tuple[type, ...]] = file_keys(*(cls for cls, _ in RUN_OPTIONS))

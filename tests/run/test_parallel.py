@@ -91,6 +91,15 @@ def test_a_sequential_run_steps_its_episodes_in_the_env_that_checked_the_model(s
     assert [closed for _, closed in SEQUENTIAL_ENVS] == [True]
 
 
+def test_the_run_records_its_preflight_where_the_tiny_fixtures_blank_frames_are_inconclusive(sequential):
+    """The pre-flight check reset that env once before the episodes (which the parallel runs below, whose workers
+    make their own envs, must still match bit for bit); the manifest records its findings outside the protocol."""
+    block = sequential.manifest["preflight"]
+    assert block["mode"] == "warn" and block["task"] == "Lift" and "preflight" not in sequential.manifest["protocol"]
+    images = [f for f in block["findings"] if f["check"].startswith("image:")]
+    assert len(images) == 2 and all(f["reason"] == "blank example frame" for f in images)
+
+
 def _assert_same_episodes(reference, other) -> None:
     assert other.status == "complete" and len(other.rows) == len(reference.rows)
     for a, b in zip(reference.rows, other.rows):
