@@ -61,7 +61,7 @@ def files_in(directory):
 
 
 def test_a_finished_step_is_built_once_with_the_maps_every_sink_reads():
-    options = OutputOptions(png_every=0, video=False)
+    options = OutputOptions(png_every=0, video=False, bbox=True)  # boxes are drawn only when asked (--bbox)
     step = StepFinisher(tiny_tokens(), options)(records(1)[0])
     assert isinstance(step, FinishedStep) and step.step == 0
     assert step.attention.shape == (LAYERS, HEADS, 1, KEYS) and step.attention.dtype == np.float32
