@@ -1,7 +1,7 @@
 """The CI recipe (examples/ci/) works as written: its script makes a baseline once, gates a candidate with
 `octo-harness regress` and maps the exit code to pass (0), fail (1) or no verdict (2).
 
-Run on the tiny reference fixture (1 Lift episode of 2 steps). That model never succeeds, so a worse candidate
+Run on the tiny reference fixture (1 Lift episode of 1 step). That model never succeeds, so a worse candidate
 cannot lose successes; the degraded candidate is caught by `FAIL_ON=changed` (its numerics on the baseline's
 recorded inputs change). The damaged candidate's checkpoint is cut in half.
 """
@@ -29,7 +29,7 @@ def gate(candidate: Path, work: Path) -> subprocess.CompletedProcess:
     """The script as a CI job runs it, from the repository root, with a small protocol and its own folders."""
     harness = Path(sys.executable).with_name("octo-harness")
     env = {**os.environ, "BASELINE": str(work / "baseline"), "BASELINE_MODEL": str(work / "same"),
-           "TASKS": "Lift", "EPISODES": "1", "MAX_STEPS": "2", "FAIL_ON": "changed", "OUT": str(work / "runs"),
+           "TASKS": "Lift", "EPISODES": "1", "MAX_STEPS": "1", "FAIL_ON": "changed", "OUT": str(work / "runs"),
            "PYTHON": sys.executable, "OCTO_HARNESS": str(harness) if harness.exists() else "octo-harness"}
     return subprocess.run(["bash", str(SCRIPT), str(candidate)], cwd=REPO, env=env, capture_output=True, text=True,
                           timeout=600)
