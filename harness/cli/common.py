@@ -57,14 +57,17 @@ def port(text: str) -> int:
     return number
 
 
-VIEWER_PORTS = {"run": ("--rerun spawn/serve: the viewer's gRPC port [9876]; serve's web viewer uses --web-port",
-                        "--rerun serve: the web viewer's HTTP port [9090]"),
-                "view": ("the viewer's gRPC port [9876]", "--serve: the web viewer's HTTP port [9090]")}
+VIEWER_PORTS = {"run": ("--rerun spawn/serve: the viewer's gRPC port [{grpc}]; serve's web viewer uses --web-port",
+                        "--rerun serve: the web viewer's HTTP port [{web}]"),
+                "view": ("the viewer's gRPC port [{grpc}]", "--serve: the web viewer's HTTP port [{web}]")}
 
 
 def add_viewer_ports(parser: argparse.ArgumentParser, command: str) -> None:
-    """--viewer-port and --web-port of a live Rerun viewer (run --rerun spawn|serve, view)."""
-    grpc, web = VIEWER_PORTS[command]
+    """--viewer-port and --web-port of a live Rerun viewer (run --rerun spawn|serve, view); their [defaults] are the
+    viewer's own (None: not given, so a port without a live viewer is refused)."""
+    from harness.outputs.rerun_viewer import DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT
+
+    grpc, web = (text.format(grpc=DEFAULT_GRPC_PORT, web=DEFAULT_WEB_PORT) for text in VIEWER_PORTS[command])
     parser.add_argument("--viewer-port", type=port, default=None, metavar="PORT", help=grpc)
     parser.add_argument("--web-port", type=port, default=None, metavar="PORT", help=web)
 
