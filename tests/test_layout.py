@@ -14,8 +14,8 @@ REFERENCE = HARNESS.parent / "reference_policies"  # an application of the harne
 # `policy`, which computes them at a step; `runfolder` (a run folder's schema, integrity and platform record) sits
 # below both `run` (which writes run folders) and `analysis` (which reads them, offline, above the run store). The
 # gate commands (regress, replay, sanity, view, robustness grids) read analysis and run the run store, so they sit
-# above both; nothing but the command line sits above `report`. The reference policies (reference_policies/) are no stage: they sit beside the
-# harness and use its public API (test_the_reference_policies_sit_beside_the_harness).
+# above both; nothing but the command line sits above `report`. The reference policies (reference_policies/) are no
+# stage: they sit beside the harness and use its public API (test_the_reference_policies_sit_beside_the_harness).
 STAGES = (
     ("envs", ("envs",)),
     ("base", ("harness", "harness.files", "harness.console")),
