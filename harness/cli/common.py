@@ -106,16 +106,21 @@ def apply_render_device(choice: str | None) -> None:
 
 
 def add_execution_args(parser: argparse.ArgumentParser) -> None:
-    """Where a run's episodes execute (not part of the protocol: a run may resume with another worker count)."""
+    """Where a run's episodes execute (not part of the protocol: a run may resume with another worker count); the
+    flags' None is 'not given' (so --policy-replicas without ray is refused), their [defaults] the executor's own."""
+    from harness.run.execution import DEFAULT_EXECUTOR, DEFAULT_REPLICAS
+
     parser.add_argument("--workers", type=int, default=None,
                         help="env worker processes, inference batched in one process (same episodes as a sequential run) "
                              "[none: sequential; with --executor ray: the CPU count, minus one per replica on a cluster]")
     parser.add_argument("--executor", choices=["local", "ray"], default=None,
-                        help="where the env workers run: local processes or Ray actors (pip install 'octo-harness[ray]') [local]")
+                        help="where the env workers run: local processes or Ray actors (pip install 'octo-harness[ray]') "
+                             f"[{DEFAULT_EXECUTOR}]")
     parser.add_argument("--ray-address", default=None,
                         help="Ray cluster to join (e.g. auto or head-node:6379); --out must be on a filesystem every node "
                              "mounts [start a local Ray instance]")
-    parser.add_argument("--policy-replicas", type=int, default=None, help="Ray: model replicas serving the env workers [1]")
+    parser.add_argument("--policy-replicas", type=int, default=None,
+                        help=f"Ray: model replicas serving the env workers [{DEFAULT_REPLICAS}]")
 
 
 def execution(args):

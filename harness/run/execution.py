@@ -13,6 +13,9 @@ import os
 
 from harness.run.workers import WorkersExecutor, max_workers
 
+DEFAULT_EXECUTOR = "local"  # where env workers run when --executor is not given
+DEFAULT_REPLICAS = 1  # Ray: model replicas when --policy-replicas is not given (None: not given, so it needs ray)
+
 
 def executor_factory(workers: int | None, executor: str | None = None, ray_address: str | None = None,
                      policy_replicas: int | None = None):
@@ -20,7 +23,7 @@ def executor_factory(workers: int | None, executor: str | None = None, ray_addre
 
     Checked before anything heavy: one line naming the fix for an impossible combination, or Ray missing.
     """
-    executor = executor or "local"
+    executor = executor or DEFAULT_EXECUTOR
     if workers is not None and workers < 1:
         raise ValueError(f"--workers must be at least 1, got {workers}")
     on_this_machine = not (executor == "ray" and ray_address is not None)  # a cluster's CPUs are checked when it is joined
@@ -36,7 +39,7 @@ def executor_factory(workers: int | None, executor: str | None = None, ray_addre
 
         import_ray()
         return functools.partial(RayExecutor, workers=workers, address=ray_address,
-                                 replicas=policy_replicas or 1)
+                                 replicas=policy_replicas or DEFAULT_REPLICAS)
     if workers is None:
         return None
     return functools.partial(WorkersExecutor, workers=workers)
