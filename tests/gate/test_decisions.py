@@ -189,7 +189,8 @@ def test_n_counts_pairs_with_an_outcome_like_the_run_store():
 
     from harness.run.store import statistics
 
-    rows = [SimpleNamespace(task="Lift", status=s, success=v) for s, v in [("ok", True)] * 8 + [("failed", None)] * 2]
+    rows = [SimpleNamespace(task="Lift", status=s, success=v, lost_infrastructure=False)  # episode failures, not lost jobs
+            for s, v in [("ok", True)] * 8 + [("failed", None)] * 2]
     store = statistics(rows, ["Lift"])["tasks"]["Lift"]
     errored = ErroredPairs.from_statuses([True] * 10, [r.status == "ok" for r in rows])
     table = PairedCounts.from_outcomes([True] * 8, [bool(r.success) for r in rows if r.status == "ok"])
