@@ -194,7 +194,7 @@ def test_n_counts_pairs_with_an_outcome_like_the_run_store():
     store = statistics(rows, ["Lift"])["tasks"]["Lift"]
     errored = ErroredPairs.from_statuses([True] * 10, [r.status == "ok" for r in rows])
     table = PairedCounts.from_outcomes([True] * 8, [bool(r.success) for r in rows if r.status == "ok"])
-    block = outcome_verdicts({"Lift": table}, CompareConfig(), {"Lift": errored})["tasks"]["Lift"]
+    block = outcome_verdicts({"Lift": table}, CompareConfig(), {"Lift": errored}).tasks["Lift"]
     assert store["n"] == block.candidate.n == 8 and store["failed"] == block.candidate.errored == 2
 
 
