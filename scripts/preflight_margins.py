@@ -109,8 +109,8 @@ def main() -> int:
     rows = margins(args.checkpoint, args.tasks.split(","), args.seed)
     for row in rows:
         print(json.dumps(row))
-    print(f"# provenance: python scripts/preflight_margins.py {args.checkpoint} --tasks {args.tasks} --seed {args.seed}"
-          f" at {commit} on {_cpu()} ({os.cpu_count()} CPUs)")
+    print(f"Provenance: command `python scripts/preflight_margins.py {args.checkpoint} --tasks {args.tasks} --seed "
+          f"{args.seed}`; commit `{commit}`; machine: {_cpu()} ({platform.machine()}), {os.cpu_count()} cores, CPU only.")
     print(table(rows))
     return 0
 

@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -71,6 +69,7 @@ def _frames(model, robosuite_frames, libero_frames):
     return robosuite_frames if model in ROBOSUITE else libero_frames
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("model", ROBOSUITE + LIBERO)
 def test_each_reference_checkpoint_is_consistent_with_its_own_conventions(model, request):
     upright = request.getfixturevalue("robosuite_frames" if model in ROBOSUITE else "libero_frames")
@@ -79,6 +78,7 @@ def test_each_reference_checkpoint_is_consistent_with_its_own_conventions(model,
     assert report("strict", list(found.values())) == []  # nothing said, nothing refused
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("model", ROBOSUITE + LIBERO)
 def test_a_vertical_difference_is_a_mismatch_naming_the_trained_convention(model, request):
     upright = request.getfixturevalue("robosuite_frames" if model in ROBOSUITE else "libero_frames")
@@ -87,6 +87,7 @@ def test_a_vertical_difference_is_a_mismatch_naming_the_trained_convention(model
         assert f"--image-convention {TRAINED[model]}" in f["line"] and f["line"].startswith(f"{k}: MISMATCH")
 
 
+@pytest.mark.slow
 def test_a_mirror_only_difference_is_what_the_margins_allow(robosuite_frames, libero_frames):
     """Mirror margins (model cards): robosuite's views -0.01 to 0.01 and LIBERO-Object's wrist view -0.05 to 0.07,
     under MIRROR_MARGIN 0.1: inconclusive; LIBERO-Object's agentview 0.13 to 0.20: MISMATCH naming rot180."""
@@ -98,6 +99,7 @@ def test_a_mirror_only_difference_is_what_the_margins_allow(robosuite_frames, li
     assert libero["image_wrist"]["verdict"] == INCONCLUSIVE and libero["image_wrist"]["reason"] == "mirror-only difference"
 
 
+@pytest.mark.slow
 def test_upside_down_example_frames_are_told_to_use_opengl(robosuite_frames):
     """A checkpoint trained on frames stored as robosuite renders them (a robomimic finetune), run as upright."""
     examples = example_frames(_checkpoint(MODELS / "octo-reference-robosuite"))
@@ -107,6 +109,7 @@ def test_upside_down_example_frames_are_told_to_use_opengl(robosuite_frames):
         assert "--image-convention opengl" in f["line"]
 
 
+@pytest.mark.slow
 def test_blank_and_synthetic_example_frames_are_inconclusive(fixtures_dir, robosuite_frames):
     from harness.octo import presets
     from harness.octo.config import OctoConfig
@@ -124,6 +127,7 @@ def test_blank_and_synthetic_example_frames_are_inconclusive(fixtures_dir, robos
         assert f["verdict"] == INCONCLUSIVE and f["reason"] == "blank example frame"
 
 
+@pytest.mark.slow
 def test_a_multi_dataset_checkpoints_example_frame_is_inconclusive(robosuite_frames):
     """A pretrained mixture's example frame shows one of its datasets: even a vertical mistake is not claimed."""
     example = example_frames(_checkpoint(MODELS / "octo-reference-robosuite"))["image_primary"]
@@ -131,6 +135,7 @@ def test_a_multi_dataset_checkpoints_example_frame_is_inconclusive(robosuite_fra
     assert f["verdict"] == INCONCLUSIVE and f["reason"] == "multi-dataset checkpoint"
 
 
+@pytest.mark.slow
 def test_another_scene_fed_the_right_way_up_is_never_a_mismatch(robosuite_frames):
     """The LIBERO checkpoint's example frames against a robosuite render fed upright or rot180 (both the right way
     up for it): another table, another robot pose, and no MISMATCH."""
@@ -164,6 +169,7 @@ def test_bridge_like_statistics_fit_octo_delta_and_one_ended_grippers_are_not_gu
     assert action_finding(None, "b", "octo-delta")["verdict"] == INCONCLUSIVE
 
 
+@pytest.mark.slow
 def test_strict_refuses_a_mismatch_and_warn_says_one_line_per_finding(robosuite_frames):
     examples = example_frames(_checkpoint(MODELS / "octo-reference-robosuite"))
     found = [image_finding(k, e, to_convention(robosuite_frames[k], "opengl"), "opengl", "upright")
@@ -173,6 +179,7 @@ def test_strict_refuses_a_mismatch_and_warn_says_one_line_per_finding(robosuite_
         report("strict", found)
 
 
+@pytest.mark.slow
 def test_the_manifest_block_and_the_report_line(robosuite_frames):
     examples = example_frames(_checkpoint(MODELS / "octo-reference-robosuite"))
     found = [image_finding(k, e, to_convention(robosuite_frames[k], "opengl"), "opengl", "upright")
@@ -184,6 +191,7 @@ def test_the_manifest_block_and_the_report_line(robosuite_frames):
     assert summary({"mode": "off"}) == "off" and summary(None).startswith("not run")
 
 
+@pytest.mark.slow
 def test_the_verdicts_do_not_read_harness_toml(tmp_path, robosuite_frames):
     """A copy of the checkpoint without its conventions file gives the same verdicts for the same fed frames."""
     copy = tmp_path / "ckpt"
@@ -195,11 +203,15 @@ def test_the_verdicts_do_not_read_harness_toml(tmp_path, robosuite_frames):
         assert a == b
 
 
-def test_strict_run_exits_2_before_the_first_episode(tmp_path):
-    """As a user would: a vertical mistake with --preflight strict is one error line and exit 2, no run folder."""
-    proc = subprocess.run([sys.executable, "-m", "harness.cli", "run", "--model", str(MODELS / "octo-reference-robosuite"),
-                           "--task", "Lift", "--image-convention", "opengl", "--preflight", "strict", "--out",
-                           str(tmp_path), "--run-name", "r"], capture_output=True, text=True, cwd=REPO, timeout=300)
-    assert proc.returncode == 2, proc.stderr[-2000:]
-    assert "MISMATCH" in proc.stderr and "--image-convention upright" in proc.stderr
+@pytest.mark.slow
+def test_strict_run_exits_2_before_the_first_episode(tmp_path, capsys):
+    """As a user would (the command line, in this process): a vertical mistake with --preflight strict is one error
+    line and exit 2, and no run folder is left."""
+    from harness.cli import main
+
+    code = main(["run", "--model", str(MODELS / "octo-reference-robosuite"), "--task", "Lift", "--image-convention",
+                 "opengl", "--preflight", "strict", "--out", str(tmp_path), "--run-name", "r"])
+    err = capsys.readouterr().err
+    assert code == 2, err[-2000:]
+    assert "MISMATCH" in err and "--image-convention upright" in err and len(err.strip().splitlines()[-1]) > 0
     assert not (tmp_path / "r").exists()
