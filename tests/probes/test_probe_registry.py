@@ -125,6 +125,7 @@ def test_the_built_in_probes_keep_their_order_parts_and_files():
     table = [cls.__name__ for cls in sinks.sink_table()]
     assert table[4:7] == ["AttributionFiles", "ControlArrays", "RelianceLines"]
     assert [cls.name for cls, _ in probes.parts("layer")] == ["attribution", "reliance"]
+    assert [cls.name for cls, _ in probes.parts("section")] == ["attribution", "reliance"]
     assert probes.active(PolicyConfig()) == ()
     on = PolicyConfig(attribution="saliency", attention_controls="blank", controls_every=3, reliance_every=4)
     assert [(cls.name, cls.every(on)) for cls in probes.active(on)] == [("attribution", 1), ("controls", 3),
@@ -134,6 +135,32 @@ def test_the_built_in_probes_keep_their_order_parts_and_files():
         probes.register(clash)
     with pytest.raises(KeyError, match="no probe named"):
         probes.get("nothing")
+
+
+def test_each_built_in_probe_reads_back_what_its_sink_wrote(tmp_path):
+    """Each probe's sink alone on hand-made records, then its reader (found through the registry): the payloads by
+    step, as view's rebuild of a recording hands them to the viewer layers (controls as float16, as stored)."""
+    from tests.outputs.test_sinks import STEPS, drive, with_extras
+    from tests.outputs.test_writers import HEADS, KEYS, LAYERS, records
+
+    maps = {"saliency": {"image_primary": np.arange(16, dtype=np.float32).reshape(4, 4)}}
+    control = {"blank": np.random.default_rng(0).random((LAYERS, HEADS, 1, KEYS)).astype(np.float32)}
+    rows = [{"step": 0, "camera": "image_primary", "region": "target", "fill": "mean", "change": 0.5,
+             "area_fraction": 0.25, "reliance_per_pixel": 2.0, "reliance_share": 1.0, "camera_change": 0.5}]
+    payloads = {"attribution": {1: {"maps": maps}}, "controls": {0: control, 2: control},
+                "reliance": {0: {"rows": rows}}}
+    recs = with_extras(records(STEPS), **payloads)
+    assert [cls.name for cls, _ in probes.parts("reader")] == ["attribution", "controls", "reliance"]
+    for cls, reader in probes.parts("reader"):
+        drive(probes.part(cls, "sink"), tmp_path / cls.name, recs)
+        read = reader.by_step(tmp_path / cls.name)
+        assert sorted(read) == sorted(payloads[cls.name]), cls.name
+        assert reader.by_step(tmp_path / "nothing") == {}
+    read = probes.part("controls", "reader").by_step(tmp_path / "controls")
+    np.testing.assert_array_equal(read[2]["blank"], control["blank"].astype(np.float16).astype(np.float32))
+    attribution = probes.part("attribution", "reader").by_step(tmp_path / "attribution")
+    np.testing.assert_array_equal(attribution[1]["maps"]["saliency"]["image_primary"], maps["saliency"]["image_primary"])
+    assert probes.part("reliance", "reader").by_step(tmp_path / "reliance")[0]["rows"][0]["reliance_share"] == 1.0
 
 
 def test_no_module_outside_the_probes_imports_a_particular_probe():

@@ -3,8 +3,8 @@ open loop, with every camera's window frames blanked to their mean colour and/or
 (harness.measures.controls); the readout attention of each control pass is the payload.
 
 Payload: {control: (layers, heads, readouts, keys) float32}. The control requests of one call are batched in the
-compiled batch shape, each with its request's own rng key (actions discarded). Files: controls.npz (`.sink`);
-read by the report's Position section (harness.analysis.position), which also reads runs without controls.
+compiled batch shape, each with its request's own rng key (actions discarded). Files: controls.npz (`.sink`, read
+back by `.reader`); the report's Position section reads it too (harness.analysis.position).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ class ControlsProbe(Probe):
     name = "controls"
     option = "attention_controls"
     sink = ".sink:ControlArrays"
+    reader = ".reader"
 
     def __init__(self, context: ProbeContext):
         from harness.measures.controls import CONTROLS, parse_controls
