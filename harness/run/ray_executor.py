@@ -56,7 +56,7 @@ log = logging.getLogger(__name__)
 FORWARDED_ENV = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "HF_HUB_OFFLINE", "HF_HOME", "JAX_PLATFORMS")
 MARKER_PREFIX = ".octo-harness-shared-check-"
 POLICY_RESOURCE = "octo_policy"  # a custom resource that, where the cluster offers it, holds the policy replicas
-START_TIMEOUT_S = 300.0  # how long jobs may wait with no env worker started before the run stops (one line)
+START_TIMEOUT_S = 300.0  # how long jobs may wait, after a loss, with no env worker started before the run stops
 START_TRIES = 3  # times one worker slot is started again in a row before it is given up
 NODE_DEATH_WAIT_S = 10.0  # how long a worker lost without an exit report waits for Ray to say whether its node died
 
@@ -211,13 +211,14 @@ def _last_line(exc: BaseException) -> str:
     return line.split("RayExecutorError: ", 1)[-1]  # our own one-line errors, raised inside an actor
 
 
-def actor_death_cause(exc: BaseException) -> str:
-    """A Ray actor error -> the error recorded for its episode: where it ran and Ray's exit detail."""
+def actor_death_cause(exc: BaseException, lost: str = "worker") -> str:
+    """A Ray actor error -> the error recorded for its episode: where it ran and Ray's exit detail (or, where its
+    node was `lost`, that)."""
     text = " ".join(str(exc).split())
     pid, ip = re.search(r"\bpid: (\d+)", text), re.search(r"\bip: (\S+)", text)
     detail = re.search(r"Worker exit detail: (.*)", text)
     where = f" (pid {pid.group(1)}{' on ' + ip.group(1) if ip else ''})" if pid else ""
-    if detail is None and "its node has died" in text:
+    if lost == "node" or (detail is None and "its node has died" in text):
         return f"worker process died{where}: its node died"
     return f"worker process died{where}: {(detail.group(1) if detail else text)[:300]}"
 
@@ -333,15 +334,10 @@ class RayExecutor:
         warming = [r.warm_up.remote(warmup_request(self.spec.shape, warmup)) for r in self._replicas] if warmup else []
         for i in range(self.workers):
             self._start_worker(i)
-        try:  # env workers check the shared folder while the replicas load the model and compile
-            started = dict(zip(self._starting.values(), ray.get(list(self._starting))))
+        try:  # the replicas load the model and compile while the env workers start (`_started`: each takes jobs then)
             ray.get(warming)
         except (ray.exceptions.RayActorError, ray.exceptions.RayTaskError) as exc:
             raise RayExecutorError(_last_line(exc)) from None
-        self.started_on.update(started)
-        self._node_of.update({i: ready[2] for i, ready in started.items()})
-        self._idle.extend(sorted(started))
-        self._starting.clear()
 
     def _new_replica(self):
         return self._replica_cls.remote(self.model_source, self.spec.policy, self.context.protocol.text_tokenizer)
@@ -363,6 +359,8 @@ class RayExecutor:
             self.started_on[i] = ray.get(ref)
             self._node_of[i] = self.started_on[i][2]
         except (ray.exceptions.RayActorError, ray.exceptions.RayTaskError) as exc:
+            if "RayExecutorError" in str(exc):  # its own one-line refusal (--out not visible there): the run stops
+                raise RayExecutorError(_last_line(exc)) from None
             self._start_failures[i] = self._start_failures.get(i, 0) + 1
             log.error("env worker %d could not start (%d of %d): %s", i, self._start_failures[i], START_TRIES,
                       _last_line(exc))
@@ -384,7 +382,8 @@ class RayExecutor:
             except Exception:  # the GCS does not answer now
                 return None
 
-        cause, lost = actor_death_cause(exc), lost_part(exc, node_alive if node else None)
+        lost = lost_part(exc, node_alive if node else None)
+        cause = actor_death_cause(exc, lost)
         log.error("env worker %d died running %s (%s lost): %s", i, job, lost, cause)
         try:
             steps = int(ray.get(self._served_by[i].step_of.remote(job.key), timeout=30))
@@ -443,7 +442,7 @@ class RayExecutor:
                 if not in_flight and not self._starting:
                     raise RayExecutorError("no env worker can start on the Ray cluster (its nodes were lost); add "
                                            "nodes, then `run --resume` the run folder")
-                if not in_flight:  # jobs wait for a worker to start
+                if not in_flight and self.replacements:  # jobs wait for a worker to start after a loss
                     waiting_since = waiting_since or time.monotonic()
                     if time.monotonic() - waiting_since > START_TIMEOUT_S:
                         raise RayExecutorError(f"no env worker started on the Ray cluster within {START_TIMEOUT_S:.0f} s "

@@ -194,9 +194,12 @@ def test_runs_one_after_another_in_one_process_each_connect_to_the_cluster_at_th
         shutil.rmtree(temp_dir, ignore_errors=True)
 
 
-# a lost node is declared dead within about 2 s (GCS defaults: a 3 s period, 5 misses): set on the head's GCS
-FAST_HEALTH_CHECK = {"RAY_health_check_period_ms": "500", "RAY_health_check_timeout_ms": "1000",
-                     "RAY_health_check_failure_threshold": "3", "RAY_health_check_initial_delay_ms": "1000"}
+# a lost node is declared dead within about 5 to 10 s (GCS defaults: a 3 s period, 5 misses), set on the head's GCS;
+# shorter (0.5 s, 3 misses) declared a live node dead on a loaded machine (load average 20 on 2 cores)
+FAST_HEALTH_CHECK = {"RAY_health_check_period_ms": "1000", "RAY_health_check_timeout_ms": "2000",
+                     "RAY_health_check_failure_threshold": "5", "RAY_health_check_initial_delay_ms": "1000"}
+# fewer processes and a small object store: a node starts sooner on a loaded machine (Ray gives its raylet a fixed 30 s)
+LEAN_NODE = ("--include-log-monitor=false", "--object-store-memory=100000000")
 NODE_TEST_LIMIT_S = 170  # past it the cluster is stopped, so a run that hangs fails instead of waiting
 
 
@@ -239,10 +242,12 @@ def test_a_node_lost_mid_run_has_its_episodes_retried_on_the_surviving_node_to_t
     from harness.run.ray_executor import RayExecutor
 
     started = time.monotonic()
-    head, port, head_dir = _ray_head(tmp_path, extra=("--resources", '{"octo_policy": 1}'), env=FAST_HEALTH_CHECK)
+    head, port, head_dir = _ray_head(tmp_path, extra=("--resources", '{"octo_policy": 1}', *LEAN_NODE),
+                                     env=FAST_HEALTH_CHECK)
     node, node_dir, watchdog = None, None, None
     try:
-        node, _, node_dir = _ray_head(tmp_path, head_address=f"127.0.0.1:{port}", name="node", env=FAST_HEALTH_CHECK)
+        node, _, node_dir = _ray_head(tmp_path, head_address=f"127.0.0.1:{port}", name="node", extra=LEAN_NODE,
+                                      env=FAST_HEALTH_CHECK)
         cluster = time.monotonic()
         watchdog = threading.Timer(max(NODE_TEST_LIMIT_S - (time.monotonic() - started), 30),
                                    lambda: [_stop_head(head, head_dir), _stop_head(node, node_dir)])
