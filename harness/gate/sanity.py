@@ -29,6 +29,7 @@ from harness.measures.attribution import (METHODS, OctoFunctions, analyse, attri
 from harness.measures.faithfulness import FILLS, k_values, ranking
 from harness.analysis.runs import load_run
 from harness.gate.replay import ReplayInputError, inputs_path, recorded_inputs
+from harness.options import option
 from harness.run.protocol import protocol_from_manifest
 
 log = logging.getLogger(__name__)
@@ -43,14 +44,26 @@ ADDITIVITY_COLUMNS = ("task", "camera", "fill", "steps", "whole_change", "single
                       "set", "k", "change", "sum_single", "additivity", "cosine")
 
 
+def _fills(value) -> tuple[str, ...] | None:
+    """--fills "mean,blur" (or a list) -> ("mean", "blur"); none named -> None (the default)."""
+    names = tuple(f.strip() for f in (value.split(",") if isinstance(value, str) else value) if f.strip())
+    return names or None
+
+
 @dataclasses.dataclass(frozen=True)
 class SanityOptions:
-    every: int = 10  # every k-th inferred step (0, k, 2k, ...)
-    methods: str = DEFAULT_METHODS
-    additivity: bool = False
-    fills: tuple[str, ...] = FILLS
-    seed: int = 0  # the randomised weights' and the random orders' seed
-    max_steps: int | None = None  # at most this many steps in all (None: every selected step)
+    """The options of `octo-harness sanity`, each declared once (harness.options): the flags and their [defaults]."""
+
+    every: int = option(10, "--every", "every k-th inferred step of each episode", type=int)  # steps 0, k, 2k, ...
+    max_steps: int | None = option(None, "--max-steps", "at most N steps in all", type=int,
+                                   default_text="every selected step")
+    methods: str = option(DEFAULT_METHODS, "--methods", "attribution methods (as for run --attribution; random is "
+                          "always added)", convert=lambda v: v or None)
+    additivity: bool = option(False, "--additivity", "also measure single-patch effects and how additive they are, "
+                              "per camera and fill", action="store_true", convert=bool)
+    fills: tuple[str, ...] = option(FILLS, "--fills", "fills of the additivity measures, comma-separated",
+                                    convert=_fills)
+    seed: int = option(0, "--seed", "seed of the re-drawn weights and the random orders", type=int)
 
     def __post_init__(self):
         if self.every < 1:
