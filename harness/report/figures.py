@@ -53,30 +53,38 @@ def _short(text: str, n: int = 18) -> str:
 
 
 def success_chart(tasks: Sequence[str], series: Sequence[tuple[str, str, dict]]) -> bytes:
-    """Success rate per task with intervals; series: [(run label, colour, {task: (rate, low, high, n)})]."""
-    fig = _figure(max(5.0, 0.55 * len(tasks) * max(1, len(series)) ** 0.5 + 2.5), 3.4)
+    """Success rate per task with intervals; series: [(run label, colour, {task: (rate, low, high, n)})].
+
+    Each task's group holds a bar for each run that holds the task (a run without it draws nothing there, so runs of
+    different tasks leave no empty slots); n stands above each bar (a slot is 0.45 in, wider than "n=1000" at 7 pt)."""
+    groups = [[i for i, (_, _, data) in enumerate(series) if t in data] for t in tasks]
+    slots = sum(max(1, len(g)) for g in groups)
+    gap = 0.6  # between task groups, in bar slots
+    fig = _figure(max(5.0, 0.45 * (slots + gap * len(tasks)) + 1.2), 3.6)
     ax = fig.add_subplot()
-    width = 0.8 / max(1, len(series))
-    x = np.arange(len(tasks))
-    for i, (label, colour, data) in enumerate(series):
-        pos = x - 0.4 + width * (i + 0.5)
-        rate = np.array([data.get(t, (np.nan,) * 4)[0] for t in tasks], float)
-        low = np.array([data.get(t, (np.nan,) * 4)[1] for t in tasks], float)
-        high = np.array([data.get(t, (np.nan,) * 4)[2] for t in tasks], float)
-        ax.bar(pos, np.nan_to_num(rate), width * 0.9, color=colour, alpha=0.75, label=label)
-        ok = np.isfinite(rate)
-        ax.errorbar(pos[ok], rate[ok], yerr=[rate[ok] - low[ok], high[ok] - rate[ok]], fmt="none", ecolor="black",
-                    capsize=3, lw=1)
-        for p, t, r, h in zip(pos, tasks, rate, high):
-            n = data.get(t, (np.nan,) * 4)[3]
-            top = h if np.isfinite(h) else (r if np.isfinite(r) else 0.0)
-            ax.text(p, top + 0.02, "no episodes" if not np.isfinite(n) or n == 0 else f"n={int(n)}", ha="center",
-                    va="bottom", fontsize=7)
-    ax.set_xticks(x, [_short(t) for t in tasks], rotation=30, ha="right")
-    ax.set_ylim(0, 1.12)
+    centres, cursor, drawn = [], 0.0, set()
+    for t, group in zip(tasks, groups):
+        width = max(1, len(group))
+        centres.append(cursor + width / 2 - 0.5)
+        for j, i in enumerate(group):
+            label, colour, data = series[i]
+            rate, low, high, n = (float(v) for v in data[t])
+            pos = cursor + j
+            ax.bar(pos, rate if np.isfinite(rate) else 0.0, 0.85, color=colour, alpha=0.75,
+                   label=label if i not in drawn else None)
+            drawn.add(i)
+            if np.isfinite(rate) and np.isfinite(low) and np.isfinite(high):
+                ax.errorbar([pos], [rate], yerr=[[rate - low], [high - rate]], fmt="none", ecolor="black", capsize=3, lw=1)
+            top = high if np.isfinite(high) else (rate if np.isfinite(rate) else 0.0)
+            text = "n=0" if not np.isfinite(n) or n == 0 else f"n={int(n)}"
+            ax.text(pos, top + 0.02, text, ha="center", va="bottom", fontsize=7)
+        cursor += width + gap
+    ax.set_xticks(centres, [_short(t) for t in tasks], rotation=90, fontsize=8)
+    ax.set_xlim(-0.5 - gap / 2, cursor - gap / 2 - 0.5)
+    ax.set_ylim(0, 1.2)
     ax.set_ylabel("success rate (95% Wilson)")
     ax.grid(axis="y", alpha=0.3)
-    _margins(fig, 0.7, 0.15, 1.0, 0.45)
+    _margins(fig, 0.7, 0.15, 1.3, 0.45)
     if len(series) > 1:
         ax.legend(fontsize=8, loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=min(4, len(series)), frameon=False)
     return _png(fig)
@@ -106,28 +114,59 @@ def _lift_norm(matrices: Sequence[np.ndarray]) -> TwoSlopeNorm:
     return TwoSlopeNorm(vmin=0.0, vcenter=1.0, vmax=vmax)
 
 
+def _held(tasks: Sequence[str], matrices: Sequence[np.ndarray]) -> list[list[int]]:
+    """Per task, the indices of the matrices (one per run, rows = tasks) whose row for it holds a value."""
+    return [[i for i, m in enumerate(matrices) if np.isfinite(m[r]).any()] for r in range(len(tasks))]
+
+
+def _every_run_holds_every_task(held: list[list[int]], n: int) -> bool:
+    return all(len(h) in (0, n) for h in held)
+
+
 def task_layer_heatmaps(tasks: Sequence[str], panels: Sequence[tuple[str, str, np.ndarray]], label: str) -> bytes:
-    """Target lift per task x layer, one panel per run; panels: [(run label, colour, (tasks, layers))]."""
-    n = max(1, len(panels))
+    """Target lift per task x layer; panels: [(run label, colour, (tasks, layers))].
+
+    When every run holds every task: one panel per run, a row per task. Otherwise (runs of different tasks): one panel
+    per task that has data, a row per run that holds it, so no panel is a wall of absent cells. Tasks without data in
+    any run are left out."""
+    held = _held(tasks, [m for _, _, m in panels])
+    kept = [r for r, h in enumerate(held) if h]
     layers = max((m.shape[1] for _, _, m in panels), default=1)
-    fig = _figure(min(22.0, n * (1.6 + 0.38 * layers) + 1.6), 1.0 + 0.3 * len(tasks) + 0.6)
-    _margins(fig, 1.4, 0.5, 0.6, 0.35, wspace=0.08)
-    for i, ax, matrix in _lift_panels(fig, panels, label):
-        ax.set_xlabel("layer")
-        ax.set_yticks(range(len(tasks)), [_short(t) for t in tasks] if i == 0 else [""] * len(tasks), fontsize=8)
+    if _every_run_holds_every_task(held, len(panels)):
+        n = max(1, len(panels))
+        fig = _figure(min(22.0, n * (1.6 + 0.38 * layers) + 1.6), 1.0 + 0.3 * len(kept) + 0.6)
+        _margins(fig, 1.4, 0.5, 0.6, 0.35, wspace=0.08)
+        for i, ax, matrix in _lift_panels(fig, [(r, c, m[kept]) for r, c, m in panels], label):
+            ax.set_xlabel("layer")
+            ax.set_yticks(range(len(kept)), [_short(tasks[r]) for r in kept] if i == 0 else [""] * len(kept), fontsize=8)
+        return _png(fig)
+    by_task = [(_short(tasks[r], 24), "black", np.stack([panels[i][2][r] for i in held[r]])) for r in kept]
+    cols = min(3, len(by_task))
+    rows = -(-len(by_task) // cols)
+    panel_w, label_w = 0.4 + 0.36 * layers, 1.5
+    height = max(0.3 * max(len(h) for h in held) + 0.35, 0.9)
+    fig = _figure(cols * (panel_w + label_w) + 1.2, rows * (height + 0.9) + 0.2)
+    _margins(fig, label_w, 1.2, 0.55, 0.35, wspace=label_w / panel_w, hspace=0.9 / height)
+    for i, ax, matrix in _lift_panels(fig, by_task, label, grid=(rows, cols)):
+        runs = [panels[j] for j in held[kept[i]]]
+        ax.set_yticks(range(len(runs)), [_short(run, 16) for run, _, _ in runs], fontsize=8)
+        for tick, (_, colour, _) in zip(ax.get_yticklabels(), runs):
+            tick.set_color(colour)
+        ax.set_xlabel("layer", fontsize=8)
     return _png(fig)
 
 
-def _lift_panels(fig, panels: Sequence[tuple[str, str, np.ndarray]], label: str):
-    """One lift heatmap per run side by side (shared norm centred on 1, one colour bar, run names in their colour,
-    column indices as x ticks); yields (index, axes, matrix) for each panel's own labels before the bar is added."""
-    n = max(1, len(panels))
+def _lift_panels(fig, panels: Sequence[tuple[str, str, np.ndarray]], label: str, grid: tuple[int, int] | None = None):
+    """Lift heatmaps side by side, or on a (rows, cols) grid (shared norm centred on 1, one colour bar, titles in their
+    colour, column indices as x ticks); yields (index, axes, matrix) for each panel's own labels before the bar is
+    added."""
+    rows, cols = grid or (1, max(1, len(panels)))
     norm = _lift_norm([m for _, _, m in panels])
     im = None
-    for i, (run, colour, matrix) in enumerate(panels):
-        ax = fig.add_subplot(1, n, i + 1)
+    for i, (title, colour, matrix) in enumerate(panels):
+        ax = fig.add_subplot(rows, cols, i + 1)
         im = _annotated_heatmap(ax, matrix, norm, "RdBu_r", annotate=matrix.size <= 60)
-        ax.set_title(run, color=colour, fontsize=10, fontweight="bold")
+        ax.set_title(_short(title, 24), color=colour, fontsize=10, fontweight="bold")
         ax.set_xticks(range(matrix.shape[1]), [str(c) for c in range(matrix.shape[1])], fontsize=7)
         yield i, ax, matrix
     if im is not None:
@@ -135,33 +174,53 @@ def _lift_panels(fig, panels: Sequence[tuple[str, str, np.ndarray]], label: str)
 
 
 def shares_heatmaps(tasks: Sequence[str], categories: Sequence[str], panels: Sequence[tuple[str, str, dict]]) -> bytes:
-    """Modality shares: rows = runs, columns = categories; each panel a task x layer heatmap in [0, 1].
+    """Modality shares in [0, 1], a column of panels per category; panels: [(run label, colour, {category: (tasks,
+    layers)})].
 
-    panels: [(run label, colour, {category: (tasks, layers)})]."""
-    rows, cols = max(1, len(panels)), max(1, len(categories))
+    When every run holds every task: a row of panels per run, each a task x layer heatmap. Otherwise (runs of
+    different tasks): a row of panels per task that has data, each a run x layer heatmap of the runs that hold it."""
+    matrices = [next(iter(d.values())) if d else np.full((len(tasks), 1), np.nan) for _, _, d in panels]
+    held = _held(tasks, matrices)
+    kept = [r for r, h in enumerate(held) if h]
     layers = max((m.shape[1] for _, _, d in panels for m in d.values()), default=1)
-    panel_w, panel_h = max(1.3, 0.6 + 0.17 * layers), max(0.9, 0.45 + 0.17 * len(tasks))
-    fig = _figure(1.5 + cols * panel_w + 1.0, 0.5 + rows * panel_h + 0.3)
+    if _every_run_holds_every_task(held, len(panels)):
+        grid = [(run, colour, [_short(tasks[r], 14) for r in kept], [tasks[r] for r in kept], len(kept),
+                 {c: m[kept] for c, m in data.items()}, [None] * len(kept)) for run, colour, data in panels]
+    else:  # one row of panels per task: its rows are the runs that hold it
+        grid = []
+        for r in kept:
+            runs = [panels[i] for i in held[r]]
+            data = {c: np.stack([d[c][r] if c in d else np.full(layers, np.nan) for _, _, d in runs]) for c in categories}
+            grid.append((_short(tasks[r], 20), "black", [_short(run, 12) for run, _, _ in runs], None, len(runs), data,
+                         [colour for _, colour, _ in runs]))
+    rows, cols = max(1, len(grid)), max(1, len(categories))
+    height = max(g[4] for g in grid) if grid else 1
+    panel_w, panel_h = max(1.3, 0.6 + 0.17 * layers), max(0.9, 0.45 + 0.17 * height)
+    fig = _figure(1.7 + cols * panel_w * 1.12 + 1.0, 0.5 + rows * panel_h * 1.3 + 0.3)
     norm = Normalize(0.0, 1.0)
     im = None
-    for r, (run, colour, data) in enumerate(panels):
+    for r, (name, colour, ylabels, _, n_rows, data, tick_colours) in enumerate(grid):
         for c, category in enumerate(categories):
             ax = fig.add_subplot(rows, cols, r * cols + c + 1)
             matrix = data.get(category)
             if matrix is None:
-                matrix = np.full((len(tasks), layers), np.nan)
+                matrix = np.full((n_rows, layers), np.nan)
             im = _annotated_heatmap(ax, matrix, norm, "viridis", annotate=False)
             if r == 0:
                 ax.set_title(category, fontsize=8)
             if c == 0 and rows > 1:
-                ax.set_ylabel(run, color=colour, fontsize=9, fontweight="bold")
-            ax.set_yticks(range(len(tasks)), [_short(t, 14) for t in tasks] if c == 0 else [""] * len(tasks), fontsize=7)
+                ax.set_ylabel(name, color=colour, fontsize=9, fontweight="bold")
+            ax.set_yticks(range(n_rows), ylabels if c == 0 else [""] * n_rows, fontsize=7)
+            if c == 0:
+                for tick, tick_colour in zip(ax.get_yticklabels(), tick_colours):
+                    if tick_colour:
+                        tick.set_color(tick_colour)
             step = 1 if matrix.shape[1] <= 6 else 3
             ticks = list(range(0, matrix.shape[1], step))
             ax.set_xticks(ticks, [str(i) for i in ticks], fontsize=6)
             if r == rows - 1:
                 ax.set_xlabel("layer", fontsize=8)
-    _margins(fig, 1.5, 1.0, 0.5, 0.3, hspace=0.3, wspace=0.12)
+    _margins(fig, 1.7, 1.0, 0.5, 0.3, hspace=0.3, wspace=0.12)
     if im is not None:
         fig.colorbar(im, ax=fig.axes, shrink=0.8, label="share of attention", fraction=0.03)
     return _png(fig)
@@ -305,7 +364,7 @@ def overlay_grid(
     title: str,
     boxes: Sequence[tuple[float, float, float, float] | None] = (),
     cell: int = 96,
-    cmap: str = "jet",
+    cmap: str = "viridis",
 ) -> bytes:
     """Layer x time grid of head-mean attention over the camera frame.
 

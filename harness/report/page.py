@@ -213,7 +213,8 @@ def _cross_task(runs: list[RunData], tasks: list[str], plots: _Plots) -> str:
         body.append(plots.add("target_lift_task_layer", figures.task_layer_heatmaps(tasks, panels, "target lift (1 = chance)"),
                               "target lift per task and layer",
                               "Target lift (attention mass on the target mask / mask area; 1 = chance, blue below, red "
-                              "above) per task and layer, mean over episodes; grey n/a = absent."))
+                              "above) per task and layer, mean over episodes; one panel per task when the runs hold different "
+                              "tasks; grey n/a = absent."))
     else:
         body.append(H.note("Target lift: absent — no run recorded target masks."))
     categories = share_categories(runs)
@@ -247,11 +248,14 @@ def _cross_task(runs: list[RunData], tasks: list[str], plots: _Plots) -> str:
             if found is not None:
                 x = (np.arange(len(found[0])) + 0.5) / len(found[0])
                 prog[t].append((run.label, run.colour, x, *found))
-    if any(prog.values()):
-        body.append(plots.add("target_lift_progress", figures.progress_small_multiples(tasks, prog, "target lift, last layer"),
+    if any(prog.values()):  # a panel per task that has data
+        shown = [t for t in tasks if prog[t]]
+        body.append(plots.add("target_lift_progress", figures.progress_small_multiples(shown, prog, "target lift, last layer"),
                               "target lift along episode progress",
                               "Target lift at the last layer along normalised episode progress (bins of step / steps), "
-                              "mean over episodes with 95% bootstrap bands; dotted line = chance."))
+                              "mean over episodes with 95% bootstrap bands; dotted line = chance"
+                              + (f"; no target masks: {', '.join(t for t in tasks if not prog[t])}" if len(shown) < len(tasks)
+                                 else "") + "."))
     legend = " ".join(H.swatch(r.colour, r.label) for r in runs)
     return H.section("Cross-task comparison", H.Raw(f"<p>{legend}</p>") + "".join(body), anchor="cross-task")
 

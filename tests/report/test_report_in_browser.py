@@ -15,7 +15,8 @@ from PIL import Image
 
 from harness import cli
 from harness.analysis.aggregate import TABLE_COLUMNS
-from tests.runfolder.edits import redigest, strip_masks
+from tests.report.text_overlap import drawn_texts, overlaps
+from tests.runfolder.edits import redigest, rehash, strip_masks
 from tests.helpers import browser as _browser
 
 pytestmark = pytest.mark.slow
@@ -167,3 +168,77 @@ def test_not_a_run_is_one_line_and_exit_2(runs, tmp_path, capsys):
     assert cli.main(["report", str(runs[0]), "--out", str(tmp_path / "mine")]) == 2  # not a report folder: untouched
     assert "refusing to replace" in capsys.readouterr().err
     assert (tmp_path / "mine" / "notes.txt").read_text() == "keep me"
+
+
+def _only(run: Path, to: Path, task: str) -> Path:
+    """A copy of `run` holding one of its tasks, as a run of that task alone writes it."""
+    copy = _copy(run, to)
+    rows = [json.loads(line) for line in (copy / "results.jsonl").read_text().splitlines()]
+    (copy / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows if r["task"] == task))
+    for other in {r["task"] for r in rows} - {task}:
+        shutil.rmtree(copy / other)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["protocol"]["tasks"] = [task]
+    manifest["jobs"] = [job for job in manifest["jobs"] if job[0] == task]
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    (copy / "results.json").unlink(missing_ok=True)
+    rehash(copy)
+    return copy
+
+
+@pytest.fixture(scope="module")
+def mixed(runs, tmp_path_factory):
+    """The report of three runs holding different tasks (Lift, Stack, and Lift again under another name, as a 64 px
+    model's run would), with the text every matplotlib figure drew and its extents at draw time."""
+    out = tmp_path_factory.mktemp("mixed")
+    held = [_only(runs[0], out / name, task) for name, task in (("lift", "Lift"), ("stack", "Stack"),
+                                                                ("lift-64px", "Lift"))]
+    with drawn_texts() as texts:
+        assert cli.main(["report", *map(str, held), "--out", str(out / "rep"), "--resamples", "200"]) == 0
+    return out / "rep", texts
+
+
+def test_runs_of_different_tasks_draw_a_panel_per_task_and_no_figure_text_overlaps(mixed):
+    report, texts = mixed
+    assert len(texts) >= 8  # every figure the report draws
+    for drawn in texts.values():
+        assert not overlaps(drawn), overlaps(drawn)
+    drawn = [t for figure in texts.values() for t, _ in figure]
+    assert "n/a" not in drawn  # no panel of absent cells: each task's panel holds the runs that hold it
+    assert drawn.count("Lift") >= 2 and drawn.count("Stack") >= 2  # per-task panel titles (lift, shares)
+
+
+# Every shown text node's boxes (one per line box; a closed <details>' content is not shown); the pairs of different nodes whose boxes intersect by over 1 px in both
+# directions are written to <body data-text-overlaps> (the first few, as text) once the images have laid out.
+_OVERLAP_SCRIPT = """<script>
+window.addEventListener('load', function () {
+  var boxes = [], walker = document.createTreeWalker(document.body, NodeFilter.SHOW_TEXT), node, found = [];
+  while ((node = walker.nextNode())) {
+    if (!node.textContent.trim() || !node.parentElement.checkVisibility({visibilityProperty: true})) continue;
+    var range = document.createRange(); range.selectNodeContents(node);
+    Array.prototype.forEach.call(range.getClientRects(), function (r) {
+      if (r.width > 0 && r.height > 0) boxes.push({n: node, r: r, t: node.textContent.trim().slice(0, 40)});
+    });
+  }
+  for (var i = 0; i < boxes.length; i++) for (var j = i + 1; j < boxes.length; j++) {
+    var a = boxes[i], b = boxes[j];
+    if (a.n === b.n) continue;
+    var dx = Math.min(a.r.right, b.r.right) - Math.max(a.r.left, b.r.left);
+    var dy = Math.min(a.r.bottom, b.r.bottom) - Math.max(a.r.top, b.r.top);
+    if (dx > 1 && dy > 1) found.push(a.t + ' | ' + b.t);
+  }
+  document.body.setAttribute('data-text-boxes', String(boxes.length));
+  document.body.setAttribute('data-text-overlaps', found.slice(0, 5).join(' ;; ') || 'none');
+});
+</script>"""
+
+
+@pytest.mark.parametrize("width", [1280, 800])
+def test_page_text_does_not_overlap_in_chromium(mixed, tmp_path, width):
+    report, _ = mixed
+    page = report / f"checked_{width}.html"  # beside report.html: its relative video links still resolve
+    page.write_text((report / "report.html").read_text().replace("</body>", _OVERLAP_SCRIPT + "</body>"))
+    dom = _browser(page, tmp_path, f"--window-size={width},1000", "--dump-dom", "--virtual-time-budget=10000").stdout
+    boxes = re.search(r'data-text-boxes="(\d+)"', dom)
+    assert boxes and int(boxes.group(1)) > 200, "the overlap check did not run"
+    assert 'data-text-overlaps="none"' in dom, re.search(r'data-text-overlaps="([^"]*)"', dom).group(1)
