@@ -77,7 +77,6 @@ def main(argv: list[str] | None = None) -> int:
     for noisy in ("jax._src.xla_bridge", "robosuite_logs"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     dagger_config = dagger.DaggerConfig(episodes=options.dagger_episodes) if options.dagger_episodes else None
-
     start = time.perf_counter()
     demo_config = DemoConfig(image_sizes=train_config.image_sizes)
     if options.episodes is not None:
