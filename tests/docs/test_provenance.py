@@ -34,6 +34,7 @@ def _sections(path: Path) -> list[tuple[str, str]]:
 # command's output on made-up inputs (regression.md's Outcomes and Drift) are not measurements and are not listed.
 DOCS_MEASURED = (
     ("docs/benchmarks.md", "# Benchmarks"),
+    ("docs/environments.md", "## Is the harness feeding the model what it was trained on?"),
     ("docs/faithfulness-sanity.md", "## Results on the reference policy"),
     ("docs/faithfulness.md", "## Results on the 4×4-grid reference policy"),
     ("docs/faithfulness.md", "## Results on the previous 8×8-grid policy"),
