@@ -26,8 +26,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-ROBOSUITE_TASK = "Stack"  # known-answer tests use Lift and PickPlaceCan at evaluation seeds
-LIBERO_TASK = "libero_object/5"  # known-answer tests use libero_object/0 and /3
+ROBOSUITE_TASK = "Stack"  # the known-answer tests render Lift (evaluation seed 0)
+LIBERO_TASK = "libero_object/5"  # the known-answer tests render libero_object/0 (stored state 0)
 
 
 def _robosuite_demo() -> tuple[dict, dict]:
