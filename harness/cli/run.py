@@ -70,6 +70,7 @@ def _protocol(args, given: dict):
     """(protocol, out, run name, ci method, retries, preflight mode) from the manifest of --resume RUN_DIR, or from --protocol and the
     flags (--retries and --preflight are taken with --resume too: they are not part of the protocol)."""
     from harness.run import RunStore
+    from harness.run.preflight import PreflightOptions
     from harness.run.protocol import protocol_from_manifest
     from harness.run.settings import build_protocol, out_dir, read_protocol_file
 
@@ -79,7 +80,8 @@ def _protocol(args, given: dict):
         settings = {**(read_protocol_file(args.protocol) if args.protocol else {}), **given}
         retries = retries if retries is not None else settings.get("retries")
         return (build_protocol(settings), out_dir(settings), settings.get("run_name"), settings.get("ci_method"),
-                _retries(retries) if retries is not None else None, preflight or settings.get("preflight") or "warn")
+                _retries(retries) if retries is not None else None,
+                PreflightOptions(preflight or settings.get("preflight") or "warn").mode)
     if given or args.protocol is not None:
         raise ValueError(f"--resume takes the protocol from {args.resume}/manifest.json; drop "
                          + ", ".join("--" + k.replace("_", "-") for k in (given or {"protocol": 1})))

@@ -63,6 +63,10 @@ class PreflightOptions:
             "([environments.md](environments.md#is-the-harness-feeding-the-model-what-it-was-trained-on)); `warn` "
             "prints one line per finding, `strict` also exits 2 on a MISMATCH, `off` skips it [warn]")
 
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"--preflight {self.mode!r}: use one of {', '.join(MODES)}")
+
 
 def _relation(a: str, b: str) -> str:
     """"mirror" when two conventions differ by a left-right mirror only (upright, rot180), else "vertical"."""

@@ -203,6 +203,16 @@ def test_the_verdicts_do_not_read_harness_toml(tmp_path, robosuite_frames):
         assert a == b
 
 
+def test_a_protocol_file_sets_the_mode_and_a_wrong_one_is_one_line(tmp_path):
+    from harness.run.preflight import PreflightOptions
+    from harness.run.settings import read_protocol_file
+
+    (tmp_path / "eval.toml").write_text('task = "Lift"\npreflight = "strict"\n')
+    assert PreflightOptions(read_protocol_file(tmp_path / "eval.toml")["preflight"]).mode == "strict"
+    with pytest.raises(ValueError, match="--preflight 'loud': use one of warn, strict, off"):
+        PreflightOptions("loud")
+
+
 @pytest.mark.slow
 def test_strict_run_exits_2_before_the_first_episode(tmp_path, capsys):
     """As a user would (the command line, in this process): a vertical mistake with --preflight strict is one error
