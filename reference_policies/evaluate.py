@@ -3,8 +3,8 @@
     python -m reference_policies.evaluate RUN_DIR [RUN_DIR ...] --out models/octo-reference-robosuite
 
 Reads each run's results.jsonl (success per episode) and every episode's metrics.jsonl, and writes
-EVAL.md and eval.json: per task n, successes, rate, Wilson 95% interval (harness.measures.stats) and the
-target lift per layer: for each camera, the fraction of that camera's attention on the target mask divided
+eval.json (the figures file) and EVAL.md's top section rendered from it alone (`rerender(folder)` renders it
+again): per task n, successes, rate, Wilson 95% interval (harness.measures.stats) and the target lift per layer: for each camera, the fraction of that camera's attention on the target mask divided
 by the mask's area (1 = chance), averaged over the steps where the target is visible, then over episodes.
 """
 
@@ -71,17 +71,24 @@ def summarise_runs(run_dirs: list[Path]) -> list[dict]:
     return rows
 
 
-def markdown(rows: list[dict], note: str = "", title: str = "octo-reference-robosuite") -> str:
+FIGURES = "eval.json"  # the figures file beside the model: the top section of its EVAL.md is rendered from it alone
+# What a section says when its runs were not kept and no figures file holds its figures (tests/docs/test_eval_sections.py)
+NOT_KEPT = "Figures file: none. This section's runs were not kept, so it cannot be re-rendered from figures."
+
+
+def markdown(rows: list[dict], note: str = "", title: str = "octo-reference-robosuite", preface: str = "") -> str:
+    """The top section of EVAL.md (no provenance line): the note, a verdict line over the tasks, the table per task
+    and camera, and what target lift is, as a list."""
     layers = max((len(v) for r in rows for v in r["target_lift"].values()), default=0)
     header = "| task | n | successes | rate | Wilson 95% CI | seeds | camera | " + " | ".join(f"lift L{i}" for i in range(layers)) + " |"
-    lines = [f"# {title}: evaluation", "", note, ""]
+    lines = [f"# {title}: evaluation", ""] + [text + "\n" for text in (preface, note) if text]
     if len(rows) > 1:  # the average over tasks (every task weighs the same) and the pooled interval
         n, successes = sum(r["n"] for r in rows), sum(r["successes"] for r in rows)
         low, high = wilson_interval(successes, n) if n else (float("nan"), float("nan"))
         average = float(np.mean([r["rate"] for r in rows]))
         lowest = min(rows, key=lambda r: r["rate"])
         lines += [f"Average over the {len(rows)} tasks: **{average:.1%}** ({successes}/{n} episodes, Wilson 95% "
-                  f"[{low:.2f}, {high:.2f}]); lowest task: {lowest['task']} {lowest['rate']:.0%}.", ""]
+                  f"[{low:.2f}, {high:.2f}]). Lowest task: {lowest['task']} at {lowest['rate']:.0%}.", ""]
     lines += [header, "|" + "---|" * (7 + layers)]
     for r in rows:
         cams = list(r["target_lift"].items()) or [("-", [])]
@@ -91,10 +98,43 @@ def markdown(rows: list[dict], note: str = "", title: str = "octo-reference-robo
                      f"{r['rate']:.0%}" if first else "", f"[{r['ci_low']:.2f}, {r['ci_high']:.2f}]" if first else "",
                      f"{r['seeds'][0]}..{r['seeds'][1]}" if first else "", camera] + [f"{x:.2f}" for x in lift]
             lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "Target lift: fraction of a camera's attention (readout rows, head mean) on the target object's "
-              "segmentation mask divided by the mask's area (1 = uniform attention), mean over the steps where the "
-              "target is visible, then over episodes; L0 is the first transformer layer."]
+    lines += ["", "Target lift, per camera and layer:",
+              "- a camera's attention (readout rows, head mean) on the target object's mask, divided by the mask's area;",
+              "- 1 = uniform attention;",
+              "- mean over the steps where the target is visible, then over episodes;",
+              "- L0 is the first transformer layer.",
+              "", f"Figures: `{FIGURES}` beside this file. This section is rendered from it alone."]
     return "\n".join(lines) + "\n"
+
+
+def figures(rows: list[dict], note: str, title: str, provenance: str, preface: str = "") -> dict:
+    """The figures file (eval.json): everything the top section is rendered from, its provenance line included, so
+    rendering it again needs neither the runs nor the checkout."""
+    return {"title": title, "provenance": provenance, "preface": preface, "note": note, "tasks": rows}
+
+
+def render(data: dict) -> str:
+    """eval.json's figures -> the top section of EVAL.md, provenance line below the title."""
+    text = markdown(data["tasks"], data.get("note", ""), data["title"], data.get("preface", ""))
+    return with_provenance(text, data["provenance"])
+
+
+def write_section(out: Path, data: dict) -> str:
+    """Write the top section rendered from `data` into out/EVAL.md (the ## sections other scripts wrote stay)."""
+    from harness.files import write_atomic
+
+    eval_md = out / "EVAL.md"
+    kept = ""  # sections written by other scripts (e.g. "## Faithfulness", scripts/faithfulness_reference.sh) stay
+    if eval_md.is_file() and "\n## " in eval_md.read_text():
+        kept = "\n## " + eval_md.read_text().split("\n## ", 1)[1]
+    text = render(data)
+    write_atomic(eval_md, lambda f: f.write((text + kept).encode()))
+    return text
+
+
+def rerender(out: Path) -> str:
+    """Render out/EVAL.md's top section again from out/eval.json (no runs needed)."""
+    return write_section(out, json.loads((out / FIGURES).read_text()))
 
 
 def other_checkpoint(runs: list[Path], manifests: list[dict], out: Path) -> str | None:
@@ -141,15 +181,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(mismatch)
     rows = summarise_runs(args.runs)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "eval.json").write_text(json.dumps({"note": args.note, "tasks": rows}, indent=2))
-    eval_md = args.out / "EVAL.md"
-    kept = ""  # sections written by other scripts (e.g. "## Faithfulness", scripts/faithfulness_reference.sh) stay
-    if eval_md.is_file() and "\n## " in eval_md.read_text():
-        kept = "\n## " + eval_md.read_text().split("\n## ", 1)[1]
-    title = args.out.resolve().name
     command = args.command or command_text("python -m reference_policies.evaluate", args.runs, ["--out", str(args.out)])
-    text = with_provenance(markdown(rows, args.note, title), provenance_line(command, manifests))
-    eval_md.write_text(text + kept)
+    previous = args.out / FIGURES  # a preface written into the figures file (what the folder is) stays
+    preface = (read_json(previous, what=FIGURES).get("preface") or "") if previous.is_file() else ""
+    data = figures(rows, args.note, args.out.resolve().name, provenance_line(command, manifests), preface)
+    from harness.files import write_atomic
+
+    write_atomic(args.out / FIGURES, lambda f: f.write(json.dumps(data, indent=2).encode()))
+    text = write_section(args.out, data)
     print(text)
     return 0
 
