@@ -134,8 +134,10 @@ def _outcome_rows(result: CompareResult):
 
 
 def _points(rates: dict[str, Rate]) -> dict[str, tuple]:
-    """{task: (rate, interval low, high, n)} of one arm, as success_chart draws them."""
-    return {task: (r.rate, r.ci_low, r.ci_high, r.n) for task, r in rates.items()}
+    """{task: (rate, interval low, high, n)} of one arm, as success_chart draws them (NaN where a table has no pairs
+    with an outcome, so no rate)."""
+    return {task: tuple(np.nan if v is None else v for v in (r.rate, r.ci_low, r.ci_high, r.n))
+            for task, r in rates.items()}
 
 
 def _arm_cell(rate: Rate) -> str:
