@@ -182,6 +182,8 @@ def _flag_text(o: Option) -> str:
 
 
 def _where(path: str, field: dataclasses.Field, o: Option) -> str:
+    if not o.hashed and path.startswith("protocol."):  # a protocol group's presentation field (the colour map)
+        path = "presentation"
     where = f"`{path}.{field.name}`" if path else "the run folder's path"
     return where + (" (when set)" if o.sparse else "") + ("" if o.hashed or not path else ", outside the hash")
 

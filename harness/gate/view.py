@@ -28,6 +28,7 @@ from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
 from harness.files import write_atomic
 from harness.octo.tokens import TokenMap
 from harness.outputs.rerun_sink import RRD_NAME, RerunSink, SinkOptions, import_rerun
+from harness.outputs.writers import OutputOptions, recorded_presentation
 from harness.records import EpisodeMeta, StepRecord
 from harness.run.protocol import protocol_from_manifest
 from harness.runfolder.integrity import file_digest
@@ -168,7 +169,8 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
         note = f"{damaged}; {note}"
     meta = dataclasses.replace(meta, extra={**meta.extra, "frames_note": note,
                                             **({"control_hz": hz} if hz else {})})
-    options = SinkOptions(cmap=outputs.get("cmap", "jet"), alpha=float(outputs.get("alpha", 0.5)),
+    cmap = recorded_presentation(run.manifest).get("cmap", OutputOptions.cmap)
+    options = SinkOptions(cmap=cmap, alpha=float(outputs.get("alpha", 0.5)),
                           head_fusion=outputs.get("head_fusion", "mean"),
                           interpolation=outputs.get("overlay_interpolation", "nearest"))
     sink = RerunSink(meta, options, save=save, connect=connect, intervention=bool(meta.extra.get("intervention")),

@@ -55,7 +55,7 @@ def _font(size: int) -> ImageFont.ImageFont:
         return ImageFont.load_default()
 
 
-def colorize(values: np.ndarray, vmin: float, vmax: float, cmap: str = "jet") -> np.ndarray:
+def colorize(values: np.ndarray, vmin: float, vmax: float, cmap: str = "viridis") -> np.ndarray:
     """values (...) -> (..., 3) uint8: (v - vmin) / (vmax - vmin) clipped to [0, 1] through the colormap.
 
     A degenerate range (vmax <= vmin) maps everything to the coldest colour.
@@ -126,7 +126,7 @@ def heatmap_overlays(
     vmin: float | np.ndarray | None = None,
     vmax: float | np.ndarray | None = None,
     alpha: float = 0.5,
-    cmap: str = "jet",
+    cmap: str = "viridis",
     interpolation: str = "nearest",
 ) -> np.ndarray:
     """frame (H, W, 3) uint8, maps (n, rows, cols) -> (n, H, W, 3) uint8 overlays of each map on the frame.
@@ -168,7 +168,7 @@ def heatmap_overlay(
     vmin: float | None = None,
     vmax: float | None = None,
     alpha: float = 0.5,
-    cmap: str = "jet",
+    cmap: str = "viridis",
     interpolation: str = "nearest",
 ) -> np.ndarray:
     """frame (H, W, 3) uint8, attn_map (rows, cols) -> (H, W, 3) uint8 overlay in the frame's orientation.
@@ -217,7 +217,7 @@ def layer_panel(
     ranges: dict[str, tuple[float, float]] | None = None,
     boxes: dict[str, tuple[int, int, int, int] | None] | None = None,
     head_fusion: str = "mean",
-    cmap: str = "jet",
+    cmap: str = "viridis",
     alpha: float = 0.5,
     min_cell: int = 128,
     interpolation: str = "nearest",
@@ -254,7 +254,7 @@ def attribution_panel(
     maps: dict[str, dict[str, np.ndarray]],
     caption: dict,
     boxes: dict[str, tuple[int, int, int, int] | None] | None = None,
-    cmap: str = "jet",
+    cmap: str = "viridis",
     alpha: float = 0.5,
     min_cell: int = 128,
     interpolation: str = "nearest",
@@ -367,7 +367,7 @@ def video_frame(
     overlay: np.ndarray | Sequence[np.ndarray],
     layer_strip_maps: np.ndarray | Sequence[np.ndarray],
     captions: Sequence[str],
-    cmap: str = "jet",
+    cmap: str = "viridis",
     alpha: float = 0.5,
     display: int = 256,
     strip_columns: int = 6,

@@ -92,7 +92,7 @@ def recording_id(meta: EpisodeMeta) -> str:
 class SinkOptions:
     """What the sink draws, from OutputOptions (the PNGs' and MP4's colours and interpolation)."""
 
-    cmap: str = "jet"
+    cmap: str = "viridis"
     alpha: float = 0.5
     head_fusion: str = "mean"
     interpolation: str = "nearest"

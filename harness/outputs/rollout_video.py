@@ -87,6 +87,7 @@ class RolloutVideo(Sink):
         captions = [
             f"{meta.task} | episode {meta.episode} | step {record.step}",
             labels[0],
+            f"colours: {opts.cmap}, each map from its own min to its max",
             "action: " + " ".join(f"{a:+.3f}" for a in action),
             f"reward {float(record.reward):.3f} | success {'YES' if record.success else 'no'}",
             f'"{meta.instruction}"',

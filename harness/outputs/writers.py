@@ -70,7 +70,7 @@ from harness.outputs.overlays import check_interpolation, colormap_lut
 from harness.outputs.sinks import open_sinks
 from harness.outputs.steps import EpisodeEnd, StepFinisher
 from harness.records import EpisodeMeta, StepRecord
-from harness.options import camera_list, layer_list, option, record
+from harness.options import camera_list, layer_list, option, options, record
 
 _STOP = object()
 
@@ -141,7 +141,14 @@ class OutputOptions:
                         action="store_true", convert=bool)  # draw the target mask's bounding box
     fps: float = 10.0
     head_fusion: str = "mean"  # the fused-head column / video map: "mean", "max" or "min"
-    cmap: str = "jet"
+    # the overlays' colour map: presentation only, outside the protocol and its hash (recorded in the manifest's
+    # "presentation"; a resume draws with the run's own), so a run made with another one still resumes
+    cmap: str = option(
+        "viridis", "--colormap", "colour map of the attention overlays (PNGs, MP4, report grids, viewer): a matplotlib "
+        "name; viridis is perceptually uniform, jet the old look", file=(str,), field="cmap", hashed=False,
+        metavar="NAME", doc="colour map of the attention overlays (PNGs, MP4, report grids, viewer): a matplotlib name, "
+        "e.g. `inferno` or `jet` (whose bright bands invent edges); presentation only, outside the protocol's hash, "
+        "and a resume draws with the run's own [viridis]")
     alpha: float = 0.5  # heatmap weight in overlays
     queue_size: int = 4  # steps waiting for the writer before add_step blocks
     png_compress_level: int = 2  # zlib level 0-9 (low: fast, larger files)
@@ -166,7 +173,15 @@ class OutputOptions:
     def to_dict(self) -> dict:
         """The fields as plain data; the options added since protocols were first hashed only when not at their
         default (protocols that do not use them keep their hash and their run name)."""
-        return record(self)
+        data = record(self)
+        for field, o in options(type(self)):
+            if not o.hashed:  # presentation (the colour map): recorded beside the protocol, not in it
+                data.pop(field.name, None)
+        return data
+
+    def presentation(self) -> dict:
+        """The presentation fields (outside the protocol and its hash): what the manifest's "presentation" records."""
+        return {field.name: getattr(self, field.name) for field, o in options(type(self)) if not o.hashed}
 
     def __post_init__(self) -> None:
         if self.png_every < 0:
@@ -200,6 +215,15 @@ class OutputOptions:
     def video_cameras(self) -> tuple[str, ...] | None:
         """The cameras chosen for the video rows (None: every camera the model reads)."""
         return (self.video_camera,) if isinstance(self.video_camera, str) else self.video_camera
+
+
+def recorded_presentation(manifest: dict) -> dict:
+    """The presentation a run was made with (OutputOptions.presentation()): the manifest's "presentation", else, in a
+    run made when the colour map was part of the protocol, the protocol's own (`protocol.outputs.cmap`)."""
+    if isinstance(manifest.get("presentation"), dict):
+        return dict(manifest["presentation"])
+    outputs = (manifest.get("protocol") or {}).get("outputs") or {}
+    return {"cmap": outputs["cmap"]} if isinstance(outputs.get("cmap"), str) else {}
 
 
 class EpisodeWriter:

@@ -33,6 +33,7 @@ from harness.run.executor import CheckedEnv, EpisodeContext, Executor, Retrying,
 from harness.run.preflight import check_run
 from harness.run.progress import Progress
 from harness.run.protocol import FORMAT, EpisodeJob, Protocol, Recovery, diff, goal_fingerprint, model_fingerprint
+from harness.outputs.writers import recorded_presentation
 from harness.run.store import MANIFEST, EpisodeRow, RunStore, now_utc, recovery, recovery_lines, statistics
 
 log = logging.getLogger(__name__)
@@ -224,6 +225,7 @@ def execute(
             if created and not (store.dir / MANIFEST).exists():  # a check failed: leave no empty run folder behind
                 shutil.rmtree(store.dir, ignore_errors=True)
             raise
+        protocol = _with_presentation(protocol, opened.manifest)  # a resume draws as the run began
         try:
             if len(opened.pending) < len(jobs):
                 log.info("resuming run %s: %d of %d episodes already finished", name, len(jobs) - len(opened.pending),
@@ -376,7 +378,18 @@ def _new_manifest(protocol: Protocol, protocol_dict: dict, jobs: list[EpisodeJob
         **({"conventions": protocol.convention_sources} if protocol.convention_sources else {}),
         # what the derived files' statistics use: not part of the protocol (the episodes are the same)
         "statistics": {"ci_method": ci_method, "confidence": 0.95},
+        # how the overlays are drawn (the colour map): outside the protocol and its hash (the episodes are the same)
+        "presentation": protocol.outputs.presentation(),
     }
+
+
+def _with_presentation(protocol: Protocol, manifest: dict) -> Protocol:
+    """The protocol drawing with the run's recorded presentation (a run made with jet keeps drawing with jet)."""
+    known = protocol.outputs.presentation()
+    recorded = {k: v for k, v in recorded_presentation(manifest).items() if k in known}
+    if not recorded or all(getattr(protocol.outputs, k, None) == v for k, v in recorded.items()):
+        return protocol
+    return protocol.replace(outputs=dataclasses.replace(protocol.outputs, **recorded))
 
 
 def _run_pending(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], opened: _OpenedRun,

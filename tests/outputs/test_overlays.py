@@ -37,7 +37,7 @@ def test_onehot_lights_exactly_its_patch_tiny_layout(cmap):
 
 
 def test_onehot_lights_exactly_its_patch_released_layout():
-    lut = colormap_lut("jet")
+    lut = colormap_lut("viridis")
     frame = np.full((256, 256, 3), 100, np.uint8)
     out = heatmap_overlay(frame, onehot(16, 16, 5, 11), alpha=0.5)
     blend = lambda colour: ((100 * 128 + colour.astype(int) * 128 + 128) >> 8).astype(np.uint8)  # noqa: E731
@@ -59,7 +59,7 @@ def test_overlay_keeps_orientation_and_matches_upsample_for_uneven_sizes():
     # alpha 1 with a non-divisible size: the colour of each pixel is that of upsample_map's patch
     out = heatmap_overlay(frame, m, 0.0, 1.0, alpha=1.0)
     index = np.clip(np.rint(upsample_map(m, 100, 70) * 255), 0, 255).astype(int)
-    np.testing.assert_array_equal(out, colormap_lut("jet")[index])
+    np.testing.assert_array_equal(out, colormap_lut("viridis")[index])
 
 
 def test_overlays_batch_equals_single_and_ranges_clip():
@@ -70,7 +70,7 @@ def test_overlays_batch_equals_single_and_ranges_clip():
     for i in range(3):
         np.testing.assert_array_equal(batch[i], heatmap_overlay(frame, maps[i], 0.2, 0.8))
     flat = heatmap_overlay(np.zeros((8, 8, 3), np.uint8), np.full((2, 2), 5.0), alpha=1.0)  # degenerate range
-    assert np.all(flat == colormap_lut("jet")[0])
+    assert np.all(flat == colormap_lut("viridis")[0])
     with pytest.raises(ValueError, match="colormap"):
         heatmap_overlay(frame, maps[0], cmap="no-such-map")
     with pytest.raises(ValueError, match="uint8"):
@@ -88,7 +88,7 @@ def test_mask_bbox_and_resize():
 
 
 def test_layer_panel_draws_every_head_and_the_mean():
-    lut = colormap_lut("jet")
+    lut = colormap_lut("viridis")
     frames = {"image_primary": np.zeros((64, 64, 3), np.uint8), "image_wrist": np.zeros((32, 32, 3), np.uint8)}
     maps = {
         "image_primary": np.stack([onehot(4, 4, 1, 2)] * 3),  # (heads 3, 4, 4)
@@ -110,7 +110,7 @@ def test_layer_panel_draws_every_head_and_the_mean():
 
 
 def test_attribution_panel_colours_each_method_over_its_own_range():
-    lut = colormap_lut("jet")
+    lut = colormap_lut("viridis")
     frames = {"image_primary": np.zeros((64, 64, 3), np.uint8), "image_wrist": np.zeros((32, 32, 3), np.uint8)}
     maps = {  # units differ by orders of magnitude: each cell still shows its own hottest patch
         "attention:2": {"image_primary": onehot(4, 4, 0, 0) * 1e-3, "image_wrist": onehot(2, 2, 1, 1) * 1e-3},

@@ -58,7 +58,7 @@ def test_a_region_with_reliance_share_one_is_the_only_nonzero_region():
     rgba = _rgba(layer_png(values))
     assert rgba.shape == (64, 64, 4)
     assert np.array_equal(rgba[..., 3] > 0, expected > 0)  # transparent wherever the policy does not rely
-    assert (rgba[16:32, 32:48, 3] == TOP).all() and (rgba[16:32, 32:48, :3] == colormap_lut("jet")[255]).all()
+    assert (rgba[16:32, 32:48, 3] == TOP).all() and (rgba[16:32, 32:48, :3] == colormap_lut("viridis")[255]).all()
 
 
 def test_each_pixel_gets_its_regions_reliance_per_pixel_and_an_unused_camera_none():

@@ -54,7 +54,7 @@ def reliance_map(masks: Mapping[str, np.ndarray | None], rows: Sequence[Mapping]
     return out
 
 
-def layer_png(values: np.ndarray, cmap: str = "jet") -> bytes:
+def layer_png(values: np.ndarray, cmap: str = "viridis") -> bytes:
     """values (H, W) float32 >= 0 -> PNG bytes, RGBA: colour cmap(value / max), alpha LAYER_ALPHA * value / max
     (all transparent when the maximum is 0)."""
     values = np.asarray(values, np.float32)
@@ -69,7 +69,7 @@ def layer_png(values: np.ndarray, cmap: str = "jet") -> bytes:
 
 
 def reliance_layers(rows: Sequence[Mapping], frames: Mapping[str, np.ndarray], masks: Mapping | None,
-                    cmap: str = "jet") -> dict[str, bytes]:
+                    cmap: str = "viridis") -> dict[str, bytes]:
     """One step's stored rows, frames {obs key: (H, W, 3)} and masks {obs key: {name: (h, w) bool}} -> {obs key:
     layer PNG} for every camera that has rows, a frame and masks (in the rows' camera order)."""
     by_camera: dict[str, list[Mapping]] = {}
