@@ -4,8 +4,9 @@
 
 Reads each run's results.jsonl (success per episode) and every episode's metrics.jsonl, and writes
 eval.json (the figures file) and EVAL.md's top section rendered from it alone (`rerender(folder)` renders it
-again): per task n, successes, rate, Wilson 95% interval (harness.measures.stats) and the target lift per layer: for each camera, the fraction of that camera's attention on the target mask divided
-by the mask's area (1 = chance), averaged over the steps where the target is visible, then over episodes.
+again): per task n, successes, rate, Wilson 95% interval (harness.measures.stats) and the target lift per layer:
+for each camera, the fraction of that camera's attention on the target mask divided by the mask's area (1 = chance),
+averaged over the steps where the target is visible, then over episodes.
 """
 
 from __future__ import annotations

@@ -10,7 +10,8 @@ episode of a seed, across conditions) give both r's, and the percentile interval
 (r_reliance - r_attention) says which goes with failure more strongly. When the interval holds 0, neither is shown
 to predict better, and its half-width is the smallest difference that this grid could have resolved.
 
-`predictor_rows(rows)` -> PREDICTOR_COLUMNS rows, one per task and attention map; `predictor_sentence(task, rows)`.
+`predictor_rows(rows)` -> PREDICTOR_COLUMNS rows, one per task and attention map; `predictor_table(task, rows)` ->
+one task's table cells (PREDICTOR_HEADER).
 """
 
 from __future__ import annotations
@@ -99,14 +100,31 @@ def _r_text(r: float, low: float, high: float) -> str:
     return ("r n/a" if not math.isfinite(r) else f"r {r:+.2f}") + interval
 
 
-def predictor_sentence(task: str, rows: list[tuple]) -> str:
-    """'Which predicts failure' for one task, one clause per attention map ("" when the grid has no reliance)."""
-    clauses = []
+PREDICTOR_HEADER = ("map", "nuisance reliance: r [95%]", "nuisance attention: r [95%]", "difference [95%]",
+                    "smallest difference it resolves", "better predictor of failure", "episodes", "seeds", "failed")
+PREDICTOR_CAPTION = ("which predicts failure within conditions (point-biserial r with success, centred per run, "
+                     "seed-cluster 95%)")
+
+
+def _better(row: tuple) -> str:
+    """The verdict column in a few words (the full sentence is the CSV's `verdict`)."""
+    low, high = row[12], row[13]
+    if not (math.isfinite(low) and math.isfinite(high)):
+        return f"too few (< {MIN_CLASS})"
+    if low <= 0 <= high:
+        return "neither shown"
+    better, own_high = ("nuisance reliance", row[7]) if high < 0 else ("nuisance attention", row[10])
+    return f"{better}, " + ("which predicts failure alone" if own_high < 0 else "not alone")
+
+
+def predictor_table(task: str, rows: list[tuple]) -> list[tuple[str, ...]]:
+    """'Which predicts failure' for one task as table cells (PREDICTOR_HEADER), one row per attention map ([] when the
+    grid has no reliance)."""
+    out = []
     for row in (p for p in rows if p[0] == task):
-        clauses.append(f"nuisance reliance {_r_text(*row[5:8])} against {MAP_WORDS[row[1]]} {_r_text(*row[8:11])}, "
-                       f"difference {_r_text(*row[11:14]).replace('r ', '', 1)} over {row[2]} episodes of {row[3]} "
-                       f"seeds ({row[4]} failed): {row[14]}")
-    if not clauses:
-        return ""
-    return (f"{task}, which predicts failure within conditions (point-biserial r with success, centred per run; "
-            f"seed-cluster 95%): " + "; ".join(clauses) + ".")
+        low, high = row[12], row[13]
+        resolves = f"{(high - low) / 2:.2f}" if math.isfinite(low) and math.isfinite(high) and low <= 0 <= high else "-"
+        out.append((MAP_WORDS[row[1]].removeprefix("nuisance attention ").strip("()"), _r_text(*row[5:8]),
+                    _r_text(*row[8:11]), _r_text(*row[11:14]).replace("r ", "", 1), resolves, _better(row),
+                    str(row[2]), str(row[3]), str(row[4])))
+    return out

@@ -34,8 +34,9 @@ the task's perturbed cells (the family-wise error the regression gate controls).
                 task's cells) is within the margin and the exact test of "a drop >= margin" rejects: the same test
                 as compare's HELD (harness.analysis.paired.equivalent);
   UNDETERMINED  neither: the data can tell neither a break nor the absence of one the size of the margin.
-Each null statement says what it could have detected (`paired.detectable_phrase`): at 20 pairs and Holm over 21
-cells, a cell breaks only with 10 or more lost pairs and none gained (a drop of 50 points).
+Each cell's row gives the smallest drop it could have detected (`detectable_drop`, `paired.detectable_loss`): at 20
+pairs and Holm over 21 cells, a cell breaks only with 10 or more lost pairs and none gained (a drop of 50 points).
+The text per task is short (issue 67 item 4): `verdict_line` (at most about 25 words) and `association_table`.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ from enum import StrEnum
 import numpy as np
 
 from envs.perturbations import parse_perturb
-from harness.analysis.paired import (PairedCounts, detectable_loss, detectable_phrase, difference_interval, equivalent,
+from harness.analysis.paired import (PairedCounts, detectable_loss, difference_interval, equivalent,
                                      holm_adjust, mcnemar_exact)
 from harness.analysis.robustness_measures import START_STEPS, episode_measures, js_divergence_bits
 from harness.measures.stats import wilson_interval
@@ -348,100 +349,66 @@ def paired_rows(rows: list[EpisodeRow], alpha: float = ALPHA, margin: float = MA
     return out
 
 
-def breaking(task: str, paired: list[PairedCell]) -> str:
-    """The part of a task's sentence that names the cells that break it (or says none does)."""
-    cells = [p for p in paired if p.task == task]
-    if not cells:
-        return ""
-    broken = sorted((p for p in cells if p.breaks), key=lambda p: (p.condition, p.level))
-    holds = [p for p in cells if p.verdict == CellVerdict.HOLDS]
-    test = f"paired with the nominal seeds, exact McNemar, Holm over {len(cells)} cells"
-    pairs = min(p.pairs for p in cells)
-    power = detectable_phrase(pairs, ALPHA, len(cells)) if pairs else "no pairs to test"
-    margin = cells[0].margin
-    others = len(cells) - len(broken)
-    drop = f"a drop over {round(100 * margin)} points"
-    if others == 1:
-        rest = f"the other cell HOLDS ({drop} ruled out)" if holds else f"the other cell is UNDETERMINED ({drop} not ruled out)"
-    else:
-        rest = (f"{len(holds)} of the other {others} cells HOLD ({drop} ruled out)"
-                + (" and the rest are UNDETERMINED" if len(holds) < others else ""))
-    if not broken:
-        return (f"no condition breaks it at any level ({test}, adjusted p <= 0.05): {power}; {rest}")
-    named = ", ".join(f"{p.condition} {p.level} ({p.perturbed_successes}/{p.pairs} vs {p.nominal_successes}/{p.pairs}, "
-                      f"p = {p.p_holm:.3g})" for p in broken)
-    if not others:  # every cell breaks: nothing else to say of power or margins
-        return f"it breaks under every cell: {named} ({test})"
-    return f"it breaks under {named} ({test}); elsewhere {power}; {rest}"
-
-
-def _interval(low: float, high: float) -> str:
-    return f" (seed-cluster 95% [{low:+.2f}, {high:+.2f}])" if math.isfinite(low) and math.isfinite(high) else ""
-
-
-def _verdict(low: float, high: float, what: str = "nuisance attention") -> str:
-    if not (math.isfinite(low) and math.isfinite(high)):
-        return f"too few seeds, successes or failures (< {MIN_CLASS}) for an interval"
-    return (f"more {what} goes with failure" if high < 0 else
-            f"more {what} goes with success" if low > 0 else
-            f"{what} does not predict success here (the interval holds 0; {detectable_r(low, high)})")
-
-
-def detectable_r(low: float, high: float) -> str:
-    """What a null association could have detected: an |r| within the interval's half-width of 0 cannot be told
-    from 0 at this n (the interval's width is what the seed-cluster test resolves)."""
-    return f"the smallest |r| it could tell from 0 at this n is about {(high - low) / 2:.2f}"
-
-
-def _association_parts(a: tuple, prefix: str, measure: str = "nuisance mass",
-                       what: str = "nuisance attention") -> list[str]:
-    """The association clauses of one ASSOCIATION_COLUMNS row: over episodes, within conditions, at the start."""
-    parts = [f"{prefix}point-biserial r of {measure} and success {a[2]:+.2f} over {a[1]} episodes of {a[9]} seeds"
-             f"{_interval(a[5], a[6])}: {_verdict(a[5], a[6], what)}"]
-    if math.isfinite(a[13]):
-        parts.append(f"within conditions (centred per run), r {a[13]:+.2f}{_interval(a[14], a[15])}: "
-                     f"{_verdict(a[14], a[15], what)}")
-    if math.isfinite(a[10]):
-        parts.append(f"over the first {START_STEPS} steps only, r {a[10]:+.2f}{_interval(a[11], a[12])}: "
-                     f"{_verdict(a[11], a[12], what)}")
-    return parts
-
-
-def sentence(task: str, success: list[tuple], association: list[tuple], paired: list[PairedCell] = ()) -> str:
-    """One plain sentence per task: the condition and level that cost the most, which cells break the task (when
-    `paired` is given), and what nuisance mass says."""
+def verdict_line(task: str, success: list[tuple], paired: list[PairedCell] = ()) -> str:
+    """A task's verdict in one short line (at most about 25 words): its nominal success, then the cells that break it
+    (or that none does, and how many HOLD). The figures behind it are the cell table's (`paired` given), else the
+    largest loss is named with its interval."""
     cells = [s for s in success if s[0] == task and math.isfinite(s[7])]
-    nominal = [s for s in cells if s[2] == 0]
+    nominal = next((s for s in cells if s[2] == 0), None)
+    head = f"{task}: nominal {nominal[6]}/{nominal[4]}." if nominal else f"{task}: no nominal run to compare with."
+    mine = [p for p in paired if p.task == task]
+    if mine:
+        broken = sorted((p for p in mine if p.breaks), key=lambda p: (p.condition, p.level))
+        holds = sum(p.verdict == CellVerdict.HOLDS for p in mine)
+        if broken and len(broken) == len(mine):
+            tail = f"Breaks under every cell ({len(mine)})."
+        elif broken:
+            names = (", ".join(f"{p.condition} {p.level}" for p in broken) if len(broken) <= 3
+                     else f"{len(broken)} of {len(mine)} cells")
+            tail = f"Breaks under {names}. Other cells: {holds} HOLD, {len(mine) - len(broken) - holds} UNDETERMINED."
+        else:
+            tail = f"No cell breaks it. Cells: {holds} HOLD, {len(mine) - holds} UNDETERMINED."
+        return f"{head} {tail}"
     worst = min((s for s in cells if s[2] > 0), key=lambda s: (s[7], -s[2]), default=None)
-    parts = []
-    if nominal and worst is not None and worst[7] >= nominal[0][7]:
-        parts.append(f"{task}: nominal success {nominal[0][6]}/{nominal[0][4]}; no perturbed cell does worse")
-    elif nominal and worst is not None:
-        base = nominal[0]
-        parts.append(f"{task}: nominal success {base[6]}/{base[4]}; the largest loss is {worst[1]} at level {worst[2]} "
-                     f"({worst[6]}/{worst[4]}, Wilson 95% [{worst[8]:.2f}, {worst[9]:.2f}])")
-    elif nominal:
-        parts.append(f"{task}: nominal success {nominal[0][6]}/{nominal[0][4]}, no perturbed run")
-    else:
-        parts.append(f"{task}: no nominal run to compare with")
-    broken = breaking(task, paired)
-    if broken:
-        parts.append(broken)
-    assoc = [a for a in association if a[0] == task and (len(a) <= 16 or a[16] == "raw")]
-    content = [a for a in association if a[0] == task and len(a) > 16 and a[16] == "content"]
-    if assoc and math.isfinite(assoc[0][2]):
-        parts += _association_parts(assoc[0], "on the raw maps, " if content else "")
-    else:
-        parts.append("nuisance mass and success: too few episodes or no variation to estimate an association")
-    if content and math.isfinite(content[0][2]):
-        parts += _association_parts(content[0], "on the content-only maps (blank-frame part removed, control steps), ")
-    elif content:
-        parts.append("on the content-only maps: too few episodes with controls or no variation to estimate an "
-                     "association")
-    reliance = [a for a in association if a[0] == task and len(a) > 16 and a[16] == "reliance"]
-    if reliance and math.isfinite(reliance[0][2]):
-        parts += _association_parts(reliance[0], "nuisance reliance (--reliance-every steps): ", "nuisance reliance",
-                                    "nuisance reliance")
-    elif reliance:
-        parts.append("nuisance reliance: too few episodes with reliance or no variation to estimate an association")
-    return "; ".join(parts) + "."
+    if nominal is None:
+        return head
+    if worst is None:
+        return f"{head} No perturbed run."
+    if worst[7] >= nominal[7]:
+        return f"{head} No perturbed cell does worse."
+    return f"{head} Largest loss: {worst[1]} {worst[2]}, {worst[6]}/{worst[4]} (Wilson 95% [{worst[8]:.2f}, {worst[9]:.2f}])."
+
+
+ASSOCIATION_HEADER = ("map", "measure", "over", "r with success", "seed-cluster 95%", "reads",
+                      "detectable r (absolute)", "episodes", "seeds")
+MAP_LABELS = {"raw": "raw", "content": "content only", "reliance": "reliance"}
+
+
+def _reads(low: float, high: float) -> str:
+    if not (math.isfinite(low) and math.isfinite(high)):
+        return f"too few seeds, successes or failures (< {MIN_CLASS})"
+    return "more goes with failure" if high < 0 else "more goes with success" if low > 0 else "no association shown"
+
+
+def association_table(task: str, association: list[tuple]) -> list[tuple[str, ...]]:
+    """A task's association rows as table cells (ASSOCIATION_HEADER): per map and scope (over episodes, within
+    conditions, the first START_STEPS steps) the point-biserial r of nuisance mass (or reliance) with success, its
+    seed-cluster interval, what it reads as, and the smallest |r| a null result could have told from 0
+    (the detectable r column)."""
+    out = []
+    for a in (a for a in association if a[0] == task):
+        map_ = a[16] if len(a) > 16 else "raw"
+        measure = "nuisance reliance" if map_ == "reliance" else "nuisance mass"
+        for scope, r_, low, high in (("episodes", a[2], a[5], a[6]), ("within conditions", a[13], a[14], a[15]),
+                                     (f"first {START_STEPS} steps", a[10], a[11], a[12])):
+            if not math.isfinite(r_):
+                if scope == "episodes":
+                    out.append((MAP_LABELS.get(map_, map_), measure, scope, "n/a", "-",
+                                "too few episodes or no variation", "-", str(a[1]), str(a[9])))
+                continue
+            known = math.isfinite(low) and math.isfinite(high)
+            null = known and low <= 0 <= high
+            out.append((MAP_LABELS.get(map_, map_), measure, scope, f"{r_:+.2f}",
+                        f"[{low:+.2f}, {high:+.2f}]" if known else "-", _reads(low, high),
+                        f"{(high - low) / 2:.2f}" if null else "-", str(a[1]), str(a[9])))
+    return out

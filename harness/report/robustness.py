@@ -92,13 +92,14 @@ def level_plot(task: str, success: list[tuple]) -> bytes:
 
 
 def _paired_cells(drops: dict, s: tuple) -> tuple[str, str, str]:
-    """(lost / gained pairs, Holm p, verdict with the drop's upper bound) of the success row `s`'s cell, from `drops`
-    ({(task, run): PairedCell}); dashes for the nominal row (level 0)."""
+    """(lost / gained pairs, Holm p, verdict with the drop's upper bound, the smallest drop the cell could detect) of
+    the success row `s`'s cell, from `drops` ({(task, run): PairedCell}); dashes for the nominal row (level 0)."""
     p = drops.get((s[0], s[3])) if s[2] else None
     if p is None:
-        return ("-", "-", "-")
+        return ("-", "-", "-", "-")
+    detectable = f"{round(100 * p.detectable_drop)}" if math.isfinite(p.detectable_drop) else "none"
     return (f"{p.nominal_only} / {p.perturbed_only}", f"{p.p_holm:.3g}",
-            f"{p.verdict} (drop <= {round(100 * p.drop_upper)})")
+            f"{p.verdict} (drop <= {round(100 * p.drop_upper)})", detectable)
 
 
 def section(records, plots, analysis=None) -> str:
@@ -115,14 +116,16 @@ def section(records, plots, analysis=None) -> str:
         body.append(H.banner(note))
     for task in dict.fromkeys(r.task for r in rows):
         body.append(H.section(task, "", level=3))
-        body.append(H.Raw(f"<p>{H.esc(R.sentence(task, success, association, paired))}</p>"))
-        if predictors and (which := P.predictor_sentence(task, predictors)):
-            body.append(H.Raw(f"<p>{H.esc(which)}</p>"))
+        body.append(H.Raw(f"<p>{H.esc(R.verdict_line(task, success, paired))}</p>"))
+        if (which := P.predictor_table(task, predictors)):
+            body.append(H.note(f"{task}, {P.PREDICTOR_CAPTION}:"))
+            body.append(H.table(P.PREDICTOR_HEADER, which, numeric=(6, 7, 8)))
         body.append(plots.add(f"robustness_{H.anchor_id(task)[2:]}", level_plot(task, success), f"robustness {task}",
                               "Success (Wilson band), target lift and nuisance mass against level, per condition."))
         content = R.has_content(rows)
         body.append(H.table(("condition", "level", "run", "success [Wilson 95%]", "errored", "paired: lost / gained",
-                             "Holm p", "verdict (drop's upper bound, points)", *_measure_headers(content)),
+                             "Holm p", "verdict (drop's upper bound, points)", "detectable drop (points)",
+                             *_measure_headers(content)),
                             [(s[1], s[2], s[3], H.Raw(f"{s[6]}/{s[4]} {H.fmt_ci(s[7], s[8], s[9], 2)}"), s[5],
                               *_paired_cells(drops, s), *_measure_cells(s, content))
                              for s in success if s[0] == task],
@@ -198,16 +201,18 @@ def map_note(records) -> str:
     return note
 
 
-VERDICT_NOTE = ("Verdicts per perturbed cell (paired with the nominal seeds): BREAKS = the exact McNemar drop survives "
-                "Holm over the task's cells; HOLDS = a drop larger than the margin ({margin} points) is ruled out (the "
-                "upper confidence bound of the drop, Newcombe at 1 - 0.05 / cells, is within it and the exact test of a "
-                "drop that large rejects: the test of compare's HELD); UNDETERMINED = neither. The column gives the "
-                "drop's upper bound.")
+VERDICT_NOTE = ("Verdicts per perturbed cell, paired with the nominal seeds:\n"
+                "- BREAKS: the exact McNemar drop survives Holm over the task's cells.\n"
+                "- HOLDS: a drop over the margin ({margin} points) is ruled out. The drop's upper bound (Newcombe at "
+                "1 - 0.05 / cells) is within it, and the exact test of a drop that large rejects (compare's HELD).\n"
+                "- UNDETERMINED: neither.\n"
+                "- Detectable drop: the smallest drop, in points, that the cell's pairs could show as BREAKS.")
 
 
 def markdown(records, note: str = "", margin: float = R.MARGIN, section: str = SECTION) -> str:
-    """The Robustness section as Markdown (EVAL.md): per task a sentence and a table of success against level per
-    condition with each cell's verdict, target lift and nuisance mass; the association line per task."""
+    """The Robustness section as Markdown (EVAL.md): per task a verdict line (at most about 25 words), a table of
+    success against level per condition with each cell's verdict, detectable drop, target lift and nuisance mass, the
+    association table and, with reliance, which measure predicts failure."""
     analysis = analyse(records, margin)
     if analysis is None:
         raise ValueError("no run here was perturbed: give the runs of a robustness grid")
@@ -219,17 +224,26 @@ def markdown(records, note: str = "", margin: float = R.MARGIN, section: str = S
     content = R.has_content(rows)
     measures = _measure_headers(content)
     for task in dict.fromkeys(r.task for r in rows):
-        which = P.predictor_sentence(task, predictors)
-        lines += [R.sentence(task, success, association, paired), "", *([which, ""] if which else []),
-                  "| condition | level | success | Wilson 95% | paired: lost / gained | Holm p | verdict (drop's upper "
-                  "bound, points) | " + " | ".join(measures) + " |", "|---" * (7 + len(measures)) + "|"]
+        lines += [R.verdict_line(task, success, paired), "",
+                  _md_row(("condition", "level", "success", "Wilson 95%", "paired: lost / gained", "Holm p",
+                           "verdict (drop's upper bound, points)", "detectable drop (points)", *measures)),
+                  "|---" * (8 + len(measures)) + "|"]
         for s in success:
             if s[0] == task:
-                lost, p, verdict = _paired_cells(drops, s)
-                lines.append(f"| {s[1]} | {s[2]} | {s[6]}/{s[4]} | [{s[8]:.2f}, {s[9]:.2f}] | {lost} | {p} | {verdict} | "
-                             + " | ".join(_measure_cells(s, content, markdown=True)) + " |")
-        lines.append("")
+                lines.append(_md_row((s[1], s[2], f"{s[6]}/{s[4]}", f"[{s[8]:.2f}, {s[9]:.2f}]", *_paired_cells(drops, s),
+                                      *_measure_cells(s, content, markdown=True))))
+        lines += ["", f"{task}: nuisance {'mass and reliance' if R.has_reliance(rows) else 'mass'} against success.", "",
+                  _md_row(R.ASSOCIATION_HEADER), "|---" * len(R.ASSOCIATION_HEADER) + "|",
+                  *(_md_row(cells) for cells in R.association_table(task, association)), ""]
+        if (which := P.predictor_table(task, predictors)):
+            lines += [f"{task}, {P.PREDICTOR_CAPTION}:", "",
+                      _md_row(P.PREDICTOR_HEADER), "|---" * len(P.PREDICTOR_HEADER) + "|",
+                      *(_md_row(cells) for cells in which), ""]
     return "\n".join(lines) + "\n"
+
+
+def _md_row(cells) -> str:
+    return "| " + " | ".join(str(c) for c in cells) + " |"
 
 
 def main(argv=None) -> int:

@@ -41,8 +41,10 @@ def test_reliance_tied_to_failure_is_named_the_better_predictor():
     assert hi < 0 and diff == r_rel - r_att
     assert verdict == ("nuisance reliance is the better predictor of failure (its r is lower), and it predicts failure "
                        "by itself (its own interval lies below 0)")
-    sentence = P.predictor_sentence("Lift", [row])
-    assert sentence.startswith("Lift, which predicts failure within conditions") and verdict in sentence
+    (cells,) = P.predictor_table("Lift", [row])  # the table row says the same, every figure in its own column
+    assert cells == ("raw map", f"r {r_rel:+.2f} [{rel_lo:+.2f}, {rel_hi:+.2f}]", f"r {r_att:+.2f} [{att_lo:+.2f}, "
+                     f"{att_hi:+.2f}]", f"{diff:+.2f} [{lo:+.2f}, {hi:+.2f}]", "-",
+                     "nuisance reliance, which predicts failure alone", "40", "20", str(failures))
 
 
 def test_attention_tied_to_failure_is_named_instead():
@@ -67,7 +69,7 @@ def test_two_measures_equally_tied_give_neither_with_the_resolvable_difference()
 
 def test_no_reliance_gives_no_rows_and_no_sentence():
     rows = _rows(reliance_tied=True, attention_tied=False, with_reliance=False)
-    assert P.predictor_rows(rows) == [] and P.predictor_sentence("Lift", []) == ""
+    assert P.predictor_rows(rows) == [] and P.predictor_table("Lift", []) == []
 
 
 def test_too_few_failures_gives_no_interval_and_says_so():
@@ -80,9 +82,12 @@ def test_the_association_table_gains_a_reliance_row_with_its_own_words():
     rows = _rows(reliance_tied=True, attention_tied=False)
     association = R.association_rows(rows)
     assert [a[16] for a in association] == ["raw", "reliance"]
-    sentence = R.sentence("Lift", R.success_rows(rows), association)
-    assert "point-biserial r of nuisance reliance and success" in sentence
-    assert "more nuisance reliance goes with failure" in sentence
+    table = R.association_table("Lift", association)
+    reliance = [row for row in table if row[0] == "reliance" and row[2] == "episodes"]
+    (raw_row,) = [a for a in association if a[16] == "reliance"]
+    assert reliance == [("reliance", "nuisance reliance", "episodes", f"{raw_row[2]:+.2f}",
+                         f"[{raw_row[5]:+.2f}, {raw_row[6]:+.2f}]", "more goes with failure", "-", str(raw_row[1]),
+                         str(raw_row[9]))]
 
 
 @pytest.mark.slow
@@ -104,5 +109,5 @@ def test_the_report_and_eval_md_carry_the_comparison_from_episode_folders(tmp_pa
     columns, rows = report.tables(records)["robustness_predictors.csv"]
     assert columns == P.PREDICTOR_COLUMNS and [(r[0], r[1], r[2], r[4]) for r in rows] == [("Lift", "raw", 24, 8)]
     text = report.markdown(records)
-    assert "Lift, which predicts failure within conditions" in text
-    assert "nuisance reliance r -1.00" in text  # the failed episodes are exactly those with more background reliance
+    assert "Lift, which predicts failure within conditions (" in text
+    assert "| raw map | r -1.00 " in text  # the failed episodes are exactly those with more background reliance

@@ -9,8 +9,8 @@ import pytest
 
 from harness.analysis.paired import (PairedCounts, decide, detectable_loss, detectable_phrase, equivalent,
                                      difference_interval, mcnemar_exact)
-from harness.analysis.robustness import (CellVerdict, EpisodeRow, association_rows, cell_verdict, paired_rows, sentence,
-                                         success_rows)
+from harness.analysis.robustness import (CellVerdict, EpisodeRow, cell_verdict, paired_rows, success_rows,
+                                         verdict_line)
 
 
 @pytest.mark.parametrize("pairs, alpha, cells, expected", [
@@ -63,16 +63,19 @@ def test_each_cell_has_a_verdict_and_the_sentence_states_its_power():
     assert paired["texture-5"].verdict == CellVerdict.BREAKS and paired["camera-1"].verdict == CellVerdict.UNDETERMINED
     assert paired["camera-1"].margin == 0.15 and paired["camera-1"].detectable_drop == pytest.approx(7 / 20)  # 7 lost
     assert paired["camera-1"].drop_upper == pytest.approx(-difference_interval(_same(20), 1 - 0.05 / 2)[0])
-    text = sentence("Lift", success_rows(rows), association_rows(rows), list(paired.values()))
-    assert "it breaks under texture 5" in text and "no drop of 35 points or more at 20 pairs (Holm over 2 cells)" in text
-    assert "the other cell is UNDETERMINED (a drop over 15 points not ruled out)" in text and "1 cells" not in text
+    # the task's verdict in one short line; the figures behind it (counts, p, the detectable drop) are the cell's row
+    text = verdict_line("Lift", success_rows(rows), list(paired.values()))
+    assert text == "Lift: nominal 20/20. Breaks under texture 5. Other cells: 0 HOLD, 1 UNDETERMINED." and len(text.split()) <= 25
+    t = paired["texture-5"]
+    assert (t.perturbed_successes, t.nominal_successes, t.pairs, t.cells) == (0, 20, 20, 2)
+    assert round(100 * t.detectable_drop) == 35 and detectable_phrase(20, 0.05, 2) == \
+        "no drop of 35 points or more at 20 pairs (Holm over 2 cells)"
     nothing = _cell("nominal", "nominal", 0, [True] * 20) + _cell("camera-1", "camera@image_wrist", 1, [True] * 20)
-    text = sentence("Lift", [], [], paired_rows(nothing, margin=0.40))
-    assert "no condition breaks it" in text and "no drop of 30 points or more at 20 pairs (alpha 0.05)" in text
-    assert "the other cell HOLDS (a drop over 40 points ruled out)" in text and "UNDETERMINED" not in text
+    (held,) = paired_rows(nothing, margin=0.40)
+    assert verdict_line("Lift", [], [held]) == "Lift: no nominal run to compare with. No cell breaks it. Cells: 1 HOLD, 0 UNDETERMINED."
+    assert held.verdict == "HOLDS" and held.margin == 0.40 and round(100 * held.detectable_drop) == 30
     every = _cell("nominal", "nominal", 0, [True] * 20) + _cell("texture-5", "texture", 5, [False] * 20)
-    text = sentence("Lift", [], [], paired_rows(every))
-    assert "it breaks under every cell: texture 5 (0/20 vs 20/20" in text  # not "0 of the other 0 cells HOLD"
-    assert "of the other" not in text and "elsewhere" not in text
+    text = verdict_line("Lift", success_rows(every), paired_rows(every))
+    assert text == "Lift: nominal 20/20. Breaks under every cell (1)."  # not "0 of the other 0 cells HOLD"
     assert math.isnan(paired_rows(_cell("nominal", "nominal", 0, [True] * 5)
                                   + _cell("c-1", "camera@image_wrist", 1, [True] * 5))[0].detectable_drop)  # 5 pairs: nothing

@@ -1,5 +1,5 @@
-"""No results section of models/*/EVAL.md is edited by hand (issue 67 item 6): each is rendered from a figures file
-committed beside the model, and rendering it again gives the committed text; a section whose runs were not kept and
+"""No results section of models/*/EVAL.md is edited by hand (issue 67 item 6): each is rendered from a figures
+file committed beside the model, and rendering it again gives the committed text; a section whose runs were not kept and
 that has no figures file says so in one line (reference_policies.evaluate.NOT_KEPT). No simulation: JSON in, text out."""
 
 from __future__ import annotations
@@ -69,7 +69,8 @@ def test_the_figures_render_the_verdict_line_and_the_table(tmp_path):
             "tasks": rows}
     text = render(data)
     verdict = next(line for line in text.splitlines() if line.startswith("Average"))
-    assert verdict == "Average over the 2 tasks: **65.0%** (13/20 episodes, Wilson 95% [0.43, 0.82]). Lowest task: Stack at 40%."
+    assert verdict == ("Average over the 2 tasks: **65.0%** (13/20 episodes, Wilson 95% [0.43, 0.82]). "
+                       "Lowest task: Stack at 40%.")
     assert len(verdict.split()) <= 25
     assert "| Stack | 10 | 4 | 40% | [0.10, 0.90] | 0..9 | image_primary | 1.00 | 1.50 |" in text
     assert text.splitlines()[2] == data["provenance"]

@@ -346,7 +346,7 @@ def test_point_biserial_matches_scipy_and_its_interval_is_fisher_z():
 
 
 def test_a_cell_breaks_a_task_only_when_its_paired_drop_survives_holm():
-    from harness.analysis.robustness import EpisodeRow, paired_rows, sentence, success_rows, association_rows
+    from harness.analysis.robustness import EpisodeRow, paired_rows, success_rows, verdict_line
 
     def cell(run, condition, level, outcomes, status=None):
         return [EpisodeRow(run, "Lift", condition, level, seed, seed, (status or {}).get(seed, "ok"), ok,
@@ -364,16 +364,17 @@ def test_a_cell_breaks_a_task_only_when_its_paired_drop_survives_holm():
     assert t.p_holm == pytest.approx(3 * t.p_mcnemar)  # the smallest of three p-values, times three
     assert (lt.nominal_only, lt.breaks) == (4, False) and lt.p_mcnemar == pytest.approx(0.125)
     assert (c.pairs, c.nominal_only) == (18, 4) and not c.breaks  # errored episodes are not pairs: 4 lost of 18, not 6 of 20
-    text = sentence("Lift", success_rows(rows), association_rows(rows), paired_rows(rows))
-    assert "it breaks under texture 5 (0/20 vs 20/20" in text and "lighting" not in text.split("breaks under")[1]
+    text = verdict_line("Lift", success_rows(rows), paired_rows(rows))
+    assert text == "Lift: nominal 20/20. Breaks under texture 5. Other cells: 0 HOLD, 2 UNDETERMINED."
+    assert (t.perturbed_successes, t.nominal_successes) == (0, 20)  # the figures behind it, in the cell's row
     gained = cell("noise-1", "noise", 1, [True] * 20)
     worse_nominal = cell("nominal", "nominal", 0, [False] * 20)
     assert not paired_rows(worse_nominal + gained)[0].breaks  # gaining successes never "breaks"
-    assert "no condition breaks it" in sentence("Lift", [], [], paired_rows(worse_nominal + gained))
+    assert "No cell breaks it." in verdict_line("Lift", [], paired_rows(worse_nominal + gained))
 
 
 def test_the_association_interval_resamples_seeds_and_needs_both_outcomes():
-    from harness.analysis.robustness import MIN_CLASS, EpisodeRow, association_rows, seed_cluster_interval, sentence
+    from harness.analysis.robustness import MIN_CLASS, EpisodeRow, association_rows, association_table, seed_cluster_interval
 
     rng = np.random.default_rng(1)
     seeds = np.repeat(np.arange(20), 4)  # one seed's episodes across four conditions share its scene
@@ -391,8 +392,9 @@ def test_the_association_interval_resamples_seeds_and_needs_both_outcomes():
     assert all(np.isnan(seed_cluster_interval(seeds, few, mass)))
     rows = [EpisodeRow("r", "Lift", "nominal", 0, int(k), i, "ok", bool(ok), float(m), 0.5, 0.0, float(m), float(m))
             for i, (k, ok, m) in enumerate(zip(seeds, few, mass))]
-    assert "too few seeds, successes or failures" in sentence("Lift", [], association_rows(rows))
-    assert "nan" not in sentence("Lift", [], association_rows(rows))
+    table = association_table("Lift", association_rows(rows))
+    assert table and all(row[5] == f"too few seeds, successes or failures (< {MIN_CLASS})" for row in table)
+    assert not any("nan" in cell for row in table for cell in row)
 
 
 def test_a_condition_that_moves_both_success_and_nuisance_mass_is_not_a_within_condition_association():
