@@ -62,11 +62,11 @@ def _mask_metric(run: RunData, name: str) -> str | None:
 def _task_table(runs: list[RunData], task: str) -> str:
     header = ["run", "episodes done / jobs", "missing", "errored", "success (95% Wilson)",
               "target lift, last layer", "robot mass, last layer", "entropy, last layer (nats)"]
-    rows = []
+    rows, without = [], []
     for run in runs:
         s = run.success.get(task)
-        if s is None:
-            rows.append([H.swatch(run.colour, run.label), H.absent("task not in this run"), "", "", "", "", "", ""])
+        if s is None:  # a run of other tasks: named below the table, not a row of empty cells
+            without.append(run.label)
             continue
         done = s["jobs"] - s["missing"]
         rate = (H.fmt_ci(s["success_rate"], s["ci_low"], s["ci_high"]) if s["n"] else H.absent("no finished episode"))
@@ -81,7 +81,8 @@ def _task_table(runs: list[RunData], task: str) -> str:
                 v, lo, hi = found
                 cells.append(H.fmt_ci(v[-1], lo[-1], hi[-1]))
         rows.append(cells)
-    return H.table(header, rows, numeric=(2, 3))
+    note = H.note(f"Not among the tasks of {', '.join(without)}.") if without else ""
+    return H.table(header, rows, numeric=(2, 3)) + note
 
 
 def _recording_cell(run: RunData, e, out: Path):
