@@ -18,7 +18,7 @@ from harness.measures.attention import camera_maps
 from harness.files import all_or_none, atomic_write_json, write_atomic
 from harness.octo.tokens import TokenMap
 from harness.report import html as H
-from harness.report.compare_md import difference_label, pairs_cell, to_decide
+from harness.report.compare_md import difference_label, pairs_cell, summary_points, to_decide
 from harness.report.figures import _figure, _png, overlay_grid, run_colours, success_chart
 
 ARM_LABELS = ("baseline", "candidate")
@@ -196,7 +196,8 @@ def compare_page(result: CompareResult, frames: dict | None = None, markdown: st
                           f"{ident.first_difference}")))
     if ident.derived_measures:
         body.append(H.note("Derived measures: " + ident.derived_measures.note))
-    body.append(H.note("Provenance: " + result.provenance.summary))
+    points = "".join(f"<li>{H.esc(point)}</li>" for point in summary_points(result.provenance.summary))
+    body.append(H.Raw(f"<div class='note'>Provenance:<ul>{points}</ul></div>"))
 
     colours = run_colours(2)
     tasks = list(result.outcomes.tasks)

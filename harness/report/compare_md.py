@@ -65,6 +65,19 @@ def _layers(values) -> str:
     return ", ".join(_num(float(v), 2) for v in values) if values is not None else "n/a"
 
 
+def summary_points(summary: str) -> list[str]:
+    """compare's provenance sentence (harness.analysis.provenance.summary_sentence) as its parts, split at '; '
+    outside parentheses: one short bullet each (model numerics, inputs, platform), every figure kept."""
+    parts, depth, start = [], 0, 0
+    for i, ch in enumerate(summary):
+        depth += (ch == "(") - (ch == ")")
+        if depth == 0 and summary.startswith("; ", i):
+            parts.append(summary[start:i])
+            start = i + 2
+    parts.append(summary[start:])
+    return [part.strip().rstrip(".") for part in parts if part.strip()]
+
+
 def markdown_summary(result: CompareResult, exit_code: int | None = None) -> str:
     """The comparison as Markdown: verdict, outcome table, drift and what was left out."""
     cfg, base, cand = result.config, result.baseline, result.candidate
@@ -88,7 +101,7 @@ def markdown_summary(result: CompareResult, exit_code: int | None = None) -> str
     else:
         lines += ["", f"Not identical: {ident.pairs_identical}/{result.pairs} pairs identical; first difference: "
                       f"{ident.first_difference}."]
-    lines += ["", "**Provenance:** " + result.provenance.summary + "."]
+    lines += ["", "**Provenance:**", *(f"- {point}." for point in summary_points(result.provenance.summary))]
     lines += [
         "",
         f"| task | pairs | baseline success [{confidence} Wilson] | candidate success | difference = candidate - "
