@@ -40,8 +40,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import logsumexp
 
+from harness.analysis.paired import Verdict
+
 TESTS = ("regression", "improvement", "held")
-_VERDICT = {"regression": "REGRESSED", "improvement": "IMPROVED", "held": "HELD"}
+_VERDICT = {"regression": Verdict.REGRESSED, "improvement": Verdict.IMPROVED, "held": Verdict.HELD}
 PRIORITY = ("regression", "improvement", "held")  # the one tie rule: REGRESSED > IMPROVED > HELD
 _MAX_BET = 0.99  # fraction of the largest bet that keeps every factor positive
 
@@ -122,13 +124,13 @@ class SequentialTest:
 
     config: SequentialConfig = field(default_factory=SequentialConfig)
     units: int = 0
-    verdict: str | None = None
+    verdict: Verdict | None = None
     _log_wealth: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     def __post_init__(self):
         self._log_wealth = {t: np.zeros(self.config.grid) for t in TESTS}
 
-    def add(self, y: float) -> str | None:
+    def add(self, y: float) -> Verdict | None:
         """Add one unit (candidate minus baseline success, or its mean over a round); returns the verdict."""
         if not -1.0 <= y <= 1.0:
             raise ValueError(f"a unit must lie in [-1, 1], got {y}")
@@ -150,7 +152,7 @@ class SequentialTest:
     def summary(self) -> dict:
         return {
             "units": self.units,
-            "verdict": self.verdict or "UNDERPOWERED",
+            "verdict": self.verdict or Verdict.UNDERPOWERED,
             "decided": self.verdict is not None,
             "threshold": self.config.threshold,
             "e_values": {t: self.wealth(t) for t in TESTS},
@@ -159,14 +161,14 @@ class SequentialTest:
         }
 
 
-def combine_tasks(verdicts: list[str]) -> str | None:
+def combine_tasks(verdicts: list[Verdict | None]) -> Verdict | None:
     """The family's verdict from its tasks' (None = undecided): REGRESSED if any task is, else None while a
     task is undecided, else HELD unless every task IMPROVED."""
-    if "REGRESSED" in verdicts:
-        return "REGRESSED"
-    if any(v is None or v == "UNDERPOWERED" for v in verdicts) or not verdicts:
+    if Verdict.REGRESSED in verdicts:
+        return Verdict.REGRESSED
+    if any(v is None or v == Verdict.UNDERPOWERED for v in verdicts) or not verdicts:
         return None
-    return "IMPROVED" if all(v == "IMPROVED" for v in verdicts) else "HELD"
+    return Verdict.IMPROVED if all(v == Verdict.IMPROVED for v in verdicts) else Verdict.HELD
 
 
 @dataclass
@@ -190,7 +192,7 @@ class TaskwiseTest:
     def task_alpha(self) -> float:
         return self.config.alpha / len(self.tasks)
 
-    def add_round(self, outcomes: dict[str, tuple[bool | None, bool | None]]) -> str | None:
+    def add_round(self, outcomes: dict[str, tuple[bool | None, bool | None]]) -> Verdict | None:
         """One round: {task: (baseline success, candidate success)}, None for an arm that errored (the pair is
         counted in `errored`, not tested). Tasks already decided ignore their pair. Returns the verdict."""
         if self.verdict is not None:
@@ -204,12 +206,12 @@ class TaskwiseTest:
         return self.verdict
 
     @property
-    def verdict(self) -> str | None:
+    def verdict(self) -> Verdict | None:
         return combine_tasks([self.tests[t].verdict for t in self.tasks])
 
     def summary(self) -> dict:
         return {
-            "verdict": self.verdict or "UNDERPOWERED",
+            "verdict": self.verdict or Verdict.UNDERPOWERED,
             "decided": self.verdict is not None,
             "rounds": self.rounds,
             "alpha": self.config.alpha,
