@@ -1,5 +1,6 @@
 """The Ray executor end to end (real robosuite, real JAX model, a real local Ray cluster): `--executor ray --workers 2`
-gives the sequential run's episodes step for step; an env actor killed mid-job is replaced and its episode retried;
+gives the sequential run's episodes step for step; an env actor and then the policy replica killed mid-episode are
+replaced and their episodes retried;
 a node lost mid-run (a real second node of a two-node cluster on this machine) has its episodes retried on the head,
 to the sequential run's files. Its own file: a local Ray cluster is several times slower while the other test
 process loads both cores (measured: 120 s against 35 s alone), and its place in the order is its measured time
@@ -44,22 +45,32 @@ def test_ray_executor_with_two_workers_gives_the_sequential_episodes(tiny, seque
     assert not list(Path(summary.run_dir).glob(".octo-harness-shared-check-*"))  # the marker is removed
 
 
-def _busy_ray_env_workers() -> list[int]:
-    """Pids of this test's Ray env-worker actors inside `run` (Ray titles the process `ray::EnvWorker.run`
-    meanwhile): descendants of this process only, since another test process may run a Ray cluster of its own."""
+def _ray_processes(title: bytes) -> list[int]:
+    """Pids of this test's Ray processes whose title starts with `title` (descendants of this process only)."""
     pids = []
-    ours = descendants(os.getpid())
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit() and int(entry.name) in ours:
-            try:
-                if (entry / "cmdline").read_bytes().startswith(b"ray::EnvWorker.run"):
-                    pids.append(int(entry.name))
-            except OSError:
-                pass
+    for pid in descendants(os.getpid()):
+        try:
+            if Path(f"/proc/{pid}/cmdline").read_bytes().startswith(title):
+                pids.append(pid)
+        except OSError:
+            pass
     return pids
 
 
-def test_a_ray_env_worker_killed_during_a_job_is_replaced_and_its_episode_retried(tiny, sequential, tmp_path):
+def _busy_ray_env_workers() -> list[int]:
+    """Pids of this test's Ray env-worker actors inside `run` (Ray titles the process `ray::EnvWorker.run`
+    meanwhile): descendants of this process only, since another test process may run a Ray cluster of its own."""
+    return _ray_processes(b"ray::EnvWorker.run")
+
+
+def test_a_lost_env_actor_and_a_lost_policy_replica_are_replaced_and_their_episodes_retried(tiny, sequential,
+                                                                                            tmp_path):
+    """One env actor: SIGKILLed during the first job, it is replaced, and the replacement runs the second episode;
+    then the policy replica is SIGKILLed while it serves that episode, past its first step. Both episodes are
+    infrastructure failures (a lost worker, a lost policy replica), the replica is started again, and both run again
+    to the sequential run's files."""
+    import ray
+
     from harness.run.ray_executor import RayExecutor
 
     executors, killed = [], []
@@ -68,25 +79,37 @@ def test_a_ray_env_worker_killed_during_a_job_is_replaced_and_its_episode_retrie
         executors.append(RayExecutor(context, model, workers=1))
         return executors[-1]
 
-    def kill_a_busy_actor():
+    def kill_an_actor_then_the_replica():
         deadline = time.monotonic() + 240
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not killed:
             busy = _busy_ray_env_workers()
             if busy:  # a job is under way on that actor (making its env or stepping the episode)
                 os.kill(busy[0], signal.SIGKILL)
                 killed.append(busy[0])
-                return
+            time.sleep(0.02)
+        while time.monotonic() < deadline:
+            ex = executors[0]
+            try:
+                second = [(i, job) for i, job in list(ex.running.items()) if job.episode == 1]
+                if second and ray.get(ex._served_by[second[0][0]].step_of.remote(second[0][1].key), timeout=10) >= 1:
+                    (replica,) = _ray_processes(b"ray::PolicyReplica")
+                    os.kill(replica, signal.SIGKILL)
+                    killed.append(replica)
+                    return
+            except (RuntimeError, KeyError, ray.exceptions.RayError):  # the executor changed while we looked
+                pass
             time.sleep(0.02)
 
-    summary = _run_while(tiny, tmp_path, "raykill", factory, kill_a_busy_actor, episodes=2)
-    assert killed, "no Ray env worker was killed"
-    retried = _the_one_retried_episode(summary, sequential, episodes=2)
-    assert retried.episode == 0  # the first job, on the first actor; the second and the retry ran on its replacement
-    (attempt,) = retried.retries
-    assert attempt["lost"] == "worker" and f"worker process died (pid {killed[0]}" in attempt["cause"]
-    assert executors[0].replacements == 1
+    summary = _run_while(tiny, tmp_path, "raykill", factory, kill_an_actor_then_the_replica, episodes=2)
+    assert len(killed) == 2, "the env actor and the replica were not both killed"
+    assert summary.status == "complete" and all(r.status == "ok" for r in summary.rows)
+    lost = {r.episode: r.retries for r in summary.rows}
+    assert [a["lost"] for a in lost[0]] == ["worker"] and f"worker process died (pid {killed[0]}" in lost[0][0]["cause"]
+    assert [a["lost"] for a in lost[1]] == ["policy replica"] and "policy replica lost" in lost[1][0]["cause"]
+    assert summary.manifest["recovery"]["retried_after"] == {"worker": 1, "policy replica": 1}
+    _assert_same_files(sequential, summary)
+    assert executors[0].replacements == 1 and executors[0].replica_restarts == 1
     assert not _busy_ray_env_workers()  # every actor is gone with the run
-
 
 
 def _free_ports(n: int) -> list[int]:
