@@ -84,7 +84,7 @@ def blueprint(cameras: list[str], layers: int, intervention: bool = False, shown
                 width=TensorDimensionSelection(3), height=TensorDimensionSelection(2),
                 indices=[TensorDimensionIndexSelection(0, max(layers - 1, 0)), TensorDimensionIndexSelection(1, 0)],
                 slider=[TensorDimensionIndexSlider(0), TensorDimensionIndexSlider(1)]),
-            scalar_mapping=rrb.TensorScalarMapping(colormap="turbo", mag_filter="nearest"),
+            scalar_mapping=rrb.TensorScalarMapping(colormap="viridis", mag_filter="nearest"),
         )
         notes = [note for layer, payload in shown for note in [layer.camera_note(payload)] if note]
         views = [rrb.Spatial2DView(origin=entity("camera", cam), name=", ".join([cam, *notes])),
