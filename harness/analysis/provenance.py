@@ -125,6 +125,19 @@ def summary_sentence(platform: dict, inputs: dict, numerics: dict, differs: dict
     return f"{model}; {seen}; {where}"
 
 
+def summary_points(summary: str) -> list[str]:
+    """compare's provenance sentence (harness.analysis.provenance.summary_sentence) as its parts, split at '; '
+    outside parentheses: one short bullet each (model numerics, inputs, platform), every figure kept."""
+    parts, depth, start = [], 0, 0
+    for i, ch in enumerate(summary):
+        depth += (ch == "(") - (ch == ")")
+        if depth == 0 and summary.startswith("; ", i):
+            parts.append(summary[start:i])
+            start = i + 2
+    parts.append(summary[start:])
+    return [part.strip().rstrip(".") for part in parts if part.strip()]
+
+
 # ---- the provenance line of a results section (EVAL.md, model cards; tests/docs/test_provenance.py) ----------------
 
 # "Provenance: command `...`; commit `<hash>` (...); machine: ...." on a line of its own; group 1: the commit

@@ -37,6 +37,7 @@ from harness.analysis.compare import (
 from harness.analysis.compare_result import Outcomes
 from harness.gate.config import GateConfig
 from harness.analysis.paired import PairedCounts, Verdict, errored_most, mcnemar_exact_sample_size, worst
+from harness.analysis.provenance import summary_points
 from harness.gate.results import (
     GRID_FORMAT,
     REGRESS_FORMAT,
@@ -348,7 +349,8 @@ def summary_text(result: RegressResult, code: int) -> str:
             if result.fixed_size_pairs_80_power else "n/a pairs (no difference observed, or more than 20000)"),
         f"  verdict = worse of sequential and fixed-size: {result.verdict}",
         "  " + _numerics_line(result.replay),
-        "  " + result.compare.provenance.summary,
+        "  provenance of the outcomes:",
+        *(f"    - {point}" for point in summary_points(result.compare.provenance.summary)),
         f"exit code {code}",
     ]
     return "\n".join(lines)

@@ -18,7 +18,8 @@ from harness.measures.attention import camera_maps
 from harness.files import all_or_none, atomic_write_json, write_atomic
 from harness.octo.tokens import TokenMap
 from harness.report import html as H
-from harness.report.compare_md import difference_label, pairs_cell, summary_points, to_decide
+from harness.analysis.provenance import summary_points
+from harness.report.compare_md import difference_label, pairs_cell, to_decide
 from harness.report.figures import _figure, _png, overlay_grid, run_colours, success_chart
 
 ARM_LABELS = ("baseline", "candidate")

@@ -6,6 +6,7 @@ import math
 
 from harness.analysis.compare_result import CompareResult, OutcomeBlock, Rate
 from harness.analysis.paired import Verdict
+from harness.analysis.provenance import summary_points
 
 
 def _num(value, digits: int = 3) -> str:
@@ -63,19 +64,6 @@ def difference_label(result: CompareResult) -> str:
 
 def _layers(values) -> str:
     return ", ".join(_num(float(v), 2) for v in values) if values is not None else "n/a"
-
-
-def summary_points(summary: str) -> list[str]:
-    """compare's provenance sentence (harness.analysis.provenance.summary_sentence) as its parts, split at '; '
-    outside parentheses: one short bullet each (model numerics, inputs, platform), every figure kept."""
-    parts, depth, start = [], 0, 0
-    for i, ch in enumerate(summary):
-        depth += (ch == "(") - (ch == ")")
-        if depth == 0 and summary.startswith("; ", i):
-            parts.append(summary[start:i])
-            start = i + 2
-    parts.append(summary[start:])
-    return [part.strip().rstrip(".") for part in parts if part.strip()]
 
 
 def markdown_summary(result: CompareResult, exit_code: int | None = None) -> str:

@@ -1,13 +1,12 @@
 """Generated verdicts in short sentences (issue 67 item 4): compare's provenance sentence becomes one bullet per
-part (model numerics, inputs, platform) in compare.md and compare.html, and no figure is lost on the way. Pure text,
-no runs."""
+part (model numerics, inputs, platform) in compare.md, compare.html and regress's console, and no figure is lost on
+the way. Pure text, no runs."""
 
 from __future__ import annotations
 
 import re
 
-from harness.analysis.provenance import summary_sentence
-from harness.report.compare_md import summary_points
+from harness.analysis.provenance import summary_points, summary_sentence
 
 NUMBERS = re.compile(r"\d+(?:\.\d+)?(?:e-?\d+)?")
 
