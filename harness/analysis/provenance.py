@@ -182,17 +182,21 @@ def checkout_commit(repo=None) -> tuple[str | None, bool]:
 
 
 def provenance_line(command: str, manifests: list, repo=None) -> str:
-    """"Provenance: command `...`; commit `<HEAD>` (...); machine: ...." for a section made from runs: the command
-    that made it, the commit of the checkout that wrote it (and the commits the runs recorded, where they differ),
-    and the machine from the runs' manifests (`machine_text`). No ';' inside the parts: the line's fields split on it."""
+    """"Provenance: command `...`; commit `<hash>` (...); machine: ...." for a section made from runs: the command
+    that made it, the commit that produced the figures (the one commit the runs recorded; else the checkout that
+    wrote the section, with the runs' commits), and the machine from the runs' manifests (`machine_text`). No ';' inside the parts: the line's fields split on it."""
     head, dirty = checkout_commit(repo)
     recorded = sorted({m.get("git_commit") for m in manifests if isinstance(m, dict) and m.get("git_commit")})
-    notes = ["the checkout that wrote this section" + (", with uncommitted changes" if dirty else "")]
-    if recorded and recorded != [head]:
-        notes.append("the runs recorded " + ", ".join(f"`{c[:12]}`" for c in recorded))
-    elif not recorded:
-        notes.append("the runs recorded no commit")
-    commit = f"commit `{head[:12]}` ({', '.join(notes)})" if head else "commit unknown (not a git checkout)"
+    if len(recorded) == 1:  # the runs name the commit that produced the figures: the line names it (issue 67 item 6)
+        notes = ["the commit the runs recorded, which produced these figures"]
+        if head and (head != recorded[0] or dirty):
+            notes.append(f"this section written at `{head[:12]}`" + (" with uncommitted changes" if dirty else ""))
+        commit = f"commit `{recorded[0][:12]}` ({', '.join(notes)})"
+    else:
+        notes = ["the checkout that wrote this section" + (", with uncommitted changes" if dirty else "")]
+        notes.append("the runs recorded " + ", ".join(f"`{c[:12]}`" for c in recorded) if recorded
+                     else "the runs recorded no commit")
+        commit = f"commit `{head[:12]}` ({', '.join(notes)})" if head else "commit unknown (not a git checkout)"
     machine = machine_text([m.get("platform") if isinstance(m, dict) else None for m in manifests])
     return f"Provenance: command `{command.replace('`', chr(39)).replace(';', ',')}`; {commit}; machine: {machine}."
 

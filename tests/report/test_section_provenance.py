@@ -29,8 +29,11 @@ def test_the_line_names_the_command_the_checkout_and_the_runs_commits():
     head = subprocess.run(["git", "-C", str(REPO), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     line = provenance_line("bash scripts/x.sh a;b `c`", [{"platform": XEON, "git_commit": "0123456789abcdef"}])
     match = PROVENANCE_LINE.fullmatch(line)
-    assert match and head.startswith(match.group(1)), line
-    assert "the runs recorded `0123456789ab`" in line and "command `bash scripts/x.sh a,b 'c'`" in line
+    assert match and match.group(1) == "0123456789ab", line  # the commit that produced the figures: the runs'
+    assert f"this section written at `{head[:12]}`" in line and "command `bash scripts/x.sh a,b 'c'`" in line
+    several = provenance_line("x", [{"git_commit": "0123456789abcdef"}, {"git_commit": "fedcba9876543210"}])
+    match = PROVENANCE_LINE.fullmatch(several)  # runs of several commits: the checkout's, naming each of theirs
+    assert match and head.startswith(match.group(1)) and "the runs recorded `0123456789ab`, `fedcba987654`" in several
     assert line.endswith("machine: Intel(R) Xeon(R) Processor (x86_64), 2 cores, CPU only.")
     section = with_provenance("## Robustness\n\nnote\n\n| a |\n", line)
     assert section.startswith(f"## Robustness\n\n{line}\n\nnote\n")
@@ -60,6 +63,14 @@ def test_the_evaluation_table_written_twice_keeps_one_provenance_line(tmp_path):
     line = PROVENANCE_LINE.search(top).group(0)
     assert "command `bash scripts/evaluate_reference.sh`" in line and "the runs recorded no commit" in line
     assert line.endswith("2 cores, CPU only.") and "| Lift | 3 | 2 |" in top
+    # the figures file holds what the section is rendered from, its provenance line included: rendering it again
+    # from eval.json alone (no runs) gives the same EVAL.md
+    from reference_policies.evaluate import FIGURES, render, rerender
+
+    data = json.loads((out / FIGURES).read_text())
+    assert data["provenance"] == line and render(data).strip() == top.strip()
+    rerender(out)
+    assert (out / "EVAL.md").read_text() == text
 
 
 def test_an_evaluation_is_written_only_into_the_checkpoint_its_runs_were_made_with(fixtures_dir, tmp_path, capsys):
