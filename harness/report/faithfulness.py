@@ -257,7 +257,8 @@ def tables(runs) -> dict[str, bytes]:
 
 
 def sentence(task: str, rows: list[tuple]) -> str:
-    """One plain sentence: the method/layer/camera with the highest deletion ratio, and whether it beats random."""
+    """A verdict line of about 25 words at most: the method/layer/camera with the highest deletion ratio, whether it
+    beats random, and the best raw attention layer's ratio; the other figures are the table's."""
     ranked = [r for r in rows if r[1] == task and r[3] != "random" and math.isfinite(r[7])]
     if not ranked:
         return f"{task}: no faithfulness measured."
@@ -271,12 +272,10 @@ def sentence(task: str, rows: list[tuple]) -> str:
     tail = ""
     if attention and best not in attention:
         a = max(attention, key=lambda r: r[7])
-        tail = (f"; the best raw attention layer ({a[3].split(':')[1]}) reaches {a[7]:.2f} "
-                f"[{a[8]:.2f}, {a[9]:.2f}]")
-    return (f"{task}, {camera}: {_name(method)} ranks the patches the action depends on {verdict}: deletion AUC "
-            f"{_ci_text(d, dlo, dhi, episodes).replace(' ', 'x random ', 1)}, insertion AUC "
-            f"{_ci_text(i, ilo, ihi, episodes).replace(' ', 'x random ', 1)} "
-            f"({steps} steps, {episodes} episodes){tail}.")
+        tail = f" Best raw attention layer: {a[3].split(':')[1]}, {a[7]:.2f}x random [{a[8]:.2f}, {a[9]:.2f}]."
+    # a verdict line (issue 67 item 4); insertion AUC and steps are in the table row of the same method
+    return (f"{task}, {camera}: {_name(method)} ranks best, {verdict} (deletion AUC "
+            f"{_ci_text(d, dlo, dhi, episodes).replace(' ', 'x random ', 1)}, {episodes} episodes).{tail}")
 
 
 def _name(method: str) -> str:

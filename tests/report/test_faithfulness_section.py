@@ -32,8 +32,10 @@ def test_summary_ratios_intervals_and_sentence():
     assert by[("image_primary", "attention:2")][13] == pytest.approx(attn[7]) and attn[14] == 2
     assert np.isnan(by[("image_wrist", "saliency")][7]) and by[("image_wrist", "saliency")][4] == 0
     text = R.sentence("Lift", table)
-    assert text.startswith("Lift, image_primary: layer 2 attention ranks the patches the action depends on better than random")
-    assert "(18 steps, 6 episodes)" in text
+    d, dlo, dhi = attn[7:10]
+    assert text == f"Lift, image_primary: layer 2 attention ranks best, better than random (deletion AUC {d:.2f}x random " \
+                   f"[{dlo:.2f}, {dhi:.2f}], 6 episodes)."
+    assert len(text.split()) <= 25
     assert R.heatmap("Lift", table)[:8] == b"\x89PNG\r\n\x1a\n"
 
 

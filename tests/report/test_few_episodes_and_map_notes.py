@@ -16,7 +16,7 @@ def test_fewer_than_four_episodes_get_no_interval():
            0.47, 0.35, 0.59)
     text = faithfulness.sentence("Stack", [row])
     assert "1.90x random (too few episodes for an interval)" in text and "[1.75" not in text
-    assert "no verdict against random" in text and "better than random" not in text
+    assert "no verdict against random" in text and "better than random" not in text and "2 episodes" in text
     six = row[:5] + (6,) + row[6:]
     assert "1.90x random [1.75, 2.05]" in faithfulness.sentence("Stack", [six])
 
