@@ -218,10 +218,15 @@ def fill_ranking(faith: list[tuple]) -> list[tuple]:
     return out
 
 
-def camera_sentence(task: str, camera: str, faith: list[tuple], cams: list[tuple]) -> str:
-    """One sentence per camera: the open-loop range over methods per fill, where an ordering first beats random,
-    and the closed-loop evidence with the agreement flag."""
-    parts = []
+CAMERA_FILL_HEADER = ("task", "camera", "fill", "methods", "deletion / random: range", "below random",
+                      "above random", "earliest ordering above random", "from k/n")
+
+
+def camera_fill_rows(task: str, camera: str, faith: list[tuple]) -> list[tuple[str, ...]]:
+    """Per fill, the open loop over methods as table cells (CAMERA_FILL_HEADER): the range of deletion / random, how
+    many methods lie below and above random by their intervals, and the ordering that first stays above random up to
+    half the camera (k/n where it starts; '-' when none does)."""
+    out = []
     rows = [r for r in faith if r[1] == task and r[2] == camera and r[3] != "random" and math.isfinite(r[7])]
     for fill in sorted({r[15] for r in rows}, key=lambda f: (f != "mean", f)):
         mine = [r for r in rows if r[15] == fill]
@@ -230,23 +235,25 @@ def camera_sentence(task: str, camera: str, faith: list[tuple], cams: list[tuple
         above = sum(1 for r in mine if _verdict(r[8], r[9]) == "better")
         starts = [r[19] for r in mine if math.isfinite(r[19])]
         best = min(starts) if starts else None
-        onset = (f"the earliest ordering ({', '.join(r[3] for r in mine if r[19] == best)}) stays above random from "
-                 f"k/n = {best:.2f} to half the camera" if starts else
-                 "no ordering stays above random up to half the camera")
-        parts.append(f"{fill} fill: deletion {min(ratios):.2f}-{max(ratios):.2f} of random over {len(mine)} methods "
-                     f"({below} below, {above} above random by their intervals); {onset}")
-    text = f"{task}, {camera}: open loop, " + ("; ".join(parts) if parts else "not measured")
+        out.append((task, camera, fill, str(len(mine)), f"{min(ratios):.2f}-{max(ratios):.2f}", str(below), str(above),
+                    ", ".join(r[3] for r in mine if r[19] == best) if starts else "none up to half the camera",
+                    f"{best:.2f}" if starts else "-"))
+    return out
+
+
+def camera_sentence(task: str, camera: str, faith: list[tuple], cams: list[tuple]) -> str:
+    """A camera's verdict line (at most about 25 words): whether open and closed loop agree, and what masking the
+    camera costs. The open loop's figures are camera_fill_rows', the closed loop's the camera table's."""
+    text = f"{task}, {camera}: "
     mine = [c for c in cams if c[0] == task and c[1] == camera]
-    if mine:
-        c = mine[0]
-        text += (f". Closed loop: masking the camera {c[7]} (difference {c[8]:+.2f}, p = {c[9]:.3g})"
-                 if math.isfinite(c[8]) else ". Closed loop: no mask-all arm")
-        tops = {(c[10], c[11], c[12]) for c in mine if c[10] != "n/a"}
-        for spec, diff, p in sorted(tops):
-            text += f"; `{spec}` against random patches {diff:+.2f} (p = {p:.3g})"
-        flags = sorted({c[13] for c in mine if c[13].startswith("DISAGREE")})
-        text += f". Open and closed loop: {flags[0]}" if flags else ". Open and closed loop do not contradict each other"
-    return text + "."
+    if not mine:
+        return text + ("open loop only (table below)." if camera_fill_rows(task, camera, faith) else "not measured.")
+    flags = sorted({c[13] for c in mine if c[13].startswith("DISAGREE")})
+    text += f"open and closed loop {flags[0]}." if flags else "open and closed loop do not contradict each other."
+    c = mine[0]
+    if math.isfinite(c[8]):
+        text += f" Masking the camera: {c[7]} (difference {c[8]:+.2f}, p = {c[9]:.3g})."
+    return text
 
 
 def tables(runs) -> dict[str, bytes]:
@@ -367,6 +374,10 @@ def section(runs, plots) -> str:
         body.append(H.section("Per camera: open loop beside closed loop", "", level=3))
         for task, camera in dict.fromkeys((c[0], c[1]) for c in cams):
             body.append(H.Raw(f"<p>{H.esc(camera_sentence(task, camera, faith, cams))}</p>"))
+        fills = [row for task, camera in dict.fromkeys((c[0], c[1]) for c in cams)
+                 for row in camera_fill_rows(task, camera, faith)]
+        if fills:
+            body.append(H.table(CAMERA_FILL_HEADER, fills, numeric=(3, 5, 6)))
         body.append(H.table(("task", "camera", "fill", "method", "open loop: deletion / random [95%]",
                              "mask-all@camera (plain -> masked)", "difference (p)", "mask-top vs mask-random",
                              "difference (p)", "open vs closed loop"),
@@ -451,6 +462,12 @@ def markdown(runs) -> str:
         for task, camera in dict.fromkeys((c[0], c[1]) for c in cams):
             lines.append(f"- {camera_sentence(task, camera, faith, cams)}")
         lines.append("")
+        fills = [row for task, camera in dict.fromkeys((c[0], c[1]) for c in cams)
+                 for row in camera_fill_rows(task, camera, faith)]
+        if fills:
+            lines += ["Open loop per camera and fill, over methods:", "",
+                      "| " + " | ".join(CAMERA_FILL_HEADER) + " |", "|---" * len(CAMERA_FILL_HEADER) + "|",
+                      *("| " + " | ".join(row) + " |" for row in fills), ""]
     inter = intervention_rows(runs)
     if inter:
         lines += ["| task | intervention | against | pairs | against: success [Wilson] | with intervention [Wilson] | "

@@ -164,9 +164,14 @@ def test_camera_rows_flag_open_and_closed_loop_disagreement(tmp_path):
     assert wrist[0]["open_ci_high"] < 1
     assert all(c["camera"] != "image_primary" for c in cams)  # no closed-loop arm of its own: not in the table
     text = R.camera_sentence("Lift", "image_wrist", R.open_rows(runs), R.camera_rows(runs))
-    assert "1 below" in text and "12/12 -> 0/12" in text and "DISAGREE" in text
-    assert "no ordering stays above random up to half the camera" in text
+    p = wrist[0]["mask_all_p"]
+    assert text == f"Lift, image_wrist: open and closed loop DISAGREE. Masking the camera: 12/12 -> 0/12 (difference " \
+                   f"-1.00, p = {p:.3g})." and len(text.split()) <= 25
+    ((*_, methods, ratios, below, above, first, start),) = R.camera_fill_rows("Lift", "image_wrist", R.open_rows(runs))
+    assert (methods, below, above, first, start) == ("1", "1", "0", "none up to half the camera", "-")
+    assert ratios == f"{wrist[0]['open_loop_deletion']:.2f}-{wrist[0]['open_loop_deletion']:.2f}"
     md = R.markdown(runs)
+    assert f"| Lift | image_wrist | mean | 1 | {ratios} | 1 | 0 | none up to half the camera | - |" in md
     assert "| Lift | image_wrist | mean | attention:2 |" in md and "open vs closed loop" in md
     assert "faithfulness_cameras.csv" in R.tables(runs)
 
