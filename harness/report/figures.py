@@ -68,7 +68,7 @@ def success_chart(tasks: Sequence[str], series: Sequence[tuple[str, str, dict]])
         centres.append(cursor + width / 2 - 0.5)
         for j, i in enumerate(group):
             label, colour, data = series[i]
-            rate, low, high, n = (float(v) for v in data[t])
+            rate, low, high, n = (np.nan if v is None else float(v) for v in data[t])
             pos = cursor + j
             ax.bar(pos, rate if np.isfinite(rate) else 0.0, 0.85, color=colour, alpha=0.75,
                    label=label if i not in drawn else None)
