@@ -174,54 +174,63 @@ def _headline(rows: list[tuple], task: str) -> tuple[str, int] | None:
     return camera, max(r[4] for r in items if r[2] == camera)
 
 
-def sentence(task: str, summary: dict[str, list[tuple]], alpha: float = 0.05) -> str:
-    """One plain sentence: which measures change across phases on the headline camera's last layer (the test)."""
+PHASE_TEST_HEADER = ("measure", "lift per phase", "test", "p", "episodes", "changes across phases")
+FAILURE_HEADER = ("phase", "target lift: failed", "successful", "Mann-Whitney p")
+_TEST_NAMES = {"friedman": "Friedman", "wilcoxon": "Wilcoxon"}
+
+
+def _headline_tests(task: str, summary: dict[str, list[tuple]]) -> tuple[tuple | None, list[tuple]]:
     head = _headline(summary["tests"], task)
+    if head is None:
+        return None, []
+    camera, layer = head
+    return head, [r for r in summary["tests"] if r[1] == task and r[2] == camera and r[4] == layer and r[5] != "none"]
+
+
+def phase_test_rows(task: str, summary: dict[str, list[tuple]], alpha: float = 0.05) -> list[tuple[str, ...]]:
+    """The phase test per measure on the headline camera's last layer as table cells (PHASE_TEST_HEADER)."""
+    _, tests = _headline_tests(task, summary)
+    return [(r[3], ", ".join(f"{p} {float(m):.2f}" for p, m in zip(r[9].split(), r[10].split())), _TEST_NAMES[r[5]],
+             f"{r[7]:.2g}", str(r[8]), "yes" if r[7] < alpha else "not detectably") for r in tests]
+
+
+def sentence(task: str, summary: dict[str, list[tuple]], alpha: float = 0.05) -> str:
+    """A verdict line (at most about 25 words): which measures change across phases on the headline camera's last
+    layer. The figures behind it (lift per phase, test, p, episodes) are phase_test_rows'."""
+    head, tests = _headline_tests(task, summary)
     if head is None:
         if any(r[1] == task for r in summary["steps"]):
             return f"{task}: phases recorded but no mask measures (a run with --no-masks): nothing to test."
         return f"{task}: no phases recorded."
-    camera, layer = head
-    tests = [r for r in summary["tests"] if r[1] == task and r[2] == camera and r[4] == layer and r[5] != "none"]
     if not tests:
         return f"{task}: too few episodes visited two phases to test whether attention changes across them."
-    changed = [r for r in tests if r[7] < alpha]
-    steady = [r for r in tests if r[7] >= alpha]
-    name = {"friedman": "Friedman", "wilcoxon": "Wilcoxon"}
+    camera, layer = head
+    changed = [r[3] for r in tests if r[7] < alpha]
+    return f"{task}, {camera}, layer {layer}: " + (f"attention changes across phases for {', '.join(changed)}."
+                                                   if changed else "no measured attention changes detectably across phases.")
 
-    def part(r):
-        phases, means = r[9].split(), r[10].split()
-        span = ", ".join(f"{p} {float(m):.2f}" for p, m in zip(phases, means))
-        return f"{r[3]} lift ({span}; {name[r[5]]} p = {r[7]:.2g}, {r[8]} episodes)"
 
-    text = f"{task}, {camera}, layer {layer}: "
-    text += ("attention changes across phases for " + "; ".join(part(r) for r in changed)) if changed else \
-        "no measured attention changes detectably across phases"
-    if steady:
-        text += ("; not detectably for " if changed else ": ") + "; ".join(part(r) for r in steady)
-    return text + "."
+def failure_rows(task: str, summary: dict[str, list[tuple]]) -> list[tuple[str, ...]]:
+    """Target lift where failed episodes stopped against successful episodes' there, headline camera and layer, as
+    table cells (FAILURE_HEADER)."""
+    head = _headline(summary["tests"], task)
+    if head is None:
+        return []
+    camera, layer = head
+    return [(r[2], f"{r[6]:.2f}", f"{r[7]:.2f}", f"{r[8]:.2g}" if math.isfinite(r[8]) else "-")
+            for r in summary["failures"] if r[1] == task and r[3] == camera and r[4] == "target" and r[5] == layer
+            and math.isfinite(r[6]) and math.isfinite(r[7])]
 
 
 def failure_sentence(task: str, summary: dict[str, list[tuple]]) -> str:
-    """Where failed episodes stopped, and their target lift there against successful episodes' (headline camera)."""
+    """Where failed episodes stopped, in one short line; their target lift there is failure_rows'."""
     steps = [r for r in summary["steps"] if r[1] == task]
     failed = {r[2]: r[7] for r in steps if r[7]}
     if not steps:
         return f"{task}: no phases recorded."
-    total = steps[0][3]
     if not failed:
-        return f"{task}: no failed episode among {total}."
-    text = f"{task}: failed episodes stopped in " + ", ".join(f"{phase} ({n})" for phase, n in failed.items())
-    head = _headline(summary["tests"], task)
-    if head is not None:
-        camera, layer = head
-        parts = [f"in {r[2]} target lift {r[6]:.2f} against {r[7]:.2f} for successful episodes"
-                 + (f" (Mann-Whitney p = {r[8]:.2g})" if math.isfinite(r[8]) else "")
-                 for r in summary["failures"] if r[1] == task and r[3] == camera and r[4] == "target" and r[5] == layer
-                 and math.isfinite(r[6]) and math.isfinite(r[7])]
-        if parts:
-            text += f"; on {camera}, layer {layer}: " + "; ".join(parts)
-    return text + "."
+        return f"{task}: no failed episode among {steps[0][3]}."
+    return f"{task}: failed episodes stopped in " + ", ".join(f"{phase} ({n})" for phase, n in failed.items()) + "."
 
 
 def event_figure(task: str, summary: dict[str, list[tuple]]) -> bytes | None:
@@ -297,7 +306,11 @@ def section(runs, plots, summaries: list | None = None) -> str:
             body.append(H.table(("phase", "episodes reaching it", "mean steps in it", "stopped here", "failed, stopped here"),
                                 [(r[2], f"{r[4]}/{r[3]}", f"{r[5]:.1f}", r[6], r[7]) for r in steps], numeric=(2, 3, 4)))
             body.append(H.Raw(f"<p>{H.esc(sentence(task, summary))}</p>"))
+            if (tested := phase_test_rows(task, summary)):
+                body.append(H.table(PHASE_TEST_HEADER, tested, numeric=(4,)))
             body.append(H.Raw(f"<p>{H.esc(failure_sentence(task, summary))}</p>"))
+            if (stopped := failure_rows(task, summary)):
+                body.append(H.table(FAILURE_HEADER, stopped))
             png = event_figure(task, summary)
             if png is not None:
                 body.append(plots.add(f"phase_events_{H.anchor_id(task)[2:]}_{_label(run)}", png, f"event-aligned lift {task}",
@@ -341,8 +354,18 @@ def markdown(runs) -> str:
                     lines.append(f"| {m} | {layer} | " + " | ".join(
                         f"{v:.2f} [{lo:.2f}, {hi:.2f}]" if math.isfinite(v) and math.isfinite(lo) else
                         (f"{v:.2f}" if math.isfinite(v) else "n/a") for v, lo, hi, n in cells) + " |")
-            lines += ["", f"- {sentence(task, summary)}", f"- {failure_sentence(task, summary)}", ""]
+            lines += ["", sentence(task, summary), ""]
+            if (tested := phase_test_rows(task, summary)):
+                lines += [_md_row(PHASE_TEST_HEADER), "|---" * len(PHASE_TEST_HEADER) + "|",
+                          *(_md_row(r) for r in tested), ""]
+            lines += [failure_sentence(task, summary), ""]
+            if (stopped := failure_rows(task, summary)):
+                lines += [_md_row(FAILURE_HEADER), "|---" * len(FAILURE_HEADER) + "|", *(_md_row(r) for r in stopped), ""]
     return "\n".join(lines)
+
+
+def _md_row(cells) -> str:
+    return "| " + " | ".join(cells) + " |"
 
 
 if __name__ == "__main__":  # python -m harness.report.phases RUN...: the Markdown tables

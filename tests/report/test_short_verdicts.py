@@ -40,3 +40,21 @@ def test_every_figure_of_every_form_of_the_sentence_is_kept():
         points = summary_points(sentence)
         assert len(points) >= 3 and all(points)
         assert "; ".join(points) == sentence.rstrip(".")  # nothing added, nothing dropped
+
+
+def test_the_phase_verdicts_are_short_lines_and_their_figures_are_table_rows():
+    from harness.report import phases
+
+    tests = [("run", "Lift", "image_primary", "target", 3, "friedman", 9.1, 0.004, 10, "reach grasp lift", "0.81 1.52 1.10"),
+             ("run", "Lift", "image_primary", "gripper", 3, "friedman", 1.2, 0.41, 10, "reach grasp lift", "1.00 1.02 0.97"),
+             ("run", "Lift", "image_wrist", "target", 3, "wilcoxon", 2.0, 0.01, 9, "reach grasp", "0.40 0.90")]
+    steps = [("run", "Lift", "reach", 10, 10, 12.5, 0, 0), ("run", "Lift", "grasp", 10, 9, 20.0, 2, 2)]
+    failures = [("run", "Lift", "grasp", "image_primary", "target", 3, 0.95, 1.61, 0.031, 2, 8)]
+    summary = {"tests": tests, "steps": steps, "failures": failures}
+    line = phases.sentence("Lift", summary)
+    assert line == "Lift, image_primary, layer 3: attention changes across phases for target." and len(line.split()) <= 25
+    assert phases.phase_test_rows("Lift", summary) == [
+        ("target", "reach 0.81, grasp 1.52, lift 1.10", "Friedman", "0.004", "10", "yes"),
+        ("gripper", "reach 1.00, grasp 1.02, lift 0.97", "Friedman", "0.41", "10", "not detectably")]
+    assert phases.failure_sentence("Lift", summary) == "Lift: failed episodes stopped in grasp (2)."
+    assert phases.failure_rows("Lift", summary) == [("grasp", "0.95", "1.61", "0.031")]
