@@ -193,14 +193,15 @@ def _flagged_list(summary, task: str, cam: str, layer: int) -> str:
 
 
 def sentence(task: str, summary: dict) -> str:
-    """One plain sentence per task: the remaining share and flagged patches of the head mean, per camera."""
+    """A verdict line per task (at most about 25 words with two cameras): per camera, the range over layers of the
+    head mean's attention that remains on a blank frame, and in how many layers patches are flagged. The shares per
+    layer, the mirror's and the flagged patches are the table's."""
     parts = []
     for cam in dict.fromkeys(r[2] for r in summary["share"] if r[1] == task):
         rows = [r for r in summary["share"] if r[1] == task and r[2] == cam and r[4] == "mean"]
-        flagged = [f"layer {r[3]}: {r[8]} ({r[9]:.0%} of the attention)" for r in rows if r[8]]
-        parts.append(f"{cam}: {min(r[6] for r in rows):.0%}-{max(r[6] for r in rows):.0%} of the attention remains on "
-                     f"a blank frame (by layer), {min(r[7] for r in rows):.0%}-{max(r[7] for r in rows):.0%} follows the "
-                     f"mirror; flagged patches " + ("; ".join(flagged) if flagged else "none"))
+        flagged = sum(1 for r in rows if r[8])
+        parts.append(f"{cam} {min(r[6] for r in rows):.0%}-{max(r[6] for r in rows):.0%} remains on a blank frame, "
+                     f"flagged in {flagged}/{len(rows)} layers")
     return f"{task}: " + "; ".join(parts) + "." if parts else f"{task}: no controls recorded."
 
 
@@ -253,7 +254,7 @@ def markdown(runs) -> str:
             if lifts:
                 lines += ["", "| camera | layer | mask | steps | lift | lift, content only |", "|---|---:|---|---:|---:|---:|"]
                 lines += [f"| {r[2]} | {r[3]} | {r[4]} | {r[5]} | {r[6]:.2f} | {r[7]:.2f} |" for r in lifts]
-            lines += ["", f"- {sentence(task, summary)}", ""]
+            lines += ["", sentence(task, summary), ""]
     return "\n".join(lines)
 
 

@@ -58,3 +58,14 @@ def test_the_phase_verdicts_are_short_lines_and_their_figures_are_table_rows():
         ("gripper", "reach 1.00, grasp 1.02, lift 0.97", "Friedman", "0.41", "10", "not detectably")]
     assert phases.failure_sentence("Lift", summary) == "Lift: failed episodes stopped in grasp (2)."
     assert phases.failure_rows("Lift", summary) == [("grasp", "0.95", "1.61", "0.031")]
+
+
+def test_the_position_verdict_is_a_short_line_per_task():
+    from harness.report import position
+
+    share = [("run", "Lift", cam, layer, "mean", 40, blank, 0.9, "(1,2)" if flag else "", 0.12 if flag else 0.0)
+             for cam in ("image_primary", "image_wrist") for layer, blank, flag in ((0, 0.83, False), (1, 0.97, True))]
+    line = position.sentence("Lift", {"share": share})
+    assert line == ("Lift: image_primary 83%-97% remains on a blank frame, flagged in 1/2 layers; image_wrist 83%-97% "
+                    "remains on a blank frame, flagged in 1/2 layers.") and len(line.split()) <= 25
+    assert position.sentence("Stack", {"share": share}) == "Stack: no controls recorded."
