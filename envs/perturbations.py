@@ -5,30 +5,8 @@ A perturbation is data: `Perturbation(kind, level, camera)` with level 0 (nomina
 comma-separated. Level-0 entries are dropped when parsed: a protocol whose perturbations are all at level 0 IS the
 nominal protocol (same protocol hash, same run folder, same frames bit for bit).
 
-Kinds and what one level means (MAGNITUDES holds the numbers; docs/perturbations.md has the table):
-  camera       a camera's position moved by 0.02 m x level in a drawn direction, its orientation turned by 2 deg x
-               level about a drawn axis (in the camera's frame), its vertical field of view changed by +-1 deg x level
-               (sign drawn). Default: the camera behind `image_primary`; `camera@KEY` moves the camera behind KEY.
-  lighting     every model light's diffuse, ambient and specular colour and the headlight scaled by 1 - 0.12 x level
-               (darker: level 5 keeps 40%), each light's direction turned by 5 deg x level about a drawn horizontal
-               axis, its diffuse colour tinted per channel by up to +-4% x level.
-  texture      the arena's table, legs, floor and walls (never an object, never the robot, never a texture an object
-               also uses: the target keeps its colour) blended with a drawn pattern (flat colour, checker, noise or
-               gradient, TextureModder's patterns; robosuite 1.5.2's TextureModder reads `tex_rgb`, which MuJoCo 3
-               renamed, so the blend is done here on `tex_data`) at weight 0.2 x level (level 5: the pattern alone).
-  distractors  `level` extra objects (robosuite's lemon, bottle, blue ball, yellow cylinder, purple box, in that
-               order) placed on the task's free surface (table, or the start bin of PickPlace tasks) at drawn
-               positions at least 0.10 m (centre to centre, in the plane) from every task object, the target and its
-               goal, and 0.07 m from each other.
-  init-state   the robot's initial joint angles offset by a drawn uniform value in +-0.03 rad x level per joint,
-               and the objects' placement range widened by 0.02 m x level on each side (table tasks; PickPlace
-               samplers already span their bin, so only the joints move there).
-  noise        what the policy sees (not the scene): Gaussian blur of sigma 0.25 px x level, then Gaussian pixel
-               noise of sigma 3 x level (of 255), then JPEG at quality 90 - 14 x level; every camera by default,
-               `noise@KEY` one. Drawn per step (the only per-step perturbation).
-  language     the instruction: 1 capitalised with a full stop; 2 a paraphrase drawn from the task's list
-               (envs.tasks); 3 that paraphrase after a drawn prefix ("please ", "robot, ", "now "); 4 also a
-               drawn suffix (" now", " please", ", thanks"); 5 level 4 in capitals.
+Kinds and what one level means: docs/perturbations.md's table, whose numbers are MAGNITUDES here; each `Kind`
+subclass below says what it changes and which of robosuite's modders it uses.
 
 Draws: every random choice of an episode comes from `numpy.random.SeedSequence((reset seed, kind, level, key))`,
 where the kind is its number in `KIND_SEEDS` (or, for a kind not listed there, drawn from its name), never its
