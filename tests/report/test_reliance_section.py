@@ -137,9 +137,13 @@ def test_the_sentence_names_the_region_of_largest_disagreement_and_a_damaged_fil
     rows, notes = summary
     primary = [r for r in rows if r[4] == "image_primary"]
     # |reliance - attention|: target |0.2 - 0.45| = 0.25, gripper |0.5 - 0.1| = 0.4 (the largest)
-    assert R.disagreement(primary) == ("Lift, image_primary: attention and reliance disagree most on gripper: 50% of "
-                                       "the reliance, 10% of the attention (the policy relies on it more than it looks "
-                                       "at it).")
+    line = R.disagreement(primary)
+    assert line == ("Lift, image_primary: largest gap on gripper, 50% of the reliance against 10% of the attention "
+                    "(relied on more than looked at).") and len(line.split()) <= 25
+    (camera, mean, interval, seeds, steps, episodes) = R.agreement_row(primary)  # the agreement: a table row
+    r = primary[0]
+    assert (camera, seeds, steps, episodes) == ("image_primary", str(r[14]), str(r[10]), str(r[9]))
+    assert mean == R.H.fmt(r[11], 2) and interval == f"[{R.H.fmt(r[12], 2)}, {R.H.fmt(r[13], 2)}]"
     assert len(notes) == 1 and notes[0].startswith("reference-lift/Lift/episode_2: unreadable reliance.jsonl")
 
 
@@ -161,7 +165,8 @@ def test_the_report_shows_the_section_and_its_table_in_chromium(run, tmp_path):
     section = re.search(r"<section id=\"reliance\">(.*?)</section>\s*(?:<section id|</main|$)", dom, re.S)
     assert section, "no Reliance section in the rendered page"
     text = section.group(1)
-    assert "disagree most on gripper" in text and "<table" in text and "attention share" in text
+    assert "largest gap on gripper" in text and "<table" in text and "attention share" in text
+    assert "Spearman over regions per step" in text  # the agreement: a table beside the verdict line
     assert "last layer" in text and "tables/reliance.csv" in text
     assert re.search(r"<a [^>]*href=\"#reliance\"", dom)  # an entry in the page's contents
     gripper = next(r for r in table if r["camera"] == "image_primary" and r["region"] == "gripper")
@@ -177,8 +182,9 @@ def test_eval_md_gets_a_reliance_section_with_provenance_and_keeps_the_others(ru
     section = text[text.index("## Reliance"):]
     assert "Provenance: command" in section and "the note" in section
     assert "### Lift: nominal (run reference-lift)" in section
-    assert ("- Lift, image_primary: attention and reliance disagree most on gripper: 50% of the reliance, 10% of the "
-            "attention") in section
+    assert ("- Lift, image_primary: largest gap on gripper, 50% of the reliance against 10% of the attention "
+            "(relied on more than looked at).") in section
+    assert "| camera | Spearman over regions per step: mean | 95% seed-cluster | seeds | steps | episodes |" in section
     assert "| image_wrist | background |" in section and "episode_2: unreadable reliance.jsonl" in section
     # a run without reliance is one line, exit 2, EVAL.md untouched
     before = eval_md.read_text()

@@ -17,8 +17,8 @@ Per run x task x camera (the run's condition: its perturbation, or "nominal"):
                                     regions (sanity.spearman; steps where either share is constant left out),
                                     averaged per seed, then over seeds with a 95% seed-cluster bootstrap interval
                                     (bootstrap.bootstrap_mean_ci over the seeds: a seed's steps move together)
-and one sentence per task and camera names the region where they disagree most (largest |reliance share -
-attention share|).
+and a short verdict line per task and camera names the region where they disagree most (largest |reliance share -
+attention share|); the agreement is a table per camera (issue 67 item 4).
 
 `summarise(runs, resamples, seed)` -> (rows of COLUMNS, notes); `tables(summary)` -> {"reliance.csv"} ({} without
 reliance files); `section(summary, figures)` -> HTML ("" without). Every number on the page is in reliance.csv.
@@ -166,17 +166,17 @@ def tables(summary) -> dict[str, bytes]:
 
 
 def disagreement(rows: list[tuple]) -> str:
-    """One sentence from the CSV rows of one run x task x camera: the region with the largest |reliance share -
-    attention share|."""
+    """A verdict line (at most about 25 words) from the CSV rows of one run x task x camera: the region with the
+    largest |reliance share - attention share|. The agreement over regions is agreement_row's."""
     first = rows[0]
     where = f"{first[1]}, {first[4]}"
     pairs = [(abs(r[7] - r[8]), r) for r in rows if math.isfinite(r[7]) and math.isfinite(r[8])]
     if not pairs:
         return f"{where}: no attention shares to compare the reliance with (attention.npz has no mask masses)."
     gap, r = max(pairs, key=lambda p: p[0])
-    more = "relies on it more than it looks at it" if r[7] > r[8] else "looks at it more than it relies on it"
-    return (f"{where}: attention and reliance disagree most on {r[5]}: {100 * r[7]:.0f}% of the reliance, "
-            f"{100 * r[8]:.0f}% of the attention (the policy {more}).")
+    more = "relied on more than looked at" if r[7] > r[8] else "looked at more than relied on"
+    return (f"{where}: largest gap on {r[5]}, {100 * r[7]:.0f}% of the reliance against {100 * r[8]:.0f}% of the "
+            f"attention ({more}).")
 
 
 def figure(task: str, rows: list[tuple]) -> bytes:
@@ -202,12 +202,15 @@ def figure(task: str, rows: list[tuple]) -> bytes:
     return _png(fig)
 
 
-def _agreement(rows: list[tuple]) -> str:
+AGREEMENT_HEADER = ("camera", "Spearman over regions per step: mean", "95% seed-cluster", "seeds", "steps", "episodes")
+
+
+def agreement_row(rows: list[tuple]) -> tuple[str, ...]:
+    """One camera's agreement of the two shares as table cells (AGREEMENT_HEADER); 'no step' where neither ranks."""
     r = rows[0]
     if r[14] == 0:
-        return f"{r[4]}: no step where both shares rank the regions ({r[10]} steps)."
-    return (f"{r[4]}: Spearman over regions per step, mean {H.fmt(r[11], 2)} [{H.fmt(r[12], 2)}, {H.fmt(r[13], 2)}] "
-            f"(95% seed-cluster interval; {r[14]} seeds, {r[10]} steps, {r[9]} episodes).")
+        return (r[4], "no step where both shares rank the regions", "-", "0", str(r[10]), str(r[9]))
+    return (r[4], H.fmt(r[11], 2), f"[{H.fmt(r[12], 2)}, {H.fmt(r[13], 2)}]", str(r[14]), str(r[10]), str(r[9]))
 
 
 def section(summary, figures) -> str:
@@ -228,8 +231,9 @@ def section(summary, figures) -> str:
         body.append(H.section(f"{task}: {name} (run {label})", "", level=3))
         cameras = list(dict.fromkeys(r[4] for r in group))
         for camera in cameras:
-            cam = [r for r in group if r[4] == camera]
-            body.append(H.Raw(f"<p>{H.esc(disagreement(cam))} {H.esc(_agreement(cam))}</p>"))
+            body.append(H.Raw(f"<p>{H.esc(disagreement([r for r in group if r[4] == camera]))}</p>"))
+        body.append(H.table(AGREEMENT_HEADER, [agreement_row([r for r in group if r[4] == c]) for c in cameras],
+                            numeric=(3, 4, 5)))
         body.append(figures.add(f"reliance_{H.anchor_id(task)[2:]}_{H.anchor_id(label)[2:]}_{condition}_{level}",
                                 figure(task, group), f"reliance {task}",
                                 "Attention share (last layer) beside reliance share per region and camera."))
@@ -244,8 +248,9 @@ SECTION = "## Reliance"
 
 
 def markdown(records, note: str = "") -> str:
-    """The Reliance section as Markdown (EVAL.md): per run and task, the disagreement and agreement sentences per
-    camera and a table of attention share beside reliance share per region (the numbers of reliance.csv)."""
+    """The Reliance section as Markdown (EVAL.md): per run and task, a verdict line per camera (where attention and
+    reliance disagree most), the agreement table per camera and a table of attention share beside reliance share
+    per region (the numbers of reliance.csv)."""
     rows, notes = summarise(records)
     if not rows:
         raise ValueError("no run here has reliance.jsonl: give runs made with --reliance-every")
@@ -256,9 +261,10 @@ def markdown(records, note: str = "") -> str:
         group = [r for r in rows if r[:4] == key]
         name = condition if condition == "nominal" else f"{condition} level {level}"
         lines += [f"### {task}: {name} (run {label})", ""]
-        for camera in dict.fromkeys(r[4] for r in group):
-            cam = [r for r in group if r[4] == camera]
-            lines.append(f"- {disagreement(cam)} {_agreement(cam)}")
+        cameras = list(dict.fromkeys(r[4] for r in group))
+        lines += [f"- {disagreement([r for r in group if r[4] == camera])}" for camera in cameras]
+        lines += ["", "| " + " | ".join(AGREEMENT_HEADER) + " |", "|---|---:|---|---:|---:|---:|"]
+        lines += ["| " + " | ".join(agreement_row([r for r in group if r[4] == c])) + " |" for c in cameras]
         lines += ["", "| camera | region | attention share | reliance share | reliance per pixel | episodes |",
                   "|---|---|---:|---:|---:|---:|"]
         lines += [f"| {r[4]} | {r[5]} | {H.fmt(r[8], 2)} | {H.fmt(r[7], 2)} | {H.fmt(r[6], 3)} | {r[9]} |"
