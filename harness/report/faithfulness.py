@@ -3,8 +3,8 @@
 Open loop: every finished episode's `faithfulness.jsonl` (runs made with `--faithfulness-every k`) is summarised
 per run x task x camera x method: deletion and insertion AUC relative to the random map on the same steps
 (harness.measures.faithfulness.relative_to_random: 1 = no better than random; deletion > 1 and insertion < 1
-are better) with 95% bootstrap intervals over episodes, and top-k change over random-k change at each k. A
-heatmap per task (methods x cameras, deletion ratio) and one plain sentence per task.
+are better) with 95% bootstrap intervals over episodes, and top-k change over random-k change at each k; a heatmap
+per task (methods x cameras, deletion ratio) and a short verdict line per task.
 
 Closed loop (harness.report.closed_loop): runs given together whose protocols differ only in `policy.intervention`
 (same model, tasks, seeds) are paired with the plain run, and each mask-top:K run with the mask-random:K run (is the
@@ -15,9 +15,7 @@ Fills (harness.measures.faithfulness: mean, blur, impute) and orders: each open-
 LeRF ratio beside deletion (MoRF) and insertion; runs of one task with different fills give a ranking-by-fill table
 (`fill_ranking`). Per camera (`camera_rows`): the closed-loop arms of that camera (mask-all@CAMERA against the
 plain run, mask-top:K:METHOD@CAMERA against mask-random:K@CAMERA) beside the open-loop ratio of the same method,
-with a flag where they disagree, and one sentence per camera (`camera_sentence`).
-
-`tables(runs)` -> {"faithfulness.csv", "interventions.csv", "faithfulness_cameras.csv"}; `section(runs, plots)` ->
+with a flag where they disagree, and a verdict line per camera (`camera_sentence`). `tables(runs)` -> {"faithfulness.csv", "interventions.csv", "faithfulness_cameras.csv"}; `section(runs, plots)` ->
 HTML ("" when no run has either); `markdown(runs)` -> the same tables as Markdown (EVAL.md).
 """
 
