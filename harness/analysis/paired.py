@@ -39,7 +39,7 @@ of m tables, Bonferroni-simultaneous, so that SUSPECT's family-wise false alarm 
                 than max_drop is ruled out (the exact test keeps the error of HELD <= alpha / 2, which Newcombe's
                 interval alone exceeds at small n: up to 9% at 20 pairs; tests/gate/test_decisions.py)
   UNDERPOWERED  none of the above (or no pairs, or HELD but with errored pairs)
-Gate order (worst first): ERRORED > REGRESSED > SUSPECT > UNDERPOWERED > HELD > IMPROVED > IDENTICAL.
+Gate order (worst first): ERRORED > REGRESSED > INCOMPLETE > SUSPECT > UNDERPOWERED > HELD > IMPROVED > IDENTICAL.
 """
 from __future__ import annotations
 
@@ -66,9 +66,11 @@ class Verdict(StrEnum):
     INCOMPLETE = "INCOMPLETE"  # the candidate lacks finished episodes the baseline has (compare, regress)
 
 
-# worst first: an overall verdict is the worst of its tasks' (and the pooled table's) verdicts
-VERDICTS = (Verdict.ERRORED, Verdict.REGRESSED, Verdict.SUSPECT, Verdict.UNDERPOWERED, Verdict.HELD, Verdict.IMPROVED,
-            Verdict.IDENTICAL)
+# worst first: an overall verdict is the worst of its tasks' (and the pooled table's) verdicts. INCOMPLETE ranks
+# below ERRORED and REGRESSED, as in a single regress (a decided failure stands), and above every other verdict
+# (a grid with a condition the candidate did not finish cannot pass)
+VERDICTS = (Verdict.ERRORED, Verdict.REGRESSED, Verdict.INCOMPLETE, Verdict.SUSPECT, Verdict.UNDERPOWERED, Verdict.HELD,
+            Verdict.IMPROVED, Verdict.IDENTICAL)
 
 
 def worst(verdicts) -> Verdict:

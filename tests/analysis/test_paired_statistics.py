@@ -14,6 +14,8 @@ from harness.analysis.paired import (
     newcombe_paired_interval,
     paired_verdict,
     pairs_to_decide,
+    Verdict,
+    worst,
 )
 
 
@@ -122,3 +124,13 @@ def test_connor_sample_size_by_hand():
     expected = (1.959964 * math.sqrt(0.5) + 0.841621 * math.sqrt(0.41)) ** 2 / 0.09
     assert mcnemar_sample_size(0.4, 0.1) == math.ceil(expected) == 42
     assert mcnemar_sample_size(0.2, 0.2) is None
+
+
+def test_a_grid_with_an_incomplete_condition_is_incomplete_unless_another_failed_outright():
+    """regress over a robustness grid takes the worst of its conditions: INCOMPLETE used to be outside the gate's
+    order, so a grid with one unfinished condition raised (exit 5) instead of giving a verdict."""
+    assert worst([Verdict.HELD, Verdict.INCOMPLETE, Verdict.IDENTICAL]) == Verdict.INCOMPLETE
+    assert worst([Verdict.SUSPECT, Verdict.INCOMPLETE]) == Verdict.INCOMPLETE
+    assert worst([Verdict.INCOMPLETE, Verdict.REGRESSED]) == Verdict.REGRESSED
+    assert worst([Verdict.ERRORED, Verdict.INCOMPLETE]) == Verdict.ERRORED
+    assert worst([]) == Verdict.IDENTICAL
