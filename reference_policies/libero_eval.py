@@ -98,19 +98,16 @@ def main(argv: list[str] | None = None) -> int:
     add_options(closed, (ClosedLoopOptions, Provenance))
     args = parser.parse_args(argv)
     if args.action == "closed-loop":
-        from harness.files import replace_markdown_section
-
-        from harness.analysis.provenance import command_text, provenance_line, with_provenance
+        from harness.analysis.provenance import command_text, provenance_line
         from harness.analysis.runs import load_run
+        from harness.report.rundata import write_section
 
         made = Provenance(**values(Provenance, args))
         text = closed_loop_markdown(args.random_run, args.top_run, made.note)
         command = made.command or command_text("python -m reference_policies.libero_eval closed-loop",
                                                [args.random_run, args.top_run], ["--eval-md", args.eval_md])
-        text = with_provenance(text, provenance_line(command, [load_run(args.random_run).manifest,
-                                                               load_run(args.top_run).manifest]))
-        replace_markdown_section(args.eval_md, CLOSED_LOOP, text)
-        print(text)
+        line = provenance_line(command, [load_run(args.random_run).manifest, load_run(args.top_run).manifest])
+        print(write_section(args.eval_md, text, line))  # via its figures file beside EVAL.md
     elif args.action == "swaps":
         for task, instruction in swaps().items():
             print(f"{task}\t{instruction}")

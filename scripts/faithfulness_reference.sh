@@ -35,5 +35,7 @@ for spec in "Lift 150 1" "Stack 250 1" "PickPlaceCan 400 2"; do
         closed+=("$OUT/${task}_$name")
     done
 done
-.venv/bin/python -m harness.report.faithfulness "${open[@]}" "${closed[@]}" --command "bash scripts/faithfulness_reference.sh" --figure docs/faithfulness_reference.png
+# EVAL.md's "## Faithfulness" section, rendered from its figures file ($MODEL/figures/faithfulness.json)
+.venv/bin/python -m harness.report.faithfulness "${open[@]}" "${closed[@]}" --command "bash scripts/faithfulness_reference.sh" \
+    --figure docs/faithfulness_reference.png --eval-md "$MODEL/EVAL.md"
 .venv/bin/octo-harness report "${open[@]}" --out "$OUT/report_open"

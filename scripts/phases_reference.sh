@@ -22,12 +22,12 @@ for task in Lift Stack PickPlaceCan; do
     runs+=("$OUT/phases_$task")
 done
 "$PY" -m harness.cli report "${runs[@]}" --out "$OUT/report"
-"$PY" -m harness.report.phases "${runs[@]}" --command "bash scripts/phases_reference.sh" > "$OUT/phases.md"
-"$PY" -m harness.report.position "${runs[@]}" --command "bash scripts/phases_reference.sh" > "$OUT/position.md"
+# EVAL.md's "## Phases and position" section (phase tables, then position tables), from $MODEL/figures/phases-and-position.json
+"$PY" -m harness.report.phases "${runs[@]}" --command "bash scripts/phases_reference.sh" --eval-md "$MODEL/EVAL.md" > "$OUT/phases.md"
 # the figures docs/phases-and-position.md shows
 for task in Lift Stack PickPlaceCan; do
     lower=$(echo "$task" | tr '[:upper:]' '[:lower:]')
     cp "$OUT/report/plots/position_${lower}_phases_${task}.png" "docs/phases_position_${lower}.png"
     cp "$OUT/report/plots/phase_events_${lower}_phases_${task}.png" "docs/phases_events_${lower}.png"
 done
-echo "report: $OUT/report/report.html; tables: $OUT/phases.md, $OUT/position.md"
+echo "report: $OUT/report/report.html; section: $MODEL/EVAL.md (also $OUT/phases.md)"

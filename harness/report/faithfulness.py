@@ -477,23 +477,37 @@ def markdown(runs) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":  # python -m harness.report.faithfulness RUN... [--figure PNG]: the Markdown tables
+def main(argv=None) -> int:
+    """`python -m harness.report.faithfulness RUN... [--eval-md EVAL.md] [--section TITLE] [--figure PNG]`: the
+    Faithfulness section (the tables and sentences), printed; with --eval-md also written there and to its figures
+    file (harness.report.rundata.eval_md_section_main)."""
     import argparse
 
-    from harness.analysis.provenance import command_text, provenance_line
-    from harness.analysis.runs import load_run
+    from harness.report.rundata import eval_md_section_main
 
-    parser = argparse.ArgumentParser(prog="python -m harness.report.faithfulness")
-    parser.add_argument("runs", nargs="+")
-    parser.add_argument("--command", default=None, help="the command to name in the provenance line [this one]")
-    parser.add_argument("--figure", default=None, help="also write the deletion-ratio heatmaps of every task here")
-    args = parser.parse_args()
-    records = [load_run(p) for p in args.runs]
-    command = args.command or command_text("python -m harness.report.faithfulness", args.runs, [])
-    print(provenance_line(command, [r.manifest for r in records]) + "\n")  # the line a results section carries
-    print(markdown(records))
-    if args.figure:
-        rows = [r for record in records for r in summarise(read_rows(record), record.name)]
-        tasks = list(dict.fromkeys(r[1] for r in rows))
-        with open(args.figure, "wb") as f:
-            f.write(figure([(task, rows) for task in tasks]))
+    parser = argparse.ArgumentParser(add_help=False)
+    parser.add_argument("--figure", default=None)
+    parser.add_argument("--section", default="Faithfulness")
+    known, rest = parser.parse_known_args(argv)
+
+    def section(records, note: str) -> str:
+        tables = markdown(records)
+        if not tables.strip():
+            raise ValueError("no run here has faithfulness or intervention rows: give runs made with "
+                             "--faithfulness-every or --intervene")
+        if known.figure:
+            rows = [r for record in records for r in summarise(read_rows(record), record.name)]
+            tasks = list(dict.fromkeys(r[1] for r in rows))
+            with open(known.figure, "wb") as f:
+                f.write(figure([(task, rows) for task in tasks]))
+        return "\n\n".join(x for x in (f"## {known.section}", note, tables) if x) + "\n"
+
+    options = (("--section", known.section) if known.section != "Faithfulness" else ()) + \
+        (("--figure", known.figure) if known.figure else ())
+    return eval_md_section_main(rest, "python -m harness.report.faithfulness", "Write the Faithfulness section of "
+                                "an EVAL.md (--section TITLE: its heading [Faithfulness]; --figure PNG: also the "
+                                "deletion-ratio heatmaps of every task).", section, options=options)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -96,8 +96,7 @@ def main(argv=None) -> int:
     from harness.report.rundata import eval_md_section_main
 
     return eval_md_section_main(argv, "python -m harness.report.grounding",
-                                "Write the Language grounding section of an EVAL.md from LIBERO-Object runs.",
-                                SECTION, markdown)
+                                "Write the Language grounding section of an EVAL.md from LIBERO-Object runs.", markdown)
 
 
 if __name__ == "__main__":

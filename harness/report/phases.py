@@ -368,17 +368,23 @@ def _md_row(cells) -> str:
     return "| " + " | ".join(cells) + " |"
 
 
-if __name__ == "__main__":  # python -m harness.report.phases RUN...: the Markdown tables
-    import argparse
+def main(argv=None) -> int:
+    """`python -m harness.report.phases RUN... [--eval-md EVAL.md]`: the "Phases and position" section (the phase
+    tables, then harness.report.position's tables), printed; with --eval-md also written there and to its figures
+    file."""
+    from harness.report import position
+    from harness.report.rundata import eval_md_section_main
 
-    from harness.analysis.provenance import command_text, provenance_line
-    from harness.analysis.runs import load_run
+    def section(records, note: str) -> str:
+        phases, where = markdown(records), position.markdown(records)
+        if not phases.strip():
+            raise ValueError("no run here has phase rows: give runs made with masks on (the default)")
+        parts = ["## Phases and position", note, "### Phases", phases, "### Position" if where.strip() else "", where]
+        return "\n\n".join(x.strip("\n") for x in parts if x.strip()) + "\n"
 
-    parser = argparse.ArgumentParser(prog="python -m harness.report.phases")
-    parser.add_argument("runs", nargs="+")
-    parser.add_argument("--command", default=None, help="the command to name in the provenance line [this one]")
-    args = parser.parse_args()
-    records = [load_run(p) for p in args.runs]
-    command = args.command or command_text("python -m harness.report.phases", args.runs, [])
-    print(provenance_line(command, [r.manifest for r in records]) + "\n")  # the line a results section carries
-    print(markdown(records))
+    return eval_md_section_main(argv, "python -m harness.report.phases", "Write the Phases and position section of an "
+                                "EVAL.md.", section)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

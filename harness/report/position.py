@@ -258,17 +258,20 @@ def markdown(runs) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":  # python -m harness.report.position RUN...: the Markdown tables
-    import argparse
+def main(argv=None) -> int:
+    """`python -m harness.report.position RUN... [--eval-md EVAL.md]`: the Position section alone (the tables), printed;
+    with --eval-md also written there and to its figures file. `python -m harness.report.phases` writes both."""
+    from harness.report.rundata import eval_md_section_main
 
-    from harness.analysis.provenance import command_text, provenance_line
-    from harness.analysis.runs import load_run
+    def section(records, note: str) -> str:
+        tables = markdown(records)
+        if not tables.strip():
+            raise ValueError("no run here has position rows: give runs made with --attention-controls blank,mirror")
+        return "\n\n".join(x for x in ("## Position", note, tables) if x) + "\n"
 
-    parser = argparse.ArgumentParser(prog="python -m harness.report.position")
-    parser.add_argument("runs", nargs="+")
-    parser.add_argument("--command", default=None, help="the command to name in the provenance line [this one]")
-    args = parser.parse_args()
-    records = [load_run(p) for p in args.runs]
-    command = args.command or command_text("python -m harness.report.position", args.runs, [])
-    print(provenance_line(command, [r.manifest for r in records]) + "\n")  # the line a results section carries
-    print(markdown(records))
+    return eval_md_section_main(argv, "python -m harness.report.position", "Write the Position section of an EVAL.md.",
+                                section)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -261,7 +261,7 @@ def main(argv=None) -> int:
         (("--section", known.section) if section != SECTION else ())
     return eval_md_section_main(rest, "python -m harness.report.robustness", "Write the Robustness section of an EVAL.md "
                                 "from grid runs (--margin M: the drop a HOLDS verdict rules out [0.15]; --section "
-                                "TITLE: the section's heading, for a second grid [Robustness]).", section,
+                                "TITLE: the section's heading, for a second grid [Robustness]).",
                                 functools.partial(markdown, margin=known.margin, section=section), options=options)
 
 

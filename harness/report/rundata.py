@@ -109,22 +109,23 @@ def csv_bytes(columns, rows) -> bytes:
     return buffer.getvalue().encode()
 
 
-def eval_md_section_main(argv, prog: str, description: str, section: str, markdown, options: tuple = ()) -> int:
-    """`python -m harness.report.<section> RUN... --eval-md EVAL.md [--note TEXT] [--command TEXT]`: make that section
-    of an EVAL.md from run folders once (`markdown(records, note)`), with its provenance line (the command: --command,
-    else this one with `options`, the caller's own options; the checkout's commit; the runs' machine), replace it
-    there (other sections stay) and print it."""
+def eval_md_section_main(argv, prog: str, description: str, markdown, options: tuple = ()) -> int:
+    """`python -m harness.report.<section> RUN... [--eval-md EVAL.md] [--note TEXT] [--command TEXT]`: make that
+    section from run folders once (`markdown(records, note)`), with its provenance line (the command: --command, else
+    this one with `options`, the caller's own options; the commit the runs recorded; the runs' machine) and print it.
+    With --eval-md: its figures go to `figures/<section>.json` beside that EVAL.md first, and the section rendered
+    from that file replaces its namesake there (other sections stay; harness/report/figures_file.py)."""
     import argparse
     import sys
     from pathlib import Path
 
-    from harness.analysis.provenance import command_text, provenance_line, with_provenance
+    from harness.analysis.provenance import command_text, provenance_line
     from harness.analysis.runs import load_run
-    from harness.files import replace_markdown_section
 
     parser = argparse.ArgumentParser(prog=prog, description=description)
     parser.add_argument("runs", nargs="+", type=Path)
-    parser.add_argument("--eval-md", type=Path, required=True)
+    parser.add_argument("--eval-md", type=Path, default=None, help="write the section into this EVAL.md and its "
+                        "figures file beside it [print it only]")
     parser.add_argument("--note", default="")
     parser.add_argument("--command", default=None, help="the command to name in the provenance line (a script that "
                         "calls this one) [this command]")
@@ -135,8 +136,23 @@ def eval_md_section_main(argv, prog: str, description: str, section: str, markdo
     except ValueError as exc:  # runs that hold nothing for this section: one line, EVAL.md untouched
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
-    command = args.command or command_text(prog, args.runs, ["--eval-md", str(args.eval_md), *options])
-    text = with_provenance(text, provenance_line(command, [r.manifest for r in records]))
-    replace_markdown_section(args.eval_md, section, text)
-    print(text)
+    written = ["--eval-md", str(args.eval_md)] if args.eval_md else []
+    command = args.command or command_text(prog, args.runs, [*written, *options])
+    print(write_section(args.eval_md, text, provenance_line(command, [r.manifest for r in records])))
     return 0
+
+
+def write_section(eval_md, text: str, provenance: str) -> str:
+    """A section's Markdown ("## Heading", then its body) and provenance line -> the section as rendered from its
+    figures document; with `eval_md`, that document is written to `figures/<section>.json` beside it first, and the
+    section rendered from the file replaces its namesake in `eval_md` (other sections stay)."""
+    from harness.files import replace_markdown_section
+    from harness.report import figures_file
+
+    doc = figures_file.figures(text, provenance)
+    if eval_md is None:
+        return figures_file.render(doc)
+    doc = figures_file.read(figures_file.write(eval_md, doc))  # the section is what its figures file renders
+    text = figures_file.render(doc)
+    replace_markdown_section(eval_md, doc["section"], text)
+    return text

@@ -1,16 +1,19 @@
 """No results section of models/*/EVAL.md is edited by hand (issue 67 item 6): each is rendered from a figures
-file committed beside the model, and rendering it again gives the committed text; a section whose runs were not kept and
-that has no figures file says so in one line (reference_policies.evaluate.NOT_KEPT). No simulation: JSON in, text out."""
+file committed beside the model (the top section from eval.json, each "## " section from figures/<section>.json), and
+rendering it again gives the committed text; a section whose runs were not kept and that has no figures file says so
+in one line (reference_policies.evaluate.NOT_KEPT). No simulation: JSON in, text out."""
 
 from __future__ import annotations
 
 import difflib
 import json
+import re
 from pathlib import Path
 
 import pytest
 
 from harness.analysis.provenance import PROVENANCE_LINE
+from harness.report import figures_file
 from reference_policies.evaluate import FIGURES, NOT_KEPT, render
 
 REPO = Path(__file__).resolve().parents[2]
@@ -54,11 +57,53 @@ def test_the_top_section_is_rendered_from_its_figures_file(model):
 
 
 @pytest.mark.parametrize("model", MODELS, ids=lambda p: p.name)
-def test_a_section_without_a_figures_file_says_so_in_one_line(model):
+def test_each_section_is_rendered_from_its_figures_file_or_says_it_has_none(model):
     _, sections = _top_and_sections(model / "EVAL.md")
+    headings = [h for h, _ in sections]
     for heading, body in sections:
-        assert body.count(NOT_KEPT) == 1, (f"{model.name}/EVAL.md {heading!r}: no figures file renders it, so it "
-                                           f"says once: {NOT_KEPT!r}")
+        path = figures_file.path_for(model / "EVAL.md", heading)
+        if not path.is_file():
+            assert body.count(NOT_KEPT) == 1, (f"{model.name}/EVAL.md {heading!r}: no figures file renders it, so it "
+                                               f"says once: {NOT_KEPT!r}")
+            continue
+        doc = figures_file.read(path)
+        committed = f"{heading}\n{body}".rstrip("\n") + "\n"
+        assert doc["section"] == heading and figures_file.render(doc) == committed, (
+            f"{model.name}/EVAL.md {heading!r} differs from what {path.name} renders: run its command again")
+        assert NOT_KEPT not in body and PROVENANCE_LINE.search(doc["provenance"])
+    for path in sorted((model / figures_file.FOLDER).glob("*.json")):  # no figures file without its section
+        assert figures_file.read(path)["section"] in headings, f"{path}: its section is not in EVAL.md"
+
+
+def test_every_committed_section_round_trips_through_a_figures_document():
+    """The figures document keeps every line of a generated section: the committed sections (tables, verdict lines,
+    notes, sub-headings) each render back to their own text, blank lines between blocks made one."""
+    sections = [(heading, body) for model in MODELS for heading, body in _top_and_sections(model / "EVAL.md")[1]]
+    assert len(sections) >= 10
+    tables = 0
+    for heading, body in sections:
+        text = f"{heading}\n\n{body.strip(chr(10))}\n"
+        doc = figures_file.figures(text, "Provenance: p.")
+        tables += sum("table" in b for b in doc["blocks"])
+        expected = re.sub(r"\n[ \t]*\n(?:[ \t]*\n)*", "\n\n", f"{heading}\n\nProvenance: p.\n\n{body.strip(chr(10))}\n")
+        assert figures_file.render(json.loads(json.dumps(doc))) == expected, heading
+    assert tables >= 20  # the tables are kept as rows of cells (the figures), not as text
+
+
+def test_a_figures_file_that_is_torn_or_not_one_is_one_line_naming_it(tmp_path):
+    bad = tmp_path / "x.json"
+    for content in ("{", "[]", json.dumps({"format": 1, "section": "## A", "provenance": "p", "blocks": [1]})):
+        bad.write_text(content)
+        with pytest.raises(figures_file.FiguresFileError, match=str(bad)) as info:
+            figures_file.read(bad)
+        assert "\n" not in str(info.value)
+
+
+def test_a_table_cell_holding_a_bar_keeps_its_row_as_text():
+    text = "## S\n\n| a | b |\n|---|---|\n| `x | y` | 2 |\n"
+    doc = figures_file.figures(text, "Provenance: p.")
+    assert doc["blocks"] == [{"text": ["| a | b |", "|---|---|", "| `x | y` | 2 |"]}]
+    assert figures_file.render(doc) == "## S\n\nProvenance: p.\n\n| a | b |\n|---|---|\n| `x | y` | 2 |\n"
 
 
 def test_the_figures_render_the_verdict_line_and_the_table(tmp_path):

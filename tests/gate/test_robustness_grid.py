@@ -180,6 +180,12 @@ def test_robustness_grid_resumes_and_reports_in_chromium(tmp_path, capsys):
     second = eval_md.read_text()
     assert second.startswith(text.rstrip("\n")) and second.count("\n## Robustness of the wrist camera\n") == 1
     assert "--section 'Robustness of the wrist camera'" in second[len(text):]  # the provenance names the option
+    from harness.report import figures_file  # each section is what its figures file beside EVAL.md renders
+
+    for name, heading in (("robustness", "## Robustness"), ("robustness-of-the-wrist-camera",
+                                                           "## Robustness of the wrist camera")):
+        rendered = figures_file.render(figures_file.read(tmp_path / "figures" / f"{name}.json"))
+        assert rendered.startswith(heading + "\n") and rendered in second
     text = second
     # an unperturbed run alone is one line and leaves EVAL.md as it was
     nominal = next(r for r in runs if Path(r).name == "nominal")

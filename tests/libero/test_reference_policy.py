@@ -906,6 +906,7 @@ def test_the_committed_policy_runs_libero_object_and_the_report_shows_its_ground
     assert grounding_main([str(tmp_path / "runs" / "own"), str(tmp_path / "runs" / "swap"), "--eval-md", str(eval_md)]) == 0
     text = eval_md.read_text()
     assert text.count("## Language grounding") == 1 and "| libero_object/0 |" in text
+    assert (tmp_path / "figures" / "language-grounding.json").is_file()  # rendered from it (tests/docs/test_eval_sections.py)
 
 
 @pytest.mark.slow
@@ -1004,5 +1005,11 @@ def test_the_closed_loop_section_is_written_when_the_script_names_its_command(tm
     assert "command `bash scripts/evaluate_libero_reference.sh 20 2`" in text
     assert "| **all tasks** | 4 | 3/4 [0.30, 0.95] | 1/4 [0.05, 0.70] | 2 | 0 | 0.5 |" in text
     assert f"| {a} | 2 | 2/2" in text and f"| {b} | 2 | 1/2" in text
+    from harness.report import figures_file  # the section is what its figures file beside EVAL.md renders
+
+    doc = figures_file.read(figures_file.path_for(eval_md, libero_eval.CLOSED_LOOP))
+    assert figures_file.render(doc) in text and doc["section"] == libero_eval.CLOSED_LOOP
+    (table,) = [b["table"] for b in doc["blocks"] if "table" in b]
+    assert table["rows"][-1] == ["**all tasks**", "4", "3/4 [0.30, 0.95]", "1/4 [0.05, 0.70]", "2", "0", "0.5"]
     capsys.readouterr()
     assert libero_eval.main(["nonsense"]) == 0 and capsys.readouterr().out.strip() == libero_eval.NONSENSE

@@ -191,6 +191,16 @@ def test_attribution_and_faithfulness_in_a_run_leave_the_actions_alone(tmp_path)
     assert len(table) == 1 + 6  # 2 cameras x (attention:2, saliency, random)
     html = (tmp_path / "report" / "report.html").read_text()
     assert "Open loop: probed" in html and " ranks best, " in html
+    # EVAL.md's Faithfulness section from the run, rendered from its figures file beside EVAL.md (issue 67 item 6)
+    from harness.report import faithfulness, figures_file
+
+    eval_md = tmp_path / "EVAL.md"
+    assert faithfulness.main([str(tmp_path / "probed"), "--eval-md", str(eval_md)]) == 0
+    doc = figures_file.read(tmp_path / "figures" / "faithfulness.json")
+    assert eval_md.read_text().endswith(figures_file.render(doc)) and doc["section"] == "## Faithfulness"
+    (table,) = [b["table"] for b in doc["blocks"] if "table" in b]
+    assert len(table["rows"]) == 6 and table["header"][:3] == ["task", "camera", "method"]
+    assert faithfulness.main([str(tmp_path / "plain"), "--eval-md", str(eval_md)]) == 2  # nothing to tabulate
 
 
 def test_settings_and_protocol_files_carry_the_options(tmp_path):

@@ -111,6 +111,22 @@ def test_phase_tables_agree_with_the_episodes(run, report):
     assert list(_rows(report / "tables" / "phase_tests.csv")[0])[5:8] == ["test", "statistic", "p"]
 
 
+def test_eval_md_gets_the_phases_and_position_section_from_its_figures_file(run, tmp_path):
+    """`python -m harness.report.phases RUN --eval-md EVAL.md` (scripts/phases_reference.sh): the phase tables and
+    the position tables in one section, rendered from figures/phases-and-position.json; `.position` alone too."""
+    from harness.report import figures_file, phases, position
+
+    eval_md = tmp_path / "EVAL.md"
+    eval_md.write_text("# model\n\n## Robustness\n\nkept\n")
+    assert phases.main([str(run), "--eval-md", str(eval_md)]) == 0
+    text = eval_md.read_text()
+    doc = figures_file.read(tmp_path / "figures" / "phases-and-position.json")
+    assert "## Robustness\n\nkept\n" in text and text.endswith(figures_file.render(doc))
+    assert "### Phases" in text and "### Position" in text and "| phase | episodes reaching it |" in text
+    assert position.main([str(run), "--eval-md", str(eval_md)]) == 0
+    assert (tmp_path / "figures" / "position.json").is_file() and eval_md.read_text().count("\n## Position\n") == 1
+
+
 def test_sections_render_in_headless_chromium(report, tmp_path):
     dom = _browser(report / "report.html", tmp_path, "--dump-dom", "--virtual-time-budget=10000").stdout
     for title in ("Phases", "Position", "Lift: phases"):

@@ -186,6 +186,15 @@ def test_eval_md_gets_a_reliance_section_with_provenance_and_keeps_the_others(ru
             "(relied on more than looked at).") in section
     assert "| camera | Spearman over regions per step: mean | 95% seed-cluster | seeds | steps | episodes |" in section
     assert "| image_wrist | background |" in section and "episode_2: unreadable reliance.jsonl" in section
-    # a run without reliance is one line, exit 2, EVAL.md untouched
-    before = eval_md.read_text()
+    # the section is what its figures file renders (issue 67 item 6): the tables as rows of cells
+    from harness.report import figures_file
+
+    doc = figures_file.read(tmp_path / "figures" / "reliance.json")
+    assert figures_file.render(doc) == section and doc["section"] == "## Reliance"
+    tables = [b["table"] for b in doc["blocks"] if "table" in b]
+    assert any(t["header"][:2] == ["camera", "Spearman over regions per step: mean"] for t in tables)
+    assert any(row[:2] == ["image_wrist", "background"] for t in tables for row in t["rows"])
+    # a run without reliance is one line, exit 2, EVAL.md and the figures file untouched
+    before, figures_before = eval_md.read_text(), (tmp_path / "figures" / "reliance.json").read_bytes()
     assert R.main([str(REFERENCE), "--eval-md", str(eval_md)]) == 2 and eval_md.read_text() == before
+    assert (tmp_path / "figures" / "reliance.json").read_bytes() == figures_before
