@@ -28,6 +28,12 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(2 * 2 ** 30))
 if os.environ.pop("PYTHONDONTWRITEBYTECODE", None) is not None:
     os.environ.setdefault("PYTHONPYCACHEPREFIX", str(REPO / ".pytest_cache" / "pycache"))
     sys.pycache_prefix, sys.dont_write_bytecode = os.environ["PYTHONPYCACHEPREFIX"], False
+# Ray reads its token-authentication mode once per process. A test process whose first Ray instance used token
+# authentication (Ray's default) cannot then drive a cluster started without it, as the multi-node tests start theirs:
+# the cluster's calls to the driver are refused for a missing token, and the cluster cancels the driver's actors
+# before they start ("all references to the actor were removed"). Every Ray instance and cluster of the tests runs
+# without it, whichever test file ran first in the process.
+os.environ["RAY_AUTH_MODE"] = "disabled"
 FIXTURES = Path(os.environ.get("OCTO_REFERENCE_FIXTURES", REPO.parent / "shared" / "fixtures" / "octo-reference"))
 
 

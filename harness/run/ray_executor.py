@@ -211,6 +211,14 @@ def _last_line(exc: BaseException) -> str:
     return line.split("RayExecutorError: ", 1)[-1]  # our own one-line errors, raised inside an actor
 
 
+def _actor_error(exc: BaseException) -> str:
+    """A Ray actor error in one line: Ray's own reason (its error-message line: e.g. the node was marked dead, the
+    owner died) and whether the actor ever ran, without Ray's generic first line and ids."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    kept = [line for line in lines[1:] if not re.match(r"(class_name|actor_id|pid|name|namespace|ip):", line)]
+    return " ".join(kept)[:400] or _last_line(exc)
+
+
 def actor_death_cause(exc: BaseException, lost: str = "worker") -> str:
     """A Ray actor error -> the error recorded for its episode: where it ran and Ray's exit detail (or, where its
     node was `lost`, that)."""
@@ -337,7 +345,9 @@ class RayExecutor:
         try:  # the replicas load the model and compile while the env workers start (`_started`: each takes jobs then)
             ray.get(warming)
         except (ray.exceptions.RayActorError, ray.exceptions.RayTaskError) as exc:
-            raise RayExecutorError(_last_line(exc)) from None
+            if isinstance(exc, ray.exceptions.RayTaskError) or exc.actor_init_failed:  # the model did not load there
+                raise RayExecutorError(_last_line(exc)) from None
+            raise RayExecutorError(f"the policy replica did not start: {_actor_error(exc)}") from None
 
     def _new_replica(self):
         return self._replica_cls.remote(self.model_source, self.spec.policy, self.context.protocol.text_tokenizer)

@@ -326,6 +326,20 @@ def test_an_env_worker_that_cannot_see_the_run_folder_names_its_node_and_the_fix
         EnvWorker(None, None, (str(tmp_path / "marker"), "another run's token"))
 
 
+def test_a_replica_that_never_started_is_one_line_with_rays_reason():
+    """Ray's actor error -> the line a run stops with: Ray's reason and whether the actor ever ran, without its generic
+    first line and ids (before, only "The actor never ran - it was cancelled before it started running." was left)."""
+    from ray.core.generated.common_pb2 import ActorDiedErrorContext
+    from ray.exceptions import ActorDiedError
+
+    from harness.run.ray_executor import _actor_error
+
+    exc = ActorDiedError(ActorDiedErrorContext(class_name="PolicyReplica", actor_id=b"x" * 16, pid=7, node_ip_address="10.0.0.2",
+                                               error_message="The actor is dead because its node died.", never_started=True))
+    assert _actor_error(exc) == ("The actor is dead because its node died. "
+                                 "The actor never ran - it was cancelled before it started running.")
+
+
 @pytest.mark.parametrize("flags, message", [
     (["--workers", "0"], "--workers must be at least 1"),
     (["--ray-address", "auto"], "need --executor ray"),
