@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.action == "closed-loop":
         from harness.analysis.provenance import command_text, provenance_line
         from harness.analysis.runs import load_run
-        from harness.report.rundata import write_section
+        from harness.report.eval_md import write_section
 
         made = Provenance(**values(Provenance, args))
         text = closed_loop_markdown(args.random_run, args.top_run, made.note)

@@ -21,7 +21,6 @@ HTML ("" when no run has either); `markdown(runs)` -> the same tables as Markdow
 
 from __future__ import annotations
 
-import io
 import math
 from collections import defaultdict
 
@@ -288,24 +287,6 @@ def _name(method: str) -> str:
     return f"layer {layer} attention" if base == "attention" else base
 
 
-def _draw(ax, task: str, rows: list[tuple], methods: list[str]):
-    """methods (rows) x cameras (columns) of the deletion ratio on `ax` (n/a where absent); returns the image artist."""
-    from matplotlib.colors import TwoSlopeNorm
-
-    items = [r for r in rows if r[1] == task]
-    cameras = sorted({r[2] for r in items})
-    grid = np.full((len(methods), len(cameras)), np.nan)
-    for r in items:
-        grid[methods.index(r[3]), cameras.index(r[2])] = r[7]
-    im = ax.imshow(np.ma.masked_invalid(grid), cmap="RdBu_r", norm=TwoSlopeNorm(1.0, 0.5, 1.5), aspect="auto")
-    for (y, x), v in np.ndenumerate(grid):
-        ax.text(x, y, "n/a" if not np.isfinite(v) else f"{v:.2f}", ha="center", va="center", fontsize=8)
-    ax.set_xticks(range(len(cameras)), [c.removeprefix("image_") for c in cameras])
-    ax.set_yticks(range(len(methods)), methods)
-    ax.set_title(task, fontsize=9)
-    return im
-
-
 def heatmap(task: str, rows: list[tuple]) -> bytes:
     """PNG: methods (rows) x cameras (columns) of the deletion ratio (1 = random; colours clipped to 0.5..1.5)."""
     return figure([(task, rows)])
@@ -313,27 +294,11 @@ def heatmap(task: str, rows: list[tuple]) -> bytes:
 
 def figure(panels: list[tuple[str, list[tuple]]]) -> bytes:
     """PNG of one heatmap per (task, rows) side by side, one colour bar (deletion AUC / random, >1 better)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from harness.report.figures import deletion_heatmaps
 
     methods = sorted({r[3] for task, rows in panels for r in rows if r[1] == task}, key=_order)  # every panel's rows
-    height = len(methods)
-    fig, axes = plt.subplots(1, len(panels), figsize=(1.4 + 2.2 * len(panels), 1.2 + 0.34 * height), dpi=110,
-                             squeeze=False)
-    im = None
-    for i, (ax, (task, rows)) in enumerate(zip(axes[0], panels)):
-        im = _draw(ax, task, rows, methods)
-        if i:  # the same rows in every panel: labelled once, on the left
-            ax.tick_params(labelleft=False)
-    fig.suptitle("deletion AUC / random map's (1 = random, > 1: deleting the top-ranked patches moves the action sooner)",
-                 fontsize=8)
-    fig.colorbar(im, ax=list(axes[0]), fraction=0.03)
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", bbox_inches="tight")
-    plt.close(fig)
-    return buffer.getvalue()
+    cells = [(task, {(r[3], r[2]): r[7] for r in rows if r[1] == task}) for task, rows in panels]
+    return deletion_heatmaps(cells, methods)
 
 
 def section(runs, plots) -> str:
@@ -478,35 +443,28 @@ def markdown(runs) -> str:
 
 
 def main(argv=None) -> int:
-    """`python -m harness.report.faithfulness RUN... [--eval-md EVAL.md] [--section TITLE] [--figure PNG]`: the
-    Faithfulness section (the tables and sentences), printed; with --eval-md also written there and to its figures
-    file (harness.report.rundata.eval_md_section_main)."""
+    """`python -m harness.report.faithfulness RUN... [--eval-md EVAL.md] [--figure PNG]`: the Faithfulness section
+    (harness.report.eval_md); --figure PNG also draws the deletion-ratio heatmaps of every task."""
     import argparse
 
-    from harness.report.rundata import eval_md_section_main
+    from harness.report.eval_md import section_main, tables_section
 
     parser = argparse.ArgumentParser(add_help=False)
     parser.add_argument("--figure", default=None)
-    parser.add_argument("--section", default="Faithfulness")
     known, rest = parser.parse_known_args(argv)
 
-    def section(records, note: str) -> str:
-        tables = markdown(records)
-        if not tables.strip():
-            raise ValueError("no run here has faithfulness or intervention rows: give runs made with "
-                             "--faithfulness-every or --intervene")
-        if known.figure:
-            rows = [r for record in records for r in summarise(read_rows(record), record.name)]
-            tasks = list(dict.fromkeys(r[1] for r in rows))
+    def body(records) -> str:
+        rows = [r for record in records for r in summarise(read_rows(record), record.name)]
+        if known.figure and rows:
             with open(known.figure, "wb") as f:
-                f.write(figure([(task, rows) for task in tasks]))
-        return "\n\n".join(x for x in (f"## {known.section}", note, tables) if x) + "\n"
+                f.write(figure([(task, rows) for task in dict.fromkeys(r[1] for r in rows)]))
+        return markdown(records)
 
-    options = (("--section", known.section) if known.section != "Faithfulness" else ()) + \
-        (("--figure", known.figure) if known.figure else ())
-    return eval_md_section_main(rest, "python -m harness.report.faithfulness", "Write the Faithfulness section of "
-                                "an EVAL.md (--section TITLE: its heading [Faithfulness]; --figure PNG: also the "
-                                "deletion-ratio heatmaps of every task).", section, options=options)
+    empty = "no run here has faithfulness or intervention rows: give runs made with --faithfulness-every or --intervene"
+    return section_main(rest, "python -m harness.report.faithfulness", "Write the Faithfulness section of an EVAL.md "
+                        "(--figure PNG: also the deletion-ratio heatmaps of every task).",
+                        tables_section("## Faithfulness", body, empty),
+                        options=("--figure", known.figure) if known.figure else ())
 
 
 if __name__ == "__main__":

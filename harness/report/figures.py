@@ -408,3 +408,32 @@ def overlay_grid(
             draw.rectangle([x + int(x0 * width_cell), y + int(y0 * cell), x + max(int(x0 * width_cell) + 1, int(round(x1 * width_cell)) - 1),
                             y + max(int(y0 * cell) + 1, int(round(y1 * cell)) - 1)], outline=(0, 255, 0), width=1)
     return encode_png(np.asarray(image))
+
+
+def deletion_heatmaps(panels: list[tuple[str, dict]], methods: list[str]) -> bytes:
+    """PNG of one heatmap per (task, {(method, camera): deletion AUC / random}) side by side: methods (rows, in the
+    given order) x cameras (columns), n/a where absent, colours centred on 1 (random) and clipped to 0.5..1.5, one
+    colour bar (the Faithfulness section's figure)."""
+    fig = Figure(figsize=(1.4 + 2.2 * len(panels), 1.2 + 0.34 * len(methods)), dpi=110)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    im = None
+    for i, (ax, (task, cells)) in enumerate(zip(axes, panels)):
+        cameras = sorted({camera for _, camera in cells})
+        grid = np.full((len(methods), len(cameras)), np.nan)
+        for (method, camera), value in cells.items():
+            grid[methods.index(method), cameras.index(camera)] = value
+        im = ax.imshow(np.ma.masked_invalid(grid), cmap="RdBu_r", norm=TwoSlopeNorm(1.0, 0.5, 1.5), aspect="auto")
+        for (y, x), v in np.ndenumerate(grid):
+            ax.text(x, y, "n/a" if not np.isfinite(v) else f"{v:.2f}", ha="center", va="center", fontsize=8)
+        ax.set_xticks(range(len(cameras)), [c.removeprefix("image_") for c in cameras])
+        ax.set_yticks(range(len(methods)), methods)
+        ax.set_title(task, fontsize=9)
+        if i:  # the same rows in every panel: labelled once, on the left
+            ax.tick_params(labelleft=False)
+    fig.suptitle("deletion AUC / random map's (1 = random, > 1: deleting the top-ranked patches moves the action sooner)",
+                 fontsize=8)
+    fig.colorbar(im, ax=list(axes), fraction=0.03)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", bbox_inches="tight")
+    return buffer.getvalue()

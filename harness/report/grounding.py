@@ -93,10 +93,10 @@ def markdown(records, note: str = "") -> str:
 
 
 def main(argv=None) -> int:
-    from harness.report.rundata import eval_md_section_main
+    from harness.report.eval_md import section_main
 
-    return eval_md_section_main(argv, "python -m harness.report.grounding",
-                                "Write the Language grounding section of an EVAL.md from LIBERO-Object runs.", markdown)
+    return section_main(argv, "python -m harness.report.grounding",
+                        "Write the Language grounding section of an EVAL.md from LIBERO-Object runs.", markdown)
 
 
 if __name__ == "__main__":

@@ -370,20 +370,19 @@ def _md_row(cells) -> str:
 
 def main(argv=None) -> int:
     """`python -m harness.report.phases RUN... [--eval-md EVAL.md]`: the "Phases and position" section (the phase
-    tables, then harness.report.position's tables), printed; with --eval-md also written there and to its figures
-    file."""
+    tables, then harness.report.position's), printed; with --eval-md also written there (harness.report.eval_md)."""
     from harness.report import position
-    from harness.report.rundata import eval_md_section_main
+    from harness.report.eval_md import section_main, tables_section
 
-    def section(records, note: str) -> str:
-        phases, where = markdown(records), position.markdown(records)
-        if not phases.strip():
-            raise ValueError("no run here has phase rows: give runs made with masks on (the default)")
-        parts = ["## Phases and position", note, "### Phases", phases, "### Position" if where.strip() else "", where]
-        return "\n\n".join(x.strip("\n") for x in parts if x.strip()) + "\n"
+    def body(records) -> str:
+        steps, where = markdown(records), position.markdown(records)
+        if not steps.strip():
+            return ""
+        return "\n\n".join(["### Phases", steps.strip("\n")] + (["### Position", where.strip("\n")] if where.strip() else []))
 
-    return eval_md_section_main(argv, "python -m harness.report.phases", "Write the Phases and position section of an "
-                                "EVAL.md.", section)
+    return section_main(argv, "python -m harness.report.phases", "Write the Phases and position section of an EVAL.md.",
+                        tables_section("## Phases and position", body,
+                                       "no run here has phase rows: give runs made with masks on (the default)"))
 
 
 if __name__ == "__main__":

@@ -260,17 +260,12 @@ def markdown(runs) -> str:
 
 def main(argv=None) -> int:
     """`python -m harness.report.position RUN... [--eval-md EVAL.md]`: the Position section alone (the tables), printed;
-    with --eval-md also written there and to its figures file. `python -m harness.report.phases` writes both."""
-    from harness.report.rundata import eval_md_section_main
+    with --eval-md also written there (harness.report.eval_md). `python -m harness.report.phases` writes both."""
+    from harness.report.eval_md import section_main, tables_section
 
-    def section(records, note: str) -> str:
-        tables = markdown(records)
-        if not tables.strip():
-            raise ValueError("no run here has position rows: give runs made with --attention-controls blank,mirror")
-        return "\n\n".join(x for x in ("## Position", note, tables) if x) + "\n"
-
-    return eval_md_section_main(argv, "python -m harness.report.position", "Write the Position section of an EVAL.md.",
-                                section)
+    return section_main(argv, "python -m harness.report.position", "Write the Position section of an EVAL.md.",
+                        tables_section("## Position", markdown, "no run here has position rows: give runs made with "
+                                       "--attention-controls blank,mirror"))
 
 
 if __name__ == "__main__":

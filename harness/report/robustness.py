@@ -250,7 +250,7 @@ def main(argv=None) -> int:
     import argparse
     import functools
 
-    from harness.report.rundata import eval_md_section_main
+    from harness.report.eval_md import section_main
 
     parser = argparse.ArgumentParser(add_help=False)
     parser.add_argument("--margin", type=float, default=R.MARGIN)
@@ -259,10 +259,10 @@ def main(argv=None) -> int:
     section = f"## {known.section}"
     options = (("--margin", f"{known.margin:g}") if known.margin != R.MARGIN else ()) + \
         (("--section", known.section) if section != SECTION else ())
-    return eval_md_section_main(rest, "python -m harness.report.robustness", "Write the Robustness section of an EVAL.md "
-                                "from grid runs (--margin M: the drop a HOLDS verdict rules out [0.15]; --section "
-                                "TITLE: the section's heading, for a second grid [Robustness]).",
-                                functools.partial(markdown, margin=known.margin, section=section), options=options)
+    return section_main(rest, "python -m harness.report.robustness", "Write the Robustness section of an EVAL.md "
+                        "from grid runs (--margin M: the drop a HOLDS verdict rules out [0.15]; --section "
+                        "TITLE: the section's heading, for a second grid [Robustness]).",
+                        functools.partial(markdown, margin=known.margin, section=section), options=options)
 
 
 if __name__ == "__main__":

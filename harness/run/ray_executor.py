@@ -37,7 +37,6 @@ import asyncio
 import collections
 import logging
 import os
-import re
 import socket
 import time
 import traceback
@@ -49,6 +48,7 @@ from typing import Any, Iterable, Iterator
 
 from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskPrompt
 from harness.run.executor import EpisodeContext, InfrastructureError
+from harness.run.ray_errors import actor_death_cause, actor_error, last_line, lost_part
 from harness.run.workers import PolicyError, WorkerSpec, warmup_request, warmup_task, worker_spec
 
 log = logging.getLogger(__name__)
@@ -58,7 +58,6 @@ MARKER_PREFIX = ".octo-harness-shared-check-"
 POLICY_RESOURCE = "octo_policy"  # a custom resource that, where the cluster offers it, holds the policy replicas
 START_TIMEOUT_S = 300.0  # how long jobs may wait, after a loss, with no env worker started before the run stops
 START_TRIES = 3  # times one worker slot is started again in a row before it is given up
-NODE_DEATH_WAIT_S = 10.0  # how long a worker lost without an exit report waits for Ray to say whether its node died
 
 
 class RayExecutorError(ValueError):
@@ -146,7 +145,7 @@ class RayInference:
             return [ray.get(self.replica.infer.remote(request, self.key))]
         except ray.exceptions.RayTaskError as exc:  # the replica's PolicyError (this batch failed)
             cause = getattr(exc, "cause", None)
-            raise PolicyError(str(cause) if cause is not None else _last_line(exc)) from None
+            raise PolicyError(str(cause) if cause is not None else last_line(exc)) from None
         except ray.exceptions.RayActorError as exc:  # the replica (or its node) was lost: not the episode's doing
             raise InfrastructureError(f"policy replica lost: {str(exc).splitlines()[0]}", "policy replica") from None
 
@@ -202,51 +201,6 @@ class EnvWorker:
 
 
 # ---------------------------------------------------------------------------------------------- driver
-
-
-def _last_line(exc: BaseException) -> str:
-    """The last non-empty line of a Ray error (the underlying exception's message)."""
-    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
-    line = lines[-1] if lines else type(exc).__name__
-    return line.split("RayExecutorError: ", 1)[-1]  # our own one-line errors, raised inside an actor
-
-
-def _actor_error(exc: BaseException) -> str:
-    """A Ray actor error in one line: Ray's own reason (its error-message line: e.g. the node was marked dead, the
-    owner died) and whether the actor ever ran, without Ray's generic first line and ids."""
-    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
-    kept = [line for line in lines[1:] if not re.match(r"(class_name|actor_id|pid|name|namespace|ip):", line)]
-    return " ".join(kept)[:400] or _last_line(exc)
-
-
-def actor_death_cause(exc: BaseException, lost: str = "worker") -> str:
-    """A Ray actor error -> the error recorded for its episode: where it ran and Ray's exit detail (or, where its
-    node was `lost`, that)."""
-    text = " ".join(str(exc).split())
-    pid, ip = re.search(r"\bpid: (\d+)", text), re.search(r"\bip: (\S+)", text)
-    detail = re.search(r"Worker exit detail: (.*)", text)
-    where = f" (pid {pid.group(1)}{' on ' + ip.group(1) if ip else ''})" if pid else ""
-    if lost == "node" or (detail is None and "its node has died" in text):
-        return f"worker process died{where}: its node died"
-    return f"worker process died{where}: {(detail.group(1) if detail else text)[:300]}"
-
-
-def lost_part(exc: BaseException, node_alive=None) -> str:
-    """What a Ray actor error says was lost: "node" when the actor's node died, else "worker". Where Ray's error
-    says neither (no raylet reported the worker's exit: its node went with it), `node_alive()` (None: unknown, else
-    whether the actor's node still lives) is asked until it answers, for NODE_DEATH_WAIT_S at most."""
-    text = " ".join(str(exc).split())
-    if re.search(r"node (has )?died|node .*(marked|is) dead|raylet .*died|node_death", text.lower()):
-        return "node"
-    if node_alive is None or "Worker exit detail" in text:
-        return "worker"
-    deadline = time.monotonic() + NODE_DEATH_WAIT_S
-    while time.monotonic() < deadline:
-        alive = node_alive()
-        if alive is not None and not alive:
-            return "node"
-        time.sleep(0.25)
-    return "worker"
 
 
 class RayExecutor:
@@ -346,8 +300,8 @@ class RayExecutor:
             ray.get(warming)
         except (ray.exceptions.RayActorError, ray.exceptions.RayTaskError) as exc:
             if isinstance(exc, ray.exceptions.RayTaskError) or exc.actor_init_failed:  # the model did not load there
-                raise RayExecutorError(_last_line(exc)) from None
-            raise RayExecutorError(f"the policy replica did not start: {_actor_error(exc)}") from None
+                raise RayExecutorError(last_line(exc)) from None
+            raise RayExecutorError(f"the policy replica did not start: {actor_error(exc)}") from None
 
     def _new_replica(self):
         return self._replica_cls.remote(self.model_source, self.spec.policy, self.context.protocol.text_tokenizer)
@@ -370,10 +324,10 @@ class RayExecutor:
             self._node_of[i] = self.started_on[i][2]
         except (ray.exceptions.RayActorError, ray.exceptions.RayTaskError) as exc:
             if "RayExecutorError" in str(exc):  # its own one-line refusal (--out not visible there): the run stops
-                raise RayExecutorError(_last_line(exc)) from None
+                raise RayExecutorError(last_line(exc)) from None
             self._start_failures[i] = self._start_failures.get(i, 0) + 1
             log.error("env worker %d could not start (%d of %d): %s", i, self._start_failures[i], START_TRIES,
-                      _last_line(exc))
+                      last_line(exc))
             if self._start_failures[i] < START_TRIES:
                 self._start_worker(i)
             return
@@ -475,7 +429,7 @@ class RayExecutor:
                     yield self._lost_worker(i, job, exc)
                     continue
                 except ray.exceptions.RayTaskError as exc:  # a bug in the episode function itself
-                    row = self.spec.failed_row(job, RuntimeError(_last_line(exc)), str(exc))
+                    row = self.spec.failed_row(job, RuntimeError(last_line(exc)), str(exc))
                 if getattr(row, "lost", None) == "policy replica":
                     self._lost_replica(i)
                 self._idle.append(i)

@@ -332,11 +332,11 @@ def test_a_replica_that_never_started_is_one_line_with_rays_reason():
     from ray.core.generated.common_pb2 import ActorDiedErrorContext
     from ray.exceptions import ActorDiedError
 
-    from harness.run.ray_executor import _actor_error
+    from harness.run.ray_errors import actor_error
 
     exc = ActorDiedError(ActorDiedErrorContext(class_name="PolicyReplica", actor_id=b"x" * 16, pid=7, node_ip_address="10.0.0.2",
                                                error_message="The actor is dead because its node died.", never_started=True))
-    assert _actor_error(exc) == ("The actor is dead because its node died. "
+    assert actor_error(exc) == ("The actor is dead because its node died. "
                                  "The actor never ran - it was cancelled before it started running.")
 
 

@@ -274,10 +274,10 @@ def markdown(records, note: str = "") -> str:
 
 
 def main(argv=None) -> int:
-    from harness.report.rundata import eval_md_section_main
+    from harness.report.eval_md import section_main
 
-    return eval_md_section_main(argv, "python -m harness.probes.reliance.report", "Write the Reliance section of an EVAL.md "
-                                "from runs made with --reliance-every.", markdown)
+    return section_main(argv, "python -m harness.probes.reliance.report", "Write the Reliance section of an EVAL.md "
+                        "from runs made with --reliance-every.", markdown)
 
 
 if __name__ == "__main__":
