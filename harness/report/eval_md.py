@@ -40,7 +40,13 @@ def section_main(argv, prog: str, description: str, markdown, options: tuple = (
         return 2
     written = ["--eval-md", str(args.eval_md)] if args.eval_md else []
     command = args.command or command_text(prog, args.runs, [*written, *options])
-    print(write_section(args.eval_md, text, provenance_line(command, [r.manifest for r in records])))
+    try:
+        text = write_section(args.eval_md, text, provenance_line(command, [r.manifest for r in records]))
+    except OSError as exc:  # a folder not writable, a full disk, a file where figures/ goes: one line, EVAL.md untouched
+        print(f"{prog}: error: cannot write {exc.filename or args.eval_md}: {exc.strerror or exc}; give --eval-md a "
+              "writable folder", file=sys.stderr)
+        return 2
+    print(text)
     return 0
 
 

@@ -198,3 +198,13 @@ def test_eval_md_gets_a_reliance_section_with_provenance_and_keeps_the_others(ru
     before, figures_before = eval_md.read_text(), (tmp_path / "figures" / "reliance.json").read_bytes()
     assert R.main([str(REFERENCE), "--eval-md", str(eval_md)]) == 2 and eval_md.read_text() == before
     assert (tmp_path / "figures" / "reliance.json").read_bytes() == figures_before
+
+
+def test_a_figures_folder_that_cannot_be_written_is_one_line_and_eval_md_stays(run, tmp_path, capsys):
+    eval_md = tmp_path / "EVAL.md"
+    eval_md.write_text("# EVAL\n\n## Reliance\n\nkept\n")
+    (tmp_path / "figures").write_text("a file where the figures folder goes")
+    assert R.main([str(run), "--eval-md", str(eval_md)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot write" in err and "figures" in err
+    assert eval_md.read_text() == "# EVAL\n\n## Reliance\n\nkept\n"
