@@ -23,7 +23,11 @@ for task in Lift Stack PickPlaceCan; do
 done
 "$PY" -m harness.cli report "${runs[@]}" --out "$OUT/report"
 # EVAL.md's "## Phases and position" section (phase tables, then position tables), from $MODEL/figures/phases-and-position.json
-"$PY" -m harness.report.phases "${runs[@]}" --command "bash scripts/phases_reference.sh" --eval-md "$MODEL/EVAL.md" > "$OUT/phases.md"
+note="Lift, Stack and PickPlaceCan, $EPISODES episodes each on held-out seeds 0..$((EPISODES - 1)), each task at its own step limit."
+note+=" Masks on, \`--attention-controls blank,mirror --controls-every 5\`. Definitions: [docs/phases-and-position.md](../../docs/phases-and-position.md)."
+note+=" The p-values are uncorrected."
+"$PY" -m harness.report.phases "${runs[@]}" --command "bash scripts/phases_reference.sh" --eval-md "$MODEL/EVAL.md" \
+    --note "$note" > "$OUT/phases.md"
 # the figures docs/phases-and-position.md shows
 for task in Lift Stack PickPlaceCan; do
     lower=$(echo "$task" | tr '[:upper:]' '[:lower:]')
