@@ -17,6 +17,10 @@ from typing import IO, Any, Callable
 
 import numpy as np
 
+# the folder beside a model's EVAL.md that holds its sections' figures files (harness/report/figures_file.py): results
+# about a checkpoint, not part of it, so a model's fingerprint leaves it out (harness/run/protocol.checkpoint_files)
+FIGURES_FOLDER = "figures"
+
 
 def temp_path(path: Path) -> Path:
     """`dir/name.ext` -> `dir/name.tmp.<pid>.ext` (pid of this process)."""

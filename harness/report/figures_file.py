@@ -18,10 +18,10 @@ import json
 import re
 from pathlib import Path
 
-from harness.files import atomic_write_json
+from harness.files import FIGURES_FOLDER, atomic_write_json
 
 FORMAT = 1
-FOLDER = "figures"
+FOLDER = FIGURES_FOLDER
 _RULE = re.compile(r"^\|(\s*:?-+:?\s*\|)+$")  # a table's header rule: |---|---:|
 
 

@@ -22,7 +22,7 @@ from typing import Any, Mapping
 from envs.options import EnvOptions
 from envs.perturbations import parse_perturb, perturb_text
 from harness import probes
-from harness.files import json_safe
+from harness.files import FIGURES_FOLDER, json_safe
 from harness.options import option, options
 from harness.policy import PolicyConfig
 from harness.run.jobs import FORMAT, EpisodeJob  # noqa: F401  (re-exported)
@@ -291,11 +291,12 @@ def _files_fingerprint(root: Path, files: list[Path]) -> tuple[str, dict]:
 
 def checkpoint_files(ckpt: Path, step: int | None) -> list[Path]:
     """The files loading reads: config.json, dataset_statistics.json, example_batch.msgpack, every file of the
-    chosen step folder (latest when `step` is None), and the files of non-step subfolders (tokenizer, T5 config)."""
+    chosen step folder (latest when `step` is None), and the files of non-step subfolders (tokenizer, T5 config),
+    but the figures folder of its EVAL.md (results about the checkpoint: a new figures file changes no fingerprint)."""
     files = [ckpt / name for name in ("config.json", "dataset_statistics.json", "example_batch.msgpack", "harness.toml")
              if (ckpt / name).is_file()]
     for sub in sorted(p for p in ckpt.iterdir() if p.is_dir()):
-        if sub.name.isdigit() and (step is None or int(sub.name) != step):
+        if (sub.name.isdigit() and (step is None or int(sub.name) != step)) or sub.name == FIGURES_FOLDER:
             continue
         files += [p for p in sub.rglob("*") if p.is_file()]
     return files

@@ -100,6 +100,22 @@ def test_model_fingerprint_hashes_the_loaded_files(fixtures_dir, tmp_path):
     assert model_fingerprint(str(copy))[0] != fp
 
 
+def test_the_figures_beside_a_models_eval_md_are_not_part_of_its_fingerprint(fixtures_dir, tmp_path):
+    """An EVAL.md section's figures file (figures/<section>.json, written beside the model) is a result about the
+    checkpoint: writing one left every committed baseline of that model stale once (its fingerprint changed)."""
+    import shutil
+
+    copy = tmp_path / "tiny"
+    shutil.copytree(fixtures_dir / "tiny", copy)
+    fp = model_fingerprint(str(copy))[0]
+    (copy / "figures").mkdir()
+    (copy / "figures" / "robustness.json").write_text("{}")
+    assert model_fingerprint(str(copy))[0] == fp
+    (copy / "tokenizer").mkdir()  # any other folder beside the steps is read by loading (tokenizer, T5 config)
+    (copy / "tokenizer" / "vocab.txt").write_text("a b")
+    assert model_fingerprint(str(copy))[0] != fp
+
+
 def test_protocol_file_keys_mirror_flags_and_flags_override(tmp_path):
     path = tmp_path / "eval.toml"
     path.write_text('task = ["lift", "Stack"]\nmodel = "random:octo-small-1.5"\nepisodes = 5\nmax-steps = 20\n'
