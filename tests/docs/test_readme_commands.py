@@ -60,6 +60,25 @@ def on_fixture(argv: list[str], tiny: Path, tmp: Path) -> list[str]:
     return out
 
 
+def run_entry_point(argv: list[str]) -> subprocess.CompletedProcess:
+    """An `octo-harness ...` command through the function its console script calls (pyproject.toml's
+    [project.scripts]: harness.cli:main), in this process: the same command without a second interpreter's start-up
+    (imports, JAX; about a third of each command's time here). tests/docs/test_ci_recipe.py runs the console script
+    itself."""
+    import contextlib
+    import io
+    import tomllib
+
+    from harness import cli
+
+    assert tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]["octo-harness"] == "harness.cli:main"
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = cli.main(argv[1:])
+    assert code == 0, f"{shlex.join(argv)}: exit {code}\n{out.getvalue()[-2000:]}{err.getvalue()[-2000:]}"
+    return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())
+
+
 def run(argv: list[str]) -> subprocess.CompletedProcess:
     env = {**os.environ, "HF_HUB_OFFLINE": "1"}
     done = subprocess.run(argv, cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
@@ -99,7 +118,7 @@ def front_page_runs(fixtures_dir, tmp_path_factory):
     named = [c for c in find(commands, ".venv/bin/octo-harness", "run") if "--run-name" in c]
     for argv in [*named, *find(commands, ".venv/bin/octo-harness", "compare"),
                  *find(commands, ".venv/bin/octo-harness", "report")]:
-        done[shlex.join(argv[1:3])] = run(on_fixture(argv, tiny, tmp))
+        done[shlex.join(argv[1:3])] = run_entry_point(on_fixture(argv, tiny, tmp))
     return tmp, done
 
 
