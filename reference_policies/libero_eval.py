@@ -48,15 +48,14 @@ def swaps(tasks: tuple[str, ...] = LIBERO_OBJECT_TASKS) -> dict[str, str]:
 CLOSED_LOOP = "## Closed loop: masking what the policy looks at"
 
 
-def closed_loop_markdown(random_run, top_run, note: str = "") -> str:
+def closed_loop_markdown(records, note: str = "") -> str:
     """EVAL.md section: per task, successes with mask-random and with mask-top from the same initial states, the
-    discordant pairs and an exact two-sided McNemar test (binomial on the discordant pairs); then all tasks pooled."""
+    discordant pairs and an exact two-sided McNemar test (binomial on the discordant pairs); then all tasks pooled.
+    `records`: the mask-random run's and the mask-top run's (harness.analysis.runs.load_run)."""
     from scipy.stats import binomtest
 
-    from harness.analysis.runs import load_run
     from harness.measures.stats import wilson_interval
 
-    records = [load_run(random_run), load_run(top_run)]
     outcome = [{(e.task, e.seed): bool(e.success) for e in r.episodes if e.ok} for r in records]
     pairs = sorted(set(outcome[0]) & set(outcome[1]))
     spec = [str(((r.manifest.get("protocol") or {}).get("policy") or {}).get("intervention")) for r in records]
@@ -103,11 +102,11 @@ def main(argv: list[str] | None = None) -> int:
         from harness.report.eval_md import write_section
 
         made = Provenance(**values(Provenance, args))
-        text = closed_loop_markdown(args.random_run, args.top_run, made.note)
+        records = [load_run(args.random_run), load_run(args.top_run)]  # each run read once
+        text = closed_loop_markdown(records, made.note)
         command = made.command or command_text("python -m reference_policies.libero_eval closed-loop",
                                                [args.random_run, args.top_run], ["--eval-md", args.eval_md])
-        line = provenance_line(command, [load_run(args.random_run).manifest, load_run(args.top_run).manifest])
-        print(write_section(args.eval_md, text, line))  # via its figures file beside EVAL.md
+        print(write_section(args.eval_md, text, provenance_line(command, [r.manifest for r in records])))
     elif args.action == "swaps":
         for task, instruction in swaps().items():
             print(f"{task}\t{instruction}")

@@ -30,6 +30,7 @@ from harness.bounded import loads_json, read_jsonl_text
 from harness.measures.attribution import display_rank
 from harness.measures.faithfulness import relative_to_random
 from harness.report import html as H
+from harness.report.figures_file import markdown_table
 from harness.report.closed_loop import INTERVENTION_COLUMNS, arm_name, intervention_rows, run_policy
 from harness.report.rundata import csv_bytes as _csv
 
@@ -428,9 +429,7 @@ def markdown(runs) -> str:
         fills = [row for task, camera in dict.fromkeys((c[0], c[1]) for c in cams)
                  for row in camera_fill_rows(task, camera, faith)]
         if fills:
-            lines += ["Open loop per camera and fill, over methods:", "",
-                      "| " + " | ".join(CAMERA_FILL_HEADER) + " |", "|---" * len(CAMERA_FILL_HEADER) + "|",
-                      *("| " + " | ".join(row) + " |" for row in fills), ""]
+            lines += ["Open loop per camera and fill, over methods:", "", *markdown_table(CAMERA_FILL_HEADER, fills), ""]
     inter = intervention_rows(runs)
     if inter:
         lines += ["| task | intervention | against | pairs | against: success [Wilson] | with intervention [Wilson] | "

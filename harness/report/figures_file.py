@@ -21,7 +21,6 @@ from pathlib import Path
 from harness.files import FIGURES_FOLDER, atomic_write_json
 
 FORMAT = 1
-FOLDER = FIGURES_FOLDER
 _RULE = re.compile(r"^\|(\s*:?-+:?\s*\|)+$")  # a table's header rule: |---|---:|
 
 
@@ -35,7 +34,7 @@ def slug(heading: str) -> str:
 
 
 def path_for(eval_md: str | Path, heading: str) -> Path:
-    return Path(eval_md).parent / FOLDER / f"{slug(heading)}.json"
+    return Path(eval_md).parent / FIGURES_FOLDER / f"{slug(heading)}.json"
 
 
 def _cells(line: str) -> list[str] | None:
@@ -48,6 +47,13 @@ def _cells(line: str) -> list[str] | None:
 
 def _row(cells: list[str]) -> str:
     return "| " + " | ".join(cells) + " |"
+
+
+def markdown_table(header, rows, rule: str | None = None) -> list[str]:
+    """A Markdown table's lines, as the section generators write them: the header, its rule ('|---' per column
+    unless given: alignment) and a line per row, every cell as str()."""
+    return [_row([str(c) for c in header]), rule or "|---" * len(header) + "|",
+            *(_row([str(c) for c in row]) for row in rows)]
 
 
 def _block(chunk: str) -> dict:

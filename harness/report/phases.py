@@ -31,6 +31,7 @@ import numpy as np
 from harness.analysis import phases as P
 from harness.analysis.runs import read_npz
 from harness.report import html as H
+from harness.report.figures_file import markdown_table
 from harness.report.rundata import csv_bytes as _csv
 
 WINDOW = 10  # steps either side of an event
@@ -356,16 +357,11 @@ def markdown(runs) -> str:
                         (f"{v:.2f}" if math.isfinite(v) else "n/a") for v, lo, hi, n in cells) + " |")
             lines += ["", sentence(task, summary), ""]
             if (tested := phase_test_rows(task, summary)):
-                lines += [_md_row(PHASE_TEST_HEADER), "|---" * len(PHASE_TEST_HEADER) + "|",
-                          *(_md_row(r) for r in tested), ""]
+                lines += [*markdown_table(PHASE_TEST_HEADER, tested), ""]
             lines += [failure_sentence(task, summary), ""]
             if (stopped := failure_rows(task, summary)):
-                lines += [_md_row(FAILURE_HEADER), "|---" * len(FAILURE_HEADER) + "|", *(_md_row(r) for r in stopped), ""]
+                lines += [*markdown_table(FAILURE_HEADER, stopped), ""]
     return "\n".join(lines)
-
-
-def _md_row(cells) -> str:
-    return "| " + " | ".join(cells) + " |"
 
 
 def main(argv=None) -> int:

@@ -19,6 +19,7 @@ from harness import probes
 from harness.analysis import predictors as P
 from harness.analysis import robustness as R
 from harness.report import html as H
+from harness.report.figures_file import markdown_table
 
 EPISODE_COLUMNS = ("run", "task", "condition", "level", "seed", "episode", "status", "success", "nuisance_mass",
                    "distractor_mass", "background_mass", "target_lift", "nuisance_start", "nuisance_content",
@@ -224,26 +225,16 @@ def markdown(records, note: str = "", margin: float = R.MARGIN, section: str = S
     content = R.has_content(rows)
     measures = _measure_headers(content)
     for task in dict.fromkeys(r.task for r in rows):
-        lines += [R.verdict_line(task, success, paired), "",
-                  _md_row(("condition", "level", "success", "Wilson 95%", "paired: lost / gained", "Holm p",
-                           "verdict (drop's upper bound, points)", "detectable drop (points)", *measures)),
-                  "|---" * (8 + len(measures)) + "|"]
-        for s in success:
-            if s[0] == task:
-                lines.append(_md_row((s[1], s[2], f"{s[6]}/{s[4]}", f"[{s[8]:.2f}, {s[9]:.2f}]", *_paired_cells(drops, s),
-                                      *_measure_cells(s, content, markdown=True))))
+        lines += [R.verdict_line(task, success, paired), ""]
+        lines += markdown_table(("condition", "level", "success", "Wilson 95%", "paired: lost / gained", "Holm p",
+                                 "verdict (drop's upper bound, points)", "detectable drop (points)", *measures),
+                                [(s[1], s[2], f"{s[6]}/{s[4]}", f"[{s[8]:.2f}, {s[9]:.2f}]", *_paired_cells(drops, s),
+                                  *_measure_cells(s, content, markdown=True)) for s in success if s[0] == task])
         lines += ["", f"{task}: nuisance {'mass and reliance' if R.has_reliance(rows) else 'mass'} against success.", "",
-                  _md_row(R.ASSOCIATION_HEADER), "|---" * len(R.ASSOCIATION_HEADER) + "|",
-                  *(_md_row(cells) for cells in R.association_table(task, association)), ""]
+                  *markdown_table(R.ASSOCIATION_HEADER, R.association_table(task, association)), ""]
         if (which := P.predictor_table(task, predictors)):
-            lines += [f"{task}, {P.PREDICTOR_CAPTION}:", "",
-                      _md_row(P.PREDICTOR_HEADER), "|---" * len(P.PREDICTOR_HEADER) + "|",
-                      *(_md_row(cells) for cells in which), ""]
+            lines += [f"{task}, {P.PREDICTOR_CAPTION}:", "", *markdown_table(P.PREDICTOR_HEADER, which), ""]
     return "\n".join(lines) + "\n"
-
-
-def _md_row(cells) -> str:
-    return "| " + " | ".join(str(c) for c in cells) + " |"
 
 
 def main(argv=None) -> int:

@@ -71,7 +71,7 @@ def test_each_section_is_rendered_from_its_figures_file_or_says_it_has_none(mode
         assert doc["section"] == heading and figures_file.render(doc) == committed, (
             f"{model.name}/EVAL.md {heading!r} differs from what {path.name} renders: run its command again")
         assert NOT_KEPT not in body and PROVENANCE_LINE.search(doc["provenance"])
-    for path in sorted((model / figures_file.FOLDER).glob("*.json")):  # no figures file without its section
+    for path in sorted((model / figures_file.FIGURES_FOLDER).glob("*.json")):  # no figures file without its section
         assert figures_file.read(path)["section"] in headings, f"{path}: its section is not in EVAL.md"
 
 

@@ -196,7 +196,6 @@ def test_runs_one_after_another_in_one_process_each_connect_to_the_cluster_at_th
     from harness.run.executor import EpisodeContext
     from harness.run.ray_executor import RayExecutor
 
-    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
     head, port, temp_dir = _ray_head(tmp_path)
     try:
         context = EpisodeContext(protocol=_protocol(tiny), run_dir=str(tmp_path), run="cell",
@@ -259,22 +258,21 @@ class _ClusterDidNotStart(Exception):
     """The run stopped before the node was killed: the cluster did not come up (not what the test measures)."""
 
 
-def test_a_node_lost_mid_run_has_its_episodes_retried_on_the_surviving_node_to_the_sequential_files(tiny, tmp_path,
-                                                                                                    monkeypatch):
+def test_a_node_lost_mid_run_has_its_episodes_retried_on_the_surviving_node_to_the_sequential_files(tiny, tmp_path):
     """The scenario below, on fresh nodes and ports once more where the cluster itself did not come up before any
     node was killed, as the nodes' own start-up is retried; Ray's own log lines are printed then. A failure after the
     kill is never retried. (The replica's warm-up cancelled before the kill, in two fresh-clone CI runs, was Ray's
     token-authentication mode, which it reads once per process: tests/conftest.py sets one for every test.)"""
     for attempt in range(2):
         try:
-            return _node_lost_mid_run(tiny, tmp_path / f"cluster{attempt}", monkeypatch)
+            return _node_lost_mid_run(tiny, tmp_path / f"cluster{attempt}")
         except _ClusterDidNotStart as exc:
             if attempt:
                 raise AssertionError(f"the two-node cluster did not come up twice: {exc}") from None
             print(f"node test: the cluster did not come up ({exc}); fresh nodes")
 
 
-def _node_lost_mid_run(tiny, tmp_path, monkeypatch):
+def _node_lost_mid_run(tiny, tmp_path):
     """Two Ray nodes on this machine: a head of 2 CPUs holding the policy replica (its `octo_policy` resource pins it)
     and a second node of 2 CPUs joined with `ray start --address`, on ports of its own. A run of 4 episodes with 2 env
     workers (one at least on the second node: the head has room for one) loses the second node (its raylet and
@@ -322,7 +320,6 @@ def _node_lost_mid_run(tiny, tmp_path, monkeypatch):
                     pass
                 time.sleep(0.05)
 
-        monkeypatch.setenv("RAY_AUTH_MODE", "disabled")  # the driver's side of the cluster's setting
         try:
             summary = _run_while(tiny, tmp_path, "node2", factory, kill_the_node, episodes=4)
         except RayExecutorError as exc:

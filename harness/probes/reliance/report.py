@@ -38,6 +38,7 @@ from harness.analysis.robustness import run_condition
 from harness.analysis.sanity import spearman
 from harness.bounded import open_npz
 from harness.report import html as H
+from harness.report.figures_file import markdown_table
 from harness.report.rundata import csv_bytes
 
 COLUMNS = ("run", "task", "condition", "level", "camera", "region", "reliance_per_pixel", "reliance_share",
@@ -263,8 +264,8 @@ def markdown(records, note: str = "") -> str:
         lines += [f"### {task}: {name} (run {label})", ""]
         cameras = list(dict.fromkeys(r[4] for r in group))
         lines += [f"- {disagreement([r for r in group if r[4] == camera])}" for camera in cameras]
-        lines += ["", "| " + " | ".join(AGREEMENT_HEADER) + " |", "|---|---:|---|---:|---:|---:|"]
-        lines += ["| " + " | ".join(agreement_row([r for r in group if r[4] == c])) + " |" for c in cameras]
+        lines += ["", *markdown_table(AGREEMENT_HEADER, [agreement_row([r for r in group if r[4] == c]) for c in cameras],
+                                      rule="|---|---:|---|---:|---:|---:|")]
         lines += ["", "| camera | region | attention share | reliance share | reliance per pixel | episodes |",
                   "|---|---|---:|---:|---:|---:|"]
         lines += [f"| {r[4]} | {r[5]} | {H.fmt(r[8], 2)} | {H.fmt(r[7], 2)} | {H.fmt(r[6], 3)} | {r[9]} |"
