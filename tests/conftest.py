@@ -34,14 +34,16 @@ if os.environ.pop("PYTHONDONTWRITEBYTECODE", None) is not None:
 # before they start ("all references to the actor were removed"). Every Ray instance and cluster of the tests runs
 # without it, whichever test file ran first in the process.
 os.environ["RAY_AUTH_MODE"] = "disabled"
-FIXTURES = Path(os.environ.get("OCTO_REFERENCE_FIXTURES", REPO.parent / "shared" / "fixtures" / "octo-reference"))
+# The reference checkpoints and outputs of the original Octo code live in the repository (tests/fixtures/octo-reference,
+# whose README says what made them); OCTO_REFERENCE_FIXTURES points the tests at another copy.
+FIXTURES = Path(os.environ.get("OCTO_REFERENCE_FIXTURES", REPO / "tests" / "fixtures" / "octo-reference"))
 
 
 @pytest.fixture(scope="session")
 def fixtures_dir() -> Path:
     if not (FIXTURES / "README.md").exists():
         raise FileNotFoundError(
-            f"reference fixtures not found at {FIXTURES}; place ../shared next to the repo or set OCTO_REFERENCE_FIXTURES"
+            f"reference fixtures not found at {FIXTURES}; restore tests/fixtures/octo-reference from git or set OCTO_REFERENCE_FIXTURES"
         )
     return FIXTURES
 
