@@ -8,7 +8,9 @@ Keeps manifest.json, results.jsonl, results.json, summary.csv and per episode ep
 attention.npz and (for runs made with --record-inputs) inputs.npz cut to the first --steps steps (default 20:
 what `octo-harness replay` compares the model on, on any machine); drops PNG, MP4, GIF and metrics.jsonl. BASELINE.json records where it came from and how to find the model again
 ("model_ref": "repo:<path inside the repository>" or "fixture:<name>"); harness.analysis.compare reads it to
-compare arrays over the stored steps only. The rows record the size and sha256 of the cut files. The destination is replaced atomically (built next to it, renamed).
+compare arrays over the stored steps only. The rows record the size and sha256 of the cut files. Paths into the
+repository are written relative to its root, and the source run by its folder name: a baseline names no machine's
+folders. The destination is replaced atomically (built next to it, renamed).
 """
 from __future__ import annotations
 
@@ -43,6 +45,19 @@ def model_ref(source: str) -> str:
             if path.parent.name == "octo-reference":
                 return "fixture:" + path.name
     return source  # hf://..., random:...
+
+
+def repository_relative(folder: Path, repo: Path = REPO) -> None:
+    """Rewrite every absolute path into this repository, in the kept JSON files of `folder`, as a path relative to the
+    repository root: a committed baseline names no machine's folders (the gate and replay find the model through
+    BASELINE.json's model_ref, never through these fields)."""
+    prefix = repo.resolve().as_posix()
+    for path in sorted(folder.rglob("*")):
+        if path.is_file() and path.suffix in (".json", ".jsonl"):
+            text = path.read_text()
+            new = text.replace(f'"{prefix}"', '"."').replace(prefix + "/", "")
+            if new != text:
+                path.write_text(new)
 
 
 def cut_npz(src: Path, dst: Path, steps: int) -> None:
@@ -90,9 +105,10 @@ def make_baseline(run_dir: Path, dest: Path, steps: int = 1) -> Path:
         for name in ("actions.npz", "attention.npz", "inputs.npz"):
             if (episode.directory / name).is_file():  # inputs.npz: runs made with --record-inputs (replay)
                 cut_npz(episode.directory / name, tmp / rel / name, steps)
+    repository_relative(tmp)
     _record_digests(tmp)
     (tmp / BASELINE_MARKER).write_text(json.dumps({
-        "source_run": str(run.path), "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "source_run": run.path.name, "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "arrays_steps": steps, "model_ref": model_ref(run.model.source),
         "model_fingerprint": (run.manifest.get("protocol") or {}).get("model_fingerprint"),
         "recorded_inputs": all((e.directory / "inputs.npz").is_file() for e in run.episodes),

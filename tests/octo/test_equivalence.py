@@ -1,6 +1,6 @@
 """The JAX/Flax Octo runtime against arrays recorded with the original implementation (octo @ 241fb35).
 
-Fixtures: ../shared/fixtures/octo-reference (tiny: language model, tiny_goal: goal-image model, and tiny's
+Fixtures: tests/fixtures/octo-reference (tiny: language model, tiny_goal: goal-image model, and tiny's
 `goaltask` inputs: goal images with the language padded out). Tolerances follow the fixture README:
 masks exact, attention weights and eps 1e-5 abs, token values 1e-5 abs + 1e-5 relative (they pass
 through GroupNorm, which amplifies float32 summation-order noise), sampled actions 1e-4.
