@@ -9,7 +9,8 @@ so a run manifest can embed it and a protocol file can hold it. Parsed once at t
 
 Fields:
   masks            target/robot masks in `info` every step (attention mass on the target).
-  fast_render      no shadows, reflections, skybox or anti-aliasing (about 4x faster frames on a CPU).
+  fast_render      no shadows, reflections, skybox or anti-aliasing (on a CPU: about 4x faster per rendered
+                   frame, about 3x per env step).
   cameras          ((observation key, robosuite camera, square size), ...) in observation order;
                    None = the task's defaults (image_primary = agentview 256, image_wrist = eye-in-hand 128).
   image_convention "upright" (row 0 = top, what Octo's datasets hold) or "opengl" (row 0 = bottom: frames
@@ -42,6 +43,20 @@ ACTION_SPACES = ("octo-delta", "robosuite", "libero")
 GRIPPER_VALUES = {"octo-delta": {"open": 1.0, "closed": 0.0, "range": (0.0, 1.0)},
                   "robosuite": {"open": -1.0, "closed": 1.0, "range": (-1.0, 1.0)},
                   "libero": {"open": 1.0, "closed": 0.0, "range": (0.0, 1.0)}}
+
+# each task family's default conventions, for a key neither the command line nor the checkpoint's harness.toml sets
+# (harness.conventions.resolve_env applies them; the --help and the docs' option table word them from here)
+FAMILY_DEFAULTS = {"robosuite": {"image_convention": "upright", "action_space": "octo-delta"},
+                   "libero": {"image_convention": "rot180", "action_space": "libero"}}
+FAMILY_NAMES = {"robosuite": "robosuite", "libero": "LIBERO"}  # as the help and the docs name the families
+
+
+def family_defaults_text(key: str, harness_toml: str = "harness.toml") -> str:
+    """The default of convention `key` in words, from FAMILY_DEFAULTS: "the checkpoint's harness.toml, else the task
+    family's: robosuite upright, LIBERO rot180"."""
+    families = ", ".join(f"{FAMILY_NAMES[f]} {d[key]}" for f, d in FAMILY_DEFAULTS.items())
+    return f"the checkpoint's {harness_toml}, else the task family's: {families}"
+
 
 _CAMERA_SPEC = re.compile(r"^([A-Za-z_][\w]*)=([^:=\s]+):(\d+)$")
 
@@ -134,28 +149,28 @@ class EnvOptions:
         flag="--no-masks", help="do not render target/robot masks", file=(bool,), action="store_true", negated=True,
         absent=True)})  # a run's masks are on; the env's own default (envs.make) is off
     fast_render: bool = field(default=False, metadata={"option": dict(
-        flag="--fast-render", help={"run": "render without reflections, shadows and anti-aliasing (an env step about 3x faster: docs/benchmarks.md)",
+        flag="--fast-render", help={"run": "render without reflections, shadows and anti-aliasing (about 3x faster per "
+                                           "env step: docs/benchmarks.md; about 4x per rendered frame)",
                                     "robustness": "as for `run --fast-render`"},
         file=(bool,), action="store_true", convert=bool)})
     # None: the task's default cameras; () renders nothing
     cameras: tuple[tuple[str, str, int], ...] | None = field(default=None, metadata={"option": dict(
         flag="--camera", help="observation key fed by a robosuite camera at a square size, e.g. "
-        "image_primary=agentview:84 (repeat; default: the task's cameras or the checkpoint's harness.toml)",
+        "image_primary=agentview:84 (repeat; default: the checkpoint's harness.toml, else the task's cameras)",
         file=(str, list, dict), action="append", metavar="KEY=camera:size", field="cameras",
         convert=lambda v: tuple(parse_camera(c) for c in v) or None,
         doc="observation key fed by a robosuite camera at a square size (repeat); default: the checkpoint's "
             "`harness.toml`, else the task family's (robosuite: the task's cameras; LIBERO: the published protocol); "
             "the manifest's `conventions` says which")})
-    image_convention: str = field(default="upright", metadata={"option": dict(  # "upright" | "opengl" | "rot180"
+    image_convention: str = field(default=FAMILY_DEFAULTS["robosuite"]["image_convention"], metadata={"option": dict(
         flag="--image-convention", help="orientation of the frames the model was trained on (rot180: OpenVLA's LIBERO "
-        "datasets)", file=(str,), choices=IMAGE_CONVENTIONS,
-        doc="orientation of the frames the model was trained on (rot180: OpenVLA's LIBERO datasets) [the checkpoint's "
-            "`harness.toml`, else the task family's: robosuite upright, LIBERO rot180]")})
-    action_space: str = field(default="octo-delta", metadata={"option": dict(  # "octo-delta" | "robosuite" | "libero"
-        flag="--action-space", help="what the model's actions mean", default_text="{}, or the checkpoint's harness.toml",
+        "datasets)", default_text=family_defaults_text("image_convention"), file=(str,), choices=IMAGE_CONVENTIONS,
+        doc="orientation of the frames the model was trained on (rot180: OpenVLA's LIBERO datasets) "
+            f"[{family_defaults_text('image_convention', '`harness.toml`')}]")})
+    action_space: str = field(default=FAMILY_DEFAULTS["robosuite"]["action_space"], metadata={"option": dict(
+        flag="--action-space", help="what the model's actions mean", default_text=family_defaults_text("action_space"),
         file=(str,), choices=ACTION_SPACES,
-        doc="what the model's actions mean [the checkpoint's `harness.toml`, else the task family's: robosuite "
-            "octo-delta, LIBERO libero]")})
+        doc=f"what the model's actions mean [{family_defaults_text('action_space', '`harness.toml`')}]")})
     # gripper value held for 6-D (arm-only) models; the env then takes 6-D actions
     hold_gripper: float | None = field(default=None, metadata={"option": dict(
         flag="--hold-gripper", help="for a 6-D (arm-only) model: the env takes 6-D actions and holds the gripper at "

@@ -5,7 +5,8 @@ context current before every render so that several environments in one process 
 other's scene. MuJoCo reads pixels bottom-up; every image returned here is flipped to upright
 (row 0 = top), the orientation Octo was trained on. `fast` turns off reflections, shadows, the skybox
 and 4x multisample anti-aliasing (robosuite's defaults), the expensive parts on a CPU (software)
-rasteriser: about 4x faster frames, with no table reflections and harder edges.
+rasteriser: about 4x faster per rendered frame (about 3x per env step, physics included: docs/benchmarks.md), with
+no table reflections and harder edges.
 """
 
 from __future__ import annotations

@@ -26,8 +26,8 @@ normalisation statistics. `harness.toml` (TOML, read with the standard library's
     tokenizer = "tokenizer"            # "auto" | "fallback" | a tokenizer.json or folder, relative to the checkpoint
 
 Precedence, highest first: command-line flags, the protocol file, `harness.toml`, the default of the task's
-family (`FAMILY_DEFAULTS`). A missing file means "no conventions": robosuite tasks then take octo-delta actions
-and upright images (as before), LIBERO tasks the published evaluation's (OpenVLA's run_libero_eval.py: the
+family (`FAMILY_DEFAULTS`, in envs.options). A missing file means "no conventions": robosuite tasks then take
+octo-delta actions and upright images (as before), LIBERO tasks the published evaluation's (OpenVLA's run_libero_eval.py: the
 rendered frame turned 180 degrees, LIBERO's action convention; the stored initial states and settle steps are the
 LIBERO env's own). A run that mixes families gives each family's tasks its own default (`resolve_env`).
 """
@@ -40,7 +40,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
-from envs.options import EnvConfigError, EnvOptions
+from envs.options import FAMILY_DEFAULTS, EnvConfigError, EnvOptions
 from harness.bounded import read_toml
 
 CONVENTIONS_FILE = "harness.toml"
@@ -48,9 +48,8 @@ FORMAT = "octo-harness-conventions/1"
 ENV_KEYS = ("cameras", "image_convention", "action_space", "hold_gripper")  # masks and fast_render are run choices, not model conventions
 
 
-# each task family's default conventions, used for a key neither the command line nor harness.toml sets
-FAMILY_DEFAULTS = {"robosuite": {"image_convention": "upright", "action_space": "octo-delta"},
-                   "libero": {"image_convention": "rot180", "action_space": "libero"}}
+# FAMILY_DEFAULTS (envs.options): each task family's default conventions, used for a key neither the command line nor
+# harness.toml sets; it lives beside EnvOptions, whose --help words these defaults from it
 FAMILY_PROTOCOL = {"robosuite": "the harness's robosuite default", "libero": "published protocol"}
 SOURCE_KEYS = ("cameras", "image_convention", "action_space", "hold_gripper")  # the conventions whose source is recorded
 

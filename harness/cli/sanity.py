@@ -16,7 +16,7 @@ def add_parser(sub) -> None:
                          description="On the inputs of runs made with --record-inputs: Spearman and SSIM between the "
                                      "maps of the trained policy and of the policy with re-drawn weights (cascading "
                                      "from the top block down, and each block alone), per method and camera, with "
-                                     "95%% intervals over steps and a pass/fail verdict; with --additivity also "
+                                     "95% intervals over steps and a pass/fail verdict; with --additivity also "
                                      "single-patch effects and their additivity per camera and fill. Writes "
                                      "sanity.json, randomisation.csv, additivity.csv; prints Markdown tables.")
     san.add_argument("runs", nargs="+", type=Path, metavar="RUN_DIR", help="run folder(s) made with --record-inputs "

@@ -11,4 +11,10 @@ def main(args) -> int:
     import envs
 
     print(envs.task_table(libero=True))
+    print(f"\n{TASK_NAMES_LINE}")
     return 0
+
+
+# what `--task` takes besides these names (envs.resolver.ROBOSUITE_TASKS)
+TASK_NAMES_LINE = ("--task robosuite runs every robosuite task, the first table ('all' is its older name); a LIBERO suite's name "
+                   "runs its tasks")

@@ -58,7 +58,8 @@ class Protocol:
             "robustness": "model (as for `run --model`)"}, default_text={"run": DEFAULT_MODEL, "robustness": ""})
     tasks: tuple[str, ...] = option(  # registry names, in run order, no duplicates
         flag="--task", file=(str, list), action="append", field="tasks", help={
-            "run": "task name (repeat or comma-separate for several; 'all' for every registered task)",
+            "run": "task name (repeat or comma-separate for several); 'robosuite' for every robosuite task ('all' is "
+                   "its older name), a LIBERO suite's name for its tasks",
             "robustness": "task name(s), repeat or comma-separate"})
     episodes: int = option(1, "--episodes", {"run": "episodes per task",  # per task
                                              "robustness": "episodes per task and condition"}, type=int, file=(int,))

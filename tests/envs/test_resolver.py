@@ -34,3 +34,13 @@ def test_settings_and_the_package_use_the_one_resolver():
 
     assert envs.get_task is resolver.get_task and envs.UnknownTaskError is UnknownTaskError
     assert resolve_tasks(["lift,libero_goal/3", "Lift"]) == resolver.resolve_names(["lift", "libero_goal/3", "Lift"])
+
+
+def test_robosuite_names_every_robosuite_task_and_all_stays_its_older_name():
+    """`--task robosuite` runs what it says (issue 71 item 5.2); `all`, which ran the same, still does, and either
+    joins a LIBERO suite in one list."""
+    robosuite = tuple(spec.name for spec in envs.list_tasks())
+    assert resolver.resolve_names(["robosuite"]) == resolver.resolve_names(["All"]) == robosuite
+    assert resolver.resolve_names(["robosuite", "libero_goal/3", "Lift"]) == (*robosuite, "libero_goal/3")
+    with pytest.raises(UnknownTaskError, match="`robosuite`: all of them"):
+        resolver.resolve_names(["robosuit"])
