@@ -296,3 +296,50 @@ def test_stale_names_are_found():
             "`envs.no_such_function`")
     assert stale_names(text) == ["envs.no_such_function", "harness.nowhere.thing", "harness.run.gone",
                                  "harness/run/gone.py"]
+
+
+# ---- a page that sends an option elsewhere sends it where it is documented ---------------------------------------
+
+POINTER = re.compile(r"([^;.:]*):\s*\[[^\]]*\]\(([^)\s]+)\)")  # "... `--flag` ...: [page](target)"
+
+
+def section_of(text: str, anchor: str) -> str:
+    """The lines of the section (to the next heading of its level or above) whose heading has `anchor`; the whole
+    page without one."""
+    if not anchor:
+        return text
+    lines = text.splitlines()
+    for i, line in enumerate(lines):
+        m = ATX.match(line)
+        if m and slug(m.group(2) or "") == anchor:
+            end = next((j for j in range(i + 1, len(lines)) if (n := ATX.match(lines[j])) and
+                        len(n.group(1)) <= len(m.group(1))), len(lines))
+            return "\n".join(lines[i:end])
+    return ""
+
+
+def misdirected_options(page: Path) -> list[str]:
+    """`--flag: [page](target)` pointers of `page` whose target (the section, with an anchor) never names the flag."""
+    wrong = []
+    for line in prose_lines(page.read_text()):
+        for before, target in POINTER.findall(line):
+            path_part, _, anchor = target.partition("#")
+            if re.match(r"^[a-z][a-z0-9+.-]*:", target) or not path_part.endswith(".md"):
+                continue
+            where = (page.parent / path_part).resolve()
+            text = section_of(where.read_text(), anchor) if where.is_file() else ""
+            wrong += [f"{flag} -> {target}" for flag in re.findall(r"`(--[\w-]+)", before) if not documented(flag, text)]
+    return wrong
+
+
+@pytest.mark.parametrize("page", doc_files(), ids=lambda p: str(p.relative_to(REPO)))
+def test_an_option_sent_to_another_page_is_documented_there(page):
+    assert misdirected_options(page) == []
+
+
+def test_a_pointer_to_a_page_without_the_option_is_found(tmp_path):
+    (tmp_path / "a.md").write_text("# A\n\n## GPU\n\n`--render-device cpu` renders on the CPU.\n\n## Other\n\nNone.\n")
+    page = tmp_path / "b.md"
+    page.write_text("Where it runs (`--workers`): [a.md](a.md); `--render-device`: [a.md](a.md#gpu).\n"
+                    "`--render-device`: [a.md](a.md#other); see [a.md](a.md).\n")
+    assert misdirected_options(page) == ["--workers -> a.md", "--render-device -> a.md#other"]
