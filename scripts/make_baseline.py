@@ -30,7 +30,9 @@ sys.path.insert(0, str(REPO))
 
 from harness.analysis.compare import BASELINE_MARKER  # noqa: E402
 from harness.analysis.runs import load_run  # noqa: E402
+from harness.files import atomic_write_json  # noqa: E402
 from harness.runfolder.integrity import data_digests  # noqa: E402
+from harness.runfolder.schema import protocol_hash  # noqa: E402
 
 KEEP_RUN_FILES = ("manifest.json", "results.jsonl", "results.json", "summary.csv", "statistics.csv")
 
@@ -50,7 +52,8 @@ def model_ref(source: str) -> str:
 def repository_relative(folder: Path, repo: Path = REPO) -> None:
     """Rewrite every absolute path into this repository, in the kept JSON files of `folder`, as a path relative to the
     repository root: a committed baseline names no machine's folders (the gate and replay find the model through
-    BASELINE.json's model_ref, never through these fields)."""
+    BASELINE.json's model_ref, never through these fields). The protocol names its model by path, so the manifest's
+    protocol_hash (and results.json's copy of it) is recomputed for the protocol as rewritten."""
     prefix = repo.resolve().as_posix()
     for path in sorted(folder.rglob("*")):
         if path.is_file() and path.suffix in (".json", ".jsonl"):
@@ -58,6 +61,13 @@ def repository_relative(folder: Path, repo: Path = REPO) -> None:
             new = text.replace(f'"{prefix}"', '"."').replace(prefix + "/", "")
             if new != text:
                 path.write_text(new)
+    for name, key in (("manifest.json", None), ("results.json", "manifest")):
+        if (folder / name).is_file():
+            data = json.loads((folder / name).read_text())
+            manifest = data[key] if key else data
+            if isinstance(manifest, dict) and "protocol" in manifest:
+                manifest["protocol_hash"] = protocol_hash(manifest["protocol"])
+                atomic_write_json(folder / name, data)
 
 
 def cut_npz(src: Path, dst: Path, steps: int) -> None:
