@@ -134,7 +134,7 @@ class LiberoServer:
         try:
             libero_wire.write_message(self.process.stdin, {"op": op, **fields})
             reply = libero_wire.read_message(self.process.stdout, timeout=CALL_TIMEOUT)
-        except TimeoutError as exc:  # alive but silent (hung): end it, so the episode fails and the run goes on
+        except TimeoutError as exc:  # alive but silent (hung): end it; the episode is retried (infrastructure)
             self.process.kill()
             self.process.wait()
             raise LiberoServerLost(f"the LIBERO server did not answer {op!r} within {CALL_TIMEOUT:.0f} s; it was "

@@ -653,9 +653,10 @@ def read_grid(path: str | Path) -> RobustnessGrid:
 def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: CompareConfig = CompareConfig(),
                   require_complete: bool = True) -> CompareResult:
     """Two robustness grids, condition by condition: every (task, condition) is one cell of the Holm family (plus
-    the pooled table), so a candidate that holds its nominal success but loses one condition by more than max_drop
-    is REGRESSED / SUSPECT there, at the same family-wise alpha as a task of `compare_runs`. Every condition of the
-    baseline grid must be in the candidate's (one line otherwise)."""
+    the pooled table), at the same family-wise alpha as a task of `compare_runs`: a candidate that holds its nominal
+    success but loses one condition by more than max_drop is REGRESSED or SUSPECT there when the test or the interval
+    shows the loss, else UNDERPOWERED. Every condition of the baseline grid must be in the candidate's (one line
+    otherwise)."""
     base_grid, cand_grid = read_grid(baseline_dir), read_grid(candidate_dir)
     absent = [name for name in base_grid.runs if name not in cand_grid.runs]
     if absent:

@@ -3,6 +3,7 @@ test decides."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from harness.cli.common import add_execution_args, add_gate_options, add_render_arg, add_verbose, execution, writing
@@ -38,10 +39,13 @@ def main(args) -> int:
     factory = execution(args)
     gate = GateConfig.from_args(args)
     if is_grid(args.baseline):  # a robustness grid: condition by condition, Holm over every task x condition
-        from harness.gate.regress import regress_grid
+        from harness.gate.regress import grid_fail_on, regress_grid
 
+        fail_on, note = grid_fail_on(gate.fail_on)
+        if note:
+            print(note, file=sys.stderr)
         result = regress_grid(args.baseline, args.model, gate, out=args.out, run_name=args.run_name, executor=factory)
-        code = exit_code(result, gate.fail_on if gate.fail_on != "changed" else "suspect")
+        code = exit_code(result, fail_on)
         paths = write_regress(result, code, write_comparison)
         print(paths["summary"])
         print(f"regress: {paths['json']}")

@@ -379,6 +379,17 @@ def write_regress(result: RegressResult | RegressGridResult, code: int, write_co
     return {"json": out / "regress.json", "html": paths["html"], "summary": summary(result, code)}
 
 
+# a grid's conditions are not replayed on recorded inputs, so "changed" (which passes an EQUIVALENT replay) is gated as
+# "suspect" there, and the command says so in one line
+GRID_FAIL_ON_CHANGED = ("regress: --fail-on changed gates a grid baseline as --fail-on suspect: a grid's conditions are "
+                        "not replayed on recorded inputs, so no model-numerics verdict is made")
+
+
+def grid_fail_on(fail_on: str) -> tuple[str, str | None]:
+    """The --fail-on a grid baseline is gated with, and the line that says so where it is not the one given."""
+    return ("suspect", GRID_FAIL_ON_CHANGED) if fail_on == "changed" else (fail_on, None)
+
+
 def regress_grid(baseline_grid: str | Path, model: str, gate: GateConfig | None = None, *,
                  out: str | Path = "results/runs", run_name: str | None = None, executor=None,
                  progress: bool = True) -> RegressGridResult:

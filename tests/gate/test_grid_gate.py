@@ -80,3 +80,47 @@ def test_bad_grids_are_one_line_exit_2(tmp_path, capsys, damage):
     code = cli.main(["compare", str(base), str(cand), "--no-frames"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1, err
+
+
+def test_a_loss_beyond_max_drop_without_significance_is_underpowered_and_passes(tmp_path):
+    """2 of 6 lost under one condition: a drop of 33 points, beyond --max-drop 0.1, that neither the exact test nor
+    the interval confirms: UNDERPOWERED, exit 0 (docs/perturbations.md, "Gating on conditions"); it fails only with
+    --fail-on underpowered."""
+    base = write_grid(tmp_path / "base", {"nominal": {"Lift": [True] * 6}, "camera-3": {"Lift": [True] * 6}})
+    cand = write_grid(tmp_path / "cand", {"nominal": {"Lift": [True] * 6}, "camera-3": {"Lift": [True] * 4 + [False] * 2}},
+                      model="m2")
+    result = compare_grids(base, cand)
+    cell = result.outcomes.tasks["Lift / camera-3"]
+    assert cell.difference < -0.1 and cell.verdict == "UNDERPOWERED" and result.verdict == "UNDERPOWERED"
+    assert exit_code(result) == 0 and exit_code(result, "underpowered") == 1
+
+
+@pytest.mark.parametrize("fail_on", ["changed", "suspect"])
+def test_regress_on_a_grid_says_in_one_line_that_fail_on_changed_gates_as_suspect(tmp_path, capsys, monkeypatch,
+                                                                                   fail_on):
+    """A grid is not replayed on recorded inputs, so `--fail-on changed` gates it as `suspect`; one line on stderr
+    says so (docs/regression.md, docs/perturbations.md). The candidate grid is written by hand in place of its runs:
+    one pair lost under camera-3 is UNDERPOWERED, which passes as `suspect` and would fail as `changed`."""
+    from harness.gate import regress as regress_module
+    from harness.gate.results import GRID_FORMAT, RegressGridResult
+
+    base = write_grid(tmp_path / "base", {"nominal": {"Lift": [True] * 6}, "camera-3": {"Lift": [True] * 6}})
+    made = {}
+
+    def regress_grid(baseline, model, gate, *, out, run_name=None, executor=None):
+        folder = write_grid(out / "cand", {"nominal": {"Lift": [True] * 6}, "camera-3": {"Lift": [True] * 5 + [False]}},
+                            model=model)
+        compared = compare_grids(baseline, folder, gate.compare(), require_complete=False)
+        made["result"] = RegressGridResult(format=GRID_FORMAT, verdict=compared.verdict, conditions={},
+                                           compare_verdict=compared.verdict, baseline_grid=str(baseline),
+                                           candidate_run=str(folder), compare=compared)
+        return made["result"]
+
+    monkeypatch.setattr(regress_module, "regress_grid", regress_grid)
+    code = cli.main(["regress", "--baseline", str(base), "--model", "m2", "--out", str(tmp_path / "out"),
+                     "--fail-on", fail_on])
+    said = [line for line in capsys.readouterr().err.splitlines() if "--fail-on changed" in line]
+    assert said == ([regress_module.GRID_FAIL_ON_CHANGED] if fail_on == "changed" else [])
+    assert made["result"].verdict == "UNDERPOWERED" and code == 0 == regress_module.exit_code(made["result"], "suspect")
+    assert regress_module.exit_code(made["result"], "changed") == 1  # what `changed` itself would have said
+    assert json.loads((tmp_path / "out" / "cand" / "regress" / "regress.json").read_text())["exit_code"] == 0
