@@ -70,3 +70,25 @@ def test_the_association_resolution_the_readme_quotes_is_the_grids():
     quoted = f"{min(halves):.2f}-{max(halves):.2f}"
     readme = (REPO / "README.md").read_text().replace("\\|", "|")  # a table cell escapes its pipes
     assert f"|r| of about {quoted}" in readme, quoted
+
+
+ASSOCIATION = re.compile(r"^(\w+): nominal success .*?point-biserial r of nuisance mass and success ([-+]\d\.\d\d) over "
+                         r"\d+ episodes of \d+ seeds \(seed-cluster 95% \[([-+.\d]+), ([-+.\d]+)\]\).*?within conditions "
+                         r"\(centred per run\), r ([-+]\d\.\d\d) \(seed-cluster 95% \[([-+.\d]+), ([-+.\d]+)\]\)", re.M)
+
+
+def test_the_readme_names_the_r_its_association_finding_rests_on():
+    """The finding 'not found to go with failure, except ... Stack' holds for the within-conditions r (centred per
+    run) of EVAL.md's Robustness section, not for the pooled one (PickPlaceCan's pooled interval lies below 0): the
+    row says which r it means and quotes each task's within-conditions r with its interval (issue 71 item 5.6)."""
+    section = (REPO / EVAL).read_text().split("\n## Robustness\n")[1].split("\n## ")[0]
+    tasks = {m.group(1): m.groups()[1:] for m in ASSOCIATION.finditer(section)}
+    assert set(tasks) == {"Lift", "Stack", "PickPlaceCan"}
+    row = next(line for line in (REPO / "README.md").read_text().splitlines() if "nuisance attention" in line)
+    assert "Within conditions (r centred per run" in row and "not found to go with failure" in row
+    for task, (_, _, _, r, low, high) in tasks.items():
+        assert f"{r} [{low}, {high}]" in row, task
+        assert float(high) >= 0, task  # no within-conditions interval lies below 0: none goes with failure
+        assert (float(low) > 0) == (task == "Stack"), task  # only Stack's lies above 0, "it goes with success"
+    pooled_r, pooled_low, pooled_high = tasks["PickPlaceCan"][:3]
+    assert float(pooled_high) <= 0 and f"Pooled over conditions, PickPlaceCan's r is {pooled_r} [{pooled_low}, {pooled_high}]" in row
