@@ -67,15 +67,17 @@ if [ "$INTERVENTIONS" != 0 ]; then
 fi
 
 step="$(find "$MODEL" -mindepth 1 -maxdepth 1 -type d -regex '.*/[0-9]+' -printf '%f\n' | sort -n | tail -1)"
+how="bash scripts/evaluate_libero_reference.sh $STATES $PROBE"  # the command as EVAL.md gives it: it names MODEL when
+[ "$MODEL" = models/octo-reference-libero-object ] || how="MODEL=$MODEL $how"  # another checkpoint was evaluated
 "$PY" -m reference_policies.evaluate "$OUT/published" --out "$MODEL" \
-    --command "bash scripts/evaluate_libero_reference.sh $STATES $PROBE" --note \
-    "Checkpoint step $step. Made by \`bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: \`octo-harness run --model $MODEL --task libero_object --episodes $STATES --seed 0 --fast-render --png-every 0 --no-video --workers 2\` (LIBERO-Object's published protocol: stored initial states 0..$((STATES - 1)) of each task, 10 settle steps, step limit 280; libero action space, rot180 images and cameras from harness.toml; masks on)."
+    --command "$how" --note \
+    "Checkpoint step $step. Made by \`$how\`: \`octo-harness run --model $MODEL --task libero_object --episodes $STATES --seed 0 --fast-render --png-every 0 --no-video --workers 2\` (LIBERO-Object's published protocol: stored initial states 0..$((STATES - 1)) of each task, 10 settle steps, step limit 280; libero action space, rot180 images and cameras from harness.toml; masks on)."
 "$PY" -m harness.report.grounding "$OUT/published" "${language[@]}" --eval-md "$MODEL/EVAL.md" \
-    --command "LANGUAGE=\"$LANGUAGE\" bash scripts/evaluate_libero_reference.sh $STATES $PROBE" --note \
-    "Made by \`LANGUAGE=\"$LANGUAGE\" bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: own instructions from the published run (states 0..$((STATES - 1))); the probes $LANGUAGE (nonsense: \`$nonsense\`) from states 0..$((PROBE - 1)), masks off (the picked object is read from the simulator at the episode's end: in the basket, else held)."
+    --command "LANGUAGE=\"$LANGUAGE\" $how" --note \
+    "Made by \`LANGUAGE=\"$LANGUAGE\" $how\`: own instructions from the published run (states 0..$((STATES - 1))); the probes $LANGUAGE (nonsense: \`$nonsense\`) from states 0..$((PROBE - 1)), masks off (the picked object is read from the simulator at the episode's end: in the basket, else held)."
 if [ "$INTERVENTIONS" != 0 ]; then
     "$PY" -m harness.cli compare "$OUT/mask_random" "$OUT/mask_top" --no-frames --out "$OUT/compare_mask_top" || true
     "$PY" -m reference_policies.libero_eval closed-loop "$OUT/mask_random" "$OUT/mask_top" \
-        --eval-md "$MODEL/EVAL.md" --command "bash scripts/evaluate_libero_reference.sh $STATES $PROBE" --note "Made by \`bash scripts/evaluate_libero_reference.sh $STATES $PROBE\`: \`--intervene mask-top:$TOPK:attention:$LAYER\` against \`--intervene mask-random:$TOPK\`, states 0..$((PROBE - 1)) of every task, masks off."
+        --eval-md "$MODEL/EVAL.md" --command "$how" --note "Made by \`$how\`: \`--intervene mask-top:$TOPK:attention:$LAYER\` against \`--intervene mask-random:$TOPK\`, states 0..$((PROBE - 1)) of every task, masks off."
 fi
 "$PY" -m harness.cli report "$OUT/published" "${language[@]}" --out "$OUT/report"

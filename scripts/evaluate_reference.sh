@@ -17,5 +17,7 @@ for task in Lift Stack PickPlaceCan; do
     runs+=("$OUT/$task")
 done
 step="$(find "$MODEL" -mindepth 1 -maxdepth 1 -type d -regex '.*/[0-9]+' -printf '%f\n' | sort -n | tail -1)"
-.venv/bin/python -m reference_policies.evaluate "${runs[@]}" --out "$MODEL" --command "bash scripts/evaluate_reference.sh" --note \
-    "Checkpoint step $step. Made by \`bash scripts/evaluate_reference.sh\`: per task \`octo-harness run --model $MODEL --task <task> --episodes $EPISODES --seed 0 --fast-render --png-every 0 --no-video --workers 2\` (held-out seeds 0..$((EPISODES - 1)), each task at its own step limit: Lift 300, Stack 400, PickPlaceCan 400; robosuite action space and statistics from harness.toml; temporal ensembling; masks on)."
+how="bash scripts/evaluate_reference.sh"  # the command as EVAL.md gives it: with the model when it is not the default
+[ "$MODEL" = models/octo-reference-robosuite ] || how="$how $MODEL"
+.venv/bin/python -m reference_policies.evaluate "${runs[@]}" --out "$MODEL" --command "$how" --note \
+    "Checkpoint step $step. Made by \`$how\`: per task \`octo-harness run --model $MODEL --task <task> --episodes $EPISODES --seed 0 --fast-render --png-every 0 --no-video --workers 2\` (held-out seeds 0..$((EPISODES - 1)), each task at its own step limit: Lift 300, Stack 400, PickPlaceCan 400; robosuite action space and statistics from harness.toml; temporal ensembling; masks on)."

@@ -119,3 +119,22 @@ def test_the_figures_render_the_verdict_line_and_the_table(tmp_path):
     assert len(verdict.split()) <= 25
     assert "| Stack | 10 | 4 | 40% | [0.10, 0.90] | 0..9 | image_primary | 1.00 | 1.50 |" in text
     assert text.splitlines()[2] == data["provenance"]
+
+
+MODEL_PAGES = sorted(p for model in MODELS for p in (model / "EVAL.md", model / "README.md") if p.is_file())
+
+
+@pytest.mark.parametrize("page", MODEL_PAGES, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_a_model_pages_commands_run_that_model_and_its_pointers_resolve(page):
+    """A command on a model's page runs that model, not another folder (issue 71 item 5.10: the 64 px policy's
+    evaluation command ran models/octo-reference-robosuite); its links and anchors resolve, and a README section it
+    names by its title is one of the README's headings."""
+    from tests.docs.test_docs import broken_links, heading_texts
+
+    text = page.read_text()
+    others = sorted(set(re.findall(r"--model (models/[\w.-]+)", text)) - {f"models/{page.parent.name}"})
+    assert others == [], f"{page.parent.name}/{page.name} runs {others}"
+    assert broken_links(page, REPO) == []
+    readme = set(heading_texts((REPO / "README.md").read_text()))
+    named = re.findall(r"\bREADME\b[^.()]{0,20}\(\"([^\"]+)\"\)", text)
+    assert [title for title in named if title not in readme] == [], page
