@@ -37,6 +37,7 @@ from scipy.stats import rankdata
 from harness.analysis.bootstrap import bootstrap_mean_ci
 
 PASS_BELOW = 0.5  # upper 95% bound of the mean Spearman correlation with every block randomised
+PASS, FAIL, NOT_APPLICABLE = VERDICTS = ("pass", "fail", "n/a")  # a method's verdict per camera (docs/glossary.md)
 SSIM_C1 = 0.01 ** 2  # SSIM's constants for a dynamic range of 1 (Wang et al. 2004: K1 = 0.01, K2 = 0.03)
 SSIM_C2 = 0.03 ** 2
 
@@ -173,7 +174,7 @@ def verdict(summary: Sequence[Mapping], last_stage: str) -> dict[tuple[str, str]
         if row["schedule"] != "cascading" or row["stage"] != last_stage:
             continue
         high = row["spearman_high"]
-        out[(row["method"], row["camera"])] = "n/a" if not np.isfinite(high) else "pass" if high < PASS_BELOW else "fail"
+        out[(row["method"], row["camera"])] = NOT_APPLICABLE if not np.isfinite(high) else PASS if high < PASS_BELOW else FAIL
     return out
 
 

@@ -41,6 +41,7 @@ FAITH_COLUMNS = ("run", "task", "camera", "method", "steps", "episodes", "change
 CAMERA_COLUMNS = ("task", "camera", "fill", "method", "open_loop_deletion", "open_ci_low", "open_ci_high",
                   "mask_all", "mask_all_difference", "mask_all_p", "mask_top", "top_vs_random_difference",
                   "top_vs_random_p", "agreement")
+AGREE, DISAGREE = AGREEMENT = ("agree", "DISAGREE")  # open and closed loop on a camera's map (docs/glossary.md)
 
 
 def read_rows(run) -> list[dict]:
@@ -169,11 +170,11 @@ def camera_rows(runs, faith: list[tuple] | None = None) -> list[tuple]:
                 if r is None or (closed == "n/a" and not needed):
                     agreement = "n/a"
                 elif closed != "n/a" and closed != "random" and opened != "random":
-                    agreement = "agree" if closed == opened else "DISAGREE"
+                    agreement = AGREE if closed == opened else DISAGREE
                 elif needed and opened == "worse":
-                    agreement = "DISAGREE (camera needed; map below random open loop)"
+                    agreement = f"{DISAGREE} (camera needed; map below random open loop)"
                 elif closed == "random" and opened == "random":
-                    agreement = "agree (neither beats random)"
+                    agreement = f"{AGREE} (neither beats random)"
                 else:
                     agreement = f"open loop {opened}, closed loop {closed}"
                 out.append((task, camera, fill, r[3] if r else (method or ""), ratio, low, high, all_text,
@@ -246,7 +247,7 @@ def camera_sentence(task: str, camera: str, faith: list[tuple], cams: list[tuple
     mine = [c for c in cams if c[0] == task and c[1] == camera]
     if not mine:
         return text + ("open loop only (table below)." if camera_fill_rows(task, camera, faith) else "not measured.")
-    flags = sorted({c[13] for c in mine if c[13].startswith("DISAGREE")})
+    flags = sorted({c[13] for c in mine if c[13].startswith(DISAGREE)})
     text += f"open and closed loop {flags[0]}." if flags else "open and closed loop do not contradict each other."
     c = mine[0]
     if math.isfinite(c[8]):

@@ -21,6 +21,7 @@ from harness.analysis import robustness as R
 from harness.report import html as H
 from harness.report.figures_file import markdown_table
 
+DETECTABLE_DROP = "detectable drop"  # a cell's smallest drop its pairs could show as a break (docs/glossary.md)
 EPISODE_COLUMNS = ("run", "task", "condition", "level", "seed", "episode", "status", "success", "nuisance_mass",
                    "distractor_mass", "background_mass", "target_lift", "nuisance_start", "nuisance_content",
                    "target_lift_content", "nuisance_start_content", "nuisance_reliance", "background_reliance",
@@ -125,7 +126,7 @@ def section(records, plots, analysis=None) -> str:
                               "Success (Wilson band), target lift and nuisance mass against level, per condition."))
         content = R.has_content(rows)
         body.append(H.table(("condition", "level", "run", "success [Wilson 95%]", "errored", "paired: lost / gained",
-                             "Holm p", "verdict (drop's upper bound, points)", "detectable drop (points)",
+                             "Holm p", "verdict (drop's upper bound, points)", f"{DETECTABLE_DROP} (points)",
                              *_measure_headers(content)),
                             [(s[1], s[2], s[3], H.Raw(f"{s[6]}/{s[4]} {H.fmt_ci(s[7], s[8], s[9], 2)}"), s[5],
                               *_paired_cells(drops, s), *_measure_cells(s, content))
@@ -227,7 +228,7 @@ def markdown(records, note: str = "", margin: float = R.MARGIN, section: str = S
     for task in dict.fromkeys(r.task for r in rows):
         lines += [R.verdict_line(task, success, paired), ""]
         lines += markdown_table(("condition", "level", "success", "Wilson 95%", "paired: lost / gained", "Holm p",
-                                 "verdict (drop's upper bound, points)", "detectable drop (points)", *measures),
+                                 "verdict (drop's upper bound, points)", f"{DETECTABLE_DROP} (points)", *measures),
                                 [(s[1], s[2], f"{s[6]}/{s[4]}", f"[{s[8]:.2f}, {s[9]:.2f}]", *_paired_cells(drops, s),
                                   *_measure_cells(s, content, markdown=True)) for s in success if s[0] == task])
         lines += ["", f"{task}: nuisance {'mass and reliance' if R.has_reliance(rows) else 'mass'} against success.", "",

@@ -56,3 +56,56 @@ def test_a_page_that_uses_a_term_links_to_the_glossary(page):
 def test_the_check_sees_a_missing_link(tmp_path):
     assert definitions("### target lift\n\n| verdict | meaning |\n|---|---|\n| HELD | x |\n") == ["target lift", "HELD"]
     assert re.search(TERMS["anytime-valid"], "an anytime-valid test") and not re.search(TERMS["HELD"], "HELDOUT")
+
+
+def section_definitions(text: str) -> dict[str, list[str]]:
+    """{## section of the glossary: the names it defines}; a ### heading may define several ("pass, fail and n/a")."""
+    out = {}
+    for chunk in re.split(r"\n(?=## )", text)[1:]:
+        heading, _, body = chunk.partition("\n")
+        names = definitions(body)
+        out[heading.removeprefix("## ")] = [n for name in names for n in re.split(r",\s*|\s+and\s+", name)]
+    return out
+
+
+def printed_verdicts() -> dict[str, set[str]]:
+    """{glossary section (its heading's start): every verdict string the commands print there}, from the code's enums
+    and constants."""
+    from harness.analysis.compare import INCOMPLETE
+    from harness.analysis.paired import Verdict
+    from harness.analysis.provenance import STEP0_VERDICTS
+    from harness.analysis.robustness import CellVerdict
+    from harness.analysis.sanity import VERDICTS as SANITY
+    from harness.gate.results import ReplayVerdict
+    from harness.gate.robustness import NOMINAL
+    from harness.report.faithfulness import AGREEMENT
+    from harness.report.robustness import DETECTABLE_DROP
+    from harness.run.preflight import CONSISTENT, INCONCLUSIVE, MISMATCH
+
+    return {"Gate verdicts": {*map(str, Verdict), str(INCOMPLETE)},
+            "Model numerics": {*STEP0_VERDICTS, *map(str, ReplayVerdict)},
+            "Pre-flight verdicts": {CONSISTENT, MISMATCH, INCONCLUSIVE},
+            "Robustness verdicts": {*map(str, CellVerdict), NOMINAL, DETECTABLE_DROP},
+            "Faithfulness": {*AGREEMENT, *SANITY}}
+
+
+def test_every_verdict_a_command_prints_is_defined_where_its_command_is():
+    """Issue 71 item 5.11: the pre-flight verdicts, the step-0 numerics (IDENTICAL's second meaning, UNKNOWN), DISAGREE,
+    the sanity check's pass and fail, 'detectable drop' and 'nominal' among them."""
+    sections = section_definitions(GLOSSARY.read_text())
+    for start, verdicts in printed_verdicts().items():
+        (section,) = [s for s in sections if s.startswith(start)]
+        assert sorted(verdicts - set(sections[section])) == [], section
+
+
+def test_a_verdict_the_sequential_test_gives_names_it():
+    """REGRESSED, IMPROVED and HELD come from McNemar's test (compare) or from regress's sequential test."""
+    from harness.analysis.sequential import _VERDICT
+
+    rows = {row.split("|")[1].strip(): row for row in GLOSSARY.read_text().splitlines() if row.startswith("| ")}
+    assert all("sequential" in rows[str(v)] for v in _VERDICT.values()), [str(v) for v in _VERDICT.values()]
+
+
+def test_section_definitions_split_a_heading_that_defines_several():
+    text = "# G\n\n## A\n\n### pass, fail and n/a\n\ntext\n\n## B\n\n| verdict | meaning |\n|---|---|\n| HELD | x |\n"
+    assert section_definitions(text) == {"A": ["pass", "fail", "n/a"], "B": ["HELD"]}
