@@ -181,7 +181,9 @@ def _flag_text(o: Option) -> str:
     return f"`{o.flag}{value}`".replace("|", "\\|")
 
 
-def _where(path: str, field: dataclasses.Field, o: Option) -> str:
+def _where(path: str | None, field: dataclasses.Field, o: Option) -> str:
+    if path is None:  # an option that changes no file of the run (the space check)
+        return "not recorded (changes no file)"
     if not o.hashed and path.startswith("protocol."):  # a protocol group's presentation field (the colour map)
         path = "presentation"
     where = f"`{path}.{field.name}`" if path else "the run folder's path"

@@ -29,11 +29,12 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from envs.gl import HeadlessGLError
     from envs.libero_env import LiberoServerError
     from harness.octo.errors import OctoError
+    from harness.run.space import DiskFullError
     from harness.run.store import ResultsWriteError, RunLockedError
 
-    # ResultsWriteError: a full disk under regress's candidate run is exit 2, never 1 (REGRESSED)
+    # ResultsWriteError, DiskFullError: a full disk under regress's candidate run is exit 2, never 1 (REGRESSED)
     return (*USER_ERRORS, RunLockedError, OctoError, HeadlessGLError, OutputsNotWritten, ResultsWriteError,
-            LiberoServerError)
+            DiskFullError, LiberoServerError)
 
 
 def _interrupt(signum, frame):

@@ -67,8 +67,9 @@ def _live_viewer(args, modes: tuple[str, ...]):
 
 
 def _protocol(args, given: dict):
-    """(protocol, out, run name, ci method, retries, preflight mode) from the manifest of --resume RUN_DIR, or from --protocol and the
-    flags (--retries and --preflight are taken with --resume too: they are not part of the protocol)."""
+    """(protocol, out, run name, ci method, retries, preflight mode, space check) from the manifest of --resume RUN_DIR, or from
+    --protocol and the flags (--retries, --preflight and --no-space-check are taken with --resume too: they are not part of
+    the protocol)."""
     from harness.run import RunStore
     from harness.run.preflight import PreflightOptions
     from harness.run.protocol import protocol_from_manifest
@@ -76,12 +77,14 @@ def _protocol(args, given: dict):
 
     retries = given.pop("retries", None)
     preflight = given.pop("preflight", None)
+    skip_space = given.pop("no_space_check", None)  # not part of the protocol: taken with --resume too
     if args.resume is None:
         settings = {**(read_protocol_file(args.protocol) if args.protocol else {}), **given}
         retries = retries if retries is not None else settings.get("retries")
         return (build_protocol(settings), out_dir(settings), settings.get("run_name"), settings.get("ci_method"),
                 _retries(retries) if retries is not None else None,
-                PreflightOptions(preflight or settings.get("preflight") or "warn").mode)
+                PreflightOptions(preflight or settings.get("preflight") or "warn").mode,
+                not (skip_space or settings.get("no_space_check")))
     if given or args.protocol is not None:
         raise ValueError(f"--resume takes the protocol from {args.resume}/manifest.json; drop "
                          + ", ".join("--" + k.replace("_", "-") for k in (given or {"protocol": 1})))
@@ -91,12 +94,13 @@ def _protocol(args, given: dict):
     protocol = protocol_from_manifest(manifest, args.resume / "manifest.json", model_fingerprint=None,
                                       goal_fingerprint=None)
     preflight = preflight or (manifest.get("preflight") or {}).get("mode") or "warn"
-    return protocol, args.resume.parent, args.resume.name, None, retries, preflight  # None: the recorded ci_method
+    return protocol, args.resume.parent, args.resume.name, None, retries, preflight, not skip_space  # None: recorded
 
 
 def main(args) -> int:
     from harness.outputs.rerun_sink import parse_modes
     from harness.run import ResultsWriteError, execute
+    from harness.run.space import DiskFullError
 
     factory = execution(args)
     modes = parse_modes(args.rerun)  # a bad --rerun is one line, before anything heavy
@@ -104,12 +108,15 @@ def main(args) -> int:
              if o.key != "rerun" and getattr(args, o.key) is not None}
     if "save" in modes:
         given["rerun"] = True  # an output option of the protocol (spawn and serve are not)
-    protocol, out, name, method, retries, preflight = _protocol(args, given)
+    protocol, out, name, method, retries, preflight, space_check = _protocol(args, given)
     viewer = _live_viewer(args, modes)
     try:
         summary = execute(protocol, out, name, overwrite=args.overwrite, retry_failed=args.retry_failed, ci_method=method,
                           executor=factory, viewer=viewer.url if viewer is not None else None, retries=retries,
-                          preflight=preflight)
+                          preflight=preflight, space_check=space_check)
+    except DiskFullError as exc:  # the run stopped where its disk filled: no verdict on the episodes left (exit 2)
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except ResultsWriteError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

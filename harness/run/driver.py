@@ -26,8 +26,9 @@ import numpy as np
 
 from harness.measures.attention import MEASURES_VERSION
 from harness import interrupts
-from harness.run import checks
+from harness.run import checks, space
 from harness.run.protocol import protocol_from_manifest
+from harness.runfolder.platform import git_commit as _git_commit
 from harness.runfolder.platform import libero_platform, platform_differences, platform_fingerprint, platform_info
 from harness.run.executor import CheckedEnv, EpisodeContext, Executor, Retrying, SequentialExecutor, StepCallback
 from harness.run.preflight import check_run
@@ -140,29 +141,6 @@ class _SignalGuard:
 
 # ---- the pipeline ----------------------------------------------------------------------------------
 
-def _git_commit(root: Path | None = None) -> str | None:
-    """Commit of the harness checkout (or of the checkout at `root`), read from .git without starting a process (a
-    worktree's .git is a file naming its own git folder, whose `commondir` holds the shared refs)."""
-    git = (root or Path(__file__).resolve().parents[2]) / ".git"
-    try:
-        if git.is_file():  # a worktree: "gitdir: <path>"
-            git = (git.parent / git.read_text().strip().removeprefix("gitdir:").strip()).resolve()
-        common = (git / (git / "commondir").read_text().strip()).resolve() if (git / "commondir").is_file() else git
-        head = (git / "HEAD").read_text().strip()
-        if not head.startswith("ref: "):
-            return head
-        ref = head[5:]
-        for folder in (git, common):
-            if (folder / ref).exists():
-                return (folder / ref).read_text().strip()
-        for line in (common / "packed-refs").read_text().splitlines():
-            if line.endswith(" " + ref):
-                return line.split()[0]
-    except (OSError, ValueError):
-        pass
-    return None
-
-
 def _tokenizer_label(tokenizer) -> str:
     if tokenizer is None:
         return "none (goal-conditioned model)"
@@ -201,6 +179,7 @@ def execute(
     viewer: str | None = None,
     retries: int | None = None,
     preflight: str = "warn",
+    space_check: bool = True,
 ) -> RunSummary:
     """Run (or resume) the protocol's episodes into `<out>/<run_name>` and return the summary.
 
@@ -212,6 +191,7 @@ def execute(
     one, else wilson. A different one for a run that records its own is refused (one line).
     retries: times a lost job runs again (executor.Retrying); None: the run's recorded number, else Recovery's default.
     preflight: warn | strict | off, the checks of frames and action space before the first episode (run/preflight.py).
+    space_check: refuse to start when the files of the jobs left would not fit where the run writes (run/space.py).
     """
     protocol, out, name, goal_images, fingerprint_details = _checked_inputs(protocol, out, run_name, ci_method, viewer)
     store = RunStore(out / name)
@@ -220,7 +200,8 @@ def execute(
     with store:
         try:
             opened = _open_run(store, protocol, jobs, name, goal_images, fingerprint_details, overwrite=overwrite,
-                               retry_failed=retry_failed, model=model, ci_method=ci_method, preflight=preflight)
+                               retry_failed=retry_failed, model=model, ci_method=ci_method, preflight=preflight,
+                               space_check=space_check)
         except BaseException:
             if created and not (store.dir / MANIFEST).exists():  # a check failed: leave no empty run folder behind
                 shutil.rmtree(store.dir, ignore_errors=True)
@@ -285,7 +266,7 @@ class _OpenedRun:
 
 def _open_run(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], name: str, goal_images: dict | None,
               fingerprint_details: dict, *, overwrite: bool, retry_failed: bool, model, ci_method: str | None,
-              preflight: str = "warn") -> _OpenedRun:
+              preflight: str = "warn", space_check: bool = True) -> _OpenedRun:
     """Inside the store's lock: compare with what the folder holds, load the model if any job is left (or the run is
     new), check it against the protocol and the first env, write a new run's manifest and clear leftovers."""
     protocol_dict = protocol.to_dict()
@@ -311,6 +292,8 @@ def _open_run(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], name:
         interrupts.check()  # Ctrl-C while loading, its KeyboardInterrupt swallowed by a finaliser
     if model is not None:
         task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)
+        if space_check:  # before any env is made: what the jobs left write against the free space
+            space.check_space(protocol, model, pending, store.dir)
     checked = CheckedEnv(protocol, model, pending[0].task) if model is not None and pending else None
     try:
         found = check_run(preflight, protocol, model, checked.env, pending[0].seed, dataset_key) if checked else None
@@ -423,7 +406,7 @@ def _run_pending(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], op
                 store.record_recovery(manifest, rows, retries, Recovery.retries)
             for row in (runner.run(opened.pending, on_step=step) if runner is not None else ()):
                 row = dataclasses.replace(row, platform=opened.platform_fp)  # where this episode's numbers came from
-                with guard.critical():
+                with guard.critical(), space.stops_when_full(store.dir, protocol, opened.model, jobs, done, row):
                     store.append(row)
                     rows[row.key] = row
                     if not row.lost_infrastructure:  # a job lost after its retries stays to do (resume)

@@ -49,6 +49,7 @@ from harness.policy import EnvMismatchError, OctoPolicy
 from harness.records import EpisodeMeta, StepRecord
 from harness.rollout import rollout
 from harness.run.protocol import EpisodeJob, Protocol
+from harness.run.space import DISK, disk_error
 from harness.run.store import EpisodeRow
 from harness.runfolder.integrity import data_digests
 from harness.outputs.writers import EpisodeWriter
@@ -188,8 +189,11 @@ class InfrastructureError(RuntimeError):
 
 def failure_of(exc: BaseException) -> tuple[str, str | None]:
     """An episode's exception -> (failure kind, the lost part or None): "infrastructure" for a lost worker, node or
-    policy replica (InfrastructureError), a LIBERO server that died or stopped answering, or a render context that
-    OpenGL lost; "episode" for anything else (the policy, the env, the physics, a non-finite action)."""
+    policy replica (InfrastructureError), a LIBERO server that died or stopped answering, a render context that
+    OpenGL lost, or a disk that filled ("disk": the driver stops the run, harness/run/space.py); "episode" for
+    anything else (the policy, the env, the physics, a non-finite action)."""
+    if disk_error(exc) is not None:
+        return "infrastructure", DISK
     if isinstance(exc, InfrastructureError):
         return "infrastructure", exc.lost
     libero = sys.modules.get("envs.libero_env")  # loaded wherever a LIBERO env ran
@@ -203,10 +207,13 @@ def failure_of(exc: BaseException) -> tuple[str, str | None]:
 def record_failure(context: EpisodeContext, job: EpisodeJob, exc: BaseException, trace: str = "",
                    steps: int = 0) -> EpisodeRow:
     """Write the failed episode's episode.json where possible and return its "failed" row (`steps` that ran), with
-    the failure's kind (`failure_of`)."""
+    the failure's kind (`failure_of`). A full disk leaves nothing of the episode: it runs again on resume."""
     error = f"{type(exc).__name__}: {exc}".splitlines()[0]
     failure, lost = failure_of(exc)
     log.error("episode %s failed (%s): %s", job.directory, failure, error)
+    if lost == DISK:
+        shutil.rmtree(context.episode_dir(job), ignore_errors=True)
+        return EpisodeRow.failed(context.run, job, error, steps=steps, failure=failure, lost=lost)
     try:
         atomic_write_json(context.episode_dir(job) / "episode.json",
                           {**asdict(context.meta(job)), "status": "failed", "success": False, "steps": steps,
@@ -275,6 +282,7 @@ class Retrying:
     (task, seed) only, it writes the files an uninterrupted run writes. Episode failures are never retried. A loss
     that recurs at the same step (after at least one) is the episode's own doing (a simulator crash or hang its
     actions cause): it becomes an episode failure. After `retries` retries the job stays an infrastructure failure.
+    A full disk (lost part "disk") is never retried: the driver stops the run at its row.
     The row finally yielded lists the lost attempts in `retries`. Retries run once the jobs given have finished.
     """
 
@@ -291,7 +299,7 @@ class Retrying:
             again = []
             for row in self.executor.run(pending, on_step=on_step):
                 attempts = lost.setdefault(row.key, [])
-                if row.failure == "infrastructure":
+                if row.failure == "infrastructure" and row.lost != DISK:
                     if attempts and row.steps > 0 and attempts[-1]["step"] == row.steps:
                         row = dataclasses.replace(row, failure="episode", lost=None,
                                                   error=f"{row.error} (again at step {row.steps} on a retry: the "

@@ -40,6 +40,7 @@ from harness.measures.attribution import DEFAULT_METHODS
 from harness.outputs.writers import ATTRIBUTION_VIDEO
 from harness.run.protocol import Protocol, Recovery, RunStatistics
 from harness.run.preflight import PreflightOptions
+from harness.run.space import SpaceCheck
 from harness.outputs.writers import OutputOptions
 
 DEFAULT_OUT = "results/runs"
@@ -57,10 +58,11 @@ class Destination:
             "same run]; NAME is a plain folder name")
 
 
-# The options of `run`, each declared once on the field that holds it, and where the manifest records each class
+# The options of `run`, each declared once on the field that holds it, and where the manifest records each class (None:
+# nowhere, as it changes no file)
 RUN_OPTIONS = ((Protocol, "protocol"), (EnvOptions, "protocol.env"), (PolicyConfig, "protocol.policy"),
                (OutputOptions, "protocol.outputs"), (RunStatistics, "statistics"), (Recovery, "recovery"),
-               (PreflightOptions, "preflight"), (Destination, ""))
+               (PreflightOptions, "preflight"), (SpaceCheck, None), (Destination, ""))
 # key -> expected TOML type(s); the same names as the `run` flags (rerun: true writes each episode's episode.rrd;
 # live viewers are chosen on the command line)
 FILE_KEYS: dict[str, tuple[type, ...]] = file_keys(*(cls for cls, _ in RUN_OPTIONS))

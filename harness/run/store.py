@@ -329,6 +329,9 @@ class RunStore:
         `default`."""
         lost = recovery(rows.values())
         if lost is None and retries == default:
+            if "recovery" in manifest:  # what was lost has run again (a resume): no stale record stays
+                del manifest["recovery"]
+                self.write_manifest(manifest)
             return
         record = {"retries": retries, **(lost or {})}
         if manifest.get("recovery") != record:

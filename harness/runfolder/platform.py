@@ -142,3 +142,26 @@ def platform_differences(a: dict | None, b: dict | None) -> list[str]:
         return list(NUMERICS)
     na, nb = numerics(a), numerics(b)
     return [key for key in dict.fromkeys([*na, *nb]) if na.get(key) != nb.get(key)]
+
+
+def git_commit(root: Path | None = None) -> str | None:
+    """Commit of the harness checkout (or of the checkout at `root`), read from .git without starting a process (a
+    worktree's .git is a file naming its own git folder, whose `commondir` holds the shared refs)."""
+    git = (root or Path(__file__).resolve().parents[2]) / ".git"
+    try:
+        if git.is_file():  # a worktree: "gitdir: <path>"
+            git = (git.parent / git.read_text().strip().removeprefix("gitdir:").strip()).resolve()
+        common = (git / (git / "commondir").read_text().strip()).resolve() if (git / "commondir").is_file() else git
+        head = (git / "HEAD").read_text().strip()
+        if not head.startswith("ref: "):
+            return head
+        ref = head[5:]
+        for folder in (git, common):
+            if (folder / ref).exists():
+                return (folder / ref).read_text().strip()
+        for line in (common / "packed-refs").read_text().splitlines():
+            if line.endswith(" " + ref):
+                return line.split()[0]
+    except (OSError, ValueError):
+        pass
+    return None

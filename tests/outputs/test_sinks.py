@@ -208,7 +208,8 @@ def test_the_table_holds_one_sink_per_output_and_the_writer_opens_those_asked_fo
 
 
 class Failing(Sink):
-    """A sink that raises at step 1 (as a full disk or a bug in an output would)."""
+    """A sink that raises at step 1 (as a failing device or a bug in an output would; a full disk stops the run:
+    tests/run/test_disk_space.py)."""
 
     made: list = []
 
@@ -219,7 +220,7 @@ class Failing(Sink):
 
     def add(self, step):
         if step.step == 1:
-            raise OSError(28, "No space left on device")
+            raise OSError(5, "Input/output error")
 
     def abort(self):
         self.aborted.set()
@@ -234,7 +235,7 @@ def test_a_sink_that_raises_fails_the_episode_as_a_writer_error(tmp_path, monkey
     recs = records(STEPS)
     writer.add_step(recs[0])
     writer.add_step(recs[1])
-    with pytest.raises(WriterError, match=r"background writer failed at step 1: OSError\(28, 'No space left") as info:
+    with pytest.raises(WriterError, match=r"background writer failed at step 1: OSError\(5, 'Input/output error") as info:
         for r in recs[2:]:
             writer.add_step(r)
         writer.finish({"success": True})
@@ -260,7 +261,7 @@ def test_a_sink_that_raises_is_a_failed_episode_row(fixtures_dir, tmp_path, monk
     summary = execute(protocol, tmp_path, "r", model=model, progress=False)
     (row,) = summary.rows
     assert row.status == "failed"
-    assert row.error.startswith("WriterError: background writer failed at step 1: OSError(28, 'No space left")
+    assert row.error.startswith("WriterError: background writer failed at step 1: OSError(5, 'Input/output error")
     episode = summary.episode_dir(row)
     info = json.loads((episode / "episode.json").read_text())
     assert info["status"] == "failed" and info["error"] == row.error

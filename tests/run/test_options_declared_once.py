@@ -39,8 +39,9 @@ def test_every_run_flag_that_changes_a_file_is_a_recorded_field():
     assert FILE_KEYS == file_keys(*(cls for cls, _ in RUN_OPTIONS))
     assert {"faithfulness_fill", "ci_method", "camera", "no_video", "intervene", "out", "run_name"} <= set(FILE_KEYS)
     outside = sorted(o.flag for cls, _ in RUN_OPTIONS for _, o in options(cls) if not o.hashed)
-    # the manifest's statistics, presentation (the colour map), recovery and pre-flight check, the folder's path
-    assert outside == ["--ci-method", "--colormap", "--out", "--preflight", "--retries", "--run-name"]
+    # the manifest's statistics, presentation (the colour map), recovery and pre-flight check, the folder's path; the
+    # space check changes no file
+    assert outside == ["--ci-method", "--colormap", "--no-space-check", "--out", "--preflight", "--retries", "--run-name"]
 
 
 def test_robustness_takes_runs_options_and_states_only_where_it_differs():
