@@ -35,7 +35,7 @@ from harness.octo.diffusion import SAMPLERS
 from harness.octo.normalization import NORMALIZATIONS, normalize
 from harness.octo.tokens import TokenMap
 from harness.options import joined, option, record
-from harness.probes import ProbeContext, ProbeItem, active as active_probes
+from harness.probes.registry import ProbeContext, ProbeItem, active as active_probes, option_classes
 
 
 MAX_INFERENCE_BATCH = 256  # a larger compiled batch only costs memory: no machine here gains from it
@@ -46,7 +46,10 @@ class EnvMismatchError(ValueError):
 
 
 @dataclass(frozen=True)
-class PolicyConfig:
+class CorePolicyConfig:
+    """The policy's own options: how actions are executed, unnormalised and sampled. `PolicyConfig` adds every
+    registered probe's options (harness.probes.registry) to these."""
+
     execution: str = option("temporal_ensemble", "--execution", "", file=(str,),
                             choices=("temporal_ensemble", "receding_horizon"),
                             doc="`temporal_ensemble` (infer every step, average overlapping chunk predictions) or "
@@ -92,43 +95,8 @@ class PolicyConfig:
         "[@CAMERA], mask-bottom:K:METHOD[:LAYER][@CAMERA], mask-random:K[@CAMERA], mask-all[@CAMERA], "
         "ablate-heads:L:H[,L:H...] (METHOD: attention, rollout, grad-attention, saliency)",
         file=(str,), metavar="SPEC", sparse=True, field="intervention")
-    # attribution maps at every inference step (harness/measures/attribution.py: "attention,rollout,grad-attention,
-    # saliency"; random is always added) and open-loop faithfulness every k-th step (0 = never), deleted patches
-    # filled with "mean", "blur" or "impute" (ROAD's noisy linear imputation). They do not change actions
-    attribution: str | None = option(
-        None, "--attribution", "store attribution maps at every inference step in attribution.npz: comma-separated "
-        "attention (every layer; attention:L one), rollout, grad-attention, saliency; random is always added",
-        file=(str, list), metavar="METHODS", convert=joined, sparse=True)
-    faithfulness_every: int = option(
-        0, "--faithfulness-every", "open-loop faithfulness (deletion/insertion curves, top/random/bottom-k) of every "
-        "attribution method every K-th step, in faithfulness.jsonl", default_text="{} = never; methods default to all",
-        type=int, file=(int,), metavar="K", sparse=True)
-    faithfulness_fill: str = option(
-        "mean", "--faithfulness-fill", "what a deleted patch becomes in the faithfulness curves: the frame's mean "
-        "colour, a blur of the frame, or noisy linear imputation from the surrounding pixels (ROAD; in distribution, "
-        "no shape leak)", file=(str,), choices=("mean", "blur", "impute"), sparse=True)
-    # position-against-content controls (harness/measures/controls.py): every `controls_every`-th inference step is
-    # asked again, open loop, with every camera's frames blanked to their mean colour / mirrored left-right; the
-    # control attention goes to controls.npz. They do not change actions
-    attention_controls: str | None = option(
-        None, "--attention-controls", "position-against-content controls: ask the model each control step again with "
-        "every camera's frames blanked to their mean colour and/or mirrored left-right; attention in controls.npz "
-        "(docs/phases-and-position.md)", file=(str, list), metavar="blank,mirror", convert=joined, sparse=True)
-    controls_every: int | None = option(  # None: 1 with --attention-controls, unset without
-        None, "--controls-every", "run the attention controls at every N-th inference step",
-        default_text="1 with --attention-controls", type=int, file=(int,), metavar="N", sparse=True)
-    # region reliance (harness/probes/reliance/measure.py): each labelled region of every camera replaced by the fill, open
-    # loop with the step's rng, the action chunk's change recorded in reliance.jsonl; needs the env's masks
-    reliance_every: int = option(
-        0, "--reliance-every", "region reliance every N-th step: each labelled region (target, gripper, goal, "
-        "distractors, background...) of every camera replaced by --reliance-fill, and how much the predicted action "
-        "chunk changes, in reliance.jsonl", default_text="{} = never", type=int, file=(int,), metavar="N", sparse=True)
-    reliance_fill: str = option(
-        "impute", "--reliance-fill", "what a replaced region becomes for --reliance-every: the frame's mean colour, a "
-        "blur of the frame, or noisy linear imputation from the surrounding pixels", file=(str,),
-        choices=("mean", "blur", "impute"), sparse=True)
-
-    def __post_init__(self) -> None:
+    def check(self) -> None:
+        """Validate (and complete) the policy's own fields; a ValueError names the flag."""
         if self.execution not in ("temporal_ensemble", "receding_horizon"):
             raise ValueError(f"unknown execution {self.execution!r}; use 'temporal_ensemble' or 'receding_horizon'")
         if isinstance(self.receding_steps, bool) or not isinstance(self.receding_steps, int) or self.receding_steps < 1:
@@ -150,35 +118,6 @@ class PolicyConfig:
             from harness.interventions import canonical
 
             object.__setattr__(self, "intervention", canonical(self.intervention))
-        if isinstance(self.faithfulness_every, bool) or not isinstance(self.faithfulness_every, int) \
-                or self.faithfulness_every < 0:
-            raise ValueError(f"--faithfulness-every must be an integer >= 0 (0 = never), got {self.faithfulness_every!r}")
-        if self.faithfulness_fill not in ("mean", "blur", "impute"):
-            raise ValueError(f"--faithfulness-fill must be 'mean', 'blur' or 'impute', got {self.faithfulness_fill!r}")
-        if self.faithfulness_every and self.attribution is None:
-            from harness.measures.attribution import DEFAULT_METHODS
-
-            object.__setattr__(self, "attribution", DEFAULT_METHODS)
-        if self.attribution is not None:
-            from harness.measures.attribution import parse_methods
-
-            parse_methods(self.attribution, 1 << 16)  # names checked here; layers against the model at start
-        if self.controls_every is not None and (isinstance(self.controls_every, bool) or
-                                                not isinstance(self.controls_every, int) or self.controls_every < 1):
-            raise ValueError(f"--controls-every must be an integer >= 1 (1: every inference step), got "
-                             f"{self.controls_every!r}")
-        if self.attention_controls is not None:
-            from harness.measures.controls import parse_controls
-
-            object.__setattr__(self, "attention_controls", ",".join(parse_controls(self.attention_controls)))
-            if self.controls_every is None:
-                object.__setattr__(self, "controls_every", 1)
-        elif self.controls_every is not None:
-            raise ValueError("--controls-every needs --attention-controls (e.g. --attention-controls blank,mirror)")
-        if isinstance(self.reliance_every, bool) or not isinstance(self.reliance_every, int) or self.reliance_every < 0:
-            raise ValueError(f"--reliance-every must be an integer >= 0 (0 = never), got {self.reliance_every!r}")
-        if self.reliance_fill not in ("mean", "blur", "impute"):
-            raise ValueError(f"--reliance-fill must be 'mean', 'blur' or 'impute', got {self.reliance_fill!r}")
 
     def to_dict(self) -> dict:
         """The fields as plain data; the sparse options only when set (protocols without them keep their hash)."""
@@ -188,6 +127,28 @@ class PolicyConfig:
         if self.execution == "receding_horizon":
             return f"receding_horizon:{self.receding_steps}"
         return f"temporal_ensemble:{self.ensemble_weight:g}"
+
+
+def _assemble_policy_config() -> type:
+    """PolicyConfig: CorePolicyConfig's fields, then each registered probe's options (in registration order), one
+    frozen dataclass whose __post_init__ runs CorePolicyConfig.check, then each probe's `check`. Its fields are the
+    `run` flags, the protocol's "policy" block and the docs' option table, wherever a field is declared."""
+    probe_options = option_classes()
+
+    def __post_init__(self) -> None:
+        CorePolicyConfig.check(self)
+        for options in probe_options:
+            options.check(self)
+
+    cls = dataclasses.make_dataclass(
+        "PolicyConfig", [], bases=(*reversed(probe_options), CorePolicyConfig), frozen=True,
+        namespace={"__post_init__": __post_init__, "__doc__": "How the policy runs and what it measures beside: "
+                   "CorePolicyConfig's fields and every registered probe's options (harness.probes.registry)."})
+    cls.__module__ = __name__  # pickled by name into spawned workers and Ray
+    return cls
+
+
+PolicyConfig = _assemble_policy_config()
 
 
 @dataclass(frozen=True, eq=False)

@@ -105,9 +105,10 @@ def test_no_two_modules_import_each_other():
 
 
 def import_circles(graph: dict[str, set[str]]) -> list[list[str]]:
-    """The import circles of `graph` (strongly connected sets of two or more modules, Tarjan's algorithm), an edge
-    from a package to its own modules left out (importing `pkg.mod` runs `pkg/__init__` first anyway)."""
-    edges = {a: sorted(b for b in graph[a] if not b.startswith(a + ".")) for a in graph}
+    """The import circles of `graph` (strongly connected sets of two or more modules, Tarjan's algorithm). An edge
+    from a package to its own modules counts: a package whose `__init__` imports a submodule that imports the package
+    back works only while the import that closes the circle comes last (the probe registry did, issue 72)."""
+    edges = {a: sorted(graph[a]) for a in graph}
     index: dict[str, int] = {}
     low: dict[str, int] = {}
     stack: list[str] = []
@@ -142,7 +143,8 @@ def test_the_circle_check_sees_a_circle_and_envs_imports_no_harness():
     """A circle of three (which the pair check misses) is found; envs/ imports nothing of harness/ (the policy side
     never reaches into the simulators, and the simulators know nothing of the policy)."""
     assert import_circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
-    assert import_circles({"p": {"p.m"}, "p.m": {"p"}}) == []
+    assert import_circles({"p": {"p.m"}, "p.m": {"p"}}) == [["p", "p.m"]]  # a package and its own module
+    assert import_circles({"p": {"p.r"}, "p.r": set(), "p.b": {"p.r"}}) == []  # the registry's shape: one direction
     graph = import_graph((HARNESS, ENVS))
     assert "envs.tasks" in graph and "envs.libero_tasks" in graph
     assert sorted(f"{a} imports {b}" for a in graph if a.split(".")[0] == "envs"

@@ -31,7 +31,6 @@ steps both arms stored.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -52,6 +51,7 @@ from harness.analysis.compare_result import (
     IdenticalCheck,
     Incompleteness,
     MissingPairs,
+    OneSideMeasures,
     OutcomeBlock,
     Outcomes,
     PairDetail,
@@ -79,31 +79,17 @@ from harness.analysis.paired import (
 )
 from harness.measures.attention import DERIVED_PREFIXES
 from harness.analysis.equivalence import attention_divergence
+from harness.analysis.protocol_fields import incompatible_fields, one_side_line, one_side_measures, what_differs
 from harness.analysis.provenance import input_agreement, provenance
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
 from harness.measures.stats import wilson_interval
-from harness.runfolder.schema import flatten
+from harness.results import ABSENT
 
 BASELINE_MARKER = "BASELINE.json"  # written by scripts/make_baseline.py into a committed baseline
 # --fail-on: the mildest verdict that fails the gate (exit 1); each level also fails on everything worse
 FAIL_ON = ("regressed", "suspect", "underpowered", "changed")
 EXIT_OK, EXIT_FAIL, EXIT_INVALID, EXIT_ERRORED, EXIT_INCOMPLETE = 0, 1, 2, 3, 4
 INCOMPLETE = Verdict.INCOMPLETE  # the candidate lacks finished episodes the baseline has; outranked by ERRORED, REGRESSED
-# protocol fields that may differ between the arms (the model is what a comparison changes); any other
-# difference changes outcomes (env options, max steps, execution, action space, cameras, instruction, goals...)
-MAY_DIFFER = ("model", "model_fingerprint", "tasks", "episodes", "seed", "outputs", "harness_version",
-              "policy.full_attention", "policy.dataset_key", "policy.inference_batch",
-              "policy.intervention",  # an intervention run against a plain one: the change is what is measured
-              "policy.attribution", "policy.faithfulness_every", "policy.faithfulness_fill",  # measured beside, same actions
-              # legacy manifests (before the run store) keep model facts at the top level
-              "model_is_random", "model_note", "text_tokenizer", "dataset_key", "git_commit", "versions")
-# fields of MAY_DIFFER that are the model (what a comparison is usually about), and those that change neither the
-# policy's inputs nor its actions (measured beside, or bit-identical by design); every other field that differs
-# (an intervention, a dataset key) changes what the policy computes, and the drift and provenance lines name it
-MODEL_FIELDS = ("model", "model_fingerprint", "text_tokenizer", "model_is_random", "model_note")
-NEUTRAL_FIELDS = ("tasks", "episodes", "seed", "outputs", "harness_version", "git_commit", "versions",
-                  "policy.full_attention", "policy.inference_batch", "policy.attribution", "policy.faithfulness_every",
-                  "policy.faithfulness_fill")
 ARRAY_FILES = ("actions.npz", "attention.npz")
 POOLED = "\0pooled"  # key of the pooled table while verdicts are computed (cannot clash with a task name)
 
@@ -140,55 +126,6 @@ def _protocol(run: RunRecord) -> dict:
     if isinstance(manifest.get("protocol"), dict):
         return manifest["protocol"]
     return {k: v for k, v in manifest.items() if k not in ("jobs", "run", "created", "format")}  # legacy
-
-
-def incompatible_fields(baseline: dict, candidate: dict) -> list[str]:
-    """Dotted protocol fields that differ and change outcomes (everything but MAY_DIFFER)."""
-    a, b = flatten(json.loads(json.dumps(baseline))), flatten(json.loads(json.dumps(candidate)))
-    missing = object()
-    differ = sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, missing) != b.get(k, missing))
-    if a.get("execution", missing) != b.get("execution", missing) and not any(k.startswith("policy.") for k in differ):
-        differ.append("execution")  # legacy manifests have no policy block
-    differ = [k for k in differ if not any(k.startswith(d + ".") for d in differ)]  # None vs {...}: name the parent
-    return [k for k in differ if not any(k == m or k.startswith(m + ".") for m in MAY_DIFFER)]
-
-
-def _shown(value) -> str:
-    return "none" if value is None else json.dumps(value) if not isinstance(value, str) else value
-
-
-def what_differs(baseline: dict, candidate: dict) -> dict:
-    """What the protocols of two comparable runs differ in, for the drift and provenance lines: {"model": the model
-    differs, "other": [{"field", "baseline", "candidate"}] (fields that change the policy's inputs or actions but are
-    not the model: an intervention, ...), "cause": who a difference belongs to, "drift_label": what the step-0 drift
-    measures}."""
-    a, b = flatten(json.loads(json.dumps(baseline))), flatten(json.loads(json.dumps(candidate)))
-    missing = object()
-    differ = sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, missing) != b.get(k, missing))
-
-    def under(key, fields):
-        return any(key == f or key.startswith(f + ".") for f in fields)
-
-    model = any(under(k, MODEL_FIELDS) for k in differ)
-    parents = {k.rsplit(".", 1)[0] for k in differ if "." in k}
-    other = [{"field": k, "baseline": a.get(k), "candidate": b.get(k)} for k in differ
-             if not under(k, MODEL_FIELDS) and not under(k, NEUTRAL_FIELDS) and k not in parents]
-    named = ", ".join(f"{o['field']} ({_shown(o['baseline'])} -> {_shown(o['candidate'])})" for o in other)
-    if other and model:
-        cause = f"the candidate's model and {named} together"
-        drift = (f"same seed and scene; the arms differ in the model and in {named}: these numbers measure both "
-                 "together, not the model alone")
-    elif other:
-        cause = f"{named}, not the model (both arms run the same model)"
-        drift = (f"same seed and scene; the arms differ in {named}, not in the model: these numbers measure that "
-                 "difference, not a model change")
-    elif model:
-        cause = "the candidate's"
-        drift = "same seed, identical observation: the model change alone"
-    else:
-        cause = "float noise or the platform's (the protocols differ in nothing that changes actions)"
-        drift = "same seed, identical observation, same model: any difference is float noise or the platform's"
-    return {"model": model, "other": other, "cause": cause, "drift_label": drift}
 
 
 def _truncated(run: RunRecord) -> bool:
@@ -589,6 +526,9 @@ def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], miss
         if verdict not in (Verdict.ERRORED, Verdict.REGRESSED):
             verdict = INCOMPLETE
     protocol = _protocol(baseline)
+    one_side = one_side_measures(protocol, _protocol(candidate))
+    if one_side_line(one_side):
+        notes.append(one_side_line(one_side))
     return CompareResult(
         format=FORMAT,
         verdict=verdict,
@@ -615,6 +555,7 @@ def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], miss
                         cause=differs["cause"], drift_label=differs["drift_label"]),
         provenance=Provenance(**provenance(baseline.manifest, candidate.manifest, details, differs=differs)),
         pair_details=tuple(_pair_detail(d) for d in details),
+        one_side_measures=OneSideMeasures(**one_side) if one_side_line(one_side) else ABSENT,
     )
 
 

@@ -105,6 +105,14 @@ class MissingPairs(Result):
 
 
 @dataclass(frozen=True)
+class OneSideMeasures(Result):
+    """The probes (measures beside the actions) only one run took, by name: the other run cannot be compared on them."""
+
+    baseline: tuple[str, ...]  # only the baseline measured these
+    candidate: tuple[str, ...]  # only the candidate measured these
+
+
+@dataclass(frozen=True)
 class Incompleteness(Result):
     pairs: int
     tasks: dict[str, int]
@@ -274,4 +282,5 @@ class CompareResult(Result):
     provenance: Provenance
     pair_details: tuple[PairDetail, ...]
     grid: GridInfo = ABSENT  # compare_grids only
+    one_side_measures: OneSideMeasures = ABSENT  # present when one run took measures the other did not
     exit_code: int | None = ABSENT  # written beside the result (harness.report.compare_html.write_comparison)

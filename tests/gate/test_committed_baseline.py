@@ -115,6 +115,9 @@ def made_here(tmp_path_factory):
 def test_a_baseline_made_on_this_machine_is_identical_on_rerun(made_here):
     """The same-platform branch, on every machine: bit-identical trajectories and measures, whatever CPU CI gets."""
     baseline, candidate = made_here
+    named = [p.relative_to(baseline).as_posix() for p in baseline.rglob("*.json*") if str(REPO) in p.read_text()]
+    assert not named, f"a baseline names this checkout's absolute path in {named}"
+    assert json.loads((baseline / "manifest.json").read_text())["model"]["source"] == "models/octo-reference-robosuite"
     result = compare_runs(baseline, candidate)
     assert result.provenance.platform["same"]
     assert result.verdict == "IDENTICAL", result.identical.first_difference

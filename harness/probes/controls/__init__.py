@@ -10,15 +10,49 @@ back by `.reader`); the report's Position section reads it too (harness.analysis
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 
 import numpy as np
 
-from harness.probes import Probe, ProbeContext
+from harness.options import joined, option
+from harness.probes.registry import Probe, ProbeContext
+
+
+@dataclass(frozen=True)
+class ControlsOptions:
+    """The attention-controls probe's options (fields of harness.policy.PolicyConfig)."""
+
+    # position-against-content controls (harness/measures/controls.py): every `controls_every`-th inference step is
+    # asked again, open loop, with every camera's frames blanked to their mean colour / mirrored left-right; the
+    # control attention goes to controls.npz. They do not change actions
+    attention_controls: str | None = option(
+        None, "--attention-controls", "position-against-content controls: ask the model each control step again with "
+        "every camera's frames blanked to their mean colour and/or mirrored left-right; attention in controls.npz "
+        "(docs/phases-and-position.md)", file=(str, list), metavar="blank,mirror", convert=joined, sparse=True)
+    controls_every: int | None = option(  # None: 1 with --attention-controls, unset without
+        None, "--controls-every", "run the attention controls at every N-th inference step",
+        default_text="1 with --attention-controls", type=int, file=(int,), metavar="N", sparse=True)
+
+    def check(self) -> None:
+        """Validate (and complete) the fields on the assembled PolicyConfig; a ValueError names the flag."""
+        if self.controls_every is not None and (isinstance(self.controls_every, bool) or
+                                                not isinstance(self.controls_every, int) or self.controls_every < 1):
+            raise ValueError(f"--controls-every must be an integer >= 1 (1: every inference step), got "
+                             f"{self.controls_every!r}")
+        if self.attention_controls is not None:
+            from harness.measures.controls import parse_controls
+
+            object.__setattr__(self, "attention_controls", ",".join(parse_controls(self.attention_controls)))
+            if self.controls_every is None:
+                object.__setattr__(self, "controls_every", 1)
+        elif self.controls_every is not None:
+            raise ValueError("--controls-every needs --attention-controls (e.g. --attention-controls blank,mirror)")
 
 
 class ControlsProbe(Probe):
     name = "controls"
     option = "attention_controls"
+    options = ControlsOptions
     sink = ".sink:ControlArrays"
     reader = ".reader"
 
