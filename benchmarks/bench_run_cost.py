@@ -78,9 +78,7 @@ def main() -> None:
              for i, (label, flags) in enumerate(CONFIGS)}
     from harness.runfolder.platform import git_commit
 
-    print(f"Measured by `.venv/bin/python benchmarks/bench_run_cost.py` at commit {(git_commit() or 'unknown')[:7]} on "
-          f"{cpu_model()}, CPU only: {args.model}, {args.task}, {args.episodes} episodes (seeds 0..{args.episodes - 1})."
-          "\n")
+    print(f"{args.model}, {args.task}, {args.episodes} episodes (seeds 0..{args.episodes - 1}), CPU only.\n")
     print("| outputs | steps per episode | s per step | s per episode | MB per episode | estimate, MB | estimate / measured |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     for label, m in found.items():
@@ -93,6 +91,8 @@ def main() -> None:
           f"{steps:.0f} steps at the eval.json mean steps): about {steps * fast['per_step'] / 3600:.1f} h and "
           f"{steps * fast['bytes'] / fast['steps'] / 1e9:.1f} GB; start-up (load, compile) "
           f"{fast['wall'] - fast['episode_s'] * args.episodes:.0f} s per run")
+    print(f"\nProvenance: command `.venv/bin/python benchmarks/bench_run_cost.py`; commit `{(git_commit() or 'unknown')[:7]}`; "
+          f"machine: {cpu_model()}, CPU only.")
 
 
 if __name__ == "__main__":

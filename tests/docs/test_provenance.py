@@ -56,6 +56,7 @@ DOCS_MEASURED = (
     ("docs/phases-and-position.md", "## Cost"),
     ("docs/phases-and-position.md", "## Reference policy: results"),
     ("docs/regression.md", "## Across machines: provenance, replay and what a verdict can claim"),
+    ("docs/running.md", "## What a run costs"),
     ("docs/viewer.md", "## Cost (benchmarks/bench_rerun.py)"),
 )
 

@@ -26,8 +26,10 @@ from harness.run.protocol import Protocol
 from harness.run.store import RunStore
 from harness.run.workers import WorkersExecutor
 
+pytestmark = pytest.mark.slow  # real runs: about 20 s each on a 2-core machine
+
 STEPS = 2
-EPISODES = 3
+EPISODES = 2
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +112,7 @@ def test_a_full_disk_stops_the_run_and_a_plain_resume_finishes_it(tiny, fixtures
         # started anyway, it stops at the first write the disk refuses: one line naming the folder, exit 2
         assert cli.main([*args, "--no-space-check"]) == 2
         (line,) = _errors(capsys.readouterr().err)
-        assert f"the disk under {run} is full" in line and "2 episode(s) left, which need up to" in line
+        assert f"the disk under {run} is full" in line and f"{EPISODES - 1} episode(s) left, which need up to" in line
         rows = _rows(run)
         assert [(r["episode"], r["status"], r.get("failure"), r.get("lost")) for r in rows] == [
             (0, "ok", None, None), (1, "failed", "infrastructure", "disk")]
@@ -121,7 +123,7 @@ def test_a_full_disk_stops_the_run_and_a_plain_resume_finishes_it(tiny, fixtures
         # still full: the plain resume is refused, what is left named, nothing made
         made.clear()
         assert cli.main(args) == 2 and made == []
-        assert "the 2 episode(s) to run need up to" in _errors(capsys.readouterr().err)[0]
+        assert f"the {EPISODES - 1} episode(s) to run need up to" in _errors(capsys.readouterr().err)[0]
         # space freed for what is left (less than the whole run would need): a plain resume finishes every episode
         left = space.estimate(protocol, shape, protocol.jobs()[1:]).total
         disk.free(int(1.25 * left))
@@ -162,7 +164,7 @@ def test_a_workers_full_disk_stops_the_run_and_loses_at_most_the_episodes_in_fli
                         outputs=OutputOptions(png_every=0, video=False))
 
     def factory(context, model):
-        made = WorkersExecutor(context, model, workers=2)
+        made = WorkersExecutor(context, model, workers=1)  # one env-worker process (spawning one costs ~10 s)
         spec = made.pool.spec
         made.pool.spec = dataclasses.replace(spec, run_episode=functools.partial(_fills_from_episode_1, spec.run_episode))
         return made
