@@ -43,14 +43,14 @@ def _under(key: str, fields) -> bool:
     return any(key == f or key.startswith(f + ".") for f in fields)
 
 
-def one_side_measures(baseline: dict, candidate: dict) -> dict[str, list[str]]:
-    """{"baseline": probes only the baseline's protocol turns on, "candidate": only the candidate's}: empty lists when
-    both measured the same."""
+def one_side_measures(baseline: dict, candidate: dict) -> dict[str, tuple[str, ...]]:
+    """{"baseline": probes only the baseline's protocol turns on, "candidate": only the candidate's}: empty when both
+    measured the same."""
     a, b = (measured((p or {}).get("policy") or {}) for p in (baseline, candidate))
-    return {"baseline": [n for n in a if n not in b], "candidate": [n for n in b if n not in a]}
+    return {"baseline": tuple(n for n in a if n not in b), "candidate": tuple(n for n in b if n not in a)}
 
 
-def one_side_line(sides: dict[str, list[str]]) -> str | None:
+def one_side_line(sides: dict[str, tuple[str, ...]]) -> str | None:
     """One line naming the measures only one run has (None when there are none)."""
     parts = [f"{', '.join(names)} only in the {arm}" for arm, names in sides.items() if names]
     if not parts:

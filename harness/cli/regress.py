@@ -24,7 +24,7 @@ def add_parser(sub) -> None:
     reg.add_argument("--run-name", default=None, help="candidate run folder name [<model>_<protocol hash>]")
     add_gate_options(reg, "regress", ("fail_on",))
     add_verbose(reg)
-    add_gate_options(reg, "regress", ("text_tokenizer",))
+    add_gate_options(reg, "regress", ("text_tokenizer", "drop_probes"))
     add_execution_args(reg)
     add_render_arg(reg)
     reg.set_defaults(func=main)

@@ -16,7 +16,7 @@ def add_parser(sub) -> None:
                                     "replay.json not written exit 2.")
     rp.add_argument("run", type=Path, metavar="RUN_DIR", help="a run made with --record-inputs (e.g. a committed baseline)")
     rp.add_argument("--model", default=None, help="the model to replay [the run's own model]")
-    add_gate_options(rp, "replay", ("action_tolerance", "attention_tolerance"))
+    add_gate_options(rp, "replay", ("action_tolerance", "attention_tolerance", "drop_probes"))
     rp.add_argument("--out", type=Path, default=None, help="output folder for replay.json [RUN_DIR/replay]")
     rp.set_defaults(func=main)
 
