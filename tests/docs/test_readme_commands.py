@@ -5,7 +5,8 @@ The commands are read from the README's bash blocks and run on the tiny referenc
 only: every model becomes the fixture, `--task` becomes Lift, `--episodes` 1, a run gets `--max-steps 1`, and
 `results/` becomes a temporary folder; the second run of the comparison writes no PNG or MP4 (output options may
 differ between compared runs). The output tree the README draws is checked against the run folder the quick
-start made. The CI command is the script tests/docs/test_ci_recipe.py runs; here it is checked to be that script.
+start made. The CI command is the script tests/docs/test_ci_recipe.py runs; here it is checked to be that script, with
+settings of its own prefix only, gating a checkpoint against another version of it (issue 71 item 4).
 """
 
 from __future__ import annotations
@@ -36,6 +37,16 @@ def front_commands() -> list[list[str]]:
 
 def find(commands: list[list[str]], *start: str) -> list[list[str]]:
     return [c for c in commands if c[: len(start)] == list(start)]
+
+
+def assignments(argv: list[str]) -> tuple[dict[str, str], list[str]]:
+    """A command's leading NAME=value environment settings, and the command after them."""
+    n = next((i for i, arg in enumerate(argv) if not re.match(r"^[A-Za-z_]\w*=", arg)), len(argv))
+    return dict(arg.split("=", 1) for arg in argv[:n]), argv[n:]
+
+
+def ci_commands(commands: list[list[str]]) -> list[tuple[dict[str, str], list[str]]]:
+    return [(env, rest) for env, rest in map(assignments, commands) if rest[:2] == ["bash", "examples/ci/regress-gate.sh"]]
 
 
 def on_fixture(argv: list[str], tiny: Path, tmp: Path) -> list[str]:
@@ -93,14 +104,32 @@ def test_the_first_lines_hold_a_command_for_each_question():
     assert any("--run-name" in c and "--model" in c for c in runs)  # one's own checkpoint, into a named run
     assert find(commands, ".venv/bin/octo-harness", "compare")  # two checkpoints
     assert find(commands, ".venv/bin/octo-harness", "report")
-    assert find(commands, "bash", "examples/ci/regress-gate.sh")  # CI
+    assert ci_commands(commands)  # CI
     head = "\n".join((REPO / "README.md").read_text().splitlines()[:FIRST_LINES])
     assert re.search(r"^results/runs/\w+/$", head, re.M), "the output tree of a run"
 
 
 def test_the_ci_command_is_the_tested_script():
-    (ci,) = find(front_commands(), "bash", "examples/ci/regress-gate.sh")
-    assert len(ci) == 3 and (REPO / ci[2] / "config.json").is_file(), ci  # one candidate, a model of this repository
+    """One candidate, a model of this repository, gated against the version of it at OCTO_GATE_BASE_REV: another
+    checkpoint at the same path (the pull request's case), not the candidate itself. Settings have the script's prefix."""
+    ((env, ci),) = ci_commands(front_commands())
+    assert len(ci) == 3 and (REPO / ci[2] / "config.json").is_file(), ci
+    assert env and all(name.startswith("OCTO_GATE_") for name in env), env
+    assert set(env) <= set(re.findall(r"\b(OCTO_GATE_[A-Z_]+)=", (REPO / ci[1]).read_text())), env  # its settings
+    rev = env["OCTO_GATE_BASE_REV"]
+
+    def git(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, text=True)
+
+    if git("rev-parse", "--verify", "--quiet", f"{rev}^{{commit}}").returncode != 0:
+        pytest.skip(f"{rev} is not in this clone's history (a shallow clone?): its checkpoint cannot be compared")
+
+    def weights(revision: str) -> str:  # the checkpoint's configuration and step folders, as git records them
+        listing = git("ls-tree", "-r", revision, "--", f"{ci[2]}/").stdout.splitlines()
+        return "\n".join(l for l in listing if re.search(r"/(\d+/|config\.json$)", l.split("\t")[1]))
+
+    base, head = weights(rev), weights("HEAD")
+    assert base and head and base != head, f"{ci[2]} at {rev} is the same checkpoint as at HEAD: the example gates it against itself"
 
 
 @pytest.fixture(scope="module")
