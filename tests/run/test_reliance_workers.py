@@ -87,3 +87,17 @@ def test_resume_refuses_a_probe_option_that_would_measure_some_episodes_only(run
     message = str(raised.value)
     assert "\n" not in message and "policy.reliance_every" in message, message
     assert sorted(p.name for p in runs["plain"].run_dir.rglob("*")) == before
+
+
+@pytest.mark.slow
+def test_regress_inherits_the_baselines_probes_and_drops_them_when_told(runs):
+    """`regress` runs the baseline's protocol: its probes too, unless --drop-probes (then only the probes' fields
+    return to their defaults: the policy's own options stay the baseline's)."""
+    from harness.gate.regress import candidate_protocol
+
+    manifest = json.loads((runs["seq"].run_dir / "manifest.json").read_text())
+    inherited = candidate_protocol(manifest, runs["model"].source)
+    assert inherited.policy.reliance_every == 2 and inherited.policy.reliance_fill == "impute"
+    dropped = candidate_protocol(manifest, runs["model"].source, drop_probes=True)
+    assert dropped.policy == PolicyConfig() and dropped.env == inherited.env and dropped.tasks == inherited.tasks
+    assert "reliance_every" not in dropped.policy.to_dict()
