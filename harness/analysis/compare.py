@@ -20,18 +20,19 @@ compare.json holds, read by attribute; `to_json()` writes it):
 Outcomes: n is the pairs in which both arms ran to an outcome (as in the run store's statistics); a pair in
 which either arm errored (status "failed") is left out of the table and counted beside n ("errored pairs").
 A task whose pairs are all identical shows IDENTICAL; the overall verdict is IDENTICAL if every pair is, else
-the worst verdict of the tasks and the pooled table (harness.analysis.paired.VERDICTS: ERRORED > REGRESSED >
+the worst verdict of the tasks and the pooled table (harness.verdicts.GateVerdict's rank: ERRORED > REGRESSED >
 SUSPECT > UNDERPOWERED > HELD > IMPROVED), so no task's verdict is hidden by a pooled one. A candidate that lacks
 finished episodes the baseline has (a task it did not run, jobs it did not finish) is INCOMPLETE whatever its
 pairs say, unless they already say ERRORED or REGRESSED: a gate cannot be passed by leaving work out. `exit_code`
 maps the verdict to 0 (pass), 1 (REGRESSED or SUSPECT, or what --fail-on adds), 3 (ERRORED), 4 (INCOMPLETE,
-whatever --fail-on); 2 is invalid input or outputs that could not be written (the CLI).
+whatever --fail-on); 2 is invalid input or outputs that could not be written (the CLI). The outcome tables and
+their verdicts are harness.analysis.outcomes'; the verdicts' order and exit codes harness.verdicts'.
 A committed baseline keeps only step-0 arrays (BASELINE.json says so): arrays are then compared over the
 steps both arms stored.
 """
 from __future__ import annotations
 
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -49,49 +50,26 @@ from harness.analysis.compare_result import (
     DriftBlock,
     GridInfo,
     IdenticalCheck,
-    Incompleteness,
     MissingPairs,
     OneSideMeasures,
-    OutcomeBlock,
-    Outcomes,
     PairDetail,
     Provenance,
-    Rate,
     RobustnessGrid,
     Step0Drift,
     StepDrift,
     WholeEpisodeDrift,
 )
-from harness.analysis.paired import (
-    ErroredPairs,
-    PairedCounts,
-    Verdict,
-    difference_interval,
-    errored_most,
-    holm_adjust,
-    mcnemar_exact,
-    min_mcnemar_p,
-    paired_verdict,
-    pairs_for_regressed,
-    pairs_to_decide,
-    regressed_reachable,
-    worst,
-)
 from harness.measures.attention import DERIVED_PREFIXES
 from harness.analysis.equivalence import attention_divergence
 from harness.analysis.protocol_fields import incompatible_fields, one_side_line, one_side_measures, what_differs
+from harness.analysis.outcomes import incompleteness, outcome_tables, outcome_verdicts, overall_verdict
 from harness.analysis.provenance import input_agreement, provenance
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
-from harness.measures.stats import wilson_interval
 from harness.results import ABSENT
+from harness.verdicts import DEFAULT_FAIL_ON, GateVerdict, gate_exit_code
 
 BASELINE_MARKER = "BASELINE.json"  # written by scripts/make_baseline.py into a committed baseline
-# --fail-on: the mildest verdict that fails the gate (exit 1); each level also fails on everything worse
-FAIL_ON = ("regressed", "suspect", "underpowered", "changed")
-EXIT_OK, EXIT_FAIL, EXIT_INVALID, EXIT_ERRORED, EXIT_INCOMPLETE = 0, 1, 2, 3, 4
-INCOMPLETE = Verdict.INCOMPLETE  # the candidate lacks finished episodes the baseline has; outranked by ERRORED, REGRESSED
 ARRAY_FILES = ("actions.npz", "attention.npz")
-POOLED = "\0pooled"  # key of the pooled table while verdicts are computed (cannot clash with a task name)
 
 
 class IncompatibleRuns(ValueError):
@@ -256,118 +234,6 @@ def _compare_pair(task, seed, base: EpisodeRecord, cand: EpisodeRecord, truncate
 
 # ------------------------------------------------------------------------------------------- aggregation
 
-def _rate(successes: int, n: int, confidence: float, errored: int = 0) -> dict:
-    low, high = wilson_interval(successes, n, confidence)
-    return {"successes": successes, "n": n, "rate": successes / n if n else None, "ci_low": low, "ci_high": high,
-            "errored": errored}
-
-
-def _outcome_block(counts: PairedCounts, config: CompareConfig, errored: ErroredPairs = ErroredPairs(),
-                   family: int = 1) -> dict:
-    """One table's numbers: n = pairs with an outcome in both arms; errored pairs counted beside it. The arms'
-    Wilson intervals are at 1 - alpha; the difference's Newcombe interval at 1 - alpha / family (Bonferroni
-    over the Holm family: the intervals of every task and the pooled table hold together at 1 - alpha)."""
-    confidence = 1.0 - config.alpha
-    low, high = difference_interval(counts, 1.0 - config.alpha / family)
-    return {
-        "pairs": counts.n,
-        "errored_pairs": errored.pairs,
-        "paired_episodes": counts.n + errored.pairs,
-        "table": asdict(counts),
-        "baseline": _rate(counts.baseline_successes, counts.n, confidence, errored.baseline),
-        "candidate": _rate(counts.candidate_successes, counts.n, confidence, errored.candidate),
-        "difference": counts.difference if counts.n else None,
-        "difference_ci": [low, high],
-        "difference_confidence": 1.0 - config.alpha / family,
-        "mcnemar_p": mcnemar_exact(counts.baseline_only, counts.candidate_only),
-    }
-
-
-def _notes(label: str, block: dict, alpha: float, pooled: bool = False) -> list[str]:
-    """The lines that say why a block's verdict is what it is (errors, an unreachable REGRESSED); the pooled
-    table's errors are its tasks' (already said)."""
-    notes = []
-    n, paired = block["pairs"], block["paired_episodes"]
-    for arm in ("candidate", "baseline"):
-        errored = block[arm]["errored"]
-        if errored_most(errored, paired) and not pooled:
-            tail = ("it cannot pass the gate" if arm == "candidate" else
-                    "the baseline cannot serve as the reference, so the gate cannot pass; re-run the baseline")
-            notes.append(f"ERRORED: the {arm} errored on {errored} of {paired} paired episodes in {label} "
-                         f"(more than half): {tail}.")
-    if block["errored_pairs"] and block["verdict"] != Verdict.ERRORED and not pooled:
-        notes.append(f"{block['errored_pairs']} errored pair(s) in {label} left out of n = {n} (baseline errored "
-                     f"{block['baseline']['errored']}, candidate {block['candidate']['errored']}): at best "
-                     "UNDERPOWERED.")
-    if not block["regressed_reachable"] and block["verdict"] != Verdict.ERRORED:
-        factor = block["holm_factor"]
-        notes.append(f"REGRESSED is unreachable with {n} pairs in {label}: the smallest exact McNemar p is "
-                     f"{min_mcnemar_p(n):.3g} (x Holm factor {factor} = {min(1.0, factor * min_mcnemar_p(n)):.3g}) "
-                     f"> alpha {alpha:g}; at least {block['pairs_for_regressed']} pairs are needed.")
-    return notes
-
-
-def outcome_verdicts(tables: dict[str, PairedCounts], config: CompareConfig,
-                     errored: dict[str, ErroredPairs] | None = None, project: bool = True) -> Outcomes:
-    """{task: counts} -> Outcomes (tasks: {task: OutcomeBlock}, overall: the pooled block, holm_family, notes), each
-    block with its Holm-adjusted p and verdict.
-
-    errored: {task: pairs left out because an arm errored} (none when absent). The Holm family is every task
-    plus the pooled table (the pooled table alone when there is one task); the difference intervals are
-    simultaneous over it (1 - alpha / family), so SUSPECT's family-wise false alarm stays <= alpha / 2 as
-    REGRESSED's does. For an UNDERPOWERED or SUSPECT block,
-    `pairs_to_decide` projects its table with the family size as the p-value factor (the largest Holm factor,
-    so the estimate errs towards more pairs); `regressed_reachable` says whether its n pairs could give
-    REGRESSED at all with that factor (project=False skips the projection: simulations). The overall block's
-    verdict is the pooled table's; the overall verdict of a comparison is `overall_verdict`.
-    """
-    errored = errored or {}
-    named = dict(tables)
-    named[POOLED] = sum(tables.values(), PairedCounts())
-    named_errored = {name: errored.get(name, ErroredPairs()) for name in tables}
-    named_errored[POOLED] = sum(named_errored.values(), ErroredPairs())
-    family = list(named) if len(tables) > 1 else [POOLED]
-    blocks = {name: _outcome_block(counts, config, named_errored[name], len(family)) for name, counts in named.items()}
-    for name, p in zip(family, holm_adjust([blocks[name]["mcnemar_p"] for name in family])):
-        blocks[name]["mcnemar_p_holm"] = p
-    if len(tables) == 1:  # one task: its table is the pooled one
-        blocks[next(iter(tables))]["mcnemar_p_holm"] = blocks[POOLED]["mcnemar_p_holm"]
-    factor = len(family)
-    notes = []
-    for name, counts in named.items():
-        block = blocks[name]
-        block["verdict"] = paired_verdict(counts, block["mcnemar_p_holm"], tuple(block["difference_ci"]),
-                                          config.max_drop, config.alpha, named_errored[name])
-        needed = None
-        if project and block["verdict"] in (Verdict.UNDERPOWERED, Verdict.SUSPECT):
-            needed = pairs_to_decide(counts, config.max_drop, config.alpha, multiplier=factor)
-        block["pairs_to_decide"] = needed
-        block["more_pairs_needed"] = None if needed is None else needed - counts.n
-        block["holm_factor"] = factor
-        block["regressed_reachable"] = regressed_reachable(counts.n, config.alpha, factor)
-        block["pairs_for_regressed"] = pairs_for_regressed(config.alpha, factor)
-        block["notes"] = ([] if name == POOLED and len(tables) == 1 else
-                          _notes("pooled" if name == POOLED else name, block, config.alpha, pooled=name == POOLED))
-        notes += block["notes"]
-    pooled = blocks.pop(POOLED)
-    return Outcomes(tasks={name: _typed_block(block) for name, block in blocks.items()}, overall=_typed_block(pooled),
-                    holm_family=factor, notes=tuple(notes))
-
-
-def _typed_block(block: dict) -> OutcomeBlock:
-    """An outcome table's dict (as `_outcome_block` and `outcome_verdicts` fill it) as an OutcomeBlock."""
-    return OutcomeBlock(**{**block, "table": PairedCounts(**block["table"]), "baseline": Rate(**block["baseline"]),
-                           "candidate": Rate(**block["candidate"]), "difference_ci": tuple(block["difference_ci"]),
-                           "notes": tuple(block["notes"])})
-
-
-def overall_verdict(outcomes: Outcomes, identical: bool = False) -> Verdict:
-    """IDENTICAL when every pair is identical, else the worst verdict of the tasks and the pooled table."""
-    if identical:
-        return Verdict.IDENTICAL
-    return worst([b.verdict for b in outcomes.tasks.values()] + [outcomes.overall.verdict])
-
-
 def _mean(values: list[np.ndarray]):
     return np.mean(np.stack(values), axis=0) if values else None
 
@@ -427,38 +293,6 @@ def _arm(run: RunRecord) -> Arm:
                arrays="first steps only (committed baseline)" if _truncated(run) else "all steps")
 
 
-def outcome_tables(details: list[dict]) -> tuple[dict[str, PairedCounts], dict[str, ErroredPairs]]:
-    """Pairs (task, baseline/candidate success and status) -> ({task: 2x2 table of the pairs in which both
-    arms ran to an outcome}, {task: pairs left out because an arm errored}), tasks in order of appearance."""
-    tables: dict[str, PairedCounts] = {}
-    errored: dict[str, ErroredPairs] = {}
-    for d in details:
-        task = d["task"]
-        base_ok, cand_ok = d["baseline_status"] == "ok", d["candidate_status"] == "ok"
-        tables.setdefault(task, PairedCounts())
-        errored[task] = errored.get(task, ErroredPairs()) + ErroredPairs.from_statuses([base_ok], [cand_ok])
-        if base_ok and cand_ok:
-            one = PairedCounts.from_outcomes([bool(d["baseline_success"])], [bool(d["candidate_success"])])
-            tables[task] = tables[task] + one
-    return tables, errored
-
-
-def incompleteness(lacking: list, baseline_path, candidate_path) -> Incompleteness | None:
-    """[[task, seed]] the baseline finished and the candidate did not -> Incompleteness (pairs, tasks: {task: count},
-    note), or None when it lacks none."""
-    if not lacking:
-        return None
-    tasks: dict[str, int] = {}
-    for task, _ in lacking:
-        tasks[task] = tasks.get(task, 0) + 1
-    listed = ", ".join(f"{task} {count}" for task, count in tasks.items())
-    return Incompleteness(
-        pairs=len(lacking), tasks=tasks,
-        note=f"INCOMPLETE: the candidate {candidate_path} lacks {len(lacking)} finished episode(s) the baseline "
-             f"{baseline_path} has ({listed}); it cannot pass the gate until it runs them (the baseline's tasks "
-             "and seeds: `octo-harness run --resume` on the candidate, or `octo-harness regress`).")
-
-
 def measures_versions(baseline: RunRecord, candidate: RunRecord) -> tuple:
     """Each run's manifest "measures_version" (None for runs written before it was recorded)."""
     return tuple(run.manifest.get("measures_version") for run in (baseline, candidate))
@@ -513,18 +347,18 @@ def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], miss
     tasks = {}
     for task, block in outcomes.tasks.items():  # a task whose every pair is identical says so in its row
         same = task not in missing_tasks and all(d["identical"] for d in details if d["task"] == task)
-        tasks[task] = replace(block, paired_verdict=block.verdict, verdict=Verdict.IDENTICAL if same else block.verdict)
+        tasks[task] = replace(block, paired_verdict=block.verdict,
+                              verdict=GateVerdict.IDENTICAL if same else block.verdict)
     overall = replace(outcomes.overall, paired_verdict=outcomes.overall.verdict,
-                      verdict=Verdict.IDENTICAL if identical else outcomes.overall.verdict)
+                      verdict=GateVerdict.IDENTICAL if identical else outcomes.overall.verdict)
     notes = [note for block in [*tasks.values(), overall]
-             if block.verdict != Verdict.IDENTICAL for note in block.notes]  # nothing to explain there
+             if block.verdict != GateVerdict.IDENTICAL for note in block.notes]  # nothing to explain there
     outcomes = replace(outcomes, tasks=tasks, overall=overall)
     verdict = overall_verdict(outcomes, identical)
     incomplete = incompleteness(missing["candidate"], baseline.path, candidate.path)
     if require_complete and incomplete is not None:
         notes.insert(0, incomplete.note)
-        if verdict not in (Verdict.ERRORED, Verdict.REGRESSED):
-            verdict = INCOMPLETE
+        verdict = GateVerdict.worst([verdict, GateVerdict.INCOMPLETE])  # ERRORED and REGRESSED stand
     protocol = _protocol(baseline)
     one_side = one_side_measures(protocol, _protocol(candidate))
     if one_side_line(one_side):
@@ -633,25 +467,7 @@ def compare_grids(baseline_dir: str | Path, candidate_dir: str | Path, config: C
                                          perturb=dict(base_grid.runs)))
 
 
-def gate_exit_code(verdict: Verdict, fail_on: str = "suspect") -> int:
-    """Exit code of an overall verdict: 3 ERRORED; 4 INCOMPLETE; 1 REGRESSED, SUSPECT (unless fail_on="regressed"),
-    UNDERPOWERED (fail_on="underpowered" or "changed"), HELD/IMPROVED (fail_on="changed"); else 0."""
-    if fail_on not in FAIL_ON:
-        raise ValueError(f"unknown --fail-on {fail_on!r}; use one of {FAIL_ON}")
-    if verdict == Verdict.ERRORED:
-        return EXIT_ERRORED
-    if verdict == INCOMPLETE:
-        return EXIT_INCOMPLETE
-    if verdict == Verdict.IDENTICAL:
-        return EXIT_OK
-    failing = {"regressed": (Verdict.REGRESSED,), "suspect": (Verdict.REGRESSED, Verdict.SUSPECT),
-               "underpowered": (Verdict.REGRESSED, Verdict.SUSPECT, Verdict.UNDERPOWERED)}.get(fail_on)
-    if failing is None or verdict in failing:  # "changed": anything but IDENTICAL fails
-        return EXIT_FAIL
-    return EXIT_OK
-
-
-def exit_code(result: CompareResult, fail_on: str = "suspect") -> int:
-    """0 pass, 1 regression (REGRESSED, SUSPECT, or what --fail-on adds), 3 ERRORED, 4 INCOMPLETE (see
-    `gate_exit_code`)."""
+def exit_code(result: CompareResult, fail_on: str = DEFAULT_FAIL_ON) -> int:
+    """0 pass, 1 regression (REGRESSED, SUSPECT, or what --fail-on adds), 3 ERRORED, 4 INCOMPLETE
+    (harness.verdicts.gate_exit_code)."""
     return gate_exit_code(result.verdict, fail_on)

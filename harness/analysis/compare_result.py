@@ -5,15 +5,16 @@ the arms (`Arm`), the IDENTICAL check (`IdenticalCheck`), the outcome tables (`O
 `Rate`), the drift (`Drift`), what the protocols differ in (`Differs`), the provenance line (`Provenance`) and the
 pairs (`PairDetail`); a grid comparison's folders (`GridInfo`) and a grid's own file (`RobustnessGrid`). `to_json()`
 writes today's schema and `CompareResult.from_json(data)` reads a stored
-compare.json back (harness.results). Verdicts are `harness.analysis.paired.Verdict`.
+compare.json back (harness.results). Verdicts are `harness.verdicts.GateVerdict`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import Any
 
-from harness.analysis.paired import PairedCounts, Verdict
+from harness.analysis.paired import PairedCounts
 from harness.results import ABSENT, Result
+from harness.verdicts import GateVerdict
 
 FORMAT = "octo-harness-compare/1"
 
@@ -61,14 +62,14 @@ class OutcomeBlock(Result):
     difference_confidence: float
     mcnemar_p: float
     mcnemar_p_holm: float
-    verdict: Verdict
+    verdict: GateVerdict
     pairs_to_decide: int | None
     more_pairs_needed: int | None
     holm_factor: int
     regressed_reachable: bool
     pairs_for_regressed: int | None
     notes: tuple[str, ...]
-    paired_verdict: Verdict = ABSENT  # the verdict of the paired statistics before IDENTICAL (compare's result only)
+    paired_verdict: GateVerdict = ABSENT  # the paired statistics' verdict before IDENTICAL (compare's result only)
 
 
 @dataclass(frozen=True)
@@ -266,7 +267,7 @@ class CompareResult(Result):
     """compare.json (see harness.analysis.compare)."""
 
     format: str
-    verdict: Verdict
+    verdict: GateVerdict
     config: CompareConfig
     baseline: Arm
     candidate: Arm

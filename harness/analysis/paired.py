@@ -14,7 +14,6 @@ Only the discordant pairs (baseline_only, candidate_only) carry information abou
   continuity-corrected phi coefficient).
 - `holm_adjust`: Holm's (1979) step-down adjusted p-values.
 - `paired_verdict`: ERRORED / REGRESSED / SUSPECT / IMPROVED / HELD / UNDERPOWERED from the rules below.
-- `worst`: the gate's order of verdicts (an overall verdict is the worst of its parts).
 - `equivalent`: the HELD rule's equivalence test alone (a drop larger than max_drop ruled out); compare's HELD and
   the robustness grid's HOLDS are this one function.
 - `detectable_loss` / `detectable_phrase`: the smallest drop (lost pairs, none gained) the exact test can declare
@@ -39,44 +38,23 @@ of m tables, Bonferroni-simultaneous, so that SUSPECT's family-wise false alarm 
                 than max_drop is ruled out (the exact test keeps the error of HELD <= alpha / 2, which Newcombe's
                 interval alone exceeds at small n: up to 9% at 20 pairs; tests/gate/test_decisions.py)
   UNDERPOWERED  none of the above (or no pairs, or HELD but with errored pairs)
-Gate order (worst first): ERRORED > REGRESSED > INCOMPLETE > SUSPECT > UNDERPOWERED > HELD > IMPROVED > IDENTICAL.
+Gate order (worst first, harness.verdicts.GateVerdict's rank; an overall verdict is the worst of its parts):
+ERRORED > REGRESSED > INCOMPLETE > SUSPECT > UNDERPOWERED > HELD > IMPROVED > IDENTICAL.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from enum import StrEnum
 
 import numpy as np
 from scipy.stats import beta, binom, binomtest, norm
 
 from harness.measures.stats import wilson_interval
+from harness.verdicts import GateVerdict
 
 
-class Verdict(StrEnum):
-    """A gate verdict (compare, regress): its value is the word the JSON files and the console show."""
-
-    ERRORED = "ERRORED"
-    REGRESSED = "REGRESSED"
-    SUSPECT = "SUSPECT"
-    UNDERPOWERED = "UNDERPOWERED"
-    HELD = "HELD"
-    IMPROVED = "IMPROVED"
-    IDENTICAL = "IDENTICAL"
-    INCOMPLETE = "INCOMPLETE"  # the candidate lacks finished episodes the baseline has (compare, regress)
-
-
-# worst first: an overall verdict is the worst of its tasks' (and the pooled table's) verdicts. INCOMPLETE ranks
-# below ERRORED and REGRESSED, as in a single regress (a decided failure stands), and above every other verdict
-# (a grid with a condition the candidate did not finish cannot pass)
-VERDICTS = (Verdict.ERRORED, Verdict.REGRESSED, Verdict.INCOMPLETE, Verdict.SUSPECT, Verdict.UNDERPOWERED, Verdict.HELD,
-            Verdict.IMPROVED, Verdict.IDENTICAL)
-
-
-def worst(verdicts) -> Verdict:
-    """The worst verdict in the gate's order (VERDICTS, worst first); IDENTICAL for none."""
-    ranked = [VERDICTS.index(v) for v in verdicts]
-    return VERDICTS[min(ranked)] if ranked else Verdict.IDENTICAL
+# the verdicts that decide a table (pairs_to_decide's aim; every other verdict of paired_verdict leaves it open)
+DECIDED = (GateVerdict.REGRESSED, GateVerdict.IMPROVED, GateVerdict.HELD)
 
 
 def errored_most(errored: int, paired_episodes: int) -> bool:
@@ -247,7 +225,7 @@ def holm_adjust(pvalues: list[float]) -> list[float]:
 
 
 def paired_verdict(counts: PairedCounts, p_adjusted: float, interval: tuple[float, float],
-                   max_drop: float, alpha: float, errored: "ErroredPairs | None" = None) -> Verdict:
+                   max_drop: float, alpha: float, errored: "ErroredPairs | None" = None) -> GateVerdict:
     """Verdict of one table by the rules in the module docstring.
 
     errored: the pairs left out of `counts` because an arm errored; paired episodes = counts.n + errored.pairs.
@@ -256,16 +234,16 @@ def paired_verdict(counts: PairedCounts, p_adjusted: float, interval: tuple[floa
     errored_pairs = errored.pairs
     paired_episodes = counts.n + errored_pairs
     if errored_most(errored.baseline, paired_episodes) or errored_most(errored.candidate, paired_episodes):
-        return Verdict.ERRORED
+        return GateVerdict.ERRORED
     if counts.n == 0:
-        return Verdict.UNDERPOWERED
+        return GateVerdict.UNDERPOWERED
     if p_adjusted <= alpha and counts.candidate_only != counts.baseline_only:
-        return Verdict.REGRESSED if counts.candidate_only < counts.baseline_only else Verdict.IMPROVED
+        return GateVerdict.REGRESSED if counts.candidate_only < counts.baseline_only else GateVerdict.IMPROVED
     if interval[1] < 0:
-        return Verdict.SUSPECT
+        return GateVerdict.SUSPECT
     if not errored_pairs and equivalent(counts, interval, max_drop, alpha):
-        return Verdict.HELD
-    return Verdict.UNDERPOWERED
+        return GateVerdict.HELD
+    return GateVerdict.UNDERPOWERED
 
 
 def equivalent(counts: PairedCounts, interval: tuple[float, float], max_drop: float, alpha: float) -> bool:
@@ -346,7 +324,7 @@ def pairs_to_decide(counts: PairedCounts, max_drop: float, alpha: float, multipl
         return None
 
     def decided(n: int) -> bool:
-        return decide(_scaled(counts, n), max_drop, alpha, multiplier) in ("REGRESSED", "IMPROVED", "HELD")
+        return decide(_scaled(counts, n), max_drop, alpha, multiplier) in DECIDED
 
     if decided(counts.n):
         return counts.n

@@ -25,6 +25,7 @@ import numpy as np
 
 from harness.analysis.equivalence import Tolerances
 from harness.runfolder.platform import platform_differences
+from harness.verdicts import Step0Verdict
 
 
 def leading_equal(a: np.ndarray, b: np.ndarray) -> int:
@@ -55,26 +56,21 @@ def platform_block(baseline_manifest: dict, candidate_manifest: dict) -> dict:
             if known and fa != fb else []}
 
 
-# the step-0 model-numerics verdicts, as compare and regress print them (docs/glossary.md defines each)
-STEP0_IDENTICAL, STEP0_EQUIVALENT, STEP0_CHANGED, STEP0_UNKNOWN = STEP0_VERDICTS = (
-    "IDENTICAL", "EQUIVALENT", "CHANGED", "UNKNOWN")
-
-
 def step0_numerics(pairs: list[dict], tolerances: Tolerances) -> dict:
     """pairs: compare's per-pair details with "inputs" (input_agreement), "action_max_abs_step0" and
     "js_step0_max" -> the step-0 model-numerics verdict (see the module docstring)."""
     same = [p for p in pairs if (p.get("inputs") or {}).get("step0_same") and "action_max_abs_step0" in p]
     if not same:
-        return {"verdict": STEP0_UNKNOWN, "pairs_same_step0_inputs": 0, "pairs": len(pairs),
+        return {"verdict": Step0Verdict.UNKNOWN, "pairs_same_step0_inputs": 0, "pairs": len(pairs),
                 "action_change_max": None, "attention_js_max": None, "tolerances": vars(tolerances).copy()}
     action = max(p["action_max_abs_step0"] for p in same)
     js = max(p.get("js_step0_max", 0.0) for p in same)
     if action == 0.0 and js == 0.0:
-        verdict = STEP0_IDENTICAL
+        verdict = Step0Verdict.IDENTICAL
     elif action <= tolerances.action and js <= tolerances.attention_js:
-        verdict = STEP0_EQUIVALENT
+        verdict = Step0Verdict.EQUIVALENT
     else:
-        verdict = STEP0_CHANGED
+        verdict = Step0Verdict.CHANGED
     return {"verdict": verdict, "pairs_same_step0_inputs": len(same), "pairs": len(pairs),
             "action_change_max": action, "attention_js_max": js, "tolerances": vars(tolerances).copy()}
 
@@ -111,9 +107,9 @@ def summary_sentence(platform: dict, inputs: dict, numerics: dict, differs: dict
         names = ", ".join(o["field"] for o in other)
         model = (f"step-0 numerics: {verdict} but not the model's alone (the protocols differ in {names}; "
                  "`octo-harness replay` isolates a model change)")
-    elif verdict == STEP0_UNKNOWN:
-        model = "model numerics: UNKNOWN (no pair saw identical step-0 inputs; replay the baseline's recorded inputs " \
-                "with `octo-harness replay`)"
+    elif verdict == Step0Verdict.UNKNOWN:
+        model = (f"model numerics: {Step0Verdict.UNKNOWN} (no pair saw identical step-0 inputs; replay the baseline's "
+                 "recorded inputs with `octo-harness replay`)")
     else:
         tol = numerics["tolerances"]
         model = (f"model numerics at step 0: {verdict} (largest change: action {numerics['action_change_max']:.3g}, "

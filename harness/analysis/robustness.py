@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import astuple, dataclass, fields
-from enum import StrEnum
 
 import numpy as np
 
@@ -52,23 +51,13 @@ from harness.analysis.paired import (PairedCounts, detectable_loss, difference_i
                                      holm_adjust, mcnemar_exact)
 from harness.analysis.robustness_measures import START_STEPS, episode_measures, js_divergence_bits
 from harness.measures.stats import wilson_interval
+from harness.verdicts import CellVerdict  # BREAKS, UNDETERMINED, HOLDS (see the module docstring)
 
 CLUSTER_RESAMPLES = 2000
 MIN_CLASS = 5
 MAPS = ("raw", "content")  # the attention map a figure uses: raw, or content-only (blank-frame part removed)
 MARGIN = 0.15  # HOLDS rules out a drop in success rate larger than this
 ALPHA = 0.05
-
-
-class CellVerdict(StrEnum):
-    """The verdict of one perturbed cell against the nominal seeds (see the module docstring)."""
-
-    BREAKS = "BREAKS"
-    HOLDS = "HOLDS"
-    UNDETERMINED = "UNDETERMINED"
-
-
-VERDICTS = tuple(CellVerdict)
 
 
 @dataclass(frozen=True)
@@ -365,9 +354,10 @@ def verdict_line(task: str, success: list[tuple], paired: list[PairedCell] = ())
         elif broken:
             names = (", ".join(f"{p.condition} {p.level}" for p in broken) if len(broken) <= 3
                      else f"{len(broken)} of {len(mine)} cells")
-            tail = f"Breaks under {names}. Other cells: {holds} HOLD, {len(mine) - len(broken) - holds} UNDETERMINED."
+            tail = (f"Breaks under {names}. Other cells: {holds} HOLD, {len(mine) - len(broken) - holds} "
+                    f"{CellVerdict.UNDETERMINED}.")
         else:
-            tail = f"No cell breaks it. Cells: {holds} HOLD, {len(mine) - holds} UNDETERMINED."
+            tail = f"No cell breaks it. Cells: {holds} HOLD, {len(mine) - holds} {CellVerdict.UNDETERMINED}."
         return f"{head} {tail}"
     worst = min((s for s in cells if s[2] > 0), key=lambda s: (s[7], -s[2]), default=None)
     if nominal is None:

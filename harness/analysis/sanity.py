@@ -35,9 +35,9 @@ import numpy as np
 from scipy.stats import rankdata
 
 from harness.analysis.bootstrap import bootstrap_mean_ci
+from harness.verdicts import SanityVerdict  # a method's verdict per camera: pass, fail, n/a
 
 PASS_BELOW = 0.5  # upper 95% bound of the mean Spearman correlation with every block randomised
-PASS, FAIL, NOT_APPLICABLE = VERDICTS = ("pass", "fail", "n/a")  # a method's verdict per camera (docs/glossary.md)
 SSIM_C1 = 0.01 ** 2  # SSIM's constants for a dynamic range of 1 (Wang et al. 2004: K1 = 0.01, K2 = 0.03)
 SSIM_C2 = 0.03 ** 2
 
@@ -165,7 +165,7 @@ def summarise_randomisation(rows: Sequence[Mapping], seed: int = 0) -> list[dict
     return out
 
 
-def verdict(summary: Sequence[Mapping], last_stage: str) -> dict[tuple[str, str], str]:
+def verdict(summary: Sequence[Mapping], last_stage: str) -> dict[tuple[str, str], SanityVerdict]:
     """{(method, camera): "pass" | "fail" | "n/a"} from the cascade's stage `last_stage` (every block randomised):
     pass when the upper 95% bound of the mean Spearman is below PASS_BELOW; n/a without an interval (< 2 steps
     with a value)."""
@@ -174,7 +174,8 @@ def verdict(summary: Sequence[Mapping], last_stage: str) -> dict[tuple[str, str]
         if row["schedule"] != "cascading" or row["stage"] != last_stage:
             continue
         high = row["spearman_high"]
-        out[(row["method"], row["camera"])] = NOT_APPLICABLE if not np.isfinite(high) else PASS if high < PASS_BELOW else FAIL
+        out[(row["method"], row["camera"])] = (SanityVerdict.NOT_APPLICABLE if not np.isfinite(high) else
+                                               SanityVerdict.PASS if high < PASS_BELOW else SanityVerdict.FAIL)
     return out
 
 

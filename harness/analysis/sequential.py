@@ -40,10 +40,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import logsumexp
 
-from harness.analysis.paired import Verdict
+from harness.verdicts import GateVerdict
 
 TESTS = ("regression", "improvement", "held")
-_VERDICT = {"regression": Verdict.REGRESSED, "improvement": Verdict.IMPROVED, "held": Verdict.HELD}
+VERDICT_OF = {"regression": GateVerdict.REGRESSED, "improvement": GateVerdict.IMPROVED, "held": GateVerdict.HELD}
 PRIORITY = ("regression", "improvement", "held")  # the one tie rule: REGRESSED > IMPROVED > HELD
 _MAX_BET = 0.99  # fraction of the largest bet that keeps every factor positive
 
@@ -111,9 +111,9 @@ def first_decisions(y: np.ndarray, config: SequentialConfig) -> tuple[np.ndarray
     index = np.arange(units)
     first = {t: np.where(paths[t] >= level, index, units).min(axis=-1) for t in TESTS}  # (...) first crossing
     stop = np.minimum.reduce([first[t] for t in TESTS])
-    verdict = np.full(stop.shape, "UNDERPOWERED", dtype=object)
+    verdict = np.full(stop.shape, GateVerdict.UNDERPOWERED, dtype=object)
     for test in reversed(PRIORITY):  # later assignments win ties: PRIORITY[0] last
-        verdict = np.where((first[test] == stop) & (stop < units), _VERDICT[test], verdict)
+        verdict = np.where((first[test] == stop) & (stop < units), VERDICT_OF[test], verdict)
     used = np.where(stop < units, stop + 1, units)
     return verdict, used
 
@@ -124,13 +124,13 @@ class SequentialTest:
 
     config: SequentialConfig = field(default_factory=SequentialConfig)
     units: int = 0
-    verdict: Verdict | None = None
+    verdict: GateVerdict | None = None
     _log_wealth: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
     def __post_init__(self):
         self._log_wealth = {t: np.zeros(self.config.grid) for t in TESTS}
 
-    def add(self, y: float) -> Verdict | None:
+    def add(self, y: float) -> GateVerdict | None:
         """Add one unit (candidate minus baseline success, or its mean over a round); returns the verdict."""
         if not -1.0 <= y <= 1.0:
             raise ValueError(f"a unit must lie in [-1, 1], got {y}")
@@ -142,7 +142,7 @@ class SequentialTest:
             self._log_wealth[test] = self._log_wealth[test] + np.log1p(self.config.bets(test) * z)
         crossed = [t for t in TESTS if self.wealth(t) >= self.config.threshold]
         if crossed:
-            self.verdict = _VERDICT[next(t for t in PRIORITY if t in crossed)]
+            self.verdict = VERDICT_OF[next(t for t in PRIORITY if t in crossed)]
         return self.verdict
 
     def wealth(self, test: str) -> float:
@@ -152,7 +152,7 @@ class SequentialTest:
     def summary(self) -> dict:
         return {
             "units": self.units,
-            "verdict": self.verdict or Verdict.UNDERPOWERED,
+            "verdict": self.verdict or GateVerdict.UNDERPOWERED,
             "decided": self.verdict is not None,
             "threshold": self.config.threshold,
             "e_values": {t: self.wealth(t) for t in TESTS},
@@ -161,14 +161,14 @@ class SequentialTest:
         }
 
 
-def combine_tasks(verdicts: list[Verdict | None]) -> Verdict | None:
+def combine_tasks(verdicts: list[GateVerdict | None]) -> GateVerdict | None:
     """The family's verdict from its tasks' (None = undecided): REGRESSED if any task is, else None while a
     task is undecided, else HELD unless every task IMPROVED."""
-    if Verdict.REGRESSED in verdicts:
-        return Verdict.REGRESSED
-    if any(v is None or v == Verdict.UNDERPOWERED for v in verdicts) or not verdicts:
+    if GateVerdict.REGRESSED in verdicts:
+        return GateVerdict.REGRESSED
+    if any(v is None or v == GateVerdict.UNDERPOWERED for v in verdicts) or not verdicts:
         return None
-    return Verdict.IMPROVED if all(v == Verdict.IMPROVED for v in verdicts) else Verdict.HELD
+    return GateVerdict.IMPROVED if all(v == GateVerdict.IMPROVED for v in verdicts) else GateVerdict.HELD
 
 
 @dataclass
@@ -192,7 +192,7 @@ class TaskwiseTest:
     def task_alpha(self) -> float:
         return self.config.alpha / len(self.tasks)
 
-    def add_round(self, outcomes: dict[str, tuple[bool | None, bool | None]]) -> Verdict | None:
+    def add_round(self, outcomes: dict[str, tuple[bool | None, bool | None]]) -> GateVerdict | None:
         """One round: {task: (baseline success, candidate success)}, None for an arm that errored (the pair is
         counted in `errored`, not tested). Tasks already decided ignore their pair. Returns the verdict."""
         if self.verdict is not None:
@@ -206,12 +206,12 @@ class TaskwiseTest:
         return self.verdict
 
     @property
-    def verdict(self) -> Verdict | None:
+    def verdict(self) -> GateVerdict | None:
         return combine_tasks([self.tests[t].verdict for t in self.tasks])
 
     def summary(self) -> dict:
         return {
-            "verdict": self.verdict or Verdict.UNDERPOWERED,
+            "verdict": self.verdict or GateVerdict.UNDERPOWERED,
             "decided": self.verdict is not None,
             "rounds": self.rounds,
             "alpha": self.config.alpha,
@@ -233,12 +233,13 @@ def taskwise_decisions(y: np.ndarray, config: SequentialConfig) -> tuple[np.ndar
     task_config = SequentialConfig(alpha=config.alpha / tasks, max_drop=config.max_drop, grid=config.grid)
     verdicts, used = zip(*(first_decisions(y[t], task_config) for t in range(tasks)))
     verdicts, used = np.stack(verdicts), np.stack(used)  # (tasks, ...)
-    regressed = verdicts == "REGRESSED"
-    decided = verdicts != "UNDERPOWERED"
+    regressed = verdicts == GateVerdict.REGRESSED
+    decided = verdicts != GateVerdict.UNDERPOWERED
     first_regressed = np.where(regressed, used, rounds + 1).min(axis=0)
-    all_improved = (verdicts == "IMPROVED").all(axis=0)
-    out = np.where(decided.all(axis=0), np.where(all_improved, "IMPROVED", "HELD"), "UNDERPOWERED").astype(object)
-    out = np.where(regressed.any(axis=0), "REGRESSED", out)
+    all_improved = (verdicts == GateVerdict.IMPROVED).all(axis=0)
+    out = np.where(decided.all(axis=0), np.where(all_improved, GateVerdict.IMPROVED, GateVerdict.HELD),
+                   GateVerdict.UNDERPOWERED).astype(object)
+    out = np.where(regressed.any(axis=0), GateVerdict.REGRESSED, out)
     stop = np.where(regressed.any(axis=0), first_regressed, np.where(decided.all(axis=0), used.max(axis=0), rounds))
     return out, stop
 

@@ -16,8 +16,7 @@ from harness.analysis.compare import CompareConfig
 from harness.analysis.equivalence import Tolerances
 from harness.analysis.sequential import SequentialConfig
 from harness.options import option
-
-FAIL_ON = ("regressed", "suspect", "underpowered", "changed")
+from harness.verdicts import DEFAULT_FAIL_ON, FAIL_ON  # --fail-on's choices, from the gate verdicts
 
 
 @dataclass(frozen=True)
@@ -27,7 +26,7 @@ class GateConfig:
         "compare": "family-wise level; intervals at 1 - alpha",
         "regress": "family-wise level; each task's sequential test runs at alpha / tasks"}, type=float)
     first_steps: int = option(10, "--first-steps", "per-step divergence over the first k steps", type=int)
-    fail_on: str = option("suspect", "--fail-on", {
+    fail_on: str = option(DEFAULT_FAIL_ON, "--fail-on", {
         "compare": "mildest verdict that exits 1: REGRESSED only; also SUSPECT (a drop the interval shows, the exact "
                    "test does not confirm); also UNDERPOWERED; anything but IDENTICAL",
         "regress": "mildest verdict that exits 1, as for compare; 'changed' also fails a candidate whose numbers on the "

@@ -24,19 +24,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator, Sequence
 
-from harness.analysis.compare import (
-    INCOMPLETE,
-    CompareConfig,
-    compare_runs,
-    gate_exit_code,
-    incompleteness,
-    outcome_tables,
-    outcome_verdicts,
-    overall_verdict,
-)
+from harness.analysis.compare import CompareConfig, compare_runs
 from harness.analysis.compare_result import Outcomes
 from harness.gate.config import GateConfig
-from harness.analysis.paired import PairedCounts, Verdict, errored_most, mcnemar_exact_sample_size, worst
+from harness.analysis.outcomes import incompleteness, outcome_tables, outcome_verdicts, overall_verdict
+from harness.analysis.paired import PairedCounts, errored_most, mcnemar_exact_sample_size
 from harness.analysis.provenance import summary_points
 from harness.gate.results import (
     GRID_FORMAT,
@@ -53,6 +45,7 @@ from harness.analysis.sequential import SequentialConfig, TaskwiseTest
 from harness.run.executor import EpisodeContext, SequentialExecutor
 from harness.run.protocol import EpisodeJob, Protocol
 from harness.run.store import EpisodeRow, RunStore
+from harness.verdicts import DEFAULT_FAIL_ON, EXIT_FAIL, GateVerdict, ReplayVerdict, gate_exit_code
 
 log = logging.getLogger(__name__)
 
@@ -127,19 +120,19 @@ def errored_tasks(baseline: dict, candidate: dict, jobs: Sequence[EpisodeJob]) -
     return [t for t in planned if errored_most(errored[t], planned[t])]
 
 
-def gate_verdict(sequential: Verdict, compared: Verdict) -> Verdict:
+def gate_verdict(sequential: GateVerdict, compared: GateVerdict) -> GateVerdict:
     """regress's verdict: the worse of the sequential verdict and compare's verdict on the pairs run, so regress
     never passes what `compare` on the same pairs fails (IDENTICAL pairs: IDENTICAL, nothing changed)."""
-    return Verdict.IDENTICAL if compared == Verdict.IDENTICAL else worst([sequential, compared])
+    return GateVerdict.IDENTICAL if compared == GateVerdict.IDENTICAL else GateVerdict.worst([sequential, compared])
 
 
 @dataclass(frozen=True)
 class GateDecision:
     """regress's decision on outcome dicts (`gate_on_outcomes`): no files, the test itself kept."""
 
-    verdict: Verdict
-    sequential_verdict: Verdict
-    compare_verdict: Verdict
+    verdict: GateVerdict
+    sequential_verdict: GateVerdict
+    compare_verdict: GateVerdict
     rounds: int
     pairs: int
     test: TaskwiseTest
@@ -164,7 +157,7 @@ def gate_on_outcomes(baseline: dict, candidate: dict, jobs: Sequence[EpisodeJob]
     tables, errored = outcome_tables(details)
     outcomes = outcome_verdicts(tables, CompareConfig(max_drop=max_drop, alpha=alpha), errored, project=False)
     compared = overall_verdict(outcomes)
-    sequential = Verdict(test.verdict or Verdict.UNDERPOWERED)
+    sequential = GateVerdict(test.verdict or GateVerdict.UNDERPOWERED)
     return GateDecision(verdict=gate_verdict(sequential, compared), sequential_verdict=sequential,
                         compare_verdict=compared, rounds=test.rounds, pairs=len(details), test=test, outcomes=outcomes)
 
@@ -261,8 +254,7 @@ def regress(baseline_dir: str | Path, model: str, gate: GateConfig | None = None
     if incomplete is not None:
         notes = (incomplete.note, *comparison.outcomes.notes)
         comparison = replace(comparison, outcomes=replace(comparison.outcomes, notes=notes))
-        if verdict not in (Verdict.ERRORED, Verdict.REGRESSED):
-            verdict = INCOMPLETE
+        verdict = GateVerdict.worst([verdict, GateVerdict.INCOMPLETE])  # ERRORED and REGRESSED stand
     return RegressResult(
         format=REGRESS_FORMAT,
         verdict=verdict,
@@ -308,20 +300,18 @@ def _fixed_size(counts: PairedCounts, alpha: float) -> int | None:
     return mcnemar_exact_sample_size(counts.baseline_only / counts.n, counts.candidate_only / counts.n, alpha, 0.8)
 
 
-def exit_code(result: RegressResult | RegressGridResult, fail_on: str = "suspect") -> int:
+def exit_code(result: RegressResult | RegressGridResult, fail_on: str = DEFAULT_FAIL_ON) -> int:
     """The gate verdict's exit code, as for compare: 0 pass, 1 REGRESSED/SUSPECT (or what --fail-on adds),
     3 ERRORED, 4 INCOMPLETE. fail_on="changed" (the model must not change) also fails unless the outcomes are IDENTICAL or the
     candidate's numbers on the baseline's recorded inputs are EQUIVALENT (replay): on another platform an unchanged
     model passes, a changed one fails whatever its outcomes."""
-    from harness.gate.results import ReplayVerdict
-
     if fail_on != "changed":
         return gate_exit_code(result.verdict, fail_on)
     code = gate_exit_code(result.verdict, "suspect")
-    if code or result.verdict == Verdict.IDENTICAL:
+    if code or result.verdict == GateVerdict.IDENTICAL:
         return code
     replay = getattr(result, "replay", None)  # a grid's result has none
-    return 0 if replay is not None and replay.verdict == ReplayVerdict.EQUIVALENT else 1
+    return ReplayVerdict(replay.verdict).exit_code if replay is not None else EXIT_FAIL
 
 
 def summary_text(result: RegressResult, code: int) -> str:
@@ -340,7 +330,7 @@ def summary_text(result: RegressResult, code: int) -> str:
         lines.append(f"    {task}: {t.verdict} after {t.units} pairs ({t.errored_pairs} errored); e-values "
                      f"regression {e.regression:.3g}, improvement {e.improvement:.3g}, held {e.held:.3g}")
     for task in seq.errored_tasks or ():
-        lines.append(f"    {task}: the candidate errored on more than half of its pairs: ERRORED")
+        lines.append(f"    {task}: the candidate errored on more than half of its pairs: {GateVerdict.ERRORED}")
     lines += [
         f"  fixed-size comparison of the pairs run: {result.compare_verdict}"
         + "".join(f"\n    {note}" for note in result.compare.outcomes.notes),
@@ -421,7 +411,7 @@ def regress_grid(baseline_grid: str | Path, model: str, gate: GateConfig | None 
     verdicts = [r.verdict for r in per_condition.values()] + [comparison.verdict]
     return RegressGridResult(
         format=GRID_FORMAT,
-        verdict=worst(verdicts),
+        verdict=GateVerdict.worst(verdicts),
         conditions={name: ConditionRegress(verdict=r.verdict, sequential_verdict=r.sequential_verdict,
                                            compare_verdict=r.compare_verdict, pairs_used=r.pairs_used,
                                            candidate_run=r.candidate_run, alpha=alpha / len(names))

@@ -23,11 +23,12 @@ from pathlib import Path
 import numpy as np
 
 from harness.gate.config import GateConfig
-from harness.gate.results import REPLAY_FORMAT, ChangeAt, EpisodeReplay, FirstChange, ReplayResult, ReplayVerdict
+from harness.gate.results import REPLAY_FORMAT, ChangeAt, EpisodeReplay, FirstChange, ReplayResult
 from harness.analysis.equivalence import Tolerances, action_change, action_scale, attention_change, first_change
 from harness.analysis.runs import EpisodeRecord, load_run, read_npz
 from harness.results import ABSENT
 from harness.run.protocol import protocol_from_manifest
+from harness.verdicts import ReplayVerdict
 
 log = logging.getLogger(__name__)
 
@@ -211,4 +212,4 @@ def _fmt(x) -> str:
 
 
 def exit_code(result: ReplayResult) -> int:
-    return 0 if result.verdict == ReplayVerdict.EQUIVALENT else 1
+    return ReplayVerdict(result.verdict).exit_code  # EQUIVALENT 0, CHANGED 1

@@ -4,29 +4,22 @@ Each is a frozen dataclass whose fields are its file's keys (harness.results: `t
 `from_json(data)` reads a stored file back). `RegressResult` holds the comparison of the pairs run
 (harness.analysis.compare_result.CompareResult, written beside it as compare.json) and the candidate's replay of the
 baseline's recorded inputs (`ReplayResult`, without its episode details). Compare and regress verdicts are
-`harness.analysis.paired.Verdict`; replay's are `ReplayVerdict`.
+`harness.verdicts.GateVerdict`; replay's are `harness.verdicts.ReplayVerdict`.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import StrEnum
 from typing import Any
 
 from harness.analysis.compare_result import CompareResult, Incompleteness
 from harness.analysis.equivalence import Tolerances
-from harness.analysis.paired import PairedCounts, Verdict
+from harness.analysis.paired import PairedCounts
 from harness.results import ABSENT, Result
+from harness.verdicts import GateVerdict, ReplayVerdict
 
 REPLAY_FORMAT = "octo-harness-replay/1"
 REGRESS_FORMAT = "octo-harness-regress/2"
 GRID_FORMAT = "octo-harness-regress-grid/1"  # regress_grid's result
-
-
-class ReplayVerdict(StrEnum):
-    """replay's verdict: every inferred step within the tolerances, or not."""
-
-    EQUIVALENT = "EQUIVALENT"
-    CHANGED = "CHANGED"
 
 
 @dataclass(frozen=True)
@@ -105,7 +98,7 @@ class TaskSequential(Result):
     """One task's sequential test (harness.analysis.sequential.SequentialTest.summary, with its errored pairs)."""
 
     units: int
-    verdict: Verdict
+    verdict: GateVerdict
     decided: bool
     threshold: float
     e_values: EValues
@@ -118,7 +111,7 @@ class TaskSequential(Result):
 class SequentialSummary(Result):
     """The per-task sequential test of a regress run (harness.analysis.sequential.TaskwiseTest.summary)."""
 
-    verdict: Verdict
+    verdict: GateVerdict
     decided: bool
     rounds: int
     alpha: float
@@ -134,10 +127,10 @@ class RegressResult(Result):
     """regress.json (harness.gate.regress.regress); `compare` is written beside it as compare.json."""
 
     format: str
-    verdict: Verdict
+    verdict: GateVerdict
     incomplete: Incompleteness | None
-    sequential_verdict: Verdict
-    compare_verdict: Verdict
+    sequential_verdict: GateVerdict
+    compare_verdict: GateVerdict
     sequential: SequentialSummary
     pairs_used: int
     errored_pairs: int
@@ -160,9 +153,9 @@ class RegressResult(Result):
 class ConditionRegress(Result):
     """One condition of a grid regression."""
 
-    verdict: Verdict
-    sequential_verdict: Verdict
-    compare_verdict: Verdict
+    verdict: GateVerdict
+    sequential_verdict: GateVerdict
+    compare_verdict: GateVerdict
     pairs_used: int
     candidate_run: str
     alpha: float
@@ -173,9 +166,9 @@ class RegressGridResult(Result):
     """regress.json of a grid regression (harness.gate.regress.regress_grid)."""
 
     format: str
-    verdict: Verdict
+    verdict: GateVerdict
     conditions: dict[str, ConditionRegress]
-    compare_verdict: Verdict
+    compare_verdict: GateVerdict
     baseline_grid: str
     candidate_run: str
     compare: CompareResult = ABSENT

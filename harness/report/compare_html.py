@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 
 from harness.analysis.compare_result import CompareResult, OutcomeBlock, PairDetail, Rate
-from harness.analysis.paired import Verdict
 from harness.bounded import open_npz
 from harness.measures.attention import camera_maps
 from harness.files import all_or_none, atomic_write_json, write_atomic
 from harness.octo.tokens import TokenMap
 from harness.report import html as H
+from harness.verdicts import EXIT_OK, GateVerdict, gate_exit_code
 from harness.analysis.provenance import summary_points
 from harness.report.compare_md import difference_label, pairs_cell, to_decide
 from harness.report.figures import _figure, _png, overlay_grid, run_colours, success_chart
@@ -184,14 +184,13 @@ def compare_page(result: CompareResult, frames: dict | None = None, markdown: st
     """The whole HTML document for a comparison result (see module docstring)."""
     base, cand = result.baseline, result.candidate
     verdict = result.verdict
-    danger = (Verdict.REGRESSED, Verdict.SUSPECT, Verdict.ERRORED, Verdict.INCOMPLETE)
-    body = [H.banner(f"Verdict: {verdict}", danger=verdict in danger)]
+    body = [H.banner(f"Verdict: {verdict}", danger=gate_exit_code(verdict) != EXIT_OK)]  # fails the default gate
     body += [H.note(note) for note in result.outcomes.notes]
     for arm in (base, cand):
         if arm.random_weights:
             body.append(H.banner(f"{arm.run} uses RANDOM weights ({arm.model}): not a trained policy", danger=True))
     ident = result.identical
-    body.append(H.note(f"IDENTICAL check (atol {ident.atol:g}, {ident.steps_compared}): "
+    body.append(H.note(f"{GateVerdict.IDENTICAL} check (atol {ident.atol:g}, {ident.steps_compared}): "
                        + ("every paired array and outcome is equal" if ident.identical else
                           f"{ident.pairs_identical}/{result.pairs} pairs identical; first difference: "
                           f"{ident.first_difference}")))
@@ -210,9 +209,9 @@ def compare_page(result: CompareResult, frames: dict | None = None, markdown: st
         H.table(["task", "pairs", "baseline success", "candidate success", "difference = candidate - baseline",
                  "McNemar p (Holm)", "verdict", "to decide"], _outcome_rows(result), numeric=(1,))
         + H.note(f"Intervals: Wilson at {100 * (1 - cfg.alpha):g}% for each arm; for the paired difference "
-                 f"{difference_label(result)} (1998, method 10). HELD = the interval and an exact test rule out a "
-                 f"drop larger than {cfg.max_drop:g}; SUSPECT = the interval lies below 0 but the exact McNemar test "
-                 "(after Holm) does not reject; n counts "
+                 f"{difference_label(result)} (1998, method 10). {GateVerdict.HELD} = the interval and an exact test "
+                 f"rule out a drop larger than {cfg.max_drop:g}; {GateVerdict.SUSPECT} = the interval lies below 0 but "
+                 "the exact McNemar test (after Holm) does not reject; n counts "
                  "pairs in which both arms ran to an outcome (errored pairs are left out and counted).")
         + H.image(success_chart(tasks, series), "success per task, both arms")
     )

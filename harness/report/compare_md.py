@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 from harness.analysis.compare_result import CompareResult, OutcomeBlock, Rate
-from harness.analysis.paired import Verdict
+from harness.analysis.outcomes import UNDECIDED
 from harness.analysis.provenance import summary_points
 
 
@@ -29,7 +29,7 @@ def _rate(rate: Rate) -> str:
 
 def to_decide(block: OutcomeBlock, more: str = "more") -> str:
     """The "to decide" cell: pairs an UNDERPOWERED or SUSPECT table would need (plug-in estimate)."""
-    if block.verdict not in (Verdict.UNDERPOWERED, Verdict.SUSPECT):
+    if block.verdict not in UNDECIDED:
         return ""
     needed = block.more_pairs_needed
     return "> 100000" if needed is None else f"~{needed} {more}"

@@ -33,6 +33,7 @@ from harness.report import html as H
 from harness.report.figures_file import markdown_table
 from harness.report.closed_loop import INTERVENTION_COLUMNS, arm_name, intervention_rows, run_policy
 from harness.report.rundata import csv_bytes as _csv
+from harness.verdicts import Agreement  # agree, DISAGREE: open and closed loop on a camera's map
 
 FAITH_COLUMNS = ("run", "task", "camera", "method", "steps", "episodes", "change_all_median",
                  "deletion_rel", "deletion_ci_low", "deletion_ci_high", "insertion_rel", "insertion_ci_low",
@@ -41,7 +42,6 @@ FAITH_COLUMNS = ("run", "task", "camera", "method", "steps", "episodes", "change
 CAMERA_COLUMNS = ("task", "camera", "fill", "method", "open_loop_deletion", "open_ci_low", "open_ci_high",
                   "mask_all", "mask_all_difference", "mask_all_p", "mask_top", "top_vs_random_difference",
                   "top_vs_random_p", "agreement")
-AGREE, DISAGREE = AGREEMENT = ("agree", "DISAGREE")  # open and closed loop on a camera's map (docs/glossary.md)
 
 
 def read_rows(run) -> list[dict]:
@@ -170,11 +170,11 @@ def camera_rows(runs, faith: list[tuple] | None = None) -> list[tuple]:
                 if r is None or (closed == "n/a" and not needed):
                     agreement = "n/a"
                 elif closed != "n/a" and closed != "random" and opened != "random":
-                    agreement = AGREE if closed == opened else DISAGREE
+                    agreement = Agreement.AGREE if closed == opened else Agreement.DISAGREE
                 elif needed and opened == "worse":
-                    agreement = f"{DISAGREE} (camera needed; map below random open loop)"
+                    agreement = f"{Agreement.DISAGREE} (camera needed; map below random open loop)"
                 elif closed == "random" and opened == "random":
-                    agreement = f"{AGREE} (neither beats random)"
+                    agreement = f"{Agreement.AGREE} (neither beats random)"
                 else:
                     agreement = f"open loop {opened}, closed loop {closed}"
                 out.append((task, camera, fill, r[3] if r else (method or ""), ratio, low, high, all_text,
@@ -247,7 +247,7 @@ def camera_sentence(task: str, camera: str, faith: list[tuple], cams: list[tuple
     mine = [c for c in cams if c[0] == task and c[1] == camera]
     if not mine:
         return text + ("open loop only (table below)." if camera_fill_rows(task, camera, faith) else "not measured.")
-    flags = sorted({c[13] for c in mine if c[13].startswith(DISAGREE)})
+    flags = sorted({c[13] for c in mine if c[13].startswith(Agreement.DISAGREE)})
     text += f"open and closed loop {flags[0]}." if flags else "open and closed loop do not contradict each other."
     c = mine[0]
     if math.isfinite(c[8]):

@@ -20,6 +20,7 @@ from harness.analysis import predictors as P
 from harness.analysis import robustness as R
 from harness.report import html as H
 from harness.report.figures_file import markdown_table
+from harness.verdicts import CellVerdict, GateVerdict
 
 DETECTABLE_DROP = "detectable drop"  # a cell's smallest drop its pairs could show as a break (docs/glossary.md)
 EPISODE_COLUMNS = ("run", "task", "condition", "level", "seed", "episode", "status", "success", "nuisance_mass",
@@ -204,11 +205,13 @@ def map_note(records) -> str:
 
 
 VERDICT_NOTE = ("Verdicts per perturbed cell, paired with the nominal seeds:\n"
-                "- BREAKS: the exact McNemar drop survives Holm over the task's cells.\n"
-                "- HOLDS: a drop over the margin ({margin} points) is ruled out. The drop's upper bound (Newcombe at "
-                "1 - 0.05 / cells) is within it, and the exact test of a drop that large rejects (compare's HELD).\n"
-                "- UNDETERMINED: neither.\n"
-                "- Detectable drop: the smallest drop, in points, that the cell's pairs could show as BREAKS.")
+                f"- {CellVerdict.BREAKS}: the exact McNemar drop survives Holm over the task's cells.\n"
+                f"- {CellVerdict.HOLDS}: a drop over the margin ({{margin}} points) is ruled out. The drop's upper "
+                "bound (Newcombe at 1 - 0.05 / cells) is within it, and the exact test of a drop that large rejects "
+                f"(compare's {GateVerdict.HELD}).\n"
+                f"- {CellVerdict.UNDETERMINED}: neither.\n"
+                "- Detectable drop: the smallest drop, in points, that the cell's pairs could show as "
+                f"{CellVerdict.BREAKS}.")
 
 
 def markdown(records, note: str = "", margin: float = R.MARGIN, section: str = SECTION) -> str:

@@ -26,6 +26,7 @@ import numpy as np
 from envs.options import IMAGE_CONVENTIONS, to_convention
 from harness.measures.orientation import MEASURE, is_flat, orientation_scores
 from harness.options import option
+from harness.verdicts import PreflightVerdict
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +43,8 @@ MIRROR_MARGIN = 0.1  # the same for a left-right mirror (upright <-> rot180): tw
 METRES_AT_MOST = 0.1  # end-effector deltas in metres per step (octo-delta, Bridge: about 0.01)
 OSC_AT_LEAST = 0.2  # controller inputs in [-1, 1] (robosuite, libero) reach far beyond
 EXPECTED = {"octo-delta": ("metres", "0..1"), "robosuite": ("controller", "-1..1"), "libero": ("controller", "0..1")}
-CONSISTENT, MISMATCH, INCONCLUSIVE = "consistent", "MISMATCH", "inconclusive"
+CONSISTENT, MISMATCH, INCONCLUSIVE = (PreflightVerdict.CONSISTENT, PreflightVerdict.MISMATCH,
+                                     PreflightVerdict.INCONCLUSIVE)  # a check's verdict (harness.verdicts)
 
 
 class PreflightMismatch(ValueError):
@@ -84,11 +86,11 @@ def image_finding(key: str, example: np.ndarray, fed: np.ndarray, convention: st
     base = {"check": f"image:{key}", "fed": convention}
     if datasets > 1:
         return {**base, "verdict": INCONCLUSIVE, "reason": "multi-dataset checkpoint",
-                "line": f"{key}: inconclusive: the checkpoint was trained on {datasets} datasets, so its example frame "
-                        "may show another scene; finetune-specific frames are needed to check the orientation"}
+                "line": f"{key}: {INCONCLUSIVE}: the checkpoint was trained on {datasets} datasets, so its example "
+                        "frame may show another scene; finetune-specific frames are needed to check the orientation"}
     if is_flat(example):
         return {**base, "verdict": INCONCLUSIVE, "reason": "blank example frame",
-                "line": f"{key}: inconclusive: the checkpoint's example frame is blank (all zeros or one colour), "
+                "line": f"{key}: {INCONCLUSIVE}: the checkpoint's example frame is blank (all zeros or one colour), "
                         "so its orientation cannot be checked"}
     scores = orientation_scores(example, to_convention(fed, convention))
     ranked = sorted(IMAGE_CONVENTIONS, key=lambda c: -scores[c])
@@ -98,7 +100,7 @@ def image_finding(key: str, example: np.ndarray, fed: np.ndarray, convention: st
     shown = f"{best} {scores[best]:.2f}, fed {convention} {scores[convention]:.2f}"
     if scores[best] < MIN_SCORE:
         return {**out, "verdict": INCONCLUSIVE, "reason": "another scene or camera",
-                "line": f"{key}: inconclusive: the example frame matches no orientation well (best {shown}; under "
+                "line": f"{key}: {INCONCLUSIVE}: the example frame matches no orientation well (best {shown}; under "
                         f"{MIN_SCORE}): another scene or camera"}
     gap = {c: scores[c] - scores[convention] for c in IMAGE_CONVENTIONS if c != convention}
     need = {c: VERTICAL_MARGIN if _relation(c, convention) == "vertical" else MIRROR_MARGIN for c in gap}
@@ -109,18 +111,18 @@ def image_finding(key: str, example: np.ndarray, fed: np.ndarray, convention: st
         named = sorted(tied, key=lambda c: c != default)  # the family's own first where a mirror ties
         flags = " or ".join(f"--image-convention {c}" for c in named)
         return {**out, "verdict": MISMATCH, "suggest": named,
-                "line": f"{key}: MISMATCH: the frames fed as {convention} match the checkpoint's example frame better "
-                        f"as {' or '.join(named)} ({shown}); run with {flags}"}
+                "line": f"{key}: {MISMATCH}: the frames fed as {convention} match the checkpoint's example frame "
+                        f"better as {' or '.join(named)} ({shown}); run with {flags}"}
     unclear = [c for c in gap if gap[c] > -need[c]]  # not beaten by the margin
     vertical = [c for c in unclear if _relation(c, convention) == "vertical"]
     if vertical:
         return {**out, "verdict": INCONCLUSIVE, "reason": "margin below threshold",
-                "line": f"{key}: inconclusive: fed {convention} and {' and '.join(vertical)} score within "
+                "line": f"{key}: {INCONCLUSIVE}: fed {convention} and {' and '.join(vertical)} score within "
                         f"{VERTICAL_MARGIN} ({shown})"}
     if unclear and convention != default:  # a mirror the scene cannot show, and not the family's own convention
         return {**out, "verdict": INCONCLUSIVE, "reason": "mirror-only difference",
-                "line": f"{key}: inconclusive: mirror-only difference not measurable here (fed {convention}, its mirror "
-                        f"{unclear[0]} within {MIRROR_MARGIN}: {gap[unclear[0]]:+.2f})"}
+                "line": f"{key}: {INCONCLUSIVE}: mirror-only difference not measurable here (fed {convention}, its "
+                        f"mirror {unclear[0]} within {MIRROR_MARGIN}: {gap[unclear[0]]:+.2f})"}
     return {**out, "verdict": CONSISTENT, **({"mirror": "not measurable"} if unclear else {}), "line": ""}
 
 
@@ -158,7 +160,8 @@ def action_finding(statistics: dict | None, dataset_key: str | None, action_spac
     stats = ((statistics or {}).get(dataset_key or "") or {}).get("action")
     if not isinstance(stats, dict):
         return {**base, "verdict": INCONCLUSIVE, "reason": "no action statistics",
-                "line": f"action: inconclusive: dataset_statistics.json holds no action statistics for {dataset_key!r}"}
+                "line": f"action: {INCONCLUSIVE}: dataset_statistics.json holds no action statistics for "
+                        f"{dataset_key!r}"}
     found = action_classes(stats, gripper=hold_gripper is None)
     polarity = "the statistics cannot tell the gripper's polarity (which end is open)"
     features = {"translation": 0} if hold_gripper is not None else {"translation": 0, "gripper": 1}
@@ -171,13 +174,13 @@ def action_finding(statistics: dict | None, dataset_key: str | None, action_spac
         suggest = f"; run with {' or '.join(f'--action-space {s}' for s in fits)}" if fits else ""
         want = ", ".join(f"{f} {EXPECTED[action_space][i]}" for f, i in features.items())
         return {**out, "verdict": MISMATCH, "suggest": fits,
-                "line": f"action: MISMATCH: the checkpoint's action statistics say {said}; the {action_space} action "
+                "line": f"action: {MISMATCH}: the checkpoint's action statistics say {said}; the {action_space} action "
                         f"space expects {want}{suggest}"}
     if len(known) < len(features):
         missing = ", ".join(f for f in features if f not in known)
         return {**out, "verdict": INCONCLUSIVE, "reason": f"{missing} not told by the statistics",
-                "line": f"action: inconclusive: the statistics do not tell the {missing} ({said or 'nothing known'}); "
-                        f"{polarity}"}
+                "line": f"action: {INCONCLUSIVE}: the statistics do not tell the {missing} "
+                        f"({said or 'nothing known'}); {polarity}"}
     return {**out, "verdict": CONSISTENT, "line": ""}
 
 

@@ -7,7 +7,8 @@ import pytest
 from harness import cli
 from harness.analysis.compare import compare_runs, exit_code, incompatible_fields
 from harness.analysis.compare_result import MissingPairs
-from harness.analysis.paired import PairedCounts, Verdict, holm_adjust, mcnemar_exact
+from harness.analysis.paired import PairedCounts, holm_adjust, mcnemar_exact
+from harness.verdicts import GateVerdict
 from harness.runfolder.schema import protocol_hash
 
 PROTOCOL = {"model": "m", "model_fingerprint": "x", "tasks": ["Lift", "Stack"], "episodes": 10, "seed": 0,
@@ -47,9 +48,9 @@ def test_a_significant_drop_is_regressed_with_holm_across_tasks_and_exits_1(tmp_
     # family = Lift, Stack, pooled: Holm multiplies the smallest p by 3
     expected = holm_adjust([2 / 1024, 1.0, mcnemar_exact(10, 0)])
     assert [lift.mcnemar_p_holm, stack.mcnemar_p_holm, pooled.mcnemar_p_holm] == pytest.approx(expected)
-    assert lift.verdict == Verdict.REGRESSED and stack.verdict == Verdict.UNDERPOWERED and pooled.verdict == Verdict.REGRESSED
+    assert lift.verdict == GateVerdict.REGRESSED and stack.verdict == GateVerdict.UNDERPOWERED and pooled.verdict == GateVerdict.REGRESSED
     assert stack.more_pairs_needed > 0
-    assert result.verdict == Verdict.REGRESSED and exit_code(result) == 1
+    assert result.verdict == GateVerdict.REGRESSED and exit_code(result) == 1
     assert cli.main(["compare", str(base), str(cand), "--no-frames"]) == 1
     out = capsys.readouterr().out
     assert "compare: REGRESSED" in out and "| Lift | 10 |" in out
@@ -62,10 +63,10 @@ def test_missing_pairs_are_reported_and_make_the_candidate_incomplete(tmp_path):
     cand = write_run(tmp_path / "cand", {"Lift": [True, False]}, model="m2")  # still running: 2 of 4 episodes
     result = compare_runs(base, cand)
     assert result.pairs == 2 and result.missing_pairs == MissingPairs(candidate=(("Lift", 2), ("Lift", 3)), baseline=())
-    assert result.verdict == Verdict.INCOMPLETE and result.outcomes.overall.verdict == Verdict.UNDERPOWERED
+    assert result.verdict == GateVerdict.INCOMPLETE and result.outcomes.overall.verdict == GateVerdict.UNDERPOWERED
     assert {exit_code(result, fail_on) for fail_on in ("regressed", "suspect", "underpowered", "changed")} == {4}
     lenient = compare_runs(base, cand, require_complete=False)  # regress's view: the pairs that ran
-    assert lenient.verdict == Verdict.UNDERPOWERED and exit_code(lenient) == 0 and exit_code(lenient, "underpowered") == 1
+    assert lenient.verdict == GateVerdict.UNDERPOWERED and exit_code(lenient) == 0 and exit_code(lenient, "underpowered") == 1
 
 
 def test_only_outcome_changing_protocol_fields_are_incompatible():

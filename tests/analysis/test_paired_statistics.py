@@ -14,9 +14,8 @@ from harness.analysis.paired import (
     newcombe_paired_interval,
     paired_verdict,
     pairs_to_decide,
-    Verdict,
-    worst,
 )
+from harness.verdicts import GateVerdict
 
 
 @pytest.mark.parametrize(
@@ -129,8 +128,8 @@ def test_connor_sample_size_by_hand():
 def test_a_grid_with_an_incomplete_condition_is_incomplete_unless_another_failed_outright():
     """regress over a robustness grid takes the worst of its conditions: INCOMPLETE used to be outside the gate's
     order, so a grid with one unfinished condition raised (exit 5) instead of giving a verdict."""
-    assert worst([Verdict.HELD, Verdict.INCOMPLETE, Verdict.IDENTICAL]) == Verdict.INCOMPLETE
-    assert worst([Verdict.SUSPECT, Verdict.INCOMPLETE]) == Verdict.INCOMPLETE
-    assert worst([Verdict.INCOMPLETE, Verdict.REGRESSED]) == Verdict.REGRESSED
-    assert worst([Verdict.ERRORED, Verdict.INCOMPLETE]) == Verdict.ERRORED
-    assert worst([]) == Verdict.IDENTICAL
+    assert GateVerdict.worst([GateVerdict.HELD, GateVerdict.INCOMPLETE, GateVerdict.IDENTICAL]) == GateVerdict.INCOMPLETE
+    assert GateVerdict.worst([GateVerdict.SUSPECT, GateVerdict.INCOMPLETE]) == GateVerdict.INCOMPLETE
+    assert GateVerdict.worst([GateVerdict.INCOMPLETE, GateVerdict.REGRESSED]) == GateVerdict.REGRESSED
+    assert GateVerdict.worst([GateVerdict.ERRORED, GateVerdict.INCOMPLETE]) == GateVerdict.ERRORED
+    assert GateVerdict.worst([]) == GateVerdict.IDENTICAL

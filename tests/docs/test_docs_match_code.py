@@ -51,7 +51,7 @@ def test_a_cell_that_loses_more_than_max_drop_is_named_with_every_verdict_it_can
     """The verdicts of every table of up to 8 pairs whose loss is beyond --max-drop (harness.analysis.paired.decide,
     as compare decides a grid's cell): the section names each, and says which exit 0 (tests/gate/test_grid_gate.py
     runs such a grid)."""
-    from harness.analysis.compare import gate_exit_code
+    from harness.verdicts import gate_exit_code
     from harness.analysis.paired import PairedCounts, decide
 
     reachable = set()

@@ -1,7 +1,7 @@
 """Every exit-code summary in the docs holds the exit codes the code returns (issue 71 item 5.4): the inline
 summaries ("Exit codes: **0** pass, ..."), the tables of codes by command, and the `exit` column of the verdict
-tables, each checked against harness.analysis.compare's gate codes, the replay's, the command line's internal error
-and the interrupts."""
+tables, each checked against the gate codes (harness.verdicts: each verdict's exit code, --fail-on's choices), the
+replay's, the command line's internal error and the interrupts."""
 
 from __future__ import annotations
 
@@ -12,15 +12,13 @@ from types import SimpleNamespace
 
 import pytest
 
-from harness.analysis.compare import EXIT_INVALID, FAIL_ON, INCOMPLETE, gate_exit_code
-from harness.analysis.paired import Verdict
 from harness.cli import INTERNAL_ERROR
 from harness.gate.replay import exit_code as replay_exit_code
-from harness.gate.results import ReplayVerdict
+from harness.verdicts import DEFAULT_FAIL_ON, EXIT_FAIL, EXIT_INVALID, FAIL_ON, GateVerdict, ReplayVerdict, gate_exit_code
 from tests.docs.test_docs import doc_files, prose_lines
 
 INTERRUPTED = {128 + signal.SIGINT, 128 + signal.SIGTERM}
-VERDICTS = {str(v): v for v in [*Verdict, INCOMPLETE]}
+VERDICTS = {str(v): v for v in GateVerdict}
 GATE = {gate_exit_code(v, f) for v in VERDICTS.values() for f in FAIL_ON} | {EXIT_INVALID, INTERNAL_ERROR}
 REPLAY = {replay_exit_code(SimpleNamespace(verdict=v)) for v in ReplayVerdict} | {EXIT_INVALID, INTERNAL_ERROR}
 # run: 1 when an episode failed (harness/cli/run.py), robustness: 1 when a run did not complete (cli/robustness.py)
@@ -154,3 +152,32 @@ def test_the_checks_see_a_missing_or_wrong_code():
     assert code_tables(text) == {"compare": {0, 1}, "replay": {0}}
     ((verdict, cell),) = verdict_exit_rows(text)
     assert gate_exit_code(VERDICTS[verdict], "regressed") != int(re.findall(r": (\d+)\)", cell)[0])
+
+
+def test_fail_on_and_the_gate_codes_come_from_the_gate_verdicts():
+    """Issue 72 item 3: --fail-on's choices are the gate verdicts' `fails_from`, mildest choice first; a choice fails
+    on the verdict it names (the mildest that exits 1) and on every worse one; a failing verdict exits with its own code
+    (ERRORED 3 and INCOMPLETE 4 under every choice), a passing one 0; the commands offer exactly these choices."""
+    import argparse
+    import dataclasses
+
+    from harness.cli import build_parser
+    from harness.gate.config import GateConfig
+
+    assert FAIL_ON == tuple(dict.fromkeys(v.fails_from for v in GateVerdict if v.fails_from))
+    assert [v.rank for v in GateVerdict] == list(range(len(GateVerdict))) and GateVerdict.worst([]) == "IDENTICAL"
+    for choice in FAIL_ON:
+        failing = [v for v in GateVerdict if gate_exit_code(v, choice)]
+        assert failing == list(GateVerdict)[: len(failing)], choice  # the worst verdicts, down to the one it names
+        assert all(gate_exit_code(v, choice) == v.exit_code for v in failing), choice
+        mildest = max((v for v in failing if v.exit_code == EXIT_FAIL), key=lambda v: v.rank)
+        assert mildest.fails_from == choice, (choice, mildest)
+    assert {gate_exit_code(v) for v in (GateVerdict.ERRORED, GateVerdict.INCOMPLETE)} == {3, 4}
+    assert {v.exit_code for v in GateVerdict} | {EXIT_INVALID, INTERNAL_ERROR} == GATE
+    assert {v.exit_code for v in ReplayVerdict} | {EXIT_INVALID, INTERNAL_ERROR} == REPLAY
+    (field,) = [f for f in dataclasses.fields(GateConfig) if f.name == "fail_on"]
+    assert field.default == DEFAULT_FAIL_ON
+    (sub,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    for command in ("compare", "regress"):
+        (action,) = [a for a in sub.choices[command]._actions if "--fail-on" in a.option_strings]
+        assert tuple(action.choices) == FAIL_ON and action.default in (None, DEFAULT_FAIL_ON), command

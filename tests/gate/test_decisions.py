@@ -15,14 +15,8 @@ import pytest
 from scipy.stats import binom, binomtest, multinomial
 
 from harness import cli
-from harness.analysis.compare import (
-    CompareConfig,
-    compare_runs,
-    exit_code,
-    gate_exit_code,
-    outcome_verdicts,
-    overall_verdict,
-)
+from harness.analysis.compare import CompareConfig, compare_runs, exit_code
+from harness.analysis.outcomes import outcome_verdicts, overall_verdict
 from harness.analysis.paired import (
     ErroredPairs,
     PairedCounts,
@@ -34,7 +28,6 @@ from harness.analysis.paired import (
     mcnemar_sample_size,
     newcombe_paired_interval,
     pairs_for_regressed,
-    worst,
 )
 from harness.analysis.sequential import (
     SequentialConfig,
@@ -45,6 +38,7 @@ from harness.analysis.sequential import (
 )
 from harness.run.protocol import EpisodeJob
 from harness.gate.regress import gate_on_outcomes, gate_verdict
+from harness.verdicts import GateVerdict, gate_exit_code
 from tests.analysis.test_compare_outcomes import write_run
 
 ALPHA, MAX_DROP = 0.05, 0.1
@@ -89,7 +83,7 @@ def test_regress_verdict_is_the_worse_of_sequential_and_fixed_size():
     assert gate_verdict("REGRESSED", "HELD") == "REGRESSED"
     assert gate_verdict("HELD", "IMPROVED") == "HELD"
     assert gate_verdict("UNDERPOWERED", "IDENTICAL") == "IDENTICAL"  # nothing changed at all
-    assert worst(["IMPROVED", "HELD", "UNDERPOWERED", "SUSPECT", "REGRESSED", "ERRORED"]) == "ERRORED"
+    assert GateVerdict.worst(["IMPROVED", "HELD", "UNDERPOWERED", "SUSPECT", "REGRESSED", "ERRORED"]) == "ERRORED"
 
 
 def _simulate(rates, pairs, runs, rng, correlation=0.0):

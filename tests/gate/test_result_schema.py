@@ -14,11 +14,11 @@ import pytest
 
 from harness.analysis.compare import compare_grids, compare_runs
 from harness.analysis.compare_result import CompareResult, OutcomeBlock, PairDetail, RobustnessGrid
-from harness.analysis.paired import Verdict
 from harness.files import json_safe
-from harness.gate.results import RegressResult, ReplayResult, ReplayVerdict
+from harness.gate.results import RegressResult, ReplayResult
 from harness.report.compare_html import write_comparison
 from harness.results import ABSENT
+from harness.verdicts import GateVerdict, ReplayVerdict
 from tests.analysis.test_compare_outcomes import write_run
 from tests.gate.test_grid_gate import write_grid
 
@@ -41,13 +41,13 @@ def test_a_committed_example_is_read_and_written_again_byte_for_byte(name):
 
 def test_the_examples_are_read_into_types_not_dicts():
     compare = CompareResult.from_json(json.loads((EXAMPLES / "compare.json").read_text()))
-    assert compare.verdict is Verdict.IDENTICAL and compare.exit_code == 0 and compare.grid is ABSENT
+    assert compare.verdict is GateVerdict.IDENTICAL and compare.exit_code == 0 and compare.grid is ABSENT
     block = compare.outcomes.tasks["Lift"]
-    assert isinstance(block, OutcomeBlock) and block.paired_verdict is Verdict.UNDERPOWERED
+    assert isinstance(block, OutcomeBlock) and block.paired_verdict is GateVerdict.UNDERPOWERED
     assert block.table.n == block.pairs == 2 and isinstance(compare.pair_details[0], PairDetail)
     assert compare.pair_details[0].derived_difference is ABSENT  # a key the file does not hold stays out of it
     regress = RegressResult.from_json(json.loads((EXAMPLES / "regress.json").read_text()))
-    assert regress.verdict is Verdict.IDENTICAL and regress.sequential.verdict is Verdict.UNDERPOWERED
+    assert regress.verdict is GateVerdict.IDENTICAL and regress.sequential.verdict is GateVerdict.UNDERPOWERED
     assert regress.compare is ABSENT and regress.compare_json.endswith("compare.json")
     assert regress.replay.verdict is ReplayVerdict.EQUIVALENT and regress.replay.episode_details is ABSENT
     replay = ReplayResult.from_json(json.loads((EXAMPLES / "replay.json").read_text()))
@@ -77,7 +77,7 @@ def test_an_incomplete_candidate_with_errored_pairs_round_trips(tmp_path):
     base = write_run(tmp_path / "base", {"Lift": [True, None, True, True], "Stack": [True, False]})
     cand = write_run(tmp_path / "cand", {"Lift": [True, True, None], "Stack": [True, False]}, model="m2")
     result = compare_runs(base, cand)
-    assert result.verdict is Verdict.INCOMPLETE and result.incomplete.tasks == {"Lift": 1}
+    assert result.verdict is GateVerdict.INCOMPLETE and result.incomplete.tasks == {"Lift": 1}
     data = _round_trip(result, tmp_path / "out", 4)
     assert data["incomplete"]["note"].startswith("INCOMPLETE") and data["outcomes"]["notes"][0].startswith("INCOMPLETE")
     assert data["missing_pairs"] == {"candidate": [["Lift", 3]], "baseline": []}
