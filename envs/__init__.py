@@ -29,11 +29,13 @@ from envs.gl import HeadlessGLError  # noqa: E402
 from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvOptions, parse_camera, to_convention  # noqa: E402
 from envs.perturbations import Perturbation, PerturbationError, parse_perturb  # noqa: E402
 from envs.render import UnknownCameraError  # noqa: E402
-from envs.robosuite_env import EnvConfig, EnvConfigError, RobosuiteEnv, WrongThreadError, parse_cameras  # noqa: E402
-from envs.robosuite_env import quiet_robosuite_import  # noqa: E402
+from envs.robosuite_env import EnvConfigError, RobosuiteEnv, WrongThreadError, quiet_robosuite_import  # noqa: E402
+from envs.wrappers import EnvConfig, parse_cameras  # noqa: E402
 
 quiet_robosuite_import()
+from envs import suites  # noqa: E402
 from envs.resolver import get_task  # noqa: E402
+from envs.suites import Suite  # noqa: E402
 from envs.tasks import list_tasks, task_table  # noqa: E402
 from envs.taskspec import TaskSpec, UnknownTaskError  # noqa: E402
 
@@ -49,6 +51,7 @@ __all__ = [
     "Perturbation",
     "PerturbationError",
     "RobosuiteEnv",
+    "Suite",
     "TaskSpec",
     "UnknownCameraError",
     "UnknownTaskError",
@@ -60,6 +63,7 @@ __all__ = [
     "make_vector",
     "parse_camera",
     "parse_perturb",
+    "suites",
     "to_convention",
     "task_table",
 ]
@@ -82,9 +86,10 @@ def make(
     render_mode: str | None = None,
     perturb=None,
     **robosuite_options,
-) -> RobosuiteEnv:
-    """A gymnasium environment for registered task `task` (see `list_tasks()`; LIBERO tasks such as "libero_object/3"
-    run in LIBERO's own environment through `envs.libero_env.LiberoEnv`).
+) -> gymnasium.Env:
+    """A gymnasium environment for registered task `task`, made by its suite (envs.suites: robosuite's tasks in this
+    process, LIBERO's such as "libero_object/3" in LIBERO's own environment through `envs.libero_env.LiberoEnv`, a
+    registered suite's by its `make`).
 
     options: masks, fast_render, cameras, image_convention, action_space (see envs.options); the keyword
     arguments of the same names override it when given. cameras: {observation key: (robosuite camera,
@@ -114,11 +119,7 @@ def make(
         robosuite_options=tuple(sorted(robosuite_options.items())),
         perturbations=perturb if isinstance(perturb, tuple) else parse_perturb(perturb),
     )
-    if spec.simulator == "libero":
-        from envs.libero_env import LiberoEnv
-
-        return LiberoEnv(spec, config)
-    return RobosuiteEnv(spec, config)
+    return suites.get(spec.simulator).make(spec, config)
 
 
 def make_vector(task: str, num_envs: int, **options) -> gymnasium.vector.AsyncVectorEnv:

@@ -44,12 +44,13 @@ import gymnasium as gym
 import numpy as np
 
 from envs import libero_wire
-from envs.actions import ActionAdapterConfig, controller_action
+from envs.actions import ActionAdapterConfig
 from envs.camera import image_pixels
 from envs.libero_names import owner
 from envs.libero_tasks import SETTLE_STEPS, suite_and_index
-from envs.options import EnvConfigError, to_convention
+from envs.options import EnvConfigError
 from envs.taskspec import TaskSpec
+from envs.wrappers import ControllerActions, ImageConvention
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SERVER = Path(__file__).with_name("libero_server.py")
@@ -207,6 +208,7 @@ class LiberoEnv(gym.Env):
         self.instruction = config.instruction if config.instruction is not None else task.instruction
         self.max_episode_steps = config.max_episode_steps if config.max_episode_steps is not None else task.max_episode_steps
         self.image_convention = config.image_convention
+        self.view = ImageConvention(config.image_convention)
         self.settle_steps = SETTLE_STEPS
         suite, index = suite_and_index(task.name)
         self._make_args = {"suite": suite, "task": index, "masks": bool(config.masks),
@@ -225,18 +227,9 @@ class LiberoEnv(gym.Env):
         self._camera_sizes = {spec.key: spec.size for spec in config.cameras}
         images = {spec.key: gym.spaces.Box(0, 255, (spec.size, spec.size, 3), np.uint8) for spec in config.cameras}
         self.observation_space = gym.spaces.Dict({**images, "proprio": PROPRIO_SPACE})
-        if config.action_space == "robosuite":
-            self.action_space = gym.spaces.Box(-1.0, 1.0, (7,), dtype=np.float32)
-        elif config.action_space == "libero":
-            self.action_space = gym.spaces.Box(np.array([-1.0] * 6 + [0.0], np.float32), np.ones(7, np.float32))
-        else:
-            high = np.array([self.adapter.position_max] * 3 + [self.adapter.rotation_max] * 3 + [1.0], dtype=np.float32)
-            self.action_space = gym.spaces.Box(np.concatenate([-high[:6], [0.0]]).astype(np.float32), high)
-        if config.hold_gripper is not None:
-            space = self.action_space
-            self.action_space = gym.spaces.Box(space.low[:6], space.high[:6], dtype=np.float32)
+        self.actions = ControllerActions(config.action_space, self.adapter, config.hold_gripper)
+        self.action_space = self.actions.space
         self._step_index = 0
-        self._clipped = 0
         self.last_server_seconds = 0.0  # time the last step spent in the server (the rest crossed the boundary)
         self._raw: dict | None = None
         self._last_obs: dict | None = None
@@ -277,17 +270,15 @@ class LiberoEnv(gym.Env):
         else:  # demonstrations: LIBERO's own placement sampler, seeded, never a stored evaluation state
             raw = self._server.call("reset", state_index=None, placement_seed=state_index, settle_steps=settle)["obs"]
         self._step_index = 0
-        self._clipped = 0
+        self.actions.reset()
         return self._observe(raw), self._info(raw)
 
     def step(self, action):
         if self._last_obs is None:
             raise gym.error.ResetNeeded("call reset() before step()")
-        osc, clipped = controller_action(action, self.config.action_space, self.adapter, self.config.hold_gripper)
-        reply = self._server.call("step", action=np.asarray(osc, np.float64))
+        reply = self._server.call("step", action=np.asarray(self.actions(action), np.float64))
         raw, self.last_server_seconds = reply["obs"], float(reply.get("seconds", 0.0))
         self._step_index += 1
-        self._clipped += int(clipped)
         success = bool(raw["success"])
         terminated = success and self.config.terminate_on_success
         truncated = self._step_index >= self.max_episode_steps
@@ -296,7 +287,7 @@ class LiberoEnv(gym.Env):
     def render(self):
         if self.render_mode != "rgb_array" or self._last_obs is None or not self.config.cameras:
             return None
-        return to_convention(self._last_obs[self.config.cameras[0].key], self.image_convention).copy()
+        return self.view.upright(self._last_obs[self.config.cameras[0].key])
 
     def close(self) -> None:
         server, self._server = getattr(self, "_server", None), None
@@ -313,8 +304,7 @@ class LiberoEnv(gym.Env):
 
     def _observe(self, raw: dict) -> dict[str, np.ndarray]:
         self._raw = raw
-        obs = {key: to_convention(np.ascontiguousarray(image[::-1]), self.image_convention)
-               for key, image in raw["images"].items()}
+        obs = self.view.frames({key: np.ascontiguousarray(image[::-1]) for key, image in raw["images"].items()})
         obs["proprio"] = np.concatenate([raw["eef_pos"], quat_to_axis_angle(raw["eef_quat"]),
                                          raw["gripper_qpos"]]).astype(np.float32)
         self._last_obs = obs
@@ -322,7 +312,7 @@ class LiberoEnv(gym.Env):
 
     def _info(self, raw: dict) -> dict:
         info = {"success": bool(raw["success"]), "instruction": self.instruction, "task": self.task.name,
-                "step": self._step_index, "action_clipped": self._clipped, "target_pixels": self.target_pixels()}
+                "step": self._step_index, "action_clipped": self.actions.clipped, "target_pixels": self.target_pixels()}
         if self.config.masks:
             info["masks"] = self.masks()
         return info
@@ -347,7 +337,7 @@ class LiberoEnv(gym.Env):
             named["distractors"] = np.isin(upright, [i for i in self._object_ids.values() if i not in interest])
             for name, index in self._object_ids.items():
                 named[f"object.{name}"] = upright == index
-            out[key] = {name: to_convention(mask, self.image_convention) for name, mask in named.items()}
+            out[key] = self.view.masks(named)
         return out
 
     # ---------------------------------------------------------------- for tests, demonstrators and diagnostics

@@ -37,18 +37,25 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from envs import suites as _suites
+
 IMAGE_CONVENTIONS = ("upright", "opengl", "rot180")
 ACTION_SPACES = ("octo-delta", "robosuite", "libero")
 # the gripper value of "open" / "closed" and its range, per action space
 GRIPPER_VALUES = {"octo-delta": {"open": 1.0, "closed": 0.0, "range": (0.0, 1.0)},
                   "robosuite": {"open": -1.0, "closed": 1.0, "range": (-1.0, 1.0)},
                   "libero": {"open": 1.0, "closed": 0.0, "range": (0.0, 1.0)}}
+# what each action space's actions look like in a dataset's statistics: (translation, gripper range), the pre-flight
+# check's evidence (harness.run.preflight): metres per step or a controller input in [-1, 1]; the gripper's ends
+ACTION_SPACE_UNITS = {"octo-delta": ("metres", "0..1"), "robosuite": ("controller", "-1..1"),
+                      "libero": ("controller", "0..1")}
 
-# each task family's default conventions, for a key neither the command line nor the checkpoint's harness.toml sets
-# (harness.conventions.resolve_env applies them; the --help and the docs' option table word them from here)
-FAMILY_DEFAULTS = {"robosuite": {"image_convention": "upright", "action_space": "octo-delta"},
-                   "libero": {"image_convention": "rot180", "action_space": "libero"}}
-FAMILY_NAMES = {"robosuite": "robosuite", "libero": "LIBERO"}  # as the help and the docs name the families
+# the built-in suites' default conventions, for a key neither the command line nor the checkpoint's harness.toml sets,
+# and their names as the help and the docs word them: each suite declares its own (envs.suites.Suite.defaults, title;
+# harness.conventions.resolve_env applies the suite of a task's), and the --help and the docs' option table word the
+# built-in ones from here
+FAMILY_DEFAULTS = {cls.name: dict(cls.defaults) for cls in _suites.builtin()}
+FAMILY_NAMES = {cls.name: cls.title for cls in _suites.builtin()}
 
 
 def family_defaults_text(key: str, harness_toml: str = "harness.toml") -> str:

@@ -37,22 +37,22 @@ from __future__ import annotations
 
 import os
 import threading
-from dataclasses import dataclass, field
 
 import gymnasium as gym
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from envs import gl
-from envs.actions import ActionAdapterConfig, controller_action
+from envs.actions import ActionAdapterConfig
 from envs.camera import image_pixels
-from envs.options import ACTION_SPACES, IMAGE_CONVENTIONS, EnvConfigError, to_convention
+from envs.options import EnvConfigError
 from envs.render import CameraSpec, SceneRenderer
 from envs import perturbations as perturb
 from envs.scene_edits import DISTRACTOR_PREFIX, class_with_distractors
 from envs.phases import PHASE_SPECS, PhaseState, phase_of
 from envs.segmentation import TARGET, geom_categories, labelled_masks, scene_labels, scene_lookup
 from envs.taskspec import TaskSpec
+from envs.wrappers import ControllerActions, EnvConfig, ImageConvention, check_config, parse_cameras  # noqa: F401
 
 ROBOT_BODY_PREFIXES = ("robot0_", "gripper0_", "fixed_mount0_", "mount0_")
 GRIPPER_BODY_PREFIXES = ("robot0_right_hand", "gripper0_")  # the Panda's hand link and the gripper's bodies
@@ -66,41 +66,9 @@ class WrongThreadError(RuntimeError):
     """The environment was used from a thread other than the one that created it."""
 
 
-@dataclass(frozen=True)
-class EnvConfig:
-    cameras: tuple[CameraSpec, ...] = ()  # no cameras: no rendering; `make` fills in the task's defaults
-    masks: bool = False
-    terminate_on_success: bool = True
-    max_episode_steps: int | None = None  # None: the task's default
-    instruction: str | None = None  # None: the task's default instruction
-    action_adapter: ActionAdapterConfig | None = None  # None: scales read from the controller's output limits
-    fast_render: bool = False  # no shadows, reflections or skybox
-    model_seed: int = 0  # seeds randomised model properties at construction (object sizes, table height)
-    render_mode: str | None = None  # None or "rgb_array" (returns the first camera's latest frame)
-    robosuite_options: tuple[tuple[str, object], ...] = field(default_factory=tuple)  # extra robosuite.make kwargs
-    image_convention: str = "upright"  # "upright" | "opengl" (see envs.options)
-    action_space: str = "octo-delta"  # "octo-delta" | "robosuite" (see envs.options)
-    hold_gripper: float | None = None  # 6-D actions (arm only), this gripper value appended (see envs.options)
-    perturbations: tuple = ()  # envs.perturbations.Perturbation values (level > 0); () = the nominal scene
-
-
 def default_cameras(task: TaskSpec) -> tuple[CameraSpec, ...]:
     """image_primary = the task's primary camera (agentview except Door) at 256 px, image_wrist = eye-in-hand at 128 px."""
     return (CameraSpec("image_primary", task.primary_camera, 256), CameraSpec("image_wrist", "robot0_eye_in_hand", 128))
-
-
-def parse_cameras(cameras: dict[str, tuple[str, int]] | None, task: TaskSpec) -> tuple[CameraSpec, ...]:
-    """{obs key: (robosuite camera, size)} -> camera specs; None gives the task's defaults."""
-    if cameras is None:
-        return default_cameras(task)
-    specs = []
-    for key, value in cameras.items():
-        if not (isinstance(value, (tuple, list)) and len(value) == 2 and isinstance(value[1], (int, np.integer)) and value[1] > 0):
-            raise EnvConfigError(f"camera {key!r}: expected (robosuite camera name, positive size), got {value!r}")
-        if key == "proprio":
-            raise EnvConfigError("camera key 'proprio' is reserved for the proprioceptive state; choose another key")
-        specs.append(CameraSpec(key, str(value[0]), int(value[1])))
-    return tuple(specs)
 
 
 # robosuite's import-time warnings that say nothing about a run: no private macros file (3 lines), robosuite_models
@@ -147,42 +115,13 @@ def _import_robosuite():
     return robosuite
 
 
-def _check_config(config: EnvConfig) -> None:
-    """EnvConfigError (one line) for options that cannot go together or are unknown, before robosuite is imported."""
-    if config.masks and not config.cameras:
-        raise EnvConfigError("masks=True needs at least one camera")
-    if config.render_mode not in (None, "rgb_array"):
-        raise EnvConfigError(f"render_mode {config.render_mode!r} unsupported; use None or 'rgb_array'")
-    if config.render_mode == "rgb_array" and not config.cameras:
-        raise EnvConfigError("render_mode='rgb_array' needs at least one camera")
-    if config.image_convention not in IMAGE_CONVENTIONS:
-        raise EnvConfigError(f"image convention {config.image_convention!r} unknown; use one of {', '.join(IMAGE_CONVENTIONS)}")
-    if config.action_space not in ACTION_SPACES:
-        raise EnvConfigError(f"action space {config.action_space!r} unknown; use one of {', '.join(ACTION_SPACES)}")
-
-
-def _action_space(config: EnvConfig, adapter: ActionAdapterConfig) -> gym.spaces.Box:
-    """The action space of `config.action_space` (7-D; 6-D with `hold_gripper`)."""
-    if config.action_space == "robosuite":  # the controller's own input range
-        space = gym.spaces.Box(-1.0, 1.0, (7,), dtype=np.float32)
-    elif config.action_space == "libero":  # OSC input, gripper 1 open / 0 closed (envs.actions.libero_action)
-        space = gym.spaces.Box(np.array([-1.0] * 6 + [0.0], np.float32), np.ones(7, np.float32))
-    else:  # the range the adapter passes unclipped: +-position_max metres, about +-rotation_max radians, gripper [0, 1]
-        high = np.array([adapter.position_max] * 3 + [adapter.rotation_max] * 3 + [1.0], dtype=np.float32)
-        low = np.concatenate([-high[:6], [0.0]]).astype(np.float32)
-        space = gym.spaces.Box(low, high, dtype=np.float32)
-    if config.hold_gripper is not None:  # arm-only actions; the gripper is held at the given value
-        space = gym.spaces.Box(space.low[:6], space.high[:6], dtype=np.float32)
-    return space
-
-
 class RobosuiteEnv(gym.Env):
     """A robosuite task with Octo-style observations and actions; see the module docstring."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": CONTROL_FREQUENCY_HZ}
 
     def __init__(self, task: TaskSpec, config: EnvConfig = EnvConfig()) -> None:
-        _check_config(config)
+        check_config(config)
         self.task = task
         self.config = config
         self.render_mode = config.render_mode
@@ -217,10 +156,11 @@ class RobosuiteEnv(gym.Env):
         images = {spec.key: gym.spaces.Box(0, 255, (spec.size, spec.size, 3), np.uint8) for spec in config.cameras}
         self.observation_space = gym.spaces.Dict({**images, "proprio": PROPRIO_SPACE})
         self.image_convention = config.image_convention
-        self.action_space = _action_space(config, self.adapter)
+        self.view = ImageConvention(config.image_convention)
+        self.actions = ControllerActions(config.action_space, self.adapter, config.hold_gripper)
+        self.action_space = self.actions.space
 
         self._step_index = 0
-        self._clipped = 0
         self._last_obs: dict[str, np.ndarray] | None = None
         self._phase_spec = PHASE_SPECS.get(task.name)
         self._rest_height = 0.0  # the phase object's height at reset
@@ -302,7 +242,7 @@ class RobosuiteEnv(gym.Env):
         if self._phase_spec is not None:
             self._rest_height = float(self.object_poses()[self._phase_spec.obj][0][2])
         self._step_index = 0
-        self._clipped = 0
+        self.actions.reset()
         success = bool(self._env._check_success())
         obs = self._observe(raw)
         return obs, self._info(success)
@@ -311,10 +251,9 @@ class RobosuiteEnv(gym.Env):
         self._check_thread()
         if self._last_obs is None:
             raise gym.error.ResetNeeded("call reset() before step()")
-        osc, clipped = controller_action(action, self.config.action_space, self.adapter, self.config.hold_gripper)
+        osc = self.actions(action)
         raw, reward, _, _ = self._env.step(osc[: self._env.action_dim])  # Wipe's gripper-less arm takes 6 values
         self._step_index += 1
-        self._clipped += int(clipped)
         success = bool(self._env._check_success())
         obs = self._observe(raw)
         terminated = success and self.config.terminate_on_success
@@ -324,8 +263,7 @@ class RobosuiteEnv(gym.Env):
     def render(self):
         if self.render_mode != "rgb_array" or self._last_obs is None:
             return None
-        frame = self._last_obs[self.config.cameras[0].key]
-        return to_convention(frame, self.image_convention).copy()  # upright again
+        return self.view.upright(self._last_obs[self.config.cameras[0].key])  # upright again
 
     def close(self) -> None:
         env, self._env = getattr(self, "_env", None), None
@@ -351,7 +289,7 @@ class RobosuiteEnv(gym.Env):
         frames = {spec.key: self._renderer.rgb(spec.key) for spec in self.config.cameras}
         if self._perturber is not None:  # sensor noise: what the policy sees, not the scene
             frames = self._perturber.noisy(frames, self._perturb_seed, self._step_index)
-        obs = {key: self._in_convention(frame) for key, frame in frames.items()}
+        obs = self.view.frames(frames)
         euler = Rotation.from_quat(raw["robot0_eef_quat_site"]).as_euler("xyz")  # robosuite quats are (x, y, z, w)
         fingers = raw.get("robot0_gripper_qpos", np.zeros(0))  # (2,) for the Panda hand
         if fingers.shape != (2,):  # Wipe's wiping tool has no finger joints
@@ -359,10 +297,6 @@ class RobosuiteEnv(gym.Env):
         obs["proprio"] = np.concatenate([raw["robot0_eef_pos"], euler, fingers]).astype(np.float32)
         self._last_obs = obs
         return obs
-
-    def _in_convention(self, upright: np.ndarray) -> np.ndarray:
-        """(h, w, ...) upright pixels -> the same in this env's image convention (opengl: rows reversed)."""
-        return to_convention(upright, self.image_convention)
 
     def _avoid_xy(self) -> np.ndarray:
         """(k, 2) plane positions distractors keep clear of: the targets, every task object and placement goal."""
@@ -461,7 +395,7 @@ class RobosuiteEnv(gym.Env):
             image, segids, objtypes, objids = self._renderer.segmentation(spec.key)
             named = labelled_masks(image, scene_lookup(segids, objtypes, objids, self._geom_label),
                                    self._distractor_count, gripper=True, goal=bool(self.task.goal))
-            out[spec.key] = {name: self._in_convention(mask) for name, mask in named.items()}
+            out[spec.key] = self.view.masks(named)
         return out
 
     def _info(self, success: bool) -> dict:
@@ -470,7 +404,7 @@ class RobosuiteEnv(gym.Env):
             "instruction": self.instruction,
             "task": self.task.name,
             "step": self._step_index,
-            "action_clipped": self._clipped,
+            "action_clipped": self.actions.clipped,
             "target_pixels": self.target_pixels(),
             "phase": self.phase(),
         }

@@ -7,8 +7,8 @@ object(s) the robot has to grasp, push or move, so that attention on them can be
 name where the target has to go (Stack: cubeB; the PickPlace tasks: bin2, the bin the objects go to; the nut
 tasks: the nut's peg), for the goal mask; empty where the task has no goal region. A task's phases (approach,
 grasp, ...) are read off the simulator state by `envs.phases`.
-A task is an `envs.taskspec.TaskSpec`; `envs.resolver.get_task` finds one by name here or in LIBERO's suites
-(envs.libero_tasks).
+A task is an `envs.taskspec.TaskSpec`; this is the robosuite suite's listing (envs.robosuite_suite), and
+`envs.resolver.get_task` finds a task by name in any registered suite (envs.suites).
 """
 
 from __future__ import annotations
@@ -137,16 +137,12 @@ def list_tasks() -> list[TaskSpec]:
     return list(_TASKS)
 
 
-def task_table(tasks: list[TaskSpec] | None = None, libero: bool = False) -> str:
-    """A plain-text table of tasks (name, max steps, targets, instruction) for `octo-harness tasks`, followed by
-    LIBERO's suites and tasks when `libero` (they run in LIBERO's own environment: docs/libero.md)."""
-    if libero and tasks is None:
-        from envs import libero_tasks
+def task_table(tasks: list[TaskSpec] | None = None, all_suites: bool = False) -> str:
+    """A plain-text table of tasks (name, max steps, targets, instruction) for `octo-harness tasks`; with `all_suites`,
+    every registered suite's listing after it (envs.suites: LIBERO's suites and tasks, which run in LIBERO's own
+    environment, docs/libero.md; a registered suite's own)."""
+    from envs import suites
 
-        return task_table(list_tasks(), libero=False) + "\n\nLIBERO (its own simulator stack; set up with " \
-            "`bash scripts/setup_libero.sh`)\n" + libero_tasks.suite_table()
-    tasks = list_tasks() if tasks is None else tasks
-    rows = [("task", "max steps", "targets", "instruction")]
-    rows += [(t.name, str(t.max_episode_steps), ", ".join(t.targets), t.instruction) for t in tasks]
-    widths = [max(len(row[i]) for row in rows) for i in range(3)]
-    return "\n".join(f"{r[0]:{widths[0]}}  {r[1]:>{widths[1]}}  {r[2]:{widths[2]}}  {r[3]}" for r in rows)
+    if all_suites and tasks is None:
+        return "\n\n".join(suite.table() for suite in suites.suites())
+    return suites.task_table(list_tasks() if tasks is None else tasks)

@@ -20,7 +20,7 @@ class TaskSpec:
     max_episode_steps: int  # truncation limit at 20 Hz control
     primary_camera: str = "agentview"  # robosuite camera behind the default image_primary
     robosuite_options: tuple[tuple[str, object], ...] = ()  # fixed extra kwargs for robosuite.make
-    simulator: str = "robosuite"  # "robosuite" (robosuite 1.5 in this environment) | "libero" (envs.libero_env)
+    simulator: str = "robosuite"  # the suite that runs it (envs.suites): "robosuite", "libero", a registered suite's name
     initial_states: int = 0  # LIBERO: stored initial states (episode seed s starts from state s)
     goal: tuple[str, ...] = ()  # body-name prefixes of the goal region (where the target goes), for the goal mask
 

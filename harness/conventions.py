@@ -26,7 +26,7 @@ normalisation statistics. `harness.toml` (TOML, read with the standard library's
     tokenizer = "tokenizer"            # "auto" | "fallback" | a tokenizer.json or folder, relative to the checkpoint
 
 Precedence, highest first: command-line flags, the protocol file, `harness.toml`, the default of the task's
-family (`FAMILY_DEFAULTS`, in envs.options). A missing file means "no conventions": robosuite tasks then take
+family, i.e. its suite (`Suite.defaults`, envs.suites). A missing file means "no conventions": robosuite tasks then take
 octo-delta actions and upright images (as before), LIBERO tasks the published evaluation's (OpenVLA's run_libero_eval.py: the
 rendered frame turned 180 degrees, LIBERO's action convention; the stored initial states and settle steps are the
 LIBERO env's own). A run that mixes families gives each family's tasks its own default (`resolve_env`).
@@ -40,7 +40,8 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Mapping
 
-from envs.options import FAMILY_DEFAULTS, EnvConfigError, EnvOptions
+from envs import suites
+from envs.options import EnvConfigError, EnvOptions
 from harness.bounded import read_toml
 
 CONVENTIONS_FILE = "harness.toml"
@@ -48,17 +49,14 @@ FORMAT = "octo-harness-conventions/1"
 ENV_KEYS = ("cameras", "image_convention", "action_space", "hold_gripper")  # masks and fast_render are run choices, not model conventions
 
 
-# FAMILY_DEFAULTS (envs.options): each task family's default conventions, used for a key neither the command line nor
-# harness.toml sets; it lives beside EnvOptions, whose --help words these defaults from it
-FAMILY_PROTOCOL = {"robosuite": "the harness's robosuite default", "libero": "published protocol"}
+# a task's family is its suite (envs.suites): its `defaults` are used for a key neither the command line nor harness.toml
+# sets, and its `default_note` says why in the console line of a run that uses them
 SOURCE_KEYS = ("cameras", "image_convention", "action_space", "hold_gripper")  # the conventions whose source is recorded
 
 
 def task_family(task: str) -> str:
-    """"libero" for a LIBERO task or suite ("libero_object/3"), else "robosuite"."""
-    from envs import libero_tasks
-
-    return "libero" if libero_tasks.is_libero(task) else "robosuite"
+    """The name of the suite a task (or a name standing for several, e.g. a LIBERO suite's) belongs to (envs.suites)."""
+    return suites.of(task).name
 
 
 def resolve_env(conventions: "CheckpointConventions", given: Mapping[str, Any], families) -> tuple[dict, dict]:
@@ -68,7 +66,7 @@ def resolve_env(conventions: "CheckpointConventions", given: Mapping[str, Any], 
     given = {k: v for k, v in given.items() if v is not None}
     options, sources = {}, {}
     for family in dict.fromkeys(families):
-        options[family] = EnvOptions.from_dict({**FAMILY_DEFAULTS[family], **conventions.env, **given})
+        options[family] = EnvOptions.from_dict({**suites.get(family).defaults, **conventions.env, **given})
         sources[family] = {k: "flag" if k in given else "checkpoint" if k in conventions.env else f"default:{family}"
                            for k in SOURCE_KEYS if k != "hold_gripper" or options[family].hold_gripper is not None}
     return options, sources
@@ -82,12 +80,11 @@ def default_lines(sources: Mapping[str, Mapping[str, str]], options: Mapping[str
     for family, keys in sources.items():
         if not any(keys.get(k, "").startswith("default:") for k in ("image_convention", "action_space")):
             continue
-        names = [t.split("/")[0] for t in tasks if task_family(t) == family]
-        label = ", ".join(dict.fromkeys(names)) if family == "libero" else ", ".join(names)
+        label = suites.get(family).label([t for t in tasks if task_family(t) == family])
         why = f"{model}'s harness.toml does not set them" if has_file else f"{model} has no {CONVENTIONS_FILE}"
         option = options[family]
         lines.append(f"{label}: {option.image_convention} images, {option.action_space} actions "
-                     f"({FAMILY_PROTOCOL[family]}; {why})")
+                     f"({suites.get(family).default_note}; {why})")
     return lines
 
 

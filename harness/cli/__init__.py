@@ -26,15 +26,15 @@ COMMANDS = (run, tasks, robustness, report, compare, replay, view, sanity, regre
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
+    from envs import suites
     from envs.gl import HeadlessGLError
-    from envs.libero_env import LiberoServerError
     from harness.octo.errors import OctoError
     from harness.run.space import DiskFullError
     from harness.run.store import ResultsWriteError, RunLockedError
 
     # ResultsWriteError, DiskFullError: a full disk under regress's candidate run is exit 2, never 1 (REGRESSED)
     return (*USER_ERRORS, RunLockedError, OctoError, HeadlessGLError, OutputsNotWritten, ResultsWriteError,
-            DiskFullError, LiberoServerError)
+            DiskFullError, *suites.errors())
 
 
 def _interrupt(signum, frame):

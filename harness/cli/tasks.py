@@ -10,7 +10,7 @@ def add_parser(sub) -> None:
 def main(args) -> int:
     import envs
 
-    print(envs.task_table(libero=True))
+    print(envs.task_table(all_suites=True))
     print(f"\n{TASK_NAMES_LINE}")
     return 0
 

@@ -51,24 +51,13 @@ def check_accelerator(environ: Mapping[str, str] | None = None) -> None:
                          "on the CPU") from None
 
 
-def check_libero(protocol: Protocol) -> None:
-    """A protocol with LIBERO tasks: LIBERO's environment must be set up (one line naming the set-up command) and
-    every episode seed must name a stored initial state (episode k of a task starts from state seed + k)."""
-    import envs
+def check_suites(protocol: Protocol) -> None:
+    """Each suite of the protocol's tasks checks what it must before anything loads (envs.suites.Suite.check: LIBERO's
+    environment is set up and every episode seed names a stored initial state): one line naming the fix."""
+    from envs import suites
 
-    specs = [envs.get_task(t) for t in protocol.tasks]
-    libero = [s for s in specs if s.simulator == "libero"]
-    if not libero:
-        return
-    for spec in libero:
-        last = protocol.seed + protocol.episodes - 1
-        if last >= spec.initial_states:
-            raise ValueError(f"{spec.name} stores {spec.initial_states} initial states (0..{spec.initial_states - 1}) and "
-                             f"episode k starts from state --seed + k: --seed {protocol.seed} --episodes "
-                             f"{protocol.episodes} would need state {last}; use --seed + --episodes <= {spec.initial_states}")
-    from envs.libero_env import libero_python
-
-    libero_python()  # LiberoEnvironmentMissing: "LIBERO's environment is not set up ...; run: bash scripts/setup_libero.sh"
+    for suite, specs in suites.of_tasks(protocol.tasks).items():
+        suite.check(specs, protocol.seed, protocol.seed + protocol.episodes - 1)
 
 
 def _module_exists(name: str) -> bool:

@@ -29,7 +29,7 @@ from harness import interrupts
 from harness.run import checks, space
 from harness.run.protocol import protocol_from_manifest
 from harness.runfolder.platform import git_commit as _git_commit
-from harness.runfolder.platform import libero_platform, platform_differences, platform_fingerprint, platform_info
+from harness.runfolder.platform import platform_differences, platform_fingerprint, platform_info, suite_platforms
 from harness.run.executor import CheckedEnv, EpisodeContext, Executor, Retrying, SequentialExecutor, StepCallback
 from harness.run.preflight import check_run
 from harness.run.progress import Progress
@@ -232,7 +232,7 @@ def _checked_inputs(protocol: Protocol, out: str | Path, run_name: str | None, c
     if ci_method not in (None, *CI_METHODS):
         raise ValueError(f"ci_method must be one of {', '.join(CI_METHODS)}, got {ci_method!r}")
     checks.check_environment()
-    checks.check_libero(protocol)
+    checks.check_suites(protocol)
     if protocol.outputs.rerun or viewer is not None:
         from harness.outputs.rerun_sink import import_rerun
 
@@ -272,7 +272,7 @@ def _open_run(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], name:
     protocol_dict = protocol.to_dict()
     manifest = _recorded_manifest(store, protocol, protocol_dict, overwrite)
     ci_method = _recorded_ci_method(store, manifest, ci_method)
-    platform_now = platform_info(libero=libero_platform(protocol.tasks))
+    platform_now = platform_info(sides=suite_platforms(protocol.tasks))
     platform_fp = platform_fingerprint(platform_now)
     if manifest is not None and manifest.get("platform_fingerprint") not in (None, platform_fp):
         log.warning("resuming run %s on another platform (differs: %s); its episodes record where they ran",

@@ -34,7 +34,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import shutil
-import sys
 import traceback
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -189,16 +188,16 @@ class InfrastructureError(RuntimeError):
 
 def failure_of(exc: BaseException) -> tuple[str, str | None]:
     """An episode's exception -> (failure kind, the lost part or None): "infrastructure" for a lost worker, node or
-    policy replica (InfrastructureError), a LIBERO server that died or stopped answering, a render context that
-    OpenGL lost, or a disk that filled ("disk": the driver stops the run, harness/run/space.py); "episode" for
+    policy replica (InfrastructureError), what a suite says its env lost (envs.suites.Suite.lost: a LIBERO server that
+    died or stopped answering), a render context that OpenGL lost, or a disk that filled ("disk": the driver stops the run, harness/run/space.py); "episode" for
     anything else (the policy, the env, the physics, a non-finite action)."""
     if disk_error(exc) is not None:
         return "infrastructure", DISK
     if isinstance(exc, InfrastructureError):
         return "infrastructure", exc.lost
-    libero = sys.modules.get("envs.libero_env")  # loaded wherever a LIBERO env ran
-    if libero is not None and isinstance(exc, libero.LiberoServerLost):
-        return "infrastructure", "LIBERO server"
+    lost = envs.suites.lost(exc)
+    if lost is not None:
+        return "infrastructure", lost
     if type(exc).__module__.split(".")[0] == "OpenGL":  # OpenGL.error.GLError: the GL context is gone
         return "infrastructure", "render context"
     return "episode", None

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from envs.options import IMAGE_CONVENTIONS, to_convention
+from envs.options import ACTION_SPACE_UNITS, IMAGE_CONVENTIONS, to_convention
 from harness.measures.orientation import MEASURE, is_flat, orientation_scores
 from harness.options import option
 from harness.verdicts import PreflightVerdict
@@ -42,7 +42,7 @@ MIRROR_MARGIN = 0.1  # the same for a left-right mirror (upright <-> rot180): tw
 # Action statistics: the largest |p01|, |p99| of the three translation values, and the gripper's range
 METRES_AT_MOST = 0.1  # end-effector deltas in metres per step (octo-delta, Bridge: about 0.01)
 OSC_AT_LEAST = 0.2  # controller inputs in [-1, 1] (robosuite, libero) reach far beyond
-EXPECTED = {"octo-delta": ("metres", "0..1"), "robosuite": ("controller", "-1..1"), "libero": ("controller", "0..1")}
+EXPECTED = ACTION_SPACE_UNITS  # each action space's (translation, gripper range), envs.options
 CONSISTENT, MISMATCH, INCONCLUSIVE = (PreflightVerdict.CONSISTENT, PreflightVerdict.MISMATCH,
                                      PreflightVerdict.INCONCLUSIVE)  # a check's verdict (harness.verdicts)
 
@@ -78,7 +78,7 @@ def _relation(a: str, b: str) -> str:
 def image_finding(key: str, example: np.ndarray, fed: np.ndarray, convention: str, default: str | None = None,
                   datasets: int = 1) -> dict:
     """The verdict for one camera: `example` (H, W, 3) the checkpoint's example frame, `fed` (h, w, 3) the frame the
-    run feeds in `convention`; `default` the task family's own convention (harness.conventions.FAMILY_DEFAULTS), which
+    run feeds in `convention`; `default` the task family's own convention (its suite's, envs.suites.Suite.defaults), which
     decides where only a mirror is in doubt and the scene cannot show it: the fed one is consistent when it is the
     family's, else inconclusive. `datasets`: how many datasets the checkpoint's statistics hold (a pretrained
     mixture's example frame shows one of them: another scene). {verdict, fed, best, scores, margin, suggest, line}
@@ -246,12 +246,13 @@ def check_run(mode: str, protocol, model, env, seed: int, dataset_key: str | Non
     (logged), PreflightMismatch under strict, and the manifest's block."""
     if mode == "off" or env is None:
         return {"mode": mode}
-    from harness.conventions import CONVENTIONS_FILE, FAMILY_DEFAULTS, task_family
+    from envs import suites
+    from harness.conventions import CONVENTIONS_FILE
 
     task = protocol.tasks[0]
     options = protocol.env_for(task)
     findings = run_checks(model, env, seed, options.image_convention, options.action_space, dataset_key,
-                          options.hold_gripper, FAMILY_DEFAULTS[task_family(task)]["image_convention"])
+                          options.hold_gripper, suites.of(task).defaults["image_convention"])
     folder = getattr(model, "checkpoint_dir", None)
     for line in report(mode, findings, folder is not None and (Path(folder) / CONVENTIONS_FILE).is_file()):
         log.warning("%s", line)

@@ -118,10 +118,9 @@ def task_cameras(protocol, task: str, shape: ModelShape) -> dict[str, int]:
     """{observation key: square frame size} of the cameras of `task` the model reads (the frames the outputs show)."""
     cameras = protocol.env_for(task).cameras
     if cameras is None:
-        from envs import get_task
-        from envs.robosuite_env import default_cameras
+        from envs import get_task, parse_cameras
 
-        cameras = [(c.key, c.camera, c.size) for c in default_cameras(get_task(task))]
+        cameras = [(c.key, c.camera, c.size) for c in parse_cameras(None, get_task(task))]  # its suite's defaults
     read = {key: size for key, _, size in cameras if key in shape.image_sizes}
     return read or {key: size for key, _, size in cameras}
 

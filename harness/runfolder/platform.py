@@ -7,7 +7,8 @@ build and architecture, and llvmpipe renders differently across CPUs and Mesa ve
 records `platform` (CPU vendor, model, the ISA flags that change numerics, cores, OS and kernel, Python,
 jax/jaxlib and the XLA device, `XLA_FLAGS`, MuJoCo/robosuite/numpy, the GL backend with its vendor,
 renderer and version strings, the render device asked for and the EGL device) and `platform_fingerprint`, a sha256 over the numerics-relevant part
-(`NUMERICS`): two runs with equal fingerprints should give bit-identical episodes; with different ones only
+(`NUMERICS`; and the side a suite of the run's tasks records under its name, e.g. LIBERO's own environment, with the
+keys it names: envs.suites.Suite.platform, platform_numerics): two runs with equal fingerprints should give bit-identical episodes; with different ones only
 replayed inputs and statistics can be compared (`octo-harness replay`, `compare`).
 """
 
@@ -26,9 +27,6 @@ NUMERIC_CPU_FLAGS = ("sse4_1", "sse4_2", "avx", "avx2", "fma", "f16c", "avx512f"
 NUMERICS = ("machine", "cpu.vendor", "cpu.model", "cpu.numeric_flags", "jax.version", "jax.jaxlib", "jax.backend",
             "jax.device_kind", "xla_flags", "versions.mujoco", "versions.robosuite", "versions.numpy",
             "gl.backend", "gl.vendor", "gl.renderer", "gl.version")
-# the LIBERO side (its own environment: envs/libero_server.py), fingerprinted only for runs that have one
-LIBERO_NUMERICS = ("libero.libero_package", "libero.robosuite", "libero.mujoco", "libero.numpy", "libero.gl.backend",
-                   "libero.gl.vendor", "libero.gl.renderer", "libero.gl.version")
 
 
 def cpu_info(cpuinfo: str | None = None) -> dict:
@@ -82,28 +80,21 @@ def versions() -> dict:
             "python": _platform.python_version()}
 
 
-def libero_platform(tasks) -> dict | None:
-    """The LIBERO side of a run with LIBERO tasks (None without): its package, robosuite, MuJoCo, numpy and Python
-    versions and its GL renderer, as its own environment reports them (a server started for the purpose)."""
-    import envs
+def suite_platforms(tasks) -> dict:
+    """{suite name: its side of the platform} for the suites of `tasks` that record one (envs.suites.Suite.platform:
+    LIBERO's package, robosuite, MuJoCo, numpy, Python and GL renderer, from its own environment); {} for none."""
+    from envs import suites
 
-    if not any(envs.get_task(t).simulator == "libero" for t in tasks):
-        return None
-    from envs.libero_env import libero_versions
-
-    try:
-        return libero_versions()
-    except Exception as exc:  # noqa: BLE001 - provenance must never stop a run (the env itself reports the fault)
-        return {"error": f"{type(exc).__name__}: {exc}".splitlines()[0]}
+    sides = {suite.name: suite.platform() for suite in suites.of_tasks(tasks)}
+    return {name: side for name, side in sides.items() if side is not None}
 
 
-def platform_info(gl: dict | None = None, libero: dict | None = None) -> dict:
-    """Everything `NUMERICS` names, plus OS, kernel and Python (see the module docstring); `libero`: the LIBERO
-    side's versions (`libero_platform`), recorded under "libero" and fingerprinted (LIBERO_NUMERICS) when given."""
+def platform_info(gl: dict | None = None, sides: dict | None = None) -> dict:
+    """Everything `NUMERICS` names, plus OS, kernel and Python (see the module docstring); `sides`: the sides the
+    run's suites record (`suite_platforms`), each under its suite's name and fingerprinted (`suite_numerics`)."""
     uname = _platform.uname()
-    extra = {"libero": libero} if libero is not None else {}
     return {
-        **extra,
+        **(sides or {}),
         "machine": uname.machine,
         "os": f"{uname.system} {uname.release}",
         "kernel": uname.version,
@@ -124,10 +115,19 @@ def _get(info: dict, dotted: str):
 
 
 def numerics(info: dict) -> dict:
-    """The numerics-relevant part of a platform_info dict: {dotted key: value} (LIBERO_NUMERICS too when the run has
-    a LIBERO side, so the fingerprints of runs without one are unchanged)."""
-    keys = NUMERICS + (LIBERO_NUMERICS if isinstance(info.get("libero"), dict) else ())
+    """The numerics-relevant part of a platform_info dict: {dotted key: value} (a suite's side's keys too when the
+    run has that side, so the fingerprints of runs without one are unchanged)."""
+    keys = NUMERICS + suite_numerics(info)
     return {key: _get(info, key) for key in keys}
+
+
+def suite_numerics(info: dict) -> tuple[str, ...]:
+    """The dotted keys of the suites' sides `info` holds that enter the fingerprint (envs.suites.Suite.platform_numerics,
+    under the suite's name)."""
+    from envs import suites
+
+    return tuple(f"{suite.name}.{key}" for suite in suites.suites() if suite.platform_numerics
+                 and isinstance(info.get(suite.name), dict) for key in suite.platform_numerics)
 
 
 def platform_fingerprint(info: dict) -> str:

@@ -261,8 +261,8 @@ def test_initial_state_beyond_the_stored_fifty_is_one_line_before_anything_loads
     from harness.run.protocol import Protocol
 
     with pytest.raises(ValueError, match=r"stores 50 initial states .*--seed 45 --episodes 6 would need state 50"):
-        checks.check_libero(Protocol(model="random:octo-small-1.5", tasks=("libero_object/0",), episodes=6, seed=45))
-    checks.check_libero(Protocol(model="random:octo-small-1.5", tasks=("Lift",), episodes=6, seed=4500))  # robosuite: any seed
+        checks.check_suites(Protocol(model="random:octo-small-1.5", tasks=("libero_object/0",), episodes=6, seed=45))
+    checks.check_suites(Protocol(model="random:octo-small-1.5", tasks=("Lift",), episodes=6, seed=4500))  # robosuite: any seed
 
 
 @pytest.mark.slow
