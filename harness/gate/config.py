@@ -38,6 +38,11 @@ class GateConfig:
     text_tokenizer: str | None = option(
         None, "--text-tokenizer", "the candidate's text tokenizer (as for `run --text-tokenizer`)",
         metavar="auto|fallback|PATH", default_text="the baseline's choice")
+    # regress and replay inherit the baseline's probes (its measures beside the actions); True: run without them
+    drop_probes: bool = option(
+        False, "--drop-probes", "run the candidate without the baseline's probes (reliance, attribution, controls...: "
+        "the measures taken beside the actions); the comparison names what only the baseline measured",
+        action="store_true", default_text="the baseline's probes run")
     action_tolerance: float = option(
         Tolerances.action, "--action-tolerance",
         "largest change of an action chunk, in normalised action units", type=float)

@@ -19,6 +19,8 @@ results are typed (harness.gate.results: `RegressResult`, `RegressGridResult`; `
 """
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -51,9 +53,10 @@ log = logging.getLogger(__name__)
 
 
 def candidate_protocol(baseline_manifest: dict, model: str, max_episodes: int | None = None,
-                       where: str = "the baseline's manifest.json", text_tokenizer: str | None = None) -> Protocol:
+                       where: str = "the baseline's manifest.json", text_tokenizer: str | None = None,
+                       drop_probes: bool = False) -> Protocol:
     """The baseline's protocol with the model (and the text tokenizer, when given: auto|fallback|PATH) replaced
-    (fingerprints recomputed by the run)."""
+    (fingerprints recomputed by the run); its probes inherited, or turned off with `drop_probes`."""
     from harness.run.protocol import protocol_from_manifest
     from harness.runfolder.schema import check_protocol
 
@@ -71,8 +74,13 @@ def candidate_protocol(baseline_manifest: dict, model: str, max_episodes: int | 
         from harness.run.settings import text_tokenizer_choice
 
         tokenizer = {"text_tokenizer": text_tokenizer_choice(text_tokenizer)}
-    return protocol_from_manifest(baseline_manifest, where, model=model, model_fingerprint=None, goal_fingerprint=None,
-                                  episodes=episodes, **tokenizer)
+    protocol = protocol_from_manifest(baseline_manifest, where, model=model, model_fingerprint=None,
+                                      goal_fingerprint=None, episodes=episodes, **tokenizer)
+    if drop_probes:
+        from harness.policy_config import without_probes
+
+        protocol = dataclasses.replace(protocol, policy=without_probes(protocol.policy))
+    return protocol
 
 
 def round_order(jobs: Sequence[EpisodeJob], tasks: Sequence[str]) -> list[EpisodeJob]:
@@ -217,7 +225,7 @@ def regress(baseline_dir: str | Path, model: str, gate: GateConfig | None = None
     alpha = gate.alpha
     baseline = load_run(baseline_dir, legacy=False)
     protocol = candidate_protocol(baseline.manifest, model, gate.max_episodes, str(baseline.path / "manifest.json"),
-                                  gate.text_tokenizer)
+                                  gate.text_tokenizer, gate.drop_probes)
     config = gate.sequential()
     compare_config = gate.compare()
     base_outcomes = _outcomes(baseline)

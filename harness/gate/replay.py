@@ -154,6 +154,10 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, gate: GateC
     tokenizer = text_tokenizer if text_tokenizer is not None else protocol.text_tokenizer
     model = loaded_model if loaded_model is not None else load_pretrained(source, text_tokenizer=tokenizer)
     config = dataclasses.replace(protocol.policy, inference_batch=1)
+    if gate.drop_probes:
+        from harness.policy_config import without_probes
+
+        config = without_probes(config)
     if config.intervention is not None:
         from harness.interventions import parse_intervention
 
