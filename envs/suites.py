@@ -35,17 +35,15 @@ Where suites come from, in this order (the order `octo-harness tasks` lists them
      a package of its own is found by every process that imports the harness, spawned `--workers` and Ray workers
      included;
   3. `register(cls)` / `registered(cls)` at run time: known to this process only.
-This module imports nothing of envs/ but `envs.taskspec`, so `envs.options` can word the built-in suites' defaults.
+This module imports nothing of envs/ but `envs.taskspec` and `envs.plugins` (the registry it shares with the probes), so `envs.options` can word the built-in suites' defaults.
 """
 
 from __future__ import annotations
 
 import difflib
-import importlib
-from contextlib import contextmanager
-from importlib import metadata
-from typing import Any, ClassVar, Iterator, Mapping, Sequence
+from typing import Any, ClassVar, Mapping, Sequence
 
+from envs.plugins import PluginRegistry
 from envs.taskspec import TaskSpec, UnknownTaskError
 
 BUILTINS = ("envs.robosuite_suite:RobosuiteSuite", "envs.libero_suite:LiberoSuite")
@@ -126,80 +124,26 @@ def task_table(tasks: Sequence[TaskSpec]) -> str:
     return "\n".join(f"{r[0]:{widths[0]}}  {r[1]:>{widths[1]}}  {r[2]:{widths[2]}}  {r[3]}" for r in rows)
 
 
-_REGISTRY: dict[str, Suite] = {}
-_LOADED = [False]
-
-
-def _import(target: str, origin: str) -> type[Suite]:
-    module, _, attr = target.partition(":")
-    try:
-        cls = getattr(importlib.import_module(module), attr)
-    except Exception as exc:  # noqa: BLE001 - any failure of a plug-in's import is named in one line
-        raise SuiteLoadError(f"the suite {origin} ({target}) cannot be loaded: {type(exc).__name__}: {exc}; fix or "
-                             "uninstall the package that provides it") from None
-    if not (isinstance(cls, type) and issubclass(cls, Suite)):
-        raise SuiteLoadError(f"the suite {origin} ({target}) is not an envs.suites.Suite subclass")
-    return cls
-
-
-def builtin() -> tuple[type[Suite], ...]:
-    """The built-in suite classes, imported (what the help and the docs' option table word the defaults of)."""
-    return tuple(_import(target, "built-in") for target in BUILTINS)
-
-
-def _load() -> None:
-    """The built-in suites, then every entry point of `ENTRY_POINTS` by name, registered once per process."""
-    if _LOADED[0]:
-        return
-    _LOADED[0] = True
-    found = [(cls, None) for cls in builtin()]
-    for point in sorted(metadata.entry_points(group=ENTRY_POINTS), key=lambda p: p.name):
-        found.append((_import(point.value, f"entry point {point.name!r}"), point.name))
-    for cls, name in found:
-        if name is not None and name != cls.name:
-            raise SuiteLoadError(f"the suite entry point {name!r} names a suite called {cls.name!r}; the two must be "
-                                 "the same name")
-        register(cls)
-
-
-def register(cls: type[Suite]) -> type[Suite]:
-    """Add a suite class (usable as a decorator); a second suite of the same name is a ValueError."""
-    _load()
-    if not cls.name or cls.name in _REGISTRY and type(_REGISTRY[cls.name]) is not cls:
-        raise ValueError(f"a suite needs a name of its own; {cls.name!r} is taken or empty")
+def _check(cls: type[Suite]) -> None:
     if cls.runs not in RUNS:
         raise ValueError(f"suite {cls.name!r}: runs must be one of {', '.join(RUNS)}, got {cls.runs!r}")
-    if cls.name not in _REGISTRY:
-        _REGISTRY[cls.name] = cls()
-    return cls
 
 
-def unregister(name: str) -> None:
-    _REGISTRY.pop(name, None)
-
-
-@contextmanager
-def registered(cls: type[Suite]) -> Iterator[type[Suite]]:
-    """The suite registered for the duration of the block (a suite defined outside envs/, e.g. in a test)."""
-    register(cls)
-    try:
-        yield cls
-    finally:
-        unregister(cls.name)
+_SUITES = PluginRegistry("suite", Suite, BUILTINS, ENTRY_POINTS, SuiteLoadError, make=lambda cls: cls(), check=_check)
+builtin = _SUITES.builtin  # the built-in suite classes, imported (what the help and the docs word the defaults of)
+register = _SUITES.register  # add a suite class (usable as a decorator); a taken or empty name is a ValueError
+unregister = _SUITES.unregister
+registered = _SUITES.registered  # the suite registered for the duration of a block (one defined in a test)
 
 
 def suites() -> tuple[Suite, ...]:
-    """Every registered suite, in registration order."""
-    _load()
-    return tuple(_REGISTRY.values())
+    """Every registered suite (an instance of each), in registration order."""
+    return _SUITES.values()
 
 
 def get(name: str) -> Suite:
     """The suite called `name` (a family key, e.g. a TaskSpec's simulator)."""
-    _load()
-    if name not in _REGISTRY:
-        raise KeyError(f"no suite named {name!r}; registered: {', '.join(_REGISTRY)}")
-    return _REGISTRY[name]
+    return _SUITES.get(name)
 
 
 def get_task(name: str) -> TaskSpec:

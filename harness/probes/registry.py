@@ -41,10 +41,10 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-from contextlib import contextmanager
 from dataclasses import dataclass
-from importlib import metadata
-from typing import Any, Callable, ClassVar, Iterator
+from typing import Any, Callable, ClassVar
+
+from envs.plugins import PluginRegistry
 
 PARTS = ("sink", "reader", "section", "layer")
 BUILTINS = ("harness.probes.attribution:AttributionProbe", "harness.probes.controls:ControlsProbe",
@@ -124,71 +124,19 @@ class Probe:
         return payload
 
 
-_REGISTRY: dict[str, type[Probe]] = {}
-_LOADED = [False]
-
-
-def _import(target: str, origin: str) -> type[Probe]:
-    module, _, attr = target.partition(":")
-    try:
-        cls = getattr(importlib.import_module(module), attr)
-    except Exception as exc:  # noqa: BLE001 - any failure of a plug-in's import is named in one line
-        raise ProbeLoadError(f"the probe {origin} ({target}) cannot be loaded: {type(exc).__name__}: {exc}; fix or "
-                             "uninstall the package that provides it") from None
-    if not (isinstance(cls, type) and issubclass(cls, Probe)):
-        raise ProbeLoadError(f"the probe {origin} ({target}) is not a harness.probes.registry.Probe subclass")
-    return cls
-
-
-def _load() -> None:
-    """The built-in probes, then every entry point of `ENTRY_POINTS` by name, registered once per process."""
-    if _LOADED[0]:
-        return
-    _LOADED[0] = True
-    found = [(_import(target, "built-in"), None) for target in BUILTINS]
-    for point in sorted(metadata.entry_points(group=ENTRY_POINTS), key=lambda p: p.name):
-        found.append((_import(point.value, f"entry point {point.name!r}"), point.name))
-    for cls, name in found:
-        if name is not None and name != cls.name:
-            raise ProbeLoadError(f"the probe entry point {name!r} names a probe called {cls.name!r}; the two must "
-                                 "be the same name")
-        register(cls)
-
-
-def register(cls: type[Probe]) -> type[Probe]:
-    """Add a probe class (usable as a decorator); a second probe of the same name is a ValueError."""
-    _load()
-    if not cls.name or cls.name in _REGISTRY and _REGISTRY[cls.name] is not cls:
-        raise ValueError(f"a probe needs a name of its own; {cls.name!r} is taken or empty")
-    _REGISTRY[cls.name] = cls
-    return cls
-
-
-def unregister(name: str) -> None:
-    _REGISTRY.pop(name, None)
-
-
-@contextmanager
-def registered(cls: type[Probe]) -> Iterator[type[Probe]]:
-    """The probe registered for the duration of the block (a probe defined outside harness/, e.g. in a test)."""
-    register(cls)
-    try:
-        yield cls
-    finally:
-        unregister(cls.name)
+_PROBES = PluginRegistry("probe", Probe, BUILTINS, ENTRY_POINTS, ProbeLoadError)
+register = _PROBES.register  # add a probe class (usable as a decorator); a taken or empty name is a ValueError
+unregister = _PROBES.unregister
+registered = _PROBES.registered  # the probe registered for the duration of a block (one defined in a test)
 
 
 def probes() -> tuple[type[Probe], ...]:
     """Every registered probe, in registration order."""
-    _load()
-    return tuple(_REGISTRY.values())
+    return _PROBES.values()
 
 
 def get(name: str) -> type[Probe]:
-    _load()
-    if name not in _REGISTRY:
-        raise KeyError(f"no probe named {name!r}; registered: {', '.join(_REGISTRY)}")
-    return _REGISTRY[name]
+    return _PROBES.get(name)
 
 
 def active(config) -> tuple[type[Probe], ...]:
