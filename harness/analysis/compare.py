@@ -361,8 +361,9 @@ def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], miss
         verdict = GateVerdict.worst([verdict, GateVerdict.INCOMPLETE])  # ERRORED and REGRESSED stand
     protocol = _protocol(baseline)
     one_side = one_side_measures(protocol, _protocol(candidate))
-    if one_side_line(one_side):
-        notes.append(one_side_line(one_side))
+    one_side_note = one_side_line(one_side)
+    if one_side_note:
+        notes.append(one_side_note)
     return CompareResult(
         format=FORMAT,
         verdict=verdict,
@@ -389,7 +390,7 @@ def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], miss
                         cause=differs["cause"], drift_label=differs["drift_label"]),
         provenance=Provenance(**provenance(baseline.manifest, candidate.manifest, details, differs=differs)),
         pair_details=tuple(_pair_detail(d) for d in details),
-        one_side_measures=OneSideMeasures(**one_side) if one_side_line(one_side) else ABSENT,
+        one_side_measures=OneSideMeasures(**one_side) if one_side_note else ABSENT,
     )
 
 

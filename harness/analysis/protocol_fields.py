@@ -59,12 +59,21 @@ def one_side_line(sides: dict[str, tuple[str, ...]]) -> str | None:
             "runs have them)")
 
 
+_MISSING = object()
+
+
+def _differing(baseline: dict, candidate: dict) -> tuple[dict, dict, list[str]]:
+    """Both protocols flattened to dotted keys, and the sorted keys whose values differ (the legacy top-level
+    "execution" left out: `incompatible_fields` names it only where no policy block differs)."""
+    a, b = flatten(json.loads(json.dumps(baseline))), flatten(json.loads(json.dumps(candidate)))
+    return a, b, sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, _MISSING) != b.get(k, _MISSING))
+
+
 def incompatible_fields(baseline: dict, candidate: dict) -> list[str]:
     """Dotted protocol fields that differ and change outcomes (everything but `may_differ()`)."""
-    a, b = flatten(json.loads(json.dumps(baseline))), flatten(json.loads(json.dumps(candidate)))
-    missing = object()
-    differ = sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, missing) != b.get(k, missing))
-    if a.get("execution", missing) != b.get("execution", missing) and not any(k.startswith("policy.") for k in differ):
+    a, b, differ = _differing(baseline, candidate)
+    legacy = not any(k.startswith("policy.") for k in differ)
+    if legacy and a.get("execution", _MISSING) != b.get("execution", _MISSING):
         differ.append("execution")  # legacy manifests have no policy block
     differ = [k for k in differ if not any(k.startswith(d + ".") for d in differ)]  # None vs {...}: name the parent
     allowed = may_differ()
@@ -80,10 +89,7 @@ def what_differs(baseline: dict, candidate: dict) -> dict:
     differs, "other": [{"field", "baseline", "candidate"}] (fields that change the policy's inputs or actions but are
     not the model: an intervention, ...), "cause": who a difference belongs to, "drift_label": what the step-0 drift
     measures}."""
-    a, b = flatten(json.loads(json.dumps(baseline))), flatten(json.loads(json.dumps(candidate)))
-    missing = object()
-    differ = sorted(k for k in set(a) | set(b) if k != "execution" and a.get(k, missing) != b.get(k, missing))
-
+    a, b, differ = _differing(baseline, candidate)
     neutral = neutral_fields()
     model = any(_under(k, MODEL_FIELDS) for k in differ)
     parents = {k.rsplit(".", 1)[0] for k in differ if "." in k}

@@ -28,8 +28,8 @@ from harness.measures.attention import MEASURES_VERSION
 from harness import interrupts
 from harness.run import checks, space
 from harness.run.protocol import protocol_from_manifest
-from harness.runfolder.platform import git_commit as _git_commit
-from harness.runfolder.platform import platform_differences, platform_fingerprint, platform_info, suite_platforms
+from harness.runfolder.platform import (git_commit, platform_differences, platform_fingerprint, platform_info,
+                                        suite_platforms)
 from harness.run.executor import CheckedEnv, EpisodeContext, Executor, Retrying, SequentialExecutor, StepCallback
 from harness.run.preflight import check_run
 from harness.run.progress import Progress
@@ -353,7 +353,7 @@ def _new_manifest(protocol: Protocol, protocol_dict: dict, jobs: list[EpisodeJob
         "format": FORMAT, "run": name, "created": now_utc(), "protocol": protocol_dict,
         "protocol_hash": protocol.hash(), "jobs": [[j.task, j.episode, j.seed] for j in jobs],
         "model": model_info, "task_inputs": task_inputs,
-        "goal_images": protocol.goal_images, "git_commit": _git_commit(),
+        "goal_images": protocol.goal_images, "git_commit": git_commit(),
         "versions": {"jax": platform_now["jax"]["version"], **platform_now["versions"]},
         "platform": platform_now, "platform_fingerprint": platform_fp,
         "measures_version": MEASURES_VERSION,

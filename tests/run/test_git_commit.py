@@ -8,7 +8,7 @@ import subprocess
 
 import pytest
 
-from harness.run.driver import _git_commit
+from harness.runfolder.platform import git_commit
 
 pytestmark = pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
 
@@ -27,14 +27,14 @@ def test_the_commit_is_read_in_a_checkout_a_worktree_and_a_detached_head(tmp_pat
     _git(repo, "add", "f")
     _git(repo, "commit", "-qm", "one")
     first = _git(repo, "rev-parse", "HEAD")
-    assert _git_commit(repo) == first
+    assert git_commit(repo) == first
     _git(repo, "worktree", "add", "-q", "-b", "side", str(tmp_path / "wt"))
     (tmp_path / "wt" / "f").write_text("2")
     _git(tmp_path / "wt", "commit", "-qam", "two")
     second = _git(tmp_path / "wt", "rev-parse", "HEAD")
-    assert (tmp_path / "wt" / ".git").is_file() and _git_commit(tmp_path / "wt") == second != first
+    assert (tmp_path / "wt" / ".git").is_file() and git_commit(tmp_path / "wt") == second != first
     _git(repo, "pack-refs", "--all")  # refs only in packed-refs, read through the worktree's commondir
-    assert _git_commit(tmp_path / "wt") == second and _git_commit(repo) == first
+    assert git_commit(tmp_path / "wt") == second and git_commit(repo) == first
     _git(repo, "worktree", "add", "-q", "--detach", str(tmp_path / "detached"), first)
-    assert _git_commit(tmp_path / "detached") == first
-    assert _git_commit(tmp_path / "nowhere") is None
+    assert git_commit(tmp_path / "detached") == first
+    assert git_commit(tmp_path / "nowhere") is None
