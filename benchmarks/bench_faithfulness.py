@@ -1,6 +1,6 @@
 """What attribution and open-loop faithfulness cost per control step (harness/measures/attribution.Probe).
 
-For each model: the policy's own inference (BatchInference, batch 1, as a run calls it), the attribution maps
+For each model: the policy's own inference (the policy's inference, batch 1, as a run calls it), the attribution maps
 alone (what `--attribution` adds at every inference step: one forward + one backward), and one faithfulness
 step (maps + deletion/insertion curves of every method and camera). The added time per step with
 `--faithfulness-every k` is maps + faithfulness/k (plus maps at every step when --attribution is on; a
@@ -15,7 +15,7 @@ mean fill's (the issue's target for impute: within 1.5x of mean).
     .venv/bin/python benchmarks/bench_faithfulness.py [--models models/octo-reference-robosuite,random:octo-small-1.5]
         [--methods-small attention:-1,saliency] [--every 10] [--reps 5] [--fills mean,blur,impute]
 
-Nothing changes when faithfulness is off: BatchInference builds no probe without --attribution or
+Nothing changes when faithfulness is off: the inference builds no probe without --attribution or
 --faithfulness-every (the same code path as before), so a plain run's s/step is unchanged.
 """
 
@@ -29,8 +29,8 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import numpy as np  # noqa: E402
 
 from bench_octo import median_seconds  # noqa: E402  (one timing rule for the benchmarks)
-from harness.octo import load_pretrained  # noqa: E402
-from harness.policy import BatchInference, InferenceRequest, PolicyConfig, TaskPrompt  # noqa: E402
+from harness.policies import load_policy  # noqa: E402
+from harness.policy import InferenceRequest, PolicyConfig, TaskPrompt  # noqa: E402
 
 
 def request(model) -> InferenceRequest:
@@ -63,13 +63,13 @@ def main() -> None:
     print(f"{'model':<36} {'methods':<44} {'infer s':>8} {'maps s':>8} {'faith s':>8} "
           f"{'added/step s':>12} {'x infer':>8} {'x step':>7}")
     for source in args.models.split(","):
-        model = load_pretrained(source)
+        model = load_policy(source)
         large = max(h for h, _ in model.image_sizes.values()) > 128
         methods = args.methods_large if large else args.methods
         req = request(model)
         key = None if model.is_random else "robosuite_reference" if "robosuite_reference" in model.dataset_statistics else None
-        plain = BatchInference(model, PolicyConfig(dataset_key=key))
-        probed = BatchInference(model, PolicyConfig(dataset_key=key, attribution=methods, faithfulness_every=args.every))
+        plain = model.inference(PolicyConfig(dataset_key=key))
+        probed = model.inference(PolicyConfig(dataset_key=key, attribution=methods, faithfulness_every=args.every))
         infer = median_seconds(lambda: plain([req]), args.reps)
         observations, tasks, keys = probed._inputs([req])
         maps = median_seconds(lambda: probed.probe("attribution").maps(observations, tasks, keys[0], 0, 1), args.reps)  # step 1: maps only
@@ -89,12 +89,12 @@ def compare_fills(args) -> None:
     print(f"{'model':<36} {'methods':<44} " + " ".join(f"{f + ' s':>9}" for f in fills)
           + " " + " ".join(f"{f + '/mean':>12}" for f in fills if f != "mean"))
     for source in args.models.split(","):
-        model = load_pretrained(source)
+        model = load_policy(source)
         large = max(h for h, _ in model.image_sizes.values()) > 128
         methods = args.methods_large if large else args.methods
         req = request(model)
         key = None if model.is_random else "robosuite_reference" if "robosuite_reference" in model.dataset_statistics else None
-        probed = BatchInference(model, PolicyConfig(dataset_key=key, attribution=methods, faithfulness_every=1))
+        probed = model.inference(PolicyConfig(dataset_key=key, attribution=methods, faithfulness_every=1))
         observations, tasks, keys = probed._inputs([req])
         probes = {f: Probe(model, methods, 1, f) for f in fills}
         for f in fills:  # compile

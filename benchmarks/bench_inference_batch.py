@@ -1,4 +1,4 @@
-"""The policy's batched inference (harness.policy.BatchInference, what --workers and --inference-batch use): wall
+"""The policy's batched inference (harness.policies.octo.BatchInference, what --workers and --inference-batch use): wall
 time per call and per example at each --inference-batch size, through the whole policy path (observation
 windows, proprio normalisation, per-example rng keys, padding to the fixed batch, unnormalisation).
 
@@ -22,8 +22,8 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from harness.octo import load_pretrained  # noqa: E402
-from harness.policy import BatchInference, InferenceRequest, PolicyConfig, TaskPrompt  # noqa: E402
+from harness.policies import load_policy  # noqa: E402
+from harness.policy import InferenceRequest, PolicyConfig, TaskPrompt  # noqa: E402
 
 
 def request(model, seed: int) -> InferenceRequest:
@@ -39,10 +39,10 @@ def request(model, seed: int) -> InferenceRequest:
 
 
 def bench(source: str, batches: list[int], reps: int) -> list[tuple[str, int, float]]:
-    model = load_pretrained(source)
+    model = load_policy(source)
     rows = []
     for batch in batches:
-        inference = BatchInference(model, PolicyConfig(inference_batch=batch))
+        inference = model.inference(PolicyConfig(inference_batch=batch))
         requests = [request(model, seed) for seed in range(batch)]
         inference.warm_up(requests[0])
         inference(requests)

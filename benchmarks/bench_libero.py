@@ -7,7 +7,7 @@ action and receives the observation (images, masks' id images, state) over a pip
   LIBERO libero_object/0 (LiberoEnv -> server)           seconds per step in the driver, of which in the server
                                                           (simulation + rendering + segmentation), the rest being
                                                           the boundary (encode, pipe, decode, masks from ids)
-  inference (random:octo-small-1.5, OctoPolicy.step)     seconds per step, on a LIBERO observation
+  inference (random:octo-small-1.5, ClosedLoopPolicy.step)     seconds per step, on a LIBERO observation
 
 for cameras agentview 256 + eye-in-hand 128 px, masks on and off, and prints the LIBERO/robosuite ratios.
 
@@ -49,14 +49,14 @@ def time_env(task: str, steps: int, masks: bool, action: np.ndarray) -> dict:
 
 
 def time_inference(steps: int) -> float:
-    from harness.octo import load_pretrained
-    from harness.policy import OctoPolicy, PolicyConfig
+    from harness.policies import load_policy
+    from harness.policy import PolicyConfig
 
-    model = load_pretrained("random:octo-small-1.5")
+    model = load_policy("random:octo-small-1.5")
     env = envs.make("libero_object/0")
     try:
         obs, info = env.reset(seed=0)
-        policy = OctoPolicy(model, PolicyConfig())
+        policy = model.closed_loop(PolicyConfig())
         policy.reset(info["instruction"], seed=0)
         policy.step(obs)  # compile
         start = time.perf_counter()

@@ -22,7 +22,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from harness.octo import load_pretrained  # noqa: E402
+from harness.policies import load_policy  # noqa: E402
 from harness.octo.transformer import Transformer  # noqa: E402
 
 MODES = {  # label -> sample_actions keyword arguments
@@ -81,7 +81,7 @@ def observations(model, batch: int, rng: np.random.Generator) -> dict:
 
 
 def bench_arch(arch: str, batches: list[int], reps: int) -> list[dict]:
-    model = load_pretrained(f"random:{arch}")
+    model = load_policy(f"random:{arch}").model  # the Octo model itself: this benchmark times its parts
     cfg = model.config
     rows = []
     for batch in batches:

@@ -34,10 +34,9 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 def core_seconds_per_step(model, protocol, steps: int) -> dict:
     """Wall and CPU seconds per step of inference and of simulation in a plain closed loop (after one compile)."""
     import envs
-    from harness.policy import OctoPolicy
 
     env = envs.make(protocol.tasks[0], protocol.env)
-    policy = OctoPolicy(model, protocol.policy)
+    policy = model.closed_loop(protocol.policy)
     totals = dict(inference_cpu=0.0, simulation_cpu=0.0, inference_wall=0.0, simulation_wall=0.0)
     try:
         obs, info = env.reset(seed=100)
@@ -62,12 +61,12 @@ def batch_core_seconds(model, protocol, sizes=(1, 2), calls: int = 6) -> dict[in
     """Core-seconds per example of one batched inference call at each batch size (after compiling them)."""
     import numpy as np
 
-    from harness.policy import BatchInference, TaskPrompt
+    from harness.policy import TaskPrompt
     from harness.run.workers import PolicyShape, warmup_request
 
     out = {}
-    for b in sizes:  # one BatchInference per shape: a run compiles exactly its protocol's inference_batch
-        inference = BatchInference(model, dataclasses.replace(protocol.policy, inference_batch=b))
+    for b in sizes:  # one inference per shape: a run compiles exactly its protocol's inference_batch
+        inference = model.inference(dataclasses.replace(protocol.policy, inference_batch=b))
         request = warmup_request(PolicyShape.of(model, inference.dataset_key), TaskPrompt.of("pick up the red cube"))
         rng = np.random.default_rng(0)
         for value in request.observation.values():
@@ -92,13 +91,13 @@ def main() -> None:
     args = parser.parse_args()
 
     import envs
-    from harness.octo import load_pretrained
+    from harness.policies import load_policy
     from harness.run.executor import EpisodeContext, SequentialExecutor
     from harness.run.protocol import EpisodeJob, Protocol
     from harness.run.workers import WorkersExecutor
     from harness.outputs.writers import OutputOptions
 
-    model = load_pretrained(args.model)
+    model = load_policy(args.model)
     protocol = Protocol(model=args.model, tasks=(args.task,), episodes=args.episodes, max_steps=args.steps,
                         env=envs.EnvOptions(masks=True), outputs=OutputOptions(png_every=0, video=False))
     cores = os.cpu_count() or 1

@@ -6,7 +6,7 @@ the new categories (`env.masks()`: target, robot, gripper, arm, goal) against th
 split only into target and robot (what a step paid before). All timed round-robin (interleaved medians), on
 one env after a reset and a few steps.
 
-Policy side: one inference of the reference policy (BatchInference, batch 1, as a run calls it) without controls
+Policy side: one inference of the reference policy (the policy's inference, batch 1, as a run calls it) without controls
 and with `--attention-controls blank,mirror` at a control step (two more forward passes), so the added time per
 step with `--controls-every N` is (controlled - plain) / N.
 
@@ -28,8 +28,8 @@ from bench_faithfulness import request  # noqa: E402
 from bench_octo import interleaved_medians  # noqa: E402
 import envs  # noqa: E402
 from envs.segmentation import masks_from_segmentation, scene_lookup  # noqa: E402
-from harness.octo import load_pretrained  # noqa: E402
-from harness.policy import BatchInference, PolicyConfig  # noqa: E402
+from harness.policies import load_policy  # noqa: E402
+from harness.policy import PolicyConfig  # noqa: E402
 
 
 def env_costs(task: str, reps: int) -> dict[str, float]:
@@ -64,10 +64,10 @@ def main() -> None:
         added = t["phase"] + t["masks"] - t["masks_old"]
         print(f"{task:<14} {t['step']:>10.4f} {1e3 * t['phase']:>9.3f} {1e3 * t['masks']:>9.3f} "
               f"{1e3 * t['masks_old']:>15.3f} {added / t['step']:>9.1%}")
-    model = load_pretrained(args.model)
+    model = load_policy(args.model)
     req = request(model)
-    plain = BatchInference(model, PolicyConfig())
-    controlled = BatchInference(model, PolicyConfig(attention_controls="blank,mirror"))
+    plain = model.inference(PolicyConfig())
+    controlled = model.inference(PolicyConfig(attention_controls="blank,mirror"))
     t = interleaved_medians({"plain": lambda: plain([req]), "controls": lambda: controlled([req])}, args.reps)
     print(f"\n{args.model}: inference {1e3 * t['plain']:.2f} ms, with blank+mirror controls {1e3 * t['controls']:.2f} ms "
           f"({t['controls'] / t['plain']:.2f}x; added per control step {1e3 * (t['controls'] - t['plain']):.2f} ms)")

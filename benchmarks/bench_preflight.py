@@ -26,9 +26,8 @@ def time_check(protocol, model, repeats: int) -> tuple[float, list[dict]]:
     """(median seconds of one check, its findings) on the first task's env, made once as the driver makes it."""
     from harness.run.executor import CheckedEnv
     from harness.run.preflight import check_run
-    from harness.policy import OctoPolicy
 
-    dataset_key = OctoPolicy(model, protocol.policy).dataset_key
+    dataset_key = model.closed_loop(protocol.policy).dataset_key
     checked = CheckedEnv(protocol, model, protocol.tasks[0])
     try:
         seconds = []
@@ -48,12 +47,12 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
 
-    from harness.octo import load_pretrained
+    from harness.policies import load_policy
     from harness.run import execute
     from harness.run.settings import build_protocol
 
     protocol = build_protocol({"model": args.model, "task": [args.task], "png_every": 0, "no_video": True})
-    model = load_pretrained(protocol.model)
+    model = load_policy(protocol.model)
     check, found = time_check(protocol, model, args.repeats)
     with tempfile.TemporaryDirectory() as out:
         start = time.perf_counter()

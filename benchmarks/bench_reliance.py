@@ -13,7 +13,7 @@ sampled step costs one batched call of 1 + sum over cameras (regions with pixels
 
 `--save-inputs` keeps the recording; `--inputs` replays it on a machine without the simulator (the GPU figure).
 
-Off is the code path without reliance: BatchInference builds no RelianceProbe and no request carries masks.
+Off is the code path without reliance: the inference builds no RelianceProbe and no request carries masks.
 """
 
 from __future__ import annotations
@@ -29,11 +29,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
 from harness.conventions import CheckpointConventions  # noqa: E402
-from harness.octo import load_pretrained  # noqa: E402
-from harness.policy import OctoPolicy  # noqa: E402
+from harness.policies import load_policy  # noqa: E402
+from harness.policy import ClosedLoopPolicy  # noqa: E402
 
 
-def record(env, policy: OctoPolicy, steps: int, seed: int = 0) -> tuple[list, str, float]:
+def record(env, policy: ClosedLoopPolicy, steps: int, seed: int = 0) -> tuple[list, str, float]:
     """([(observation, masks)] of `steps` closed-loop steps, the instruction, median simulation seconds per step)."""
     obs, info = env.reset(seed=seed)
     policy.reset(info["instruction"], seed=seed)
@@ -49,7 +49,7 @@ def record(env, policy: OctoPolicy, steps: int, seed: int = 0) -> tuple[list, st
     return inputs, info.get("instruction", ""), statistics.median(sim)
 
 
-def episode_seconds(policy: OctoPolicy, inputs: list, instruction: str, seed: int = 0) -> float:
+def episode_seconds(policy: ClosedLoopPolicy, inputs: list, instruction: str, seed: int = 0) -> float:
     """Mean policy seconds per step over the recorded inputs, as a fresh episode."""
     policy.reset(instruction, seed=seed)
     start = time.perf_counter()
@@ -70,10 +70,10 @@ def main() -> None:
     parser.add_argument("--inputs", metavar="FILE", help="read the inputs --save-inputs saved instead of simulating "
                         "(a machine without the simulator, e.g. a GPU box)")
     args = parser.parse_args()
-    model = load_pretrained(args.model)
+    model = load_policy(args.model)
     conventions = CheckpointConventions.read(args.model if os.path.isdir(args.model) else None)
-    off = OctoPolicy(model, conventions.policy_config())
-    on = OctoPolicy(model, conventions.policy_config({"reliance_every": args.every, "reliance_fill": args.fill}))
+    off = model.closed_loop(conventions.policy_config())
+    on = model.closed_loop(conventions.policy_config({"reliance_every": args.every, "reliance_fill": args.fill}))
     if args.inputs:
         with open(args.inputs, "rb") as f:
             inputs, instruction, sim = pickle.load(f)

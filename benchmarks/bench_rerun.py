@@ -40,7 +40,7 @@ def main() -> None:
     parser.add_argument("--json", type=Path, default=None, help="also write the numbers here")
     args = parser.parse_args()
 
-    from harness.octo import load_pretrained
+    from harness.policies import load_policy
     from harness.run import execute
     from harness.run.settings import build_protocol
 
@@ -48,7 +48,7 @@ def main() -> None:
         return build_protocol({"task": [args.task], "model": args.model, "episodes": 1, "seed": seed,
                                "max_steps": steps, "png_every": 0, "fast_render": args.fast_render, "rerun": rerun})
 
-    model = load_pretrained(args.model)
+    model = load_policy(args.model)
     arms = {"baseline": [], "rerun": []}  # per episode: (steps, seconds per step, sink seconds, rrd bytes)
     with tempfile.TemporaryDirectory() as out:
         for rerun in (False, True):  # warm-up: compile, open the renderer, import rerun

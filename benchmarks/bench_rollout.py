@@ -27,12 +27,12 @@ def main() -> None:
     parser.add_argument("--png-every", type=int, default=1)
     args = parser.parse_args()
 
-    from harness.octo import load_pretrained
+    from harness.policies import load_policy
     from harness.policy import PolicyConfig
     from harness.run import Protocol, execute
     from harness.outputs.writers import OutputOptions
 
-    model = load_pretrained(args.model)
+    model = load_policy(args.model)
     rows = []
     with tempfile.TemporaryDirectory() as out:
         # warm-up: compiles sample_actions so the measured episodes show steady-state steps

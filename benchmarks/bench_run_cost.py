@@ -41,7 +41,7 @@ def folder_bytes(path: Path) -> int:
 
 def measure(model: str, task: str, episodes: int, out: Path, name: str, flags: list[str]) -> dict:
     """One run: wall seconds, rows, bytes, and the estimate at the steps its episodes ran."""
-    from harness.octo import load_pretrained
+    from harness.policies import load_policy
     from harness.run import space
     from harness.run.protocol import protocol_from_manifest
     from harness.run.store import RunStore
@@ -56,7 +56,7 @@ def measure(model: str, task: str, episodes: int, out: Path, name: str, flags: l
     rows = [r for _, r in sorted(RunStore(run).load_rows().items())]
     manifest = json.loads((run / "manifest.json").read_text())
     protocol = protocol_from_manifest(manifest, run / "manifest.json", model_fingerprint=None, goal_fingerprint=None)
-    shape = space.ModelShape.of(load_pretrained(protocol.model, text_tokenizer=protocol.text_tokenizer))
+    shape = space.ModelShape.of(load_policy(protocol.model, text_tokenizer=protocol.text_tokenizer))
     estimate = space.RUN_BYTES + sum(sum(space.episode_bytes(protocol, r.task, shape, r.steps).values()) for r in rows)
     steady = rows[1:] or rows
     per_step = sum(r.seconds_per_step * r.steps for r in steady) / sum(r.steps for r in steady)

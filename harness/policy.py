@@ -1,21 +1,18 @@
-"""Closed-loop policy around the Octo runtime: history window, resizing, per-step rng, action-chunk execution.
+"""The closed loop every policy runs in: history window, resizing, per-step rng position, action-chunk execution.
 
-One `OctoPolicy` serves one episode at a time (`reset` starts a new one). Each `step(obs)`:
-env observation -> resized history window (padded as Octo's HistoryWrapper does) -> one jitted
-`sample_actions` call (actions + attention) -> the action to execute now, chosen by temporal
-ensembling (infer every step, average the overlapping predictions) or a receding horizon
-(execute k actions of a chunk per inference).
+One `ClosedLoopPolicy` serves one episode at a time (`reset` starts a new one). Each `step(obs)`:
+env observation -> resized history window (padded as Octo's HistoryWrapper does) -> one `InferenceRequest` to the
+policy's stateless batched inference (harness/policies: Octo's jitted `sample_actions`, or a policy server) -> the
+action to execute now, chosen by temporal ensembling (infer every step, average the overlapping predictions) or a
+receding horizon (execute k actions of a chunk per inference).
 
-The state of an episode (`EpisodeState`: history, chunks, rng position, task) is kept apart from the
-stateless batched inference (`BatchInference`), so a server can batch requests of many episodes
-(harness/run/workers.py, ray_executor.py) while the sequential runner uses the same code with batch 1.
+The state of an episode (`EpisodeState`: history, chunks, rng position, task) is kept apart from the stateless
+inference, so a server can batch requests of many episodes (harness/run/workers.py, ray_executor.py, a policy server)
+while the sequential runner uses the same code with batch 1.
 
-Finetune conventions (Octo's finetuning example: one camera, a `proprio` LowdimObsTokenizer, a new
-head, window 1): every low-dimensional key a LowdimObsTokenizer reads is taken from the env
-observation, windowed and padded like the images, and normalised on the inference side with the
-checkpoint's statistics for that key (`dataset_statistics[dataset_key][key]`, by
-`proprio_normalization`, as Octo's NormalizeProprio). `check_env` compares the model's inputs and
-action dimension with an env before anything runs (one line per problem).
+Every low-dimensional key a policy reads is taken from the env observation and windowed and padded like the images
+(its normalisation is the policy's). `check_env` compares the policy's inputs and action dimension with an env
+before anything runs (one line per problem).
 """
 
 from __future__ import annotations
@@ -26,14 +23,12 @@ import time
 from collections import deque
 from dataclasses import dataclass
 
-import jax
 import numpy as np
 from PIL import Image
 
-from harness.octo.normalization import normalize
 from harness.octo.tokens import TokenMap
 from harness.policy_config import PolicyConfig
-from harness.probes.registry import ProbeContext, ProbeItem, active as active_probes
+from harness.probes.registry import active as active_probes
 
 
 class EnvMismatchError(ValueError):
@@ -44,7 +39,8 @@ class EnvMismatchError(ValueError):
 class PolicyStep:
     action: np.ndarray  # (action_dim,) float32, the action to execute now
     chunk: np.ndarray  # (action_horizon, action_dim) float32, the chunk predicted at this step (unnormalised if stats)
-    readout_attention: np.ndarray  # (layers, heads, readouts, keys) float32 of the inference that produced `chunk`
+    readout_attention: np.ndarray | None  # (layers, heads, readouts, keys) float32 of the inference that produced
+    # `chunk`; None for a policy without attention (harness.policies.Capabilities)
     full_attention: np.ndarray | None  # (layers, heads, queries, keys) float32 or None
     inferred: bool  # False when a receding-horizon step reused an earlier chunk (attention is that chunk's)
     inference_seconds: float
@@ -54,18 +50,6 @@ class PolicyStep:
     inputs: dict | None = None
     # the per-step probes' payloads of this step's inference, keyed by probe name (harness.probes); {} when none ran
     probes: dict = dataclasses.field(default_factory=dict)
-
-
-def default_dataset_key(model) -> str | None:
-    """The unnormalisation key used when none is given: 'bridge_dataset' if present, else the only key, else None."""
-    keys = sorted(getattr(model, "dataset_statistics", {}) or {})
-    if not keys:
-        return None
-    if "bridge_dataset" in keys:
-        return "bridge_dataset"
-    if len(keys) == 1:
-        return keys[0]
-    raise ValueError(f"the model has several dataset statistics ({', '.join(keys[:8])}...); choose one with --dataset-key")
 
 
 def resize_frame(frame: np.ndarray, size: tuple[int, int]) -> np.ndarray:
@@ -126,132 +110,12 @@ class InferenceResult:
     """What one inference gives one episode."""
 
     chunk: np.ndarray  # (action_horizon, action_dim) float32
-    readout_attention: np.ndarray  # (layers, heads, readouts, keys) float32
+    readout_attention: np.ndarray | None  # (layers, heads, readouts, keys) float32; None: the policy gives no attention
     full_attention: np.ndarray | None  # (layers, heads, queries, keys) float32 or None
     seconds: float  # wall time of the batched call that produced it
     tokens: TokenMap | None = None  # what each attention key is
     observed: dict | None = None  # {obs key: (H, W, 3) uint8} current frames an intervention changed (masked)
     probes: dict = dataclasses.field(default_factory=dict)  # {probe name: payload} of the probes due at this step
-
-
-def make_task(model, spec: TaskPrompt) -> dict:
-    """Octo task dict with batch 1 (language encoded here, once per distinct task)."""
-    texts = [spec.instruction] if model.config.language is not None else None  # a model taking both gets both
-    goals = {k: v[None] for k, v in spec.goals.items()} if spec.goals is not None else None
-    return model.create_task(texts=texts, goals=goals)
-
-
-def step_key(seed: int, step: int) -> np.ndarray:
-    """(2,) uint32 rng key of an episode's inference at control step `step`: fold_in(PRNGKey(seed), step)."""
-    return np.asarray(jax.random.fold_in(jax.random.PRNGKey(seed), step))
-
-
-class BatchInference:
-    """Stateless batched inference: requests from many episodes -> `sample_actions` calls -> one result each.
-
-    Every call has exactly `config.inference_batch` examples (padded by repeating the first request, whose
-    copies are discarded; more requests are split into several calls), so one shape is compiled, at
-    `warm_up()`, and an example's actions and attention are bit-identical whatever shares its call: XLA's
-    numbers depend on the batch shape, not on the other examples. Each example also has its own rng key
-    (`step_key`). Tasks are built once per distinct TaskPrompt and kept.
-    """
-
-    def __init__(self, model, config: PolicyConfig):
-        self.model = model
-        self.config = config
-        self.batch_size = int(config.inference_batch)
-        self.dataset_key = config.dataset_key if config.dataset_key is not None else default_dataset_key(model)
-        self.statistics = model.unnormalization_statistics(self.dataset_key) if self.dataset_key else None
-        self.lowdim_statistics = lowdim_statistics(model, self.dataset_key, config.proprio_normalization)
-        # the dimension of the actions handed to the env: the statistics' (Octo keeps those), else the head's
-        dims = [len(self.statistics[k]) for k in ("mask", "mean", "p01") if self.statistics and k in self.statistics]
-        self.action_dim = dims[0] if dims else int(model.action_dim)
-        self._tasks: dict[tuple, dict] = {}  # TaskPrompt.key -> batch-1 task (one per distinct instruction/goals)
-        self.intervener = None  # closed-loop intervention (harness/interventions.py), checked against the model here
-        self._model = model
-        if config.intervention is not None:
-            from harness.interventions import Intervener, parse_intervention
-
-            self.intervener = Intervener(model, parse_intervention(config.intervention))
-            self._model = self.intervener.model_for_inference()
-        # the per-step probes the config turns on (harness.probes), in the registry's order, on the model inferred with
-        self.context = ProbeContext(self._model, config, self._inputs, self._sample, self.batch_size, {})
-        self.probes = [cls(self.context) for cls in active_probes(config)]
-
-    def probe(self, name: str):
-        """The running probe of that name (harness.probes), made for this model; KeyError when it is off."""
-        for probe in self.probes:
-            if probe.name == name:
-                return probe
-        raise KeyError(f"probe {name!r} is not on in this PolicyConfig")
-
-    def task(self, spec: TaskPrompt) -> dict:
-        if spec.key not in self._tasks:
-            self._tasks[spec.key] = make_task(self.model, spec)
-        return self._tasks[spec.key]
-
-    def warm_up(self, request: InferenceRequest) -> None:
-        """Compile the one batch shape (and build the request's task) with copies of `request`."""
-        self([request])
-
-    def __call__(self, requests: list[InferenceRequest]) -> list[InferenceResult]:
-        out: list[InferenceResult] = []
-        for i in range(0, len(requests), self.batch_size):
-            out.extend(self._call(requests[i:i + self.batch_size]))
-        return out
-
-    def _inputs(self, requests: list[InferenceRequest]) -> tuple[dict, dict, np.ndarray]:
-        """(observations, tasks, keys) of a list of requests: leaves (batch, window, ...), low-dim normalised."""
-        stack = lambda *xs: np.stack(xs)  # noqa: E731
-        observations = jax.tree.map(stack, *[r.observation for r in requests])  # leaves (batch, window, ...)
-        for key, stats in self.lowdim_statistics.items():  # (batch, window, dims), as Octo's NormalizeProprio
-            observations[key] = normalize(observations[key], stats, self.config.proprio_normalization, key)
-        tasks = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]), *[self.task(r.task) for r in requests])
-        keys = np.stack([step_key(r.seed, r.step) for r in requests])  # (batch, 2) uint32
-        return observations, tasks, keys
-
-    def _intervene(self, request: InferenceRequest) -> tuple[InferenceRequest, dict | None]:
-        """The request with its current frames masked by the intervention, and those frames (None: unchanged)."""
-        if self.intervener is None or not self.intervener.intervention.masks:
-            return request, None
-        observations, tasks, keys = self._inputs([request])
-        frames = self.intervener.mask(observations, tasks, request.seed, request.step, keys[0])
-        observation = dict(request.observation)
-        for key, frame in frames.items():
-            window = np.array(observation[key])
-            window[-1] = frame
-            observation[key] = window
-        return dataclasses.replace(request, observation=observation), frames
-
-    def _call(self, requests: list[InferenceRequest]) -> list[InferenceResult]:
-        n = len(requests)
-        changed = [self._intervene(r) for r in requests]
-        requests = [r for r, _ in changed]
-        padded = requests + [requests[0]] * (self.batch_size - n)
-        observations, tasks, keys = self._inputs(padded)
-        start = time.perf_counter()
-        actions, attention = self._sample(observations, tasks, keys)
-        chunks = np.asarray(actions, dtype=np.float32)  # (batch, horizon, action_dim)
-        readout = np.asarray(attention.readout, dtype=np.float32)  # (batch, layers, heads, readouts, keys)
-        full = None if attention.full is None else np.asarray(attention.full, dtype=np.float32)
-        elapsed = time.perf_counter() - start
-        payloads: list[dict] = [{} for _ in range(n)]
-        for probe in self.probes:  # open loop on what the policy saw, after the call: actions never change
-            due = [i for i, r in enumerate(requests) if r.step % probe.period == 0]
-            if due:
-                batch = [ProbeItem(requests[i], chunks[i], readout[i]) for i in due]
-                for i, payload in zip(due, probe.run(batch, self.context)):
-                    if payload is not None:
-                        payloads[i][probe.name] = payload
-        return [InferenceResult(chunks[i], readout[i], None if full is None else full[i], elapsed, attention.tokens,
-                                changed[i][1], payloads[i]) for i in range(n)]
-
-    def _sample(self, observations: dict, tasks: dict, keys: np.ndarray):
-        """(actions, attention) of one compiled call on inputs of the batch shape (`_inputs`)."""
-        return self._model.sample_actions(observations, tasks, keys, self.statistics,
-                                          full_attention=self.config.full_attention,
-                                          normalization_type=self.config.action_normalization,
-                                          sampler=self.config.sampler)
 
 
 def window_from_entries(entries: list[dict], window: int, keys: list[str]) -> dict:
@@ -339,24 +203,25 @@ class EpisodeState:
         return self._last
 
 
-class OctoPolicy:
+class ClosedLoopPolicy:
     """Closed-loop policy for one episode at a time: `reset(instruction, seed)` then `step(obs)` every control step.
 
-    `infer` maps a list of InferenceRequests to InferenceResults: by default a batch-1 `BatchInference`
-    in this process; an executor passes a client of a batching server. Either way the episode's state
-    (`EpisodeState`) and the per-example rng make the actions the same.
+    `shape` is what the env side needs of the policy (image_sizes, lowdim_sizes, window_size, action_horizon: a
+    `harness.policies.Policy` or a picklable copy); `infer` maps a list of InferenceRequests to InferenceResults: the
+    policy's own batched inference in this process, or a client of a batching server an executor runs. Either way
+    the episode's state (`EpisodeState`) and the per-example rng make the actions the same. Made by
+    `Policy.closed_loop` (harness/policies).
     """
 
-    def __init__(self, model, config: PolicyConfig, infer=None):
-        self.model = model
+    def __init__(self, shape, config: PolicyConfig, infer):
         self.config = config
-        self.window = int(model.window_size)
-        self.image_sizes = dict(model.image_sizes)  # obs key -> (height, width)
-        self.lowdim_sizes = dict(getattr(model, "lowdim_sizes", None) or {})  # low-dim obs key -> dims
-        self.action_horizon = int(model.action_horizon)
-        self._infer = infer if infer is not None else BatchInference(model, config)
-        self.dataset_key = self._infer.dataset_key  # the unnormalisation statistics the inference side uses
-        self.action_dim = getattr(self._infer, "action_dim", None)  # dims of the actions handed to the env (None: unknown here)
+        self.window = int(shape.window_size)
+        self.image_sizes = dict(shape.image_sizes)  # obs key -> (height, width)
+        self.lowdim_sizes = dict(getattr(shape, "lowdim_sizes", None) or {})  # low-dim obs key -> dims
+        self.action_horizon = int(shape.action_horizon)
+        self._infer = infer
+        self.dataset_key = getattr(infer, "dataset_key", None)  # the unnormalisation statistics the inference side uses
+        self.action_dim = getattr(infer, "action_dim", None)  # dims of the actions handed to the env (None: unknown here)
         self._state: EpisodeState | None = None
 
     def reset(self, instruction: str | None = None, seed: int = 0, goals: dict[str, np.ndarray] | None = None) -> None:
@@ -382,26 +247,6 @@ class OctoPolicy:
 # ---------------------------------------------------------------------------------------------- model <-> env fit
 
 ENV_LOWDIM_HELP = "the robosuite envs give 'proprio' (8-D: end-effector position, xyz Euler angles, 2 finger joints)"
-
-
-def lowdim_statistics(model, dataset_key: str | None, kind: str) -> dict[str, dict | None]:
-    """{low-dim obs key: its statistics in dataset_statistics[dataset_key]} for every key the model reads.
-
-    kind "none" needs no statistics (values {key: None}); otherwise a missing entry is a one-line error.
-    """
-    sizes = getattr(model, "lowdim_sizes", None) or {}
-    if kind == "none":
-        return {k: None for k in sizes}
-    out = {}
-    for key in sizes:
-        stats = (getattr(model, "dataset_statistics", None) or {}).get(dataset_key or "", {}).get(key)
-        if stats is None:
-            where = f"dataset_statistics[{dataset_key!r}]" if dataset_key else "dataset_statistics.json (it has no datasets)"
-            raise EnvMismatchError(f"the model reads low-dim input {key!r} but {where} has no {key!r} statistics to "
-                                   f"normalise it; choose --dataset-key with them, or proprio_normalization='none' "
-                                   f"if the model was trained on raw values")
-        out[key] = {k: np.asarray(v) for k, v in stats.items() if k in ("mean", "std", "p01", "p99", "mask")}
-    return out
 
 
 def check_observation(observation: dict, image_sizes: dict, lowdim_sizes: dict) -> None:

@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 
 from envs.options import to_convention
-from harness.policy import OctoPolicy
+from harness.policy import ClosedLoopPolicy
 from harness.probes import get as get_probe
 from harness.records import StepRecord
 
@@ -45,7 +45,7 @@ class EpisodeResult:
 
 def rollout(
     env,
-    policy: OctoPolicy,
+    policy: ClosedLoopPolicy,
     sink: Callable[[StepRecord], None],
     *,
     seed: int,

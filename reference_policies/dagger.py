@@ -78,14 +78,13 @@ def policy_in_env(model_dir: str | Path, task: str, max_steps: int):
     no masks) and the checkpoint's policy, checked against it."""
     import envs
     from harness.conventions import CheckpointConventions
-    from harness.octo import load_pretrained
-    from harness.policy import OctoPolicy
+    from harness.policies import load_policy
 
     conventions = CheckpointConventions.read(model_dir)
     options = conventions.env_options({"fast_render": True, "masks": False})
     env = envs.make(task, options, max_episode_steps=max_steps)
-    model = load_pretrained(str(model_dir), text_tokenizer=conventions.text_tokenizer)
-    policy = OctoPolicy(model, conventions.policy_config())
+    model = load_policy(str(model_dir), text_tokenizer=conventions.text_tokenizer)
+    policy = model.closed_loop(conventions.policy_config())
     policy.check_env(env)
     return env, policy
 

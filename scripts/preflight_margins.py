@@ -41,11 +41,11 @@ def margins(model_dir: Path, tasks: list[str], seed: int = 0) -> list[dict]:
     import envs
     from envs.options import to_convention
     from harness.measures.orientation import MEASURES, orientation_scores
-    from harness.octo import load_pretrained
+    from harness.policies import load_policy
     from harness.run.preflight import example_frames, first_frames
     from harness.run.settings import build_protocol
 
-    model = load_pretrained(str(model_dir))
+    model = load_policy(str(model_dir))
     examples = example_frames(model)
     protocol = build_protocol({"model": str(model_dir), "task": tasks})
     rows = []

@@ -22,7 +22,7 @@ STAGES = (
     ("octo", ("harness.octo",)),
     ("measures", ("harness.measures",)),
     ("probes", ("harness.probes",)),
-    ("policy", ("harness.interventions", "harness.policy", "harness.policy_config", "harness.conventions")),
+    ("policy", ("harness.interventions", "harness.policy", "harness.policy_config", "harness.conventions", "harness.policies")),
     ("rollout", ("harness.records", "harness.rollout")),
     ("outputs", ("harness.outputs",)),
     ("runfolder", ("harness.runfolder",)),

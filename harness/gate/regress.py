@@ -397,7 +397,7 @@ def regress_grid(baseline_grid: str | Path, model: str, gate: GateConfig | None 
     every cell). The candidate grid goes to <out>/<run_name> (default <model>_<baseline grid name>)."""
     from harness.analysis.compare import GRID_FILE, compare_grids, read_grid
     from harness.files import atomic_write_json
-    from harness.octo import load_pretrained
+    from harness.policies import load_policy
 
     gate = gate if gate is not None else GateConfig()
     alpha = gate.alpha
@@ -408,7 +408,7 @@ def regress_grid(baseline_grid: str | Path, model: str, gate: GateConfig | None 
     folder = Path(out) / (run_name or f"{short}_{baseline_grid.resolve().name}")
     folder.mkdir(parents=True, exist_ok=True)
     atomic_write_json(folder / GRID_FILE, replace(grid, regress_of=str(baseline_grid.resolve())).to_json())
-    loaded = load_pretrained(model, text_tokenizer=gate.text_tokenizer)
+    loaded = load_policy(model, text_tokenizer=gate.text_tokenizer)
     per_condition = {}
     for name in names:
         log.info("regress: condition %s at alpha %.3g", name, alpha / len(names))

@@ -129,8 +129,8 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, gate: GateC
     content.
 
     gate: the tolerances and the replayed model's text_tokenizer, auto|fallback|PATH (None: the run's own choice)."""
-    from harness.octo import load_pretrained
-    from harness.policy import BatchInference, resize_frame
+    from harness.policies import as_policy, load_policy
+    from harness.policy import resize_frame
     from harness.run import checks
 
     gate = gate if gate is not None else GateConfig()
@@ -152,7 +152,7 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, gate: GateC
     # the run's text tokenizer choice (auto, fallback or a file) with whichever model is replayed: the same instruction
     # must become the same tokens, or the comparison measures the tokenizer
     tokenizer = text_tokenizer if text_tokenizer is not None else protocol.text_tokenizer
-    model = loaded_model if loaded_model is not None else load_pretrained(source, text_tokenizer=tokenizer)
+    model = as_policy(loaded_model) if loaded_model is not None else load_policy(source, text_tokenizer=tokenizer)
     config = dataclasses.replace(protocol.policy, inference_batch=1)
     if gate.drop_probes:
         from harness.policy_config import without_probes
@@ -163,7 +163,7 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, gate: GateC
 
         if parse_intervention(config.intervention).masks:  # the recorded inputs are the masked frames already
             config = dataclasses.replace(config, intervention=None)
-    inference = BatchInference(model, config)
+    inference = model.inference(config)
     goals = None
     if protocol.goal_images:
         images = checks.decode_goal_images(protocol.goal_images)

@@ -95,18 +95,17 @@ def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions =
     """Check the attribution methods on the runs' recorded inputs (see the module docstring); writes and returns
     the result. loaded_model: the model of `model_source` (or of the runs) already loaded."""
     from harness.files import atomic_write_json, write_atomic
-    from harness.octo import load_pretrained
-    from harness.policy import BatchInference
+    from harness.policies import as_policy, load_policy
 
     start = time.perf_counter()
     runs = [Path(r) for r in runs]
     loaded = _steps(runs, options.every)
     protocol = _common_protocol(loaded, model_source)
     source = model_source or protocol.model
-    model = loaded_model if loaded_model is not None else load_pretrained(source, text_tokenizer=protocol.text_tokenizer)
+    model = as_policy(loaded_model) if loaded_model is not None else load_policy(source, text_tokenizer=protocol.text_tokenizer)
     config = dataclasses.replace(protocol.policy, inference_batch=1, intervention=None, attribution=None,
                                  faithfulness_every=0)
-    inference = BatchInference(model, config)
+    inference = model.inference(config)
     functions = OctoFunctions(model)
     methods = parse_methods(options.methods, functions.layers)
     blocks = S.octo_blocks(functions.params)

@@ -81,8 +81,8 @@ def episode_meta(run: RunRecord, episode: EpisodeRecord) -> EpisodeMeta:
 def _resimulate(run: RunRecord, episode: EpisodeRecord, steps: int, model=None) -> tuple[list[StepRecord], int | None]:
     """Re-run the episode from its seed and protocol: (records, control frequency). model: the run's model, loaded."""
     import envs
-    from harness.octo import load_pretrained
-    from harness.policy import OctoPolicy, resize_frame
+    from harness.policies import load_policy
+    from harness.policy import resize_frame
     from harness.rollout import rollout
     from harness.run import checks
 
@@ -91,7 +91,7 @@ def _resimulate(run: RunRecord, episode: EpisodeRecord, steps: int, model=None) 
         raise ViewInputError(f"the run's model {protocol.model} is not on this machine, so its frames cannot be "
                              "re-simulated; pass --no-simulate (maps and measures without frames)")
     if model is None:
-        model = load_pretrained(protocol.model, text_tokenizer=protocol.text_tokenizer)
+        model = load_policy(protocol.model, text_tokenizer=protocol.text_tokenizer)
     goals = None
     if protocol.goal_images:
         images = checks.decode_goal_images(protocol.goal_images)
@@ -99,7 +99,7 @@ def _resimulate(run: RunRecord, episode: EpisodeRecord, steps: int, model=None) 
     env = envs.make(episode.task, protocol.env_for(episode.task), instruction=protocol.instruction)
     try:
         records: list[StepRecord] = []
-        rollout(env, OctoPolicy(model, protocol.policy), records.append, seed=int(episode.seed or 0),
+        rollout(env, model.closed_loop(protocol.policy), records.append, seed=int(episode.seed or 0),
                 instruction=protocol.instruction or envs.get_task(episode.task).instruction, goals=goals,
                 max_steps=steps)
         hz = (getattr(env, "metadata", None) or {}).get("render_fps")

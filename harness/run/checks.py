@@ -7,6 +7,8 @@ protocol is built (`Protocol.__post_init__`), task names in `settings.resolve_ta
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import os
 from pathlib import Path
 from typing import Mapping
@@ -18,6 +20,8 @@ from harness.run.protocol import Protocol
 # MuJoCo's rendering backends on Linux: egl and osmesa are headless, glfw/glx need a display
 GL_BACKENDS = ("egl", "osmesa", "glfw", "glx")
 MAX_RUN_NAME = 255  # bytes: NAME_MAX of ext4, xfs, btrfs, tmpfs and NFS
+
+log = logging.getLogger(__name__)
 
 
 def check_environment(environ: Mapping[str, str] | None = None) -> None:
@@ -126,19 +130,49 @@ def decode_goal_images(folder: str | Path) -> dict[str, np.ndarray]:
     return images
 
 
-def layer_count(model) -> int:
-    return int(model.config.transformer.num_layers)
+# The output options that show attention, with the flag that sets each: a policy without attention leaves them out
+# when they are at their defaults (one line) and refuses a run that asks for one (check_attention_flags).
+ATTENTION_OUTPUTS = (("png_every", "--png-every"), ("layers", "--layers"), ("video_attention", "--video-attention"),
+                     ("bbox", "--bbox"), ("normalisation", "--normalisation"), ("cmap", "--cmap"),
+                     ("overlay_interpolation", "--overlay-interpolation"))
+
+
+def check_attention_flags(protocol: Protocol, model) -> list[str]:
+    """For a policy without attention (harness.policies.Capabilities): PolicyLacksError (one line, exit 2) when a flag
+    the user set needs what it lacks; else the console lines naming the default outputs it leaves out."""
+    from harness.probes import registry as probes
+
+    defaults = {f.name: f.default for f in dataclasses.fields(protocol.outputs)}
+    wanted = {}
+    policy = protocol.policy
+    if policy.intervention is not None:
+        wanted["--intervene"] = "interventions"
+    if policy.full_attention:
+        wanted["full attention"] = "attention"
+    for probe in probes.active(policy):
+        wanted[f"--{(probe.option or probe.name).replace('_', '-')}"] = "probes"
+    outputs = protocol.outputs
+    for name, flag in ATTENTION_OUTPUTS:
+        if name in defaults and getattr(outputs, name) != defaults[name]:
+            wanted[flag] = "attention"
+    model.require(wanted)
+    if model.capabilities.attention:
+        return []
+    return [f"{model.source} gives no attention: its episodes have no attention PNGs, overlay panels or attention "
+            "measures (frames, actions and everything else are recorded)"]
 
 
 def check_model(protocol: Protocol, model, goal_images: Mapping[str, np.ndarray] | None) -> list[str]:
     """Model-dependent checks; returns the task inputs the episodes will use (["language"], ["goal"] or both)."""
-    layers = layer_count(model)
-    for layer in protocol.outputs.layers or ():
+    for line in check_attention_flags(protocol, model):
+        log.info("%s", line)
+    layers = model.attention_shape.layers if model.attention_shape is not None else 0
+    for layer in (protocol.outputs.layers or ()) if layers else ():
         if not -layers <= layer < layers:
             raise ValueError(f"--layers {layer} is out of range: {model.source} has {layers} layers (0..{layers - 1}, "
                              "or negative from the end)")
     va = protocol.outputs.video_attention
-    if isinstance(va, int) and not -layers <= va < layers:
+    if layers and isinstance(va, int) and not -layers <= va < layers:
         raise ValueError(f"--video-attention {va} is out of range: {model.source} has {layers} layers (0..{layers - 1}) "
                          "or use 'rollout'")
     cameras = list(model.image_sizes)
@@ -150,7 +184,7 @@ def check_model(protocol: Protocol, model, goal_images: Mapping[str, np.ndarray]
     if policy.execution == "receding_horizon" and policy.receding_steps > model.action_horizon:
         raise ValueError(f"--receding-steps {policy.receding_steps} exceeds the action horizon of {model.source} "
                          f"({model.action_horizon}); choose 1..{model.action_horizon}")
-    takes_language = model.config.language is not None
+    takes_language = model.takes_language
     goal_keys = sorted(model.goal_image_sizes)
     expected = ", ".join(k + ".png" for k in goal_keys)
     inputs = ["language"] if takes_language else []

@@ -25,6 +25,7 @@ from typing import Callable
 import numpy as np
 
 from harness.measures.attention import MEASURES_VERSION
+from harness.policies import as_policy, family_of, load_policy
 from harness import interrupts
 from harness.run import checks, space
 from harness.run.protocol import protocol_from_manifest
@@ -93,9 +94,7 @@ def _mean(values) -> float:
 
 def default_run_name(protocol: Protocol) -> str:
     """<model short name>_<first 10 hex digits of the protocol hash>: the same command resumes the same run."""
-    source = protocol.model.rstrip("/")
-    short = source.replace("hf://", "").replace("random:", "random-").split("/")[-1].replace(":", "-") or "model"
-    return f"{short}_{protocol.hash()[:10]}"
+    return f"{family_of(protocol.model).run_label(protocol.model)}_{protocol.hash()[:10]}"
 
 
 # ---- signals ---------------------------------------------------------------------------------------
@@ -155,12 +154,13 @@ def _model_info(model, policy_dataset_key, fingerprint: dict) -> dict:
         "text_tokenizer": _tokenizer_label(getattr(model, "text_tokenizer", None)),
         "tokenizer": fingerprint.get("tokenizer"),  # kind, name, vocab_size, max_length, sha256, path
         "dataset_key": policy_dataset_key,
-        "layers": checks.layer_count(model),
+        "layers": model.attention_shape.layers if model.attention_shape is not None else None,
         "action_horizon": int(model.action_horizon),
         "window": int(model.window_size),
         "image_sizes": {k: list(v) for k, v in model.image_sizes.items()},
         "goal_image_sizes": {k: list(v) for k, v in model.goal_image_sizes.items()},
         "fingerprint": fingerprint,
+        **model.describe(),  # what the policy adds of itself (a server's metadata)
     }
 
 
@@ -183,7 +183,8 @@ def execute(
 ) -> RunSummary:
     """Run (or resume) the protocol's episodes into `<out>/<run_name>` and return the summary.
 
-    model: an already loaded model of `protocol.model` (else it is loaded after the cheap checks).
+    model: an already loaded policy of `protocol.model` (a harness.policies.Policy, or an Octo model: it is wrapped;
+    else it is loaded by the factory after the cheap checks).
     executor: factory(context, model) -> Executor (default SequentialExecutor).
     viewer: gRPC url of a live Rerun viewer every episode streams to (harness.outputs.rerun_viewer.start_viewer).
     ci_method: the success intervals of the derived files (wilson, clopper-pearson); recorded in the manifest
@@ -194,6 +195,7 @@ def execute(
     space_check: refuse to start when the files of the jobs left would not fit where the run writes (run/space.py).
     """
     protocol, out, name, goal_images, fingerprint_details = _checked_inputs(protocol, out, run_name, ci_method, viewer)
+    model = as_policy(model) if model is not None else None
     store = RunStore(out / name)
     jobs = protocol.jobs()
     created = not store.dir.exists()
@@ -285,10 +287,8 @@ def _open_run(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], name:
     pending = [j for j in jobs if j.key not in done]
     goals = None
     if model is None and (pending or manifest is None):  # a finished run needs no model
-        from harness.octo import load_pretrained
-
         log.info("loading %s", protocol.model)
-        model = load_pretrained(protocol.model, text_tokenizer=protocol.text_tokenizer)
+        model = load_policy(protocol.model, text_tokenizer=protocol.text_tokenizer)
         interrupts.check()  # Ctrl-C while loading, its KeyboardInterrupt swallowed by a finaliser
     if model is not None:
         task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)
@@ -452,9 +452,7 @@ def _check_model(protocol: Protocol, model, goal_images) -> tuple[list[str], dic
         from harness.policy import resize_frame
 
         goals = {k: resize_frame(v, model.goal_image_sizes[k]) for k, v in goal_images.items() if k in model.goal_image_sizes}
-    from harness.policy import OctoPolicy
-
-    dataset_key = OctoPolicy(model, protocol.policy).dataset_key  # an unknown key fails here, before any episode
+    dataset_key = model.inference(protocol.policy).dataset_key  # an unknown key fails here, before any episode
     return task_inputs, goals, dataset_key
 
 

@@ -14,7 +14,7 @@ The interface (all an executor has to provide):
 - Episode files are written by `EpisodeWriter` into `<run_dir>/<job.directory>` only (`run_episode` does all
   of it, and records the size and sha256 of the data files in the row, harness/runfolder/integrity.py); an executor never touches results.jsonl, results.json, summary.csv or the manifest: the driver
   appends each yielded row and rewrites the derived files, so every executor leaves the same run folder.
-- Episodes are independent given (task, seed): `env.reset(seed=seed)` and `OctoPolicy.reset(..., seed=seed)`
+- Episodes are independent given (task, seed): `env.reset(seed=seed)` and `ClosedLoopPolicy.reset(..., seed=seed)`
   restore everything an episode depends on, so a job gives the same files whichever process runs it and
   whatever ran before (this is what makes resume and parallel runs equal a sequential run).
 - `harness.policy.EnvMismatchError` (the model's inputs or action dimension do not fit the env: a protocol error,
@@ -44,7 +44,7 @@ import numpy as np
 import envs
 from envs.perturbations import instruction_for
 from harness.files import atomic_write_json
-from harness.policy import EnvMismatchError, OctoPolicy
+from harness.policy import ClosedLoopPolicy, EnvMismatchError
 from harness.records import EpisodeMeta, StepRecord
 from harness.rollout import rollout
 from harness.run.protocol import EpisodeJob, Protocol
@@ -109,7 +109,7 @@ class CheckedEnv:
         self.task = task
         self._env = _make_env(protocol, task)
         try:
-            OctoPolicy(model, protocol.policy).check_env(self._env)
+            model.closed_loop(protocol.policy).check_env(self._env)
         except BaseException:
             self.close()
             raise
@@ -130,7 +130,7 @@ class CheckedEnv:
             env.close()
 
 
-def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: OctoPolicy, tokens=None,
+def run_episode(context: EpisodeContext, job: EpisodeJob, env, policy: ClosedLoopPolicy, tokens=None,
                 on_step: StepCallback | None = None) -> EpisodeRow:
     """Roll out one job with `env` and `policy` and write its episode folder; a failure gives a "failed" row."""
     episode_dir = context.episode_dir(job)
@@ -227,7 +227,7 @@ class SequentialExecutor:
 
     def __init__(self, context: EpisodeContext, model):
         self.context = context
-        self.policy = OctoPolicy(model, context.protocol.policy)
+        self.policy = model.closed_loop(context.protocol.policy)
         self.tokens = model.token_map()
         self._env = None
         self._env_task: str | None = None

@@ -5,7 +5,7 @@
     run store: every write to             one env + GL context; runs an          the model (1 GPU where the
     results.jsonl / results.json   <─row─ episode per call: EpisodeState  ─obs─> cluster has GPUs); batches all
     jobs out ─────────────────────job─>   -> rollout -> EpisodeWriter    <─act─  requests waiting when it is free
-                                          (writes the episode folder)            (BatchInference, one fixed shape)
+                                          (writes the episode folder)            (policy.inference(), one fixed shape)
 
 The driver owns the run store, so resume, statistics and the files of a run are the same as with the
 local executor (harness/run/workers.py): env workers run the same episode function and write the
@@ -46,7 +46,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
-from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskPrompt
+from harness.policy import ClosedLoopPolicy, InferenceRequest, InferenceResult, PolicyConfig, TaskPrompt
 from harness.run.executor import EpisodeContext, InfrastructureError
 from harness.run.ray_errors import actor_death_cause, actor_error, last_line, lost_part
 from harness.run.workers import PolicyError, WorkerSpec, warmup_request, warmup_task, worker_spec
@@ -79,10 +79,10 @@ class PolicyReplica:
     """A model replica serving batched inference requests from many env workers (an async Ray actor)."""
 
     def __init__(self, model_source: str, config: PolicyConfig, text_tokenizer: str | None = None):
-        from harness.octo import load_pretrained
+        from harness.policies import load_policy
 
-        self.model = load_pretrained(model_source, text_tokenizer=text_tokenizer)
-        self.inference = BatchInference(self.model, config)
+        self.model = load_policy(model_source, text_tokenizer=text_tokenizer)
+        self.inference = self.model.inference(config)
         self._pending: list[tuple[InferenceRequest, asyncio.Future]] = []
         self._running = False
         self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inference")
@@ -164,7 +164,7 @@ class EnvWorker:
                                    "put --out on a filesystem every Ray node mounts at the same path (NFS, shared volume)")
         self.spec = spec
         self.infer = RayInference(replica, spec.shape.dataset_key)
-        self.policy = OctoPolicy(spec.shape, spec.policy, infer=self.infer)
+        self.policy = ClosedLoopPolicy(spec.shape, spec.policy, self.infer)
         self.env, self.env_task = None, None
 
     def ready(self) -> tuple[str, int, str]:

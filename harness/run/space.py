@@ -107,7 +107,12 @@ class ModelShape:
     @classmethod
     def of(cls, model) -> "ModelShape":
         tokens = model.token_map()
-        return cls(layers=int(model.config.transformer.num_layers), heads=int(model.config.transformer.num_heads),
+        shape = model.attention_shape
+        if tokens is None or shape is None:  # a policy without attention writes no attention arrays or panels
+            return cls(layers=0, heads=0, keys=0, readouts=0, grids={},
+                       image_sizes={k: tuple(v) for k, v in model.image_sizes.items()},
+                       horizon=int(getattr(model, "action_horizon", 4)))
+        return cls(layers=shape.layers, heads=shape.heads,
                    keys=int(tokens.num_keys), readouts=len(tokens.readout_index),
                    grids={key: (int(r), int(c)) for _, key, r, c in tokens.image_groups},
                    image_sizes={k: tuple(v) for k, v in model.image_sizes.items()},

@@ -3,7 +3,7 @@
     driver process                                   env worker k (spawned; one per --workers)
     ───────────────────────────────────────────     ─────────────────────────────────────────
     run store (results.jsonl, results.json)          one env (its own GL context), remade per task
-    InferenceServer: BatchInference(model)   <─obs── EpisodeState (history, chunks, seed/t, task)
+    InferenceServer: policy.inference()      <─obs── EpisodeState (history, chunks, seed/t, task)
       one sample_actions call over all        ─act─> rollout() -> EpisodeWriter (background thread,
       waiting workers, padded to a fixed size        PNG pool, MP4) writes the episode folder
     jobs out, finished rows in               <─row─
@@ -59,7 +59,7 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 import numpy as np
 
 from harness.interrupts import die_with_parent
-from harness.policy import BatchInference, InferenceRequest, InferenceResult, OctoPolicy, PolicyConfig, TaskPrompt
+from harness.policy import ClosedLoopPolicy, InferenceRequest, InferenceResult, PolicyConfig, TaskPrompt
 from harness.run.executor import EpisodeContext, InfrastructureError, make_env, record_failure, run_episode
 from harness.run.protocol import EpisodeJob
 from harness.run.store import EpisodeRow
@@ -97,7 +97,7 @@ class WorkerSpec:
     """
 
     make_env: Callable[[str], Any]
-    run_episode: Callable[[Any, OctoPolicy, Any], Any]
+    run_episode: Callable[[Any, ClosedLoopPolicy, Any], Any]
     failed_row: Callable[[Any, BaseException, str], Any]
     died_row: Callable[[Any, str, int], Any]
     policy: PolicyConfig
@@ -179,7 +179,7 @@ def worker_main(index: int, conn: Connection, spec: WorkerSpec) -> None:
     die_with_parent()
     os.environ["OCTO_HARNESS_WORKER"] = str(index)
     infer = PipeInference(conn, spec.shape.dataset_key)
-    policy = OctoPolicy(spec.shape, spec.policy, infer=infer)
+    policy = ClosedLoopPolicy(spec.shape, spec.policy, infer)
     env, env_task = None, None
     try:
         conn.send(("ready", None))
@@ -247,7 +247,7 @@ class WorkerPool:
             raise ValueError(f"--workers must be >= 1; got {workers}")
         self.spec = spec
         self.workers = workers
-        self.inference = BatchInference(model, spec.policy)
+        self.inference = model.inference(spec.policy)
         self.ctx = multiprocessing.get_context(context)
         self._pool: dict[int, _Worker] = {}
         self._next_index = 0
@@ -435,7 +435,7 @@ class WorkerDied(InfrastructureError):
     """The env-worker process running an episode died (signal, OOM kill, segfault, its node lost)."""
 
 
-def _run_job(context: EpisodeContext, tokens, env, policy: OctoPolicy, job: EpisodeJob) -> EpisodeRow:
+def _run_job(context: EpisodeContext, tokens, env, policy: ClosedLoopPolicy, job: EpisodeJob) -> EpisodeRow:
     return run_episode(context, job, env, policy, tokens)
 
 

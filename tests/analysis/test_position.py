@@ -17,11 +17,12 @@ import jax
 import numpy as np
 import pytest
 
+from harness.policies import as_policy
 from harness.analysis import position as Q
 from harness.measures import controls as C
 from harness.measures.attention import camera_maps
 from harness.octo import load_pretrained
-from harness.policy import BatchInference, InferenceRequest, PolicyConfig, TaskPrompt, window_from_entries
+from harness.policy import InferenceRequest, PolicyConfig, TaskPrompt, window_from_entries
 
 MODEL = Path(__file__).resolve().parents[2] / "models" / "octo-reference-robosuite"
 KEYS = ["image_primary", "image_wrist", "proprio"]
@@ -168,7 +169,7 @@ def _request(frame_primary, frame_wrist, window: int, step: int = 0) -> Inferenc
 
 def _infer(model, request, controls="blank,mirror"):
     config = PolicyConfig(attention_controls=controls, dataset_key="robosuite_reference")
-    inference = BatchInference(model, config)
+    inference = as_policy(model).inference(config)
     (result,) = inference([request])
     return inference, result
 
@@ -238,9 +239,9 @@ def test_mirroring_twice_gives_the_recorded_attention_back_bit_for_bit(model):
 
 def test_controls_do_not_change_the_actions_and_run_only_on_their_steps(model):
     config = PolicyConfig(dataset_key="robosuite_reference")
-    (plain,) = BatchInference(model, config)([_request(_noise(5, 128), _noise(6, 64), model.window_size, step=3)])
+    (plain,) = as_policy(model).inference(config)([_request(_noise(5, 128), _noise(6, 64), model.window_size, step=3)])
     every2 = PolicyConfig(attention_controls="blank,mirror", controls_every=2, dataset_key="robosuite_reference")
-    inference = BatchInference(model, every2)
+    inference = as_policy(model).inference(every2)
     (odd,) = inference([_request(_noise(5, 128), _noise(6, 64), model.window_size, step=3)])
     (even,) = inference([_request(_noise(5, 128), _noise(6, 64), model.window_size, step=4)])
     assert np.array_equal(plain.chunk, odd.chunk) and np.array_equal(plain.readout_attention, odd.readout_attention)

@@ -10,6 +10,7 @@ import warnings
 import numpy as np
 import pytest
 
+from harness.policies import as_policy
 from harness.probes.reliance import reader as N
 from harness.probes.reliance import measure as R
 from harness.policy import EnvMismatchError, EpisodeState, InferenceRequest, PolicyConfig, TaskPrompt
@@ -202,14 +203,14 @@ def test_one_real_lift_step_of_the_tiny_model(fixtures_dir):
     closed loop's hook: every labelled region reported per camera, bit-identical twice and outside the loop."""
     import envs
     from harness.octo import load_pretrained
-    from harness.policy import OctoPolicy
+
     from harness.rollout import rollout
 
     model = load_pretrained(str(fixtures_dir / "tiny"))
     env = envs.make("Lift", cameras={"image_primary": ("agentview", 128), "image_wrist": ("robot0_eye_in_hand", 128)},
                     fast_render=True, masks=True)
     try:
-        policy = OctoPolicy(model, PolicyConfig(reliance_every=4))
+        policy = as_policy(model).closed_loop(PolicyConfig(reliance_every=4))
         runs = []
         for _ in range(2):
             records = []

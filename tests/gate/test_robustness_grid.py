@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 import envs
+from harness.policies import as_policy
 from harness import cli
 from harness.run import execute
 from harness.run.settings import build_protocol
@@ -76,7 +77,7 @@ def test_perturbed_protocol_is_bit_identical_with_two_workers(model, nominal, tm
     protocol = _protocol(perturb="camera:2,noise:2,distractors:1")
     sequential = execute(protocol, tmp_path / "a", "run", model=model, progress=False)
     parallel = execute(protocol, tmp_path / "b", "run", model=model, progress=False,
-                       executor=lambda context, m: WorkersExecutor(context, m, workers=2))
+                       executor=lambda context, m: WorkersExecutor(context, as_policy(m), workers=2))
     a, b = _actions(sequential.run_dir), _actions(parallel.run_dir)
     assert _same(a, b)
     assert not _same(a, _actions(nominal.run_dir))  # the perturbation did change what the policy was fed

@@ -14,6 +14,7 @@ import json
 import os
 import subprocess
 import sys
+from harness.policies import as_policy
 from pathlib import Path
 
 import numpy as np
@@ -516,7 +517,7 @@ def test_tiny_fixture_runs_a_libero_task_and_two_workers_equal_sequential_bit_fo
     executors, killed = [], []
 
     def factory(context, model):
-        executors.append(WorkersExecutor(context, model, workers=2))
+        executors.append(WorkersExecutor(context, as_policy(model), workers=2))
         return executors[-1]
 
     killer = threading.Thread(target=_kill_a_busy_libero_server, args=(executors, killed), daemon=True)

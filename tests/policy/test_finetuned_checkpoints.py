@@ -17,11 +17,13 @@ import pytest
 from flax import serialization, traverse_util
 
 import envs
+from harness.policies import as_policy
+from harness.policies.octo import step_key
 from harness.conventions import CheckpointConventions
 from harness.octo import load_pretrained
 from harness.octo.diffusion import make_schedule, sample
 from harness.octo.normalization import normalize
-from harness.policy import BatchInference, EnvMismatchError, InferenceRequest, OctoPolicy, PolicyConfig, TaskPrompt, step_key
+from harness.policy import EnvMismatchError, InferenceRequest, PolicyConfig, TaskPrompt
 from harness.rollout import rollout
 from harness.run import Protocol, execute
 from harness.outputs.writers import OutputOptions
@@ -153,7 +155,7 @@ def test_finetuned_checkpoint_runs_closed_loop_with_attention_drawn(finetuned, t
 def test_proprio_is_fed_normalised_with_the_checkpoint_statistics(finetuned, env):
     obs, info = env.reset(seed=1)
     config = PolicyConfig(dataset_key="robosuite_ft")
-    inference = BatchInference(finetuned, config)
+    inference = as_policy(finetuned).inference(config)
     window = {"image_primary": obs["image_primary"][None], "proprio": obs["proprio"][None],
               "timestep_pad_mask": np.ones(1, bool), "pad_mask_dict": {"image_primary": np.ones(1, bool), "proprio": np.ones(1, bool)}}
     (result,) = inference([InferenceRequest(window, TaskPrompt.of(info["instruction"]), seed=3, step=0)])
@@ -173,7 +175,7 @@ def test_proprio_is_fed_normalised_with_the_checkpoint_statistics(finetuned, env
 
 def test_action_dimension_mismatch_is_one_line_before_the_episode(fixtures_dir, tmp_path, env):
     six = load_pretrained(f"random:{build_finetune_checkpoint(tmp_path / 'six', fixtures_dir, action_dim=6, save=False)}")
-    policy = OctoPolicy(six, PolicyConfig())
+    policy = as_policy(six).closed_loop(PolicyConfig())
     steps = []
     with pytest.raises(EnvMismatchError, match=r"actions are 6-D but the env's 'robosuite' action space takes 7-D") as e:
         rollout(env, policy, steps.append, seed=0, max_steps=2)
@@ -185,7 +187,7 @@ def test_missing_lowdim_key_is_one_line(fixtures_dir, tmp_path, env):
     model = load_pretrained(f"random:{build_finetune_checkpoint(tmp_path / 'state', fixtures_dir, lowdim_key='state', save=False)}")
     assert model.lowdim_sizes == {"state": 8}
     with pytest.raises(EnvMismatchError, match=r"low-dim observation 'state' \(8-D\) which the env does not give") as e:
-        OctoPolicy(model, PolicyConfig()).check_env(env)
+        as_policy(model).closed_loop(PolicyConfig()).check_env(env)
     assert "\n" not in str(e.value) and "'proprio'" in str(e.value)
 
 

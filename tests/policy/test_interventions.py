@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness.policies import as_policy
 from harness.interventions import Intervention, parse_intervention
-from harness.policy import BatchInference, EpisodeState, InferenceRequest, PolicyConfig, TaskPrompt
+from harness.policy import EpisodeState, InferenceRequest, PolicyConfig, TaskPrompt
 
 REFERENCE = Path(__file__).resolve().parents[2] / "models" / "octo-reference-robosuite"
 CONFIG = PolicyConfig(dataset_key="robosuite_reference")
@@ -70,16 +71,16 @@ def _changed_patches(frame: np.ndarray, original: np.ndarray, patch: int = 16) -
 
 def test_mask_all_and_head_ablation_change_the_reference_policy_measurably(reference):
     model, request = reference
-    (plain,) = BatchInference(model, CONFIG)([request])
-    (masked,) = BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention="mask-all"))([request])
-    (ablated,) = BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention="ablate-heads:0:0,1:1"))([request])
+    (plain,) = as_policy(model).inference(CONFIG)([request])
+    (masked,) = as_policy(model).inference(PolicyConfig(dataset_key="robosuite_reference", intervention="mask-all"))([request])
+    (ablated,) = as_policy(model).inference(PolicyConfig(dataset_key="robosuite_reference", intervention="ablate-heads:0:0,1:1"))([request])
     assert np.abs(masked.chunk - plain.chunk).max() > 0.05
     assert np.abs(ablated.chunk - plain.chunk).max() > 0.05
     assert ablated.observed is None
     for key, frame in masked.observed.items():  # the whole frame is its mean colour
         assert np.ptp(frame.reshape(-1, 3), axis=0).max() <= 1
     # the model itself is untouched by the ablation
-    (again,) = BatchInference(model, CONFIG)([request])
+    (again,) = as_policy(model).inference(CONFIG)([request])
     np.testing.assert_array_equal(again.chunk, plain.chunk)
 
 
@@ -89,18 +90,18 @@ def test_mask_top_masks_the_k_patches_the_method_ranks_highest(reference):
     from harness.measures.faithfulness import ranking
 
     model, request = reference
-    inference = BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention="mask-top:3:attention:2"))
+    inference = as_policy(model).inference(PolicyConfig(dataset_key="robosuite_reference", intervention="mask-top:3:attention:2"))
     (result,) = inference([request])
     observations, tasks, keys = inference._inputs([request])
     analysis = A.analyse(A.OctoFunctions(model).at(observations, tasks, keys[0]), gradients=False)
     maps = A.attribute(analysis, "attention:2")
     for key in model.image_sizes:
         assert _changed_patches(result.observed[key], request.observation[key][-1]) == set(ranking(maps[key])[:3].tolist())
-    bottom = BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention="mask-bottom:3:attention:2"))
+    bottom = as_policy(model).inference(PolicyConfig(dataset_key="robosuite_reference", intervention="mask-bottom:3:attention:2"))
     (low,) = bottom([request])
     for key in model.image_sizes:
         assert _changed_patches(low.observed[key], request.observation[key][-1]) == set(ranking(maps[key])[-3:].tolist())
-    rand = BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention="mask-random:3@image_wrist"))
+    rand = as_policy(model).inference(PolicyConfig(dataset_key="robosuite_reference", intervention="mask-random:3@image_wrist"))
     (r1,), (r2,) = rand([request]), rand([request])
     assert set(r1.observed) == {"image_wrist"} and len(_changed_patches(r1.observed["image_wrist"], request.observation["image_wrist"][-1])) == 3
     np.testing.assert_array_equal(r1.observed["image_wrist"], r2.observed["image_wrist"])  # seeded by (seed, step)
@@ -114,7 +115,7 @@ def test_the_masked_frame_is_what_enters_the_history(reference):
     obs = {k: v[0] for k, v in request.observation.items() if k.startswith("image_")}
     obs["proprio"] = request.observation["proprio"][0]
     decision = state.observe(obs)
-    (result,) = BatchInference(model, config)([decision])
+    (result,) = as_policy(model).inference(config)([decision])
     state.complete(result)
     np.testing.assert_array_equal(state._history[-1]["image_primary"], result.observed["image_primary"])
     np.testing.assert_array_equal(state._history[-1]["image_wrist"], obs["image_wrist"])
@@ -126,7 +127,7 @@ def test_bad_intervention_for_the_model_is_one_line(reference):
                           ("mask-all@image_side", "reads no camera 'image_side'"),
                           ("mask-top:2:attention:7", "layer 7 is outside")]:
         with pytest.raises(ValueError, match=message):
-            BatchInference(model, PolicyConfig(dataset_key="robosuite_reference", intervention=spec))
+            as_policy(model).inference(PolicyConfig(dataset_key="robosuite_reference", intervention=spec))
 
 
 @pytest.mark.slow

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 import envs
+from harness.policies import as_policy
 from harness import cli
 from harness.octo import load_pretrained
-from harness.policy import OctoPolicy, PolicyConfig
+from harness.policy import PolicyConfig
 from harness.run import Protocol, execute
 from harness.outputs.writers import OutputOptions
 
@@ -89,7 +90,7 @@ def test_readout_rows_sum_to_one_over_unmasked_keys_and_skip_padded_timestep(tin
     env = envs.make("Lift")
     try:
         obs, info = env.reset(seed=0)
-        policy = OctoPolicy(tiny, PolicyConfig())
+        policy = as_policy(tiny).closed_loop(PolicyConfig())
         policy.reset(info["instruction"], seed=0)
         step0 = policy.step(obs)  # window [obs0 (padded), obs0]
         obs, *_ = env.step(step0.action)
@@ -170,7 +171,7 @@ def test_receding_horizon_executes_k_actions_per_inference(tiny):
     env = envs.make("Lift", cameras={"image_primary": ("agentview", 64), "image_wrist": ("robot0_eye_in_hand", 32)})
     try:
         obs, info = env.reset(seed=3)
-        policy = OctoPolicy(tiny, PolicyConfig(execution="receding_horizon", receding_steps=2))
+        policy = as_policy(tiny).closed_loop(PolicyConfig(execution="receding_horizon", receding_steps=2))
         policy.reset(info["instruction"], seed=3)
         steps = []
         for _ in range(4):

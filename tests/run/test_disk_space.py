@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from harness.policies import as_policy
 from harness import cli
 from harness.octo import load_pretrained
 from harness.outputs.writers import OutputOptions
@@ -94,7 +95,7 @@ class SmallDisk:
 
 def test_a_full_disk_stops_the_run_and_a_plain_resume_finishes_it(tiny, fixtures_dir, tmp_path, capsys, monkeypatch):
     protocol = Protocol(model=tiny.source, tasks=("Lift",), episodes=EPISODES, max_steps=STEPS)
-    shape = space.ModelShape.of(tiny)
+    shape = space.ModelShape.of(as_policy(tiny))
     one = space.estimate(protocol, shape, protocol.jobs()[:1]).total
     disk = SmallDisk(tmp_path / "disk", int(1.6 * one), monkeypatch)
     made = []
@@ -164,7 +165,7 @@ def test_a_workers_full_disk_stops_the_run_and_loses_at_most_the_episodes_in_fli
                         outputs=OutputOptions(png_every=0, video=False))
 
     def factory(context, model):
-        made = WorkersExecutor(context, model, workers=1)  # one env-worker process (spawning one costs ~10 s)
+        made = WorkersExecutor(context, as_policy(model), workers=1)  # one env-worker process (spawning one costs ~10 s)
         spec = made.pool.spec
         made.pool.spec = dataclasses.replace(spec, run_episode=functools.partial(_fills_from_episode_1, spec.run_episode))
         return made
@@ -180,5 +181,5 @@ def test_a_workers_full_disk_stops_the_run_and_loses_at_most_the_episodes_in_fli
     assert summary.status == "complete" and [r.status for r in summary.rows] == ["ok"] * EPISODES
     assert (summary.statistics["overall"]["n"], summary.statistics["overall"]["failed"]) == (EPISODES, 0)
     # the estimate without PNG and video (arrays and lines) within a factor of 2 of what the run wrote
-    ratio = space.estimate(protocol, space.ModelShape.of(tiny), protocol.jobs(), steps=STEPS).total / _folder_bytes(run)
+    ratio = space.estimate(protocol, space.ModelShape.of(as_policy(tiny)), protocol.jobs(), steps=STEPS).total / _folder_bytes(run)
     assert 0.5 < ratio < 2, ratio

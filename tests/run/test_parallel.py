@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 
 import envs
+from harness.policies import as_policy
 from harness.octo import load_pretrained
-from harness.policy import BatchInference, PolicyConfig, TaskPrompt
+from harness.policy import PolicyConfig, TaskPrompt
 from harness.run import execute
 from harness.run.protocol import Protocol
 from harness.run.execution import executor_factory
@@ -174,7 +175,7 @@ def test_two_worker_processes_give_the_sequential_episodes_without_recompiling(t
     executors = []
 
     def factory(context, model):
-        executors.append(WorkersExecutor(context, model, workers=2))
+        executors.append(WorkersExecutor(context, as_policy(model), workers=2))
         return executors[-1]
 
     with pytest.MonkeyPatch.context() as monkeypatch:
@@ -210,7 +211,7 @@ def test_an_episode_gets_the_same_bits_whatever_shares_its_inference_call(tiny):
     """inference_batch 4: alone (padded to 4) or with others (3 in one call, or 2 in another order), each example's
     chunk and attention are bit-identical; one shape is compiled; per-example rng."""
     shape = PolicyShape.of(tiny, None)
-    inference = BatchInference(tiny, PolicyConfig(inference_batch=4))
+    inference = as_policy(tiny).inference(PolicyConfig(inference_batch=4))
     rng = np.random.default_rng(0)
     requests = []
     for i, text in enumerate(["lift the red cube", "open the door", "lift the red cube"]):
@@ -236,7 +237,7 @@ def test_a_policy_error_fails_only_the_episodes_of_its_batch(tiny, tmp_path):
     executors = []
 
     def factory(context, model):
-        executor = WorkersExecutor(context, model, workers=2)
+        executor = WorkersExecutor(context, as_policy(model), workers=2)
         real, calls = executor.pool.inference, []
 
         class FailingThirdBatch:  # fault injection around the real inference: the third call after warm-up raises
@@ -273,7 +274,7 @@ def test_a_worker_killed_mid_episode_is_replaced_and_its_episode_retried_to_the_
     executors = []
 
     def factory(context, model):
-        executors.append(WorkersExecutor(context, model, workers=2))
+        executors.append(WorkersExecutor(context, as_policy(model), workers=2))
         return executors[-1]
 
     killed = []

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from harness.policies import as_policy
 from harness.run import execute
 from tests.helpers import alive, descendants
 from tests.run.test_parallel import (STEPS, _assert_replay_is_exact, _assert_same_episodes, _assert_same_files,
@@ -236,7 +237,7 @@ def _sequential_episodes(model, summary, rows, run_dir: Path):
 
     context = EpisodeContext(protocol=_protocol(model, episodes=len(summary.rows)), run_dir=str(run_dir), run="seq",
                              model=summary.manifest["model"], goals=None)
-    executor = SequentialExecutor(context, model)
+    executor = SequentialExecutor(context, as_policy(model))
     try:
         done = list(executor.run([EpisodeJob(r.task, r.episode, r.seed) for r in rows]))
     finally:

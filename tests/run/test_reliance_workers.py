@@ -11,6 +11,7 @@ import json
 import pytest
 
 import envs
+from harness.policies import as_policy
 from harness.outputs.writers import OutputOptions
 from harness.policy import PolicyConfig
 from harness.run import execute
@@ -42,7 +43,7 @@ def runs(fixtures_dir, tmp_path_factory):
     out = tmp_path_factory.mktemp("reliance")
     sequential = execute(protocol, out, "seq", model=model, progress=False)
     parallel = execute(protocol, out, "two", model=model, progress=False,
-                       executor=lambda context, m: WorkersExecutor(context, m, workers=2))
+                       executor=lambda context, m: WorkersExecutor(context, as_policy(m), workers=2))
     plain = execute(dataclasses.replace(protocol, policy=PolicyConfig()), out, "plain", model=model, progress=False)
     return {"model": model, "protocol": protocol, "out": out, "seq": sequential, "two": parallel, "plain": plain}
 
