@@ -108,9 +108,10 @@ class CheckpointConventions:
     @classmethod
     def parse(cls, data: Mapping[str, Any], source: str | None = None) -> "CheckpointConventions":
         where = source or CONVENTIONS_FILE
-        unknown = sorted(set(data) - {"format", "env", "policy", "text"})
+        unknown = sorted(set(data) - {"format", "env", "policy", "text", "served"})
         if unknown:
-            raise ConventionsError(f"{where}: unknown top-level key(s) {unknown}; use format, [env], [policy], [text]")
+            raise ConventionsError(f"{where}: unknown top-level key(s) {unknown}; use format, [env], [policy], [text], "
+                                   "[served]")
         text = dict(data.get("text") or {})
         if sorted(text) not in ([], ["tokenizer"]) or not isinstance(text.get("tokenizer", ""), str):
             raise ConventionsError(f"{where}: [text] takes one key, tokenizer = \"auto\" | \"fallback\" | \"<path>\"; "
@@ -134,6 +135,22 @@ class CheckpointConventions:
             conventions.policy_config()
         except ValueError as e:
             raise ConventionsError(f"{where}: {e}") from None
+        return conventions
+
+    @classmethod
+    def read_file(cls, path: str | Path) -> "CheckpointConventions":
+        """The conventions in a harness.toml-format file of any name (--served-conventions); a missing or invalid
+        file is one line. Its [served] table is the served-policy client's (harness/policies/served.py)."""
+        path = Path(path)
+        if not path.is_file():
+            raise ConventionsError(f"{path}: no such conventions file; fix --served-conventions")
+        try:
+            data = read_toml(path)
+        except tomllib.TOMLDecodeError as e:
+            raise ConventionsError(f"{path}: not valid TOML ({e}); fix the file") from None
+        conventions = cls.parse(data, str(path))
+        if conventions.text_tokenizer not in (None, "auto", "fallback"):
+            raise ConventionsError(f"{path}: [text] tokenizer is the server's business; drop it from this file")
         return conventions
 
     @classmethod

@@ -65,6 +65,9 @@ class Policy(ABC):
     checkpoint_dir: Path | None = None  # the local folder it was read from (its harness.toml, EVAL.md), or None
     text_tokenizer: Any = None  # the tokenizer object (its label goes into the manifest), or None
     attention_shape: AttentionShape | None = None  # None: the policy gives no attention
+    # no action statistics of its own to check (a policy behind a server): the pre-flight action check reads the first
+    # chunk it returns instead (harness/run/preflight.py), and a camera without an example frame is inconclusive
+    preflight_from_chunk: bool = False
 
     @abstractmethod
     def inference(self, config: PolicyConfig):

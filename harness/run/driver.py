@@ -34,7 +34,8 @@ from harness.runfolder.platform import (git_commit, platform_differences, platfo
 from harness.run.executor import CheckedEnv, EpisodeContext, Executor, Retrying, SequentialExecutor, StepCallback
 from harness.run.preflight import check_run
 from harness.run.progress import Progress
-from harness.run.protocol import FORMAT, EpisodeJob, Protocol, Recovery, diff, goal_fingerprint, model_fingerprint
+from harness.run.protocol import (FORMAT, EpisodeJob, Protocol, Recovery, diff, goal_fingerprint, model_fingerprint,
+                                  policy_options)
 from harness.outputs.writers import recorded_presentation
 from harness.run.store import MANIFEST, EpisodeRow, RunStore, now_utc, recovery, recovery_lines, statistics
 
@@ -243,7 +244,8 @@ def _checked_inputs(protocol: Protocol, out: str | Path, run_name: str | None, c
     out = checks.check_destination(Path(out))
     if run_name is not None:
         checks.check_run_name(run_name)  # before hashing the checkpoint
-    fingerprint, fingerprint_details = model_fingerprint(protocol.model, protocol.text_tokenizer)
+    fingerprint, fingerprint_details = model_fingerprint(protocol.model, protocol.text_tokenizer,
+                                                         protocol.served_conventions)
     goals_fp = goal_fingerprint(protocol.goal_images) if protocol.goal_images else None
     protocol = protocol.replace(model_fingerprint=fingerprint, goal_fingerprint=goals_fp)
     goal_images = checks.decode_goal_images(protocol.goal_images) if protocol.goal_images else None
@@ -288,7 +290,7 @@ def _open_run(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], name:
     goals = None
     if model is None and (pending or manifest is None):  # a finished run needs no model
         log.info("loading %s", protocol.model)
-        model = load_policy(protocol.model, text_tokenizer=protocol.text_tokenizer)
+        model = load_policy(protocol.model, **policy_options(protocol.text_tokenizer, protocol.served_conventions))
         interrupts.check()  # Ctrl-C while loading, its KeyboardInterrupt swallowed by a finaliser
     if model is not None:
         task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)

@@ -156,14 +156,46 @@ def action_classes(stats: dict, gripper: bool = True) -> dict:
 
 def action_finding(statistics: dict | None, dataset_key: str | None, action_space: str, hold_gripper=None) -> dict:
     """The verdict for the action space from `statistics` (dataset_statistics.json) under `dataset_key`."""
-    base = {"check": "action", "fed": action_space}
     stats = ((statistics or {}).get(dataset_key or "") or {}).get("action")
     if not isinstance(stats, dict):
-        return {**base, "verdict": INCONCLUSIVE, "reason": "no action statistics",
+        return {"check": "action", "fed": action_space, "verdict": INCONCLUSIVE, "reason": "no action statistics",
                 "line": f"action: {INCONCLUSIVE}: dataset_statistics.json holds no action statistics for "
                         f"{dataset_key!r}"}
-    found = action_classes(stats, gripper=hold_gripper is None)
-    polarity = "the statistics cannot tell the gripper's polarity (which end is open)"
+    return _verdict(action_classes(stats, gripper=hold_gripper is None), action_space, hold_gripper, "statistics",
+                    "the checkpoint's action statistics")
+
+
+def chunk_classes(chunk: np.ndarray, gripper: bool = True) -> dict:
+    """What one returned action chunk (horizon, dims) tells, only where it decides: translation values beyond
+    METRES_AT_MOST (up to 1) are controller inputs (small ones could be either: a slow first move), a gripper value
+    at -0.5 or below is the -1..1 convention (values in 0..1 could be either)."""
+    chunk = np.asarray(chunk, np.float64).reshape(-1, np.shape(chunk)[-1])
+    found: dict = {"dims": int(chunk.shape[-1])}
+    if chunk.shape[-1] >= 3:
+        reach = float(np.max(np.abs(chunk[:, :3])))
+        found["translation_reach"] = round(reach, 4)
+        if METRES_AT_MOST < reach <= 1.0 + 1e-3:
+            found["translation"] = "controller"
+    if gripper and chunk.shape[-1] >= 7:
+        low, high = float(chunk[:, 6].min()), float(chunk[:, 6].max())
+        found["gripper_range"] = [round(low, 4), round(high, 4)]
+        if low <= -0.5 and high <= 1.0 + 1e-3:
+            found["gripper"] = "-1..1"
+    return found
+
+
+def chunk_finding(chunk: np.ndarray, action_space: str, hold_gripper=None) -> dict:
+    """The verdict for the action space from the first chunk a policy without action statistics returned (a policy
+    behind a server): decisive only where one chunk decides (chunk_classes)."""
+    return _verdict(chunk_classes(chunk, gripper=hold_gripper is None), action_space, hold_gripper, "first chunk",
+                    "the policy's first action chunk")
+
+
+def _verdict(found: dict, action_space: str, hold_gripper, evidence: str, said_by: str) -> dict:
+    base = {"check": "action", "fed": action_space, "evidence": evidence} if evidence != "statistics" else {
+        "check": "action", "fed": action_space}
+    polarity = "the statistics cannot tell the gripper's polarity (which end is open)" if evidence == "statistics" \
+        else "one chunk cannot tell the gripper's polarity (which end is open)"
     features = {"translation": 0} if hold_gripper is not None else {"translation": 0, "gripper": 1}
     known = {f: found.get(f) for f in features if found.get(f) is not None}
     fits = [s for s in EXPECTED if all(EXPECTED[s][features[f]] == v for f, v in known.items())]
@@ -174,14 +206,24 @@ def action_finding(statistics: dict | None, dataset_key: str | None, action_spac
         suggest = f"; run with {' or '.join(f'--action-space {s}' for s in fits)}" if fits else ""
         want = ", ".join(f"{f} {EXPECTED[action_space][i]}" for f, i in features.items())
         return {**out, "verdict": MISMATCH, "suggest": fits,
-                "line": f"action: {MISMATCH}: the checkpoint's action statistics say {said}; the {action_space} action "
+                "line": f"action: {MISMATCH}: {said_by} say {said}; the {action_space} action "
                         f"space expects {want}{suggest}"}
     if len(known) < len(features):
         missing = ", ".join(f for f in features if f not in known)
-        return {**out, "verdict": INCONCLUSIVE, "reason": f"{missing} not told by the statistics",
-                "line": f"action: {INCONCLUSIVE}: the statistics do not tell the {missing} "
+        where = "the statistics do not" if evidence == "statistics" else "the first action chunk does not"
+        return {**out, "verdict": INCONCLUSIVE, "reason": f"{missing} not told by the {evidence}",
+                "line": f"action: {INCONCLUSIVE}: {where} tell the {missing} "
                         f"({said or 'nothing known'}); {polarity}"}
     return {**out, "verdict": CONSISTENT, "line": ""}
+
+
+def first_chunk(model, config, env, seed: int) -> np.ndarray:
+    """The action chunk `model` (a harness.policies.Policy) returns for the env's first observation after
+    `reset(seed=seed)`, with the task's instruction (one inference, outside any episode)."""
+    observation, info = env.reset(seed=seed)
+    policy = model.closed_loop(config)
+    policy.reset((info or {}).get("instruction", ""), seed=seed)
+    return np.asarray(policy.step(observation).chunk)
 
 
 def first_frames(env, seed: int) -> dict[str, np.ndarray]:
@@ -202,14 +244,26 @@ def example_frames(model) -> dict[str, np.ndarray]:
 
 
 def run_checks(model, env, seed: int, convention: str, action_space: str, dataset_key: str | None,
-               hold_gripper=None, default: str | None = None) -> list[dict]:
-    """Every finding for a run: one per camera the model and the env share, then the action space's."""
+               hold_gripper=None, default: str | None = None, config=None) -> list[dict]:
+    """Every finding for a run: one per camera the model and the env share, then the action space's (from the
+    policy's action statistics; a policy without them, given `config`, from the first chunk it returns)."""
     examples = example_frames(model)
     frames = first_frames(env, seed)
     datasets = len(getattr(model, "dataset_statistics", None) or {})
     found = [image_finding(k, examples[k], frames[k], convention, default, datasets) for k in examples if k in frames]
-    found.append(action_finding(getattr(model, "dataset_statistics", None), dataset_key, action_space, hold_gripper))
+    from_chunk = config is not None and getattr(model, "preflight_from_chunk", False)
+    found += [_no_example(k, "the policy's metadata has no example frame") for k in frames
+              if from_chunk and k not in examples and k in model.image_sizes]
+    statistics = getattr(model, "dataset_statistics", None)
+    if from_chunk and not statistics:
+        found.append(chunk_finding(first_chunk(model, config, env, seed), action_space, hold_gripper))
+    else:
+        found.append(action_finding(statistics, dataset_key, action_space, hold_gripper))
     return found
+
+
+def _no_example(key: str, why: str) -> dict:
+    return {"check": f"image:{key}", "verdict": INCONCLUSIVE, "reason": why, "line": f"{key}: {INCONCLUSIVE}: {why}"}
 
 
 def record(mode: str, findings: list[dict], task: str | None = None) -> dict:
@@ -252,7 +306,7 @@ def check_run(mode: str, protocol, model, env, seed: int, dataset_key: str | Non
     task = protocol.tasks[0]
     options = protocol.env_for(task)
     findings = run_checks(model, env, seed, options.image_convention, options.action_space, dataset_key,
-                          options.hold_gripper, suites.of(task).defaults["image_convention"])
+                          options.hold_gripper, suites.of(task).defaults["image_convention"], protocol.policy)
     folder = getattr(model, "checkpoint_dir", None)
     for line in report(mode, findings, folder is not None and (Path(folder) / CONVENTIONS_FILE).is_file()):
         log.warning("%s", line)

@@ -94,6 +94,15 @@ class Protocol:
             "offline when t5-base is not cached), or a `tokenizer.json` / a folder holding one; also `[text] "
             "tokenizer` in `harness.toml`. The tokenizer's identity (kind, vocabulary size, sha256 of its file) is in "
             "the manifest (`model.tokenizer`) and in the model fingerprint [auto]")
+    served_conventions: str | None = option(  # absolute path, or None: the server's own (its metadata)
+        None, "--served-conventions", "a policy behind a server (--model ws://): a harness.toml-format file with its "
+        "image convention and action space ([env]) and the server's observation keys ([served]); its content is part "
+        "of the model fingerprint", file=(str,), metavar="FILE", sparse=True, hashed=False,
+        convert=lambda v: str(Path(v).expanduser().resolve()), default_text="the server's own",
+        doc="for `--model ws://HOST:PORT`: a `harness.toml`-format file declaring the served policy's image convention "
+            "and action space (`[env]`) and how the harness's observations map to the server's keys (`[served]`, "
+            "[serving.md](serving.md)); without it the server's metadata says, else openpi's LIBERO example keys. Its "
+            "content is part of the model fingerprint, its path is not")
     perturb: str | None = option(  # canonical "KIND[@KEY]:LEVEL,..." (envs.perturbations); None = nominal (level 0 too)
         None, "--perturb", {
             "run": "controlled perturbation of the scene (part of the protocol; docs/perturbations.md): camera, "
@@ -153,7 +162,7 @@ class Protocol:
 
     def fingerprinted(self) -> "Protocol":
         """This protocol with `model_fingerprint` and `goal_fingerprint` computed from the files (stream-hashed)."""
-        fp, _ = model_fingerprint(self.model, self.text_tokenizer)
+        fp, _ = model_fingerprint(self.model, self.text_tokenizer, self.served_conventions)
         goals = goal_fingerprint(self.goal_images) if self.goal_images else None
         return self.replace(model_fingerprint=fp, goal_fingerprint=goals)
 
@@ -274,10 +283,16 @@ _MISSING = object()
 
 # ---------------------------------------------------------------------------------------------- fingerprints
 
-def model_fingerprint(source: str, text_tokenizer: str | None = None) -> tuple[str, dict]:
+def model_fingerprint(source: str, text_tokenizer: str | None = None,
+                      served_conventions: str | None = None) -> tuple[str, dict]:
     """(fingerprint, details) of the policy `source` names, by its family (harness.policies): an Octo checkpoint's
-    files (harness/policies/fingerprint.py), a policy server's declared identity."""
-    return policy_fingerprint(source, text_tokenizer=text_tokenizer)
+    files (harness/policies/fingerprint.py), a policy server's declared identity (with its conventions file)."""
+    return policy_fingerprint(source, **policy_options(text_tokenizer, served_conventions))
+
+
+def policy_options(text_tokenizer: str | None = None, served_conventions: str | None = None) -> dict:
+    """The options a policy family loads and fingerprints a source with (harness.policies.load_policy)."""
+    return {"text_tokenizer": text_tokenizer, **({"served_conventions": served_conventions} if served_conventions else {})}
 
 
 def goal_fingerprint(folder: str | Path) -> str | None:

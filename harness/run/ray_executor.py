@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 from harness.policy import ClosedLoopPolicy, InferenceRequest, InferenceResult, PolicyConfig, TaskPrompt
+from harness.run.protocol import policy_options
 from harness.run.executor import EpisodeContext, InfrastructureError
 from harness.run.ray_errors import actor_death_cause, actor_error, last_line, lost_part
 from harness.run.workers import PolicyError, WorkerSpec, warmup_request, warmup_task, worker_spec
@@ -78,10 +79,10 @@ def import_ray():
 class PolicyReplica:
     """A model replica serving batched inference requests from many env workers (an async Ray actor)."""
 
-    def __init__(self, model_source: str, config: PolicyConfig, text_tokenizer: str | None = None):
+    def __init__(self, model_source: str, config: PolicyConfig, options: dict | None = None):
         from harness.policies import load_policy
 
-        self.model = load_policy(model_source, text_tokenizer=text_tokenizer)
+        self.model = load_policy(model_source, **(options or {}))  # options: harness.run.protocol.policy_options
         self.inference = self.model.inference(config)
         self._pending: list[tuple[InferenceRequest, asyncio.Future]] = []
         self._running = False
@@ -304,7 +305,9 @@ class RayExecutor:
             raise RayExecutorError(f"the policy replica did not start: {actor_error(exc)}") from None
 
     def _new_replica(self):
-        return self._replica_cls.remote(self.model_source, self.spec.policy, self.context.protocol.text_tokenizer)
+        protocol = self.context.protocol
+        return self._replica_cls.remote(self.model_source, self.spec.policy,
+                                        policy_options(protocol.text_tokenizer, protocol.served_conventions))
 
     def _start_worker(self, i: int):
         """Start env worker `i` (again); it takes jobs once its `ready` answers (`_started`)."""

@@ -137,9 +137,19 @@ def _model_folder(model: str) -> Path | None:
     return path if path.is_dir() else None
 
 
-def _conventions(model: str):
+def _conventions(model: str, served_conventions: str | None = None):
+    """The model's conventions: a served policy's from --served-conventions, else from what its server declares
+    (harness.policies.served.declared_conventions); a checkpoint's from its folder's harness.toml."""
     from harness.conventions import CheckpointConventions
+    from harness.policies import family_of
 
+    if served_conventions is not None:
+        return CheckpointConventions.read_file(served_conventions)
+    if family_of(model).name == "served":
+        from harness.policies.served import declared_conventions
+
+        data = declared_conventions(model)
+        return CheckpointConventions.parse(data, f"{model} (its metadata)") if data else CheckpointConventions()
     return CheckpointConventions.read(_model_folder(model))
 
 
@@ -159,7 +169,8 @@ def build_protocol(settings: Mapping[str, Any]) -> Protocol:
     """A Protocol from explicit settings (None = not given); conventions and defaults fill the rest."""
     s = {k: v for k, v in settings.items() if v is not None}
     model = normalise_model(str(s.get("model", DEFAULT_MODEL)))
-    conventions = _conventions(model)
+    served = s.get("served_conventions")
+    conventions = _conventions(model, str(Path(served).expanduser().resolve()) if served else None)
 
     env_given: dict[str, Any] = given(EnvOptions, s)
     tasks = resolve_tasks(s.get("task"))

@@ -40,8 +40,9 @@ def test_every_run_flag_that_changes_a_file_is_a_recorded_field():
     assert {"faithfulness_fill", "ci_method", "camera", "no_video", "intervene", "out", "run_name"} <= set(FILE_KEYS)
     outside = sorted(o.flag for cls, _ in RUN_OPTIONS for _, o in options(cls) if not o.hashed)
     # the manifest's statistics, presentation (the colour map), recovery and pre-flight check, the folder's path; the
-    # space check changes no file
-    assert outside == ["--ci-method", "--colormap", "--no-space-check", "--out", "--preflight", "--retries", "--run-name"]
+    # space check changes no file; a served policy's conventions file enters the model fingerprint by its content
+    assert outside == ["--ci-method", "--colormap", "--no-space-check", "--out", "--preflight", "--retries", "--run-name",
+                       "--served-conventions"]
 
 
 def test_robustness_takes_runs_options_and_states_only_where_it_differs():
