@@ -45,6 +45,7 @@ import envs
 from envs.perturbations import instruction_for
 from harness.files import atomic_write_json
 from harness.policy import ClosedLoopPolicy, EnvMismatchError
+from harness.policies.served import ServerLostError
 from harness.records import EpisodeMeta, StepRecord
 from harness.rollout import rollout
 from harness.run.protocol import EpisodeJob, Protocol
@@ -188,12 +189,13 @@ class InfrastructureError(RuntimeError):
 
 def failure_of(exc: BaseException) -> tuple[str, str | None]:
     """An episode's exception -> (failure kind, the lost part or None): "infrastructure" for a lost worker, node or
-    policy replica (InfrastructureError), what a suite says its env lost (envs.suites.Suite.lost: a LIBERO server that
+    policy replica (InfrastructureError), a policy server that refused, dropped or stopped answering the connection
+    (harness.policies.served.ServerLostError: the retry reconnects), what a suite says its env lost (envs.suites.Suite.lost: a LIBERO server that
     died or stopped answering), a render context that OpenGL lost, or a disk that filled ("disk": the driver stops the run, harness/run/space.py); "episode" for
     anything else (the policy, the env, the physics, a non-finite action)."""
     if disk_error(exc) is not None:
         return "infrastructure", DISK
-    if isinstance(exc, InfrastructureError):
+    if isinstance(exc, (InfrastructureError, ServerLostError)):
         return "infrastructure", exc.lost
     lost = envs.suites.lost(exc)
     if lost is not None:
