@@ -17,7 +17,11 @@ from harness.octo.tokens import TokenMap
 class StepRecord:
     step: int  # control step index t (0-based)
     frames: dict[str, np.ndarray]  # observation key -> (height, width, 3) uint8, the frame the model saw, shown upright
-    readout_attention: np.ndarray  # (layers, heads, readouts, keys) float32, post-softmax rows of the last timestep's readouts
+    # (layers, heads, readouts, keys) float32, post-softmax rows of the last timestep's readouts; None when the policy
+    # gives no attention (harness.policies.Capabilities.attention False, e.g. a served policy): the step then has no
+    # token map either, and the writers record everything else (frames, actions, rewards, masks, inputs) without
+    # attention arrays, panels or measures (harness.outputs.writers)
+    readout_attention: np.ndarray | None
     actions_predicted: np.ndarray  # (action_horizon, action_dim) float32, unnormalised chunk predicted at this step
     action_executed: np.ndarray  # (action_dim,) float32, the action sent to the env at this step
     reward: float

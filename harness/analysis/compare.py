@@ -15,7 +15,11 @@ compare.json holds, read by attribute; `to_json()` writes it):
   an intervention or another policy setting that differs is named, as what the drift measures); the same per step over the first k steps; and over
   whole episodes, marked confounded (trajectories diverge once actions differ);
 - identical: every array of every pair (actions.npz, attention.npz) equal within `atol`, with the same
-  outcomes: the overall verdict is then IDENTICAL.
+  outcomes: the overall verdict is then IDENTICAL. A run of a policy without attention (its attention.npz holds step
+  and phase only, harness.outputs.writers) is compared on the arrays both runs have: against a run with attention,
+  the attention arrays are left out of the check (so one deterministic policy, with and without attention, comes out
+  IDENTICAL on identical actions) and one line says so, "attention only in the baseline" among the measures only one
+  run took (`one_side_measures`); two runs without attention say so in one line too. No attention drift then.
 
 Outcomes: n is the pairs in which both arms ran to an outcome (as in the run store's statistics); a pair in
 which either arm errored (status "failed") is left out of the table and counted beside n ("errored pairs").
@@ -61,7 +65,8 @@ from harness.analysis.compare_result import (
 )
 from harness.measures.attention import DERIVED_PREFIXES
 from harness.analysis.equivalence import attention_divergence
-from harness.analysis.protocol_fields import incompatible_fields, one_side_line, one_side_measures, what_differs
+from harness.analysis.protocol_fields import (ATTENTION_NOTES, attention_sides, incompatible_fields, one_side_line,
+                                             one_side_measures, shared_arrays, what_differs, with_attention_sides)
 from harness.analysis.outcomes import incompleteness, outcome_tables, outcome_verdicts, overall_verdict
 from harness.analysis.provenance import input_agreement, provenance
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
@@ -194,6 +199,10 @@ def _compare_pair(task, seed, base: EpisodeRecord, cand: EpisodeRecord, truncate
         out["difference"] = (f"the {' and '.join(errored)} episode errored (no outcome)" if errored
                              else "an episode has no arrays")
         return out
+    sides = attention_sides(a, b)
+    if sides != "both":
+        out["attention_note"] = ATTENTION_NOTES[sides]
+        a, b = shared_arrays(a, b)
     stored_a, stored_b = _step_count(a), _step_count(b)
     complete = (stored_a == base.steps or truncated[0]) and (stored_b == cand.steps or truncated[1])
     steps = min(stored_a, stored_b)
@@ -227,7 +236,7 @@ def _compare_pair(task, seed, base: EpisodeRecord, cand: EpisodeRecord, truncate
         la = target_lift({k.split(":", 1)[1]: v for k, v in a.items() if k.startswith("attention.npz:")})
         lb = target_lift({k.split(":", 1)[1]: v for k, v in b.items() if k.startswith("attention.npz:")})
         out["lift_change_step0"] = {obs: lb[obs][0] - la[obs][0] for obs in la if obs in lb}  # (layers,)
-    elif not tokens_equal:
+    elif not tokens_equal and sides == "both":
         out["attention_note"] = "token maps or attention shapes differ (different architecture): no attention drift"
     return out
 
@@ -360,10 +369,9 @@ def _result(baseline: RunRecord, candidate: RunRecord, details: list[dict], miss
         notes.insert(0, incomplete.note)
         verdict = GateVerdict.worst([verdict, GateVerdict.INCOMPLETE])  # ERRORED and REGRESSED stand
     protocol = _protocol(baseline)
-    one_side = one_side_measures(protocol, _protocol(candidate))
+    one_side, attention_note = with_attention_sides(one_side_measures(protocol, _protocol(candidate)), details)
     one_side_note = one_side_line(one_side)
-    if one_side_note:
-        notes.append(one_side_note)
+    notes += [note for note in (one_side_note, attention_note) if note]
     return CompareResult(
         format=FORMAT,
         verdict=verdict,

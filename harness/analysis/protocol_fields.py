@@ -1,5 +1,6 @@
 """What two runs' protocols differ in: whether the runs can be paired, what the drift and provenance lines name,
-and which measures only one run took.
+and which measures only one run took (the probes a protocol turns on; attention, which a policy without it lacks:
+`attention_sides`, compared on the arrays both runs have, `shared_arrays`).
 
 Fields fall in four kinds:
   the model      MODEL_FIELDS: what a comparison is usually about;
@@ -57,6 +58,40 @@ def one_side_line(sides: dict[str, tuple[str, ...]]) -> str | None:
         return None
     return (f"measures only one run took: {'; '.join(parts)} (measured beside the actions; compared where both "
             "runs have them)")
+
+
+ATTENTION = "attention.npz:readout_attention"
+
+
+def attention_sides(a: dict, b: dict) -> str:
+    """Which arm's arrays hold readout attention: "both", "baseline", "candidate" or "neither"."""
+    return {(True, True): "both", (True, False): "baseline", (False, True): "candidate",
+            (False, False): "neither"}[(ATTENTION in a, ATTENTION in b)]
+
+
+ATTENTION_NOTES = {"baseline": "only the baseline has attention (the candidate's policy gives none): compared on "
+                               "actions, rewards and outcomes",
+                   "candidate": "only the candidate has attention (the baseline's policy gives none): compared on "
+                                "actions, rewards and outcomes",
+                   "neither": "neither run has attention (policies without it): compared on actions, rewards and "
+                              "outcomes"}
+
+
+def shared_arrays(a: dict, b: dict) -> tuple[dict, dict]:
+    """Both arms' arrays with the attention.npz arrays only one arm has left out (one arm has no attention)."""
+    def keep(x: dict, y: dict) -> dict:
+        return {k: v for k, v in x.items() if not k.startswith("attention.npz:") or k in y}
+    return keep(a, b), keep(b, a)
+
+
+def with_attention_sides(one_side: dict[str, tuple[str, ...]], details: list[dict]) -> tuple[dict, str | None]:
+    """`one_side_measures` with "attention" added to the arm that alone has it in some pair (the other arm's policy
+    gives none), and the one line for pairs where neither arm has attention (None otherwise)."""
+    notes = {d.get("attention_note") for d in details}
+    alone = [arm for arm in ("baseline", "candidate") if ATTENTION_NOTES[arm] in notes]
+    one_side = {arm: (("attention",) if arm in alone else ()) + tuple(names) for arm, names in one_side.items()}
+    neither = ATTENTION_NOTES["neither"] in notes and not alone
+    return one_side, f"attention: {ATTENTION_NOTES['neither']}" if neither else None
 
 
 _MISSING = object()

@@ -8,7 +8,8 @@ reads one episode's attention.npz into an `EpisodeArrays`. Two layouts are read:
 - "legacy": results.json holding {"manifest": ..., "episodes": [...]} (runs made before the run store).
 
 Readers must tolerate a run in progress or interrupted (fewer episodes than jobs: `RunRecord.missing`),
-failed episodes (status "failed", no arrays) and runs without masks (no mask arrays). A folder that is
+failed episodes (status "failed", no arrays), runs without masks (no mask arrays) and runs of a policy without
+attention (`RunRecord.attention` False: attention.npz holds step and phase only, `no_attention_line` says so). A folder that is
 not a run raises `NotARunError` with one line naming the fix.
 
 A run folder is untrusted input: `load_run` checks (harness/runfolder/) that the run's files and every finished
@@ -102,6 +103,13 @@ class RunRecord:
     git_commit: str | None = None
     created: str | None = None
     unverified: int = 0  # finished episodes whose rows record no file digests (made before digests were recorded)
+
+    @property
+    def attention(self) -> bool:
+        """Whether the run's policy gave attention: False when the manifest records a model without attention layers
+        (a policy without attention, e.g. a served one: its episodes' attention.npz hold step and phase only)."""
+        model = self.manifest.get("model") if isinstance(self.manifest, dict) else None
+        return not (isinstance(model, dict) and "layers" in model and model["layers"] is None)
 
     @property
     def missing(self) -> int:
@@ -304,6 +312,17 @@ def _load_legacy_run(path: Path, data) -> RunRecord:
         git_commit=manifest.get("git_commit"),
         created=data.get("created"),
     )
+
+
+def no_attention_line(runs, where: str = "") -> str | None:
+    """One line naming the runs (RunRecord, or anything with `.record`) whose policy gave no attention, or None."""
+    records = [getattr(r, "record", r) for r in runs]
+    without = [r for r in records if not r.attention]
+    if not without:
+        return None
+    names = ", ".join(f"{r.name} ({r.model.source})" for r in without)
+    return (f"no attention{' ' + where if where else ''}: {names} "
+            f"{'gives' if len(without) == 1 else 'give'} actions only (a policy without attention, e.g. a served one)")
 
 
 def load_episode_arrays(episode: EpisodeRecord) -> EpisodeArrays:

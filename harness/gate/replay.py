@@ -61,6 +61,13 @@ def _recorded_outputs(episode: EpisodeRecord) -> tuple[np.ndarray, np.ndarray]:
     return actions["predicted"], attention["readout_attention"]
 
 
+def no_attention_error(run) -> ReplayInputError:
+    """Replay of a run whose policy gave no attention (a served one): one line naming what it needs."""
+    return ReplayInputError(f"{run.path} was made by {run.model.source}, a policy without attention (a served one): "
+                            "replay needs that policy's server and attention to compare with; start the server, run "
+                            "the protocol again and compare the two runs with `octo-harness compare`")
+
+
 def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolerances: Tolerances) -> EpisodeReplay:
     """One episode: replay its inferred steps; returns per-step changes and the episode's verdict."""
     from harness.policy import InferenceRequest, TaskPrompt, window_from_entries
@@ -140,6 +147,8 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, gate: GateC
         raise ReplayInputError(f"{run.path} was made before the run store and recorded no inputs; re-run it with "
                                "--record-inputs")
     protocol = protocol_from_manifest(run.manifest, run.path / "manifest.json")
+    if not run.attention:
+        raise no_attention_error(run)
     episodes = [e for e in run.episodes if e.ok]
     if not episodes:
         raise ReplayInputError(f"{run.path} has no finished episode to replay; finish the run first")

@@ -13,6 +13,9 @@ executed actions are compared with the recorded ones bit for bit: the result is 
 recording. When they differ (another platform's numerics, another model file) the frames show the re-simulated
 episode beside the recorded numbers. `simulate=False` skips it: the recording then has every map and measure but no
 frames, and the message names the run option that records them (`--rerun save`).
+
+A run of a policy without attention (harness.analysis.runs.RunRecord.attention False) is shown with its frames,
+actions and scalars only; re-simulating it needs its policy (a served one: its server running).
 """
 
 from __future__ import annotations
@@ -145,10 +148,11 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
 
     attention = read_npz(ep.attention_path, steps=ep.steps or None)
     actions = read_npz(ep.directory / "actions.npz", steps=ep.steps or None)
-    if "readout_attention" not in attention:
+    if "readout_attention" not in attention and run.attention:
         raise ViewInputError(f"{ep.attention_path} has no readout_attention; re-run the episode")
-    tokens = TokenMap.from_arrays(attention)
-    steps = attention["readout_attention"].shape[0]  # (steps, layers, heads, readouts, keys) float16
+    # a run of a policy without attention: frames, actions and scalars, no attention entities
+    tokens = TokenMap.from_arrays(attention) if run.attention else None
+    steps = (attention["readout_attention"] if run.attention else actions["executed"]).shape[0]
     metric_names = [k[len("metrics/"):] for k in attention if k.startswith("metrics/")]
     # each probe's payloads as its files hold them, read back by the probe's reader (a map layer over a frame draws
     # on the re-simulated frames and masks)
@@ -214,7 +218,7 @@ def _recorded_step(i: int, attention: dict, actions: dict, again: StepRecord | N
              else None)  # the task phase attention.npz recorded (envs.phases)
     return StepRecord(
         step=step, frames=dict(again.frames) if again is not None else {},
-        readout_attention=attention["readout_attention"][i],
+        readout_attention=attention["readout_attention"][i] if "readout_attention" in attention else None,
         actions_predicted=predicted[i] if predicted is not None and len(predicted) > i else np.zeros((0, 0)),
         action_executed=actions["executed"][i], reward=float(actions["reward"][i]),
         success=bool(actions["success"][i]), masks=again.masks if again is not None else None,

@@ -56,7 +56,8 @@ def write_lines(path, lines: list[str]) -> None:
 
 class AttentionArrays(Sink):
     """attention.npz: step, tokens/*, metrics/*, mask_fraction/*, readout_attention, measures/*, rollout_readout,
-    phase and phase_names (see harness.outputs.writers)."""
+    phase and phase_names (see harness.outputs.writers); of a policy without attention only step, phase and
+    phase_names."""
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -69,15 +70,18 @@ class AttentionArrays(Sink):
 
     def add(self, step: FinishedStep) -> None:
         self.steps.append(step.step)
+        self.phases.append(step.record.phase)
+        if step.attention is None:  # a policy without attention: step and phase only
+            return
         self.attention.append(step.attention.astype(np.float16))
         self.metrics.append(step.metrics)
         self.fractions.append(mask_fractions(step.tokens, step.record.masks))
-        self.phases.append(step.record.phase)
         if step.rollout is not None:
             self.rollout.append(step.rollout.astype(np.float16))
 
     def close(self, end: EpisodeEnd) -> dict[str, Any]:
-        arrays = {"step": np.asarray(self.steps, np.int32), **end.tokens.to_arrays(),
+        tokens = end.tokens.to_arrays() if end.tokens is not None else {}  # None: the policy gives no attention
+        arrays = {"step": np.asarray(self.steps, np.int32), **tokens,
                   **stack_steps(self.metrics, "metrics/"), **stack_steps(self.fractions, "mask_fraction/")}
         if self.attention:
             arrays["readout_attention"] = np.stack(self.attention)

@@ -58,17 +58,19 @@ def mask_png(mask: np.ndarray) -> bytes:
     return out.getvalue()
 
 
-def blueprint(cameras: list[str], layers: int, intervention: bool = False, shown: list = ()):
+def blueprint(cameras: list[str], layers: int, intervention: bool = False, shown: list = (), attention: bool = True):
     """The default layout: per camera its frame (with masks, and the probes' layers over it) beside the layer tabs
     of attention overlays (last layer shown); the per-head tensor with sliders over layer and head; the probes' views
     of the camera (attribution maps) in tabs; the measures (and the probes' plots, e.g. a share per region and
     camera), actions and rewards on the timeline; the instruction and outcome. `shown`: (viewer layer, payload)
     of the probes at the first step (harness.probes: `camera_views(cam, payload)`, `camera_note(payload)`,
-    `plots(payload)`)."""
+    `plots(payload)`). attention=False (a policy that gives none): per camera its frame only, and no measures."""
     import rerun.blueprint as rrb
     from rerun.blueprint.datatypes import TensorDimensionIndexSlider
     from rerun.datatypes import TensorDimensionIndexSelection, TensorDimensionSelection
 
+    if not attention:
+        return _plain_blueprint(rrb, cameras, intervention)
     image_rows = []
     for cam in cameras:
         names = [f"{cam} layer {layer}" for layer in range(layers)]
@@ -111,4 +113,20 @@ def blueprint(cameras: list[str], layers: int, intervention: bool = False, shown
         row_shares=[3, 2, 1.5, 1.5],
     )
     return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*image_rows), plots, column_shares=[3, 2]),
+                         rrb.TimePanel(expanded=True), collapse_panels=True)
+
+
+def _plain_blueprint(rrb, cameras: list[str], intervention: bool):
+    """The layout of an episode without attention: each camera's frame (with its masks), actions, scalars, text."""
+    rows = [rrb.Horizontal(rrb.Spatial2DView(origin=entity("camera", cam), name=cam),
+                           *([rrb.Spatial2DView(origin=entity("intervention", cam), name=f"{cam} as the policy saw it")]
+                             if intervention else [])) for cam in cameras]
+    plots = rrb.Vertical(
+        rrb.TimeSeriesView(origin="actions", name="actions (executed; first of the predicted chunk)"),
+        rrb.TimeSeriesView(origin="scalars", name="reward, success, new chunks"),
+        rrb.Horizontal(rrb.TextDocumentView(origin="episode/instruction", name="episode"),
+                       rrb.TextDocumentView(origin="episode/outcome", name="outcome")),
+        row_shares=[2, 1.5, 1.5],
+    )
+    return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*rows), plots, column_shares=[3, 2]),
                          rrb.TimePanel(expanded=True), collapse_panels=True)

@@ -242,7 +242,9 @@ class RerunSink:
         rr = self.rr
         self._styled = set()
         shown = self._layers(record)  # the probes' layers of step 0 (a step of every probe's period) set the views
-        bp = blueprint(cameras, layers, self.intervention, shown)
+        attention = record.readout_attention is not None
+        bp = blueprint(cameras, layers, self.intervention, shown) if attention else \
+            blueprint(cameras, 0, self.intervention, shown, attention=False)
         for stream in self.streams:
             stream.send_blueprint(bp, make_active=True, make_default=True)
         meta = self.meta
@@ -252,6 +254,8 @@ class RerunSink:
         if self.intervention:
             header.append(f"- intervention: {meta.extra.get('intervention')}")
         header.append("- green over the frames: the target object's mask")
+        if not attention:
+            header.append("- no attention: the policy gives none (frames, actions and scalars only)")
         for layer, payload in shown:
             header.extend(layer.header(payload))
         if meta.extra.get("frames_note"):
@@ -259,18 +263,23 @@ class RerunSink:
         self._static("episode/instruction", rr.TextDocument("\n".join(header), media_type="text/markdown"))
         self._static("episode/outcome", rr.TextDocument("(episode running)"))
 
-    def log_step(self, record: StepRecord, tokens: TokenMap, metrics: dict[str, np.ndarray] | None = None) -> None:
+    def log_step(self, record: StepRecord, tokens: TokenMap | None, metrics: dict[str, np.ndarray] | None = None) -> None:
         """One control step. tokens: the token map of its attention; metrics: attention.step_metrics of it (as
-        metrics.jsonl / attention.npz hold them; the measures plotted), None to skip the measures."""
+        metrics.jsonl / attention.npz hold them; the measures plotted), None to skip the measures. A step without
+        attention (its readout_attention None: a policy that gives none) logs its frames, masks, actions and
+        scalars, no attention entities (tokens may be None)."""
         if self._done:
             raise RuntimeError("this recording is finished")
         opts = self.options
-        attn = np.asarray(record.readout_attention, np.float16).astype(np.float32)  # as attention.npz stores it
-        if attn.ndim != 4 or attn.shape[-1] != tokens.num_keys:
-            raise ValueError(f"readout_attention must be (layers, heads, readouts, keys={tokens.num_keys}); "
-                             f"got {attn.shape}")
-        layers = attn.shape[0]
-        cameras = [key for _, key, _, _ in tokens.image_groups]  # maps of every camera; frames where the record has them
+        attn = None
+        if record.readout_attention is not None:
+            attn = np.asarray(record.readout_attention, np.float16).astype(np.float32)  # as attention.npz stores it
+            if attn.ndim != 4 or attn.shape[-1] != tokens.num_keys:
+                raise ValueError(f"readout_attention must be (layers, heads, readouts, keys={tokens.num_keys}); "
+                                 f"got {attn.shape}")
+        layers = attn.shape[0] if attn is not None else 0
+        # maps of every camera; frames where the record has them (without attention: the record's frames)
+        cameras = [key for _, key, _, _ in tokens.image_groups] if attn is not None else list(record.frames)
         if not self._started:
             self._start(record, layers, cameras)
             self._started = True
@@ -282,8 +291,9 @@ class RerunSink:
                 self.live.set_time("sim_time", duration=step / self.control_hz)
 
         for cam in cameras:
-            heads = camera_maps(attn, tokens, cam).mean(axis=2)  # (layers, heads, rows, cols)
-            self._emit(entity("attention", cam, "heads"), "tensor", (heads, TENSOR_DIMS))
+            if attn is not None:
+                heads = camera_maps(attn, tokens, cam).mean(axis=2)  # (layers, heads, rows, cols)
+                self._emit(entity("attention", cam, "heads"), "tensor", (heads, TENSOR_DIMS))
             if cam not in record.frames:
                 continue
             frame = np.asarray(record.frames[cam])
@@ -295,11 +305,13 @@ class RerunSink:
                 if previous is None or not np.array_equal(previous, target):  # logged when it changes (latest-at holds it)
                     self._targets[cam] = target
                     self._emit(entity("camera", cam, "target"), "png", mask_png(target))
-            fused = fuse_heads(heads, opts.head_fusion, axis=1)  # (layers, rows, cols)
-            shown = overlay_base(frame)
-            overlays = heatmap_overlays(shown, fused, alpha=opts.alpha, cmap=opts.cmap, interpolation=opts.interpolation)
-            for layer in range(layers):
-                self._image(entity("attention", cam, f"layer_{layer:02d}"), overlays[layer])
+            if attn is not None:
+                fused = fuse_heads(heads, opts.head_fusion, axis=1)  # (layers, rows, cols)
+                shown = overlay_base(frame)
+                overlays = heatmap_overlays(shown, fused, alpha=opts.alpha, cmap=opts.cmap,
+                                            interpolation=opts.interpolation)
+                for layer in range(layers):
+                    self._image(entity("attention", cam, f"layer_{layer:02d}"), overlays[layer])
             seen = (record.policy_inputs or {}).get(cam)
             if self.intervention and seen is not None and np.ndim(seen) == 3:
                 self._image(entity("intervention", cam), np.asarray(seen, np.uint8))

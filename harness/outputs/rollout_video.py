@@ -3,7 +3,8 @@
 Each frame has one row per video camera (OutputOptions.video_camera: every camera the model reads by default):
 camera | attention overlay | captions, over a strip of every layer's map. The overlay is a layer's fused heads, the
 attention rollout (video_attention="rollout") or an attribution map (its maps come with the records). Frames use
-per-frame colour ranges. The encoders (harness.outputs.video) write to temporary names and move them into place when
+per-frame colour ranges. A policy without attention (FinishedStep.attention None) gets frames of its cameras beside
+the captions only (`frames_only`: no overlay panels, no layer strips). The encoders (harness.outputs.video) write to temporary names and move them into place when
 they close, at the end of the episode.
 """
 
@@ -14,7 +15,9 @@ from typing import Any
 import numpy as np
 
 from harness.measures.attention import camera_maps, fuse_heads
-from harness.outputs.overlays import heatmap_overlay, video_frame
+from PIL import Image, ImageDraw
+
+from harness.outputs.overlays import BACKGROUND, PAD, _draw_video_text, _round_up, heatmap_overlay, resize_nearest, video_frame
 from harness.outputs.steps import EpisodeEnd, FinishedStep, Sink
 from harness.outputs.video import GifWriter, Mp4Writer
 
@@ -60,6 +63,10 @@ class RolloutVideo(Sink):
     def frame(self, step: FinishedStep) -> np.ndarray:
         """The step's video frame (height, width, 3) uint8."""
         opts, layout, record = self.options, step.layout, step.record
+        if step.attention is None:  # a policy without attention: its frames and the captions
+            return frames_only([step.frames[cam] for cam in layout.video_cameras], self.captions(
+                record, f"{layout.video_cameras[0]}: the policy gives no attention (no overlay)", with_colours=False),
+                [f"{cam}" for cam in layout.video_cameras[1:]])
         shown_frames, overlays, strips, row_boxes, labels = [], [], [], [], []
         for cam in layout.video_cameras:
             fused = fuse_heads(step.maps[cam], opts.head_fusion, axis=1)  # (layers, rows, cols)
@@ -82,16 +89,38 @@ class RolloutVideo(Sink):
             strips.append(fused)
             row_boxes.append(step.boxes.get(cam))
             labels.append(f"{cam}: {what}; below: every layer")
+        captions = self.captions(record, labels[0])
+        return video_frame(shown_frames, overlays, strips, captions, cmap=opts.cmap, alpha=opts.alpha, box=row_boxes,
+                           labels=labels[1:], interpolation=opts.overlay_interpolation)
+
+    def captions(self, record, label: str, with_colours: bool = True) -> list[str]:
+        """The text beside the first row: task, step, what the row shows, colours, action, reward, instruction, model."""
         action = np.asarray(record.action_executed, np.float32)
         meta = self.meta
-        captions = [
+        return [
             f"{meta.task} | episode {meta.episode} | step {record.step}",
-            labels[0],
-            f"colours: {opts.cmap}, each map from its own min to its max",
+            label,
+            *([f"colours: {self.options.cmap}, each map from its own min to its max"] if with_colours else []),
             "action: " + " ".join(f"{a:+.3f}" for a in action),
             f"reward {float(record.reward):.3f} | success {'YES' if record.success else 'no'}",
             f'"{meta.instruction}"',
             f"RANDOM WEIGHTS: {meta.model}" if meta.model_is_random else f"model: {meta.model}",
         ]
-        return video_frame(shown_frames, overlays, strips, captions, cmap=opts.cmap, alpha=opts.alpha, box=row_boxes,
-                           labels=labels[1:], interpolation=opts.overlay_interpolation)
+
+
+def frames_only(frames: list[np.ndarray], captions: list[str], labels: list[str] = (), display: int = 256) -> np.ndarray:
+    """A video frame without attention: one row per camera, [camera frame | text] (the first row's frame fills the
+    top-left `display` x w pixels, as in `video_frame`); the size is padded to multiples of 16. (H, W, 3) uint8."""
+    widths = [max(1, int(round(display * f.shape[1] / f.shape[0]))) for f in frames]
+    column = max(widths)
+    canvas = np.full((_round_up(len(frames) * (display + PAD), 16), _round_up(2 * column + 3 * PAD, 16), 3), BACKGROUND,
+                     np.uint8)
+    texts = []
+    for r, (frame, width) in enumerate(zip(frames, widths)):
+        top = r * (display + PAD)
+        canvas[top:top + display, :width] = resize_nearest(np.asarray(frame, np.uint8), display, width)
+        lines = list(captions) if r == 0 else ([labels[r - 1]] if r - 1 < len(labels) else [])
+        texts.append((column + 2 * PAD, top, column, lines))
+    image = Image.fromarray(canvas)
+    _draw_video_text(ImageDraw.Draw(image), [], texts, display)
+    return np.asarray(image)

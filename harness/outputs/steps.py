@@ -11,6 +11,11 @@ when the episode closes. Arrays in a `FinishedStep`:
   maps             camera -> (layers, heads, rows, cols) float32: readout attention on its patch grid, readouts averaged
   boxes            camera -> (y0, x0, y1, x1) the target mask's box in frame pixels (OutputOptions.bbox; None: no mask)
   rollout          (readouts, keys) float32: attention rollout rows, with video_attention="rollout" (else None)
+
+A step of a policy without attention (`StepRecord.readout_attention` None: harness.policies.Capabilities) has no token
+map: its `attention` and `tokens` are None, `metrics`, `maps` and `boxes`' attention parts empty, and its layout has
+`attention` False, no layers and the cameras of its frames; the sinks write everything else and skip attention.
+An episode's steps either all carry attention or none does (a ValueError names the first that differs).
 """
 
 from __future__ import annotations
@@ -41,6 +46,7 @@ class Layout:
     cameras: tuple[str, ...]  # observation keys with an image group and a frame
     video_cameras: tuple[str, ...]  # the video's rows
     video_layer: int | None  # the layer the video shows; None when it shows the rollout or an attribution map
+    attention: bool = True  # False: the policy gives no attention (no layers, no maps; cameras: the frames' keys)
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,9 +54,9 @@ class FinishedStep:
     """One control step as the sinks receive it (arrays: see the module docstring)."""
 
     record: StepRecord  # as the control loop handed it over
-    tokens: TokenMap  # what each key of `attention` is
+    tokens: TokenMap | None  # what each key of `attention` is (None: the policy gives no attention)
     layout: Layout
-    attention: np.ndarray
+    attention: np.ndarray | None  # None: the policy gives no attention
     metrics: dict[str, np.ndarray]
     frames: dict[str, np.ndarray]
     maps: dict[str, np.ndarray]
@@ -150,6 +156,11 @@ class StepFinisher:
         self.layout: Layout | None = None
 
     def __call__(self, record: StepRecord) -> FinishedStep:
+        if self.layout is not None and (record.readout_attention is not None) != self.layout.attention:
+            raise ValueError(f"step {record.step}: {'no ' if record.readout_attention is None else ''}readout attention, "
+                             f"but the episode started {'with' if self.layout.attention else 'without'} it")
+        if record.readout_attention is None:
+            return self._without_attention(record)
         if record.tokens is not None:
             if self.layout is None:
                 self.tokens = record.tokens
@@ -184,6 +195,25 @@ class StepFinisher:
                                  "request full attention from the policy or choose a layer index")
             rollout = rollout_readout_rows(record.full_attention, tokens, head_fusion=opts.head_fusion)  # (readouts, keys)
         return FinishedStep(record, tokens, layout, attn, metrics, frames, maps, boxes, rollout)
+
+    def _without_attention(self, record: StepRecord) -> FinishedStep:
+        """A step of a policy without attention: its frames, target boxes and the record, no maps or metrics."""
+        opts = self.options
+        if self.layout is None:
+            cameras = tuple(record.frames)
+            video_cameras = opts.video_cameras or cameras
+            unknown = [c for c in video_cameras if c not in cameras]
+            if (opts.video or opts.gif) and unknown:
+                raise ValueError(f"video camera(s) {unknown} have no frame; choose from {list(cameras)}")
+            self.layout = Layout(0, 0, (), cameras, tuple(video_cameras), None, attention=False)
+        frames = {cam: record.frames[cam] for cam in self.layout.cameras if cam in record.frames}
+        boxes = {}
+        if opts.bbox and record.masks:
+            for cam in frames:
+                target = (record.masks.get(cam) or {}).get("target")
+                if target is not None:
+                    boxes[cam] = scaled_box(np.asarray(target, bool), frames[cam])
+        return FinishedStep(record, None, self.layout, None, {}, frames, {}, boxes)
 
 
 def phase_names_of(task: str, phases: list[str | None]) -> tuple[str, ...]:

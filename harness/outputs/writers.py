@@ -38,6 +38,15 @@ files when the episode closes. `finish()` closes the sinks and writes episode.js
                               the control frames (blank: each frame its mean colour; mirror: mirrored left-right)
   episode.json                metadata and summary; written LAST, so a directory holding it is complete
 
+A policy without attention (StepRecord.readout_attention None: harness.policies.Capabilities.attention False, e.g. a
+served policy) leaves out every attention part and writes the rest: attention.npz holds only step (and phase,
+phase_names), the per-step index every finished episode records (harness.runfolder.integrity.RECORDED), with no
+readout_attention, tokens/*, metrics/*, mask_fraction/* or measures/*; no step_*_layer_*.png (png_count 0);
+rollout.mp4 shows each video camera's frame beside its captions, without overlay panels or layer strips;
+metrics.jsonl rows have no attention measures; actions.npz and inputs.npz are as always; episode.rrd holds frames,
+masks, actions and scalars. episode.json then says "attention": false, with layers, heads and keys null (an episode
+with attention has no "attention" key: its files are byte for byte those of before).
+
 Every file is written to `<name>.tmp.<pid>.<ext>` in the same directory and moved into place with
 os.replace; `abort()` (or an exception inside `with EpisodeWriter(...)`) deletes temporaries and
 never writes episode.json. Starting a writer removes a stale episode.json from the directory.
@@ -236,7 +245,8 @@ class EpisodeWriter:
     def __init__(self, episode_dir: str | os.PathLike, tokens: TokenMap | None, meta: EpisodeMeta,
                  options: OutputOptions | None = None, viewer: str | None = None):
         """tokens: the token map of the attention; a record's own `StepRecord.tokens` (the map of the
-        inference that produced it) takes precedence, so None is fine when the records carry one.
+        inference that produced it) takes precedence, so None is fine when the records carry one, or when they
+        carry no attention (a policy without it).
         viewer: gRPC url of a live Rerun viewer to stream the episode to (harness.outputs.rerun_viewer.start_viewer)."""
         self.dir = Path(episode_dir)
         self.meta = meta
@@ -397,6 +407,11 @@ class EpisodeWriter:
                 outcome[key] = summary[key]
         return outcome
 
+    def _without_attention(self) -> bool:
+        """The episode's steps carry no attention (its policy gives none), or it has no step and no token map."""
+        layout = self._finisher.layout
+        return not layout.attention if layout is not None else self.tokens is None
+
     def _summary(self, files: dict, summary: dict, finish_s: float) -> dict:
         n = len(self._rewards)
         per_step: dict[str, list[float]] = {}
@@ -418,9 +433,10 @@ class EpisodeWriter:
             "success": any(self._success),
             "steps": n,
             "return": float(np.sum(self._rewards)) if n else 0.0,
-            "layers": layout.layers if layout else None,
-            "heads": layout.heads if layout else None,
-            "keys": self.tokens.num_keys,
+            "layers": layout.layers if layout and layout.attention else None,
+            "heads": layout.heads if layout and layout.attention else None,
+            "keys": self.tokens.num_keys if self.tokens is not None else None,
+            **({"attention": False} if self._without_attention() else {}),
             "timings": timings,
             "files": files,
             "options": dataclasses.asdict(self.options),

@@ -1,5 +1,8 @@
 """`octo-harness report`: read runs, aggregate attention per task, draw figures, write report.html + tables + plots.
 
+A run of a policy without attention (RunRecord.attention False) shows its success, episodes and videos; its attention
+figures and tables are left out and the page says so in one line (harness.analysis.runs.no_attention_line).
+
 Pipeline: load_run (metadata) -> per finished episode: the measures stored in attention.npz (older runs: measured
 from readout_attention, in worker processes when large) -> summary (harness.analysis.aggregate) -> per run and
 task: bootstrap tables (harness.report.rundata) -> overlay grids (videos decoded in background threads) ->
@@ -106,8 +109,8 @@ def _analyse_episode(job: tuple, stored_only: bool = False) -> tuple[int, str, i
 
 
 def _analyse_all(runs: list[RunData], options: ReportOptions) -> None:
-    jobs = [(i, e.task, e.episode, str(e.directory), options.bins)
-            for i, run in enumerate(runs) for e in run.record.episodes if e.ok]
+    jobs = [(i, e.task, e.episode, str(e.directory), options.bins)  # a run without attention has none to analyse
+            for i, run in enumerate(runs) if run.record.attention for e in run.record.episodes if e.ok]
     results = [_analyse_episode(job, stored_only=True) for job in jobs]
     todo = [job for job, (_, _, _, summary, error) in zip(jobs, results) if summary is None and error is None]
     heavy = sum(Path(job[3], "attention.npz").stat().st_size for job in todo) > 1e9  # worth starting processes

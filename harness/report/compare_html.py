@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from harness.analysis.compare_result import CompareResult, OutcomeBlock, PairDetail, Rate
+from harness.analysis.protocol_fields import ATTENTION_NOTES
 from harness.bounded import open_npz
 from harness.measures.attention import camera_maps
 from harness.files import all_or_none, atomic_write_json, write_atomic
@@ -161,7 +162,8 @@ def _overlays(result: CompareResult, frames: dict) -> str:
     for task, pair in pair_dirs.items():
         maps = [_step0_maps(pair.baseline_dir), _step0_maps(pair.candidate_dir)]
         if any(m is None for m in maps):
-            parts.append(H.section(task, H.note("no step-0 attention arrays for this pair"), level=3))
+            note = pair.attention_note if pair.attention_note in ATTENTION_NOTES.values() else None  # no attention
+            parts.append(H.section(task, H.note(note or "no step-0 attention arrays for this pair"), level=3))
             continue
         cams = [obs for obs in maps[0][1] if obs in maps[1][1]]
         frame_set = frames.get((task, pair.seed), {})

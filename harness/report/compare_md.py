@@ -111,7 +111,7 @@ def markdown_summary(result: CompareResult, exit_code: int | None = None) -> str
     if s0.js_layer is not None:
         lines.append(f"- readout attention Jensen-Shannon (bits, mean over heads) per layer: {_layers(s0.js_layer)}")
     else:
-        lines.append("- readout attention: not comparable (different token maps)")
+        lines.append(f"- readout attention: not comparable ({_why_no_attention(result)})")
     for obs, change in s0.target_lift_change.items():
         lines.append(f"- target lift change ({obs}) per layer: {_layers(change)}")
     if drift.first_steps:
@@ -137,3 +137,11 @@ def markdown_summary(result: CompareResult, exit_code: int | None = None) -> str
     if exit_code is not None:
         lines += ["", f"Exit code {exit_code}."]
     return "\n".join(lines) + "\n"
+
+
+def _why_no_attention(result: CompareResult) -> str:
+    """Why no pair has an attention drift: a pair's note (a run without attention) or different token maps."""
+    from harness.analysis.protocol_fields import ATTENTION_NOTES
+
+    notes = [p.attention_note for p in result.pair_details if p.attention_note in ATTENTION_NOTES.values()]
+    return notes[0].split(":")[0] if notes else "different token maps"

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.analysis.runs import no_attention_line
 from harness.report import figures
 from harness.report import html as H
 from harness.report.rundata import RunData, episode_headline, representative, share_categories
@@ -75,7 +76,9 @@ def _task_table(runs: list[RunData], task: str) -> str:
         for metric in (run.headline, _mask_metric(run, "robot").replace("mask_lift", "mask_mass") if run.headline else None,
                        "entropy"):
             found = run.layer_values(task, metric) if metric else None
-            if found is None:
+            if not run.record.attention:
+                cells.append(H.absent("no attention"))
+            elif found is None:
                 cells.append(H.absent("absent (no mask)" if metric != "entropy" else "n/a"))
             else:
                 v, lo, hi = found
@@ -174,6 +177,9 @@ def _status_banners(runs: list[RunData]) -> str:
         if run.errors:
             out.append(H.banner(f"{run.label}: {len(run.errors)} finished episode(s) could not be analysed "
                                 "(listed per task)."))
+        if not r.attention:
+            out.append(H.banner(no_attention_line([run], "in " + run.label)
+                                + ": success, episodes and videos are shown, attention figures and tables are not."))
         if run.summaries and run.headline is None:
             out.append(H.banner(f"{run.label} recorded no target masks: target and robot metrics are absent "
                                 "(not zero). Run without --no-masks to get them."))
@@ -216,6 +222,8 @@ def _cross_task(runs: list[RunData], tasks: list[str], plots: _Plots) -> str:
                               "Target lift (attention mass on the target mask / mask area; 1 = chance, blue below, red "
                               "above) per task and layer, mean over episodes; one panel per task when the runs hold different "
                               "tasks; grey n/a = absent."))
+    elif no_attention_line(runs):
+        body.append(H.note(f"Target lift: absent — {no_attention_line(runs)}."))
     else:
         body.append(H.note("Target lift: absent — no run recorded target masks."))
     categories = share_categories(runs)
@@ -285,6 +293,8 @@ def _task_section(runs: list[RunData], task: str, out: Path, plots: _Plots, over
         body.append(plots.add(f"head_layer_lift_{safe}", figures.head_layer_maps(head_panels, "target lift (1 = chance)"),
                               f"target lift per head {task}",
                               "Target lift per layer and head (which heads follow the object), mean over episodes."))
+    elif no_attention_line([r for r in runs if task in r.record.tasks]):
+        body.append(H.note(f"Attention: {no_attention_line([r for r in runs if task in r.record.tasks])}."))
     else:
         body.append(H.note("Target lift per head: absent (no target mask coverage recorded for this task)."))
     lines = []
