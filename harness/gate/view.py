@@ -84,7 +84,7 @@ def episode_meta(run: RunRecord, episode: EpisodeRecord) -> EpisodeMeta:
 def _resimulate(run: RunRecord, episode: EpisodeRecord, steps: int, model=None) -> tuple[list[StepRecord], int | None]:
     """Re-run the episode from its seed and protocol: (records, control frequency). model: the run's model, loaded."""
     import envs
-    from harness.policies import load_policy
+    from harness.policies import as_policy, load_policy
     from harness.policy import resize_frame
     from harness.rollout import rollout
     from harness.run import checks
@@ -93,8 +93,7 @@ def _resimulate(run: RunRecord, episode: EpisodeRecord, steps: int, model=None) 
     if model is None and Path(protocol.model).is_absolute() and not Path(protocol.model).exists():
         raise ViewInputError(f"the run's model {protocol.model} is not on this machine, so its frames cannot be "
                              "re-simulated; pass --no-simulate (maps and measures without frames)")
-    if model is None:
-        model = load_policy(protocol.model, text_tokenizer=protocol.text_tokenizer)
+    model = as_policy(model) if model is not None else load_policy(protocol.model, text_tokenizer=protocol.text_tokenizer)
     goals = None
     if protocol.goal_images:
         images = checks.decode_goal_images(protocol.goal_images)
