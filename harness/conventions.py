@@ -148,6 +148,10 @@ class CheckpointConventions:
             data = read_toml(path)
         except tomllib.TOMLDecodeError as e:
             raise ConventionsError(f"{path}: not valid TOML ({e}); fix the file") from None
+        served = data.get("served") if isinstance(data.get("served"), dict) else {}
+        stated = {k: served[k] for k in ("image_convention", "action_space") if k in served}  # [served] may state them
+        if stated:
+            data = {**data, "env": {**stated, **dict(data.get("env") or {})}}
         conventions = cls.parse(data, str(path))
         if conventions.text_tokenizer not in (None, "auto", "fallback"):
             raise ConventionsError(f"{path}: [text] tokenizer is the server's business; drop it from this file")

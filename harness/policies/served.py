@@ -56,7 +56,7 @@ from harness.policies.wire import (CONNECT_TIMEOUT_S, REPLY_TIMEOUT_S, ServerCha
 from harness.policy import InferenceRequest, InferenceResult, resize_frame
 from harness.policy_config import PolicyConfig
 
-__all__ = ["CONNECT_TIMEOUT_S", "REPLY_TIMEOUT_S", "ServedConventions", "ServedFamily", "ServedPolicy",
+__all__ = ["CONNECT_TIMEOUT_S", "REPLY_TIMEOUT_S", "ServedConventions", "ServedFamily", "ServedPolicy", "declared_conventions",
            "ServerChangedError", "ServerClient", "ServerError", "ServerLostError", "ServerTimeoutError",
            "WebsocketInference"]
 
@@ -406,3 +406,22 @@ class ServedFamily(PolicyFamily):
         conventions, content = ServedConventions.read(served_conventions)
         client = ServerClient(address, timeout_s)
         return ServedPolicy(source, client, client.metadata(), conventions, content)
+
+
+def declared_conventions(source: str) -> dict:
+    """The harness.toml-format conventions the server at `source` declares ({} when none): its extension block's
+    "conventions" (what `octo-harness serve` sends: the checkpoint's harness.toml, [env] and [policy]), else an
+    [env] table of the image convention and action space it states. One connection, closed again."""
+    client = ServerClient(server_address(source))
+    try:
+        metadata = client.metadata()
+    finally:
+        client.close()
+    block = metadata.get(EXTENSION)
+    if not isinstance(block, dict):
+        return {}
+    declared = block.get("conventions")
+    if isinstance(declared, dict):
+        return {k: v for k, v in declared.items() if k in ("format", "env", "policy")}
+    env = {k: block[k] for k in ("image_convention", "action_space") if isinstance(block.get(k), str)}
+    return {"env": env} if env else {}
