@@ -48,7 +48,8 @@ from envs.plugins import PluginRegistry
 
 PARTS = ("sink", "reader", "section", "layer")
 BUILTINS = ("harness.probes.attribution:AttributionProbe", "harness.probes.controls:ControlsProbe",
-            "harness.probes.reliance:RelianceProbe")
+            "harness.probes.reliance:RelianceProbe", "harness.probes.readout_features:ReadoutFeaturesProbe",
+            "harness.probes.action_consistency:ActionConsistencyProbe")
 ENTRY_POINTS = "octo_harness.probes"  # the entry-point group a distribution registers its probes under
 
 

@@ -116,20 +116,24 @@ class ActionNorm(probes.Probe):
 
 
 def test_the_built_in_probes_keep_their_order_parts_and_files():
-    """attribution, controls, reliance in that order (the order they run in at a step and their files are written
-    in); each names its sink, and the parts resolve; a name taken twice is refused; off unless its option is set."""
+    """attribution, controls, reliance, readout_features, action_consistency in that order (the order they run in at a
+    step and their files are written in); each names its sink, and the parts resolve; a name taken twice is refused;
+    off unless its option is set."""
     from harness.outputs import sinks
     from harness.policy import PolicyConfig
 
-    assert [cls.name for cls in probes.probes()] == ["attribution", "controls", "reliance"]
+    assert [cls.name for cls in probes.probes()] == ["attribution", "controls", "reliance", "readout_features",
+                                                     "action_consistency"]
     table = [cls.__name__ for cls in sinks.sink_table()]
-    assert table[4:7] == ["AttributionFiles", "ControlArrays", "RelianceLines"]
+    assert table[4:9] == ["AttributionFiles", "ControlArrays", "RelianceLines", "ReadoutArrays", "ConsistencyArrays"]
     assert [cls.name for cls, _ in probes.parts("layer")] == ["attribution", "reliance"]
     assert [cls.name for cls, _ in probes.parts("section")] == ["attribution", "reliance"]
     assert probes.active(PolicyConfig()) == ()
-    on = PolicyConfig(attribution="saliency", attention_controls="blank", controls_every=3, reliance_every=4)
+    on = PolicyConfig(attribution="saliency", attention_controls="blank", controls_every=3, reliance_every=4,
+                      readout_features_every=5, action_consistency=True)
     assert [(cls.name, cls.every(on)) for cls in probes.active(on)] == [("attribution", 1), ("controls", 3),
-                                                                         ("reliance", 4)]
+                                                                         ("reliance", 4), ("readout_features", 5),
+                                                                         ("action_consistency", 1)]
     clash = type("Clash", (probes.Probe,), {"name": "reliance"})
     with pytest.raises(ValueError, match="taken"):
         probes.register(clash)
@@ -148,9 +152,11 @@ def test_each_built_in_probe_reads_back_what_its_sink_wrote(tmp_path):
     rows = [{"step": 0, "camera": "image_primary", "region": "target", "fill": "mean", "change": 0.5,
              "area_fraction": 0.25, "reliance_per_pixel": 2.0, "reliance_share": 1.0, "camera_change": 0.5}]
     payloads = {"attribution": {1: {"maps": maps}}, "controls": {0: control, 2: control},
-                "reliance": {0: {"rows": rows}}}
+                "reliance": {0: {"rows": rows}}, "readout_features": {1: {"features": np.ones(8, np.float32)}},
+                "action_consistency": {0: {}, 2: {}}}
     recs = with_extras(records(STEPS), **payloads)
-    assert [cls.name for cls, _ in probes.parts("reader")] == ["attribution", "controls", "reliance"]
+    assert [cls.name for cls, _ in probes.parts("reader")] == ["attribution", "controls", "reliance",
+                                                                "readout_features", "action_consistency"]
     for cls, reader in probes.parts("reader"):
         drive(probes.part(cls, "sink"), tmp_path / cls.name, recs)
         read = reader.by_step(tmp_path / cls.name)

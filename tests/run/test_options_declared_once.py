@@ -111,7 +111,8 @@ def test_the_records_of_the_options_are_those_the_protocols_were_hashed_with():
     from harness.run.protocol import Protocol
 
     assert set(PolicyConfig().to_dict()) == {f.name for f in dataclasses.fields(PolicyConfig)} - {
-        "intervention", "attribution", "faithfulness_every", "faithfulness_fill", "attention_controls", "controls_every", "reliance_every", "reliance_fill"}
+        "intervention", "attribution", "faithfulness_every", "faithfulness_fill", "attention_controls", "controls_every", "reliance_every", "reliance_fill",
+        "readout_features_every", "action_consistency", "action_samples"}
     assert "overlay_interpolation" not in OutputOptions().to_dict() and "rerun" not in OutputOptions().to_dict()
     assert OutputOptions(rerun=True).to_dict()["rerun"] is True
     plain = Protocol(model="random:octo-small-1.5", tasks=("Lift",)).to_dict()
