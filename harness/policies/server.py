@@ -94,7 +94,15 @@ def metadata(policy: Policy, infer, fingerprint: str, name: str, conventions: Ch
         "action_dim": int(infer.action_dim), "dataset_key": key,
         "dataset_statistics": {key: _lists(statistics)} if statistics is not None else {},
         "image_convention": conventions.env.get("image_convention"), "action_space": conventions.env.get("action_space"),
-        "example_frames": example_frames(policy)}}
+        "example_frames": example_frames(policy), "conventions": declared(conventions, key)}}
+
+
+def declared(conventions: CheckpointConventions, dataset_key: str | None) -> dict:
+    """The checkpoint's harness.toml as a client's run reads it ([env], [policy]; the tokenizer stays here), with the
+    dataset key the server unnormalises with."""
+    data = conventions.to_dict()
+    policy = {**data["policy"], **({"dataset_key": dataset_key} if dataset_key is not None else {})}
+    return {"format": data["format"], "env": data["env"], "policy": policy}
 
 
 # ------------------------------------------------------------------------------------------------- requests

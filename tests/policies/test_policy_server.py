@@ -145,6 +145,9 @@ def test_metadata_declares_the_checkpoint(server, policy):
         "version": 1, "max_batch": 8, "window": 1, "image_sizes": {"image_primary": [128, 128], "image_wrist": [64, 64]},
         "lowdim_sizes": {"proprio": 8}, "goal_image_sizes": {}, "takes_language": True, "action_horizon": 4,
         "action_dim": 7, "dataset_key": "robosuite_reference", "image_convention": "upright", "action_space": "robosuite"}
+    assert block["conventions"] == {"format": "octo-harness-conventions/1", "env": {
+        "action_space": "robosuite", "image_convention": "upright"}, "policy": {
+        "dataset_key": "robosuite_reference", "action_normalization": "normal", "proprio_normalization": "normal"}}
     stats = loaded.dataset_statistics["robosuite_reference"]
     assert block["dataset_statistics"]["robosuite_reference"]["action"]["mean"] == np.asarray(stats["action"]["mean"]).tolist()
     for key, frame in block["example_frames"].items():
