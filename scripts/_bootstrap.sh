@@ -28,7 +28,7 @@ if [ ! -f "$STAMP" ]; then
     .venv/bin/pip install -q --upgrade pip
     # --no-compile: Python compiles each module's bytecode when it is first imported (and keeps it), instead of pip
     # compiling every file of every package up front (half of the LIBERO stack's install time, measured)
-    .venv/bin/pip install -q --no-compile -e ".[test,ray,viewer,train]"
+    .venv/bin/pip install -q --no-compile -e ".[test,ray,viewer,train,served]"
     rm -f .venv/.installed-*
     touch "$STAMP"
     echo "[setup] .venv ready ($(( $(date +%s) - venv_start )) s)"
