@@ -153,7 +153,8 @@ def check_attention_flags(protocol: Protocol, model) -> list[str]:
         wanted[f"--{(probe.option or probe.name).replace('_', '-')}"] = "probes"
     outputs = protocol.outputs
     for name, flag in ATTENTION_OUTPUTS:
-        if name in defaults and getattr(outputs, name) != defaults[name]:
+        value = getattr(outputs, name, None)
+        if name in defaults and value != defaults[name] and not (name == "png_every" and value == 0):  # 0: none
             wanted[flag] = "attention"
     model.require(wanted)
     if model.capabilities.attention:
@@ -194,7 +195,7 @@ def check_model(protocol: Protocol, model, goal_images: Mapping[str, np.ndarray]
         if not set(goal_images) & set(goal_keys):
             raise FileNotFoundError(f"no goal images in {protocol.goal_images}; expected {expected}")
         inputs.append("goal")
-    elif not takes_language:
+    elif not takes_language and goal_keys:  # a policy taking neither (a scripted one) is asked nothing
         raise ValueError(f"{model.source} is goal-conditioned (no language input); pass --goal-images DIR holding {expected}")
     return inputs
 

@@ -6,6 +6,7 @@ SIGTERM; the scripted Lift expert's replies deterministic."""
 
 from __future__ import annotations
 
+import importlib
 import queue
 import signal
 import socket
@@ -17,7 +18,7 @@ import time
 import numpy as np
 import pytest
 
-pytest.importorskip("websockets")
+import websockets  # noqa: E402,F401  (the served extra: scripts/_bootstrap.sh installs it; missing is a failure, not a skip)
 
 import msgpack  # noqa: E402
 from websockets.exceptions import ConnectionClosed  # noqa: E402
@@ -194,7 +195,7 @@ def test_a_plain_openpi_frame_is_one_observation(server, policy):
     """openpi's own client: one observation (images at any size, resized as the closed loop does), seed 0."""
     from harness.policy import InferenceRequest, TaskPrompt, resize_frame, window_from_entries
 
-    client = pytest.importorskip("openpi_client.websocket_client_policy")
+    client = importlib.import_module("openpi_client.websocket_client_policy")
     loaded, infer = policy
     rng = np.random.default_rng(3)
     frame = {"image_primary": rng.integers(0, 256, (256, 256, 3), dtype=np.uint8),

@@ -4,6 +4,7 @@ key mapping, a server error, a silent server, a killed server, and the codec aga
 
 from __future__ import annotations
 
+import importlib
 import contextlib
 import socket
 import threading
@@ -12,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-pytest.importorskip("websockets")
+import websockets  # noqa: E402,F401  (the served extra: scripts/_bootstrap.sh installs it; missing is a failure, not a skip)
 
 from websockets.sync.server import serve  # noqa: E402
 
@@ -269,7 +270,7 @@ def test_refused_and_missing_addresses_are_one_line():
 
 
 def test_own_codec_is_byte_compatible_with_openpi_client():
-    msgpack_numpy = pytest.importorskip("openpi_client.msgpack_numpy")
+    msgpack_numpy = importlib.import_module("openpi_client.msgpack_numpy")
     payload = {"observation/image": np.arange(24, dtype=np.uint8).reshape(2, 4, 3), "s": np.float32(1.5),
                "mask": np.array([True, False]), "nested": [{"x": np.zeros((0, 3), ">f8")}], "prompt": "go", "n": None}
     assert own_packb(payload) == msgpack_numpy.packb(payload)

@@ -1,0 +1,143 @@
+"""A policy behind a server, evaluated by the harness end to end (issue 73's "done when"): `octo-harness serve` on the
+robosuite reference (deterministic: an L1 head) and Lift through `--model ws://`, sequentially and with `--workers 2`;
+the server killed mid-run, started again on another port and the run resumed in the same folder; `compare` against
+the in-process run of the same checkpoint says IDENTICAL each time. And the standalone server script (no harness
+imports) wrapping the scripted Lift expert, evaluated end to end."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.helpers import REFERENCE_MODEL, REPO
+from tests.policies.test_policy_server import Server, serve
+
+pytestmark = pytest.mark.slow
+RUN = ["--task", "Lift", "--episodes", "2", "--max-steps", "8", "--seed", "3", "--png-every", "0", "--fast-render"]
+
+
+def harness(*argv: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "harness.cli", *argv], cwd=REPO, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def compare(baseline: Path, candidate: Path, out: Path) -> dict:
+    done = harness("compare", str(baseline), str(candidate), "--out", str(out))
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads((out / "compare.json").read_text())
+
+
+def only_run(folder: Path) -> Path:
+    (run,) = [p for p in folder.iterdir() if (p / "manifest.json").is_file()]
+    return run
+
+
+def rows(run: Path) -> list[dict]:
+    return [json.loads(line) for line in (run / "results.jsonl").read_text().splitlines() if line.strip()]
+
+
+@pytest.fixture(scope="module")
+def local(tmp_path_factory) -> Path:
+    """The in-process run of the reference: what every served run must equal."""
+    out = tmp_path_factory.mktemp("local")
+    done = harness("run", "--model", str(REFERENCE_MODEL), *RUN, "--out", str(out))
+    assert done.returncode == 0, done.stderr[-2000:]
+    return only_run(out)
+
+
+@pytest.fixture(scope="module")
+def server():
+    started = serve().wait_ready()
+    yield started
+    started.stop()
+
+
+def test_a_served_run_equals_the_in_process_run_sequentially_and_with_two_workers(local, server, tmp_path):
+    for name, extra in (("sequential", []), ("workers", ["--workers", "2"])):
+        out = tmp_path / name
+        done = harness("run", "--model", server.url, *RUN, "--out", str(out), *extra)
+        assert done.returncode == 0, done.stderr[-2000:]
+        run = only_run(out)
+        assert run.name.startswith("served_")  # named by what is served, not where
+        manifest = json.loads((run / "manifest.json").read_text())
+        assert manifest["protocol"]["model"] == "ws://"  # the address is outside the protocol and its hash
+        assert manifest["model"]["server"]["fingerprint"] == server.ready.split("(fingerprint ", 1)[1].split(")")[0]
+        assert manifest["model"]["layers"] is None and "served" in manifest["protocol"]["model_fingerprint"] or \
+            manifest["protocol"]["model_fingerprint"].startswith("sha256:")
+        # the conventions came from the server: the checkpoint's action space and dataset key
+        assert manifest["protocol"]["env"]["action_space"] == "robosuite"
+        finding = [f for f in manifest["preflight"]["findings"] if f["check"] == "action"][0]
+        assert finding["verdict"] == "consistent" and "evidence" not in finding  # the statistics the server declared
+        for a, b in zip(sorted(local.rglob("actions.npz")), sorted(run.rglob("actions.npz"))):
+            with np.load(a) as x, np.load(b) as y:
+                assert np.array_equal(x["executed"], y["executed"]) and np.array_equal(x["predicted"], y["predicted"])
+        result = compare(local, run, tmp_path / f"compare-{name}")
+        assert result["verdict"] == "IDENTICAL", result["verdict"]
+
+
+def test_a_server_killed_mid_run_is_an_infrastructure_failure_and_a_restarted_one_resumes_the_run(local, tmp_path):
+    first = serve().wait_ready()
+    out = tmp_path / "killed"
+    argv = [sys.executable, "-m", "harness.cli", "run", "--model", first.url, *RUN, "--out", str(out), "--retries", "0"]
+    running = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and running.poll() is None:  # the first episode's row: kill the server
+            done = [p for p in out.glob("*/results.jsonl") if p.read_text().strip()]
+            if done:
+                break
+            time.sleep(0.2)
+        first.stop(signal.SIGKILL)
+        _, err = running.communicate(timeout=240)
+    finally:
+        first.stop(signal.SIGKILL)
+    run = only_run(out)
+    lost = [r for r in rows(run) if r["status"] == "failed"]
+    assert running.returncode != 0 or lost, err[-2000:]
+    assert all(r["failure"] == "infrastructure" and r["lost"] == "policy server" for r in lost), lost
+    assert lost, "the server died after the run had finished: nothing was lost"
+    second = serve().wait_ready()  # another process on another port: the same policy
+    try:
+        assert second.url != first.url
+        done = harness("run", "--model", second.url, *RUN, "--out", str(out))
+        assert done.returncode == 0, done.stderr[-2000:]
+    finally:
+        second.stop()
+    assert only_run(out) == run  # the same folder: the address is not part of the protocol
+    assert sorted((r["episode"], r["status"]) for r in rows(run)[-2:]) == [(0, "ok"), (1, "ok")] or \
+        {r["episode"] for r in rows(run) if r["status"] == "ok"} == {0, 1}
+    assert compare(local, run, tmp_path / "compare")["verdict"] == "IDENTICAL"
+
+
+def test_the_standalone_server_script_serves_the_scripted_expert_end_to_end(tmp_path):
+    script = REPO / "examples" / "serve" / "standalone_server.py"
+    server = Server([sys.executable, str(script), "--port", "0"]).wait_ready()
+    try:
+        out = tmp_path / "expert"
+        runs = []
+        for name in ("a", "b"):
+            done = harness("run", "--model", server.url, "--task", "Lift", "--episodes", "1", "--max-steps", "40",
+                           "--seed", "0", "--png-every", "0", "--fast-render", "--out", str(out), "--run-name", name,
+                           "--served-conventions", str(REPO / "examples" / "serve" / "scripted_lift.toml"))
+            assert done.returncode == 0, done.stderr[-2000:]
+            runs.append(out / name)
+    finally:
+        server.stop()
+    (episode,) = runs[0].rglob("actions.npz")
+    with np.load(episode) as actions:
+        executed = actions["executed"]
+    assert executed.shape == (40, 7) and np.isfinite(executed).all()
+    assert np.abs(executed[:, :3]).max() > 0.1  # the expert moves (robosuite's controller inputs)
+    manifest = json.loads((runs[0] / "manifest.json").read_text())
+    finding = [f for f in manifest["preflight"]["findings"] if f["check"] == "action"][0]
+    assert finding["evidence"] == "first chunk" and finding["verdict"] != "MISMATCH", finding  # no statistics served
+    meta = json.loads(next(runs[0].rglob("episode.json")).read_text())
+    assert meta.get("attention") is False  # a policy without attention: recorded as such
+    assert compare(runs[0], runs[1], tmp_path / "cmp")["verdict"] == "IDENTICAL"  # deterministic through the wire
