@@ -199,7 +199,7 @@ def test_the_table_holds_one_sink_per_output_and_the_writer_opens_those_asked_fo
     assert all(issubclass(cls, Sink) for cls in table) and len(set(table)) == len(table)
     names = [type(s).__name__ for s in sinks.open_sinks(tmp_path, meta(), OutputOptions())]
     assert names == ["AttentionArrays", "ActionArrays", "MetricLines", "AttributionFiles", "ControlArrays",
-                     "RelianceLines", "PngPanels", "RolloutVideo"]
+                     "RelianceLines", "ReadoutArrays", "ConsistencyArrays", "PngPanels", "RolloutVideo"]
     chosen = sinks.open_sinks(tmp_path, meta(), OutputOptions(video=False, record_inputs=True, rerun=True))
     assert {"InputArrays", "RerunRecording"} <= {type(s).__name__ for s in chosen}
     assert "RolloutVideo" not in {type(s).__name__ for s in chosen}
