@@ -13,8 +13,10 @@ from harness.options import add_arguments
 SHARED = ("model", "task", "perturb")  # run's options the grid requires
 SETTINGS = ("episodes", "seed", "max_steps")  # run's options each run of the grid takes
 OUTPUTS = ("fast_render", "png_every", "no_video")
-# the per-step measures each run of the grid may add (they never change actions): position controls, region reliance
-MEASURES = ("attention_controls", "controls_every", "reliance_every", "reliance_fill")
+# the per-step measures each run of the grid may add (they never change actions): position controls, region reliance,
+# and the failure signals (readout features, action consistency: issue 74)
+MEASURES = ("attention_controls", "controls_every", "reliance_every", "reliance_fill", "readout_features_every",
+            "action_consistency", "action_samples")
 DIFFERS = {"model": {"required": True}, "task": {"required": True},
            "perturb": {"required": True, "metavar": "KINDS"},  # kinds only: the grid sets the levels
            "episodes": {"default": 20},

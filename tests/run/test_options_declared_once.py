@@ -51,8 +51,9 @@ def test_robustness_takes_runs_options_and_states_only_where_it_differs():
     run, rob = _flags(_subparser("run")), _flags(_subparser("robustness"))
     shared = sorted(set(run) & set(rob) - {"--out", "--protocol", "--overwrite", "--workers", "--executor",
                                            "--ray-address", "--policy-replicas"})
-    assert shared == ["--attention-controls", "--controls-every", "--episodes", "--fast-render", "--max-steps", "--model",
-                      "--no-video", "--perturb", "--png-every", "--reliance-every", "--reliance-fill", "--seed", "--task"]
+    assert shared == ["--action-consistency", "--action-samples", "--attention-controls", "--controls-every", "--episodes",
+                      "--fast-render", "--max-steps", "--model", "--no-video", "--perturb", "--png-every",
+                      "--readout-features-every", "--reliance-every", "--reliance-fill", "--seed", "--task"]
     for flag in shared:
         a, b = run[flag], rob[flag]
         assert (a.dest, a.type, a.choices, a.nargs, type(a)) == (b.dest, b.type, b.choices, b.nargs, type(b)), flag
