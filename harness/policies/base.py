@@ -82,6 +82,11 @@ class Policy(ABC):
         """What each attention key is (harness.octo.tokens.TokenMap), or None for a policy without attention."""
         return None
 
+    def identity(self) -> tuple[str, dict] | None:
+        """(fingerprint, details) of a policy its family cannot fingerprint from `source` (one built in Python and
+        handed to `execute(model=...)`); None: the family fingerprints the source (checkpoint files, a server)."""
+        return None
+
     def describe(self) -> dict:
         """What the manifest records of the policy beyond the protocol (implementation-specific, JSON)."""
         return {}

@@ -195,8 +195,9 @@ def execute(
     preflight: warn | strict | off, the checks of frames and action space before the first episode (run/preflight.py).
     space_check: refuse to start when the files of the jobs left would not fit where the run writes (run/space.py).
     """
-    protocol, out, name, goal_images, fingerprint_details = _checked_inputs(protocol, out, run_name, ci_method, viewer)
     model = as_policy(model) if model is not None else None
+    protocol, out, name, goal_images, fingerprint_details = _checked_inputs(protocol, out, run_name, ci_method, viewer,
+                                                                            model)
     store = RunStore(out / name)
     jobs = protocol.jobs()
     created = not store.dir.exists()
@@ -229,7 +230,7 @@ def execute(
 
 
 def _checked_inputs(protocol: Protocol, out: str | Path, run_name: str | None, ci_method: str | None,
-                    viewer: str | None) -> tuple[Protocol, Path, str, dict | None, dict]:
+                    viewer: str | None, model=None) -> tuple[Protocol, Path, str, dict | None, dict]:
     """The checks that need no run folder and no model, in order, then the fingerprints; returns (protocol with its
     model and goal fingerprints, destination, run name, decoded goal images, the model fingerprint's details)."""
     if ci_method not in (None, *CI_METHODS):
@@ -244,8 +245,9 @@ def _checked_inputs(protocol: Protocol, out: str | Path, run_name: str | None, c
     out = checks.check_destination(Path(out))
     if run_name is not None:
         checks.check_run_name(run_name)  # before hashing the checkpoint
-    fingerprint, fingerprint_details = model_fingerprint(protocol.model, protocol.text_tokenizer,
-                                                         protocol.served_conventions)
+    identity = model.identity() if model is not None else None  # a policy object of the caller's says who it is
+    fingerprint, fingerprint_details = identity or model_fingerprint(protocol.model, protocol.text_tokenizer,
+                                                                     protocol.served_conventions)
     goals_fp = goal_fingerprint(protocol.goal_images) if protocol.goal_images else None
     protocol = protocol.replace(model_fingerprint=fingerprint, goal_fingerprint=goals_fp)
     goal_images = checks.decode_goal_images(protocol.goal_images) if protocol.goal_images else None
