@@ -57,7 +57,7 @@ from harness.policy import InferenceRequest, InferenceResult, resize_frame
 from harness.policy_config import PolicyConfig
 
 __all__ = ["CONNECT_TIMEOUT_S", "REPLY_TIMEOUT_S", "ServedConventions", "ServedFamily", "ServedPolicy", "declared_conventions",
-           "ServerChangedError", "ServerClient", "ServerError", "ServerLostError", "ServerTimeoutError",
+           "ServerChangedError", "ServerClient", "ServerError", "ServerLostError", "ServerTimeoutError", "UnreachableServerError",
            "WebsocketInference"]
 
 SERVED_SOURCE = "ws://"  # what the protocol records of any served source: the address is not the policy
@@ -66,6 +66,8 @@ REQUESTS, RESULTS = "octo_harness/requests", "octo_harness/results"
 NO_ADDRESS = "this run's policy was served; give its server's address with --model ws://HOST:PORT"
 DEFAULT_IMAGES = {"observation/image": ("image_primary", 224, 224)}
 DEFAULT_STATE = {"observation/state": ("proprio", 8)}
+# what a server may declare, at most: bounds on what the client allocates per request from another process's word
+LIMITS = {"max_batch": 256, "window": 64, "action_horizon": 1024, "action_dim": 64, "image_side": 4096, "lowdim": 4096}
 KNOWN_STATE = {"proprio": 8}  # low-dim keys the envs give, by dims (harness.policy.ENV_LOWDIM_HELP)
 
 
@@ -271,16 +273,22 @@ def parse_extension(block) -> dict:
     for key in ("max_batch", "window", "action_horizon", "action_dim"):
         if not _positive(block.get(key)):
             bad(f"{key} {block.get(key)!r}, not a positive integer")
+        if block[key] > LIMITS[key]:
+            bad(f"{key} {block[key]}, more than this client takes ({LIMITS[key]})")
         out[key] = block[key]
     for key in ("image_sizes", "goal_image_sizes"):
         sizes = block.get(key) or {}
         if not isinstance(sizes, dict) or not all(isinstance(v, (list, tuple)) and len(v) == 2
                                                   and all(_positive(_int(x)) for x in v) for v in sizes.values()):
             bad(f"{key} {sizes!r}, not {{key: [height, width]}}")
+        if any(int(x) > LIMITS["image_side"] for v in sizes.values() for x in v):
+            bad(f"{key} {sizes!r}, a side over {LIMITS['image_side']} pixels")
         out[key] = {str(k): (int(v[0]), int(v[1])) for k, v in sizes.items()}
     lowdim = block.get("lowdim_sizes") or {}
     if not isinstance(lowdim, dict) or not all(_positive(_int(v)) for v in lowdim.values()):
         bad(f"lowdim_sizes {lowdim!r}, not {{key: dims}}")
+    if any(int(v) > LIMITS["lowdim"] for v in lowdim.values()):
+        bad(f"lowdim_sizes {lowdim!r}, a key over {LIMITS['lowdim']} dims")
     out["lowdim_sizes"] = {str(k): int(v) for k, v in lowdim.items()}
     out["takes_language"] = bool(block.get("takes_language", True))
     for key in ("dataset_key", "image_convention", "action_space"):
@@ -375,6 +383,21 @@ class WebsocketInference:
 
 # ---------------------------------------------------------------------------------------------- the family
 
+class UnreachableServerError(ValueError):
+    """The policy server could not be reached, or sent no valid metadata, before anything ran: bad input (one line,
+    exit 2). During an episode the same loss is a ServerLostError (an infrastructure failure)."""
+
+
+def _metadata(address: str, timeout_s: float = REPLY_TIMEOUT_S) -> tuple[ServerClient, dict]:
+    """(an open client, the server's metadata) of `address`, or UnreachableServerError (one line)."""
+    client = ServerClient(address, timeout_s)
+    try:
+        return client, client.metadata()
+    except (ServerLostError, ServerError) as exc:
+        client.close()
+        raise UnreachableServerError(str(exc).splitlines()[0]) from None
+
+
 class ServedFamily(PolicyFamily):
     name = "served"
     description = "a policy behind an openpi-protocol websocket server (ws://HOST:PORT)"
@@ -393,30 +416,28 @@ class ServedFamily(PolicyFamily):
         connection, closed again)."""
         address = server_address(source)
         _, content = ServedConventions.read(served_conventions)
-        client = ServerClient(address)
-        try:
-            metadata = client.metadata()
-        finally:
-            client.close()
+        client, metadata = _metadata(address)
+        client.close()
         details = {"kind": "served", "name": str(metadata.get("name") or ""), "metadata": metadata_json(metadata)}
         return served_fingerprint(metadata, content), details
 
     def load(self, source: str, served_conventions=None, timeout_s: float = REPLY_TIMEOUT_S, **_) -> ServedPolicy:
         address = server_address(source)
         conventions, content = ServedConventions.read(served_conventions)
-        client = ServerClient(address, timeout_s)
-        return ServedPolicy(source, client, client.metadata(), conventions, content)
+        client, metadata = _metadata(address, timeout_s)
+        try:
+            return ServedPolicy(source, client, metadata, conventions, content)
+        except ServerError as exc:  # metadata it cannot use (a bad extension block)
+            client.close()
+            raise UnreachableServerError(str(exc).splitlines()[0]) from None
 
 
 def declared_conventions(source: str) -> dict:
     """The harness.toml-format conventions the server at `source` declares ({} when none): its extension block's
     "conventions" (what `octo-harness serve` sends: the checkpoint's harness.toml, [env] and [policy]), else an
     [env] table of the image convention and action space it states. One connection, closed again."""
-    client = ServerClient(server_address(source))
-    try:
-        metadata = client.metadata()
-    finally:
-        client.close()
+    client, metadata = _metadata(server_address(source))
+    client.close()
     block = metadata.get(EXTENSION)
     if not isinstance(block, dict):
         return {}

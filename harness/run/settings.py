@@ -144,6 +144,9 @@ def _conventions(model: str, served_conventions: str | None = None):
     from harness.policies import family_of
 
     if served_conventions is not None:
+        if family_of(model).name != "served":
+            raise ValueError("--served-conventions is for a policy behind a server (--model ws://HOST:PORT); a "
+                             "checkpoint's conventions are its harness.toml: drop the flag")
         return CheckpointConventions.read_file(served_conventions)
     if family_of(model).name == "served":
         from harness.policies.served import declared_conventions

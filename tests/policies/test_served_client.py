@@ -258,8 +258,9 @@ def test_killed_server_is_lost_and_an_infrastructure_failure():
 
 def test_refused_and_missing_addresses_are_one_line():
     address = f"ws://127.0.0.1:{free_port()}"
-    with pytest.raises(ServerLostError) as error:
+    with pytest.raises(served.UnreachableServerError) as error:  # a ValueError: bad input, exit 2, before any episode
         ServedFamily().load(address)
+    assert isinstance(error.value, ValueError) and not isinstance(error.value, ServerLostError)
     message = str(error.value)
     assert message.startswith(f"cannot reach the policy server at {address} (") and "\n" not in message
     assert message.endswith("; start it (octo-harness serve --model PATH --port N) or fix --model")
@@ -267,6 +268,18 @@ def test_refused_and_missing_addresses_are_one_line():
         with pytest.raises(ValueError, match="^this run's policy was served; give its server's address with "
                                              "--model ws://HOST:PORT$"):
             call("ws://")
+
+
+@pytest.mark.parametrize("field, value", [("window", 10**6), ("max_batch", 10**9), ("action_dim", 10**5),
+                                          ("image_sizes", {"image_primary": [10**6, 10**6]}),
+                                          ("lowdim_sizes", {"proprio": 10**9}), ("version", 2)])
+def test_a_hostile_or_foreign_metadata_block_is_one_line_before_anything_is_allocated(field, value):
+    """A server declaring sizes that would make every request allocate gigabytes (or another extension version) is
+    refused when the policy loads, in one line naming the field (exit 2 on the command line)."""
+    with policy_server({"fingerprint": "big", "octo_harness": {**EXTENSION, field: value}}, extension_answer) as server:
+        with pytest.raises(served.UnreachableServerError, match=field) as error:
+            ServedFamily().load(server.address)
+    assert "\n" not in str(error.value)
 
 
 def test_own_codec_is_byte_compatible_with_openpi_client():

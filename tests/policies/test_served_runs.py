@@ -114,6 +114,13 @@ def test_a_server_killed_mid_run_is_an_infrastructure_failure_and_a_restarted_on
     assert sorted((r["episode"], r["status"]) for r in rows(run)[-2:]) == [(0, "ok"), (1, "ok")] or \
         {r["episode"] for r in rows(run) if r["status"] == "ok"} == {0, 1}
     assert compare(local, run, tmp_path / "compare")["verdict"] == "IDENTICAL"
+    # another policy behind an address is another protocol: the folder is not resumed with it
+    other = Server([sys.executable, str(REPO / "examples" / "serve" / "standalone_server.py"), "--port", "0"])
+    try:
+        done = harness("run", "--model", other.wait_ready().url, *RUN, "--out", str(out), "--run-name", run.name)
+    finally:
+        other.stop()
+    assert done.returncode == 2 and "differs" in done.stderr and "model_fingerprint" in done.stderr, done.stderr[-800:]
 
 
 def test_the_standalone_server_script_serves_the_scripted_expert_end_to_end(tmp_path):
@@ -141,3 +148,31 @@ def test_the_standalone_server_script_serves_the_scripted_expert_end_to_end(tmp_
     meta = json.loads(next(runs[0].rglob("episode.json")).read_text())
     assert meta.get("attention") is False  # a policy without attention: recorded as such
     assert compare(runs[0], runs[1], tmp_path / "cmp")["verdict"] == "IDENTICAL"  # deterministic through the wire
+
+
+def test_a_flag_needing_what_a_served_policy_lacks_is_one_line_before_any_episode(server, tmp_path):
+    done = harness("run", "--model", server.url, *RUN, "--out", str(tmp_path), "--reliance-every", "4")
+    errors = [line for line in done.stderr.splitlines() if line.startswith("error: ")]
+    assert done.returncode == 2 and len(errors) == 1 and "--reliance-every" in errors[0] and "declares no" in errors[0]
+    assert not list(tmp_path.rglob("results.jsonl"))  # nothing ran
+    from harness.policies import PolicyLacksError, load_policy
+    from harness.run.checks import check_attention_flags
+    from harness.run.settings import build_protocol
+
+    policy = load_policy(server.url)
+    try:
+        base = {"model": server.url, "task": ["Lift"], "png_every": 0}
+        assert check_attention_flags(build_protocol(base), policy)  # the line saying what it leaves out, no error
+        for extra, flag in (({"layers": "0"}, "--layers"), ({"intervene": "mask-all"}, "--intervene"),
+                            ({"video_attention": "rollout"}, "full attention"), ({"action_consistency": True},
+                                                                                  "--action-consistency")):
+            with pytest.raises(PolicyLacksError, match=flag):
+                check_attention_flags(build_protocol({**base, **extra}), policy)
+    finally:
+        policy.close()
+
+
+def test_served_conventions_are_refused_for_a_checkpoint(tmp_path):
+    done = harness("run", "--model", str(REFERENCE_MODEL), *RUN, "--out", str(tmp_path), "--served-conventions",
+                   str(REPO / "examples" / "serve" / "scripted_lift.toml"))
+    assert done.returncode == 2 and "--served-conventions is for a policy behind a server" in done.stderr
