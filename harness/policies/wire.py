@@ -201,9 +201,7 @@ class ServerClient:
             try:
                 self._ws.send(data)
             except (ConnectionClosed, OSError) as e:
-                self.drop()
-                raise ServerLostError(f"the policy server at {self.address} dropped the connection ({_cause(e)}); "
-                                      f"{SERVE_HINT}") from None
+                raise self._lost(e) from None
             except BaseException:
                 self.drop()
                 raise
@@ -211,6 +209,12 @@ class ServerClient:
         if not isinstance(reply, dict):
             raise ServerError(f"the policy server sent a {type(reply).__name__}, not a map, as its reply")
         return reply
+
+    def _lost(self, cause: BaseException) -> ServerLostError:
+        """The connection dropped under a send or a receive: closed here, and the error to raise."""
+        self.drop()
+        return ServerLostError(f"the policy server at {self.address} dropped the connection ({_cause(cause)}); "
+                               f"{SERVE_HINT}")
 
     def drop(self) -> None:
         """Close the connection (quietly); the next call opens a new one."""
@@ -259,9 +263,7 @@ class ServerClient:
             raise ServerTimeoutError(f"the policy server at {self.address} sent no {what} within {self.timeout_s:g} s; "
                                      f"check that it is running and not stuck") from None
         except (ConnectionClosed, OSError) as e:
-            self.drop()
-            raise ServerLostError(f"the policy server at {self.address} dropped the connection ({_cause(e)}); "
-                                  f"{SERVE_HINT}") from None
+            raise self._lost(e) from None
         except BaseException:
             self.drop()
             raise
