@@ -186,6 +186,9 @@ class InfrastructureError(RuntimeError):
         super().__init__(message)
         self.lost = lost
 
+    def __reduce__(self):  # keeps `lost` across a process boundary (Ray sends a replica's exception back pickled)
+        return type(self), (str(self), self.lost)
+
 
 def failure_of(exc: BaseException) -> tuple[str, str | None]:
     """An episode's exception -> (failure kind, the lost part or None): "infrastructure" for a lost worker, node or

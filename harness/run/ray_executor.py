@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 from harness.policy import ClosedLoopPolicy, InferenceRequest, InferenceResult, PolicyConfig, TaskPrompt
+from harness.policies.served import ServerLostError
 from harness.run.protocol import policy_options
 from harness.run.executor import EpisodeContext, InfrastructureError
 from harness.run.ray_errors import actor_death_cause, actor_error, last_line, lost_part
@@ -120,6 +121,9 @@ class PolicyReplica:
                 self.batches.append(len(batch))
                 try:
                     results = await loop.run_in_executor(self._thread, self.inference, [r for r, _ in batch])
+                except ServerLostError as exc:  # the policy server went away: an infrastructure failure, retried
+                    for _, future in batch:
+                        future.set_exception(InfrastructureError(str(exc), ServerLostError.lost))
                 except Exception as exc:  # a policy error fails the episodes of this batch only
                     for _, future in batch:
                         future.set_exception(PolicyError(f"{type(exc).__name__}: {exc}"))
@@ -146,6 +150,8 @@ class RayInference:
             return [ray.get(self.replica.infer.remote(request, self.key))]
         except ray.exceptions.RayTaskError as exc:  # the replica's PolicyError (this batch failed)
             cause = getattr(exc, "cause", None)
+            if isinstance(cause, InfrastructureError):  # the replica lost its policy server
+                raise InfrastructureError(str(cause), cause.lost) from None
             raise PolicyError(str(cause) if cause is not None else last_line(exc)) from None
         except ray.exceptions.RayActorError as exc:  # the replica (or its node) was lost: not the episode's doing
             raise InfrastructureError(f"policy replica lost: {str(exc).splitlines()[0]}", "policy replica") from None

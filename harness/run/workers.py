@@ -60,6 +60,7 @@ import numpy as np
 
 from harness.interrupts import die_with_parent
 from harness.policy import ClosedLoopPolicy, InferenceRequest, InferenceResult, PolicyConfig, TaskPrompt
+from harness.policies.served import ServerLostError
 from harness.run.executor import EpisodeContext, InfrastructureError, make_env, record_failure, run_episode
 from harness.run.protocol import EpisodeJob
 from harness.run.store import EpisodeRow
@@ -170,6 +171,8 @@ class PipeInference:
             return [payload]
         if kind == "error":
             raise PolicyError(payload)
+        if kind == "lost":
+            raise InfrastructureError(payload, ServerLostError.lost)
         raise _Stop("stopped by the driver")
 
 
@@ -418,6 +421,9 @@ class WorkerPool:
         try:
             results = self.inference([r for _, r in waiting])
             replies = [("result", res) for res in results]
+        except ServerLostError as exc:  # the policy server went away: not the episodes' doing, retried
+            log.error("inference lost its policy server for a batch of %d: %s", len(waiting), exc)
+            replies = [("lost", str(exc))] * len(waiting)
         except Exception as exc:  # a policy error fails the episodes of this batch only
             log.error("inference failed for a batch of %d: %s", len(waiting), exc)
             replies = [("error", f"{type(exc).__name__}: {exc}")] * len(waiting)

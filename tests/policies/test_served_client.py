@@ -301,3 +301,32 @@ def test_own_codec_is_byte_compatible_with_openpi_client():
     with pytest.raises(ValueError, match="complex"):
         own_unpackb(complex_frame)
     assert served.REPLY_TIMEOUT_S == 60.0 and served.CONNECT_TIMEOUT_S > 0
+
+
+def test_a_ray_replica_that_loses_its_server_reports_an_infrastructure_failure():
+    """The policy replica (an async Ray actor; its class is plain Python) turns a lost server into an
+    InfrastructureError that keeps its lost part across the pickling Ray does, so `--retries` reruns the episode."""
+    import asyncio
+    import pickle
+    from concurrent.futures import ThreadPoolExecutor
+
+    from harness.run.executor import InfrastructureError, failure_of
+    from harness.run.ray_executor import PolicyReplica
+
+    class LostServer:  # the replica's inference, as a served policy's when its server is gone
+        batch_size = 1
+
+        def __call__(self, requests):
+            raise ServerLostError("the policy server at ws://127.0.0.1:1 dropped the connection (EOF)")
+
+    replica = object.__new__(PolicyReplica)
+    replica.inference, replica._pending, replica._running, replica.batches = LostServer(), [], False, []
+    replica._thread, replica.progress = ThreadPoolExecutor(max_workers=1), {}
+
+    async def one():
+        return await replica.infer(request(), key=("Lift", 0))
+
+    with pytest.raises(InfrastructureError) as error:
+        asyncio.run(one())
+    again = pickle.loads(pickle.dumps(error.value))
+    assert again.lost == "policy server" and failure_of(again) == ("infrastructure", "policy server")
