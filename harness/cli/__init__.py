@@ -14,7 +14,7 @@ import sys
 import threading
 from pathlib import Path
 
-from harness.cli import compare, regress, replay, report, robustness, run, sanity, serve, tasks, view
+from harness.cli import compare, diagnose, regress, replay, report, robustness, run, sanity, serve, tasks, view
 from harness.cli.common import OneLineParser, OutputsNotWritten, add_verbose, apply_render_device, one_line
 
 USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, KeyError, FileNotFoundError, PermissionError)
@@ -22,7 +22,7 @@ USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, KeyError, FileNotFou
 # failed" for run) nor 2 (bad input). docs/running.md#exit-codes
 INTERNAL_ERROR = 5
 DISK_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS)  # a write the disk refused
-COMMANDS = (run, tasks, robustness, report, compare, replay, view, sanity, regress, serve)  # in --help's order
+COMMANDS = (run, tasks, robustness, report, diagnose, compare, replay, view, sanity, regress, serve)  # in --help's order
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:

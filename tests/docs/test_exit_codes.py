@@ -24,7 +24,7 @@ REPLAY = {replay_exit_code(SimpleNamespace(verdict=v)) for v in ReplayVerdict} |
 # run: 1 when an episode failed (harness/cli/run.py), robustness: 1 when a run did not complete (cli/robustness.py)
 OTHERS = {0, 1, EXIT_INVALID, INTERNAL_ERROR}
 EXPECTED = {"compare": GATE, "regress": GATE, "replay": REPLAY, "run": OTHERS, "octo-harness run": OTHERS,
-            "report": OTHERS, "view": OTHERS, "robustness": OTHERS, "sanity": OTHERS}
+            "report": OTHERS, "view": OTHERS, "robustness": OTHERS, "sanity": OTHERS, "diagnose": OTHERS}
 
 SUMMARY = re.compile(r"[Ee]xit codes\b[^:(.|\[\]]{0,60}?([:(])(?=\s*\*{0,2}\d)")  # ... a list that starts with a code
 ITEM = re.compile(r"^\*{0,2}(\d+)\*{0,2}\s+(.*)$")
