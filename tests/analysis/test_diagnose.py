@@ -149,6 +149,9 @@ def test_too_few_of_a_class_is_a_line_not_a_number():
     few = [e for e in episodes("noise") if not e.success or e.seed < 2]
     cell = evaluate_task(few, resamples=100)["by_step"][0]
     assert cell["predictors"] == {} and cell["message"].startswith("too few successes at t = 10")
+    for episode in few:  # no readout features recorded: the probe is left out and named
+        episode.features = None
+    assert evaluate_task(few, resamples=100)["missing"] == ["readout probe"]
 
 
 def test_a_failure_row_names_the_stall_and_the_signals_furthest_from_the_successes():

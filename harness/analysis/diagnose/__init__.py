@@ -62,8 +62,9 @@ def diagnose(paths, folds: int = FOLDS, resamples: int = RESAMPLES, seed: int = 
             continue
         tasks[task] = evaluate_task(mine, folds, resamples, seed)
         if tasks[task]["missing"]:
-            lines.append(f"{task}: no {', '.join(tasks[task]['missing'])} recorded (run with "
-                         "--readout-features-every N for the probe; attention for entropy and nuisance mass)")
+            lines.append(f"{task}: not evaluated, its signal was not recorded: {', '.join(tasks[task]['missing'])} "
+                         "(the readout probe needs a run with --readout-features-every N; entropy and nuisance mass "
+                         "a policy with attention)")
     settings = {"folds": folds, "resamples": resamples, "seed": seed, "min_class": MIN_CLASS}
     return Diagnosis([r.name for r in records], tasks, failure_rows(episodes), notes, lines, settings)
 

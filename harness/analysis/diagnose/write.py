@@ -98,7 +98,9 @@ def markdown(diagnosis) -> str:
     lines = ["# Failure early warning", "", f"Runs: {', '.join(diagnosis.runs)}. Folds {diagnosis.settings['folds']}, "
              f"{diagnosis.settings['resamples']} seed-cluster resamples, at least {diagnosis.settings['min_class']} "
              "episodes of each class for an AUROC.", ""]
-    lines += [f"- {line}" for line in diagnosis.lines] + ([""] if diagnosis.lines else [])
+    shown = {r.get("message") for r in diagnosis.tasks.values()}  # a task's own line is in its section
+    general = [line for line in diagnosis.lines if line not in shown]
+    lines += [f"- {line}" for line in general] + ([""] if general else [])
     for task, result in diagnosis.tasks.items():
         lines += task_section(task, result)
     lines += failures_section(diagnosis.failures) if diagnosis.failures else ["No episode failed.", ""]
