@@ -68,20 +68,23 @@ def no_attention_error(run) -> ReplayInputError:
                             "the protocol again and compare the two runs with `octo-harness compare`")
 
 
-def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolerances: Tolerances) -> EpisodeReplay:
-    """One episode: replay its inferred steps; returns per-step changes and the episode's verdict."""
+def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolerances: Tolerances,
+                   policy=None) -> EpisodeReplay:
+    """One episode: replay its inferred steps with `policy`'s `inference` (the inference's own model where no policy
+    is given); returns per-step changes and the episode's verdict."""
     from harness.policy import InferenceRequest, TaskPrompt, window_from_entries
 
     inputs = recorded_inputs(episode)
     keys = [k[len("input/"):] for k in inputs if k.startswith("input/")]
-    sizes = inference.model.image_sizes
+    shape = policy if policy is not None else inference.model  # what the policy reads, at what sizes
+    sizes = shape.image_sizes
     for key, (h, w) in sizes.items():
         have = inputs.get(f"input/{key}")
         if have is None or tuple(have.shape[1:3]) != (h, w):
             raise ReplayInputError(f"the model reads {key} at {h}x{w} but the run recorded "
                                    f"{'no ' + key if have is None else 'x'.join(map(str, have.shape[1:3]))}; "
                                    "replay with a model of the run's input sizes")
-    wanted = [*sizes, *getattr(inference.model, "lowdim_sizes", {})]
+    wanted = [*sizes, *(getattr(shape, "lowdim_sizes", None) or {})]
     missing = [k for k in wanted if k not in keys]
     if missing:
         raise ReplayInputError(f"the run recorded no {missing[0]!r} input, which the model reads; replay a model "
@@ -108,25 +111,30 @@ def replay_episode(inference, episode: EpisodeRecord, window: int, goals, tolera
         return EpisodeReplay(**out, verdict=ReplayVerdict.CHANGED, first_changed_step=inferred[0], action_change_max=None,
                              attention_js_max=None, note=f"action chunks differ in shape: {recorded_chunks.shape[1:]} "
                                                          f"recorded, {np.shape(chunks[0])} replayed")
-    scale = action_scale(inference.statistics, inference.config.action_normalization, recorded_chunks.shape[-1])
+    statistics = getattr(inference, "statistics", None)  # the unnormalisation statistics (a served policy: its own)
+    scale = action_scale(statistics, inference.config.action_normalization, recorded_chunks.shape[-1])
     actions = action_change(recorded_chunks, np.stack(chunks), scale)  # (compared,)
     recorded_attention = attention[inferred]
-    if recorded_attention.shape[1:] == np.shape(readout[0]):
+    if readout[0] is None:  # the replayed policy gives no attention (a served one): its actions are what is compared
+        js = np.zeros((len(inferred), 1, 1))
+        note = "the replayed policy gives no attention: actions compared only"
+    elif recorded_attention.shape[1:] == np.shape(readout[0]):
         js = attention_change(recorded_attention, np.stack(readout))  # (compared, layers, heads)
         note = None
     else:
         js = np.full((len(inferred), 1, 1), np.inf)
         note = f"attention shapes differ: {recorded_attention.shape[1:]} recorded, {np.shape(readout[0])} replayed"
     first = first_change(actions, js, tolerances)
+    measured = readout[0] is not None  # attention compared (else only actions: the keys say nothing of attention)
     return EpisodeReplay(
         **out, verdict=ReplayVerdict.EQUIVALENT if first is None else ReplayVerdict.CHANGED,
         first_changed_step=None if first is None else inferred[first],
-        action_change_max=float(actions.max()), attention_js_max=float(js.max()),
-        action_change_step0=float(actions[0]), attention_js_step0=float(js[0].max()),
+        action_change_max=float(actions.max()), attention_js_max=float(js.max()) if measured else None,
+        action_change_step0=float(actions[0]), attention_js_step0=float(js[0].max()) if measured else ABSENT,
         action_change_per_step=tuple(actions.tolist()),
-        attention_js_per_step=tuple(js.reshape(len(inferred), -1).max(axis=1).tolist()),
+        attention_js_per_step=tuple(js.reshape(len(inferred), -1).max(axis=1).tolist()) if measured else ABSENT,
         change_at_first=(ABSENT if first is None else
-                         ChangeAt(action=float(actions[first]), attention_js=float(js[first].max()))),
+                         ChangeAt(action=float(actions[first]), attention_js=float(js[first].max()) if measured else None)),
         note=note or ABSENT)
 
 
@@ -177,7 +185,7 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, gate: GateC
     if protocol.goal_images:
         images = checks.decode_goal_images(protocol.goal_images)
         goals = {k: resize_frame(v, model.goal_image_sizes[k]) for k, v in images.items() if k in model.goal_image_sizes}
-    results = [replay_episode(inference, e, int(model.window_size), goals, tolerances) for e in episodes]
+    results = [replay_episode(inference, e, int(model.window_size), goals, tolerances, model) for e in episodes]
     changed = [r for r in results if r.verdict != ReplayVerdict.EQUIVALENT]
     first = min(changed, key=lambda r: r.first_changed_step if r.first_changed_step is not None else 0) if changed else None
     finite = lambda xs: [x for x in xs if x is not None]  # noqa: E731

@@ -27,7 +27,7 @@ class ChangeAt(Result):
     """The change at an episode's first step beyond the tolerances."""
 
     action: float
-    attention_js: float
+    attention_js: float | None  # None: the replayed policy gives no attention
 
 
 @dataclass(frozen=True)

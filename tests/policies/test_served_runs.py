@@ -175,3 +175,16 @@ def test_served_conventions_are_refused_for_a_checkpoint(tmp_path):
     done = harness("run", "--model", str(REFERENCE_MODEL), *RUN, "--out", str(tmp_path), "--served-conventions",
                    str(REPO / "examples" / "serve" / "scripted_lift.toml"))
     assert done.returncode == 2 and "--served-conventions is for a policy behind a server" in done.stderr
+
+
+def test_replay_of_the_committed_baseline_through_the_server_is_equivalent_on_actions(server, tmp_path):
+    """The gate's replay step with a served candidate: the baseline's recorded inputs sent through ws://, its chunks
+    within the tolerances; attention is not compared (one note), never reported as measured."""
+    done = harness("replay", str(REPO / "results" / "baselines" / "reference-lift"), "--model", server.url,
+                   "--out", str(tmp_path))
+    assert done.returncode == 0, done.stdout[-1500:] + done.stderr[-1500:]
+    replay = json.loads((tmp_path / "replay.json").read_text())
+    assert replay["verdict"] == "EQUIVALENT" and replay["attention_js_max"] is None
+    episodes = replay["episode_details"]
+    assert episodes and all(e["note"] == "the replayed policy gives no attention: actions compared only"
+                            and e["attention_js_max"] is None and e["action_change_max"] <= 3e-4 for e in episodes)
