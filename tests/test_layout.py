@@ -210,3 +210,24 @@ def test_every_module_imports_and_states_its_job():
                    for p in (root / package).rglob("*.py"))
     undocumented = [name for name in names if not (importlib.import_module(name).__doc__ or "").strip()]
     assert len(names) > 60 and undocumented == []
+
+
+def test_only_the_factory_constructs_a_policy():
+    """Issue 73: outside the Octo implementation (harness/octo/, harness/policies/octo.py) and the factory
+    (harness/policies/registry.py), nothing in harness/, envs/, reference_policies/, benchmarks/, scripts/ or examples/
+    loads an Octo model or builds its inference: they call harness.policies.load_policy / Policy.inference."""
+    allowed = {"harness/policies/octo.py", "harness/policies/registry.py"}
+    calls = {"load_pretrained", "OctoCheckpoint", "BatchInference", "OctoModel"}
+    found = []
+    root = HARNESS.parent
+    for folder in ("harness", "envs", "reference_policies", "benchmarks", "scripts", "examples"):
+        for path in (root / folder).rglob("*.py"):
+            name = path.relative_to(root).as_posix()
+            if name.startswith("harness/octo/") or name in allowed:
+                continue
+            for node in ast.walk(ast.parse(path.read_text())):
+                func = node.func if isinstance(node, ast.Call) else None
+                called = getattr(func, "id", None) or getattr(func, "attr", None)
+                if called in calls:
+                    found.append(f"{name}:{node.lineno} {called}(...)")
+    assert found == []
