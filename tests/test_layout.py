@@ -231,3 +231,16 @@ def test_only_the_factory_constructs_a_policy():
                 if called in calls:
                     found.append(f"{name}:{node.lineno} {called}(...)")
     assert found == []
+
+
+def test_the_command_line_imports_nothing_heavy_before_its_ctrl_c_handler():
+    """`from harness.cli import main` (what runs before main() installs the SIGINT handler) imports no numpy, JAX,
+    simulator or policy: a Ctrl-C in those imports would be a traceback and exit -2, not 130 (the serve command's
+    module once imported the policy server at its top; tests/runfolder/test_hostile_inputs.py caught it under load)."""
+    import subprocess
+    import sys
+
+    heavy = ("numpy", "jax", "mujoco", "robosuite", "websockets", "harness.policies", "harness.policy", "harness.run")
+    code = f"import sys; from harness.cli import main; print([m for m in {heavy!r} if m in sys.modules])"
+    done = subprocess.run([sys.executable, "-c", code], cwd=HARNESS.parent, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and done.stdout.strip() == "[]", done.stdout + done.stderr

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from harness.policies.server import DEFAULT_MAX_BATCH
 
 
 def _port(text: str) -> int:
@@ -22,6 +21,10 @@ def _positive(text: str) -> int:
 
 
 def add_parser(sub) -> None:
+    # imported here, not at the top: `from harness.cli import main` stays light, so the Ctrl-C handler is in before
+    # numpy and the policies load (tests/runfolder/test_hostile_inputs.py)
+    from harness.policies.server import DEFAULT_MAX_BATCH
+
     sv = sub.add_parser("serve", help="serve a checkpoint over openpi's websocket protocol (evaluate it elsewhere with "
                                       "--model ws://HOST:PORT)",
                         description="Load a policy and answer inference requests over a websocket (openpi's protocol "

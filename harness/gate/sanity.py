@@ -105,8 +105,10 @@ def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions =
     model = as_policy(loaded_model) if loaded_model is not None else load_policy(source, text_tokenizer=protocol.text_tokenizer)
     config = dataclasses.replace(protocol.policy, inference_batch=1, intervention=None, attribution=None,
                                  faithfulness_every=0)
+    # the attribution methods read the policy's own function (its parameters, its transformer): an Octo checkpoint
+    model.require({"octo-harness sanity": "interventions"})
     inference = model.inference(config)
-    functions = OctoFunctions(model)
+    functions = OctoFunctions(model.model)
     methods = parse_methods(options.methods, functions.layers)
     blocks = S.octo_blocks(functions.params)
     stages = S.schedules(blocks)
