@@ -128,25 +128,26 @@ def test_a_server_killed_mid_run_is_an_infrastructure_failure_and_a_restarted_on
 
 
 def test_the_standalone_server_script_serves_the_scripted_expert_end_to_end(standalone, tmp_path):
+    """One run of the blind scripted Lift expert through the standalone script (its replies are deterministic:
+    test_policy_server.py sends one observation twice)."""
     out = tmp_path / "expert"
-    runs = []
-    for name in ("a", "b"):
-        done = harness("run", "--model", standalone.url, "--task", "Lift", "--episodes", "1", "--max-steps", "16",
-                       "--seed", "0", "--png-every", "0", "--fast-render", "--out", str(out), "--run-name", name,
-                       "--served-conventions", str(REPO / "examples" / "serve" / "scripted_lift.toml"))
-        assert done.returncode == 0, done.stderr[-2000:]
-        runs.append(out / name)
-    (episode,) = runs[0].rglob("actions.npz")
+    done = harness("run", "--model", standalone.url, "--task", "Lift", "--episodes", "1", "--max-steps", "16",
+                   "--seed", "0", "--png-every", "0", "--fast-render", "--out", str(out), "--run-name", "a",
+                   "--served-conventions", str(REPO / "examples" / "serve" / "scripted_lift.toml"))
+    assert done.returncode == 0, done.stderr[-2000:]
+    run = out / "a"
+    (episode,) = run.rglob("actions.npz")
     with np.load(episode) as actions:
         executed = actions["executed"]
     assert executed.shape == (16, 7) and np.isfinite(executed).all()
     assert np.abs(executed[:, :3]).max() > 0.1  # the expert moves (robosuite's controller inputs)
-    manifest = json.loads((runs[0] / "manifest.json").read_text())
+    manifest = json.loads((run / "manifest.json").read_text())
+    assert manifest["model"]["server"]["name"] == "blind-scripted-lift"
     finding = [f for f in manifest["preflight"]["findings"] if f["check"] == "action"][0]
     assert finding["evidence"] == "first chunk" and finding["verdict"] != "MISMATCH", finding  # no statistics served
-    meta = json.loads(next(runs[0].rglob("episode.json")).read_text())
+    meta = json.loads(next(run.rglob("episode.json")).read_text())
     assert meta.get("attention") is False  # a policy without attention: recorded as such
-    assert compare(runs[0], runs[1], tmp_path / "cmp")["verdict"] == "IDENTICAL"  # deterministic through the wire
+    assert (episode.parent / "rollout.mp4").stat().st_size > 0  # the frames, without overlay panels
 
 
 def test_a_flag_needing_what_a_served_policy_lacks_is_one_line_before_any_episode(server, tmp_path):
