@@ -308,6 +308,7 @@ def check_run(mode: str, protocol, model, env, seed: int, dataset_key: str | Non
     findings = run_checks(model, env, seed, options.image_convention, options.action_space, dataset_key,
                           options.hold_gripper, suites.of(task).defaults["image_convention"], protocol.policy)
     folder = getattr(model, "checkpoint_dir", None)
-    for line in report(mode, findings, folder is not None and (Path(folder) / CONVENTIONS_FILE).is_file()):
+    declared = getattr(model, "preflight_from_chunk", False)  # a served policy: its server or file declares conventions
+    for line in report(mode, findings, declared or (folder is not None and (Path(folder) / CONVENTIONS_FILE).is_file())):
         log.warning("%s", line)
     return record(mode, findings, task)
