@@ -30,8 +30,10 @@ class PolicyLacksError(ValueError):
 class Capabilities:
     """What a policy declares it can do, beyond returning action chunks."""
 
-    attention: bool = False  # readout attention rows and a token map with every inference (PNGs, overlays, attention measures)
-    interventions: bool = False  # masks and region replacement inside inference (--intervene, and the probes that change what the policy sees)
+    # readout attention rows and a token map with every inference (PNGs, overlays, attention measures)
+    attention: bool = False
+    # masks and region replacement inside inference (--intervene, and the probes that change what the policy sees)
+    interventions: bool = False
     probes: bool = False  # the per-step probes (harness.probes) run inside its inference
     batched: bool = False  # one call may carry requests of many episodes (the executors batch them)
 
