@@ -7,7 +7,6 @@ protocol is built (`Protocol.__post_init__`), task names in `settings.resolve_ta
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 from pathlib import Path
@@ -130,37 +129,28 @@ def decode_goal_images(folder: str | Path) -> dict[str, np.ndarray]:
     return images
 
 
-# The output options that show attention, with the flag that sets each: a policy without attention leaves them out
-# when they are at their defaults (one line) and refuses a run that asks for one (check_attention_flags).
-ATTENTION_OUTPUTS = (("png_every", "--png-every"), ("layers", "--layers"), ("video_attention", "--video-attention"),
-                     ("bbox", "--bbox"), ("normalisation", "--normalisation"), ("cmap", "--cmap"),
-                     ("overlay_interpolation", "--overlay-interpolation"))
-
-
 def check_attention_flags(protocol: Protocol, model) -> list[str]:
-    """For a policy without attention (harness.policies.Capabilities): PolicyLacksError (one line, exit 2) when a flag
-    the user set needs what it lacks; else the console lines naming the default outputs it leaves out."""
+    """For a policy without what a run computes (harness.policies.Capabilities): PolicyLacksError (one line, exit 2)
+    when the protocol asks for a computation the policy lacks (an intervention, rollout attention, a per-step probe);
+    else, for a policy without attention, the console line saying its attention outputs are left out. Output options
+    only choose how attention is drawn (PNG steps and layers, colour map, overlays, bounding boxes): without attention
+    there is nothing to draw, so they are left out with that line, never refused (a baseline's protocol, inherited by
+    `regress`, may set any of them)."""
     from harness.probes import registry as probes
 
-    defaults = {f.name: f.default for f in dataclasses.fields(protocol.outputs)}
     wanted = {}
     policy = protocol.policy
     if policy.intervention is not None:
         wanted["--intervene"] = "interventions"
     if policy.full_attention:
-        wanted["full attention"] = "attention"
+        wanted["--video-attention rollout"] = "attention"
     for probe in probes.active(policy):
         wanted[f"--{(probe.option or probe.name).replace('_', '-')}"] = "probes"
-    outputs = protocol.outputs
-    for name, flag in ATTENTION_OUTPUTS:
-        value = getattr(outputs, name, None)
-        if name in defaults and value != defaults[name] and not (name == "png_every" and value == 0):  # 0: none
-            wanted[flag] = "attention"
     model.require(wanted)
     if model.capabilities.attention:
         return []
     return [f"{model.source} gives no attention: its episodes have no attention PNGs, overlay panels or attention "
-            "measures (frames, actions and everything else are recorded)"]
+            "measures, whatever the output options say (frames, actions and everything else are recorded)"]
 
 
 def check_model(protocol: Protocol, model, goal_images: Mapping[str, np.ndarray] | None) -> list[str]:

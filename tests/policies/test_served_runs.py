@@ -163,9 +163,11 @@ def test_a_flag_needing_what_a_served_policy_lacks_is_one_line_before_any_episod
     try:
         base = {"model": server.url, "task": ["Lift"], "png_every": 0}
         assert check_attention_flags(build_protocol(base), policy)  # the line saying what it leaves out, no error
-        for extra, flag in (({"layers": "0"}, "--layers"), ({"intervene": "mask-all"}, "--intervene"),
-                            ({"video_attention": "rollout"}, "full attention"), ({"action_consistency": True},
-                                                                                  "--action-consistency")):
+        drawn = {"layers": "0", "png_every": 4, "cmap": "jet", "bbox": True}  # how attention is drawn: left out
+        assert "whatever the output options say" in check_attention_flags(build_protocol({**base, **drawn}), policy)[0]
+        for extra, flag in (({"intervene": "mask-all"}, "--intervene"),
+                            ({"video_attention": "rollout"}, "--video-attention rollout"),
+                            ({"action_consistency": True}, "--action-consistency")):
             with pytest.raises(PolicyLacksError, match=flag):
                 check_attention_flags(build_protocol({**base, **extra}), policy)
     finally:
