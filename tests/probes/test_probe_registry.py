@@ -182,7 +182,9 @@ def test_no_module_outside_the_probes_imports_a_particular_probe():
     outside = sorted(str(p.relative_to(HARNESS.parent)) for root in (HARNESS, HARNESS.parent / "envs")
                      for p in root.rglob("*.py") if "reliance" in p.read_text()
                      and "probes" not in p.relative_to(HARNESS.parent).parts)
-    assert len(outside) <= 6, outside
+    # 8: diagnose reads nuisance reliance as one of its failure signals (analysis/diagnose/signals.py, failures.py:
+    # issue 74 names it), through the registry's reader
+    assert len(outside) <= 8, outside
 
 
 @pytest.mark.slow

@@ -28,8 +28,7 @@ from harness.analysis.compare import GRID_FILE, read_grid
 from harness.analysis.robustness import run_condition
 from harness.analysis.robustness_measures import CAMERA
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_run, read_npz
-from harness.probes.action_consistency import reader as consistency_reader
-from harness.probes.readout_features import reader as features_reader
+from harness.probes import registry as probes
 
 SIGNALS = ("entropy", "nuisance", "target", "gripper", "consistency", "reliance")
 
@@ -136,6 +135,7 @@ def _attention(directory: Path, steps: int) -> tuple[tuple[str, ...], np.ndarray
 
 
 def _consistency(directory: Path, steps: int) -> np.ndarray | None:
+    consistency_reader = probes.part("action_consistency", "reader")  # through the registry, as every consumer
     stored = consistency_reader.arrays(directory)
     if stored is None and (directory / "actions.npz").is_file():
         stored = consistency_reader.from_actions(directory)
@@ -145,7 +145,7 @@ def _consistency(directory: Path, steps: int) -> np.ndarray | None:
 
 
 def _reliance(directory: Path, steps: int) -> np.ndarray | None:
-    from harness.probes.reliance import reader as reliance_reader
+    reliance_reader = probes.part("reliance", "reader")
 
     path = directory / reliance_reader.FILE
     if not path.is_file():
@@ -165,7 +165,7 @@ def episode_signals(record: RunRecord, episode: EpisodeRecord, condition: str, p
             signals[name] = value
     signals = {name: signals.get(name, np.full(steps, np.nan)) for name in SIGNALS}
     features = None
-    found = features_reader.arrays(directory)
+    found = probes.part("readout_features", "reader").arrays(directory)
     if found is not None and len(found[0]):
         features = held(steps, *found).astype(np.float32)
     return EpisodeSignals(record.name, episode.task, condition, -1 if episode.seed is None else int(episode.seed),
