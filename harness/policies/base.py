@@ -127,6 +127,14 @@ class PolicyFamily:
     def load(self, source: str, **options: Any) -> Policy:
         raise NotImplementedError
 
+    # whether a run may map its observations to this family's policies with --served-conventions (a server's keys)
+    takes_served_conventions: bool = False
+
+    def declared_conventions(self, source: str) -> dict | None:
+        """The harness.toml-format conventions the policy behind `source` declares itself ({} when it declares none),
+        or None: read them from its checkpoint folder's harness.toml (harness.run.settings)."""
+        return None
+
     def protocol_source(self, source: str) -> str:
         """What the protocol (and its hash) records of `source`: the source itself, unless where it is reached does
         not define the policy (a server's address: its fingerprint does)."""

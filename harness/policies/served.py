@@ -405,6 +405,11 @@ class ServedFamily(PolicyFamily):
     def accepts(self, source: str) -> bool:
         return source.startswith(("ws://", "wss://"))
 
+    takes_served_conventions = True
+
+    def declared_conventions(self, source: str) -> dict:
+        return declared_conventions(source)
+
     def protocol_source(self, source: str) -> str:
         return SERVED_SOURCE
 

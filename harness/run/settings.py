@@ -138,21 +138,20 @@ def _model_folder(model: str) -> Path | None:
 
 
 def _conventions(model: str, served_conventions: str | None = None):
-    """The model's conventions: a served policy's from --served-conventions, else from what its server declares
-    (harness.policies.served.declared_conventions); a checkpoint's from its folder's harness.toml."""
+    """The model's conventions: from --served-conventions where its family takes it, else what the policy declares
+    of itself (PolicyFamily.declared_conventions: a server's metadata), else its checkpoint folder's harness.toml."""
     from harness.conventions import CheckpointConventions
     from harness.policies import family_of
 
+    family = family_of(model)
     if served_conventions is not None:
-        if family_of(model).name != "served":
+        if not family.takes_served_conventions:
             raise ValueError("--served-conventions is for a policy behind a server (--model ws://HOST:PORT); a "
                              "checkpoint's conventions are its harness.toml: drop the flag")
         return CheckpointConventions.read_file(served_conventions)
-    if family_of(model).name == "served":
-        from harness.policies.served import declared_conventions
-
-        data = declared_conventions(model)
-        return CheckpointConventions.parse(data, f"{model} (its metadata)") if data else CheckpointConventions()
+    declared = family.declared_conventions(model)
+    if declared is not None:  # what the policy says of itself (a server's metadata)
+        return CheckpointConventions.parse(declared, f"{model} (its metadata)") if declared else CheckpointConventions()
     return CheckpointConventions.read(_model_folder(model))
 
 
