@@ -249,12 +249,12 @@ def run_checks(model, env, seed: int, convention: str, action_space: str, datase
     policy's action statistics; a policy without them, given `config`, from the first chunk it returns)."""
     examples = example_frames(model)
     frames = first_frames(env, seed)
-    datasets = len(getattr(model, "dataset_statistics", None) or {})
+    datasets = len(model.dataset_statistics or {})
     found = [image_finding(k, examples[k], frames[k], convention, default, datasets) for k in examples if k in frames]
-    from_chunk = config is not None and getattr(model, "preflight_from_chunk", False)
+    from_chunk = config is not None and model.preflight_from_chunk
     found += [_no_example(k, "the policy's metadata has no example frame") for k in frames
               if from_chunk and k not in examples and k in model.image_sizes]
-    statistics = getattr(model, "dataset_statistics", None)
+    statistics = model.dataset_statistics
     if from_chunk and not statistics:
         found.append(chunk_finding(first_chunk(model, config, env, seed), action_space, hold_gripper))
     else:
@@ -307,8 +307,8 @@ def check_run(mode: str, protocol, model, env, seed: int, dataset_key: str | Non
     options = protocol.env_for(task)
     findings = run_checks(model, env, seed, options.image_convention, options.action_space, dataset_key,
                           options.hold_gripper, suites.of(task).defaults["image_convention"], protocol.policy)
-    folder = getattr(model, "checkpoint_dir", None)
-    declared = getattr(model, "preflight_from_chunk", False)  # a served policy: its server or file declares conventions
+    folder = model.checkpoint_dir
+    declared = model.preflight_from_chunk  # a served policy: its server or file declares conventions
     for line in report(mode, findings, declared or (folder is not None and (Path(folder) / CONVENTIONS_FILE).is_file())):
         log.warning("%s", line)
     return record(mode, findings, task)
