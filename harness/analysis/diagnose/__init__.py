@@ -10,7 +10,7 @@
 - gives one row per failed episode (`.failures`): its furthest phase and stall step, the successful episodes' median
   step past that phase, the signals furthest from theirs, the run's pre-flight verdicts.
 A task with fewer than MIN_CLASS successes or failures gets one line instead of its tables (the failures are still
-listed). Outputs in `out` (`.write`): diagnose.json (everything), diagnose.md (the tables), failures.csv.
+listed). Outputs in `out` (`.outputs`): diagnose.json (everything), diagnose.md (the tables), failures.csv.
 """
 
 from __future__ import annotations
@@ -70,6 +70,6 @@ def diagnose(paths, folds: int = FOLDS, resamples: int = RESAMPLES, seed: int = 
 
 
 def write(diagnosis: Diagnosis, out: str | Path) -> dict[str, Path]:
-    from harness.analysis.diagnose.write import write_outputs
+    from harness.analysis.diagnose.outputs import write_outputs
 
     return write_outputs(diagnosis, Path(out))

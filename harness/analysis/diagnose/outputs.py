@@ -31,7 +31,8 @@ def _auroc(row: dict, pooled: bool = False) -> str:
     return text + (", better" if row["verdict"] == BETTER else ", not better")
 
 
-def _table(cells: list[dict], labels: list[str], names: list[str], pooled: bool) -> list[str]:
+def auroc_table(cells: list[dict], labels: list[str], names: list[str], pooled: bool) -> list[str]:
+    """The AUROC table's lines (a row per predictor, a column per cell) and the cells' one-line notes."""
     lines = ["| predictor | " + " | ".join(labels) + " |", "|---|" + "---|" * len(labels),
              "| failures / successes | " + " | ".join(f"{c['failures']} / {c['successes']}" for c in cells) + " |"]
     for name in names:
@@ -52,17 +53,27 @@ def task_section(task: str, result: dict) -> list[str]:
     lines += ["### AUROC by step, within conditions", "",
               "Over the episodes still running at t; pairs of one run only. \"better\": the seed-cluster interval of "
               "its difference from time and phase lies above 0.", ""]
-    lines += _table(result["by_step"], [f"t = {t}" for t in STEPS], names, pooled=False) + [""]
+    lines += auroc_table(result["by_step"], [f"t = {t}" for t in STEPS], names, pooled=False) + [""]
     if result["by_phase"]:
         lines += ["### AUROC on entering each phase, within conditions", ""]
-        lines += _table(result["by_phase"], [c["phase"] for c in result["by_phase"]], names, pooled=False) + [""]
+        lines += auroc_table(result["by_phase"], [c["phase"] for c in result["by_phase"]], names, pooled=False) + [""]
     else:
         lines += [result["no_phases"], ""]
     lines += ["### Lead time", "",
               f"Threshold: at most {FALSE_ALARM:.0%} of the successful training episodes flagged. Lead: steps from the "
-              "first flag to the stall step (positive: before it).", "",
-              "| predictor | failures flagged | median lead (steps) | false alarms, held-out | false alarms, training |",
-              "|---|---|---|---|---|"]
+              "first flag to the stall step (positive: before it).", ""]
+    lines += lead_time_table(result)
+    lines += ["", "### Pooled across conditions (not the result)", "",
+              "Pairs across runs, inputs not centred per run: a perturbation that predicts failure by itself counts "
+              "here.", ""]
+    lines += auroc_table(result["by_step"], [f"t = {t}" for t in STEPS], names, pooled=True) + [""]
+    return lines
+
+
+def lead_time_table(result: dict) -> list[str]:
+    """The lead-time table's lines: a row per predictor."""
+    lines = ["| predictor | failures flagged | median lead (steps) | false alarms, held-out | false alarms, training |",
+             "|---|---|---|---|---|"]
     for name, row in result["lead_time"].items():
         if row.get("message"):
             lines.append(f"| {name} | {row['message']} | | | |")
@@ -70,10 +81,6 @@ def task_section(task: str, result: dict) -> list[str]:
         lines.append(f"| {name} | {row['flagged_failures']}/{row['failures']} ({_number(100 * row['flagged_share'], 0)}%)"
                      f" | {_number(row['median_lead'], 1)} | {_number(100 * row['false_alarm'], 0)}% of "
                      f"{row['successes']} | {_number(100 * row['training_false_alarm'], 0)}% |")
-    lines += ["", "### Pooled across conditions (not the result)", "",
-              "Pairs across runs, inputs not centred per run: a perturbation that predicts failure by itself counts "
-              "here.", ""]
-    lines += _table(result["by_step"], [f"t = {t}" for t in STEPS], names, pooled=True) + [""]
     return lines
 
 
