@@ -10,6 +10,8 @@
 # the reduced grid in EVAL.md was: bash scripts/robustness_reference.sh Lift <every kind> 0,3,5 5
 # (run first with camera,lighting,distractors, then extended with the other kinds: a grid folder grows)
 # Resumable: re-running the same command finishes what a killed grid left.
+# Every run records the two failure probes (issue 74: --readout-features-every 1 --action-consistency) for
+# `octo-harness diagnose` and EVAL.md's "## Failure early warning" section (scripts/early_warning_reference.sh).
 # RELIANCE=N adds --reliance-every N to every run (issue 45) and writes EVAL.md's "## Reliance" section from the
 # nominal run; SECTION=TITLE writes the grid's table under "## TITLE" instead of "## Robustness" (a second grid, as
 # scripts/wrist_reliance_reference.sh).
@@ -26,6 +28,7 @@ SECTION="${SECTION:-Robustness}"
 CPU="$(lscpu 2>/dev/null | sed -n 's/^Model name: *//p' | head -1)"
 NOTE="${NOTE:-Measured on ${CPU:-an unnamed CPU}, $(nproc) cores, CPU only.}"
 MODEL=models/octo-reference-robosuite
+PROBES="--readout-features-every 1 --action-consistency"
 export HF_HUB_OFFLINE=1 MUJOCO_GL="${MUJOCO_GL:-egl}"
 PY="${PYTHON:-.venv/bin/python}"
 workers=()
@@ -42,14 +45,14 @@ SCRIPT="bash scripts/robustness_reference.sh $TASKS $KINDS $LEVELS $EPISODES"
 [ "$SECTION" != Robustness ] && SCRIPT="SECTION=\"$SECTION\" $SCRIPT $OUT"
 [ -n "$RELIANCE" ] && SCRIPT="RELIANCE=$RELIANCE $SCRIPT"
 "$PY" -m harness.cli robustness --model "$MODEL" --task "$TASKS" --perturb "$KINDS" --levels "$LEVELS" \
-    --episodes "$EPISODES" --seed 0 --fast-render --png-every 0 --no-video --out "$OUT" "${workers[@]}" \
+    --episodes "$EPISODES" --seed 0 --fast-render --png-every 0 --no-video $PROBES --out "$OUT" "${workers[@]}" \
     "${measures[@]}"
 runs=()
 for d in "$OUT"/*/; do [ -f "$d/manifest.json" ] && runs+=("$d"); done
 "$PY" -m harness.cli report "${runs[@]}" --out "$OUT/report"
 # EVAL.md's "## Robustness" section (other sections stay), or "## $SECTION"
 "$PY" -m harness.report.robustness "${runs[@]}" --eval-md "$MODEL/EVAL.md" --section "$SECTION" --command "$SCRIPT" \
-    --note "Made by \`$SCRIPT\`: \`octo-harness robustness --model $MODEL --task $TASKS --perturb $KINDS --levels $LEVELS --episodes $EPISODES --seed 0 --fast-render --png-every 0 --no-video$RELIANCE_FLAG\` (held-out seeds 0..$((EPISODES - 1)), each task at its own step limit, masks on; kinds and levels: docs/perturbations.md). Target lift and nuisance mass: primary camera, last layer, mean over each episode's steps.$RELIANCE_NOTE $NOTE"
+    --note "Made by \`$SCRIPT\`: \`octo-harness robustness --model $MODEL --task $TASKS --perturb $KINDS --levels $LEVELS --episodes $EPISODES --seed 0 --fast-render --png-every 0 --no-video $PROBES$RELIANCE_FLAG\` (held-out seeds 0..$((EPISODES - 1)), each task at its own step limit, masks on; kinds and levels: docs/perturbations.md). Target lift and nuisance mass: primary camera, last layer, mean over each episode's steps.$RELIANCE_NOTE $NOTE"
 # with reliance: EVAL.md's "## Reliance" section from the nominal run (attention share beside reliance share)
 if [ -n "$RELIANCE" ] && [ -f "$OUT/nominal/manifest.json" ]; then
   "$PY" -m harness.probes.reliance.report "$OUT/nominal" --eval-md "$MODEL/EVAL.md" --command "$SCRIPT" --note \
