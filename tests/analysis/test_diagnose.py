@@ -231,6 +231,21 @@ def test_the_eval_md_section_is_written_from_real_runs_and_rendered_from_its_fig
     assert "| approach | 4 |" in text or "Where Lift's failed episodes stalled:" in text
 
 
+def test_the_guides_example_on_the_committed_baseline_gives_the_row_it_quotes(tmp_path, capsys):
+    """docs/diagnose.md opens with diagnose on results/baselines/reference-lift and quotes its one failure's row."""
+    from pathlib import Path
+
+    from harness import cli
+
+    repo = Path(__file__).resolve().parents[2]
+    assert cli.main(["diagnose", str(repo / "results/baselines/reference-lift"), "--out", str(tmp_path)]) == 0
+    assert "Lift: too few failures to predict failure (7 successes, 1 failures" in capsys.readouterr().out
+    (row,) = list(csv.DictReader((tmp_path / "failures.csv").open()))
+    quoted = (f"| {row['furthest_phase']} | {row['stall_step']} | {row['passed_median']} | {row['furthest']} |")
+    guide = (repo / "docs/diagnose.md").read_text()
+    assert quoted in guide and f"one failure (seed {row['seed']})" in guide, quoted
+
+
 def test_the_package_functions_survive_importing_its_modules():
     """A submodule named like a package function replaces it once imported (`write` was both): the report's sections
     import the output module, and diagnose then failed with exit 5 in the same process."""
