@@ -18,6 +18,7 @@ page (harness.report.page) -> files. Output folder:
   tables/phase_*.csv   task phases: phase x layer table, steps, tests, event-aligned views, failures (report/phases.py)
   tables/position_bound.csv, position_share.csv, position_lift.csv   attention controls (report/position.py)
   tables/grounding_*.csv  LIBERO-Object runs: object picked vs named, named-object lift per layer (report/grounding.py)
+  tables/failures.csv  runs with a failed episode: diagnose's rows, one per failed episode (report/failures.py)
   tables/robustness*.csv  when a run was perturbed: success per task x condition x level, episode measures,
                      step-0 attention shift against the nominal episode, nuisance-success association
   plots/*.png        every figure of the page
@@ -29,7 +30,6 @@ never half-written or mixed with an older report's files.
 from __future__ import annotations
 
 import io
-import logging
 import math
 import os
 import shutil
@@ -48,11 +48,10 @@ from harness.measures.episode import MEASURES, episode_measures, measures_from_a
 from harness.analysis.runs import EpisodeRecord, RunRecord, load_episode_arrays, load_run
 from harness.measures.stats import success_summary
 from harness.report import faithfulness, figures, page
+from harness.report.frames import VIDEO_DISPLAY, read_video_frames
 from harness.report.rundata import RunData, episode_headline, representative
 from harness.report.rundata import csv_bytes as _csv
 from harness.report.sections import sections
-
-VIDEO_DISPLAY = 256  # harness.outputs.overlays.video_frame's `display`: the camera frame fills the video's top-left display x w
 
 
 class ReportError(ValueError):
@@ -164,35 +163,6 @@ def _cameras(run: RunData) -> list[str]:
 
 
 # ---- overlays of a representative episode -----------------------------------------------------------------------
-
-
-def _drop_crop_note(record: logging.LogRecord) -> bool:
-    """imageio-ffmpeg warns that a cropped read differs from the video's size: intended here."""
-    return "different from the source frame size" not in record.getMessage()
-
-
-def read_video_frames(path: Path, indices: list[int], height: int, width: int) -> dict[int, np.ndarray]:
-    """Frames `indices` of an MP4, cropped to the top-left height x width -> {index: (height, width, 3) uint8}.
-
-    One ffmpeg pass with a select filter (only the chosen frames are converted); {} when the video is unreadable.
-    """
-    import imageio_ffmpeg
-
-    if not indices:
-        return {}
-    select = "+".join(f"eq(n\\,{i})" for i in sorted(set(indices)))
-    logging.getLogger("imageio_ffmpeg").addFilter(_drop_crop_note)  # once (a filter is added only once)
-    try:
-        reader = imageio_ffmpeg.read_frames(str(path), input_params=["-skip_loop_filter", "all"], output_params=[
-            "-vf", f"select={select},crop={width}:{height}:0:0", "-fps_mode", "passthrough"])  # thumbnails: no deblocking
-        meta = next(reader)
-        if meta["source_size"][0] < width or meta["source_size"][1] < height:
-            reader.close()
-            return {}
-        frames = [np.frombuffer(buf, np.uint8).reshape(height, width, 3).copy() for buf in reader]
-    except (OSError, RuntimeError, StopIteration, ValueError):
-        return {}
-    return dict(zip(sorted(set(indices)), frames))
 
 
 def _evenly(n: int, k: int) -> list[int]:

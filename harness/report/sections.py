@@ -12,6 +12,7 @@ tables, figures, HTML), or the section its probe declares.
   Phases        tables/phase_*.csv                             harness/report/phases.py
   Position      tables/position_*.csv                          harness/report/position.py
   Robustness    tables/robustness*.csv (perturbed runs)        harness/report/robustness.py
+  Failures      tables/failures.csv (failed episodes)          harness/report/failures.py, failure_frames.py
   Grounding     tables/grounding_*.csv (LIBERO-Object runs)    harness/report/grounding.py
 """
 
@@ -20,7 +21,7 @@ from __future__ import annotations
 from typing import Any, Protocol
 
 from harness import probes
-from harness.report import faithfulness, grounding, phases, position, robustness
+from harness.report import failures, faithfulness, grounding, phases, position, robustness
 from harness.report.rundata import RunData
 from harness.report.rundata import csv_bytes as _csv
 
@@ -99,6 +100,19 @@ class Robustness:
         return robustness.section(_records(runs), figures, summary)
 
 
+class Failures:
+    name, anchor = "Failures", "failures"  # runs with a failed episode: diagnose's rows, stall frames beside successes
+
+    def summarise(self, runs, options):
+        return failures.summarise(runs)  # None unless an episode failed
+
+    def tables(self, runs, summary):
+        return failures.tables(summary if summary is not None else failures.summarise(runs))
+
+    def section(self, runs, figures, summary):
+        return failures.section(runs, figures, summary if summary is not None else failures.summarise(runs))
+
+
 class Grounding:
     name, anchor = "Grounding", "grounding"  # runs that hold LIBERO-Object episodes
 
@@ -112,7 +126,7 @@ class Grounding:
         return grounding.section(_records(runs))
 
 
-SECTIONS: tuple[ReportSection, ...] = (Phases(), Position(), Robustness(), Grounding())  # after the probes' sections
+SECTIONS: tuple[ReportSection, ...] = (Phases(), Position(), Robustness(), Failures(), Grounding())  # after the probes' sections
 
 
 def sections() -> tuple[ReportSection, ...]:
