@@ -198,8 +198,12 @@ class EpisodeState:
             self._chunks.append(chunk)
             action = ensemble(list(self._chunks), self.config.ensemble_weight)
         elapsed = result.seconds if seconds is None else seconds
+        payloads = dict(result.probes)
+        for probe in active_probes(self.config):  # a probe its sink computes: this inferred step is probed when due
+            if not probe.in_inference(self.config) and probe.due(self.config, self.t - 1):
+                payloads.setdefault(probe.name, {})
         self._last = PolicyStep(action, chunk, result.readout_attention, result.full_attention, True, elapsed, result.tokens,
-                                self._entry, dict(result.probes))
+                                self._entry, payloads)
         return self._last
 
 

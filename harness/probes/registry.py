@@ -110,6 +110,18 @@ class Probe:
         return 1 if cls.option is None or getattr(config, cls.option) else 0
 
     @classmethod
+    def in_inference(cls, config) -> bool:
+        """Whether it runs inside the policy's inference (True by default). False: its sink computes it from the step
+        records alone, so any policy can record it, one that runs no probes too (a policy behind a server); the closed
+        loop marks its due inferred steps with an empty payload, as the inference side would (harness.policy)."""
+        return True
+
+    @classmethod
+    def inference_flag(cls, config) -> str:
+        """The flag that asks for its computation in the inference (named when a policy cannot run it)."""
+        return f"--{(cls.option or cls.name).replace('_', '-')}"
+
+    @classmethod
     def due(cls, config, step: int) -> bool:
         every = cls.every(config)
         return bool(every) and step % every == 0

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from harness.analysis.diagnose.failures import Z_SIGNALS, failure_rows
+from harness.analysis.diagnose.failures import Z_SIGNALS, Z_SIGNALS_TEXT, failure_rows
 from harness.analysis.diagnose.signals import EpisodeSignals, condition_name, episode_signals, preflight_text
 from harness.analysis.diagnose.stats import stall_step
 from harness.analysis.diagnose.outputs import SHOWN_FAILURES, failures_csv
@@ -210,8 +210,7 @@ def section(runs, figures, summary: Summary | None) -> str:
              "of its last tenth); after it the episode made no more progress. Successes passed it: the median step at "
              "which the successful episodes of the same task and condition passed that phase. Furthest signals: each "
              "signal's mean over the episode's steps in that phase as a robust z-score against those successes' (none "
-             "with fewer than 3 of them): attention on the target, gripper and nuisance regions, nuisance reliance, "
-             "action consistency. docs/diagnose.md explains them.")
+             f"with fewer than 3 of them): {Z_SIGNALS_TEXT}. docs/diagnose.md explains them.")
     body = [str(H.note(intro))] + [str(H.note(n)) for n in summary.notes]
     tasks = dict.fromkeys(t for run in runs for t in run.record.tasks)
     for task in [t for t in tasks if any(r["task"] == t for r in summary.rows)]:

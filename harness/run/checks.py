@@ -131,7 +131,8 @@ def decode_goal_images(folder: str | Path) -> dict[str, np.ndarray]:
 
 def check_attention_flags(protocol: Protocol, model) -> list[str]:
     """For a policy without what a run computes (harness.policies.Capabilities): PolicyLacksError (one line, exit 2)
-    when the protocol asks for a computation the policy lacks (an intervention, rollout attention, a per-step probe);
+    when the protocol asks for a computation the policy lacks (an intervention, rollout attention, a per-step probe that
+    runs in the inference);
     else, for a policy without attention, the console line saying its attention outputs are left out. Output options
     only choose how attention is drawn (PNG steps and layers, colour map, overlays, bounding boxes): without attention
     there is nothing to draw, so they are left out with that line, never refused (a baseline's protocol, inherited by
@@ -145,7 +146,8 @@ def check_attention_flags(protocol: Protocol, model) -> list[str]:
     if policy.full_attention:
         wanted["--video-attention rollout"] = "attention"
     for probe in probes.active(policy):
-        wanted[f"--{(probe.option or probe.name).replace('_', '-')}"] = "probes"
+        if probe.in_inference(policy):  # a probe its sink computes from the step records needs nothing of the policy
+            wanted[probe.inference_flag(policy)] = "probes"
     model.require(wanted)
     if model.capabilities.attention:
         return []

@@ -134,7 +134,8 @@ def test_the_standalone_server_script_serves_the_scripted_expert_end_to_end(stan
     out = tmp_path / "expert"
     done = harness("run", "--model", standalone.url, "--task", "Lift", "--episodes", "1", "--max-steps", "16",
                    "--seed", "0", "--png-every", "0", "--fast-render", "--out", str(out), "--run-name", "a",
-                   "--served-conventions", str(REPO / "examples" / "serve" / "scripted_lift.toml"))
+                   "--served-conventions", str(REPO / "examples" / "serve" / "scripted_lift.toml"),
+                   "--action-consistency")  # computed from the chunks: any policy with action chunks records it
     assert done.returncode == 0, done.stderr[-2000:]
     run = out / "a"
     (episode,) = run.rglob("actions.npz")
@@ -149,6 +150,12 @@ def test_the_standalone_server_script_serves_the_scripted_expert_end_to_end(stan
     meta = json.loads(next(run.rglob("episode.json")).read_text())
     assert meta.get("attention") is False  # a policy without attention: recorded as such
     assert (episode.parent / "rollout.mp4").stat().st_size > 0  # the frames, without overlay panels
+    from harness.probes.action_consistency import reader
+
+    stored, computed = reader.arrays(episode.parent), reader.from_actions(episode.parent)
+    assert stored is not None and len(stored["step"]) > 1 and np.array_equal(stored["step"], computed["step"])
+    assert np.allclose(stored["disagreement"], computed["disagreement"], equal_nan=True)
+    assert np.isfinite(stored["disagreement"][1:]).all()  # every inferred chunk after the first overlaps a plan
 
 
 def test_a_flag_needing_what_a_served_policy_lacks_is_one_line_before_any_episode(server, tmp_path):
@@ -168,9 +175,13 @@ def test_a_flag_needing_what_a_served_policy_lacks_is_one_line_before_any_episod
         assert "whatever the output options say" in check_attention_flags(build_protocol({**base, **drawn}), policy)[0]
         for extra, flag in (({"intervene": "mask-all"}, "--intervene"),
                             ({"video_attention": "rollout"}, "--video-attention rollout"),
-                            ({"action_consistency": True}, "--action-consistency")):
+                            ({"readout_features_every": 1}, "--readout-features-every")):
             with pytest.raises(PolicyLacksError, match=flag):
                 check_attention_flags(build_protocol({**base, **extra}), policy)
+        # action consistency is computed from the chunks, for any policy: only its extra draws need the policy
+        assert check_attention_flags(build_protocol({**base, "action_consistency": True}), policy)
+        with pytest.raises(PolicyLacksError, match="--action-samples 4"):
+            check_attention_flags(build_protocol({**base, "action_consistency": True, "action_samples": 4}), policy)
     finally:
         policy.close()
 

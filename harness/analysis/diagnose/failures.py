@@ -23,6 +23,8 @@ from harness.analysis.diagnose.signals import EpisodeSignals
 from harness.analysis.diagnose.stats import LAST_TENTH, robust_z, stall_step
 
 Z_SIGNALS = ("target", "gripper", "nuisance", "reliance", "consistency")
+Z_SIGNALS_TEXT = ("attention on the target, gripper and nuisance regions, nuisance reliance where measured, action "
+                  "consistency")  # what Z_SIGNALS are, in words (the report's Failures section quotes it)
 FAILURE_COLUMNS = ("run", "task", "condition", "seed", "episode", "steps", "furthest_phase", "stall_step", "stall_basis",
                    "passed_median", "successes", *(f"z_{s}" for s in Z_SIGNALS), "furthest", "preflight")
 NO_PHASES = "no phases: last tenth"

@@ -73,6 +73,15 @@ class ActionConsistencyProbe(Probe):
     sink = ".sink:ConsistencyArrays"
     reader = ".reader"
 
+    @classmethod
+    def in_inference(cls, config) -> bool:
+        """Only the K extra draws run in the policy's inference; the disagreement is the sink's, for any policy."""
+        return bool(config.action_samples)
+
+    @classmethod
+    def inference_flag(cls, config) -> str:
+        return f"--action-samples {config.action_samples}"
+
     def __init__(self, context: ProbeContext):
         super().__init__(context)
         self.samples = int(context.config.action_samples)
