@@ -6,10 +6,13 @@ picture of where it stalled beside a successful episode at the same phase.
   None when no episode failed (the section is then absent).
 - `tables(summary)`: {"failures.csv"}: every row, in diagnose's FAILURE_COLUMNS, the bytes diagnose writes.
 - `section(runs, figures, summary)`: per task the table (its first SHOWN_FAILURES rows, as diagnose.md) and one
-  figure: up to PICTURED failed episodes (the largest |z| of a signal first, then in run and seed order), each at its
-  stall step beside a successful episode at its first step in the failure's furthest phase (without phases: the
-  first step of its last tenth), from the same run and condition, else the same condition, else any run of the task
-  (the figure says which). Its frames come from `harness.report.failure_frames`.
+  figure: up to PICTURED failed episodes (the largest |z| of a signal first, then in run and seed order), each shown
+  stalled beside a successful episode leaving the same phase (`shown_step`: the failure at the step the successes
+  had passed its furthest phase, their median, not before its stall step; the success at its last step in that
+  phase; without phases, both at the first step of their last tenth), the success from the same run and condition,
+  else the same condition, else any run of the task (the figure says which). A failure that never left its first
+  phase stalls at step 0, where every episode looks alike: the step the successes moved on is the telling one. Its
+  frames come from `harness.report.failure_frames`.
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ class Match:
     """The successful episode shown beside a failure."""
 
     episode: EpisodeSignals
-    step: int  # its first step in the failure's furthest phase (without phases: of its last tenth)
+    step: int  # its last step in the failure's furthest phase (without phases: the first of its last tenth)
     tier: int  # index into TIERS
 
 
@@ -117,8 +120,18 @@ def success_for(failed: EpisodeSignals, summary: Summary) -> Match | None:
     if best is None:
         return None
     tier, _, e = best
-    step = int(np.flatnonzero(e.phase == furthest)[0]) if furthest is not None else stall_step(None, e.steps)
+    step = int(np.flatnonzero(e.phase == furthest)[-1]) if furthest is not None else stall_step(None, e.steps)
     return Match(e, step, tier)
+
+
+def shown_step(row: dict, failed: EpisodeSignals) -> int:
+    """The failure's step in the figure: with phases, the step at which the successes had passed its furthest phase
+    (their median), not before its stall step and not past its end; without phases (or no success to time it),
+    its stall step."""
+    stall = int(row["stall_step"])
+    if not row["furthest_phase"] or not row["passed_median"]:
+        return stall
+    return int(min(max(stall, round(float(row["passed_median"]))), failed.steps - 1))
 
 
 def _no_success(failed: EpisodeSignals, row: dict, summary: Summary) -> str:
@@ -132,7 +145,13 @@ def _no_success(failed: EpisodeSignals, row: dict, summary: Summary) -> str:
 
 
 def _phase_text(row: dict) -> str:
-    return f"first step in {row['furthest_phase']}" if row["furthest_phase"] else "first step of its last tenth"
+    return f"last step in {row['furthest_phase']}" if row["furthest_phase"] else "first step of its last tenth"
+
+
+def _failed_text(row: dict, step: int) -> str:
+    if not row["furthest_phase"]:
+        return f"step {step}: first step of its last tenth (stall)"
+    return f"step {step}: in {row['furthest_phase']} since step {row['stall_step']} (stall)"
 
 
 def _figure(task: str, rows: list[dict], summary: Summary, figures) -> tuple[str, dict]:
@@ -145,16 +164,17 @@ def _figure(task: str, rows: list[dict], summary: Summary, figures) -> tuple[str
         failed = summary.signals(row["run"], task, row["episode"])
         pairs.append((row, failed, success_for(failed, summary)))
     wanted: dict[tuple, set[int]] = {}
+    shown = {id(row): shown_step(row, failed) for row, failed, _ in pairs}
     for row, _, match in pairs:
-        wanted.setdefault((row["run"], task, row["episode"]), set()).add(int(row["stall_step"]))
+        wanted.setdefault((row["run"], task, row["episode"]), set()).add(shown[id(row)])
         if match is not None:
             wanted.setdefault((match.episode.run, task, match.episode.episode), set()).add(match.step)
     panels = {key: F.panels(*summary.where[key], sorted(steps)) for key, steps in wanted.items()}
     figure_rows, notes = [], []
     for number, (row, failed, match) in enumerate(pairs, 1):
-        left = panels[(row["run"], task, row["episode"])].get(int(row["stall_step"]))
+        left = panels[(row["run"], task, row["episode"])].get(shown[id(row)])
         left_lines = (f"FAILED {row['run']} | seed {row['seed']} ep. {row['episode']}"
-                      + (f" ({left[1]})" if left else ""), f"step {row['stall_step']}: stall, {_phase_text(row)}")
+                      + (f" ({left[1]})" if left else ""), _failed_text(row, shown[id(row)]))
         if match is None:
             why = _no_success(failed, row, summary)
             figure_rows.append((left, left_lines, None, ("no success to show", why)))
@@ -169,13 +189,14 @@ def _figure(task: str, rows: list[dict], summary: Summary, figures) -> tuple[str
         if match.tier:
             notes.append(f"row {number}: the success is from {e.run} ({TIERS[match.tier]}"
                          + (f": {e.condition})" if match.tier == 2 else ")"))
-    png = F.compose(f"{task}: failed episodes at their stall step (left) beside a success at the same phase (right)",
+    png = F.compose(f"{task}: failed episodes stalled in a phase (left) beside a success leaving it (right)",
                     figure_rows)
     without = sorted({r.label for r, _ in summary.where.values() if not r.record.attention})
     caption = (f"{task}: up to {PICTURED} failed episodes (the largest |z| of a signal first, then in run and seed "
-               "order), each at its stall step (left) beside a successful episode of the same task at its first step "
-               "in the failure's furthest phase (right; without phases, the first step of its last tenth), from the same "
-               "run and condition where one exists. Each panel: camera | attention overlay, from rollout.mp4 as the run "
+               "order), each stalled in its furthest phase (left: at the step the successes had passed that phase, "
+               "their median, or at its stall step when later) beside a successful episode of the same task at its "
+               "last step in that phase (right; without phases, both at the first step of their last tenth), from the "
+               "same run and condition where one exists. Each panel: camera | attention overlay, from rollout.mp4 as the run "
                "recorded it (its video overlay, by default the last layer's head mean), else from inputs.npz with the "
                "last layer's head-mean readout attention drawn over the policy's input frame"
                + (f"; {', '.join(without)}: a policy without attention, frames without an overlay" if without else "")

@@ -3,7 +3,7 @@ and, per task, the failed episodes' stall frames beside a success at the same ph
 
 One real run of the reference policy (2 short Lift episodes with an MP4 and --record-inputs) is edited by hand, since
 a 12-step episode never succeeds: episode 1 is marked a success, and both episodes' phases are set, so that the
-failure stalls at step 6 (its first step in grasp) and the success enters grasp at step 4. Copies of it without the
+failure stalls at step 6 (its first step in grasp) and the success is in grasp from step 4 to 7. Copies of it without the
 MP4, without any frames and without a failure give the other cases; hand-made episodes (tests/analysis/test_diagnose.py)
 give the table's cap and the choice of the pictured failures and of the success beside each."""
 
@@ -113,20 +113,22 @@ def test_the_report_shows_the_stall_frame_from_the_mp4_beside_the_success_at_the
     expected = failures_csv(failure_rows(load([run])[0])).encode()
     assert (result.out / "tables" / "failures.csv").read_bytes() == expected
     assert expected.count(b"\n") == 2 and b"lift,Lift,nominal,0,0,12,grasp,6,phases,8.0,1," in expected  # passed grasp at 8
-    # the figure: one row, the failure at its stall step 6 beside the success at its first grasp step 4, from the MP4
+    # the figure: one row, the failure at step 8 (the success passed grasp at 8; the failure stalled in it at 6)
+    # beside the success at its last grasp step 7, from the MP4
     png = (result.out / "plots" / "failures_lift.png").read_bytes()
     image = Image.open(io.BytesIO(png))
     width = int(round((2 * VIDEO_DISPLAY + PAD) * F.PANEL / VIDEO_DISPLAY))  # camera | overlay, a square camera
     assert image.height == F.TITLE + F.HEADER + F.PANEL + F.ROW_GAP and image.width >= 2 * width + F.GAP
     failed, success = (load_run(run).episodes[k] for k in (0, 1))
     crop = (VIDEO_DISPLAY, 2 * VIDEO_DISPLAY + PAD)
-    stall = F._fit(read_video_frames(failed.video_path, [6], *crop)[6])
+    stall = F._fit(read_video_frames(failed.video_path, [8], *crop)[8])
     assert stall.shape == (F.PANEL, width, 3)
     assert np.array_equal(_panel(png, 0, True, width), stall)
-    assert not np.array_equal(stall, F._fit(read_video_frames(failed.video_path, [0], *crop)[0]))  # step 6, not 0
-    assert np.array_equal(_panel(png, 0, False, width), F._fit(read_video_frames(success.video_path, [4], *crop)[4]))
+    assert not np.array_equal(stall, F._fit(read_video_frames(failed.video_path, [6], *crop)[6]))  # step 8, not 6
+    assert np.array_equal(_panel(png, 0, False, width), F._fit(read_video_frames(success.video_path, [7], *crop)[7]))
     caption = re.search(r"<figcaption>([^<]*\(plots/failures_lift.png\))</figcaption>", section).group(1)
-    assert "each at its stall step (left) beside a successful episode" in caption and "rollout.mp4" in caption
+    assert "each stalled in its furthest phase (left: at the step the successes had passed that phase" in caption
+    assert "rollout.mp4" in caption
 
 
 @pytest.mark.slow
@@ -143,11 +145,11 @@ def test_the_section_is_deterministic_and_reads_inputs_npz_without_an_mp4(run, t
     (png,) = plots.files.values()
     width = 2 * F.PANEL + PAD  # a 128 px square camera at PANEL px, beside its overlay
     with np.load(copy / "Lift" / "episode_0" / "inputs.npz") as z:
-        frame = F._fit(z["input/image_primary"][6])
+        frame = F._fit(z["input/image_primary"][8])
     left = _panel(png, 0, True, width)
-    assert np.array_equal(left[:, :F.PANEL], frame)  # the input frame at the stall step
+    assert np.array_equal(left[:, :F.PANEL], frame)  # the input frame at the step shown
     assert not np.array_equal(left[:, F.PANEL + PAD:], frame)  # the overlay drawn over it
-    assert F.panels(*summary.where[("inputs_only", "Lift", 0)], [6])[6][1] == "inputs.npz"
+    assert F.panels(*summary.where[("inputs_only", "Lift", 0)], [8])[8][1] == "inputs.npz"
     assert "inputs.npz" in next(iter(plots.captions.values()))
 
 
@@ -212,7 +214,11 @@ def test_the_pictured_failures_are_the_furthest_from_the_successes_and_each_gets
     failed = next(e for e in summary.episodes if e.run == "run0" and not e.success)
     match = failures.success_for(failed, summary)
     assert match.tier == 0 and match.episode.run == "run0" and match.episode.success
-    assert match.episode.phase[match.step] == failed.phase.max() == 1 and match.episode.phase[match.step - 1] == 0
+    assert match.episode.phase[match.step] == failed.phase.max() == 1 and match.episode.phase[match.step + 1] == 2
+    row = next(r for r in summary.rows if (r["run"], r["episode"]) == (failed.run, failed.episode))
+    step = failures.shown_step(row, failed)  # where the successes had moved on, not before the stall
+    assert int(row["stall_step"]) <= step == min(max(int(row["stall_step"]), round(float(row["passed_median"]))),
+                                                 failed.steps - 1)
     # without a framed success of its own condition: another condition's, said so
     summary, _ = _made_summary(tmp_path, framed={"run2"})
     match = failures.success_for(failed, summary)
