@@ -38,6 +38,26 @@ def source(episode) -> str | None:
     return INPUTS if (episode.directory / INPUTS).is_file() else None
 
 
+def recorded_steps(episode) -> list[int]:
+    """The steps an episode has a frame of (rollout.mp4: every step; inputs.npz: its recorded steps, which a baseline
+    may have cut short); [] without frames."""
+    kind = source(episode)
+    if kind == "rollout.mp4":
+        return list(range(max(int(episode.steps or 0), 0)))
+    if kind == INPUTS:
+        try:
+            return sorted(int(s) for s in read_npz(episode.directory / INPUTS, "step", steps=episode.steps or None)["step"])
+        except (OSError, KeyError, ValueError):
+            return []
+    return []
+
+
+def at_or_before(recorded: list[int], wanted: int) -> int:
+    """The recorded step to show for `wanted`: the last one at or before it, else the first one (else `wanted`)."""
+    before = [s for s in recorded if s <= wanted]
+    return before[-1] if before else (recorded[0] if recorded else wanted)
+
+
 def _tokens(episode):
     from harness.octo.tokens import TokenMap
 

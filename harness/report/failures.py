@@ -149,6 +149,8 @@ def _phase_text(row: dict) -> str:
 
 
 def _failed_text(row: dict, step: int) -> str:
+    if step < int(row["stall_step"]):  # its frames end before the stall (inputs recorded for the first steps only)
+        return f"step {step}: its last frame recorded (stall at step {row['stall_step']})"
     if not row["furthest_phase"]:
         return f"step {step}: first step of its last tenth (stall)"
     return f"step {step}: in {row['furthest_phase']} since step {row['stall_step']} (stall)"
@@ -164,11 +166,15 @@ def _figure(task: str, rows: list[dict], summary: Summary, figures) -> tuple[str
         failed = summary.signals(row["run"], task, row["episode"])
         pairs.append((row, failed, success_for(failed, summary)))
     wanted: dict[tuple, set[int]] = {}
-    shown = {id(row): shown_step(row, failed) for row, failed, _ in pairs}
+    def frame_step(run: str, episode: int, step: int) -> int:  # the step itself, or the last recorded before it
+        return F.at_or_before(F.recorded_steps(summary.where[(run, task, episode)][1]), step)
+
+    shown = {id(row): frame_step(row["run"], row["episode"], shown_step(row, failed)) for row, failed, _ in pairs}
+    beside = {id(row): frame_step(m.episode.run, m.episode.episode, m.step) for row, _, m in pairs if m is not None}
     for row, _, match in pairs:
         wanted.setdefault((row["run"], task, row["episode"]), set()).add(shown[id(row)])
         if match is not None:
-            wanted.setdefault((match.episode.run, task, match.episode.episode), set()).add(match.step)
+            wanted.setdefault((match.episode.run, task, match.episode.episode), set()).add(beside[id(row)])
     panels = {key: F.panels(*summary.where[key], sorted(steps)) for key, steps in wanted.items()}
     figure_rows, notes = [], []
     for number, (row, failed, match) in enumerate(pairs, 1):
@@ -181,10 +187,11 @@ def _figure(task: str, rows: list[dict], summary: Summary, figures) -> tuple[str
             notes.append(f"row {number}: {why}")
             continue
         e = match.episode
-        right = panels[(e.run, task, e.episode)].get(match.step)
+        right = panels[(e.run, task, e.episode)].get(beside[id(row)])
         other = "" if match.tier == 0 else f" [{TIERS[match.tier]}" + (f": {e.condition}]" if match.tier == 2 else "]")
         right_lines = (f"SUCCESS {e.run} | seed {e.seed} ep. {e.episode}" + (f" ({right[1]})" if right else "") + other,
-                       f"step {match.step}: {_phase_text(row)}")
+                       f"step {beside[id(row)]}: {_phase_text(row)}" if beside[id(row)] == match.step else
+                       f"step {beside[id(row)]}: last frame recorded before its {_phase_text(row)} ({match.step})")
         figure_rows.append((left, left_lines, right, right_lines))
         if match.tier:
             notes.append(f"row {number}: the success is from {e.run} ({TIERS[match.tier]}"

@@ -223,3 +223,24 @@ def test_the_pictured_failures_are_the_furthest_from_the_successes_and_each_gets
     summary, _ = _made_summary(tmp_path, framed={"run2"})
     match = failures.success_for(failed, summary)
     assert match.tier == 2 and match.episode.run == "run2" and failures.TIERS[2] == "another condition"
+
+
+def test_a_frame_not_recorded_is_the_last_one_before_it():
+    assert F.at_or_before(list(range(20)), 26) == 19 and F.at_or_before([5, 6], 2) == 5 and F.at_or_before([], 7) == 7
+    assert F.at_or_before([0, 4, 8], 6) == 4
+
+
+def test_the_committed_baseline_shows_its_failure_from_its_inputs_cut_short(tmp_path):
+    """results/baselines/reference-lift records inputs.npz for the first 20 steps only: its one failure (seed 2,
+    stalled in approach from step 0, the successes past it at step 26) is shown at step 19, its last frame."""
+    from harness.report.build import ReportOptions, build_report
+
+    baseline = Path(__file__).resolve().parents[2] / "results" / "baselines" / "reference-lift"
+    result = build_report([baseline], tmp_path / "report", ReportOptions(resamples=20))
+    png = (result.out / "plots" / "failures_lift.png").read_bytes()
+    failed = next(e for e in load_run(baseline).episodes if not e.success)
+    assert F.recorded_steps(failed)[-1] == 19 < failed.steps - 1
+    width = 2 * F.PANEL + PAD
+    with np.load(failed.directory / "inputs.npz") as z:
+        frame = F._fit(z["input/image_primary"][19])
+    assert np.array_equal(_panel(png, 0, True, width)[:, :F.PANEL], frame)
