@@ -239,7 +239,7 @@ def test_the_guides_example_on_the_committed_baseline_gives_the_row_it_quotes(tm
 
     repo = Path(__file__).resolve().parents[2]
     assert cli.main(["diagnose", str(repo / "results/baselines/reference-lift"), "--out", str(tmp_path)]) == 0
-    assert "Lift: too few failures to predict failure (7 successes, 1 failures" in capsys.readouterr().out
+    assert "Lift: too few failures to predict failure (7 successes, 1 failure;" in capsys.readouterr().out
     (row,) = list(csv.DictReader((tmp_path / "failures.csv").open()))
     quoted = (f"| {row['furthest_phase']} | {row['stall_step']} | {row['passed_median']} | {row['furthest']} |")
     guide = (repo / "docs/diagnose.md").read_text()

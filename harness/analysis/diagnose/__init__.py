@@ -21,7 +21,7 @@ from pathlib import Path
 from harness.analysis.diagnose.evaluate import evaluate_task
 from harness.analysis.diagnose.failures import failure_rows
 from harness.analysis.diagnose.signals import load
-from harness.analysis.diagnose.stats import MIN_CLASS, RESAMPLES
+from harness.analysis.diagnose.stats import MIN_CLASS, RESAMPLES, counted
 
 FOLDS = 5
 
@@ -41,7 +41,7 @@ def task_line(task: str, failures: int, successes: int) -> str | None:
     if min(failures, successes) >= MIN_CLASS:
         return None
     short = "successes" if successes < failures else "failures"
-    return (f"{task}: too few {short} to predict failure ({successes} successes, {failures} failures; at least "
+    return (f"{task}: too few {short} to predict failure ({counted(successes, failures)}; at least "
             f"{MIN_CLASS} of each are needed): no AUROC or lead time; failures.csv still says why each failure failed")
 
 

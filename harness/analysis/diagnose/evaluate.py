@@ -38,7 +38,7 @@ def too_few(failures: int, successes: int, where: str) -> str | None:
     if min(failures, successes) >= S.MIN_CLASS:
         return None
     short = "successes" if successes < failures else "failures"
-    return (f"too few {short} {where} ({successes} successes, {failures} failures; at least {S.MIN_CLASS} of each "
+    return (f"too few {short} {where} ({S.counted(successes, failures)}; at least {S.MIN_CLASS} of each "
             f"are needed): no AUROC")
 
 

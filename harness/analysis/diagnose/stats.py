@@ -180,3 +180,9 @@ def robust_z(value: float, reference) -> float:
     median = float(np.median(ref))
     mad = float(np.median(np.abs(ref - median))) * MAD_SCALE
     return (float(value) - median) / mad if mad > 0 else math.nan
+
+
+def counted(successes: int, failures: int) -> str:
+    """"7 successes, 1 failure": the two classes' counts in words."""
+    return (f"{successes} success{'es' if successes != 1 else ''}, "
+            f"{failures} failure{'s' if failures != 1 else ''}")
