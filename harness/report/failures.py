@@ -76,11 +76,11 @@ def summarise(runs) -> Summary | None:
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", RuntimeWarning)
-                    found = episode_signals(record, e, condition, preflight)
+                    found = episode_signals(record, e, condition, preflight, features=False)
             except (OSError, ValueError) as exc:  # a damaged file: that episode is left out, named
                 notes.append(f"{run.label}/{e.task}/episode_{e.episode}: left out ({str(exc).splitlines()[0][:200]})")
                 continue
-            found.run, found.features = run.label, None  # the report's name for the run; features are not used here
+            found.run = run.label  # the report's name for the run
             episodes.append(found)
             where[(run.label, e.task, e.episode)] = (run, e)
     rows = failure_rows(episodes)

@@ -154,7 +154,10 @@ def _reliance(directory: Path, steps: int) -> np.ndarray | None:
     return held(steps, found["step"], found["per_step"]) if found["step"] else None
 
 
-def episode_signals(record: RunRecord, episode: EpisodeRecord, condition: str, preflight: str) -> EpisodeSignals:
+def episode_signals(record: RunRecord, episode: EpisodeRecord, condition: str, preflight: str,
+                    features: bool = True) -> EpisodeSignals:
+    """One finished episode's signals; `features=False` leaves the readout features unread (the report's Failures
+    section explains failures and predicts nothing)."""
     steps = int(episode.steps)
     directory = episode.directory
     names, phase, signals = _attention(directory, steps)
@@ -164,12 +167,12 @@ def episode_signals(record: RunRecord, episode: EpisodeRecord, condition: str, p
         if value is not None:
             signals[name] = value
     signals = {name: signals.get(name, np.full(steps, np.nan)) for name in SIGNALS}
-    features = None
-    found = probes.part("readout_features", "reader").arrays(directory)
+    held_features = None
+    found = probes.part("readout_features", "reader").arrays(directory) if features else None
     if found is not None and len(found[0]):
-        features = held(steps, *found).astype(np.float32)
+        held_features = held(steps, *found).astype(np.float32)
     return EpisodeSignals(record.name, episode.task, condition, -1 if episode.seed is None else int(episode.seed),
-                          episode.episode, bool(episode.success), steps, names, phase, signals, features, preflight)
+                          episode.episode, bool(episode.success), steps, names, phase, signals, held_features, preflight)
 
 
 def condition_name(manifest: dict) -> str:
