@@ -32,8 +32,8 @@ def section_main(argv, prog: str, description: str, markdown, options: tuple = (
     parser.add_argument("--command", default=None, help="the command to name in the provenance line (a script that "
                         "calls this one) [this command]")
     args = parser.parse_args(argv)
-    records = [load_run(p) for p in args.runs]
     try:
+        records = [load_run(p) for p in args.runs]  # a folder that is no run: one line naming it, EVAL.md untouched
         text = markdown(records, args.note)
     except ValueError as exc:  # runs that hold nothing for this section: one line, EVAL.md untouched
         print(f"{prog}: error: {exc}", file=sys.stderr)

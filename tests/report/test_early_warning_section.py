@@ -91,3 +91,16 @@ def test_a_task_with_too_few_of_a_class_keeps_its_line_and_its_stall_table():
                        settings={"folds": 5, "resamples": 300, "seed": 0, "min_class": 5})
     text = W.section_text(result)
     assert line in text and "Where Lift's failed episodes stalled:" in text and "| predictor |" not in text
+
+
+def test_a_folder_that_is_no_run_is_one_line_and_exit_2(tmp_path, capsys):
+    """Every section command (harness.report.eval_md.section_main): a folder that is no run was a traceback, exit 1."""
+    from harness.report import robustness
+
+    eval_md = tmp_path / "EVAL.md"
+    eval_md.write_text("# m\n")
+    for main in (W.main, robustness.main):
+        assert main([str(tmp_path), "--eval-md", str(eval_md)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "is not an octo-harness run folder" in err[0], err
+    assert eval_md.read_text() == "# m\n" and not (tmp_path / "figures").exists()

@@ -244,3 +244,18 @@ def test_the_committed_baseline_shows_its_failure_from_its_inputs_cut_short(tmp_
     with np.load(failed.directory / "inputs.npz") as z:
         frame = F._fit(z["input/image_primary"][19])
     assert np.array_equal(_panel(png, 0, True, width)[:, :F.PANEL], frame)
+
+
+@pytest.mark.slow
+def test_a_damaged_episode_is_left_out_with_a_note_and_the_section_stays(run, tmp_path):
+    """A hostile edit the run store's checks let through: the successful episode's phase array cut to 3 of its 12
+    steps (digests rewritten to match). The failure stays in the table, the damaged success is named in a note, and
+    the figure says no success could be shown rather than failing. (Bytes that are no archive are refused when the
+    run loads, in one line, before any section: harness.runfolder.integrity.)"""
+    copy = _copy(run, tmp_path, "damaged")
+    _edit(copy, 1, phase=[0, 1, 2])
+    summary, html, plots, tables = _section(copy)
+    assert [r["episode"] for r in summary.rows] == [0] and tables["failures.csv"].count(b"\n") == 2
+    assert any(n.startswith("damaged/Lift/episode_1: left out (") for n in summary.notes), summary.notes
+    assert "damaged/Lift/episode_1: left out" in html
+    assert "no episode of Lift succeeded" in next(iter(plots.captions.values()))

@@ -110,6 +110,10 @@ def _attention(directory: Path, steps: int) -> tuple[tuple[str, ...], np.ndarray
     arrays = read_npz(path, *wanted, steps=steps)
     step = np.asarray(arrays.get("step", np.arange(steps)), int)
     inside = (step >= 0) & (step < steps)
+    for key, value in arrays.items():  # an edited file: one line naming it (the report leaves the episode out)
+        if key != "phase_names" and np.ndim(value) and len(value) != len(step):
+            raise ValueError(f"{path}: {key} has {len(value)} rows for {len(step)} recorded steps; re-run that "
+                             "episode (octo-harness run --resume RUN_DIR runs damaged episodes again)")
 
     def last_layer(key: str) -> np.ndarray | None:
         if key not in arrays:
