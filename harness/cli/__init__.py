@@ -83,8 +83,7 @@ def main(argv: list[str] | None = None) -> int:
         return code
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", 2)
-        print(f"interrupted ({'SIGTERM' if signum == 15 else 'SIGINT'}); finished episodes are recorded, "
-              "run the same command to resume", file=sys.stderr)
+        print(interrupted_line(signum, argv if argv is not None else sys.argv[1:]), file=sys.stderr)
         return 128 + signum
     finally:
         if interrupts.received is not None:  # what the interrupt left half-built is finalised under the quiet hook
@@ -92,6 +91,17 @@ def main(argv: list[str] | None = None) -> int:
         sys.unraisablehook = unraisable
         for s, handler in previous.items():
             signal.signal(s, handler if handler is not None else signal.SIG_DFL)
+
+
+RESUMABLE = ("run", "robustness", "regress")  # the commands that record episodes in the run store
+
+
+def interrupted_line(signum: int, argv) -> str:
+    """The one line a signal ends a command with; the commands that record episodes say how to resume (read from
+    argv: the signal may land before the arguments are parsed)."""
+    line = f"interrupted ({'SIGTERM' if signum == 15 else 'SIGINT'})"
+    command = next((a for a in argv if not a.startswith("-")), None)
+    return line + ("; finished episodes are recorded, run the same command to resume" if command in RESUMABLE else "")
 
 
 def _dispatch(args) -> int:

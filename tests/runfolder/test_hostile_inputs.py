@@ -290,7 +290,18 @@ def test_the_committed_baseline_still_verifies():
     assert run.status == "complete" and len(run.episodes) == 8
 
 
-INTERRUPTED_LINE = "interrupted (SIGINT); finished episodes are recorded, run the same command to resume"
+INTERRUPTED_LINE = "interrupted (SIGINT)"  # `tasks` records no episode: nothing to resume
+
+
+def test_only_the_commands_that_record_episodes_say_how_to_resume():
+    from harness.cli import interrupted_line
+
+    resume = "; finished episodes are recorded, run the same command to resume"
+    assert interrupted_line(2, ["run", "--model", "m"]) == "interrupted (SIGINT)" + resume
+    assert interrupted_line(15, ["--verbose", "robustness"]) == "interrupted (SIGTERM)" + resume
+    for command in ("serve", "report", "diagnose", "tasks", "view", "compare"):
+        assert interrupted_line(2, [command, "x"]) == "interrupted (SIGINT)", command
+    assert interrupted_line(2, []) == "interrupted (SIGINT)"
 
 
 def _only_the_interrupted_line(script: str) -> None:
