@@ -98,13 +98,15 @@ def markdown(records, note: str, folds: int = FOLDS, resamples: int = RESAMPLES)
         result = diagnose([r.path for r in records], folds=folds, resamples=resamples)
     except ValueError as exc:  # no finished episode: section_main prints the one line, EVAL.md untouched
         raise ValueError(f"no Failure early warning section: {exc}") from None
-    return section_text(result, note)
+    unfinished = [f"{r.name} ({len(r.episodes)} of {len(r.jobs)} episodes)" for r in records if r.missing]
+    return section_text(result, note, unfinished)
 
 
-def section_text(result, note: str = "") -> str:
-    """The section's Markdown from a diagnose.Diagnosis."""
+def section_text(result, note: str = "", unfinished: list[str] | None = None) -> str:
+    """The section's Markdown from a diagnose.Diagnosis; `unfinished` names runs with episodes still to run."""
     folds, resamples = result.settings["folds"], result.settings["resamples"]
     parts = [SECTION, note,
+             *([f"- Not finished, so these figures are interim: {', '.join(unfinished)}."] if unfinished else []),
              f"- Method: docs/diagnose.md. Each predictor is fitted on {folds - 1} of {folds} seed-disjoint folds and "
              "scored on the held-out one. An AUROC compares a failure and a success of one run (one condition), "
              f"with a seed-cluster 95% interval ({resamples} resamples).",

@@ -229,6 +229,7 @@ def test_the_eval_md_section_is_written_from_real_runs_and_rendered_from_its_fig
     assert figures_file.render(doc) in text and "--resamples 200" in doc["provenance"]
     assert "Lift: too few successes to predict failure (0 successes, 4 failures" in text
     assert "| approach | 4 |" in text or "Where Lift's failed episodes stalled:" in text
+    assert "interim" not in text  # both runs finished
 
 
 def test_the_guides_example_on_the_committed_baseline_gives_the_row_it_quotes(tmp_path, capsys):

@@ -104,3 +104,9 @@ def test_a_folder_that_is_no_run_is_one_line_and_exit_2(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "is not an octo-harness run folder" in err[0], err
     assert eval_md.read_text() == "# m\n" and not (tmp_path / "figures").exists()
+
+
+def test_unfinished_runs_are_named_and_their_figures_called_interim():
+    text = W.section_text(diagnosis("labels"), "", ["camera-5 (35 of 60 episodes)"])
+    assert "- Not finished, so these figures are interim: camera-5 (35 of 60 episodes)." in text
+    assert "interim" not in W.section_text(diagnosis("labels"), "")
