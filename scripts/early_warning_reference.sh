@@ -1,25 +1,22 @@
 #!/usr/bin/env bash
-# EVAL.md's "## Failure early warning" section of the robosuite reference (issue 74; docs/diagnose.md), from its
-# robustness grids' runs, made with the failure probes on by scripts/robustness_reference.sh: every run of the primary
-# grid (results/robustness-reference) and the perturbed runs of the wrist-camera grid (results/robustness-wrist; its
-# nominal run repeats the primary grid's seeds). The scene grid with reliance (results/robustness-reliance) repeats
-# primary cells at level 5 and is left out. Runs no episode; the grids must be finished first.
-#   bash scripts/early_warning_reference.sh [PRIMARY] [WRIST]
+# EVAL.md's "## Failure early warning" section of the robosuite reference (issue 74; docs/diagnose.md), from every run
+# of its primary robustness grid (results/robustness-reference, made with the failure probes on by
+# scripts/robustness_reference.sh). The primary grid holds the wrist camera's cells too (camera and noise expand to
+# both cameras); the wrist-camera and scene grids repeat its episodes with reliance added (same seeds and flags), so
+# they are left out: diagnose refuses two runs of one name, and a repeated episode would count twice. Runs no
+# episode; the grid must be finished first (an unfinished run is named in the section and its figures called interim).
+#   bash scripts/early_warning_reference.sh [PRIMARY]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PRIMARY="${1:-results/robustness-reference}"
-WRIST="${2:-results/robustness-wrist}"
 MODEL=models/octo-reference-robosuite
 PY="${PYTHON:-.venv/bin/python}"
 CPU="$(lscpu 2>/dev/null | sed -n 's/^Model name: *//p' | head -1)"
 SCRIPT="bash scripts/early_warning_reference.sh"
-[ "$PRIMARY" != results/robustness-reference ] || [ "$WRIST" != results/robustness-wrist ] && SCRIPT="$SCRIPT $PRIMARY $WRIST"
+[ "$PRIMARY" != results/robustness-reference ] && SCRIPT="$SCRIPT $PRIMARY"
 runs=()
 for d in "$PRIMARY"/*/; do [ -f "$d/manifest.json" ] && runs+=("$d"); done
-for d in "$WRIST"/*/; do
-  [ -f "$d/manifest.json" ] && [ "$(basename "$d")" != nominal ] && runs+=("$d")
-done
-[ "${#runs[@]}" -gt 0 ] || { echo "early_warning_reference.sh: no run in $PRIMARY or $WRIST: run the grids first (scripts/robustness_reference.sh, scripts/wrist_reliance_reference.sh)" >&2; exit 2; }
+[ "${#runs[@]}" -gt 0 ] || { echo "early_warning_reference.sh: no run in $PRIMARY: run the grid first (scripts/robustness_reference.sh or scripts/reference_grids.sh)" >&2; exit 2; }
 "$PY" -m harness.cli diagnose "${runs[@]}" --out "$PRIMARY/diagnose"
 "$PY" -m harness.report.early_warning "${runs[@]}" --eval-md "$MODEL/EVAL.md" --command "$SCRIPT" --note \
-    "Made by \`$SCRIPT\` over ${#runs[@]} runs: the primary grid's and the wrist-camera grid's perturbed runs (the scene grid repeats primary cells). Held-out seeds 0..19, \`--readout-features-every 1 --action-consistency\`; measured on ${CPU:-an unnamed CPU}, $(nproc) cores, CPU only. Every failed episode's line: $PRIMARY/diagnose/failures.csv."
+    "Made by \`$SCRIPT\` over the ${#runs[@]} runs of the primary grid (every kind and level, both cameras). Held-out seeds 0..19, \`--readout-features-every 1 --action-consistency\`; measured on ${CPU:-an unnamed CPU}, $(nproc) cores, CPU only. Every failed episode's line: $PRIMARY/diagnose/failures.csv."

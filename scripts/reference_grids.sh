@@ -6,9 +6,9 @@
 #      "## Reliance");
 #   3. the scene grid with reliance (scripts/scene_reliance_reference.sh: "## Robustness with reliance"), its nominal
 #      run copied from the wrist grid's first (the same command, seeds and flags: 60 episodes saved);
-#   4. "## Failure early warning" (scripts/early_warning_reference.sh).
+#   4. "## Failure early warning" (scripts/early_warning_reference.sh, from the primary grid).
 # Every run records the failure probes. Each step resumes where a killed one stopped: re-run the same command.
-# Many hours on 2 cores (about 1,860 episodes).
+# Many hours on 2 cores (about 2,160 episodes: 1,680 in the primary grid).
 #   bash scripts/reference_grids.sh [WORKERS]
 set -euo pipefail
 cd "$(dirname "$0")/.."
