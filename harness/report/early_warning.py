@@ -24,14 +24,11 @@ import numpy as np
 from harness.analysis.diagnose import FOLDS, diagnose
 from harness.analysis.diagnose.evaluate import BETTER, STEPS
 from harness.analysis.diagnose.stats import FALSE_ALARM, RESAMPLES
-from harness.analysis.diagnose.outputs import auroc_table, lead_time_table
+from harness.analysis.diagnose.outputs import auroc_table, lead_time_table, number
+from harness.analysis.diagnose.predictors import BASELINE
 from harness.report.figures_file import markdown_table
 
 SECTION = "## Failure early warning"
-
-
-def _number(x, digits: int = 2) -> str:
-    return "—" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
 
 
 def resolvable(row: dict) -> float:
@@ -44,7 +41,7 @@ def resolvable(row: dict) -> float:
 
 
 def resolvable_table(result: dict) -> list[str]:
-    names = [n for n in result["predictors"] if n != "time and phase"]
+    names = [n for n in result["predictors"] if n != BASELINE]
     rows = []
     for name in names:
         cells = [c["predictors"].get(name) for c in result["by_step"]]
@@ -55,15 +52,14 @@ def resolvable_table(result: dict) -> list[str]:
 def verdict_line(task: str, result: dict) -> str:
     """One line: which predictors beat time and phase where, or the null result with what it could have resolved."""
     better, narrowest = [], None
-    for cells, label in ((result["by_step"], lambda c: c["where"]), (result["by_phase"], lambda c: c["where"])):
-        for cell in cells:
-            for name, row in cell["predictors"].items():
-                if row.get("verdict") == BETTER:
-                    low, high = row["difference_interval"]
-                    better.append(f"{name} {label(cell)} ({row['difference']:+.2f} [{low:+.2f}, {high:+.2f}])")
-                width = resolvable(row) if name != "time and phase" else math.nan
-                if math.isfinite(width) and (narrowest is None or width < narrowest[0]):
-                    narrowest = (width, name, label(cell))
+    for cell in result["by_step"] + result["by_phase"]:
+        for name, row in cell["predictors"].items():
+            if row.get("verdict") == BETTER:
+                low, high = row["difference_interval"]
+                better.append(f"{name} {cell['where']} ({row['difference']:+.2f} [{low:+.2f}, {high:+.2f}])")
+            width = resolvable(row) if name != BASELINE else math.nan
+            if math.isfinite(width) and (narrowest is None or width < narrowest[0]):
+                narrowest = (width, name, cell["where"])
     if better:
         return f"{task}: better than time and phase: " + "; ".join(better) + "."
     if narrowest is None:
@@ -86,8 +82,8 @@ def stall_table(failures: list[dict], task: str, phases: list[str]) -> list[str]
         passed = [float(r["passed_median"]) for r in here if r["passed_median"]]
         signals = Counter(r["furthest"].split(" ")[0] for r in here if r["furthest"] and r["furthest"][0] != "n")
         top = ", ".join(f"{s} ({n})" for s, n in signals.most_common(2)) or "—"
-        rows.append([phase, len(here), _number(float(np.median([r["stall_step"] for r in here])), 0),
-                     _number(float(np.median(passed)), 0) if passed else "—", top])
+        rows.append([phase, len(here), number(float(np.median([r["stall_step"] for r in here])), 0),
+                     number(float(np.median(passed)), 0) if passed else "—", top])
     return markdown_table(["stalled in phase", "failed episodes", "median stall step",
                            "successes passed it (median step)", "signal furthest from the successes (episodes)"], rows)
 

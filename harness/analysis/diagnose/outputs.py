@@ -17,7 +17,8 @@ FILES = {"json": "diagnose.json", "markdown": "diagnose.md", "csv": "failures.cs
 SHOWN_FAILURES = 40  # diagnose.md lists at most this many failed episodes a task (failures.csv has all)
 
 
-def _number(x, digits: int = 2) -> str:
+def number(x, digits: int = 2) -> str:
+    """A figure to `digits` places, or an em dash when there is none."""
     return "—" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
 
 
@@ -25,7 +26,7 @@ def _auroc(row: dict, pooled: bool = False) -> str:
     value, (low, high) = (row["pooled_auroc"], row["pooled_interval"]) if pooled else (row["auroc"], row["interval"])
     if not math.isfinite(value):
         return "—"
-    text = f"{value:.2f} [{_number(low)}, {_number(high)}]"
+    text = f"{value:.2f} [{number(low)}, {number(high)}]"
     if pooled or row["verdict"] == "the baseline":
         return text
     return text + (", better" if row["verdict"] == BETTER else ", not better")
@@ -78,9 +79,9 @@ def lead_time_table(result: dict) -> list[str]:
         if row.get("message"):
             lines.append(f"| {name} | {row['message']} | | | |")
             continue
-        lines.append(f"| {name} | {row['flagged_failures']}/{row['failures']} ({_number(100 * row['flagged_share'], 0)}%)"
-                     f" | {_number(row['median_lead'], 1)} | {_number(100 * row['false_alarm'], 0)}% of "
-                     f"{row['successes']} | {_number(100 * row['training_false_alarm'], 0)}% |")
+        lines.append(f"| {name} | {row['flagged_failures']}/{row['failures']} ({number(100 * row['flagged_share'], 0)}%)"
+                     f" | {number(row['median_lead'], 1)} | {number(100 * row['false_alarm'], 0)}% of "
+                     f"{row['successes']} | {number(100 * row['training_false_alarm'], 0)}% |")
     return lines
 
 
