@@ -6,14 +6,30 @@ KeyboardInterrupt is printed as "Exception ignored" and lost, and the command we
 during model loading). `handler` records the signal in `received` first; the run driver and the command line
 `check()` it at their next safe point, so the command still ends with 128 + signum. `quiet_unraisable` keeps such a
 swallowed Interrupted from printing "Exception ignored ... Traceback" above the one line (it is recorded already).
+
+A signal that lands while a module is imported is not raised there: an exception raised inside a compiled
+extension's initialisation (jaxlib's, while its enums are built) cannot unwind through it, and the process aborted
+(exit -6, no line; 1 of 40 Ctrl-C at 0.2-2 s after start). `deliver` records it and returns; a watcher thread sends
+the same signal again as soon as the main thread has left the import, so it is raised at the next line of Python
+(docs/run-integrity.md).
 """
 
 from __future__ import annotations
 
 import ctypes
+import os
 import signal
+import sys
+import threading
+import time
 
 received: int | None = None  # the first SIGINT / SIGTERM since `reset()`
+_raised = False  # an Interrupted was raised since `reset()`: a re-sent signal then has nothing left to do
+_resent = False  # the signal in flight is the watcher's, not the user's
+_watcher: threading.Thread | None = None
+_stop = threading.Event()
+IMPORT_FRAMES = "<frozen importlib._bootstrap"  # the import system's frames (both modules' names start so)
+RESEND_POLL_S = 0.02
 
 
 class Interrupted(KeyboardInterrupt):
@@ -32,7 +48,62 @@ def record(signum: int) -> None:
 
 def handler(signum, frame) -> None:
     record(signum)
+    deliver(signum, frame)
+
+
+def deliver(signum: int, frame) -> None:
+    """Raise Interrupted for a recorded signal, unless `frame` is inside an import: then return and have the watcher
+    send the signal again once the main thread is out of it (a handler calls this last)."""
+    global _resent, _raised
+    resent, _resent = _resent, False
+    if resent and _raised:  # the command is ending with 128 + signum already
+        return
+    if _importing(frame):
+        _watch(signum)
+        return
+    _raised = True
     raise Interrupted(signum)
+
+
+def _importing(frame) -> bool:
+    while frame is not None:
+        if frame.f_code.co_filename.startswith(IMPORT_FRAMES):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _watch(signum: int) -> None:
+    """Start (once) the thread that re-sends `signum` when the main thread has left every import."""
+    global _watcher
+    if _watcher is not None and _watcher.is_alive():
+        return
+    main = threading.main_thread().ident
+    _stop.clear()
+
+    def run() -> None:
+        global _resent
+        while not _stop.wait(RESEND_POLL_S):
+            if _raised:
+                return
+            if not _importing(sys._current_frames().get(main)):
+                _resent = True
+                os.kill(os.getpid(), signum)
+                return
+
+    _watcher = threading.Thread(target=run, name="interrupt-resend", daemon=True)
+    _watcher.start()
+
+
+def settle(timeout: float = 1.0) -> None:
+    """Stop the watcher (before a command restores the handlers it replaced), so no re-sent signal outlives them."""
+    _stop.set()
+    if _watcher is not None:
+        _watcher.join(timeout)
+        # a signal it sent may still wait for the main thread: give it the handler still installed
+        deadline = time.monotonic() + 0.05
+        while _resent and time.monotonic() < deadline:
+            time.sleep(0.005)
 
 
 def quiet_unraisable(previous):
@@ -52,13 +123,16 @@ def quiet_unraisable(previous):
 
 def check() -> None:
     """Raise Interrupted when a signal arrived whose KeyboardInterrupt may have been swallowed."""
+    global _raised
     if received is not None:
+        _raised = True
         raise Interrupted(received)
 
 
 def reset() -> None:
-    global received
-    received = None
+    global received, _raised, _resent
+    settle()
+    received, _raised, _resent = None, False, False
 
 
 def die_with_parent() -> None:

@@ -89,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         if interrupts.received is not None:  # what the interrupt left half-built is finalised under the quiet hook
             gc.collect()
         sys.unraisablehook = unraisable
+        interrupts.settle()  # no signal re-sent after an import may outlive the handlers restored below
         for s, handler in previous.items():
             signal.signal(s, handler if handler is not None else signal.SIG_DFL)
 

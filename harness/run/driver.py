@@ -112,7 +112,7 @@ class _SignalGuard:
         if self.depth:
             self.pending = signum
             return
-        raise Interrupted(signum)
+        interrupts.deliver(signum, frame)  # raises, unless the main thread is inside an import (then soon after)
 
     @contextmanager
     def critical(self):
@@ -123,7 +123,7 @@ class _SignalGuard:
             self.depth -= 1
         if not self.depth and self.pending is not None:
             signum, self.pending = self.pending, None
-            raise Interrupted(signum)
+            interrupts.deliver(signum, None)  # raises (marked raised: no re-sent signal follows)
 
     @contextmanager
     def installed(self):
