@@ -11,7 +11,8 @@ A signal that lands while a module is imported is not raised there: an exception
 extension's initialisation (jaxlib's, while its enums are built) cannot unwind through it, and the process aborted
 (exit -6, no line; 1 of 40 Ctrl-C at 0.2-2 s after start). `deliver` records it and returns; a watcher thread sends
 the same signal again as soon as the main thread has left the import, so it is raised at the next line of Python
-(docs/run-integrity.md).
+(docs/run-integrity.md). A second signal while the first waits is raised at once: an import that never ends cannot
+hold a command.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import time
 received: int | None = None  # the first SIGINT / SIGTERM since `reset()`
 _raised = False  # an Interrupted was raised since `reset()`: a re-sent signal then has nothing left to do
 _resent = False  # the signal in flight is the watcher's, not the user's
+_deferred = False  # a signal landed inside an import and waits for the watcher
 _watcher: threading.Thread | None = None
 _stop = threading.Event()
 IMPORT_FRAMES = "<frozen importlib._bootstrap"  # the import system's frames (both modules' names start so)
@@ -54,14 +56,15 @@ def handler(signum, frame) -> None:
 def deliver(signum: int, frame) -> None:
     """Raise Interrupted for a recorded signal, unless `frame` is inside an import: then return and have the watcher
     send the signal again once the main thread is out of it (a handler calls this last)."""
-    global _resent, _raised
+    global _resent, _raised, _deferred
     resent, _resent = _resent, False
     if resent and _raised:  # the command is ending with 128 + signum already
         return
-    if _importing(frame):
+    if _importing(frame) and not (_deferred and not resent):  # a second Ctrl-C while one waits: raised at once
+        _deferred = True
         _watch(signum)
         return
-    _raised = True
+    _raised, _deferred = True, False
     raise Interrupted(signum)
 
 
@@ -130,9 +133,9 @@ def check() -> None:
 
 
 def reset() -> None:
-    global received, _raised, _resent
+    global received, _raised, _resent, _deferred
     settle()
-    received, _raised, _resent = None, False, False
+    received, _raised, _resent, _deferred = None, False, False, False
 
 
 def die_with_parent() -> None:

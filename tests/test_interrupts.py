@@ -60,3 +60,23 @@ def test_a_sigterm_inside_an_import_is_raised_once_the_import_has_finished(tmp_p
     interrupted, signum, finished, after = _run(tmp_path, "TERM")
     assert (interrupted, signum, finished) == ("interrupted", "15", "True")
     assert float(after) < 1.0
+
+
+HANGING_MODULE = """
+import os, signal, time
+os.kill(os.getpid(), signal.SIGINT)
+end = time.monotonic() + 0.3
+while time.monotonic() < end:
+    pass
+os.kill(os.getpid(), signal.SIGINT)  # the user presses Ctrl-C again: an import that never ends
+while True:
+    pass
+"""
+
+
+def test_a_second_sigint_while_the_first_waits_for_an_import_is_raised_at_once(tmp_path):
+    (tmp_path / "slow_module.py").write_text(HANGING_MODULE)
+    done = subprocess.run([sys.executable, "-c", textwrap.dedent(DRIVER), str(tmp_path)], capture_output=True, text=True,
+                          timeout=120, cwd=REPO, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.split()[:3] == ["interrupted", "2", "False"]  # raised inside the import that never ends
