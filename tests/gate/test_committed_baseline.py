@@ -14,6 +14,10 @@ measures (mask fractions, metrics, phases) under another measures version is nam
 under the same version it is a real difference.
 The gate fails, with its own message, for a candidate whose every episode errors (NaN weights: ERRORED, exit 3)
 and, where the model must not change (`--fail-on changed`), for one weight tensor perturbed by std 1e-3.
+
+Cost: the reference policy is loaded once for the in-process runs of the committed protocol and the first run made
+here (`reference_policy`; the second run made here loads its own, so the rerun is a fresh load); `regress` runs in a
+process of its own only under other XLA flags (they are read when the process starts), else in this one.
 """
 
 import dataclasses
@@ -30,6 +34,7 @@ import pytest
 
 from harness.measures.attention import MEASURES_VERSION
 from harness.analysis.compare import compare_runs, exit_code
+from harness.cli import main as cli_main
 from harness.analysis.compare_result import CompareResult
 from harness.gate.results import RegressResult
 from harness.run import execute
@@ -43,6 +48,19 @@ REPO = Path(__file__).resolve().parents[2]
 BASELINES = REPO / "results" / "baselines"
 NAMES = sorted(p.name for p in BASELINES.glob("*") if (p / "BASELINE.json").is_file())
 REFERENCE = BASELINES / "reference-lift"
+
+
+@pytest.fixture(scope="module")
+def reference_policy():
+    """The reference policy, loaded once (as `execute` loads it for the committed baseline's protocol) for the runs
+    of this file that would each load it again: (model path, loaded policy)."""
+    from harness.policies import load_policy
+    from harness.run.protocol import policy_options
+
+    manifest = json.loads((REFERENCE / "manifest.json").read_text())
+    protocol = candidate_protocol(manifest, str(REPO / "models" / "octo-reference-robosuite"))
+    return protocol.model, load_policy(protocol.model, **policy_options(protocol.text_tokenizer,
+                                                                        protocol.served_conventions))
 
 
 def _model(ref: str, fixtures_dir: Path) -> str:
@@ -66,12 +84,17 @@ def test_there_is_a_committed_baseline_with_recorded_inputs():
 
 
 @pytest.mark.parametrize("name", NAMES)
-def test_rerunning_a_committed_baseline_passes_the_gate_on_this_machine(name, fixtures_dir, tmp_path):
+def test_rerunning_a_committed_baseline_passes_the_gate_on_this_machine(name, fixtures_dir, tmp_path,
+                                                                        reference_policy):
+    """The model's fingerprint is still computed from its checkpoint files when the loaded policy is handed over
+    (an Octo policy has no identity of its own), so a changed checkpoint is still named."""
     folder = BASELINES / name
     info = json.loads((folder / "BASELINE.json").read_text())
     manifest = json.loads((folder / "manifest.json").read_text())
     protocol = candidate_protocol(manifest, _model(info["model_ref"], fixtures_dir))
-    summary = execute(protocol, tmp_path, "again", progress=False)
+    shared_path, shared = reference_policy
+    loaded = shared if protocol.model == shared_path else None  # another baseline's model: execute loads it
+    summary = execute(protocol, tmp_path, "again", model=loaded, progress=False)
     assert summary.manifest["protocol"]["model_fingerprint"] == info["model_fingerprint"], (
         f"the model of baseline {name} changed; regenerate it (scripts/make_reference_baseline.sh for reference-lift, "
         "else octo-harness run + scripts/make_baseline.py) and commit it")
@@ -99,14 +122,18 @@ def _make_baseline_module():
 
 
 @pytest.fixture(scope="module")
-def made_here(tmp_path_factory):
+def made_here(tmp_path_factory, reference_policy):
     """The committed baseline's protocol cut to 2 episodes of 12 steps, run twice on this machine: a baseline made
-    here from the first run (scripts/make_baseline.py), and the second run as the candidate."""
+    here from the first run (scripts/make_baseline.py), and the second run as the candidate. The first run uses the
+    policy loaded for this file (after the committed protocol's rerun ran on it); the second loads the checkpoint
+    again, so the rerun is a fresh load and a policy that kept state between runs would show as a difference."""
     manifest = json.loads((REFERENCE / "manifest.json").read_text())
     protocol = dataclasses.replace(candidate_protocol(manifest, str(REPO / "models" / "octo-reference-robosuite")),
                                    episodes=2, max_steps=12)
+    shared_path, shared = reference_policy
+    assert protocol.model == shared_path
     out = tmp_path_factory.mktemp("made-here")
-    first = execute(protocol, out, "first", progress=False)
+    first = execute(protocol, out, "first", model=shared, progress=False)
     second = execute(protocol, out, "second", progress=False)
     baseline = _make_baseline_module().make_baseline(first.run_dir, out / "baseline", steps=8)
     return baseline, second.run_dir
@@ -164,10 +191,20 @@ def test_a_changed_measure_definition_is_named_apart_from_a_real_difference(made
 
 
 def _gate(argv: list[str], tmp_path: Path, env_extra: dict | None = None) -> subprocess.CompletedProcess:
+    """`python -m harness.cli regress` in a process of its own: for XLA flags, which are read when a process starts."""
     env = {**os.environ, "HF_HUB_OFFLINE": "1", **(env_extra or {})}
     return subprocess.run([sys.executable, "-m", "harness.cli", "regress", "--baseline", str(REFERENCE),
                            "--out", str(tmp_path), *argv], capture_output=True, text=True, env=env, cwd=REPO,
                           timeout=900)
+
+
+def _gate_here(argv: list[str], tmp_path: Path, capsys) -> subprocess.CompletedProcess:
+    """The same command in this process (`harness.cli.main`, the function `python -m harness.cli` exits with): its
+    exit code and what it printed, without a second interpreter start (imports, JAX and GL set up again)."""
+    capsys.readouterr()
+    code = cli_main(["regress", "--baseline", str(REFERENCE), "--out", str(tmp_path), *argv])
+    printed = capsys.readouterr()
+    return subprocess.CompletedProcess(["octo-harness", "regress", *argv], code, printed.out, printed.err)
 
 
 @pytest.mark.slow
@@ -200,19 +237,24 @@ def _broken_model(dest: Path, change) -> Path:
     return dest
 
 
-def test_the_gate_fails_a_candidate_whose_every_episode_errors(tmp_path):
+def test_the_gate_fails_a_candidate_whose_every_episode_errors(tmp_path, capsys):
     """NaN weights: every action is NaN, every episode errors (the rollout refuses non-finite actions): ERRORED, exit 3."""
     model = _broken_model(tmp_path / "nan", lambda k: np.full_like(k, np.nan))
-    proc = _gate(["--model", str(model)], tmp_path / "runs")
+    proc = _gate_here(["--model", str(model)], tmp_path / "runs", capsys)
     assert proc.returncode == 3, proc.stdout + proc.stderr
     assert "ERRORED" in proc.stdout
     rows = [json.loads(line) for line in next((tmp_path / "runs").glob("*/results.jsonl")).read_text().splitlines()]
     assert rows and all(r["status"] == "failed" and "not finite" in r["error"] for r in rows)
 
 
-def test_the_gate_fails_a_candidate_with_one_weight_tensor_perturbed_where_the_model_must_not_change(tmp_path):
+def test_the_gate_fails_a_candidate_with_one_weight_tensor_perturbed_where_the_model_must_not_change(tmp_path, capsys):
+    """One episode of the candidate (it was 2) still tests it: what is asserted is the model-numerics verdict, and
+    `replay` compares the candidate on every recorded input of the baseline (its 8 episodes) whatever
+    --max-episodes; the candidate's own episodes only feed the outcome comparison, which at 1 or 2 pairs cannot
+    reach REGRESSED (an exact McNemar test needs at least 6 pairs)."""
     rng = np.random.default_rng(0)
     model = _broken_model(tmp_path / "perturbed", lambda k: k + 1e-3 * rng.standard_normal(k.shape))
-    proc = _gate(["--model", str(model), "--fail-on", "changed", "--max-episodes", "2"], tmp_path / "runs")
+    proc = _gate_here(["--model", str(model), "--fail-on", "changed", "--max-episodes", "1"], tmp_path / "runs",
+                      capsys)
     assert proc.returncode == 1, proc.stdout + proc.stderr
     assert "model numerics: CHANGED" in proc.stdout and "step 0" in proc.stdout
