@@ -93,14 +93,17 @@ def test_dagger_seeds_are_disjoint_from_demonstrations_and_evaluation():
 
 @pytest.mark.slow
 def test_collection_labels_the_policys_own_states(tmp_path, caplog):
-    config = dagger.DaggerConfig(episodes=4, max_steps=12)
+    """4 episodes (one per collection job, the fewest the split allows) of 6 steps (was 12): the checks are about
+    episode boundaries, the first frame, labels of the approach phase (the gripper label stays open through the
+    first 12 steps, so through 6) and which jobs run again, none needs more; each step is a 128-px inference."""
+    config = dagger.DaggerConfig(episodes=4, max_steps=6)
     summary = dagger.collect(MODEL, tmp_path / "c", config, workers=1)
     with np.load(tmp_path / "c" / "PickPlaceCan.npz") as data:
         arrays = {k: data[k] for k in data.files}
-    assert summary["PickPlaceCan"]["steps"] == 48 and summary["PickPlaceCan"]["policy_successes"] == 0
+    assert summary["PickPlaceCan"]["steps"] == 24 and summary["PickPlaceCan"]["policy_successes"] == 0
     assert list(arrays["seeds"]) == [dagger.DAGGER_SEED_BASE + k for k in range(4)]
-    assert arrays["image_primary"].shape == (48, 128, 128, 3) and arrays["image_wrist"].shape == (48, 64, 64, 3)
-    assert list(arrays["lengths"]) == [12] * 4 and list(arrays["step"][:13]) == [*range(12), 0]
+    assert arrays["image_primary"].shape == (24, 128, 128, 3) and arrays["image_wrist"].shape == (24, 64, 64, 3)
+    assert list(arrays["lengths"]) == [6] * 4 and list(arrays["step"][:7]) == [*range(6), 0]
     # labels are the expert's: arm inputs in [-1, 1], the gripper open while it approaches the can
     assert np.all(np.abs(arrays["action"][:, :6]) <= 1.0) and np.all(arrays["action"][:, 6] == OPEN)
     # the states are the policy's: its first frame is the env's reset frame, resized as the policy resizes it
@@ -117,8 +120,8 @@ def test_collection_labels_the_policys_own_states(tmp_path, caplog):
     assert dagger.existing(config, MODEL, tmp_path / "c") == json.loads((tmp_path / "c" / "summary.json").read_text())
     other = ROOT / "models" / "octo-reference-robosuite-64px"
     assert dagger.existing(config, other, tmp_path / "c") is None
-    assert dagger.existing(dagger.DaggerConfig(episodes=8, max_steps=12), MODEL, tmp_path / "c") is None
-    relabelled = dagger.DaggerConfig(episodes=4, max_steps=12, expert=ExpertConfig(bin_inset=(0.0, 0.04)))
+    assert dagger.existing(dagger.DaggerConfig(episodes=8, max_steps=6), MODEL, tmp_path / "c") is None
+    relabelled = dagger.DaggerConfig(episodes=4, max_steps=6, expert=ExpertConfig(bin_inset=(0.0, 0.04)))
     assert dagger.existing(relabelled, MODEL, tmp_path / "c") is None  # labels from another carry point
     # a stop after three jobs: only the fourth runs again (a torn file counts as missing), same arrays
     whole = arrays

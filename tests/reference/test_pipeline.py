@@ -138,11 +138,13 @@ def _stuck_frames(episode: dict) -> int:
 def test_can_expert_carries_to_a_point_the_arm_reaches():
     """The carry point over the can's bin is inside the arm's reach, so the carry phase ends on arrival (a
     state), not by timing out while pushing against the reach limit (a label the policy cannot read off the
-    frame). Aiming at the bin's centre, as the first expert did, pushes for 20 frames on this seed."""
-    env = envs.make("PickPlaceCan", fast_render=True, action_space="robosuite", max_episode_steps=300)
+    frame). Aiming at the bin's centre, as the first expert did, pushes for 20 frames on this seed. The expert and
+    the check read the state only, so no camera is rendered: rendering moves no physics (the same 98- and 138-step
+    episodes, 0 and 19 stuck frames, with the default cameras and without) and it was 4/5 of the time."""
+    env = envs.make("PickPlaceCan", cameras={}, action_space="robosuite", max_episode_steps=300)
     try:
         record = lambda cfg: demos_mod.record_episode(env, ScriptedExpert("PickPlaceCan", cfg), 300_000,  # noqa: E731
-                                                      {"image_primary": 32}, noise=0.3, max_steps=300)
+                                                      {}, noise=0.3, max_steps=300)
         inset, centre = record(ExpertConfig()), record(ExpertConfig(bin_inset=(0.0, 0.04)))
     finally:
         env.close()
