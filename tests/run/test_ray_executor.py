@@ -4,7 +4,12 @@ replaced and their episodes retried;
 a node lost mid-run (a real second node of a two-node cluster on this machine) has its episodes retried on the head,
 to the sequential run's files. Its own file: a local Ray cluster is several times slower while the other test
 process loads both cores (measured: 120 s against 35 s alone), and its place in the order is its measured time
-(tests/durations.json)."""
+(tests/durations.json).
+
+Starting Ray is much of each test's time (a local instance or a `ray start` head: 13-20 s each on 2 loaded cores),
+so the module starts one head (`cluster`, before the first test that needs it) that the lost-actor test runs on, the
+address test connects to and the node test joins its second node to; the two-worker run starts its own local
+instance (the path without an address), as does the address test's last check."""
 
 from __future__ import annotations
 
@@ -16,6 +21,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -27,6 +33,19 @@ from tests.run.test_parallel import (STEPS, _assert_replay_is_exact, _assert_sam
                                      _the_one_retried_episode, sequential, tiny)  # noqa: F401
 
 pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """One `ray start --head` for the module, as the node test needs its head (2 CPUs, the `octo_policy` resource that
+    pins the policy replica there, a lean node, fast health checks): -> (process, port, temp dir, address)."""
+    head, port, temp_dir = _ray_head(tmp_path_factory.mktemp("head"),
+                                     extra=("--resources", '{"octo_policy": 1}', *LEAN_NODE), env=FAST_HEALTH_CHECK)
+    try:
+        yield SimpleNamespace(process=head, port=port, temp_dir=temp_dir, address=f"127.0.0.1:{port}")
+    finally:
+        _stop_head(head, temp_dir)
+        shutil.rmtree(temp_dir, ignore_errors=True)
 
 
 def test_ray_executor_with_two_workers_gives_the_sequential_episodes(tiny, sequential, tmp_path):
@@ -65,12 +84,14 @@ def _busy_ray_env_workers() -> list[int]:
     return _ray_processes(b"ray::EnvWorker.run")
 
 
-def test_a_lost_env_actor_and_a_lost_policy_replica_are_replaced_and_their_episodes_retried(tiny, sequential,
+def test_a_lost_env_actor_and_a_lost_policy_replica_are_replaced_and_their_episodes_retried(tiny, sequential, cluster,
                                                                                             tmp_path):
     """One env actor: SIGKILLed during the first job, it is replaced, and the replacement runs the second episode;
     then the policy replica is SIGKILLed while it serves that episode, past its first step. Both episodes are
     infrastructure failures (a lost worker, a lost policy replica), the replica is started again, and both run again
-    to the sequential run's files."""
+    to the sequential run's files. On the module's cluster (`--ray-address`: its head has the 2 CPUs the actor and the
+    replica ask for; the recovery is the executor's whichever Ray it reached), so no Ray instance is started for it;
+    from a cluster the run only disconnects, so every actor must be gone by the executor's own kills."""
     import ray
 
     from harness.run.ray_executor import RayExecutor
@@ -78,7 +99,7 @@ def test_a_lost_env_actor_and_a_lost_policy_replica_are_replaced_and_their_episo
     executors, killed = [], []
 
     def factory(context, model):  # one env actor: its replacement must run the second episode (one actor fewer to start)
-        executors.append(RayExecutor(context, model, workers=1))
+        executors.append(RayExecutor(context, model, workers=1, address=cluster.address))
         return executors[-1]
 
     def kill_an_actor_then_the_replica():
@@ -186,36 +207,33 @@ def _stop_head(head, temp_dir: str) -> None:
             pass
 
 
-def test_runs_one_after_another_in_one_process_each_connect_to_the_cluster_at_the_address(tiny, tmp_path,
+def test_runs_one_after_another_in_one_process_each_connect_to_the_cluster_at_the_address(tiny, cluster, tmp_path,
                                                                                           monkeypatch):
     """`--ray-address`: a robustness grid runs its cells one after another in one process. Each run's executor
     connects and, when it closes, disconnects, so the next one connects again (left connected, the second one
     failed with "cannot connect to the Ray cluster ... ray.init twice"). Without an address, a run starts its own
-    instance even where RAY_ADDRESS names that cluster (ray.init joined it, and refused num_cpus for it)."""
+    instance even where RAY_ADDRESS names that cluster (ray.init joined it, and refused num_cpus for it). The cluster
+    is the module's head, as a user starts it (`ray start --head`)."""
     import ray
 
     from harness.run.executor import EpisodeContext
     from harness.run.ray_executor import RayExecutor
 
-    head, port, temp_dir = _ray_head(tmp_path)
-    try:
-        context = EpisodeContext(protocol=_protocol(tiny), run_dir=str(tmp_path), run="cell",
-                                 model={"source": tiny.source, "is_random": False}, goals=None)
-        for _ in range(2):
-            executor = RayExecutor(context, tiny, workers=1, address=f"127.0.0.1:{port}")
-            executor._init()  # what a run does first (the actors are the other tests')
-            assert ray.is_initialized() and ray.get_runtime_context().gcs_address.endswith(f":{port}")
-            executor.close()
-            assert not ray.is_initialized()  # disconnected: the next run's ray.init may connect
-        monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{port}")
-        executor = RayExecutor(context, tiny, workers=1)
-        executor._init()
-        assert not ray.get_runtime_context().gcs_address.endswith(f":{port}")  # its own instance
+    port = cluster.port
+    context = EpisodeContext(protocol=_protocol(tiny), run_dir=str(tmp_path), run="cell",
+                             model={"source": tiny.source, "is_random": False}, goals=None)
+    for _ in range(2):
+        executor = RayExecutor(context, tiny, workers=1, address=f"127.0.0.1:{port}")
+        executor._init()  # what a run does first (the actors are the other tests')
+        assert ray.is_initialized() and ray.get_runtime_context().gcs_address.endswith(f":{port}")
         executor.close()
-        assert not ray.is_initialized()
-    finally:
-        _stop_head(head, temp_dir)
-        shutil.rmtree(temp_dir, ignore_errors=True)
+        assert not ray.is_initialized()  # disconnected: the next run's ray.init may connect
+    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{port}")
+    executor = RayExecutor(context, tiny, workers=1)
+    executor._init()
+    assert not ray.get_runtime_context().gcs_address.endswith(f":{port}")  # its own instance
+    executor.close()
+    assert not ray.is_initialized()
 
 
 # a lost node is declared dead within about 5 to 10 s (GCS defaults: a 3 s period, 5 misses), set on the head's GCS;
@@ -259,22 +277,24 @@ class _ClusterDidNotStart(Exception):
     """The run stopped before the node was killed: the cluster did not come up (not what the test measures)."""
 
 
-def test_a_node_lost_mid_run_has_its_episodes_retried_on_the_surviving_node_to_the_sequential_files(tiny, tmp_path):
-    """The scenario below, on fresh nodes and ports once more where the cluster itself did not come up before any
+def test_a_node_lost_mid_run_has_its_episodes_retried_on_the_surviving_node_to_the_sequential_files(tiny, cluster,
+                                                                                                   tmp_path):
+    """The scenario below, first with the module's head (started as this test needs it) and a second node joined to
+    it, then on a fresh head and node and fresh ports once more where the cluster itself did not come up before any
     node was killed, as the nodes' own start-up is retried; Ray's own log lines are printed then. A failure after the
     kill is never retried. (The replica's warm-up cancelled before the kill, in two fresh-clone CI runs, was Ray's
     token-authentication mode, which it reads once per process: tests/conftest.py sets one for every test.)"""
     for attempt in range(2):
         try:
-            return _node_lost_mid_run(tiny, tmp_path / f"cluster{attempt}")
+            return _node_lost_mid_run(tiny, tmp_path / f"cluster{attempt}", cluster if attempt == 0 else None)
         except _ClusterDidNotStart as exc:
             if attempt:
                 raise AssertionError(f"the two-node cluster did not come up twice: {exc}") from None
             print(f"node test: the cluster did not come up ({exc}); fresh nodes")
 
 
-def _node_lost_mid_run(tiny, tmp_path):
-    """Two Ray nodes on this machine: a head of 2 CPUs holding the policy replica (its `octo_policy` resource pins it)
+def _node_lost_mid_run(tiny, tmp_path, cluster=None):
+    """Two Ray nodes on this machine (the head: `cluster`'s, or one started here and stopped at the end): a head of 2 CPUs holding the policy replica (its `octo_policy` resource pins it)
     and a second node of 2 CPUs joined with `ray start --address`, on ports of its own. A run of 4 episodes with 2 env
     workers (one at least on the second node: the head has room for one) loses the second node (its raylet and
     every process of it, SIGKILL) while an env worker there runs an episode. The run completes: every episode ok, the
@@ -285,8 +305,11 @@ def _node_lost_mid_run(tiny, tmp_path):
     tmp_path.mkdir(parents=True, exist_ok=True)
     done = threading.Event()  # the killer's loop ends with the run
     started = time.monotonic()
-    head, port, head_dir = _ray_head(tmp_path, extra=("--resources", '{"octo_policy": 1}', *LEAN_NODE),
-                                     env=FAST_HEALTH_CHECK)
+    if cluster is not None:
+        head, port, head_dir = cluster.process, cluster.port, cluster.temp_dir
+    else:
+        head, port, head_dir = _ray_head(tmp_path, extra=("--resources", '{"octo_policy": 1}', *LEAN_NODE),
+                                         env=FAST_HEALTH_CHECK)
     node, node_dir, watchdog = None, None, None
     try:
         node, _, node_dir = _ray_head(tmp_path, head_address=f"127.0.0.1:{port}", name="node", extra=LEAN_NODE,
@@ -356,5 +379,6 @@ def _node_lost_mid_run(tiny, tmp_path):
         if node is not None:
             _stop_head(node, node_dir)
             shutil.rmtree(node_dir, ignore_errors=True)
-        _stop_head(head, head_dir)
-        shutil.rmtree(head_dir, ignore_errors=True)
+        if cluster is None:  # the module's head is stopped by its fixture
+            _stop_head(head, head_dir)
+            shutil.rmtree(head_dir, ignore_errors=True)
