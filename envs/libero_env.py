@@ -34,6 +34,7 @@ Masks (masks=True), per camera: "target" (the instruction's BDDL objects of inte
 
 from __future__ import annotations
 
+import copy
 import os
 import signal
 import subprocess
@@ -183,13 +184,23 @@ class LiberoServer:
         self._stderr.close()
 
 
+_VERSIONS: dict[tuple, dict] = {}  # what a server reported, per environment and GL settings (one server a process)
+GL_VARIABLES = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "MUJOCO_EGL_DEVICE_ID", "EGL_DEVICE_ID")
+
+
 def libero_versions() -> dict:
-    """The LIBERO side's versions (LIBERO package, robosuite, MuJoCo, numpy, Python, GL strings), from a server."""
-    server = LiberoServer()
-    try:
-        return server.call("versions")["versions"]
-    finally:
-        server.close()
+    """The LIBERO side's versions (LIBERO package, robosuite, MuJoCo, numpy, Python, GL strings), from a server: one
+    started for the first call of a process, then remembered for the same environment (its Python, as installed) and
+    GL settings, so each run's manifest no longer starts a server of its own (a LIBERO import, seconds)."""
+    python = libero_python()
+    key = (str(python), python.stat().st_mtime_ns, *(os.environ.get(v) for v in GL_VARIABLES))
+    if key not in _VERSIONS:
+        server = LiberoServer(python)
+        try:
+            _VERSIONS[key] = server.call("versions")["versions"]
+        finally:
+            server.close()
+    return copy.deepcopy(_VERSIONS[key])
 
 
 class LiberoEnv(gym.Env):

