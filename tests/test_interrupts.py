@@ -42,8 +42,9 @@ except interrupts.Interrupted as exc:
 """
 
 
-def _run(tmp_path: Path, name: str) -> list[str]:
-    (tmp_path / "slow_module.py").write_text(SLOW_MODULE.format(name=name))
+def _run(tmp_path: Path, module: str) -> list[str]:
+    """What DRIVER printed after importing `module`'s text as slow_module."""
+    (tmp_path / "slow_module.py").write_text(module)
     done = subprocess.run([sys.executable, "-c", textwrap.dedent(DRIVER), str(tmp_path)], capture_output=True, text=True,
                           timeout=120, cwd=REPO, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
     assert done.returncode == 0, done.stderr[-2000:]
@@ -51,13 +52,13 @@ def _run(tmp_path: Path, name: str) -> list[str]:
 
 
 def test_a_sigint_inside_an_import_is_raised_once_the_import_has_finished(tmp_path):
-    interrupted, signum, finished, after = _run(tmp_path, "INT")
+    interrupted, signum, finished, after = _run(tmp_path, SLOW_MODULE.format(name="INT"))
     assert (interrupted, signum, finished) == ("interrupted", "2", "True")  # the module's body ran to its end
     assert float(after) < 1.0  # then the signal was raised at once, not after the 10 s loop
 
 
 def test_a_sigterm_inside_an_import_is_raised_once_the_import_has_finished(tmp_path):
-    interrupted, signum, finished, after = _run(tmp_path, "TERM")
+    interrupted, signum, finished, after = _run(tmp_path, SLOW_MODULE.format(name="TERM"))
     assert (interrupted, signum, finished) == ("interrupted", "15", "True")
     assert float(after) < 1.0
 
@@ -75,8 +76,4 @@ while True:
 
 
 def test_a_second_sigint_while_the_first_waits_for_an_import_is_raised_at_once(tmp_path):
-    (tmp_path / "slow_module.py").write_text(HANGING_MODULE)
-    done = subprocess.run([sys.executable, "-c", textwrap.dedent(DRIVER), str(tmp_path)], capture_output=True, text=True,
-                          timeout=120, cwd=REPO, env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert done.stdout.split()[:3] == ["interrupted", "2", "False"]  # raised inside the import that never ends
+    assert _run(tmp_path, HANGING_MODULE)[:3] == ["interrupted", "2", "False"]  # raised inside the import that never ends
