@@ -69,6 +69,7 @@ class OctoModel:
         self._schedule = make_schedule(head.diffusion_steps) if isinstance(head, DiffusionHeadConfig) else None
         self._sample_jit = jax.jit(self._sample, static_argnames=("capture", "normalization_type", "sampler"))
         self._encode_jit = jax.jit(self._encode)
+        self._transformer_jit = jax.jit(self._transformer, static_argnames=("intermediates",))
         backbone = {k: v for k, v in params["octo_transformer"].items() if not k.startswith("task_tokenizers_")}
         self._inference_params = {**params, "octo_transformer": backbone}  # without the T5 encoder, built once
         self._token_maps: dict = {}  # SequenceLayout -> TokenMap
@@ -251,11 +252,17 @@ class OctoModel:
         return self._token_map(sequence_layout(self.config, shapes, n_lang))
 
     def run_transformer(self, observations: Mapping, task: Mapping, *, intermediates: bool = False) -> dict:
-        """Un-jitted forward of the backbone with full attention: {"groups", "attention", ...intermediates}."""
+        """Forward of the backbone with full attention: {"groups", "attention", ...intermediates}. One jitted
+        function (compiled once per input shape), not op by op: un-jitted, each of its hundreds of operations
+        compiled a program of its own."""
         obs, pad = self._prepare_observations(observations)
         task_in, encoding = self._prepare_task(task, pad.shape[0])
+        return self._transformer_jit(self._inference_params["octo_transformer"], obs, task_in, encoding, pad,
+                                     intermediates=intermediates)
+
+    def _transformer(self, params, obs, task, encoding, pad, *, intermediates):
         module = OctoTransformer(self.config, capture_rows=None, keep_intermediates=intermediates)
-        return module.apply({"params": self._inference_params["octo_transformer"]}, obs, task_in, encoding, pad)
+        return module.apply({"params": params}, obs, task, encoding, pad)
 
     def predict_eps(self, readout_embedding: jax.Array, noisy_actions: jax.Array, time: jax.Array) -> jax.Array:
         """Diffusion score network: (batch, window, D), (batch, window, horizon*dim), (batch, window, 1) -> eps."""
