@@ -192,6 +192,13 @@ class _StoppingExecutor:
                 log.info("sequential test decided after %d candidate episodes; stopping", len(self.done))
                 return
 
+    def adopt(self, checked) -> None:
+        """The driver's pre-flight env (harness.run.executor.CheckedEnv), to the inner executor where it takes one
+        (else the driver closes it)."""
+        adopt = getattr(self.inner, "adopt", None)
+        if adopt is not None:
+            adopt(checked)
+
     def close(self) -> None:
         self.inner.close()
 
@@ -234,13 +241,20 @@ def regress(baseline_dir: str | Path, model: str, gate: GateConfig | None = None
         raise ValueError(f"the baseline {baseline.path} has no finished episode to pair with; finish the baseline first")
     _check_baseline(base_outcomes, jobs, baseline.path)
 
+    run_model = loaded_model  # the candidate policy the run used (the driver loads it and gives it to the factory)
+
     def factory(context: EpisodeContext, model_):
+        nonlocal run_model
+        run_model = model_
         existing = {(r.task, r.seed): bool(r.success) if r.status == "ok" else None
                     for r in RunStore(context.run_dir).load_rows().values()}
         inner = (executor or SequentialExecutor)(context, model_)
         return _StoppingExecutor(inner, base_outcomes, existing, jobs, protocol.tasks, config)
 
     summary = execute(protocol, out, run_name, model=loaded_model, executor=factory, progress=progress)
+    # replayed with the run's policy, not loaded (and compiled) a second time; replay loads with the text tokenizer
+    # only, so a policy loaded with served conventions is not the one it would load
+    replay_model = run_model if protocol.served_conventions is None else loaded_model
     candidate = load_run(summary.run_dir)
     cand = _outcomes(candidate)
     decision = gate_on_outcomes(base_outcomes, cand, jobs, protocol.tasks, alpha, gate.max_drop)
@@ -249,7 +263,7 @@ def regress(baseline_dir: str | Path, model: str, gate: GateConfig | None = None
     outcome_pairs = [k for k in used if base_outcomes[k] is not None and cand[k] is not None]
     counts = PairedCounts.from_outcomes([base_outcomes[k] for k in outcome_pairs], [cand[k] for k in outcome_pairs])
     comparison = compare_runs(baseline.path, candidate.path, compare_config, require_complete=False)
-    replay = replay_baseline(baseline, model, replace(gate, text_tokenizer=protocol.text_tokenizer), loaded_model)
+    replay = replay_baseline(baseline, model, replace(gate, text_tokenizer=protocol.text_tokenizer), replay_model)
     tested = test.summary()
     stopped_errored = errored_tasks(base_outcomes, cand, jobs)
     if stopped_errored:

@@ -109,3 +109,35 @@ def test_regress_with_another_model_drifts_resumes_and_fails_on_underpowered(run
     jsonl = (runs / "cand" / "results.jsonl").read_text()
     assert cli.main([*args, "--fail-on", "underpowered"]) == 1  # resumed: same decision, no new episode
     assert (runs / "cand" / "results.jsonl").read_text() == jsonl
+
+
+def test_regress_loads_the_candidate_once_and_makes_the_first_env_once(fixtures_dir, tmp_path, monkeypatch, capsys):
+    """The candidate policy the run loads is the one replayed on the baseline's recorded inputs (not loaded, and
+    compiled, a second time), and the env the pre-flight check made runs the first episodes (not made again): one
+    load and one env for a one-task regress. Counted on a real run, each call going through to the real one."""
+    import envs
+    from harness.policies import family_of
+
+    model = str(fixtures_dir / "tiny")
+    flags = ["--max-steps", "3", "--fast-render", "--no-masks", "--png-every", "0", "--no-video"]
+    assert cli.main(["run", "--model", model, "--task", "Lift", "--episodes", "1", *flags, "--record-inputs",
+                     "--out", str(tmp_path), "--run-name", "base"]) == 0
+    calls = {"load": 0, "env": 0}
+    family, load, make = family_of(model), family_of(model).load, envs.make
+
+    def counted_load(*args, **kwargs):
+        calls["load"] += 1
+        return load(*args, **kwargs)
+
+    def counted_make(*args, **kwargs):
+        calls["env"] += 1
+        return make(*args, **kwargs)
+
+    monkeypatch.setattr(family, "load", counted_load)
+    monkeypatch.setattr(envs, "make", counted_make)
+    capsys.readouterr()
+    assert cli.main(["regress", "--baseline", str(tmp_path / "base"), "--model", model, "--out", str(tmp_path),
+                     "--run-name", "cand"]) == 0
+    out = capsys.readouterr().out
+    assert "model numerics: EQUIVALENT" in out  # the baseline's inputs were replayed, with the run's policy
+    assert calls == {"load": 1, "env": 1}
