@@ -26,6 +26,7 @@ goes the run's state (train_state.msgpack, removed at the end), from which calli
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import time
@@ -353,9 +354,7 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
 
     key = jax.random.PRNGKey(cfg.seed)
     init_key, key = jax.random.split(key)
-    params, warm = initialise(init_key, lambda rng: init_params(
-        rng, config, {k: (s, s) for k, s in sizes.items()}, 1, t5_config=t5, lowdim_sizes={"proprio": PROPRIO_DIM},
-        language_tokens=LANGUAGE_TOKENS), cfg.init_from)
+    params, warm = initialise(init_key, _initialiser(config, tuple(sizes.items()), t5), cfg.init_from)
     trainable, t5_params = split_t5(params)
     n_params = sum(int(np.prod(x.shape)) for x in jax.tree.leaves(params))
     log.info("reference model: %d parameters (%.1f MB float32), %d frames, vocab %d", n_params, n_params * 4 / 2**20,
@@ -390,6 +389,15 @@ def train(demos: dict[str, dict[str, np.ndarray]], out_dir: str | Path, cfg: Tra
                "config": asdict(cfg), "warm_start": warm}
     atomic_write_json(out_dir / "training_summary.json", summary, exact=True)
     return summary
+
+
+@functools.lru_cache(maxsize=8)
+def _initialiser(config: OctoConfig, sizes: tuple[tuple[str, int], ...], t5: T5Config):
+    """rng -> fresh parameters of the network (`init_params`), one function per (frozen) configuration in a process,
+    so that warm_start.initialise's compiled initialiser serves every training of the same network (a DAgger
+    round's trainings) instead of being traced and lowered again for each (a few seconds of CPU each)."""
+    return lambda rng: init_params(rng, config, {k: (s, s) for k, s in sizes}, 1, t5_config=t5,
+                                   lowdim_sizes={"proprio": PROPRIO_DIM}, language_tokens=LANGUAGE_TOKENS)
 
 
 def _write_model_files(out_dir: Path, config_dict: dict, tokenizer, t5: T5Config, t5_dict: dict, t5_params: dict,

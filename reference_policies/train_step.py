@@ -8,6 +8,8 @@ losses (see reference_policies.train's docstring for why L1 is the default).
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import optax
@@ -80,11 +82,13 @@ def diffusion_loss(params: dict, config: OctoConfig, batch: dict, encodings: jax
     return jnp.sum(jnp.square(eps - noise) * mask) / jnp.maximum(jnp.sum(mask), 1)
 
 
+@functools.lru_cache(maxsize=8)
 def make_optimizer(grad_clip: float, weight_decay: float):
     """AdamW (optax's defaults) after global-norm clipping, without its learning rate: the training step scales
     the update by the rate it is given, so that the schedule is an input of the compiled step, not a constant of it
     (trainings that differ only in schedule, steps or T5 encodings share one XLA program and its persistent cache).
-    The same update as `optax.chain(clip_by_global_norm, adamw(schedule))` with the schedule read at the count."""
+    The same update as `optax.chain(clip_by_global_norm, adamw(schedule))` with the schedule read at the count.
+    One object per (grad_clip, weight_decay), so that make_train_step finds its compiled step again."""
     return optax.chain(optax.clip_by_global_norm(grad_clip), optax.scale_by_adam(),
                        optax.add_decayed_weights(weight_decay))
 
@@ -94,7 +98,21 @@ def make_train_step(config: OctoConfig, optimizer, schedule, encodings: jax.Arra
     """The step (trainable, optimiser state, batch, rng, count) -> (trainable, optimiser state, loss): each camera's
     images randomly shifted, then the head's loss (L1 or diffusion), its gradient, `optimizer`'s (`make_optimizer`)
     update and a descent of `schedule(count)` along it, `count` being the updates made before this one (from 0).
-    The schedule's value and the T5 `encodings` are arguments of the jitted function."""
+    The schedule's value and the T5 `encodings` are arguments of the jitted function, and the jitted function is
+    one per (config, optimizer, image_keys, shift_pixels) in a process: a later training of the same network (a
+    DAgger round's fine-tuning after its stage 1) reuses the traced and compiled step instead of tracing, lowering
+    and loading it again (about 10 s of CPU a training)."""
+    update = _jitted_update(config, optimizer, tuple(image_keys), shift_pixels)
+
+    def train_step(trainable, opt_state, batch, rng, count: int):
+        return update(trainable, opt_state, batch, rng, jnp.float32(schedule(count)), encodings)
+
+    return train_step
+
+
+@functools.lru_cache(maxsize=8)
+def _jitted_update(config: OctoConfig, optimizer, image_keys: tuple[str, ...], shift_pixels: int):
+    """make_train_step's jitted update, made once per (hashable, frozen) configuration and optimizer object."""
     diffusion = isinstance(config.action_head, DiffusionHeadConfig)
     alpha_hats = make_schedule(config.action_head.diffusion_steps).alpha_hats if diffusion else None
     loss_fn = diffusion_loss if diffusion else l1_loss
@@ -111,7 +129,4 @@ def make_train_step(config: OctoConfig, optimizer, schedule, encodings: jax.Arra
         updates = jax.tree.map(lambda u: -learning_rate * u, updates)
         return optax.apply_updates(trainable, updates), opt_state, loss
 
-    def train_step(trainable, opt_state, batch, rng, count: int):
-        return update(trainable, opt_state, batch, rng, jnp.float32(schedule(count)), encodings)
-
-    return train_step
+    return update

@@ -12,6 +12,7 @@ warm-starting across architectures would silently keep a random part.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from pathlib import Path
@@ -112,8 +113,15 @@ def initialise(key, init, init_from: str | Path | None) -> tuple[dict, dict | No
     most 3e-8 on the tiny test network), and a warm start copies every parameter anyway.
     """
     if not init_from:
-        return jax.jit(init)(key), None
+        return _jitted(init)(key), None
     folder = Path(init_from)
     source = _source(folder)  # read once: checked against the shapes, then copied in
     plan = _plan(traverse_util.flatten_dict(jax.eval_shape(init, key)), source, folder)
-    return _copy_in(jax.jit(init)(key), source, plan, folder)
+    return _copy_in(_jitted(init)(key), source, plan, folder)
+
+
+@functools.lru_cache(maxsize=8)
+def _jitted(init):
+    """`jax.jit(init)`, one per initialiser function: an initialiser handed in again (reference_policies.train's, one
+    per network configuration) runs its compiled program again, without tracing and lowering it anew."""
+    return jax.jit(init)
