@@ -50,11 +50,13 @@ class SceneRenderer:
             flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
             flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
             flags[mujoco.mjtRndFlag.mjRND_SKYBOX] = 0
-            # no multisample anti-aliasing: the offscreen buffer is made at context creation, so remake it
-            self._context.gl_ctx.make_current()
-            self._context.con.free()
-            sim.model.vis.quality.offsamples = 0
-            self._context._set_mujoco_context_and_buffers()
+            # no multisample anti-aliasing: the offscreen buffer is made at context creation, so remake it (unless
+            # the simulation was built without it, as envs.robosuite_env builds it for fast rendering)
+            if sim.model.vis.quality.offsamples != 0:
+                self._context.gl_ctx.make_current()
+                self._context.con.free()
+                sim.model.vis.quality.offsamples = 0
+                self._context._set_mujoco_context_and_buffers()
 
     def free(self) -> None:
         """Release this simulation's GL resources with its own context current (never another environment's)."""

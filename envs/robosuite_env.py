@@ -35,6 +35,7 @@ size) are fixed at construction by `model_seed`, identical for all environments 
 
 from __future__ import annotations
 
+import functools
 import os
 import threading
 
@@ -115,6 +116,23 @@ def _import_robosuite():
     return robosuite
 
 
+@functools.cache
+def _single_sampled(base):
+    """Robosuite env class `base` whose simulation renders offscreen without multisample anti-aliasing from the
+    start (the model's offsamples 0, as --fast-render has it: envs.render.SceneRenderer(fast=True)), so that robosuite
+    makes its offscreen GL context once as fast rendering wants it, rather than with 4x multisampling for
+    SceneRenderer to free and make again (each a second or so of uploads on a software rasteriser). Named as `base`
+    (robosuite registers the class under its first name, and messages name the env by its class)."""
+
+    def _initialize_sim(self, xml_string=None):
+        base._initialize_sim(self, xml_string)
+        self.sim.model.vis.quality.offsamples = 0  # before _reset_internal makes the offscreen context
+
+    cls = type(f"{base.__name__}OctoSingleSampled", (base,), {"_initialize_sim": _initialize_sim})
+    cls.__name__ = cls.__qualname__ = base.__name__
+    return cls
+
+
 class RobosuiteEnv(gym.Env):
     """A robosuite task with Octo-style observations and actions; see the module docstring."""
 
@@ -188,10 +206,12 @@ class RobosuiteEnv(gym.Env):
         )
         options.update(dict(task.robosuite_options))
         options.update(dict(config.robosuite_options))
-        if distractors:
+        if distractors or (config.fast_render and config.cameras):
             from robosuite.environments.base import REGISTERED_ENVS
 
-            env = class_with_distractors(REGISTERED_ENVS[task.robosuite_env], distractors)(**options)
+            cls = REGISTERED_ENVS[task.robosuite_env]
+            cls = _single_sampled(cls) if config.fast_render and config.cameras else cls
+            env = (class_with_distractors(cls, distractors) if distractors else cls)(**options)
         else:
             env = robosuite.make(task.robosuite_env, **options)
         return env, options["controller_configs"]["body_parts"]["right"]  # the user's controller if one was passed

@@ -45,14 +45,33 @@ def _interrupt(signum, frame):
     interrupts.handler(signum, frame)
 
 
-def build_parser() -> OneLineParser:
+def _name(command) -> str:
+    return command.__name__.rsplit(".", 1)[-1]  # each module is named as its command
+
+
+def build_parser(command: str | None = None) -> OneLineParser:
+    """The command line's parser; with `command`, that command's options only (every other command a bare entry of
+    its name, never shown: a command line naming `command` parses the same, without importing what the others'
+    options are declared in, such as run's the simulators and JAX for `tasks` or `report`)."""
     parser = OneLineParser(prog="octo-harness", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show tracebacks for errors")
     add_verbose(parser, top=True)
     sub = parser.add_subparsers(dest="command", required=True)
-    for command in COMMANDS:
-        command.add_parser(sub)
+    for module in COMMANDS:
+        if command is None or _name(module) == command:
+            module.add_parser(sub)
+        else:
+            sub.add_parser(_name(module))
     return parser
+
+
+def named_command(argv: list[str]) -> str | None:
+    """The command `argv` names (its first word that is not an option: the top level's options take no value), or
+    None where there is none, it is not a command, or help is asked for before it (the whole parser is needed)."""
+    for word in argv:
+        if word in ("-h", "--help", "--") or not word.startswith("-"):
+            return word if word in {_name(module) for module in COMMANDS} else None
+    return None
 
 
 def _origin(exc: BaseException) -> str:
@@ -75,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     unraisable = sys.unraisablehook
     sys.unraisablehook = interrupts.quiet_unraisable(unraisable)  # a swallowed Ctrl-C: the one line, no traceback
     try:
-        args = build_parser().parse_args(argv)
+        args = build_parser(named_command(sys.argv[1:] if argv is None else argv)).parse_args(argv)
         console.configure(args.verbose)
         interrupts.check()  # a signal while parsing whose KeyboardInterrupt was swallowed
         code = _dispatch(args)
