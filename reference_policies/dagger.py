@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import logging
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -73,20 +74,72 @@ def checkpoint_fingerprint(model_dir: str | Path) -> str:
     return digest.hexdigest()
 
 
-def policy_in_env(model_dir: str | Path, task: str, max_steps: int):
+def policy_in_env(model_dir: str | Path, task: str, max_steps: int, model=None):
     """(env, policy): `task` made as the evaluation runs the checkpoint (its harness.toml conventions, fast render,
-    no masks) and the checkpoint's policy, checked against it."""
+    no masks) and the checkpoint's policy, checked against it; `model`: the checkpoint's loaded policy
+    (`load_policy`), when it is loaded already."""
     import envs
     from harness.conventions import CheckpointConventions
-    from harness.policies import load_policy
 
     conventions = CheckpointConventions.read(model_dir)
     options = conventions.env_options({"fast_render": True, "masks": False})
     env = envs.make(task, options, max_episode_steps=max_steps)
-    model = load_policy(str(model_dir), text_tokenizer=conventions.text_tokenizer)
+    model = model if model is not None else _load_model(model_dir, conventions)
     policy = model.closed_loop(conventions.policy_config())
     policy.check_env(env)
     return env, policy
+
+
+def _load_model(model_dir: str | Path, conventions=None):
+    from harness.conventions import CheckpointConventions
+    from harness.policies import load_policy
+
+    conventions = conventions or CheckpointConventions.read(model_dir)
+    return load_policy(str(model_dir), text_tokenizer=conventions.text_tokenizer)
+
+
+# The (env, policy) of the collection under way in this process, for its next job: loading the checkpoint (and its
+# compiled programs) and starting the simulator (for LIBERO a server process) once per process and task instead of
+# once per job. Only within one collection (`collect` ends it; a pool's worker process ends with its pool), so a
+# checkpoint rewritten between collections is loaded again. Per thread: an env is only stepped (and closed) from the
+# thread that made it, and collections in two threads keep theirs apart.
+# Every episode starts from `env.reset(seed=...)` and `policy.reset(..., seed=...)`, as the episodes of one job did
+# already, so a job's data are those of a fresh env and policy (the resume tests compare the two).
+_local = threading.local()
+
+
+def _reused() -> dict:
+    if not hasattr(_local, "reused"):
+        _local.reused = {}
+    return _local.reused
+
+
+def reused_policy_in_env(model_dir: str | Path, task: str, max_steps: int):
+    """policy_in_env's (env, policy), the one made for the same arguments by this thread's previous job of the
+    collection under way when there is one (the previous one closed when the arguments differ)."""
+    reused = _reused()
+    key = (str(model_dir), task, max_steps)
+    if reused.get("key") != key:
+        model = reused.get("model") if reused.get("model_dir") == str(model_dir) else None  # another task's
+        _close_env()
+        model = model if model is not None else _load_model(model_dir)
+        reused.update(key=key, made=policy_in_env(model_dir, task, max_steps, model), model=model,
+                      model_dir=str(model_dir))
+    return reused["made"]
+
+
+def _close_env() -> None:
+    made = _reused().pop("made", None)
+    _reused().pop("key", None)
+    if made is not None:
+        made[0].close()
+
+
+def end_reuse() -> None:
+    """Close the env kept for the next job (reused_policy_in_env) and drop the loaded checkpoint: the collection is
+    over, or its env was left mid-episode."""
+    _close_env()
+    _reused().clear()
 
 
 def labelled_episode(env, policy, label, obs: dict, info: dict, seed: int, max_steps: int) -> dict:
@@ -140,14 +193,18 @@ def load_labelled_parts(paths) -> list[dict]:
 def _collect_job(args: tuple) -> list[dict]:
     """Spawned worker: the episodes of seeds `seeds`, each {arrays..., "seed", "success"}."""
     model_dir, config, seeds = args
-    env, policy = policy_in_env(model_dir, config.task, config.max_steps)
+    env, policy = reused_policy_in_env(model_dir, config.task, config.max_steps)  # the same for the next job
     labeller = LABELLERS[config.task](config.expert)
     episodes = []
-    for seed in seeds:
-        obs, info = env.reset(seed=seed)
-        labeller.reset(obs, env)
-        episodes.append(labelled_episode(env, policy, lambda o: labeller.act(o, env), obs, info, seed, config.max_steps))
-    env.close()
+    try:
+        for seed in seeds:
+            obs, info = env.reset(seed=seed)
+            labeller.reset(obs, env)
+            episodes.append(labelled_episode(env, policy, lambda o: labeller.act(o, env), obs, info, seed,
+                                             config.max_steps))
+    except BaseException:
+        end_reuse()  # an env left mid-episode by an error is not reused
+        raise
     return episodes
 
 
@@ -163,10 +220,13 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: DaggerConfig = D
     def part_of(job) -> Path:  # each finished job is saved at once, so a stop loses only the jobs under way
         return out_dir / "jobs" / f"{config.task}_{job[2][0]}.npz"
 
-    for job, episodes in run_saved_jobs(_collect_job, jobs, workers, part_of, fp, lambda job: len(job[2])):
-        success = save_labelled_part(part_of(job), episodes, fp)
-        log.info("%s seeds %d..: %d episodes collected, %d successes", config.task, job[2][0], len(success),
-                 success.sum())
+    try:
+        for job, episodes in run_saved_jobs(_collect_job, jobs, workers, part_of, fp, lambda job: len(job[2])):
+            success = save_labelled_part(part_of(job), episodes, fp)
+            log.info("%s seeds %d..: %d episodes collected, %d successes", config.task, job[2][0], len(success),
+                     success.sum())
+    finally:
+        end_reuse()  # the env of the jobs run in this process (one worker)
     episodes = load_labelled_parts(part_of(job) for job in jobs)
     summary = {config.task: save_collection(out_dir, episodes, f"{config.task}.npz"),
                "seconds": time.perf_counter() - start, "config": fp}

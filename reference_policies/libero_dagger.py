@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from harness.files import atomic_write_json
-from reference_policies.dagger import (append_corrections, checkpoint_fingerprint, labelled_episode, policy_in_env,
-                                      load_labelled_parts, save_collection, save_labelled_part)
+from reference_policies.dagger import (append_corrections, checkpoint_fingerprint, end_reuse, labelled_episode,
+                                      load_labelled_parts, reused_policy_in_env, save_collection, save_labelled_part)
 from reference_policies.demos import config_fingerprint, finished_recording, run_saved_jobs
 from reference_policies.libero_demos import LIBERO_OBJECT_TASKS, task_file
 from reference_policies.libero_expert import LiberoExpertConfig, LiberoObjectLabeller
@@ -66,7 +66,7 @@ def _collect_job(args: tuple) -> tuple[str, list[dict]]:
     model_dir, config, task, seeds = args
     from envs.libero_tasks import get_libero_task
 
-    env, policy = policy_in_env(model_dir, task, config.max_steps)
+    env, policy = reused_policy_in_env(model_dir, task, config.max_steps)  # the same for the task's next job
     labeller = LiberoObjectLabeller(get_libero_task(task).targets[0], config=config.expert)
     episodes = []
     try:
@@ -81,8 +81,9 @@ def _collect_job(args: tuple) -> tuple[str, list[dict]]:
             episode = labelled_episode(env, policy, label, obs, info, seed, config.max_steps)
             episode["weight"] = np.where(near, config.near_weight, 1.0)
             episodes.append(episode)
-    finally:
-        env.close()
+    except BaseException:
+        end_reuse()  # an env left mid-episode by an error is not reused
+        raise
     return task, episodes
 
 
@@ -99,9 +100,13 @@ def collect(model_dir: str | Path, out_dir: str | Path, config: LiberoDaggerConf
     def part_of(job) -> Path:  # each finished job is saved at once, so a stop loses only the jobs under way
         return out_dir / "jobs" / f"{task_file(job[2])[:-4]}_{job[3][0]}.npz"
 
-    for job, (task, episodes) in run_saved_jobs(_collect_job, jobs, workers, part_of, fp, lambda job: len(job[3])):
-        success = save_labelled_part(part_of(job), episodes, fp)
-        log.info("%s seeds %d..: %d episodes collected, %d successes", task, job[3][0], len(success), success.sum())
+    try:
+        for job, (task, episodes) in run_saved_jobs(_collect_job, jobs, workers, part_of, fp, lambda job: len(job[3])):
+            success = save_labelled_part(part_of(job), episodes, fp)
+            log.info("%s seeds %d..: %d episodes collected, %d successes", task, job[3][0], len(success),
+                     success.sum())
+    finally:
+        end_reuse()  # the env of the jobs run in this process (one worker)
     summary = {}
     for task in config.tasks:
         episodes = load_labelled_parts(part_of(job) for job in jobs if job[2] == task)
