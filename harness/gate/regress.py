@@ -219,6 +219,27 @@ def _check_baseline(baseline: dict, jobs: Sequence[EpisodeJob], path) -> None:
                              "(octo-harness run --retry-failed)")
 
 
+def _run_candidate(protocol, out, run_name, loaded_model, executor, progress, base_outcomes, config):
+    """The candidate's episodes, stopped once the sequential test decides -> (the run's summary, the policy to
+    replay the baseline with: the one the run loaded, so it is not loaded and compiled a second time)."""
+    from harness.run import execute
+
+    jobs = protocol.jobs()
+    run_model = loaded_model  # the candidate policy the run used (the driver loads it and gives it to the factory)
+
+    def factory(context: EpisodeContext, model_):
+        nonlocal run_model
+        run_model = model_
+        existing = {(r.task, r.seed): bool(r.success) if r.status == "ok" else None
+                    for r in RunStore(context.run_dir).load_rows().values()}
+        inner = (executor or SequentialExecutor)(context, model_)
+        return _StoppingExecutor(inner, base_outcomes, existing, jobs, protocol.tasks, config)
+
+    summary = execute(protocol, out, run_name, model=loaded_model, executor=factory, progress=progress)
+    # replay loads with the text tokenizer only, so a policy loaded with served conventions is not the one it would load
+    return summary, (run_model if protocol.served_conventions is None else loaded_model)
+
+
 def regress(baseline_dir: str | Path, model: str, gate: GateConfig | None = None, *, out: str | Path = "results/runs",
             run_name: str | None = None, loaded_model=None, executor=None, progress: bool = True) -> RegressResult:
     """Run the sequential regression (see the module docstring); returns regress.json's content (and the comparison).
@@ -226,8 +247,6 @@ def regress(baseline_dir: str | Path, model: str, gate: GateConfig | None = None
     gate: alpha, max_drop, max_episodes, the candidate's text_tokenizer and the replay tolerances (default GateConfig()).
     executor: factory(context, model) -> Executor for the candidate's episodes (default SequentialExecutor).
     """
-    from harness.run import execute
-
     gate = gate if gate is not None else GateConfig()
     alpha = gate.alpha
     baseline = load_run(baseline_dir, legacy=False)
@@ -241,20 +260,8 @@ def regress(baseline_dir: str | Path, model: str, gate: GateConfig | None = None
         raise ValueError(f"the baseline {baseline.path} has no finished episode to pair with; finish the baseline first")
     _check_baseline(base_outcomes, jobs, baseline.path)
 
-    run_model = loaded_model  # the candidate policy the run used (the driver loads it and gives it to the factory)
-
-    def factory(context: EpisodeContext, model_):
-        nonlocal run_model
-        run_model = model_
-        existing = {(r.task, r.seed): bool(r.success) if r.status == "ok" else None
-                    for r in RunStore(context.run_dir).load_rows().values()}
-        inner = (executor or SequentialExecutor)(context, model_)
-        return _StoppingExecutor(inner, base_outcomes, existing, jobs, protocol.tasks, config)
-
-    summary = execute(protocol, out, run_name, model=loaded_model, executor=factory, progress=progress)
-    # replayed with the run's policy, not loaded (and compiled) a second time; replay loads with the text tokenizer
-    # only, so a policy loaded with served conventions is not the one it would load
-    replay_model = run_model if protocol.served_conventions is None else loaded_model
+    summary, replay_model = _run_candidate(protocol, out, run_name, loaded_model, executor, progress, base_outcomes,
+                                           config)
     candidate = load_run(summary.run_dir)
     cand = _outcomes(candidate)
     decision = gate_on_outcomes(base_outcomes, cand, jobs, protocol.tasks, alpha, gate.max_drop)
