@@ -206,11 +206,12 @@ class RobosuiteEnv(gym.Env):
         )
         options.update(dict(task.robosuite_options))
         options.update(dict(config.robosuite_options))
-        if distractors or (config.fast_render and config.cameras):
+        single_sampled = bool(config.fast_render and config.cameras)
+        if distractors or single_sampled:
             from robosuite.environments.base import REGISTERED_ENVS
 
             cls = REGISTERED_ENVS[task.robosuite_env]
-            cls = _single_sampled(cls) if config.fast_render and config.cameras else cls
+            cls = _single_sampled(cls) if single_sampled else cls
             env = (class_with_distractors(cls, distractors) if distractors else cls)(**options)
         else:
             env = robosuite.make(task.robosuite_env, **options)
