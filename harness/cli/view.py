@@ -23,6 +23,12 @@ def add_parser(sub) -> None:
                     help="serve the web viewer from this machine (a headless server) and print its URL; Ctrl-C stops it")
     vw.add_argument("--no-simulate", action="store_true",
                     help="do not re-simulate the episode for its frames: maps and measures only")
+    vw.add_argument("--model", default=None, metavar="SOURCE",
+                    help="the run's policy from elsewhere, to re-simulate with: a served run's server (ws://HOST:PORT: "
+                         "a run does not record the address) or a copy of its checkpoint [the run's own]")
+    vw.add_argument("--served-conventions", default=None, type=Path, metavar="FILE",
+                    help="with --model ws://: the conventions file the run was made with (its content is in the run's "
+                         "model fingerprint, its path is not recorded)")
     add_viewer_ports(vw, "view")
     vw.set_defaults(func=main)
 
@@ -40,10 +46,16 @@ def main(args) -> int:
     if args.serve or args.save is None:  # before the episode is rebuilt: no display, a port out of range or in use
         check_viewer("serve" if args.serve else "spawn", args.viewer_port, args.web_port)
     simulate = not args.no_simulate
+    if (args.model is not None or args.served_conventions is not None) and not simulate:
+        raise ValueError("--model and --served-conventions load the policy to re-simulate the frames with; "
+                         "--no-simulate re-simulates nothing: drop one")
+    if args.served_conventions is not None and not str(args.model or "").startswith("ws://"):
+        raise ValueError("--served-conventions goes with --model ws://HOST:PORT (a served run's server)")
     if args.save is not None or args.serve:
         with tempfile.TemporaryDirectory() as scratch:
             target = args.save or Path(scratch) / "episode.rrd"
-            result = build_recording(args.run, args.task, args.episode, save=target, simulate=simulate)
+            result = build_recording(args.run, args.task, args.episode, save=target, simulate=simulate,
+                                     model_source=args.model, served_conventions=args.served_conventions)
             print(f"{result.episode.task} episode {result.episode.episode}: frames: {result.frames}")
             if args.save is not None:
                 print(f"recording: {result.path}  (open it with: rerun {result.path})")
@@ -52,7 +64,8 @@ def main(args) -> int:
                 keep_serving(viewer, f"Rerun web viewer: {viewer.web_url}")
         return 0
     viewer = start_viewer("spawn", args.viewer_port)
-    result = build_recording(args.run, args.task, args.episode, connect=viewer.url, simulate=simulate)
+    result = build_recording(args.run, args.task, args.episode, connect=viewer.url, simulate=simulate,
+                             model_source=args.model, served_conventions=args.served_conventions)
     if result.source == "recording":
         stream = rr.RecordingStream("octo-harness", recording_id=f"file:{result.path}")
         stream.connect_grpc(viewer.url)

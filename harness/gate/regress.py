@@ -236,8 +236,7 @@ def _run_candidate(protocol, out, run_name, loaded_model, executor, progress, ba
         return _StoppingExecutor(inner, base_outcomes, existing, jobs, protocol.tasks, config)
 
     summary = execute(protocol, out, run_name, model=loaded_model, executor=factory, progress=progress)
-    # replay loads with the text tokenizer only, so a policy loaded with served conventions is not the one it would load
-    return summary, (run_model if protocol.served_conventions is None else loaded_model)
+    return summary, run_model
 
 
 def regress(baseline_dir: str | Path, model: str, gate: GateConfig | None = None, *, out: str | Path = "results/runs",
@@ -418,18 +417,21 @@ def regress_grid(baseline_grid: str | Path, model: str, gate: GateConfig | None 
     every cell). The candidate grid goes to <out>/<run_name> (default <model>_<baseline grid name>)."""
     from harness.analysis.compare import GRID_FILE, compare_grids, read_grid
     from harness.files import atomic_write_json
-    from harness.policies import load_policy
+    from harness.run.protocol import load_protocol_policy
 
     gate = gate if gate is not None else GateConfig()
     alpha = gate.alpha
     baseline_grid = Path(baseline_grid)
     grid = read_grid(baseline_grid)
     names = list(grid.runs)
+    first = load_run(baseline_grid / names[0], legacy=False)  # the candidate as every condition's run will load it
+    candidate = candidate_protocol(first.manifest, model, gate.max_episodes, str(first.path / "manifest.json"),
+                                   gate.text_tokenizer, gate.drop_probes)
     short = model.rstrip("/").replace("hf://", "").replace("random:", "random-").split("/")[-1].replace(":", "-")
     folder = Path(out) / (run_name or f"{short}_{baseline_grid.resolve().name}")
     folder.mkdir(parents=True, exist_ok=True)
     atomic_write_json(folder / GRID_FILE, replace(grid, regress_of=str(baseline_grid.resolve())).to_json())
-    loaded = load_policy(model, text_tokenizer=gate.text_tokenizer)
+    loaded = load_protocol_policy(candidate)
     per_condition = {}
     for name in names:
         log.info("regress: condition %s at alpha %.3g", name, alpha / len(names))

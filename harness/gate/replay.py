@@ -144,7 +144,8 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, gate: GateC
     content.
 
     gate: the tolerances and the replayed model's text_tokenizer, auto|fallback|PATH (None: the run's own choice)."""
-    from harness.policies import as_policy, load_policy
+    from harness.policies import as_policy
+    from harness.run.protocol import load_protocol_policy
     from harness.policy import resize_frame
     from harness.run import checks
 
@@ -166,10 +167,10 @@ def replay_run(run_dir: str | Path, model_source: str | None = None, gate: GateC
     if model_source is None and Path(source).is_absolute() and not Path(source).exists():
         raise ReplayInputError(f"the run's model {source} is not on this machine (a run copied from elsewhere); "
                                "pass the model to replay with --model")
-    # the run's text tokenizer choice (auto, fallback or a file) with whichever model is replayed: the same instruction
-    # must become the same tokens, or the comparison measures the tokenizer
-    tokenizer = text_tokenizer if text_tokenizer is not None else protocol.text_tokenizer
-    model = as_policy(loaded_model) if loaded_model is not None else load_policy(source, text_tokenizer=tokenizer)
+    # the run's text tokenizer choice (auto, fallback or a file) with whichever model is replayed, unless the gate names
+    # one: the same instruction must become the same tokens, or the comparison measures the tokenizer
+    model = (as_policy(loaded_model) if loaded_model is not None
+             else load_protocol_policy(protocol, source, text_tokenizer))
     config = dataclasses.replace(protocol.policy, inference_batch=1)
     if gate.drop_probes:
         from harness.policy_config import without_probes

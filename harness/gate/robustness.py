@@ -115,9 +115,9 @@ def run_grid(base: Protocol, conditions: tuple[str, ...], levels: tuple[int, ...
         except (TypeError, ValueError):
             raise ValueError(f"{existing} is not a robustness grid file; choose another --out") from None
     if model is None:
-        from harness.policies import load_policy
+        from harness.run.protocol import load_protocol_policy
 
-        model = load_policy(base.model, text_tokenizer=base.text_tokenizer)
+        model = load_protocol_policy(base)
     conditions = expand_conditions(conditions, model_camera_keys(model))
     runs = grid(conditions, levels)
     if old is not None:  # a perturbation the grid already holds keeps its run's name

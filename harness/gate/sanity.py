@@ -95,14 +95,15 @@ def run_sanity(runs: list[str | Path], out: str | Path, options: SanityOptions =
     """Check the attribution methods on the runs' recorded inputs (see the module docstring); writes and returns
     the result. loaded_model: the model of `model_source` (or of the runs) already loaded."""
     from harness.files import atomic_write_json, write_atomic
-    from harness.policies import as_policy, load_policy
+    from harness.policies import as_policy
+    from harness.run.protocol import load_protocol_policy
 
     start = time.perf_counter()
     runs = [Path(r) for r in runs]
     loaded = _steps(runs, options.every)
     protocol = _common_protocol(loaded, model_source)
     source = model_source or protocol.model
-    model = as_policy(loaded_model) if loaded_model is not None else load_policy(source, text_tokenizer=protocol.text_tokenizer)
+    model = as_policy(loaded_model) if loaded_model is not None else load_protocol_policy(protocol, source)
     config = dataclasses.replace(protocol.policy, inference_batch=1, intervention=None, attribution=None,
                                  faithfulness_every=0)
     # the attribution methods read the policy's own function (its parameters, its transformer): an Octo checkpoint

@@ -81,19 +81,31 @@ def episode_meta(run: RunRecord, episode: EpisodeRecord) -> EpisodeMeta:
     return EpisodeMeta(**values)
 
 
-def _resimulate(run: RunRecord, episode: EpisodeRecord, steps: int, model=None) -> tuple[list[StepRecord], int | None]:
-    """Re-run the episode from its seed and protocol: (records, control frequency). model: the run's model, loaded."""
+def _resimulate(run: RunRecord, episode: EpisodeRecord, steps: int, model=None, source: str | None = None,
+                served_conventions: str | Path | None = None) -> tuple[list[StepRecord], int | None]:
+    """Re-run the episode from its seed and protocol: (records, control frequency). model: the run's model, loaded;
+    source: where to load it from instead of the protocol's record (--model: a served run's address, a checkpoint
+    copied elsewhere); the re-simulated actions are checked against the recorded ones either way."""
     import envs
-    from harness.policies import as_policy, load_policy
+    from harness.policies import as_policy
+    from harness.policies.served import SERVED_SOURCE
     from harness.policy import resize_frame
     from harness.rollout import rollout
     from harness.run import checks
+    from harness.run.protocol import load_protocol_policy
 
     protocol = protocol_from_manifest(run.manifest, run.path / "manifest.json")
-    if model is None and Path(protocol.model).is_absolute() and not Path(protocol.model).exists():
+    if served_conventions is not None:
+        protocol = dataclasses.replace(protocol, served_conventions=str(Path(served_conventions).expanduser().resolve()))
+    if model is None and source is None and protocol.model == SERVED_SOURCE:
+        raise ViewInputError("this run's policy was served and a run does not record its server's address, so its "
+                             "frames cannot be re-simulated without it; pass the server with --model ws://HOST:PORT, "
+                             "or --no-simulate (maps and measures without frames)")
+    if model is None and source is None and Path(protocol.model).is_absolute() and not Path(protocol.model).exists():
         raise ViewInputError(f"the run's model {protocol.model} is not on this machine, so its frames cannot be "
-                             "re-simulated; pass --no-simulate (maps and measures without frames)")
-    model = as_policy(model) if model is not None else load_policy(protocol.model, text_tokenizer=protocol.text_tokenizer)
+                             "re-simulated; pass its copy with --model PATH, or --no-simulate (maps and measures "
+                             "without frames)")
+    model = as_policy(model) if model is not None else load_protocol_policy(protocol, source)
     goals = None
     if protocol.goal_images:
         images = checks.decode_goal_images(protocol.goal_images)
@@ -131,9 +143,11 @@ def _compare(recorded: np.ndarray, records: list[StepRecord], run: RunRecord) ->
 
 def build_recording(run_dir: str | Path, task: str | None = None, episode: int | None = None, *,
                     save: str | Path | None = None, connect: str | None = None, simulate: bool = True,
-                    model=None) -> ViewResult:
+                    model=None, model_source: str | None = None,
+                    served_conventions: str | Path | None = None) -> ViewResult:
     """Write (`save`) and/or stream (`connect`, a live viewer's gRPC url) the recording of one episode of a run.
-    model: the run's model already loaded (else loaded from the protocol when re-simulating)."""
+    model: the run's model already loaded (else loaded from `model_source` or the protocol when re-simulating, with
+    `served_conventions` for a served one: a run records their content in its fingerprint, not their file)."""
     import_rerun()  # the optional extra: one line before anything heavy
     run = load_run(run_dir)
     ep = pick_episode(run, task, episode)
@@ -163,7 +177,7 @@ def build_recording(run_dir: str | Path, task: str | None = None, episode: int |
     hz = meta.extra.get("control_hz")
     identical = None
     if simulate:
-        records, hz = _resimulate(run, ep, steps, model)
+        records, hz = _resimulate(run, ep, steps, model, model_source, served_conventions)
         identical, note = _compare(np.asarray(actions["executed"]), records, run)
     else:
         note = ("not in the run's files (maps and measures only); re-simulate them (drop --no-simulate) or record "

@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 
 from harness.measures.attention import MEASURES_VERSION
-from harness.policies import as_policy, family_of, load_policy
+from harness.policies import as_policy, family_of
 from harness import interrupts
 from harness.run import checks, space
 from harness.run.protocol import protocol_from_manifest
@@ -34,8 +34,8 @@ from harness.runfolder.platform import (git_commit, platform_differences, platfo
 from harness.run.executor import CheckedEnv, EpisodeContext, Executor, Retrying, SequentialExecutor, StepCallback
 from harness.run.preflight import check_run
 from harness.run.progress import Progress
-from harness.run.protocol import (FORMAT, EpisodeJob, Protocol, Recovery, diff, goal_fingerprint, model_fingerprint,
-                                  policy_options)
+from harness.run.protocol import (FORMAT, EpisodeJob, Protocol, Recovery, diff, goal_fingerprint,
+                                  load_protocol_policy, model_fingerprint)
 from harness.outputs.writers import recorded_presentation
 from harness.run.store import MANIFEST, EpisodeRow, RunStore, now_utc, recovery, recovery_lines, statistics
 
@@ -292,7 +292,7 @@ def _open_run(store: RunStore, protocol: Protocol, jobs: list[EpisodeJob], name:
     goals = None
     if model is None and (pending or manifest is None):  # a finished run needs no model
         log.info("loading %s", protocol.model)
-        model = load_policy(protocol.model, **policy_options(protocol.text_tokenizer, protocol.served_conventions))
+        model = load_protocol_policy(protocol)
         interrupts.check()  # Ctrl-C while loading, its KeyboardInterrupt swallowed by a finaliser
     if model is not None:
         task_inputs, goals, dataset_key = _check_model(protocol, model, goal_images)

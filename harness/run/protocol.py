@@ -295,6 +295,17 @@ def policy_options(text_tokenizer: str | None = None, served_conventions: str | 
     return {"text_tokenizer": text_tokenizer, **({"served_conventions": served_conventions} if served_conventions else {})}
 
 
+def load_protocol_policy(protocol: Protocol, source: str | None = None, text_tokenizer: str | None = None):
+    """The policy a run of `protocol` stepped, loaded again (replay, view, sanity, a grid's camera keys): `source` in
+    its place where given (a candidate, a served run's address, a checkpoint copied elsewhere), with the protocol's
+    text tokenizer (or `text_tokenizer`) and its served conventions, the options the run itself loaded it with. One
+    place, so no command reloads a run's policy with fewer of its options than the run used."""
+    from harness.policies import load_policy
+
+    tokenizer = text_tokenizer if text_tokenizer is not None else protocol.text_tokenizer
+    return load_policy(source or protocol.model, **policy_options(tokenizer, protocol.served_conventions))
+
+
 def goal_fingerprint(folder: str | Path) -> str | None:
     """sha256 over the goal images (<key>.png) in `folder`; None when it holds none."""
     folder = Path(folder)

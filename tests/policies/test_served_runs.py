@@ -128,16 +128,24 @@ def test_a_server_killed_mid_run_is_an_infrastructure_failure_and_a_restarted_on
     assert done.returncode == 2 and "differs" in done.stderr and "model_fingerprint" in done.stderr, done.stderr[-800:]
 
 
-def test_the_standalone_server_script_serves_the_scripted_expert_end_to_end(standalone, tmp_path):
-    """One run of the blind scripted Lift expert through the standalone script (its replies are deterministic:
-    test_policy_server.py sends one observation twice)."""
-    out = tmp_path / "expert"
+EXPERT_CONVENTIONS = REPO / "examples" / "serve" / "scripted_lift.toml"
+
+
+@pytest.fixture(scope="module")
+def expert_run(standalone, tmp_path_factory) -> Path:
+    """One run of the blind scripted Lift expert through the standalone script, with its conventions file (its
+    replies are deterministic: test_policy_server.py sends one observation twice)."""
+    out = tmp_path_factory.mktemp("expert")
     done = harness("run", "--model", standalone.url, "--task", "Lift", "--episodes", "1", "--max-steps", "16",
                    "--seed", "0", "--png-every", "0", "--fast-render", "--out", str(out), "--run-name", "a",
-                   "--served-conventions", str(REPO / "examples" / "serve" / "scripted_lift.toml"),
+                   "--served-conventions", str(EXPERT_CONVENTIONS),
                    "--action-consistency")  # computed from the chunks: any policy with action chunks records it
     assert done.returncode == 0, done.stderr[-2000:]
-    run = out / "a"
+    return out / "a"
+
+
+def test_the_standalone_server_script_serves_the_scripted_expert_end_to_end(expert_run):
+    run = expert_run
     (episode,) = run.rglob("actions.npz")
     with np.load(episode) as actions:
         executed = actions["executed"]
@@ -203,3 +211,19 @@ def test_replay_of_the_committed_baseline_through_the_server_is_equivalent_on_ac
     episodes = replay["episode_details"]
     assert episodes and all(e["note"] == "the replayed policy gives no attention: actions compared only"
                             and e["attention_js_max"] is None and e["action_change_max"] <= 3e-4 for e in episodes)
+
+
+def test_view_re_simulates_a_served_run_only_with_its_server_and_conventions(standalone, expert_run, tmp_path):
+    """A run records neither its server's address nor its conventions file: `view` without --model names the flag
+    in one line (it named a flag view did not have), and with both re-simulates the episode bit for bit. Without
+    the conventions the server's own metadata holds (one action a chunk, no temporal ensemble): the actions differ,
+    and the frames note says so, so the file is what was used."""
+    done = harness("view", str(expert_run), "--save", str(tmp_path / "none.rrd"))
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr[-800:]
+    assert "--model ws://HOST:PORT" in done.stderr and "--no-simulate" in done.stderr
+    done = harness("view", str(expert_run), "--save", str(tmp_path / "both.rrd"), "--model", standalone.url,
+                   "--served-conventions", str(EXPERT_CONVENTIONS))
+    assert done.returncode == 0 and "equal the recorded ones bit for bit" in done.stdout, done.stdout + done.stderr[-800:]
+    assert (tmp_path / "both.rrd").stat().st_size > 0
+    done = harness("view", str(expert_run), "--save", str(tmp_path / "bare.rrd"), "--model", standalone.url)
+    assert done.returncode == 0 and "differ from the recorded ones" in done.stdout, done.stdout + done.stderr[-800:]
