@@ -227,3 +227,12 @@ def test_view_re_simulates_a_served_run_only_with_its_server_and_conventions(sta
     assert (tmp_path / "both.rrd").stat().st_size > 0
     done = harness("view", str(expert_run), "--save", str(tmp_path / "bare.rrd"), "--model", standalone.url)
     assert done.returncode == 0 and "differ from the recorded ones" in done.stdout, done.stdout + done.stderr[-800:]
+    # the conventions file alone, or with --no-simulate, loads nothing: one line each, before anything heavy
+    for extra in (["--served-conventions", str(EXPERT_CONVENTIONS)],
+                  ["--model", standalone.url, "--served-conventions", str(EXPERT_CONVENTIONS), "--no-simulate"]):
+        done = harness("view", str(expert_run), "--save", str(tmp_path / "x.rrd"), *extra)
+        assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr[-800:]
+        assert not (tmp_path / "x.rrd").exists()
+    done = harness("view", str(expert_run), "--save", str(tmp_path / "y.rrd"), "--model", standalone.url,
+                   "--served-conventions", str(tmp_path / "missing.toml"))
+    assert done.returncode == 2 and "missing.toml" in done.stderr and "--served-conventions" in done.stderr
