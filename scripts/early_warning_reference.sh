@@ -19,4 +19,4 @@ for d in "$PRIMARY"/*/; do [ -f "$d/manifest.json" ] && runs+=("$d"); done
 [ "${#runs[@]}" -gt 0 ] || { echo "early_warning_reference.sh: no run in $PRIMARY: run the grid first (scripts/robustness_reference.sh or scripts/reference_grids.sh)" >&2; exit 2; }
 "$PY" -m harness.cli diagnose "${runs[@]}" --out "$PRIMARY/diagnose"
 "$PY" -m harness.report.early_warning "${runs[@]}" --eval-md "$MODEL/EVAL.md" --command "$SCRIPT" --note \
-    "Made by \`$SCRIPT\` over the ${#runs[@]} runs of the primary grid (every kind and level, both cameras). Held-out seeds 0..19, \`--readout-features-every 1 --action-consistency\`; measured on ${CPU:-an unnamed CPU}, $(nproc) cores, CPU only. Every failed episode's line: $PRIMARY/diagnose/failures.csv."
+    "Made by \`$SCRIPT\` over the ${#runs[@]} runs of the primary grid (every kind and level, both cameras). Held-out seeds 0..19, \`--readout-features-every 10 --action-consistency\`; measured on ${CPU:-an unnamed CPU}, $(nproc) cores, CPU only. Every failed episode's line: $PRIMARY/diagnose/failures.csv."

@@ -10,7 +10,7 @@
 # the reduced grid in EVAL.md was: bash scripts/robustness_reference.sh Lift <every kind> 0,3,5 5
 # (run first with camera,lighting,distractors, then extended with the other kinds: a grid folder grows)
 # Resumable: re-running the same command finishes what a killed grid left.
-# Every run records the two failure probes (issue 74: --readout-features-every 1 --action-consistency) for
+# Every run records the two failure probes (issue 74: --readout-features-every 10 --action-consistency) for
 # `octo-harness diagnose` and EVAL.md's "## Failure early warning" section (scripts/early_warning_reference.sh).
 # RELIANCE=N adds --reliance-every N to every run (issue 45) and writes EVAL.md's "## Reliance" section from the
 # nominal run; SECTION=TITLE writes the grid's table under "## TITLE" instead of "## Robustness" (a second grid, as
@@ -28,7 +28,7 @@ SECTION="${SECTION:-Robustness}"
 CPU="$(lscpu 2>/dev/null | sed -n 's/^Model name: *//p' | head -1)"
 NOTE="${NOTE:-Measured on ${CPU:-an unnamed CPU}, $(nproc) cores, CPU only.}"
 MODEL=models/octo-reference-robosuite
-PROBES="--readout-features-every 1 --action-consistency"
+PROBES="--readout-features-every 10 --action-consistency"
 export HF_HUB_OFFLINE=1 MUJOCO_GL="${MUJOCO_GL:-egl}"
 PY="${PYTHON:-.venv/bin/python}"
 workers=()
