@@ -8,11 +8,19 @@
 #      run copied from the wrist grid's first (the same command, seeds and flags: 60 episodes saved);
 #   4. "## Failure early warning" (scripts/early_warning_reference.sh, from the primary grid).
 # Every run records the failure probes. Each step resumes where a killed one stopped: re-run the same command.
-# Many hours on 2 cores (about 2,160 episodes: 1,680 in the primary grid).
+# Many hours on 2 cores (about 2,160 episodes: 1,680 in the primary grid), longer than a machine lasts here: the runs
+# kept in results/grids/ (scripts/keep_grid_runs.py) are restored first, so a new machine runs only what they lack.
+# Keep what a machine finished before it goes, from the same checkout path (the runs record the model's path):
+#   for g in reference wrist reliance; do .venv/bin/python scripts/keep_grid_runs.py keep \
+#       results/robustness-$g results/grids/robustness-$g; done
 #   bash scripts/reference_grids.sh [WORKERS]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 WORKERS="${1:-2}"
+PY="${PYTHON:-.venv/bin/python}"
+for g in reference wrist reliance; do
+  "$PY" scripts/keep_grid_runs.py restore "results/grids/robustness-$g" "results/robustness-$g"
+done
 bash scripts/robustness_reference.sh Lift,Stack,PickPlaceCan camera,lighting,texture,distractors,init-state,noise,language \
     0,1,3,5 20 results/robustness-reference "$WORKERS"
 bash scripts/wrist_reliance_reference.sh "$WORKERS"

@@ -232,6 +232,54 @@ def test_the_eval_md_section_is_written_from_real_runs_and_rendered_from_its_fig
     assert "interim" not in text  # both runs finished
 
 
+@pytest.mark.slow
+def test_kept_runs_restore_to_what_diagnose_and_a_resume_read(runs, fixtures_dir, tmp_path):
+    """scripts/keep_grid_runs.py (a grid longer than one machine's life, issue 74): the kept archive restores to runs
+    whose signals diagnose reads as from the originals (the measures as float16), that a resume of the same protocol
+    finds finished, and that a second keep leaves byte for byte; a run the grid holds is never overwritten."""
+    import importlib.util
+    from pathlib import Path
+
+    from harness.analysis.diagnose.signals import load
+    from harness.analysis.runs import load_run
+    from harness.outputs.writers import OutputOptions
+    from harness.policy import PolicyConfig
+    from harness.run import Protocol, execute
+
+    path = Path(__file__).resolve().parents[2] / "scripts/keep_grid_runs.py"
+    spec = importlib.util.spec_from_file_location("keep_grid_runs", path)
+    K = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(K)
+    grid = tmp_path / "grid"
+    grid.mkdir()
+    for name in ("first", "second"):
+        (grid / name).symlink_to(runs / name, target_is_directory=True)
+    kept = tmp_path / "kept"
+    assert K.keep(grid, kept) == ["first", "second"]
+    archive = (kept / "first.tar.xz").read_bytes()
+    assert K.keep(grid, kept) == [] and (kept / "first.tar.xz").read_bytes() == archive
+    assert json.loads((kept / "index.json").read_text()) == {"first": 2, "second": 2}
+    restored = tmp_path / "restored"
+    assert K.restore(kept, restored) == ["first", "second"] and K.restore(kept, restored) == []
+    assert not list(restored.rglob("metrics.jsonl")) and list(runs.rglob("metrics.jsonl"))
+    with np.load(restored / "first/Lift/episode_0/attention.npz") as z:
+        assert "readout_attention" not in z.files and z["measures/layer/entropy"].shape == (6, 1)
+    before, _, _ = load([runs / "first", runs / "second"])
+    after, _, _ = load([restored / "first", restored / "second"])
+    assert [(e.run, e.seed, e.success, e.steps) for e in after] == [(e.run, e.seed, e.success, e.steps) for e in before]
+    for a, b in zip(before, after):
+        assert np.array_equal(a.phase, b.phase) and np.array_equal(a.features, b.features, equal_nan=True)
+        assert np.array_equal(a.signals["consistency"], b.signals["consistency"], equal_nan=True)
+        for name in ("entropy", "nuisance", "target", "gripper"):
+            assert np.allclose(a.signals[name], b.signals[name], rtol=2e-3, atol=1e-4, equal_nan=True), name
+    assert load_run(restored / "first").status == "complete"
+    protocol = Protocol(model=str(fixtures_dir / "tiny"), tasks=("Lift",), episodes=2, max_steps=6, seed=0,
+                        policy=PolicyConfig(readout_features_every=1, action_consistency=True),
+                        outputs=OutputOptions(png_every=0, video=False))
+    summary = execute(protocol, restored, "first", model=None, progress=False, preflight="off")
+    assert summary.skipped == 2 and len(summary.rows) == 2
+
+
 def test_the_guides_example_on_the_committed_baseline_gives_the_row_it_quotes(tmp_path, capsys):
     """docs/diagnose.md opens with diagnose on results/baselines/reference-lift and quotes its one failure's row."""
     from pathlib import Path
