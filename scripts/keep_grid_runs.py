@@ -9,9 +9,10 @@ where the last machine stopped (issue 74: the reference grids take about 8 hours
 finished episodes each archive holds); a run whose count has not changed keeps its archive byte for byte. A kept run
 holds the run's own files (manifest, results, summaries, the grid's robustness.json, KEPT.json) and, per finished
 episode, episode.json and what the EVAL.md sections and `octo-harness diagnose` read:
-  attention.npz          step, phase, tokens/* and, at the model's last layer only, as float16, the per-step measures
-                         (entropy; the primary camera's mass on the target, gripper, background and distractors; the
-                         target's lift);
+  attention.npz          step, phase, tokens/* and, at the model's last layer only, the per-step measures (entropy; the
+                         primary camera's target lift and mass on the target, gripper, background and distractors;
+                         every camera's mass on every mask where the episode has reliance, for the Reliance section's
+                         attention shares), as recorded, so the sections come out the same as from the full run;
   actions.npz            step, reward, success;
   action_consistency.npz step and disagreement;
   readout_features.npz, reliance.jsonl  whole.
@@ -51,23 +52,29 @@ MARKER = "KEPT.json"
 INDEX = "index.json"
 CAMERA = "image_primary"
 WHOLE = ("readout_features.npz", "reliance.jsonl")
-MEASURES = ("measures/layer/entropy", *(f"measures/layer/mask_mass/{CAMERA}/{m}" for m in ("target", "gripper", "background")),
-            f"measures/layer/mask_lift/{CAMERA}/target")  # what diagnose and the robustness sections read
+# what diagnose and the sections read, at the last layer: the entropy, the target's lift and the primary camera's mass
+# on the target, gripper, background and distractors (every mask of every camera where the episode has reliance)
+MEASURES = ("measures/layer/entropy", f"measures/layer/mask_lift/{CAMERA}/target")
+MASS = "measures/layer/mask_mass/"
+PRIMARY_MASKS = ("target", "gripper", "background", "distractor_")
 
 
-def _kept_attention(z) -> dict[str, np.ndarray]:
+def _kept_attention(z, reliance: bool) -> dict[str, np.ndarray]:
+    """The arrays of attention.npz the sections and diagnose read; with `reliance` (the episode has reliance.jsonl)
+    every camera's mass on every mask, which the Reliance section's attention shares use."""
+    wanted = (MASS,) if reliance else tuple(f"{MASS}{CAMERA}/{m}" for m in PRIMARY_MASKS)
     out = {}
     for key in z.files:
         if key in ("step", "phase", "phase_names") or key.startswith("tokens/"):
             out[key] = z[key]
-        elif key in MEASURES or key.startswith(f"measures/layer/mask_mass/{CAMERA}/distractor_"):
-            out[key] = z[key][:, -1:].astype(np.float16)
+        elif key in MEASURES or key.startswith(wanted):
+            out[key] = z[key][:, -1:]
     return out
 
 
-def _kept_arrays(name: str, z) -> dict[str, np.ndarray]:
+def _kept_arrays(name: str, z, reliance: bool) -> dict[str, np.ndarray]:
     if name == "attention.npz":
-        return _kept_attention(z)
+        return _kept_attention(z, reliance)
     if name == "actions.npz":
         return {k: z[k] for k in ("step", "reward", "success") if k in z.files}
     if name == "action_consistency.npz":
@@ -87,7 +94,7 @@ def keep_episode(src: Path, dst: Path) -> None:
     for name in ("attention.npz", "actions.npz", "action_consistency.npz"):
         if (src / name).is_file():
             with np.load(src / name) as z:
-                _write_npz(dst / name, _kept_arrays(name, z))
+                _write_npz(dst / name, _kept_arrays(name, z, (src / "reliance.jsonl").is_file()))
     for name in WHOLE:
         if (src / name).is_file():
             shutil.copy2(src / name, dst / name)
@@ -171,7 +178,7 @@ def keep(grid: Path, dest: Path) -> list[str]:
             (folder / MARKER).write_text(json.dumps({
                 "source_grid": grid.name, "finished_episodes": finished, "script": "scripts/keep_grid_runs.py",
                 "note": "per finished episode: outcome, phases, the last layer's measures that diagnose and the "
-                        "robustness sections read (float16), action disagreement, readout features and reliance; "
+                        "robustness sections read, action disagreement, readout features and reliance; "
                         "PNG, MP4, metrics.jsonl and the attention maps dropped"}, indent=2) + "\n")
             _tar_xz(folder, dest / f"{run.name}.tar.xz")
         index[run.name] = finished
