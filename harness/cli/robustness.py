@@ -11,6 +11,7 @@ from harness.cli.common import add_execution_args
 from harness.options import add_arguments
 
 SHARED = ("model", "task", "perturb")  # run's options the grid requires
+MODEL = ("text_tokenizer", "served_conventions")  # how the model is loaded: a checkpoint's tokenizer, a server's keys
 SETTINGS = ("episodes", "seed", "max_steps")  # run's options each run of the grid takes
 OUTPUTS = ("fast_render", "png_every", "no_video")
 # the per-step measures each run of the grid may add (they never change actions): position controls, region reliance,
@@ -32,6 +33,7 @@ def add_parser(sub) -> None:
                                      "(docs/perturbations.md); resumable: the same command finishes what is missing. "
                                      "`octo-harness report OUT/*/` then adds a Robustness section.")
     add_arguments(rob, classes, "robustness", only=SHARED, overrides=DIFFERS)
+    add_arguments(rob, classes, "robustness", only=MODEL, overrides=DIFFERS)
     rob.add_argument("--levels", default="0,1,3,5", help="comma-separated levels 0-5 (0 = the nominal run) [0,1,3,5]")
     add_arguments(rob, classes, "robustness", only=SETTINGS, overrides=DIFFERS)
     rob.add_argument("--out", type=Path, default=Path("results/robustness"), help="grid folder [results/robustness]")
@@ -47,7 +49,7 @@ def grid_protocol(args):
     """The protocol every run of the grid shares (before each run's perturbation): the protocol file, then the flags."""
     from harness.run.settings import build_protocol, read_protocol_file
 
-    given = {key: getattr(args, key) for key in ("model", "task", *SETTINGS, *OUTPUTS, *MEASURES)}
+    given = {key: getattr(args, key) for key in ("model", "task", *MODEL, *SETTINGS, *OUTPUTS, *MEASURES)}
     settings = {**(read_protocol_file(args.protocol) if args.protocol else {}),
                 **{k: v for k, v in given.items() if v is not None}}
     if settings.get("perturb"):

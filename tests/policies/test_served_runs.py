@@ -166,6 +166,25 @@ def test_the_standalone_server_script_serves_the_scripted_expert_end_to_end(expe
     assert np.isfinite(stored["disagreement"][1:]).all()  # every inferred chunk after the first overlaps a plan
 
 
+def test_a_robustness_grid_of_a_served_policy_takes_its_conventions(standalone, expert_run, tmp_path):
+    """`robustness --served-conventions FILE` (it was `run` only): every run of the grid maps the observations with the
+    file, and its nominal run is the same protocol as `run` with the same server and file (the model fingerprint
+    holds the file's content)."""
+    done = harness("robustness", "--model", standalone.url, "--task", "Lift", "--perturb", "lighting", "--levels", "0,1",
+                   "--episodes", "1", "--max-steps", "8", "--fast-render", "--out", str(tmp_path),
+                   "--served-conventions", str(EXPERT_CONVENTIONS))
+    assert done.returncode == 0, done.stderr[-2000:]
+    from harness.policies.served import server_identity
+
+    made = json.loads((expert_run / "manifest.json").read_text())["protocol"]
+    for name in ("nominal", "lighting-1"):
+        manifest = json.loads((tmp_path / name / "manifest.json").read_text())
+        fingerprint = manifest["protocol"]["model_fingerprint"]
+        assert fingerprint == made["model_fingerprint"], name
+        assert fingerprint != server_identity(manifest["model"]["fingerprint"]["metadata"])  # not the server's own
+        assert len(rows(tmp_path / name)) == 1 and rows(tmp_path / name)[0]["status"] == "ok"
+
+
 def test_a_flag_needing_what_a_served_policy_lacks_is_one_line_before_any_episode(server, tmp_path):
     done = harness("run", "--model", server.url, *RUN, "--out", str(tmp_path), "--reliance-every", "4")
     errors = [line for line in done.stderr.splitlines() if line.startswith("error: ")]

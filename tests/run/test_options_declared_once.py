@@ -53,7 +53,8 @@ def test_robustness_takes_runs_options_and_states_only_where_it_differs():
                                            "--ray-address", "--policy-replicas"})
     assert shared == ["--action-consistency", "--action-samples", "--attention-controls", "--controls-every", "--episodes",
                       "--fast-render", "--max-steps", "--model", "--no-video", "--perturb", "--png-every",
-                      "--readout-features-every", "--reliance-every", "--reliance-fill", "--seed", "--task"]
+                      "--readout-features-every", "--reliance-every", "--reliance-fill", "--seed",
+                      "--served-conventions", "--task", "--text-tokenizer"]
     for flag in shared:
         a, b = run[flag], rob[flag]
         assert (a.dest, a.type, a.choices, a.nargs, type(a)) == (b.dest, b.type, b.choices, b.nargs, type(b)), flag
