@@ -170,7 +170,7 @@ def keep(grid: Path, dest: Path) -> list[str]:
         finished = _finished(run)
         if index.get(run.name) == finished and (dest / f"{run.name}.tar.xz").is_file():
             continue
-        with tempfile.TemporaryDirectory(dir=dest) as tmp:
+        with tempfile.TemporaryDirectory(dir=dest, prefix=".keep-") as tmp:
             folder = Path(tmp) / run.name
             keep_run(run, folder)
             if (grid / GRID_FILE).is_file():
@@ -195,9 +195,13 @@ def restore(kept: Path, grid: Path) -> list[str]:
         name = archive.name[: -len(".tar.xz")]
         if (grid / name).exists():
             continue
-        with tempfile.TemporaryDirectory(dir=grid) as tmp:
-            with tarfile.open(archive, "r:xz") as tar:
-                tar.extractall(tmp, filter="data")
+        with tempfile.TemporaryDirectory(dir=grid, prefix=".restore-") as tmp:
+            try:
+                with tarfile.open(archive, "r:xz") as tar:
+                    tar.extractall(tmp, filter="data")
+            except (tarfile.TarError, lzma.LZMAError, EOFError, OSError) as exc:
+                raise SystemExit(f"keep_grid_runs.py: {archive} is damaged ({type(exc).__name__}: {exc}); check it out "
+                                 "again (git checkout -- FILE), or delete it and run its grid cells again") from None
             if not (Path(tmp) / name / "manifest.json").is_file():
                 raise SystemExit(f"keep_grid_runs.py: {archive} holds no run {name}/; delete it and keep the grid again")
             if (Path(tmp) / name / GRID_FILE).is_file():

@@ -277,6 +277,10 @@ def test_kept_runs_restore_to_what_diagnose_and_a_resume_read(runs, fixtures_dir
                         outputs=OutputOptions(png_every=0, video=False))
     summary = execute(protocol, restored, "first", model=None, progress=False, preflight="off")
     assert summary.skipped == 2 and len(summary.rows) == 2
+    (kept / "second.tar.xz").write_bytes(archive[: len(archive) // 2])  # a cut archive: one line, nothing half-restored
+    with pytest.raises(SystemExit, match="second.tar.xz is damaged"):
+        K.restore(kept, tmp_path / "again")
+    assert [p.name for p in (tmp_path / "again").iterdir()] == ["first"]
 
 
 def test_the_guides_example_on_the_committed_baseline_gives_the_row_it_quotes(tmp_path, capsys):
