@@ -19,6 +19,8 @@ timestep, `(rows, cols)` a camera's patch grid.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from harness.octo.tokens import TokenMap
@@ -220,12 +222,21 @@ def mask_patch_fraction(mask: np.ndarray, rows: int, cols: int) -> np.ndarray:
     height, width = mask.shape
     if height < rows or width < cols:
         raise ValueError(f"mask {height}x{width} is smaller than the patch grid {rows}x{cols}; pass the image-resolution mask")
+    patch, pixels = _patch_ids(height, width, rows, cols)
+    inside = np.bincount(patch[mask.ravel()], minlength=rows * cols)  # whole counts: the same as summing 1.0 weights
+    return (inside / pixels).reshape(rows, cols)
+
+
+@functools.lru_cache(maxsize=32)
+def _patch_ids(height: int, width: int, rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
+    """((H*W,) patch id of each pixel, (rows*cols,) pixels in each patch) for one image size and grid, read-only:
+    every mask of every step of a camera shares them."""
     ry = patch_index(height, rows)
     cx = patch_index(width, cols)
-    patch = (ry[:, None] * cols + cx[None, :]).ravel()  # (H*W,) patch id of each pixel
+    patch = (ry[:, None] * cols + cx[None, :]).ravel()
     pixels = np.bincount(patch, minlength=rows * cols)
-    inside = np.bincount(patch, weights=mask.ravel().astype(np.float64), minlength=rows * cols)
-    return (inside / pixels).reshape(rows, cols)
+    patch.flags.writeable = pixels.flags.writeable = False
+    return patch, pixels
 
 
 def mask_mass(attn_map: np.ndarray, mask: np.ndarray) -> float:
