@@ -212,3 +212,14 @@ def test_step_metrics_tiny_layout():
     expected_entropy = -(attn * np.log(attn)).sum(-1).mean(axis=(1, 2))
     np.testing.assert_allclose(m["entropy"], expected_entropy)
     assert not any(k.startswith("mask_mass/image_side") for k in m)
+
+
+def test_mask_patch_fraction_is_each_patchs_share_of_mask_pixels_for_any_size():
+    """Brute force over the pixels each patch covers (proportional coordinates, as upsample_map), for sizes that do
+    and do not divide the grid; the cached patch ids of one size never leak into another."""
+    rng = np.random.default_rng(3)
+    for height, width, rows, cols in ((128, 128, 8, 8), (100, 77, 8, 8), (64, 64, 4, 4), (130, 128, 8, 8)):
+        mask = rng.random((height, width)) < rng.random()
+        ry, cx = A.patch_index(height, rows), A.patch_index(width, cols)
+        expected = np.array([[mask[np.ix_(ry == r, cx == c)].mean() for c in range(cols)] for r in range(rows)])
+        assert np.array_equal(A.mask_patch_fraction(mask, rows, cols), expected), (height, width)
