@@ -16,7 +16,7 @@ episode, episode.json and what the EVAL.md sections and `octo-harness diagnose` 
   actions.npz            step, reward, success;
   action_consistency.npz step and disagreement;
   readout_features.npz, reliance.jsonl  whole.
-PNG, MP4, metrics.jsonl and the attention maps are dropped: about 7 KB an episode in the archive instead of 0.3-3 MB.
+PNG, MP4, metrics.jsonl and the attention maps are dropped: 7-16 KB an episode in the archive instead of 0.3-3 MB.
 Each row's file digests are those of the kept files, so the run store reads a kept run as any run, and `robustness`
 on the grid folder skips its finished episodes (resume). Paths stay as recorded: the protocol names the model by its
 absolute path, and a run resumes only under the protocol it was made with (run the grid from the same checkout path).
