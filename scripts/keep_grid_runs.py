@@ -28,7 +28,6 @@ attention maps.
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import os
 import lzma
@@ -44,8 +43,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from harness.analysis.compare import GRID_FILE  # noqa: E402
-from harness.files import atomic_write_json  # noqa: E402
-from harness.runfolder.integrity import data_digests  # noqa: E402
+from harness.files import atomic_write_json, write_atomic  # noqa: E402
+from harness.runfolder.integrity import record_digests  # noqa: E402
 
 RUN_FILES = ("manifest.json", "results.jsonl", "results.json", "summary.csv", "statistics.csv")
 MARKER = "KEPT.json"
@@ -82,19 +81,14 @@ def _kept_arrays(name: str, z, reliance: bool) -> dict[str, np.ndarray]:
     raise ValueError(name)
 
 
-def _write_npz(path: Path, arrays: dict) -> None:
-    buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
-    path.write_bytes(buffer.getvalue())
-
-
 def keep_episode(src: Path, dst: Path) -> None:
     dst.mkdir(parents=True)
     shutil.copy2(src / "episode.json", dst / "episode.json")
     for name in ("attention.npz", "actions.npz", "action_consistency.npz"):
         if (src / name).is_file():
             with np.load(src / name) as z:
-                _write_npz(dst / name, _kept_arrays(name, z, (src / "reliance.jsonl").is_file()))
+                arrays = _kept_arrays(name, z, (src / "reliance.jsonl").is_file())
+            write_atomic(dst / name, lambda f: np.savez(f, **arrays))
     for name in WHOLE:
         if (src / name).is_file():
             shutil.copy2(src / name, dst / name)
@@ -119,9 +113,8 @@ def keep_run(src: Path, dst: Path) -> int:
         if (src / name).is_file():
             shutil.copy2(src / name, dst / name)
     kept = 0
-    rows = _rows(src / "results.jsonl")
     out = []
-    for row in rows:
+    for row in _rows(src / "results.jsonl"):
         if (row.get("status") or "ok") == "ok" and row.get("files") is not None:
             folder = f"{row['task']}/episode_{row['episode']}"
             if not (src / folder / "episode.json").is_file():
@@ -129,15 +122,9 @@ def keep_run(src: Path, dst: Path) -> int:
             if not (dst / folder).exists():
                 keep_episode(src / folder, dst / folder)
                 kept += 1
-            row = {**row, "files": data_digests(dst / folder, os.listdir(dst / folder))}
         out.append(row)
     (dst / "results.jsonl").write_text("".join(json.dumps(r, sort_keys=True) + "\n" for r in out))
-    if (dst / "results.json").is_file():
-        data = json.loads((dst / "results.json").read_text())
-        digests = {(r["task"], r["episode"]): r.get("files") for r in out}
-        data["episodes"] = [{**r, "files": digests.get((r.get("task"), r.get("episode")), r.get("files"))}
-                            for r in data.get("episodes", [])]
-        (dst / "results.json").write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+    record_digests(dst)  # the rows name the kept files, so a resume and every reader verify them as any run's
     return kept
 
 

@@ -15,7 +15,6 @@ folders. The destination is replaced atomically (built next to it, renamed).
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import os
 import shutil
@@ -30,8 +29,8 @@ sys.path.insert(0, str(REPO))
 
 from harness.analysis.compare import BASELINE_MARKER  # noqa: E402
 from harness.analysis.runs import load_run  # noqa: E402
-from harness.files import atomic_write_json  # noqa: E402
-from harness.runfolder.integrity import data_digests  # noqa: E402
+from harness.files import atomic_write_json, write_atomic  # noqa: E402
+from harness.runfolder.integrity import record_digests  # noqa: E402
 from harness.runfolder.schema import protocol_hash  # noqa: E402
 
 KEEP_RUN_FILES = ("manifest.json", "results.jsonl", "results.json", "summary.csv", "statistics.csv")
@@ -74,26 +73,7 @@ def cut_npz(src: Path, dst: Path, steps: int) -> None:
     """Copy an episode array file keeping the first `steps` entries of every per-step array (tokens/* whole)."""
     with np.load(src) as z:
         arrays = {k: (z[k] if k.startswith("tokens/") or z[k].ndim == 0 else z[k][:steps]) for k in z.files}
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, **arrays)
-    dst.write_bytes(buffer.getvalue())
-
-
-def _record_digests(run: Path) -> None:
-    """The rows (results.jsonl, and results.json's copy) record the size and sha256 of the files kept here (the cut
-    arrays), so readers verify the baseline as they verify any run (harness/runfolder/integrity.py)."""
-    def digests(row: dict) -> dict:
-        if (row.get("status") or "ok") != "ok":
-            return row
-        folder = run / row["task"] / f"episode_{row['episode']}"
-        return {**row, "files": data_digests(folder, [p.name for p in folder.iterdir()])}
-
-    lines = [json.loads(line) for line in (run / "results.jsonl").read_text().splitlines() if line.strip()]
-    (run / "results.jsonl").write_text("".join(json.dumps(digests(r), sort_keys=True) + "\n" for r in lines))
-    if (run / "results.json").is_file():
-        data = json.loads((run / "results.json").read_text())
-        data["episodes"] = [digests(r) for r in data.get("episodes", [])]
-        (run / "results.json").write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+    write_atomic(dst, lambda f: np.savez_compressed(f, **arrays))
 
 
 def make_baseline(run_dir: Path, dest: Path, steps: int = 1) -> Path:
@@ -116,7 +96,7 @@ def make_baseline(run_dir: Path, dest: Path, steps: int = 1) -> Path:
             if (episode.directory / name).is_file():  # inputs.npz: runs made with --record-inputs (replay)
                 cut_npz(episode.directory / name, tmp / rel / name, steps)
     repository_relative(tmp)
-    _record_digests(tmp)
+    record_digests(tmp)  # the rows name the cut arrays, so readers verify the baseline as any run
     (tmp / BASELINE_MARKER).write_text(json.dumps({
         "source_run": run.path.name, "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "arrays_steps": steps, "model_ref": model_ref(run.model.source),

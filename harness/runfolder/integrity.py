@@ -49,6 +49,27 @@ def data_digests(directory: str | os.PathLike, names) -> dict[str, dict]:
     return {name: file_digest(Path(directory) / name) for name in sorted(set(names)) if name.endswith(DATA_SUFFIXES)}
 
 
+def record_digests(run_dir: Path) -> None:
+    """Rewrites the rows of a run folder cut down by a script (a committed baseline, a kept grid run: fewer or
+    smaller files than the run wrote) so they record the digests of the files each episode folder now holds, in
+    results.jsonl and results.json's copy. Rows of unfinished episodes, and rows whose folder is absent, stay as
+    they are."""
+    import json
+
+    def digests(row: dict) -> dict:
+        folder = run_dir / str(row.get("task")) / f"episode_{row.get('episode')}"
+        if (row.get("status") or "ok") != "ok" or not folder.is_dir():
+            return row
+        return {**row, "files": data_digests(folder, os.listdir(folder))}
+
+    lines = [json.loads(line) for line in (run_dir / "results.jsonl").read_text().splitlines() if line.strip()]
+    (run_dir / "results.jsonl").write_text("".join(json.dumps(digests(r), sort_keys=True) + "\n" for r in lines))
+    if (run_dir / "results.json").is_file():
+        data = json.loads((run_dir / "results.json").read_text())
+        data["episodes"] = [digests(r) for r in data.get("episodes", [])]
+        (run_dir / "results.json").write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+
+
 def _resolve(path: Path) -> tuple[Path | None, str | None]:
     """(the path with every symlink followed, None) or (None, why it cannot be: a loop)."""
     try:
