@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # Every robustness grid of the robosuite reference, one after the other, then EVAL.md's sections from them (issue 74):
-#   1. the primary grid (scripts/robustness_reference.sh: 7 kinds x levels 0,1,3,5 x Lift, Stack, PickPlaceCan, 20
-#      seeds; "## Robustness");
-#   2. the wrist-camera grid with reliance (scripts/wrist_reliance_reference.sh: "## Robustness of the wrist camera",
+#   1. the wrist-camera grid with reliance (scripts/wrist_reliance_reference.sh: "## Robustness of the wrist camera",
 #      "## Reliance");
-#   3. the scene grid with reliance (scripts/scene_reliance_reference.sh: "## Robustness with reliance"), its nominal
+#   2. the scene grid with reliance (scripts/scene_reliance_reference.sh: "## Robustness with reliance"), its nominal
 #      run copied from the wrist grid's first (the same command, seeds and flags: 60 episodes saved);
+#   3. the primary grid (scripts/robustness_reference.sh: 7 kinds x levels 0,1,3,5 x Lift, Stack, PickPlaceCan, 20
+#      seeds; "## Robustness");
 #   4. "## Failure early warning" (scripts/early_warning_reference.sh, from the primary grid).
 # Every run records the failure probes. Each step resumes where a killed one stopped: re-run the same command.
 # Many hours on 2 cores (about 2,160 episodes: 1,680 in the primary grid), longer than a machine lasts here: the runs
@@ -21,12 +21,14 @@ PY="${PYTHON:-.venv/bin/python}"
 for g in reference wrist reliance; do
   "$PY" scripts/keep_grid_runs.py restore "results/grids/robustness-$g" "results/robustness-$g"
 done
-bash scripts/robustness_reference.sh Lift,Stack,PickPlaceCan camera,lighting,texture,distractors,init-state,noise,language \
-    0,1,3,5 20 results/robustness-reference "$WORKERS"
 bash scripts/wrist_reliance_reference.sh "$WORKERS"
 if [ ! -e results/robustness-reliance/nominal ] && [ -f results/robustness-wrist/nominal/manifest.json ]; then
   mkdir -p results/robustness-reliance
   cp -a results/robustness-wrist/nominal results/robustness-reliance/nominal
 fi
 bash scripts/scene_reliance_reference.sh "$WORKERS"
+# the primary grid last: its section is regenerated already (session 32), while the two above have none yet; its
+# runs are what the early-warning section reads
+bash scripts/robustness_reference.sh Lift,Stack,PickPlaceCan camera,lighting,texture,distractors,init-state,noise,language \
+    0,1,3,5 20 results/robustness-reference "$WORKERS"
 bash scripts/early_warning_reference.sh
