@@ -15,14 +15,14 @@ EVAL = "models/octo-reference-robosuite/EVAL.md"
 
 # (page, what the page says, source file, the line of the source it comes from: a regex)
 QUOTES = (
-    ("README.md", "take Lift from 19/20 to 11/20, Stack from 15/20 to 8/20 and PickPlaceCan from 15/20 to 7/20", EVAL,
-     r"^\| camera@image_wrist \| 1 \| 7/20 \| .* \| 9 / 1 \| 0\.0215 \| BREAKS"),
-    ("docs/perturbations.md", "| PickPlaceCan | 15/20 | 7/20: 9 lost, 1 gained, p 0.0215, BREAKS |", EVAL,
-     r"^\| camera@image_wrist \| 1 \| 7/20 \| .* \| 9 / 1 \| 0\.0215 \| BREAKS"),
-    ("docs/perturbations.md", "| Lift | 19/20 | 11/20: 8 lost, 0 gained, Holm p 0.0078, BREAKS", EVAL,
-     r"^\| camera@image_wrist \| 1 \| 11/20 \| .* \| 8 / 0 \| 0\.00781 \| BREAKS"),
-    ("docs/perturbations.md", "the grid could resolve about 0.30 and 0.16", EVAL,
-     r"^Lift, which predicts failure .* resolve is about 0\.30\)"),
+    ("README.md", "take Lift from 20/20 to 13/20, Stack from 15/20 to 5/20 and PickPlaceCan from 15/20 to 4/20", EVAL,
+     r"^\| camera@image_wrist \| 1 \| 4/20 \| .* \| 11 / 0 \| 0\.000977 \| BREAKS"),
+    ("docs/perturbations.md", "| PickPlaceCan | 15/20 | 4/20: 11 lost, 0 gained, p 0.000977, BREAKS |", EVAL,
+     r"^\| camera@image_wrist \| 1 \| 4/20 \| .* \| 11 / 0 \| 0\.000977 \| BREAKS"),
+    ("docs/perturbations.md", "| Lift | 20/20 | 13/20: 7 lost, 0 gained, Holm p 0.0156, BREAKS", EVAL,
+     r"^\| camera@image_wrist \| 1 \| 13/20 \| .* \| 7 / 0 \| 0\.0156 \| BREAKS"),
+    ("docs/perturbations.md", "the grid could resolve about 0.34, 0.21 and 0.26", EVAL,
+     r"^\| raw map \| r -0\.15 \[-0\.35, \+0\.04\] \| .* \| 0\.34 \| neither shown \|"),
     ("docs/perturbations.md", "masking it takes Lift from 6/6 to 0/6, p = 0.03", EVAL,
      r"^\| Lift \| `mask-all@image_wrist` \| Lift_plain \| 6 \| 6/6 = 1\.00 .* \| 0/6 = 0\.00 .* \| 0\.0312 \|$"),
     ("docs/perturbations.md", "halves Lift in the closed-loop interventions (6/6 -> 3/6, p = 0.25", EVAL,
@@ -38,11 +38,11 @@ QUOTES = (
      r"^\| image_primary \| 3 \| target \| 344 \| 1\.32 \| 1\.91 \|$"),
     ("docs/phases-and-position.md", "(Friedman p = 0.00068, 7 episodes)", EVAL,
      r"^\| gripper \| approach 0\.55, grasp 0\.71, .* release 0\.12 \| Friedman \| 0\.00068 \| 7 \| yes \|$"),
-    ("docs/faithfulness.md", "| Lift | wrist | 0.014 / 0.37 | 0.12 / 0.28 | 0.86 / 0.35 | 0.55 [0.49, 0.61] |", EVAL,
-     r"^\| image_wrist \| target \| 0\.014 \| 0\.37 \| 40\.5 \| 20 \|$"),
-    ("docs/faithfulness.md", "0.55 [0.49, 0.61]", EVAL, r"^- Lift, image_wrist: .* mean 0\.55 \[0\.49, 0\.61\]"),
-    ("docs/faithfulness.md", "| PickPlaceCan | wrist | 0.027 / 0.32 | 0.16 / 0.20 | 0.57 / 0.34 |", EVAL,
-     r"^\| image_wrist \| target \| 0\.027 \| 0\.32 \| 14\.1 \| 20 \|$"),
+    ("docs/faithfulness.md", "| Lift | wrist | 0.014 / 0.38 | 0.12 / 0.27 | 0.86 / 0.35 | 0.55 [0.5, 0.61] |", EVAL,
+     r"^\| image_wrist \| target \| 0\.014 \| 0\.38 \| 40 \| 20 \|$"),
+    ("docs/faithfulness.md", "0.55 [0.5, 0.61]", EVAL, r"^\| image_wrist \| 0\.55 \| \[0\.5, 0\.61\] \| 20 \|"),
+    ("docs/faithfulness.md", "| PickPlaceCan | wrist | 0.028 / 0.31 | 0.18 / 0.19 | 0.54 / 0.35 |", EVAL,
+     r"^\| image_wrist \| target \| 0\.028 \| 0\.31 \| 13\.9 \| 20 \|$"),
 )
 
 
