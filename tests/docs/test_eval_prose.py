@@ -6,9 +6,8 @@ continuation lines included. Not prose, and not counted: headings, table rows (l
 code and HTML comments. A quoted block ("> ...") and the "Provenance:" and "Figures file:" lines are prose and
 counted. Words are whitespace-separated tokens, a link counting as its text.
 
-Three sections of models/octo-reference-robosuite/EVAL.md are exempt while they are in their old, hand-kept state
-(EXEMPT): their script regenerates them from new runs. The exemption holds only for a section that still says
-"Figures file: none.": once a section is rendered from a figures file, the limit holds there too, by itself.
+No section is exempt: the three Robustness sections of models/octo-reference-robosuite/EVAL.md, hand-kept
+until session 33, are now rendered from their figures files.
 """
 
 from __future__ import annotations
@@ -22,12 +21,6 @@ from tests.docs.test_docs import prose_lines
 
 REPO = Path(__file__).resolve().parents[2]
 LIMIT = 120  # words in one prose paragraph or list item
-NOT_KEPT = "Figures file: none."  # how a section whose runs were not kept starts its line (reference_policies.evaluate)
-
-# (EVAL.md, its "## " section): hand-kept sections still to be regenerated from new runs by their script
-EXEMPT = {("models/octo-reference-robosuite/EVAL.md", heading)
-          for heading in ("## Robustness", "## Robustness of the wrist camera", "## Robustness with reliance")}
-
 ITEM = re.compile(r"^\s*(?:[-*+]|\d+[.)])\s+")
 HEADING = re.compile(r"^ {0,3}(#{1,6})\s")
 LINK = re.compile(r"!?\[([^\]]*)\]\([^)]*\)")
@@ -74,30 +67,12 @@ def paragraphs(text: str) -> list[tuple[str, str, str]]:
     return out
 
 
-def exempt(page: str, section: str, section_text: str) -> bool:
-    """Whether a section is let off the limit: one of EXEMPT, and only while it still says it has no figures file."""
-    return (page, section) in EXEMPT and any(line.startswith(NOT_KEPT) for line in section_text.splitlines())
-
-
-def sections(text: str) -> dict[str, str]:
-    """Each "## " section's text (heading to the next "## " or "# " heading), outside fenced code."""
-    out: dict[str, str] = {}
-    name = ""
-    for line in prose_lines(text):
-        m = HEADING.match(line)
-        if m and len(m.group(1)) <= 2:
-            name = line.strip() if len(m.group(1)) == 2 else ""
-        out[name] = out.get(name, "") + line + "\n"
-    return out
-
-
 def too_long(page: str, text: str) -> list[str]:
-    """'page, section: N words: the paragraph's start' for each prose paragraph over the limit, exemptions applied."""
-    texts = sections(text)
+    """'page, section: N words: the paragraph's start' for each prose paragraph over the limit."""
     found = []
     for section, heading, paragraph in paragraphs(text):
         n = words(paragraph)
-        if n <= LIMIT or exempt(page, section, texts.get(section, "")):
+        if n <= LIMIT:
             continue
         where = section or "(top)"
         if heading and heading != section:
@@ -144,16 +119,3 @@ def test_the_counter_counts_list_items_and_skips_tables_code_and_headings():
 def test_a_paragraph_that_follows_a_table_row_is_its_own():
     text = "## S\n\n| a | b |\n|---|---|\n| 1 | 2 |\nA line right under the table.\n- an item\n"
     assert [p for _, _, p in paragraphs(text)] == ["A line right under the table.", "an item"]
-
-
-def test_an_exempt_section_is_exempt_only_while_it_has_no_figures_file():
-    page, heading = next(iter(sorted(EXEMPT)))
-    long = " ".join(["word"] * 150)
-    old = f"# M\n\n{heading}\n\nProvenance: p.\n\nFigures file: none. Its runs were not kept.\n\n{long}\n"
-    regenerated = f"# M\n\n{heading}\n\nProvenance: p.\n\n{long}\n"
-    assert too_long(page, old) == []
-    assert len(too_long(page, regenerated)) == 1, "a regenerated section must meet the limit"
-    assert len(too_long("models/another/EVAL.md", old)) == 1, "the exemption names its page"
-    # the line elsewhere on the page does not let the section off
-    elsewhere = f"# M\n\n## Other\n\nFigures file: none. Not kept.\n\n{heading}\n\nProvenance: p.\n\n{long}\n"
-    assert len(too_long(page, elsewhere)) == 1
