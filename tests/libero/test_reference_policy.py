@@ -578,17 +578,29 @@ class TestTheRecorderInSceneSix:
         yield env
         env.close()
 
+    @staticmethod
+    def _missing(config):
+        """`config` with `--missed-grasps 1`: every episode starts with a missed grasp."""
+        from dataclasses import replace
+
+        from reference_policies.libero_demos import MissConfig
+
+        return replace(config, bursts=replace(config.bursts, miss=MissConfig(rate=1.0)))
+
+    @staticmethod
+    def _closes(gripper) -> int:
+        """How often the gripper labels close (0 after 1)."""
+        return int(np.count_nonzero(np.diff((gripper == 0).astype(int)) == 1))
+
     def test_a_demonstration_from_a_sampled_placement_is_recorded_as_the_policy_sees_it(self, butter_demo_env):
         """Through record_episode with `--missed-grasps 1` (MissConfig rate 1: the miss, then the bursts), the expert
         still succeeds; the episode holds the frames the policy sees and the expert's labels (close, reopen, close).
         record_episode without a miss runs in the swapped-instruction test below."""
-        from dataclasses import replace
-
-        from reference_policies.libero_demos import LiberoDemoConfig, MissConfig, record_episode
+        from reference_policies.libero_demos import LiberoDemoConfig, record_episode
 
         config = LiberoDemoConfig()
-        missing = replace(config, bursts=replace(config.bursts, miss=MissConfig(rate=1.0)))
-        episode = record_episode(butter_demo_env, "butter_1", config.task_seed_base("libero_object/6") + 1, missing)
+        episode = record_episode(butter_demo_env, "butter_1", config.task_seed_base("libero_object/6") + 1,
+                                 self._missing(config))
         assert episode is not None  # the expert succeeds under the recording noise and the missed grasp
         n = len(episode["action"])
         assert 50 < n < config.max_steps
@@ -596,7 +608,7 @@ class TestTheRecorderInSceneSix:
         assert episode["proprio"].shape == (n, 8)
         gripper = episode["action"][:, 6]
         assert set(np.unique(gripper)) == {0.0, 1.0}  # the libero gripper: 1 open, 0 closed
-        assert np.count_nonzero(np.diff((gripper == 0).astype(int)) == 1) >= 2  # the labels: close, reopen, close
+        assert self._closes(gripper) >= 2  # the labels: close, reopen, close
         assert np.abs(episode["action"][:, :6]).max() <= 1.0
 
     def test_a_missed_grasp_closes_beside_the_object_where_the_policy_stalls_and_the_expert_recovers(self,
@@ -605,14 +617,12 @@ class TestTheRecorderInSceneSix:
         below its top (where the reference stalls: docs/libero-reference.md), and the expert, taking over, still places
         the butter; the labels are the expert's own (they close, reopen and close again). The test above records one
         through record_episode."""
-        from dataclasses import replace
-
         from reference_policies.demos import noisy_episode
-        from reference_policies.libero_demos import LiberoDemoConfig, MissConfig, MissedGrasp
+        from reference_policies.libero_demos import LiberoDemoConfig, MissedGrasp
         from reference_policies.libero_expert import LiberoObjectLabeller
 
         config = LiberoDemoConfig()
-        missing = replace(config, bursts=replace(config.bursts, miss=MissConfig(rate=1.0)))
+        missing = self._missing(config)
         seed = config.task_seed_base("libero_object/6")
         env = butter_demo_env
         rng = np.random.default_rng(seed)
@@ -625,8 +635,7 @@ class TestTheRecorderInSceneSix:
         assert episode is not None and not miss.active and len(miss.closes) == miss.close_steps
         off, above = np.array(miss.closes).T
         assert np.all((off > 0.02) & (off < 0.04)) and np.all(above < 0.0)  # beside it, below its top
-        gripper = episode["action"][:, 6]
-        assert np.count_nonzero(np.diff((gripper == 0).astype(int)) == 1) >= 2  # the labels: close, reopen, close
+        assert self._closes(episode["action"][:, 6]) >= 2  # the labels: close, reopen, close
 
 
 @pytest.mark.slow
