@@ -6,7 +6,8 @@
 #      run copied from the wrist grid's first (the same command, seeds and flags: 60 episodes saved);
 #   3. the primary grid (scripts/robustness_reference.sh: 7 kinds x levels 0,1,3,5 x Lift, Stack, PickPlaceCan, 20
 #      seeds; "## Robustness");
-#   4. "## Failure early warning" (scripts/early_warning_reference.sh, from the primary grid).
+#   4. "## Robustness" and "## Failure early warning" (scripts/primary_grid_sections.sh), from the primary grid kept
+#      in results/grids/robustness-reference and restored into a fresh folder (every run cut the same way).
 # Every run records the failure probes. Each step resumes where a killed one stopped: re-run the same command.
 # Many hours on 2 cores (about 2,160 episodes: 1,680 in the primary grid), longer than a machine lasts here: the runs
 # kept in results/grids/ (scripts/keep_grid_runs.py) are restored first, so a new machine runs only what they lack.
@@ -27,8 +28,8 @@ if [ ! -e results/robustness-reliance/nominal ] && [ -f results/robustness-wrist
   cp -a results/robustness-wrist/nominal results/robustness-reliance/nominal
 fi
 bash scripts/scene_reliance_reference.sh "$WORKERS"
-# the primary grid last: its section is regenerated already (session 32), while the two above have none yet; its
-# runs are what the early-warning section reads
-bash scripts/robustness_reference.sh Lift,Stack,PickPlaceCan camera,lighting,texture,distractors,init-state,noise,language \
+# the primary grid last; its runs are what the early-warning section reads
+RUN_ONLY=1 bash scripts/robustness_reference.sh Lift,Stack,PickPlaceCan camera,lighting,texture,distractors,init-state,noise,language \
     0,1,3,5 20 results/robustness-reference "$WORKERS"
-bash scripts/early_warning_reference.sh
+"$PY" scripts/keep_grid_runs.py keep results/robustness-reference results/grids/robustness-reference
+bash scripts/primary_grid_sections.sh

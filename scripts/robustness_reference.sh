@@ -11,7 +11,10 @@
 # (run first with camera,lighting,distractors, then extended with the other kinds: a grid folder grows)
 # Resumable: re-running the same command finishes what a killed grid left.
 # Every run records the two failure probes (issue 74: --readout-features-every 10 --action-consistency) for
-# `octo-harness diagnose` and EVAL.md's "## Failure early warning" section (scripts/early_warning_reference.sh).
+# `octo-harness diagnose` and EVAL.md's "## Failure early warning" section (scripts/primary_grid_sections.sh).
+# RUN_ONLY=1 runs the grid and writes no report or section (scripts/reference_grids.sh: the primary grid's sections
+# are rendered from its kept copy by scripts/primary_grid_sections.sh, since a grid resumed across machines mixes kept
+# runs, cut to the last layer, with full ones).
 # RELIANCE=N adds --reliance-every N to every run (issue 45) and writes EVAL.md's "## Reliance" section from the
 # nominal run; SECTION=TITLE writes the grid's table under "## TITLE" instead of "## Robustness" (a second grid, as
 # scripts/wrist_reliance_reference.sh).
@@ -47,6 +50,7 @@ SCRIPT="bash scripts/robustness_reference.sh $TASKS $KINDS $LEVELS $EPISODES"
 "$PY" -m harness.cli robustness --model "$MODEL" --task "$TASKS" --perturb "$KINDS" --levels "$LEVELS" \
     --episodes "$EPISODES" --seed 0 --fast-render --png-every 0 --no-video $PROBES --out "$OUT" "${workers[@]}" \
     "${measures[@]}"
+[ "${RUN_ONLY:-}" = 1 ] && exit 0
 runs=()
 for d in "$OUT"/*/; do [ -f "$d/manifest.json" ] && runs+=("$d"); done
 "$PY" -m harness.cli report "${runs[@]}" --out "$OUT/report"
