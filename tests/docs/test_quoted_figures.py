@@ -43,6 +43,21 @@ QUOTES = (
     ("docs/faithfulness.md", "0.55 [0.5, 0.61]", EVAL, r"^\| image_wrist \| 0\.55 \| \[0\.5, 0\.61\] \| 20 \|"),
     ("docs/faithfulness.md", "| PickPlaceCan | wrist | 0.028 / 0.31 | 0.18 / 0.19 | 0.54 / 0.35 |", EVAL,
      r"^\| image_wrist \| target \| 0\.028 \| 0\.31 \| 13\.9 \| 20 \|$"),
+    # the early-warning section (issue 74): the readout probe's AUROC at t = 10 and its difference from time and phase
+    ("README.md", "AUROC 0.74 (Lift), 0.70 (Stack) and 0.80 (PickPlaceCan), where time and phase give 0.50", EVAL,
+     r"^\| readout probe \| 0\.74 \[0\.61, 0\.86\], better \|"),
+    ("docs/diagnose.md", "| Lift | 131 of 560 | 0.74 [0.61, 0.86] | 0.50 | t = 10, 25, 50 and 100 (+0.24 [+0.11, +0.36] at t = 10) |",
+     EVAL, r"^Lift: better than time and phase: readout probe at t = 10 \(\+0\.24 \[\+0\.11, \+0\.36\]\); readout probe at t = 25 .*readout probe at t = 100"),
+    ("docs/diagnose.md", "| Stack | 291 of 560 | 0.70 [0.51, 0.86] | 0.50 | t = 10 only (+0.20 [+0.01, +0.36]) |", EVAL,
+     r"^Stack: better than time and phase: readout probe at t = 10 \(\+0\.20 \[\+0\.01, \+0\.36\]\)\.$"),
+    ("docs/diagnose.md", "| PickPlaceCan | 225 of 560 | 0.80 [0.57, 0.92] | 0.50 | t = 10 and 25 (+0.30 [+0.07, +0.42] at t = 10) |",
+     EVAL, r"^PickPlaceCan: better than time and phase: readout probe at t = 10 \(\+0\.30 \[\+0\.07, \+0\.42\]\); readout probe at t = 25 \([^)]*\)\.$"),
+    ("docs/diagnose.md", "| 0.70 [0.51, 0.86] | 0.50 |", EVAL, r"^\| readout probe \| 0\.70 \[0\.51, 0\.86\], better \|"),
+    ("docs/diagnose.md", "| 0.80 [0.57, 0.92] | 0.50 |", EVAL, r"^\| readout probe \| 0\.80 \[0\.57, 0\.92\], better \|"),
+    ("docs/diagnose.md", "with a median lead of -60 steps on Lift, -86 on Stack and -50 on", EVAL,
+     r"^\| readout probe \| 194/225 \(86%\) \| -50\.0 \|"),
+    ("docs/diagnose.md", "125 of Lift's 131 failures, 188 of Stack's 291", EVAL,
+     r"^\| approach \| 188 \| 0 \| 29 \|"),
 )
 
 
