@@ -19,7 +19,10 @@ from harness.octo.heads import FourierFeatures, TimeEncoder
 from tests.octo.recorded import load_expected, observations, task, threefry_flag
 
 ATTN_ATOL = 1e-5
-TOKEN_TOL = dict(atol=1e-5, rtol=1e-5)
+# Token values reach about 4, where float32 steps are 5e-7; after the stem and the layers, machines' numerics differ by
+# up to 1.3e-5 (measured on an AVX-512 EPYC at its default, AVX2 and SSE4_2 instruction sets: 1.18e-5, 1.18e-5,
+# 1.31e-5, against the recorded outputs), so 3e-5 leaves a margin
+TOKEN_TOL = dict(atol=3e-5, rtol=1e-5)
 ACTION_ATOL = 1e-4
 
 CASES = {  # case -> (model, expected file, task prefix, array prefix)
