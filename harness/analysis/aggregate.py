@@ -88,7 +88,9 @@ def _stack(summaries: list[EpisodeSummary], level: str, name: str, shape: tuple[
         value = getattr(s, level).get(name)
         if value is not None:
             if value.shape != shape:
-                raise ValueError(f"episode {i} has {name} of shape {value.shape}, others {shape}: mixed models in one task")
+                raise ValueError(f"episode {i} has {name} of shape {value.shape}, others {shape}: mixed models in one task, "
+                                 "or kept episodes (scripts/keep_grid_runs.py: the last layer only) beside full ones; "
+                                 "restore the kept copy into an empty folder and read that")
             out[i] = value
     return out
 

@@ -181,6 +181,15 @@ def test_aggregate_splits_by_outcome_and_skips_metrics_no_episode_has():
     assert rows["progress"][0][-3:] == (0, 0.0, 0.2)
 
 
+def test_episodes_of_other_layer_counts_are_one_line_naming_a_fresh_restore_of_kept_runs():
+    """A grid kept by scripts/keep_grid_runs.py (the last layer only) and finished after restoring holds both shapes in
+    one run; the refusal names that case and its fix, not only "mixed models"."""
+    cut = agg.EpisodeSummary(steps=4, layer={"entropy": np.array([1.0])}, head={}, progress={})
+    fix = r"of shape \(1,\), others \(2,\).*keep_grid_runs.*restore the kept copy into an empty folder"
+    with pytest.raises(ValueError, match=fix):
+        agg.aggregate_task([cut, _summary(1.0)], [True, False], "r", "Lift")
+
+
 def test_representative_is_closest_to_the_median():
     assert agg.representative_index(np.array([5.0, 1.0, 3.0, np.nan, 2.0])) == 2  # median 2.5: 3.0 and 2.0 tie -> first
     assert agg.representative_index(np.array([np.nan, np.nan])) == 0
