@@ -225,7 +225,12 @@ def test_sigint_while_the_command_starts_or_the_model_loads_exits_130_every_time
             seen += process.stderr.readline()
         time.sleep(delay)
         process.send_signal(signal.SIGINT)
-        _, err = process.communicate(timeout=TIMEOUT)
+        try:
+            _, err = process.communicate(timeout=TIMEOUT)
+        except subprocess.TimeoutExpired:  # once in a suite run (62 s, not reproduced in 80 tries): say where it hung
+            process.kill()
+            _, err = process.communicate()
+            pytest.fail(f"no exit {TIMEOUT} s after SIGINT ({when}, {delay} s): {(seen + err)[-1500:]}")
         codes.append(process.returncode)
         assert process.returncode == 130, (when, delay, process.returncode, (seen + err)[-1500:])
         assert "interrupted (SIGINT)" in err and "Traceback" not in err, (when, delay, err[-1500:])
