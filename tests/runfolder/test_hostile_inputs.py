@@ -227,7 +227,7 @@ def test_sigint_while_the_command_starts_or_the_model_loads_exits_130_every_time
         process.send_signal(signal.SIGINT)
         try:
             _, err = process.communicate(timeout=TIMEOUT)
-        except subprocess.TimeoutExpired:  # once in a suite run (62 s, not reproduced in 80 tries): say where it hung
+        except subprocess.TimeoutExpired:  # it failed once here after 62 s, cause not kept, 80 tries clean: say where
             process.kill()
             _, err = process.communicate()
             pytest.fail(f"no exit {TIMEOUT} s after SIGINT ({when}, {delay} s): {(seen + err)[-1500:]}")
